@@ -1,0 +1,40 @@
+# aoi3d — `make up` runs the whole pipeline locally, `make test` runs the tests.
+PYTHON ?= python3.11
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed-stamp
+PROTO_OUT := services/kit/pb
+
+.PHONY: install up test test-fast proto lint bench clean help
+
+help:  ## list the targets
+	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
+
+install: $(STAMP)  ## create the venv (if missing) and install aoi3d editable with dev extras
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e '.[dev]'
+	@touch $@
+
+up: install  ## generate the default scene if missing, run router + five services until Ctrl-C
+	$(VENV)/bin/aoi3d up $(UP_ARGS)
+
+test: install  ## the whole test suite (unit, services, integration)
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+test-fast: install  ## everything but the integration tests
+	$(PY) -m pytest -m "not integration" $(PYTEST_ARGS)
+
+proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
+	$(PY) -m grpc_tools.protoc -Iproto --python_out=$(PROTO_OUT) --pyi_out=$(PROTO_OUT) proto/aoi3d.proto
+
+lint: install  ## ruff
+	$(VENV)/bin/ruff check .
+
+bench: install  ## benchmarks (results under bench/results/)
+	$(PY) bench/channel.py
+
+clean:  ## remove caches and run logs (keeps the venv and the dataset)
+	rm -rf .pytest_cache .ruff_cache runs

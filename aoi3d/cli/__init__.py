@@ -1,0 +1,24 @@
+"""``aoi3d`` — the command line, the composition root for commands.
+
+Each command group lives in its own module and is mounted here.
+"""
+
+from __future__ import annotations
+
+import typer
+
+from aoi3d.cli import channel, scene, up
+
+app = typer.Typer(
+    name="aoi3d",
+    help="Timeliness–fidelity tradeoff in real-time 3D scene representation.",
+    no_args_is_help=True,
+    add_completion=False,
+)
+app.add_typer(scene.app, name="scene", help="Generate and inspect the synthetic dynamic scene.")
+app.add_typer(channel.app, name="channel", help="Simulate the cameras' D/G/1/0 uplinks and AoI.")
+app.command("up", help=up.up.__doc__)(up.up)
+
+
+def main() -> None:
+    app()

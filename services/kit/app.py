@@ -1,0 +1,96 @@
+"""The FastAPI app factory every service uses.
+
+``service_app`` gives each service ``/healthz``, ``/readyz`` and ``/metrics`` and a lifespan
+that opens the bus (Zenoh unless a bus is injected, as tests do), builds and starts the
+worker, and stops both on shutdown. Routes reach the worker through ``app.state.worker``.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator, Callable
+from contextlib import asynccontextmanager
+from typing import Protocol
+
+from fastapi import FastAPI, Request
+from fastapi.responses import JSONResponse, Response
+from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+
+from services.kit.bus import Bus, ZenohBus
+from services.kit.settings import ServiceSettings, zenoh_config
+
+log = logging.getLogger(__name__)
+
+
+class Worker(Protocol):
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def readiness(self) -> tuple[bool, str]:
+        """(ready, why not) — e.g. (False, "no frame delivered yet")."""
+        ...
+
+
+def get_worker(request: Request):
+    return request.app.state.worker
+
+
+def service_app(
+    *,
+    title: str,
+    description: str,
+    settings: ServiceSettings,
+    build_worker: Callable[[Bus, CollectorRegistry], Worker],
+    bus: Bus | None = None,
+    registry: CollectorRegistry | None = None,
+) -> FastAPI:
+    registry = registry or CollectorRegistry()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        own_bus = bus is None
+        the_bus = bus or ZenohBus(zenoh_config(settings.common))
+        worker = build_worker(the_bus, registry)
+        app.state.worker = worker
+        app.state.bus = the_bus
+        worker.start()
+        log.info("%s started (run %s)", title, settings.common.run_id)
+        try:
+            yield
+        finally:
+            worker.stop()
+            if own_bus:
+                the_bus.close()
+            log.info("%s stopped", title)
+
+    app = FastAPI(title=title, description=description, version="0.1.0", lifespan=lifespan)
+    app.state.registry = registry
+    app.state.settings = settings
+
+    @app.get("/healthz", tags=["ops"], summary="Liveness: the process serves requests.")
+    def healthz() -> dict[str, str]:
+        return {"status": "ok"}
+
+    @app.get("/readyz", tags=["ops"], summary="Readiness: the worker is connected and working.",
+             responses={503: {"description": "Not ready; the body says why."}})
+    def readyz(request: Request):
+        worker = getattr(request.app.state, "worker", None)
+        if worker is None:
+            return JSONResponse({"ready": False, "reason": "starting"}, status_code=503)
+        ok, why = worker.readiness()
+        return JSONResponse({"ready": ok, "reason": why}, status_code=200 if ok else 503)
+
+    @app.get("/metrics", tags=["ops"], summary="Prometheus metrics of this service.")
+    def metrics() -> Response:
+        return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
+
+    return app
+
+
+def serve(app: FastAPI, settings: ServiceSettings) -> None:
+    """Run the app with uvicorn until SIGINT/SIGTERM (uvicorn then runs the lifespan exit)."""
+    import uvicorn
+
+    uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning",
+                access_log=False)

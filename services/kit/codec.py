@@ -1,0 +1,199 @@
+"""Translation between protobuf messages (the wire) and domain values, with validation.
+
+Every ``decode_*`` raises :class:`Rejected` with a short reason label on bad input, so a
+worker can drop and count the message (``Rejections``) instead of crashing.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+from google.protobuf.message import DecodeError
+
+from aoi3d.scene.camera import Camera
+from services.kit.observe import Rejected
+from services.kit.pb import aoi3d_pb2 as pb
+
+PNG = pb.IMAGE_ENCODING_PNG
+RAW = pb.IMAGE_ENCODING_RAW_RGB8
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+# ---------------------------------------------------------------- parsing
+def _parse(cls, payload: bytes):
+    msg = cls()
+    try:
+        msg.ParseFromString(payload)
+    except (DecodeError, ValueError, RuntimeError) as err:
+        raise Rejected("malformed", f"not a valid {cls.__name__} message ({err})") from err
+    return msg
+
+
+def _finite(name: str, *values: float) -> None:
+    for v in values:
+        if not math.isfinite(v):
+            raise Rejected("non_finite", f"{name} is not finite ({v})")
+
+
+# ---------------------------------------------------------------- cameras
+def camera_to_pb(camera: Camera) -> tuple[pb.Pose, pb.Intrinsics]:
+    pose = pb.Pose(c2w=[float(x) for x in np.asarray(camera.c2w, dtype=np.float64).ravel()])
+    intr = pb.Intrinsics(fx=camera.fx, fy=camera.fy, cx=camera.cx, cy=camera.cy,
+                         width=camera.width, height=camera.height)
+    return pose, intr
+
+
+def camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
+    if len(pose.c2w) != 16:
+        raise Rejected("bad_pose", f"pose has {len(pose.c2w)} values, expected 16 (4x4)")
+    c2w = np.asarray(pose.c2w, dtype=np.float64).reshape(4, 4)
+    if not np.all(np.isfinite(c2w)):
+        raise Rejected("bad_pose", "pose contains NaN or infinity")
+    _finite("intrinsics", intr.fx, intr.fy, intr.cx, intr.cy)
+    if intr.width == 0 or intr.height == 0 or intr.fx <= 0 or intr.fy <= 0:
+        raise Rejected("bad_intrinsics",
+                       f"need positive focal and size, got {intr.fx}x{intr.fy} "
+                       f"{intr.width}x{intr.height}")
+    camera = Camera(c2w=c2w, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
+                    width=int(intr.width), height=int(intr.height))
+    try:
+        camera.validate()
+    except ValueError as err:
+        raise Rejected("bad_pose", str(err)) from err
+    return camera
+
+
+# ---------------------------------------------------------------- images
+def png_size(data: bytes) -> tuple[int, int]:
+    """(width, height) from a PNG's IHDR chunk, without decoding the image."""
+    if len(data) < 24 or not data.startswith(_PNG_SIGNATURE) or data[12:16] != b"IHDR":
+        raise Rejected("bad_image", "image bytes are not a PNG")
+    return struct.unpack(">II", data[16:24])
+
+
+def check_image(img: pb.Image) -> None:
+    """Cheap structural check: the encoded size matches the declared one."""
+    if img.encoding == PNG:
+        w, h = png_size(img.data)
+    elif img.encoding == RAW:
+        if len(img.data) != img.width * img.height * 3:
+            raise Rejected("image_size_mismatch",
+                           f"raw image has {len(img.data)} bytes, expected "
+                           f"{img.width}x{img.height}x3")
+        w, h = img.width, img.height
+    else:
+        raise Rejected("bad_image", f"unsupported image encoding {img.encoding}")
+    if (w, h) != (img.width, img.height):
+        raise Rejected("image_size_mismatch",
+                       f"image is {w}x{h} but the message says {img.width}x{img.height}")
+
+
+def decode_image(img: pb.Image) -> np.ndarray:
+    """uint8 H×W×3."""
+    check_image(img)
+    if img.encoding == RAW:
+        return np.frombuffer(img.data, dtype=np.uint8).reshape(img.height, img.width, 3)
+    from PIL import Image as PILImage
+
+    try:
+        with PILImage.open(io.BytesIO(img.data)) as im:
+            arr = np.asarray(im.convert("RGB"))
+    except Exception as err:  # truncated/corrupt PNG
+        raise Rejected("bad_image", f"PNG could not be decoded ({err})") from err
+    return arr
+
+
+def encode_png(image: np.ndarray) -> pb.Image:
+    from PIL import Image as PILImage
+
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    buf = io.BytesIO()
+    PILImage.fromarray(arr, "RGB").save(buf, format="PNG", compress_level=1)
+    return pb.Image(encoding=PNG, width=arr.shape[1], height=arr.shape[0], data=buf.getvalue())
+
+
+# ---------------------------------------------------------------- frames
+@dataclass(frozen=True)
+class FrameData:
+    """A validated frame: the camera and metadata decoded, the image still encoded."""
+
+    camera_id: int
+    sequence: int
+    generation_ms: float
+    scene_time_ms: float
+    send_ms: float
+    delivery_ms: float
+    camera: Camera
+    image: pb.Image
+
+    def rgb(self) -> np.ndarray:
+        return decode_image(self.image)
+
+
+def encode_frame(*, camera_id: int, sequence: int, generation_ms: float, scene_time_ms: float,
+                 camera: Camera, image: pb.Image, send_ms: float = 0.0,
+                 delivery_ms: float = 0.0) -> bytes:
+    pose, intr = camera_to_pb(camera)
+    return pb.Frame(camera_id=camera_id, sequence=sequence, generation_ms=generation_ms,
+                    scene_time_ms=scene_time_ms, send_ms=send_ms, delivery_ms=delivery_ms,
+                    pose=pose, intrinsics=intr, image=image).SerializeToString()
+
+
+def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = None
+                 ) -> FrameData:
+    """Parse and validate a Frame; ``camera_ids`` restricts the accepted cameras."""
+    msg = _parse(pb.Frame, payload)
+    if camera_ids is not None and msg.camera_id not in camera_ids:
+        raise Rejected("unknown_camera", f"camera id {msg.camera_id} is not part of this rig")
+    _finite("frame time", msg.generation_ms, msg.scene_time_ms, msg.send_ms, msg.delivery_ms)
+    if not msg.HasField("pose") or not msg.HasField("intrinsics") or not msg.HasField("image"):
+        raise Rejected("malformed", "frame lacks pose, intrinsics or image")
+    camera = camera_from_pb(msg.pose, msg.intrinsics)
+    check_image(msg.image)
+    if (msg.image.width, msg.image.height) != (camera.width, camera.height):
+        raise Rejected("image_size_mismatch",
+                       f"image is {msg.image.width}x{msg.image.height} but the intrinsics say "
+                       f"{camera.width}x{camera.height}")
+    return FrameData(camera_id=msg.camera_id, sequence=msg.sequence,
+                     generation_ms=msg.generation_ms, scene_time_ms=msg.scene_time_ms,
+                     send_ms=msg.send_ms, delivery_ms=msg.delivery_ms, camera=camera,
+                     image=msg.image)
+
+
+def with_delivery(payload: bytes, delivery_ms: float) -> bytes:
+    """The same frame with its delivery time set (the network service's stamp)."""
+    msg = _parse(pb.Frame, payload)
+    msg.delivery_ms = delivery_ms
+    return msg.SerializeToString()
+
+
+# ---------------------------------------------------------------- decisions, renders, quality
+def decode_decision(payload: bytes) -> pb.Decision:
+    msg = _parse(pb.Decision, payload)
+    _finite("decision time", msg.time_ms)
+    if len(msg.aoi_ms) != len(msg.camera_ids):
+        raise Rejected("malformed", f"{len(msg.aoi_ms)} AoI values for "
+                                    f"{len(msg.camera_ids)} cameras")
+    return msg
+
+
+def decode_render(payload: bytes) -> tuple[pb.Render, Camera]:
+    msg = _parse(pb.Render, payload)
+    _finite("render time", msg.time_ms)
+    camera = camera_from_pb(msg.pose, msg.intrinsics)
+    check_image(msg.image)
+    if (msg.image.width, msg.image.height) != (camera.width, camera.height):
+        raise Rejected("image_size_mismatch", "render size differs from its intrinsics")
+    return msg, camera
+
+
+def decode_quality(payload: bytes) -> pb.Quality:
+    msg = _parse(pb.Quality, payload)
+    _finite("quality time", msg.time_ms)
+    return msg

@@ -1,0 +1,60 @@
+"""Observability helpers: rejected-message accounting and logging set-up."""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+
+from prometheus_client import CollectorRegistry, Counter
+
+log = logging.getLogger("aoi3d.rejected")
+
+
+class Rejected(ValueError):
+    """A message that must be dropped; ``reason`` is a short label for metrics."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+        self.detail = detail
+
+
+class Rejections:
+    """Counts dropped messages in ``aoi3d_messages_rejected_total{reason}``.
+
+    Logs once per reason per ``log_interval_s`` (with how many were dropped since), so a
+    flood of bad input never floods the log.
+    """
+
+    def __init__(self, registry: CollectorRegistry, log_interval_s: float = 10.0) -> None:
+        self.counter = Counter(
+            "aoi3d_messages_rejected", "Messages dropped because they were invalid.",
+            ["reason"], registry=registry)
+        self._interval = log_interval_s
+        self._last: dict[str, float] = {}
+        self._since: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def reject(self, err: Rejected, key: str = "") -> None:
+        self.counter.labels(reason=err.reason).inc()
+        now = time.monotonic()
+        with self._lock:
+            self._since[err.reason] = self._since.get(err.reason, 0) + 1
+            last = self._last.get(err.reason)
+            if last is not None and now - last < self._interval:
+                return
+            count, self._since[err.reason] = self._since[err.reason], 0
+            self._last[err.reason] = now
+        log.warning("dropped %d message(s) [%s] on %s: %s", count, err.reason, key or "?",
+                    err.detail)
+
+    def total(self, reason: str) -> float:
+        return self.counter.labels(reason=reason)._value.get()
+
+
+def setup_logging(level: str, service: str) -> None:
+    logging.basicConfig(
+        level=getattr(logging, level.upper(), logging.INFO),
+        format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s",
+    )

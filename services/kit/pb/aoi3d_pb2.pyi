@@ -1,0 +1,145 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class ImageEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    IMAGE_ENCODING_UNSPECIFIED: _ClassVar[ImageEncoding]
+    IMAGE_ENCODING_PNG: _ClassVar[ImageEncoding]
+    IMAGE_ENCODING_RAW_RGB8: _ClassVar[ImageEncoding]
+IMAGE_ENCODING_UNSPECIFIED: ImageEncoding
+IMAGE_ENCODING_PNG: ImageEncoding
+IMAGE_ENCODING_RAW_RGB8: ImageEncoding
+
+class Intrinsics(_message.Message):
+    __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
+    FX_FIELD_NUMBER: _ClassVar[int]
+    FY_FIELD_NUMBER: _ClassVar[int]
+    CX_FIELD_NUMBER: _ClassVar[int]
+    CY_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    def __init__(self, fx: _Optional[float] = ..., fy: _Optional[float] = ..., cx: _Optional[float] = ..., cy: _Optional[float] = ..., width: _Optional[int] = ..., height: _Optional[int] = ...) -> None: ...
+
+class Pose(_message.Message):
+    __slots__ = ("c2w",)
+    C2W_FIELD_NUMBER: _ClassVar[int]
+    c2w: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, c2w: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Image(_message.Message):
+    __slots__ = ("encoding", "width", "height", "data")
+    ENCODING_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    encoding: ImageEncoding
+    width: int
+    height: int
+    data: bytes
+    def __init__(self, encoding: _Optional[_Union[ImageEncoding, str]] = ..., width: _Optional[int] = ..., height: _Optional[int] = ..., data: _Optional[bytes] = ...) -> None: ...
+
+class Frame(_message.Message):
+    __slots__ = ("camera_id", "sequence", "generation_ms", "scene_time_ms", "send_ms", "delivery_ms", "pose", "intrinsics", "image")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    GENERATION_MS_FIELD_NUMBER: _ClassVar[int]
+    SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    SEND_MS_FIELD_NUMBER: _ClassVar[int]
+    DELIVERY_MS_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_FIELD_NUMBER: _ClassVar[int]
+    camera_id: int
+    sequence: int
+    generation_ms: float
+    scene_time_ms: float
+    send_ms: float
+    delivery_ms: float
+    pose: Pose
+    intrinsics: Intrinsics
+    image: Image
+    def __init__(self, camera_id: _Optional[int] = ..., sequence: _Optional[int] = ..., generation_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., send_ms: _Optional[float] = ..., delivery_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ...) -> None: ...
+
+class FrameRef(_message.Message):
+    __slots__ = ("camera_id", "sequence", "generation_ms", "aoi_ms")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    GENERATION_MS_FIELD_NUMBER: _ClassVar[int]
+    AOI_MS_FIELD_NUMBER: _ClassVar[int]
+    camera_id: int
+    sequence: int
+    generation_ms: float
+    aoi_ms: float
+    def __init__(self, camera_id: _Optional[int] = ..., sequence: _Optional[int] = ..., generation_ms: _Optional[float] = ..., aoi_ms: _Optional[float] = ...) -> None: ...
+
+class Decision(_message.Message):
+    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy")
+    DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    AOI_MS_FIELD_NUMBER: _ClassVar[int]
+    SELECTED_FIELD_NUMBER: _ClassVar[int]
+    POLICY_FIELD_NUMBER: _ClassVar[int]
+    decision_id: int
+    time_ms: float
+    camera_ids: _containers.RepeatedScalarFieldContainer[int]
+    aoi_ms: _containers.RepeatedScalarFieldContainer[float]
+    selected: _containers.RepeatedCompositeFieldContainer[FrameRef]
+    policy: str
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ...) -> None: ...
+
+class Render(_message.Message):
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend")
+    DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_FIELD_NUMBER: _ClassVar[int]
+    TRAINING_STEP_FIELD_NUMBER: _ClassVar[int]
+    N_VIEWS_FIELD_NUMBER: _ClassVar[int]
+    BACKEND_FIELD_NUMBER: _ClassVar[int]
+    decision_id: int
+    time_ms: float
+    pose: Pose
+    intrinsics: Intrinsics
+    image: Image
+    training_step: int
+    n_views: int
+    backend: str
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ...) -> None: ...
+
+class Quality(_message.Message):
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms")
+    DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    PSNR_DB_FIELD_NUMBER: _ClassVar[int]
+    SSIM_FIELD_NUMBER: _ClassVar[int]
+    LPIPS_FIELD_NUMBER: _ClassVar[int]
+    REWARD_FIELD_NUMBER: _ClassVar[int]
+    REWARD_TERMS_FIELD_NUMBER: _ClassVar[int]
+    TRAINING_STEP_FIELD_NUMBER: _ClassVar[int]
+    TRUTH_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    decision_id: int
+    time_ms: float
+    scene_time_ms: float
+    psnr_db: float
+    ssim: float
+    lpips: float
+    reward: float
+    reward_terms: _containers.RepeatedScalarFieldContainer[str]
+    training_step: int
+    truth_time_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ...) -> None: ...

@@ -1,0 +1,84 @@
+"""Settings shared by every service (env prefix ``AOI3D_``) and the Zenoh config built from them.
+
+Each service adds its own ``Settings`` with a per-service prefix (``AOI3D_CAMERA_`` …) and
+holds a ``CommonSettings`` for what all processes of one run must agree on.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+Endpoints = Annotated[list[str], NoDecode]
+
+
+def _split_endpoints(value: object) -> object:
+    """Accept a JSON list or a comma-separated string (friendlier in compose files)."""
+    if isinstance(value, str):
+        text = value.strip()
+        if text.startswith("["):
+            return json.loads(text)
+        return [part.strip() for part in text.split(",") if part.strip()]
+    return value
+
+
+class CommonSettings(BaseSettings):
+    """What every process of one run shares. Environment variables: ``AOI3D_<FIELD>``."""
+
+    model_config = SettingsConfigDict(env_prefix="AOI3D_", extra="ignore")
+
+    run_id: str = Field("default", pattern=r"^[A-Za-z0-9_\-]+$",
+                        description="Run id: the <run> segment of every key expression.")
+    zenoh_mode: Literal["client", "peer"] = Field(
+        "client", description="Zenoh session mode of the services (the router is separate).")
+    zenoh_connect: Endpoints = Field(
+        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        description="Zenoh endpoints to connect to (comma-separated or JSON list).")
+    zenoh_listen: Endpoints = Field(default_factory=list,
+                                    description="Zenoh endpoints to listen on (peer mode).")
+    cameras: int = Field(18, ge=1, le=256,
+                         description="Training cameras N (ids 1..N; id 0 is the held-out view).")
+    time_scale: float = Field(0.1, gt=0, le=10,
+                              description="Simulation seconds per wall second (shared clock).")
+    epoch_s: float = Field(0.0, ge=0,
+                           description="Wall time (Unix s) at which simulation time is 0.")
+    dataset: Path = Field(Path("data/turbine"), description="Scene dataset folder.")
+    log_level: str = Field("INFO", description="Python logging level.")
+
+    _split = field_validator("zenoh_connect", "zenoh_listen", mode="before")(
+        classmethod(lambda cls, v: _split_endpoints(v)))
+
+
+class ServiceSettings(BaseSettings):
+    """Base of each service's settings: where its REST API listens."""
+
+    model_config = SettingsConfigDict(extra="ignore")
+
+    host: str = Field("127.0.0.1", description="Address the REST API binds to.")
+    port: int = Field(0, ge=0, le=65535, description="REST API port.")
+    common: CommonSettings = Field(default_factory=CommonSettings)
+
+
+def zenoh_config(common: CommonSettings, *, mode: str | None = None,
+                 listen: list[str] | None = None, connect: list[str] | None = None):
+    """Build a ``zenoh.Config``: explicit endpoints, multicast scouting off."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps(mode or common.zenoh_mode))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conn = common.zenoh_connect if connect is None else connect
+    lst = common.zenoh_listen if listen is None else listen
+    if conn:
+        conf.insert_json5("connect/endpoints", json.dumps(conn))
+    if lst:
+        conf.insert_json5("listen/endpoints", json.dumps(lst))
+    return conf
+
+
+def repo_root() -> Path:
+    return Path(__file__).resolve().parents[2]
