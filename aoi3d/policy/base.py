@@ -1,0 +1,177 @@
+"""The policy interface, its errors, and the registry of policy kinds.
+
+A policy looks at the AoI vector Δ(t) (ms, NaN = unknown) at a decision time and selects the
+cameras whose newest frames the trainer uses. Every policy has a canonical text spec
+(``mat:51``) and a JSON form (``{"kind": "mat", "mat_ms": 51}``); both round-trip through
+``parse_policy`` / ``policy_from_json``.
+
+A new kind (e.g. ``ppo``, a torch model over the AoI vector, or ``wait:<ms>``) plugs in by
+implementing ``Policy`` and calling ``register_policy(PolicyKind(...))``; nothing here changes.
+Stateful policies clear their per-episode state in ``reset()``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, runtime_checkable
+
+import numpy as np
+
+
+class PolicySpecError(ValueError):
+    """A policy spec or JSON form is invalid; the message lists the accepted forms."""
+
+    def __init__(self, problem: str, spec: object = None) -> None:
+        where = f"bad policy spec {spec!r}: " if spec is not None else "bad policy: "
+        super().__init__(f"{where}{problem}. Accepted forms: {', '.join(ACCEPTED_FORMS)}.")
+        self.problem = problem
+        self.spec = spec
+
+
+@runtime_checkable
+class Policy(Protocol):
+    """Selects cameras from the AoI vector. NaN (unknown) AoI is never selected."""
+
+    @property
+    def kind(self) -> str: ...
+
+    @property
+    def spec(self) -> str: ...
+
+    def select(self, aoi_ms: np.ndarray) -> np.ndarray:
+        """Boolean mask over the cameras of ``aoi_ms`` (same order)."""
+        ...
+
+    def to_json(self) -> dict[str, Any]:
+        """The REST form, ``{"kind": ..., <params>}``."""
+        ...
+
+    def reset(self) -> None:
+        """Start a new episode (no-op for stateless policies)."""
+        ...
+
+
+def as_aoi_vector(aoi_ms: np.ndarray | Sequence[float]) -> np.ndarray:
+    """The AoI vector as a 1-D float64 array; ``ValueError`` for any other shape."""
+    arr = np.asarray(aoi_ms, dtype=np.float64)
+    if arr.ndim != 1:
+        raise ValueError(f"aoi_ms must be a 1-D vector (one AoI per camera), got {arr.shape}")
+    return arr
+
+
+@dataclass(frozen=True)
+class PolicyKind:
+    """How to build one kind of policy from its spec fields and from its JSON form."""
+
+    kind: str
+    form: str  # as shown to users, e.g. "mat:<ms>"
+    from_args: Callable[[list[str]], Policy]  # the spec's fields after "kind:"
+    from_json: Callable[[Mapping[str, Any]], Policy]  # the JSON object without "kind"
+
+
+_REGISTRY: dict[str, PolicyKind] = {}
+#: The accepted spec forms, in registration order (kept in step with ``register_policy``).
+ACCEPTED_FORMS: list[str] = []
+
+
+def register_policy(kind: PolicyKind) -> None:
+    """Make a policy kind known to ``parse_policy`` and ``policy_from_json``."""
+    if kind.kind in _REGISTRY:
+        raise ValueError(f"policy kind {kind.kind!r} is already registered")
+    _REGISTRY[kind.kind] = kind
+    ACCEPTED_FORMS.append(kind.form)
+
+
+def parse_policy(spec: str | Policy) -> Policy:
+    """Build a policy from its spec (``all``, ``mat:51``, ``freshest:6``, …); a policy passes
+    through. Raises ``PolicySpecError`` (a ``ValueError``) listing the accepted forms."""
+    if isinstance(spec, Policy) and not isinstance(spec, str):
+        return spec
+    if not isinstance(spec, str):
+        raise PolicySpecError(f"expected a string, got {type(spec).__name__}", spec)
+    text = spec.strip()
+    if not text:
+        raise PolicySpecError("empty spec", spec)
+    kind, *fields = (part.strip() for part in text.split(":"))
+    entry = _REGISTRY.get(kind.lower())
+    if entry is None:
+        raise PolicySpecError(f"unknown kind {kind!r}", spec)
+    try:
+        return entry.from_args(fields)
+    except PolicySpecError as err:
+        raise PolicySpecError(err.problem, spec) from None
+
+
+def policy_from_json(data: Mapping[str, Any]) -> Policy:
+    """Build a policy from its REST form, e.g. ``{"kind": "mat", "mat_ms": 51}``."""
+    if not isinstance(data, Mapping):
+        raise PolicySpecError(f"expected a JSON object, got {type(data).__name__}", data)
+    kind = data.get("kind")
+    if not isinstance(kind, str):
+        raise PolicySpecError('missing or non-string "kind"', dict(data))
+    entry = _REGISTRY.get(kind.lower())
+    if entry is None:
+        raise PolicySpecError(f"unknown kind {kind!r}", dict(data))
+    params = {k: v for k, v in data.items() if k != "kind"}
+    try:
+        return entry.from_json(params)
+    except PolicySpecError as err:
+        raise PolicySpecError(err.problem, dict(data)) from None
+
+
+# Helpers for kinds' parsers: each raises PolicySpecError with a precise problem.
+
+
+def expect_fields(kind: str, fields: list[str], names: Sequence[str]) -> list[str]:
+    if len(fields) != len(names):
+        form = ":".join([kind, *(f"<{n}>" for n in names)])
+        raise PolicySpecError(f"{kind} takes {len(names)} parameter(s) ({form}), got {len(fields)}")
+    return fields
+
+
+def expect_keys(kind: str, params: Mapping[str, Any], keys: Sequence[str]) -> None:
+    missing = [k for k in keys if k not in params]
+    extra = sorted(k for k in params if k not in keys)
+    if missing:
+        raise PolicySpecError(f"{kind} needs key(s) {missing}")
+    if extra:
+        raise PolicySpecError(f"{kind} does not take key(s) {extra}")
+
+
+def format_number(x: float) -> str:
+    """Shortest round-tripping text of ``x``: ``51`` rather than ``51.0``."""
+    x = float(x)
+    return str(int(x)) if x.is_integer() and abs(x) < 1e15 else repr(x)
+
+
+def number(name: str, value: Any, *, minimum: float = -math.inf) -> float:
+    """A finite number >= ``minimum`` (a spec field or a JSON number; not a bool)."""
+    x: float
+    if isinstance(value, str):
+        try:
+            x = float(value)
+        except ValueError:
+            raise PolicySpecError(f"{name} must be a number, got {value!r}") from None
+    elif isinstance(value, int | float | np.integer | np.floating) and not isinstance(
+        value, bool
+    ):
+        x = float(value)
+    else:
+        raise PolicySpecError(f"{name} must be a number, got {value!r}")
+    if not math.isfinite(x):
+        raise PolicySpecError(f"{name} must be finite, got {value!r}")
+    if x < minimum:
+        raise PolicySpecError(f"{name} must be >= {minimum:g}, got {value!r}")
+    return x
+
+
+def integer(name: str, value: Any, *, minimum: int = 0) -> int:
+    """A whole number >= ``minimum`` (``"6"``, ``6`` or ``6.0``; not ``6.5`` or a bool)."""
+    x = number(name, value)
+    if not x.is_integer():
+        raise PolicySpecError(f"{name} must be a whole number, got {value!r}")
+    if x < minimum:
+        raise PolicySpecError(f"{name} must be >= {minimum}, got {value!r}")
+    return int(x)
