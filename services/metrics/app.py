@@ -1,0 +1,137 @@
+"""REST API of the metrics service: the quality history of the rendered novel view."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, Query
+from pydantic import BaseModel, Field
+
+from aoi3d.clock import SimClock
+from aoi3d.quality import LpipsFn
+from services.kit.app import get_worker, service_app
+from services.kit.bus import Bus
+from services.metrics.settings import Settings
+from services.metrics.worker import MetricsWorker, QualityRecord, mean_or_none
+
+DESCRIPTION = """\
+Scores each render of the held-out novel view against the ground-truth frame of the same
+time (PSNR, SSIM; LPIPS once available) and publishes a `Quality` message per render.
+
+Pairing: the truth frame generated exactly at the render's time t, else the newest generated
+within one generation period before t; otherwise the render is dropped and counted in
+`aoi3d_messages_rejected_total{reason="no_truth"}`.
+"""
+
+Metrics = Annotated[MetricsWorker, Depends(get_worker)]
+
+
+class QualityEntry(BaseModel):
+    """One scored render."""
+
+    decision_id: int = Field(description="Decision whose selection the model was trained on.",
+                             examples=[42])
+    time_ms: float = Field(description="The render's time t (the decision epoch), sim ms.",
+                           examples=[1260.0])
+    truth_time_ms: float = Field(description="Generation time of the ground-truth frame used.",
+                                 examples=[1260.0])
+    scene_time_ms: float = Field(description="Scene time shown by the ground-truth frame.",
+                                 examples=[260.0])
+    psnr_db: float = Field(description="PSNR in dB (data range 1; 100 dB for identical images).",
+                           examples=[24.3])
+    ssim: float = Field(description="Mean SSIM (11x11 Gaussian window, sigma 1.5).",
+                        examples=[0.81])
+    lpips: float | None = Field(description="LPIPS distance; null while LPIPS is unavailable "
+                                            "(never 0).", examples=[None])
+    reward: float = Field(description="Weighted sum of the terms in reward_terms.",
+                          examples=[0.891])
+    reward_terms: list[str] = Field(description="Metrics the reward was built from.",
+                                    examples=[["psnr", "ssim"]])
+    training_step: int = Field(description="Trainer step count when rendered.", examples=[5120])
+    n_views: int = Field(description="Frames in the training set when rendered.", examples=[12])
+    backend: str = Field(description="Radiance-field backend that rendered.", examples=["grid"])
+    lag_ms: float = Field(description="Sim ms between t and the scoring of the render.",
+                          examples=[180.0])
+
+    @classmethod
+    def of(cls, record: QualityRecord) -> QualityEntry:
+        return cls(decision_id=record.decision_id, time_ms=record.time_ms,
+                   truth_time_ms=record.truth_time_ms, scene_time_ms=record.scene_time_ms,
+                   psnr_db=record.psnr_db, ssim=record.ssim, lpips=record.lpips,
+                   reward=record.reward, reward_terms=list(record.reward_terms),
+                   training_step=record.training_step, n_views=record.n_views,
+                   backend=record.backend, lag_ms=record.lag_ms)
+
+
+class QualitySummary(BaseModel):
+    """Totals since start and means over the returned history."""
+
+    scored_total: int = Field(description="Renders scored since the service started.",
+                              examples=[310])
+    rejected_no_truth_total: int = Field(
+        description="Renders dropped because no ground-truth frame matched their time.",
+        examples=[2])
+    window: int = Field(description="Entries the means are taken over (the history returned).",
+                        examples=[50])
+    lpips_available: bool = Field(description="Whether LPIPS is computed.", examples=[False])
+    reward_terms: list[str] = Field(description="Metrics the reward is built from now.",
+                                    examples=[["psnr", "ssim"]])
+    mean_psnr_db: float | None = Field(description="Mean PSNR over the window; null if empty.",
+                                       examples=[24.1])
+    mean_ssim: float | None = Field(description="Mean SSIM over the window; null if empty.",
+                                    examples=[0.8])
+    mean_lpips: float | None = Field(
+        description="Mean LPIPS over the window; null if empty or LPIPS unavailable.",
+        examples=[None])
+    mean_reward: float | None = Field(description="Mean reward over the window; null if empty.",
+                                      examples=[0.88])
+
+
+class QualityResponse(BaseModel):
+    summary: QualitySummary
+    history: list[QualityEntry] = Field(description="Most recent results, oldest first.")
+
+
+quality_router = APIRouter(prefix="/quality", tags=["quality"])
+
+
+@quality_router.get("", summary="Recent quality of the novel view, with a summary.")
+def get_quality(
+    worker: Metrics,
+    limit: Annotated[int, Query(ge=1, le=1_000_000,
+                                description="How many of the most recent results to return.")
+                     ] = 50,
+) -> QualityResponse:
+    records = worker.history(limit)
+    summary = QualitySummary(
+        scored_total=worker.scored_total,
+        rejected_no_truth_total=int(worker.rejections.total("no_truth")),
+        window=len(records),
+        lpips_available=worker.lpips_available,
+        reward_terms=list(worker.reward_terms),
+        mean_psnr_db=mean_or_none([r.psnr_db for r in records]),
+        mean_ssim=mean_or_none([r.ssim for r in records]),
+        mean_lpips=mean_or_none([r.lpips for r in records]),
+        mean_reward=mean_or_none([r.reward for r in records]),
+    )
+    return QualityResponse(summary=summary, history=[QualityEntry.of(r) for r in records])
+
+
+def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
+               clock: SimClock | None = None, lpips_fn: LpipsFn | None = None) -> FastAPI:
+    """The metrics service; ``bus``/``clock`` default to Zenoh and the shared clock."""
+    settings = settings or Settings()
+    common = settings.common
+    clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
+
+    def build_worker(the_bus: Bus, registry) -> MetricsWorker:
+        return MetricsWorker(
+            the_bus, registry, run_id=common.run_id, clock=clock,
+            truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
+            history=settings.history, inbox_size=settings.inbox_size,
+            weights=settings.reward_weights(), lpips_fn=lpips_fn)
+
+    app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
+                      build_worker=build_worker, bus=bus)
+    app.include_router(quality_router)
+    return app

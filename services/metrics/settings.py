@@ -1,0 +1,46 @@
+"""Settings of the metrics service (environment prefix ``AOI3D_METRICS_``)."""
+
+from __future__ import annotations
+
+from pydantic import Field
+from pydantic_settings import SettingsConfigDict
+
+from aoi3d.quality import RewardWeights
+from services.kit.settings import ServiceSettings
+
+_DEFAULT_WEIGHTS = RewardWeights()
+
+
+class Settings(ServiceSettings):
+    """The metrics service: scores each render of the novel view against its ground truth."""
+
+    model_config = SettingsConfigDict(env_prefix="AOI3D_METRICS_", extra="ignore")
+
+    port: int = Field(8105, ge=0, le=65535, description="REST API port.")
+    truth_period_ms: float = Field(
+        30.0, gt=0, le=60_000,
+        description="Generation period C of the ground-truth frames in sim ms. A render at t "
+                    "without a truth frame generated exactly at t is paired with the newest "
+                    "truth frame generated in [t - C, t].")
+    truth_frames: int = Field(
+        512, ge=1, le=100_000,
+        description="Ground-truth frames kept (still encoded), newest first out last.")
+    history: int = Field(
+        1000, ge=1, le=1_000_000, description="Quality results kept for GET /quality.")
+    inbox_size: int = Field(
+        256, ge=1, le=100_000,
+        description="Messages queued between the bus and the scoring thread (oldest dropped).")
+    reward_psnr: float = Field(
+        _DEFAULT_WEIGHTS.psnr, allow_inf_nan=False,
+        description="Reward weight of the PSNR term (per dB).")
+    reward_ssim: float = Field(
+        _DEFAULT_WEIGHTS.ssim, allow_inf_nan=False, description="Reward weight of the SSIM term.")
+    reward_lpips: float = Field(
+        _DEFAULT_WEIGHTS.lpips, allow_inf_nan=False,
+        description="Reward weight of the LPIPS term (negative: lower LPIPS is better); "
+                    "unused while LPIPS is unavailable.")
+
+    def reward_weights(self) -> RewardWeights:
+        """The reward weights as the domain's :class:`RewardWeights`."""
+        return RewardWeights(psnr=self.reward_psnr, ssim=self.reward_ssim,
+                             lpips=self.reward_lpips)

@@ -1,0 +1,192 @@
+"""REST API of the scheduler service: the selection policy, the AoI vector, the last decision."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
+from pydantic import BaseModel, ConfigDict, Field
+
+from aoi3d.clock import SimClock
+from aoi3d.policy import ACCEPTED_FORMS, Policy, PolicySpecError, parse_policy, policy_from_json
+from services.kit.app import get_worker, service_app
+from services.kit.bus import Bus
+from services.scheduler.settings import Settings
+from services.scheduler.worker import SchedulerWorker, check_policy_fits
+
+DESCRIPTION = """\
+Tracks the Age of Information (AoI) of every training camera from the frames the network
+delivers and, every decision period, applies the selection policy to the AoI vector and
+publishes a `Decision` (the frames the trainer uses).
+
+Policies: `{"kind": "all"}`, `{"kind": "mat", "mat_ms": 51}` (use camera n iff its AoI is
+below the maximum acceptable AoI Γ = mat_ms), `{"kind": "freshest", "k": 6}` (the k cameras
+with the smallest AoI). A new policy is used from the next decision on.
+"""
+
+Scheduler = Annotated[SchedulerWorker, Depends(get_worker)]
+
+
+def _none_if_nan(x: float) -> float | None:
+    return None if math.isnan(x) else float(x)
+
+
+# ---------------------------------------------------------------- /policy
+class PolicyRequest(BaseModel):
+    """A policy in its JSON form; the parameters depend on ``kind``."""
+
+    model_config = ConfigDict(extra="allow")
+
+    kind: str = Field(description="Policy kind: all, mat or freshest.", examples=["mat"])
+    mat_ms: float | None = Field(
+        None, description="kind mat: the maximum acceptable AoI Γ in ms (finite, >= 0); "
+                          "camera n is used iff its AoI < mat_ms. 0 selects no camera.",
+        examples=[51])
+    k: int | None = Field(
+        None, description="kind freshest: how many cameras (those with the smallest AoI) to "
+                          "use, 0..N.", examples=[6])
+    spec: str | None = Field(None, description="Read-only (responses); ignored in requests.")
+    accepted_forms: list[str] | None = Field(
+        None, description="Read-only (responses); ignored in requests.")
+
+
+class PolicyResponse(BaseModel):
+    """The policy in force (or from the next decision on, after a PUT)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    kind: str = Field(description="Policy kind.", examples=["mat"])
+    mat_ms: float | None = Field(None, description="kind mat: Γ in ms.", examples=[51])
+    k: int | None = Field(None, description="kind freshest: cameras used.", examples=[None])
+    spec: str = Field(description="The policy's text spec (as in the Decision messages).",
+                      examples=["mat:51"])
+    accepted_forms: list[str] = Field(description="Text forms of every known policy kind.",
+                                      examples=[["all", "mat:<ms>", "freshest:<k>"]])
+
+    @classmethod
+    def of(cls, policy: Policy) -> PolicyResponse:
+        return cls(**policy.to_json(), spec=policy.spec, accepted_forms=list(ACCEPTED_FORMS))
+
+
+policy_router = APIRouter(prefix="/policy", tags=["policy"])
+_READ_ONLY = {"spec", "accepted_forms"}  # response fields, so a GET body can be PUT back
+
+_POLICY_EXAMPLES = {
+    "mat": {"summary": "MAT with Γ = 51 ms", "value": {"kind": "mat", "mat_ms": 51}},
+    "all": {"summary": "Every camera with a known AoI", "value": {"kind": "all"}},
+    "freshest": {"summary": "The 6 freshest cameras", "value": {"kind": "freshest", "k": 6}},
+}
+
+
+@policy_router.get("", summary="The selection policy in force.",
+                   response_model_exclude_none=True)
+def get_policy(worker: Scheduler) -> PolicyResponse:
+    return PolicyResponse.of(worker.policy)
+
+
+@policy_router.put(
+    "", summary="Replace the selection policy (used from the next decision on).",
+    response_model_exclude_none=True,
+    responses={422: {"description": "Invalid policy; the detail says what is wrong and lists "
+                                    "the accepted forms."}})
+def put_policy(
+    worker: Scheduler,
+    body: Annotated[PolicyRequest, Body(openapi_examples=_POLICY_EXAMPLES)],
+) -> PolicyResponse:
+    data: dict[str, Any] = body.model_dump(exclude_none=True, exclude=_READ_ONLY)
+    try:
+        policy = policy_from_json(data)
+        check_policy_fits(policy, len(worker.camera_ids))
+    except PolicySpecError as err:
+        raise HTTPException(status_code=422, detail=str(err)) from None
+    worker.set_policy(policy)
+    return PolicyResponse.of(policy)
+
+
+# ---------------------------------------------------------------- /aoi
+class AoIResponse(BaseModel):
+    """The AoI vector now, from the frames delivered so far."""
+
+    time_ms: float = Field(description="Sim time t of the vector (now).", examples=[12030.0])
+    camera_ids: list[int] = Field(description="Training cameras, in vector order.",
+                                  examples=[[1, 2, 3]])
+    aoi_ms: list[float | None] = Field(
+        description="AoI t − U_n per camera in ms; null where no frame was delivered yet.",
+        examples=[[41.0, None, 95.0]])
+    newest_ms: list[float | None] = Field(
+        description="Generation time U_n of each camera's newest delivered frame; null if none.",
+        examples=[[11989.0, None, 11935.0]])
+
+
+aoi_router = APIRouter(prefix="/aoi", tags=["aoi"])
+
+
+@aoi_router.get("", summary="The current AoI vector (null = unknown).")
+def get_aoi(worker: Scheduler) -> AoIResponse:
+    snap = worker.aoi()
+    return AoIResponse(time_ms=snap.time_ms, camera_ids=list(snap.camera_ids),
+                       aoi_ms=[_none_if_nan(a) for a in snap.aoi_ms],
+                       newest_ms=[_none_if_nan(u) for u in snap.newest_ms])
+
+
+# ---------------------------------------------------------------- /decision
+class FrameRefModel(BaseModel):
+    camera_id: int = Field(description="Camera of the selected frame.", examples=[3])
+    sequence: int = Field(description="The frame's per-camera sequence number.", examples=[401])
+    generation_ms: float = Field(description="The frame's generation time U_n.",
+                                 examples=[12000.0])
+    aoi_ms: float = Field(description="Its AoI at the decision time.", examples=[30.0])
+
+
+class DecisionResponse(BaseModel):
+    """The latest published decision."""
+
+    decision_id: int = Field(description="Increasing id of the decision.", examples=[401])
+    time_ms: float = Field(description="Decision epoch t (sim ms).", examples=[12030.0])
+    camera_ids: list[int] = Field(description="Cameras of the AoI vector.", examples=[[1, 2, 3]])
+    aoi_ms: list[float | None] = Field(description="AoI at t per camera; null = unknown.",
+                                       examples=[[30.0, None, 95.0]])
+    selected: list[FrameRefModel] = Field(description="Frames chosen for training.")
+    policy: str = Field(description="Spec of the policy that decided.", examples=["mat:51"])
+
+
+decision_router = APIRouter(prefix="/decision", tags=["decision"])
+
+
+@decision_router.get("", summary="The latest decision.",
+                     responses={404: {"description": "No decision was taken yet."}})
+def get_decision(worker: Scheduler) -> DecisionResponse:
+    msg = worker.last_decision
+    if msg is None:
+        raise HTTPException(status_code=404, detail="no decision was taken yet; the first comes "
+                                                    "at the next decision epoch")
+    return DecisionResponse(
+        decision_id=msg.decision_id, time_ms=msg.time_ms, camera_ids=list(msg.camera_ids),
+        aoi_ms=[_none_if_nan(a) for a in msg.aoi_ms],
+        selected=[FrameRefModel(camera_id=r.camera_id, sequence=r.sequence,
+                                generation_ms=r.generation_ms, aoi_ms=r.aoi_ms)
+                  for r in msg.selected],
+        policy=msg.policy)
+
+
+def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
+               clock: SimClock | None = None) -> FastAPI:
+    """The scheduler service; ``bus``/``clock`` default to Zenoh and the shared clock."""
+    settings = settings or Settings()
+    common = settings.common
+    clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
+    policy = parse_policy(settings.policy)
+    check_policy_fits(policy, common.cameras)  # fail at start-up, not at the first decision
+
+    def build_worker(the_bus: Bus, registry) -> SchedulerWorker:
+        return SchedulerWorker(the_bus, registry, run_id=common.run_id,
+                               n_cameras=common.cameras, clock=clock, policy=policy,
+                               decision_period_ms=settings.decision_period_ms,
+                               inbox_size=settings.inbox_size)
+
+    app = service_app(title="aoi3d scheduler", description=DESCRIPTION, settings=settings,
+                      build_worker=build_worker, bus=bus)
+    for router in (policy_router, aoi_router, decision_router):
+        app.include_router(router)
+    return app

@@ -1,0 +1,255 @@
+"""The metrics service: render ↔ ground-truth pairing, the Quality messages, /quality, /metrics."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+
+from aoi3d.clock import SimClock
+from aoi3d.quality import psnr, ssim
+from aoi3d.scene.camera import Camera, look_at
+from services.kit.bus import MemoryBus
+from services.kit.codec import camera_to_pb, decode_image, decode_quality, encode_frame, encode_png
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.settings import CommonSettings
+from services.metrics.app import create_app
+from services.metrics.settings import Settings
+from services.metrics.worker import TruthFrame, TruthRing
+
+RUN = "test-metrics"
+KEYS = Keys(RUN)
+W, H = 24, 18
+PERIOD_MS = 30.0
+
+
+def _camera(width: int = W, height: int = H) -> Camera:
+    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
+                  cx=width / 2, cy=height / 2, width=width, height=height)
+
+
+def truth_image(gen_ms: float) -> np.ndarray:
+    """A smooth image that differs from one generation time to the next."""
+    yy, xx = np.mgrid[0:H, 0:W]
+    phase = gen_ms / 100.0
+    img = np.stack([0.5 + 0.4 * np.sin(xx / 3.0 + phase), 0.5 + 0.4 * np.cos(yy / 4.0 - phase),
+                    (xx + yy) / (H + W)], axis=-1)
+    return (img * 255 + 0.5).astype(np.uint8)
+
+
+def noisy(img: np.ndarray, seed: int, sigma: float = 12.0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return np.clip(img + rng.normal(0, sigma, img.shape), 0, 255).astype(np.uint8)
+
+
+def truth(gen_ms: float, *, camera_id: int = 0, image: np.ndarray | None = None) -> bytes:
+    img = truth_image(gen_ms) if image is None else image
+    cam = _camera(img.shape[1], img.shape[0])
+    return encode_frame(camera_id=camera_id, sequence=int(gen_ms // PERIOD_MS),
+                        generation_ms=gen_ms, scene_time_ms=gen_ms % 1000.0, camera=cam,
+                        image=encode_png(img), send_ms=gen_ms)
+
+
+def render(time_ms: float, image: np.ndarray, *, decision_id: int = 7, step: int = 1234
+           ) -> bytes:
+    pose, intr = camera_to_pb(_camera(image.shape[1], image.shape[0]))
+    return pb.Render(decision_id=decision_id, time_ms=time_ms, pose=pose, intrinsics=intr,
+                     image=encode_png(image), training_step=step, n_views=5,
+                     backend="grid").SerializeToString()
+
+
+def wait_for(cond: Callable[[], bool], timeout_s: float = 3.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise AssertionError("condition not met in time")
+        time.sleep(0.005)
+
+
+def metric(text: str, name: str) -> float | None:
+    for line in text.splitlines():
+        if line.startswith(name + " "):
+            return float(line.split()[-1])
+    return None
+
+
+class Harness:
+    def __init__(self, client: TestClient, bus: MemoryBus) -> None:
+        self.client, self.bus = client, bus
+
+    def qualities(self) -> list[pb.Quality]:
+        return [decode_quality(p) for p in self.bus.messages(KEYS.quality)]
+
+    def rejected(self, reason: str) -> float:
+        text = self.client.get("/metrics").text
+        return metric(text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}') or 0.0
+
+    def flush(self) -> pb.Quality:
+        """Score a probe render (t = 0, perfect); the thread handles messages in order, so
+        everything published before has been handled once its Quality is out."""
+        return self.score(0.0, truth_image(0.0), decision_id=424242)
+
+    def score(self, time_ms: float, image: np.ndarray, **kw) -> pb.Quality:
+        before = len(self.qualities())
+        self.bus.publish(KEYS.render, render(time_ms, image, **kw))
+        wait_for(lambda: len(self.qualities()) > before)
+        return self.qualities()[-1]
+
+
+@pytest.fixture
+def make_harness() -> Iterator[Callable[..., Harness]]:
+    clients: list[TestClient] = []
+
+    def make(**app_kw) -> Harness:
+        bus = MemoryBus()
+        settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN))
+        app = create_app(settings, bus=bus,
+                         clock=SimClock(epoch_s=time.time(), time_scale=1.0), **app_kw)
+        client = TestClient(app)
+        client.__enter__()
+        clients.append(client)
+        h = Harness(client, bus)
+        for gen_ms in (0.0, 30.0, 60.0, 90.0):
+            bus.publish(KEYS.truth, truth(gen_ms))
+        return h
+
+    yield make
+    for client in clients:
+        client.__exit__(None, None, None)
+
+
+# ---------------------------------------------------------------- pairing and the messages
+def test_render_is_scored_against_the_truth_of_the_same_time(make_harness) -> None:
+    h = make_harness()
+    pred = noisy(truth_image(60.0), seed=1)
+    q = h.score(60.0, pred, decision_id=11, step=999)
+    assert q.truth_time_ms == 60.0 and q.time_ms == 60.0
+    assert q.scene_time_ms == 60.0
+    assert q.decision_id == 11 and q.training_step == 999
+
+    gt = decode_image(pb.Frame.FromString(truth(60.0)).image)
+    got = decode_image(pb.Render.FromString(render(60.0, pred)).image)
+    assert q.psnr_db == pytest.approx(psnr(got, gt), abs=1e-9)
+    assert q.ssim == pytest.approx(ssim(got, gt), abs=1e-9)
+    assert 10.0 < q.psnr_db < 40.0 and 0.0 < q.ssim < 1.0
+    # scored against another time's truth the numbers would differ: the pairing matters
+    assert abs(psnr(got, decode_image(pb.Frame.FromString(truth(30.0)).image)) - q.psnr_db) > 1
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim)
+    assert list(q.reward_terms) == ["psnr", "ssim"]
+    assert not q.HasField("lpips")  # absent, not 0
+
+    exact = h.score(30.0, truth_image(30.0))
+    assert exact.truth_time_ms == 30.0 and exact.psnr_db == 100.0 and exact.ssim == 1.0
+
+
+@pytest.mark.parametrize(("time_ms", "truth_ms"), [
+    (50.0, 30.0),   # between two truth frames: the newest one at or before t
+    (89.9, 60.0),
+    (120.0, 90.0),  # exactly one period after the newest: still paired
+])
+def test_render_without_exact_truth_uses_the_newest_within_a_period(make_harness, time_ms,
+                                                                    truth_ms) -> None:
+    h = make_harness()
+    q = h.score(time_ms, truth_image(truth_ms))
+    assert q.time_ms == time_ms and q.truth_time_ms == truth_ms
+    assert q.psnr_db == 100.0
+
+
+def test_render_without_truth_is_rejected_and_counted(make_harness) -> None:
+    h = make_harness()
+    h.bus.publish(KEYS.render, render(120.1, truth_image(90.0)))  # newest truth 30.1 ms old
+    h.bus.publish(KEYS.render, render(-5.0, truth_image(0.0)))    # before every truth frame
+    body = h.client.get("/quality").json()
+    assert body["summary"]["mean_psnr_db"] is None and body["history"] == []
+    h.flush()
+    assert [q.decision_id for q in h.qualities()] == [424242]  # only the probe was scored
+    assert h.rejected("no_truth") == 2
+    body = h.client.get("/quality").json()
+    assert body["summary"]["rejected_no_truth_total"] == 2
+    assert body["summary"]["scored_total"] == 1 and len(body["history"]) == 1
+    # a truth frame arriving later makes a later render at that time scorable
+    h.bus.publish(KEYS.truth, truth(120.0))
+    assert h.score(120.1, truth_image(120.0)).truth_time_ms == 120.0
+
+
+def test_truth_ring_keeps_the_newest_frames() -> None:
+    ring = TruthRing(capacity=3)
+    img = pb.Image()
+    for gen_ms in (60.0, 0.0, 30.0, 90.0):  # out of order; 0 is the oldest and is evicted
+        ring.add(TruthFrame(generation_ms=gen_ms, scene_time_ms=gen_ms, image=img))
+    assert len(ring) == 3
+    assert ring.pair(30.0, 30.0).generation_ms == 30.0
+    assert ring.pair(30.0 - 1e-9, 30.0).generation_ms == 30.0  # float round-off of t
+    assert ring.pair(59.9, 30.0).generation_ms == 30.0
+    assert ring.pair(100.0, 30.0).generation_ms == 90.0
+    with pytest.raises(ValueError, match="no ground-truth frame generated at t = 10 ms"):
+        ring.pair(10.0, 30.0)
+
+
+# ---------------------------------------------------------------- REST and metrics
+def test_quality_history_json_and_gauges(make_harness) -> None:
+    h = make_harness()
+    scores = [h.score(t, noisy(truth_image(t), seed=i), decision_id=i + 1)
+              for i, t in enumerate((0.0, 30.0, 60.0))]
+    body = h.client.get("/quality", params={"limit": 2}).json()
+    hist = body["history"]
+    assert [e["time_ms"] for e in hist] == [30.0, 60.0]  # the 2 most recent, oldest first
+    for entry, q in zip(hist, scores[1:], strict=True):
+        assert "lpips" in entry and entry["lpips"] is None
+        assert entry["reward_terms"] == ["psnr", "ssim"]
+        assert entry["psnr_db"] == pytest.approx(q.psnr_db)
+        assert entry["decision_id"] == q.decision_id and entry["n_views"] == 5
+        assert entry["backend"] == "grid"
+    summary = body["summary"]
+    assert summary["scored_total"] == 3 and summary["window"] == 2
+    assert summary["lpips_available"] is False and summary["mean_lpips"] is None
+    assert summary["reward_terms"] == ["psnr", "ssim"]
+    assert summary["mean_psnr_db"] == pytest.approx(np.mean([q.psnr_db for q in scores[1:]]))
+
+    assert h.client.get("/quality", params={"limit": 0}).status_code == 422
+    assert len(h.client.get("/quality").json()["history"]) == 3
+
+    text = h.client.get("/metrics").text
+    assert metric(text, "aoi3d_quality_total") == 3
+    assert metric(text, "aoi3d_render_psnr_db") == pytest.approx(scores[-1].psnr_db)
+    assert metric(text, "aoi3d_render_ssim") == pytest.approx(scores[-1].ssim)
+    assert metric(text, "aoi3d_reward") == pytest.approx(scores[-1].reward)
+    assert metric(text, "aoi3d_truth_frames_total") == 4
+    assert "aoi3d_render_lpips" not in text
+    assert h.client.get("/readyz").status_code == 200
+
+
+def test_lpips_when_available_is_published_and_enters_the_reward(make_harness) -> None:
+    h = make_harness(lpips_fn=lambda pred, gt: 0.25)
+    q = h.score(30.0, noisy(truth_image(30.0), seed=3))
+    assert q.HasField("lpips") and q.lpips == 0.25
+    assert list(q.reward_terms) == ["psnr", "ssim", "lpips"]
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim - 0.25)
+    entry = h.client.get("/quality").json()["history"][-1]
+    assert entry["lpips"] == 0.25 and entry["reward_terms"] == ["psnr", "ssim", "lpips"]
+    assert metric(h.client.get("/metrics").text, "aoi3d_render_lpips") == 0.25
+
+
+def test_bad_messages_are_counted_and_dropped(make_harness) -> None:
+    h = make_harness()
+    good_render = render(30.0, truth_image(30.0))
+    nan_render = pb.Render.FromString(good_render)
+    nan_render.time_ms = float("nan")
+    for key, payload in (
+        (KEYS.truth, b"\xff\xff not a frame"),
+        (KEYS.truth, truth(120.0, camera_id=3)),      # not the held-out camera
+        (KEYS.render, good_render[: len(good_render) // 2]),
+        (KEYS.render, nan_render.SerializeToString()),
+        (KEYS.render, render(60.0, np.zeros((12, 20, 3), np.uint8))),  # size differs from truth
+    ):
+        h.bus.publish(key, payload)
+    assert h.flush().psnr_db == 100.0  # the worker is still alive
+    assert len(h.qualities()) == 1  # only the probe was scored
+    assert h.rejected("unknown_camera") == 1
+    assert h.rejected("non_finite") == 1
+    assert h.rejected("image_size_mismatch") == 1
+    assert h.rejected("malformed") + h.rejected("bad_image") + h.rejected("bad_pose") == 2
