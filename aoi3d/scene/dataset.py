@@ -1,0 +1,441 @@
+"""The scene dataset on disk: generation (cached, atomic), loading, frame access.
+
+Layout under ``root`` (D-NeRF / nerfstudio style)::
+
+    frames/camNN/FFFF.png        uint8 RGB, camera NN (00 = held-out), frame FFFF
+    transforms_train.json        cameras 1..N
+    transforms_test.json         camera 0
+
+Each JSON holds ``camera_angle_x, fl_x, fl_y, cx, cy, w, h`` (shared intrinsics; a frame
+whose camera differs carries its own), ``frames: [{file_path, time, transform_matrix,
+camera_id, frame_index}]`` with ``time = frame_index / n_frames`` ∈ [0, 1) and
+``file_path`` relative to ``root``, and an ``aoi3d`` block (fps, n_frames, aabb, the scene
+config and its hash). :func:`load_dataset` needs nothing but these files.
+
+Generation writes into a hidden sibling directory and renames it into place when complete,
+so an interrupted run never leaves something that looks like a dataset.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import logging
+import math
+import multiprocessing
+import os
+import re
+import shutil
+import uuid
+from collections.abc import Callable, Iterable
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass, field
+from io import BytesIO
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from aoi3d.scene.camera import Camera
+from aoi3d.scene.rig import HELDOUT_ID, make_rig
+from aoi3d.scene.turbine import AABB, SCENE_VERSION, SceneConfig, TurbineScene
+
+__all__ = [
+    "FORMAT_VERSION",
+    "TEST_JSON",
+    "TRAIN_JSON",
+    "Progress",
+    "SceneDataset",
+    "ensure_dataset",
+    "generate_dataset",
+    "load_dataset",
+]
+
+FORMAT_VERSION = 1
+TRAIN_JSON = "transforms_train.json"
+TEST_JSON = "transforms_test.json"
+CHUNK_FRAMES = 30
+"""Frames of one camera rendered per batch (the unit of progress)."""
+
+log = logging.getLogger(__name__)
+
+Progress = Callable[[int, int], None]
+"""``progress(done, total)`` in frames (all cameras together)."""
+
+
+def _frame_relpath(camera_id: int, frame_index: int) -> str:
+    return f"frames/cam{camera_id:02d}/{frame_index:04d}.png"
+
+
+@dataclass(frozen=True, eq=False)
+class SceneDataset:
+    """A generated scene on disk: cameras, timing and frame access."""
+
+    root: Path
+    fps: int
+    n_frames: int
+    width: int
+    height: int
+    cameras: list[Camera]
+    """Index = camera id; id :attr:`heldout_id` is the held-out novel view."""
+    aabb: np.ndarray
+    train_ids: list[int]
+    config: dict[str, Any] = field(default_factory=dict)
+    config_hash: str = ""
+    heldout_id: int = HELDOUT_ID
+
+    @property
+    def duration_ms(self) -> float:
+        """Length of one loop of the scene, in ms."""
+        return self.n_frames * 1000.0 / self.fps
+
+    def frame_index(self, time_ms: float) -> int:
+        """The frame shown at ``time_ms`` (looped): ``floor(time_ms·fps/1000) mod n_frames``."""
+        # The tiny epsilon keeps k·1000/fps on frame k despite float rounding.
+        return math.floor(time_ms * self.fps / 1000.0 + 1e-9) % self.n_frames
+
+    def scene_time_ms(self, time_ms: float) -> float:
+        """Scene time (ms, within the loop) of the frame shown at ``time_ms``."""
+        return self.frame_index(time_ms) * 1000.0 / self.fps
+
+    def frame_path(self, camera_id: int, frame_index: int) -> Path:
+        if not 0 <= camera_id < len(self.cameras):
+            raise ValueError(f"camera_id must be in [0, {len(self.cameras)}), got {camera_id}")
+        if not 0 <= frame_index < self.n_frames:
+            raise ValueError(f"frame_index must be in [0, {self.n_frames}), got {frame_index}")
+        return self.root / _frame_relpath(camera_id, frame_index)
+
+    def frame_png(self, camera_id: int, frame_index: int) -> bytes:
+        """The PNG file's bytes, as stored."""
+        return self.frame_path(camera_id, frame_index).read_bytes()
+
+    def frame(self, camera_id: int, frame_index: int) -> np.ndarray:
+        """The decoded frame: uint8 (H, W, 3)."""
+        with Image.open(BytesIO(self.frame_png(camera_id, frame_index))) as img:
+            return np.asarray(img.convert("RGB"), dtype=np.uint8)
+
+    def missing_frames(self) -> int:
+        """How many of the frame files listed by the dataset are absent."""
+        return sum(
+            not (self.root / _frame_relpath(c, k)).is_file()
+            for c in range(len(self.cameras))
+            for k in range(self.n_frames)
+        )
+
+    def scene_config(self) -> SceneConfig:
+        """The :class:`SceneConfig` this dataset was generated from."""
+        return SceneConfig.from_dict(self.config)
+
+
+# =============================================================================================
+# Writing
+# =============================================================================================
+def _transforms(
+    camera_ids: Iterable[int], cameras: list[Camera], cfg: SceneConfig, aabb: np.ndarray
+) -> dict[str, Any]:
+    ids = list(camera_ids)
+    ref = cameras[ids[0]]
+    frames = []
+    for cam_id in ids:
+        cam = cameras[cam_id]
+        own_intrinsics = (cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height) != (
+            ref.fx,
+            ref.fy,
+            ref.cx,
+            ref.cy,
+            ref.width,
+            ref.height,
+        )
+        for k in range(cfg.n_frames):
+            entry: dict[str, Any] = {
+                "file_path": _frame_relpath(cam_id, k),
+                "time": k / cfg.n_frames,
+                "transform_matrix": cam.c2w.tolist(),
+                "camera_id": cam_id,
+                "frame_index": k,
+            }
+            if own_intrinsics:
+                entry.update(
+                    fl_x=cam.fx, fl_y=cam.fy, cx=cam.cx, cy=cam.cy, w=cam.width, h=cam.height
+                )
+            frames.append(entry)
+    return {
+        "camera_angle_x": ref.camera_angle_x,
+        "fl_x": ref.fx,
+        "fl_y": ref.fy,
+        "cx": ref.cx,
+        "cy": ref.cy,
+        "w": ref.width,
+        "h": ref.height,
+        "frames": frames,
+        "aoi3d": {
+            "format_version": FORMAT_VERSION,
+            "scene_version": SCENE_VERSION,
+            "fps": cfg.fps,
+            "n_frames": cfg.n_frames,
+            "duration_s": cfg.duration_s,
+            "aabb": np.asarray(aabb).tolist(),
+            "heldout_id": HELDOUT_ID,
+            "n_cameras": len(cameras),
+            "config": cfg.to_dict(),
+            "config_hash": cfg.config_hash,
+        },
+    }
+
+
+def _save_png(path: Path, image: np.ndarray) -> None:
+    Image.fromarray(image).save(path, format="PNG", compress_level=3)
+
+
+_TMP_RE = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-(?P<pid>\d+)-[0-9a-f]{8}$")
+
+
+def _remove_stale_temps(path: Path) -> None:
+    """Delete hidden leftovers of interrupted generations of ``path`` (dead writers only)."""
+    if not path.parent.is_dir():
+        return
+    for entry in path.parent.iterdir():
+        match = _TMP_RE.match(entry.name)
+        if not match or match["name"] != path.name or not entry.is_dir():
+            continue
+        pid = int(match["pid"])
+        alive = True
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            alive = False
+        except PermissionError:
+            alive = True
+        if not alive:
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _check_replaceable(path: Path) -> None:
+    if not path.exists():
+        return
+    if not path.is_dir():
+        raise FileExistsError(f"{path} exists and is not a directory")
+    names = {p.name for p in path.iterdir()}
+    if names and not names & {TRAIN_JSON, TEST_JSON}:
+        raise FileExistsError(
+            f"{path} exists and is not an aoi3d scene dataset; refusing to replace it"
+        )
+
+
+def _swap_in(tmp: Path, path: Path, token: str) -> None:
+    """Move the finished ``tmp`` to ``path``, replacing an older dataset there."""
+    old = path.parent / f".{path.name}.old-{os.getpid()}-{token}"
+    had_old = path.exists()
+    if had_old:
+        os.rename(path, old)
+    try:
+        os.rename(tmp, path)
+    except OSError:
+        if had_old and not path.exists():
+            os.rename(old, path)
+        raise
+    if had_old:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def _write_camera(
+    scene: TurbineScene,
+    camera: Camera,
+    camera_id: int,
+    root: Path,
+    on_frames: Callable[[int], None] | None = None,
+) -> int:
+    """Render and save every frame of one camera under ``root``; returns the frame count."""
+    n_frames = scene.cfg.n_frames
+    for start in range(0, n_frames, CHUNK_FRAMES):
+        indices = range(start, min(start + CHUNK_FRAMES, n_frames))
+        for k, image in zip(indices, scene.render_frames(camera, indices), strict=True):
+            _save_png(root / _frame_relpath(camera_id, k), image)
+        if on_frames:
+            on_frames(len(indices))
+    return n_frames
+
+
+def _render_camera_job(
+    cfg: dict[str, Any], camera: dict[str, Any], camera_id: int, root: str
+) -> int:
+    """Process-pool entry point: one camera's frames (plain data in, frame count out)."""
+    scene = TurbineScene(SceneConfig.from_dict(cfg), cache_size=1)
+    return _write_camera(scene, Camera.from_dict(camera), camera_id, Path(root))
+
+
+def generate_dataset(
+    path: str | Path,
+    cfg: SceneConfig | None = None,
+    progress: Progress | None = None,
+    *,
+    workers: int = 1,
+) -> SceneDataset:
+    """Render every frame of every camera of ``cfg`` to ``path`` (replacing a dataset there).
+
+    ``progress(done, total)`` is called in this process as frames complete (``total`` =
+    cameras × frames). ``workers > 1`` renders cameras in that many processes (``spawn``
+    start method: a calling script needs the ``if __name__ == "__main__":`` guard); the
+    output is byte-identical either way. Raises ``FileExistsError`` if ``path`` holds
+    something other than a scene dataset.
+    """
+    cfg = cfg if cfg is not None else SceneConfig()
+    if workers < 1:
+        raise ValueError(f"workers must be ≥ 1, got {workers}")
+    path = Path(path).absolute()
+    _check_replaceable(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temps(path)
+    if not cfg.seamless:
+        lo, hi = cfg.seamless_rpm()
+        log.warning(
+            "scene loop not seamless: %.4g blade passes per %g s (rotor_rpm %g; try %g or %g)",
+            cfg.blade_passes,
+            cfg.duration_s,
+            cfg.rotor_rpm,
+            lo,
+            hi,
+        )
+
+    cameras = make_rig(cfg)
+    token = uuid.uuid4().hex[:8]
+    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{token}"
+    total, done = len(cameras) * cfg.n_frames, 0
+
+    def advance(n: int) -> None:
+        nonlocal done
+        done += n
+        if progress:
+            progress(done, total)
+
+    try:
+        if progress:
+            progress(0, total)
+        for cam_id in range(len(cameras)):
+            (tmp / f"frames/cam{cam_id:02d}").mkdir(parents=True)
+        if workers == 1:
+            scene = TurbineScene(cfg, cache_size=1)
+            for cam_id, camera in enumerate(cameras):
+                _write_camera(scene, camera, cam_id, tmp, advance)
+        else:
+            ctx = multiprocessing.get_context("spawn")
+            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+                jobs = [
+                    pool.submit(_render_camera_job, cfg.to_dict(), cam.to_dict(), i, str(tmp))
+                    for i, cam in enumerate(cameras)
+                ]
+                for job in as_completed(jobs):
+                    advance(job.result())
+        train_ids = list(range(1, len(cameras)))
+        for name, ids in ((TRAIN_JSON, train_ids), (TEST_JSON, [HELDOUT_ID])):
+            doc = _transforms(ids, cameras, cfg, AABB)
+            (tmp / name).write_text(json.dumps(doc, indent=1))
+        _swap_in(tmp, path, token)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return load_dataset(path)
+
+
+def ensure_dataset(
+    path: str | Path,
+    cfg: SceneConfig | None = None,
+    progress: Progress | None = None,
+    *,
+    workers: int = 1,
+) -> SceneDataset:
+    """The dataset at ``path``; generated first if missing, incomplete, or of another config."""
+    cfg = cfg if cfg is not None else SceneConfig()
+    with contextlib.suppress(FileNotFoundError, ValueError):
+        ds = load_dataset(path)
+        if ds.config_hash == cfg.config_hash and ds.missing_frames() == 0:
+            return ds
+    return generate_dataset(path, cfg, progress, workers=workers)
+
+
+# =============================================================================================
+# Reading
+# =============================================================================================
+def _read_json(path: Path) -> dict[str, Any]:
+    if not path.is_file():
+        raise FileNotFoundError(f"no scene dataset here: {path} is missing")
+    try:
+        doc = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not valid JSON: {exc}") from exc
+    if not isinstance(doc, dict) or not isinstance(doc.get("aoi3d"), dict):
+        raise ValueError(f"{path} has no 'aoi3d' block; not an aoi3d scene dataset")
+    if doc["aoi3d"].get("format_version") != FORMAT_VERSION:
+        raise ValueError(
+            f"{path}: format_version {doc['aoi3d'].get('format_version')!r}, "
+            f"expected {FORMAT_VERSION}"
+        )
+    return doc
+
+
+def _cameras_of(doc: dict[str, Any], source: Path) -> dict[int, Camera]:
+    cams: dict[int, Camera] = {}
+    try:
+        for entry in doc["frames"]:
+            cam_id = int(entry["camera_id"])
+            if cam_id in cams:
+                continue
+            cam = Camera(
+                c2w=np.asarray(entry["transform_matrix"], dtype=np.float64),
+                fx=entry.get("fl_x", doc["fl_x"]),
+                fy=entry.get("fl_y", doc["fl_y"]),
+                cx=entry.get("cx", doc["cx"]),
+                cy=entry.get("cy", doc["cy"]),
+                width=entry.get("w", doc["w"]),
+                height=entry.get("h", doc["h"]),
+            )
+            cam.validate()
+            cams[cam_id] = cam
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{source}: malformed frames/intrinsics ({exc!r})") from exc
+    return cams
+
+
+def load_dataset(path: str | Path) -> SceneDataset:
+    """Read a dataset from its two transforms files (no scene code involved)."""
+    root = Path(path).absolute()
+    train = _read_json(root / TRAIN_JSON)
+    test = _read_json(root / TEST_JSON)
+    meta = train["aoi3d"]
+    if test["aoi3d"].get("config_hash") != meta.get("config_hash"):
+        raise ValueError(f"{root}: train and test transforms come from different configs")
+    train_cams = _cameras_of(train, root / TRAIN_JSON)
+    test_cams = _cameras_of(test, root / TEST_JSON)
+    if set(train_cams) & set(test_cams):
+        raise ValueError(f"{root}: cameras {sorted(set(train_cams) & set(test_cams))} in both")
+    all_cams = {**train_cams, **test_cams}
+    if sorted(all_cams) != list(range(len(all_cams))):
+        raise ValueError(f"{root}: camera ids must be 0..N, got {sorted(all_cams)}")
+    heldout = int(meta.get("heldout_id", HELDOUT_ID))
+    if heldout not in test_cams:
+        raise ValueError(f"{root}: held-out camera {heldout} not in {TEST_JSON}")
+    try:
+        aabb = np.asarray(meta["aabb"], dtype=np.float64)
+        fps, n_frames = int(meta["fps"]), int(meta["n_frames"])
+        config, config_hash = dict(meta["config"]), str(meta["config_hash"])
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ValueError(f"{root}: malformed 'aoi3d' block ({exc!r})") from exc
+    if aabb.shape != (2, 3) or not np.all(aabb[0] < aabb[1]):
+        raise ValueError(f"{root}: aabb must be (2, 3) with min < max, got {aabb.tolist()}")
+    if fps < 1 or n_frames < 1:
+        raise ValueError(f"{root}: fps and n_frames must be ≥ 1, got {fps}, {n_frames}")
+    cameras = [all_cams[i] for i in range(len(all_cams))]
+    return SceneDataset(
+        root=root,
+        fps=fps,
+        n_frames=n_frames,
+        width=cameras[heldout].width,
+        height=cameras[heldout].height,
+        cameras=cameras,
+        aabb=aabb,
+        train_ids=sorted(train_cams),
+        config=config,
+        config_hash=config_hash,
+        heldout_id=heldout,
+    )
