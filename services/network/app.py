@@ -1,0 +1,122 @@
+"""The network service's FastAPI app: the links' delay config, plus the kit's ops routes."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException
+from prometheus_client import CollectorRegistry
+from pydantic import BaseModel, ConfigDict, Field
+
+from aoi3d.channel import ACCEPTED_FORMS
+from aoi3d.clock import SimClock
+from services.kit.app import get_worker, service_app
+from services.kit.bus import Bus
+from services.kit.keys import Keys
+from services.network.settings import Settings
+from services.network.worker import ChannelConfig, NetworkWorker
+
+DESCRIPTION = """
+The cameras' uplinks: one D/G/1/0 link per training camera (single server, no waiting room).
+
+A frame offered on `aoi3d/<run>/cam/<n>/frame` while camera n's previous frame is still in
+flight is dropped; otherwise it is delivered on `aoi3d/<run>/edge/<n>/frame` after a sampled
+delay (slotted, 1 ms slots), stamped with its delivery time. `GET/PUT /channel` reads and
+changes the delay distributions and the seed.
+"""
+
+WorkerDep = Annotated[NetworkWorker, Depends(get_worker)]
+_FORMS = ", ".join(ACCEPTED_FORMS)
+
+
+class LinkView(BaseModel):
+    """One camera's link."""
+
+    camera: int = Field(description="Camera id.", examples=[3])
+    delay: str = Field(description="Delay spec in force.", examples=["exp:60"])
+    mean_delay_ms: float = Field(description="Mean transmission time E[Y] in ms.",
+                                 examples=[60.0])
+    offered: int = Field(description="Frames offered since the service started.")
+    dropped: int = Field(description="Frames dropped: the previous one was still in flight.")
+    delivered: int = Field(description="Frames delivered to the edge.")
+    in_flight: bool = Field(description="Whether a frame is on the link now.")
+
+
+class ChannelView(BaseModel):
+    """The links' settings and state."""
+
+    delay: str = Field(description="Delay spec of the links without an override.",
+                       examples=["exp:60"])
+    per_camera: dict[int, str] = Field(description="Per-camera delay overrides.",
+                                       examples=[{"3": "const:40"}])
+    seed: int = Field(description="Seed of the links' random streams.", examples=[1])
+    accepted_forms: list[str] = Field(description="Delay spec forms (values in ms; "
+                                                  "lognormal's MU and SIGMA are of ln Y).",
+                                      examples=[list(ACCEPTED_FORMS)])
+    links: list[LinkView] = Field(description="Every camera's link, by camera id.")
+
+
+class ChannelUpdate(BaseModel):
+    """A partial update: fields left out keep their value."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"delay": "exp:60"}, {"per_camera": {"3": "const:40"}}, {"seed": 7},
+        {"delay": "uniform:20:100", "per_camera": {}, "seed": 1}]})
+
+    delay: str | None = Field(None, description=f"Delay spec of every link without an "
+                                                f"override ({_FORMS}; ms).",
+                              examples=["exp:60"])
+    per_camera: dict[int, str] | None = Field(
+        None, description="Per-camera overrides; replaces the whole map ({} clears it).",
+        examples=[{"3": "const:40"}])
+    seed: int | None = Field(None, ge=0, description="New seed; each link restarts its random "
+                                                     "stream once its frame in flight is "
+                                                     "delivered.", examples=[1])
+
+
+def _view(worker: NetworkWorker, cfg: ChannelConfig) -> ChannelView:
+    links = [LinkView(camera=s.camera_id, delay=s.delay.spec, mean_delay_ms=s.delay.mean_ms,
+                      offered=s.offered, dropped=s.dropped, delivered=s.delivered,
+                      in_flight=s.in_flight) for s in worker.link_stats()]
+    return ChannelView(delay=cfg.delay, per_camera=dict(cfg.per_camera), seed=cfg.seed,
+                       accepted_forms=list(ACCEPTED_FORMS), links=links)
+
+
+channel_router = APIRouter(prefix="/channel", tags=["channel"])
+
+
+@channel_router.get("", summary="The links' delay settings and counts.")
+def get_channel(worker: WorkerDep) -> ChannelView:
+    return _view(worker, worker.config)
+
+
+@channel_router.put("", summary="Change the delay spec, per-camera overrides or seed.",
+                    responses={422: {"description": "Bad delay spec or unknown camera; the "
+                                                    "detail lists what is accepted."}})
+def put_channel(update: ChannelUpdate, worker: WorkerDep) -> ChannelView:
+    try:
+        cfg = worker.update(delay=update.delay, per_camera=update.per_camera, seed=update.seed)
+    except ValueError as err:  # DelaySpecError, ChannelConfigError
+        raise HTTPException(status_code=422, detail=str(err)) from err
+    return _view(worker, cfg)
+
+
+def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
+               clock: SimClock | None = None,
+               registry: CollectorRegistry | None = None) -> FastAPI:
+    """The network service. Tests inject a ``MemoryBus`` and a fast clock."""
+    settings = settings or Settings()
+    common = settings.common
+    clock = clock or SimClock(common.epoch_s, common.time_scale)
+
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> NetworkWorker:
+        return NetworkWorker(
+            bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id),
+            n_cameras=common.cameras, delay=settings.delay, per_camera=settings.per_camera,
+            seed=settings.seed, max_skew_ms=settings.max_skew_ms,
+            inbox_size=settings.inbox_size)
+
+    app = service_app(title="aoi3d network", description=DESCRIPTION, settings=settings,
+                      build_worker=build_worker, bus=bus, registry=registry)
+    app.include_router(channel_router)
+    return app

@@ -1,0 +1,40 @@
+"""Settings of the network service (environment prefix ``AOI3D_NETWORK_``)."""
+
+from __future__ import annotations
+
+from pydantic import Field, field_validator
+from pydantic_settings import SettingsConfigDict
+
+from aoi3d.channel import parse_delay
+from services.kit.settings import ServiceSettings
+
+
+class Settings(ServiceSettings):
+    """The camera uplinks: one D/G/1/0 link per training camera."""
+
+    model_config = SettingsConfigDict(env_prefix="AOI3D_NETWORK_", extra="ignore")
+
+    port: int = Field(8102, ge=0, le=65535, description="REST API port.")
+    delay: str = Field("exp:60", description="Delay spec of every link (ms): exp:MEAN, const:D, "
+                                             "uniform:LO:HI, gamma:K:THETA or lognormal:MU:SIGMA.")
+    per_camera: dict[int, str] = Field(
+        default_factory=dict,
+        description='Per-camera delay overrides as a JSON object, e.g. {"3": "const:40"}.')
+    seed: int = Field(1, ge=0, description="Seed of the links' random streams "
+                                           "(one independent stream per camera).")
+    max_skew_ms: float = Field(
+        1000.0, gt=0,
+        description="Frames generated more than this many sim ms after the local clock's now "
+                    "are rejected (clock_skew): the services disagree on epoch or time scale.")
+    inbox_size: int = Field(1024, ge=1, description="Offered frames buffered between the bus "
+                                                    "and the link thread (oldest dropped).")
+
+    @field_validator("delay")
+    @classmethod
+    def _canonical_delay(cls, value: str) -> str:
+        return parse_delay(value).spec
+
+    @field_validator("per_camera")
+    @classmethod
+    def _canonical_per_camera(cls, value: dict[int, str]) -> dict[int, str]:
+        return {int(n): parse_delay(spec).spec for n, spec in value.items()}

@@ -1,0 +1,258 @@
+"""The network service: D/G/1/0 links between the camera rig and the edge, on a fast clock."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+from fastapi.testclient import TestClient
+from prometheus_client.parser import text_string_to_metric_families
+
+from aoi3d.channel import Link, camera_rngs
+from aoi3d.clock import SimClock
+from aoi3d.scene import Camera, look_at
+from services.kit.bus import MemoryBus
+from services.kit.codec import camera_to_pb, decode_frame, encode_frame, encode_png
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.settings import CommonSettings
+from services.network.app import create_app
+from services.network.settings import Settings
+
+N_CAMERAS = 3
+KEYS = Keys("t")
+W, H = 24, 18
+
+
+def _camera() -> Camera:
+    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
+                  cx=W / 2, cy=H / 2, width=W, height=H)
+
+
+CAMERA = _camera()
+IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
+
+
+def frame(camera_id: int, gen_ms: float, *, sequence: int = 0) -> bytes:
+    return encode_frame(camera_id=camera_id, sequence=sequence, generation_ms=gen_ms,
+                        scene_time_ms=gen_ms % 1000, send_ms=gen_ms, camera=CAMERA, image=IMAGE)
+
+
+def make_app(bus: MemoryBus, clock: SimClock, **overrides):
+    settings = Settings(common=CommonSettings(run_id="t", cameras=N_CAMERAS),
+                        **{"delay": "const:40", **overrides})
+    return create_app(settings, bus=bus, clock=clock)
+
+
+def metric(text: str, name: str, **labels: str) -> float:
+    for family in text_string_to_metric_families(text):
+        for sample in family.samples:
+            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
+                return sample.value
+    raise AssertionError(f"no sample {name}{labels}")
+
+
+class Arrivals:
+    """Records delivered frames with their wall arrival time."""
+
+    def __init__(self, bus: MemoryBus) -> None:
+        self.items: list[tuple[float, str, pb.Frame]] = []
+        self._cond = threading.Condition()
+        bus.subscribe(KEYS.edge_frames, self._on)
+
+    def _on(self, key: str, payload: bytes) -> None:
+        msg = pb.Frame()
+        msg.ParseFromString(payload)
+        with self._cond:
+            self.items.append((time.time(), key, msg))
+            self._cond.notify_all()
+
+    def wait(self, n: int, timeout_s: float = 3.0) -> list[tuple[float, str, pb.Frame]]:
+        with self._cond:
+            assert self._cond.wait_for(lambda: len(self.items) >= n, timeout_s), (
+                f"{len(self.items)} of {n} frames delivered")
+            return list(self.items)
+
+
+def test_const_delay_delivers_at_the_slot_and_drops_while_busy() -> None:
+    clock = SimClock(epoch_s=time.time(), time_scale=1.0)  # 1 sim ms = 1 wall ms
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock)) as client:
+        g = float(math.ceil(clock.now_ms()) + 5)
+        bus.publish(KEYS.cam_frame(1), frame(1, g, sequence=1))
+        bus.publish(KEYS.cam_frame(1), frame(1, g + 10, sequence=2))  # in flight → dropped
+        bus.publish(KEYS.cam_frame(1), frame(1, g + 40, sequence=3))  # at the slot → accepted
+        got = arrivals.wait(2)
+        time.sleep(0.05)
+        assert len(arrivals.items) == 2
+        for (wall_s, key, msg), seq, slot in zip(got, (1, 3), (g + 40, g + 80), strict=True):
+            assert key == KEYS.edge_frame(1)
+            assert msg.sequence == seq and msg.delivery_ms == slot
+            assert msg.generation_ms == slot - 40
+            assert wall_s >= clock.wall_s(slot) - 2e-3, "delivered before its slot"
+            assert wall_s < clock.wall_s(slot) + 0.25, "delivered far too late"
+            decode_frame(bus.messages(KEYS.edge_frame(1))[0], {1})  # still a valid frame
+        text = client.get("/metrics").text
+        assert metric(text, "aoi3d_frames_offered_total", camera="1") == 3
+        assert metric(text, "aoi3d_frames_dropped_total", camera="1") == 1
+        assert metric(text, "aoi3d_frames_delivered_total", camera="1") == 2
+        assert metric(text, "aoi3d_link_delay_seconds_count") == 2
+        assert metric(text, "aoi3d_link_delay_seconds_sum") == pytest.approx(0.08)
+        links = client.get("/channel").json()["links"]
+        assert links[0] == {"camera": 1, "delay": "const:40", "mean_delay_ms": 40.0,
+                            "offered": 3, "dropped": 1, "delivered": 2, "in_flight": False}
+        assert client.get("/readyz").status_code == 200
+
+
+def _expected(seed: int, gens: list[float]) -> dict[int, list[float]]:
+    """Delivery slots of fresh domain links fed the same frames."""
+    out: dict[int, list[float]] = {}
+    for n, rng in zip(range(1, N_CAMERAS + 1), camera_rngs(seed, N_CAMERAS), strict=True):
+        link = Link("exp:60", rng)
+        out[n] = [float(s) for g in gens if (s := link.offer(g)) is not None]
+    return out
+
+
+def test_random_delays_match_the_domain_link_per_camera_and_reseed() -> None:
+    clock = SimClock(epoch_s=time.time() - 10.0, time_scale=50.0)  # 1 sim ms = 20 µs wall
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock, delay="exp:60", seed=5)) as client:
+        base = math.floor(clock.now_ms() / 30) * 30 - 30 * 400  # frames from the past
+        gens = [float(base + 30 * k) for k in range(150)]
+        expected = _expected(5, gens)
+        for g in gens:
+            for n in range(1, N_CAMERAS + 1):
+                bus.publish(KEYS.cam_frame(n), frame(n, g))
+        total = sum(len(v) for v in expected.values())
+        got = arrivals.wait(total)
+        for n in range(1, N_CAMERAS + 1):
+            assert [m.delivery_ms for _, k, m in got if m.camera_id == n] == expected[n]
+        assert expected[1] != expected[2]  # independent streams per camera
+        text = client.get("/metrics").text
+        for n in range(1, N_CAMERAS + 1):
+            assert metric(text, "aoi3d_frames_offered_total", camera=str(n)) == len(gens)
+            assert metric(text, "aoi3d_frames_dropped_total", camera=str(n)) == (
+                len(gens) - len(expected[n]))
+        assert metric(text, "aoi3d_link_delay_seconds_count") == total
+        assert 0 < metric(text, "aoi3d_frames_dropped_total", camera="1") < len(gens)
+
+        # a new seed restarts every link's stream (the links are idle: all delivered)
+        assert client.put("/channel", json={"seed": 11}).status_code == 200
+        start = math.ceil(max(max(v) for v in expected.values()) / 30) * 30
+        gens2 = [float(start + 30 * k) for k in range(100)]
+        expected2 = _expected(11, gens2)
+        for g in gens2:
+            for n in range(1, N_CAMERAS + 1):
+                bus.publish(KEYS.cam_frame(n), frame(n, g))
+        got = arrivals.wait(total + sum(len(v) for v in expected2.values()))[total:]
+        for n in range(1, N_CAMERAS + 1):
+            assert [m.delivery_ms for _, k, m in got if m.camera_id == n] == expected2[n]
+        assert _expected(5, gens2) != expected2
+
+
+def _bad_pose_frame() -> bytes:
+    pose, intr = camera_to_pb(CAMERA)
+    pose.c2w[0] = float("nan")
+    return pb.Frame(camera_id=1, generation_ms=1.0, pose=pose, intrinsics=intr,
+                    image=IMAGE).SerializeToString()
+
+
+def _wrong_size_frame() -> bytes:
+    pose, intr = camera_to_pb(CAMERA)
+    intr.width = W + 1
+    return pb.Frame(camera_id=1, generation_ms=1.0, pose=pose, intrinsics=intr,
+                    image=IMAGE).SerializeToString()
+
+
+def test_bad_frames_are_counted_and_dropped_and_the_links_keep_working() -> None:
+    clock = SimClock(epoch_s=time.time() - 1.0, time_scale=1.0)
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock, delay="const:1")) as client:
+        now = clock.now_ms()
+        bus.publish(KEYS.cam_frame(1), b"\x0a\xff\xff garbage")
+        bus.publish(KEYS.cam_frame(1), frame(1, now)[:40])  # truncated
+        bus.publish(KEYS.cam_frame(9), frame(9, now))  # not part of the rig
+        bus.publish(KEYS.cam_frame(1), frame(2, now))  # published under another camera's key
+        bus.publish(KEYS.cam_frame(1), _bad_pose_frame())
+        bus.publish(KEYS.cam_frame(1), _wrong_size_frame())
+        bus.publish(KEYS.cam_frame(1), frame(1, now + 1e6))  # from a clock far ahead
+        bus.publish(KEYS.cam_frame(2), frame(2, now))  # a good one
+        got = arrivals.wait(1)
+        time.sleep(0.05)
+        assert [m.camera_id for _, _, m in got] == [2]
+        text = client.get("/metrics").text
+        counts = {reason: metric(text, "aoi3d_messages_rejected_total", reason=reason)
+                  for reason in ("malformed", "unknown_camera", "key_mismatch", "bad_pose",
+                                 "image_size_mismatch", "clock_skew")}
+        assert counts == {"malformed": 2, "unknown_camera": 1, "key_mismatch": 1,
+                          "bad_pose": 1, "image_size_mismatch": 1, "clock_skew": 1}
+        assert metric(text, "aoi3d_frames_offered_total", camera="1") == 0
+        assert client.get("/readyz").json() == {"ready": True, "reason": ""}
+
+
+def test_channel_rest_api_validates_and_applies_changes() -> None:
+    clock = SimClock(epoch_s=time.time() - 1.0, time_scale=1.0)
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock, delay="exp:60", per_camera={3: "uniform:20:100"})
+                    ) as client:
+        body = client.get("/channel").json()
+        assert body["delay"] == "exp:60" and body["seed"] == 1
+        assert body["per_camera"] == {"3": "uniform:20:100"}
+        assert "lognormal:MU:SIGMA" in body["accepted_forms"]
+        assert [link["delay"] for link in body["links"]] == ["exp:60", "exp:60",
+                                                              "uniform:20:100"]
+
+        bad = client.put("/channel", json={"delay": "poisson:3"})
+        assert bad.status_code == 422
+        assert "unknown kind 'poisson'" in bad.json()["detail"]
+        assert "exp:MEAN" in bad.json()["detail"] and "uniform:LO:HI" in bad.json()["detail"]
+        bad = client.put("/channel", json={"delay": "exp:-5"})
+        assert bad.status_code == 422 and "> 0" in bad.json()["detail"]
+        bad = client.put("/channel", json={"per_camera": {"7": "const:1"}})
+        assert bad.status_code == 422 and "1..3" in bad.json()["detail"]
+        bad = client.put("/channel", json={"per_camera": {"2": "const"}})
+        assert bad.status_code == 422 and "per_camera 2" in bad.json()["detail"]
+        assert client.put("/channel", json={"seed": -1}).status_code == 422
+        assert client.put("/channel", json={"delays": "exp:1"}).status_code == 422
+        assert client.get("/channel").json() == body  # nothing half-applied
+
+        ok = client.put("/channel", json={"delay": "const:5", "per_camera": {"2": "const:3"},
+                                          "seed": 9})
+        assert ok.status_code == 200, ok.text
+        assert ok.json()["delay"] == "const:5" and ok.json()["seed"] == 9
+        assert [link["delay"] for link in ok.json()["links"]] == ["const:5", "const:3",
+                                                                  "const:5"]
+        g = float(math.ceil(clock.now_ms()))
+        bus.publish(KEYS.cam_frame(1), frame(1, g))
+        bus.publish(KEYS.cam_frame(2), frame(2, g))
+        got = arrivals.wait(2)
+        assert {m.camera_id: m.delivery_ms - g for _, _, m in got} == {1: 5.0, 2: 3.0}
+
+
+def test_settings_reject_a_bad_delay_spec_at_startup() -> None:
+    with pytest.raises(ValueError, match="Accepted forms"):
+        Settings(delay="exp")
+    app = create_app(Settings(common=CommonSettings(cameras=2), per_camera={5: "const:1"}),
+                     bus=MemoryBus())
+    with pytest.raises(ValueError, match="unknown camera"), TestClient(app):
+        pass
+
+
+def test_stop_is_prompt_with_frames_in_flight() -> None:
+    clock = SimClock(epoch_s=time.time(), time_scale=0.1)
+    bus = MemoryBus()
+    client = TestClient(make_app(bus, clock, delay="const:10000"))
+    with client:
+        bus.publish(KEYS.cam_frame(1), frame(1, clock.now_ms()))
+        time.sleep(0.05)
+        assert client.get("/channel").json()["links"][0]["in_flight"]
+        t0 = time.monotonic()
+    assert time.monotonic() - t0 < 2.0
+    assert bus.messages(KEYS.edge_frames) == []
