@@ -1,0 +1,49 @@
+"""Radiance fields: backends, ray sampling, volume rendering and the online trainer.
+
+A backend is a config dataclass and the field it builds (``GridConfig`` → ``DenseGridField``);
+rays (``rays.py``), the sampler, the volume renderer (``render.py``), the optimizer
+(``optim.py``) and the training loop (``FieldTrainer``) are shared by all backends. Named
+backends live in :data:`BACKENDS`; :func:`field_config` builds one by name.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.grid import DenseGridField, GridConfig
+from aoi3d.field.optim import LazyAdam
+from aoi3d.field.rays import RaySamples, camera_rays, ray_aabb, sample_uniform
+from aoi3d.field.render import RenderResult, volume_render
+from aoi3d.field.trainer import FieldTrainer, TrainView, render_rays
+
+__all__ = [
+    "BACKENDS",
+    "DenseGridField",
+    "Field",
+    "FieldConfig",
+    "FieldTrainer",
+    "GridConfig",
+    "LazyAdam",
+    "RaySamples",
+    "RenderResult",
+    "TrainView",
+    "camera_rays",
+    "field_config",
+    "ray_aabb",
+    "render_rays",
+    "sample_uniform",
+    "volume_render",
+]
+
+BACKENDS: dict[str, type[FieldConfig]] = {"grid": GridConfig}
+"""Radiance-field backends by name (``ngp``, ``tensorf``, ``nerfacto`` come later)."""
+
+
+def field_config(name: str, **overrides: Any) -> FieldConfig:
+    """The default config of backend ``name`` with ``overrides`` applied."""
+    try:
+        cls = BACKENDS[name]
+    except KeyError:
+        raise ValueError(f"unknown field backend {name!r}; known: {sorted(BACKENDS)}") from None
+    return cls(**overrides)

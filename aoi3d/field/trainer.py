@@ -1,0 +1,276 @@
+"""``FieldTrainer``: online training of a radiance field on a changing set of views.
+
+The training set is swapped with :meth:`FieldTrainer.set_views` without touching the model
+(the live trainer swaps frames in and out continuously). Each step draws ``batch_rays``
+random pixels from the current views, samples them inside the box, volume-renders them and
+takes one Adam step on the mean squared colour error. The rays of each camera are computed
+once and cached by camera (the ``Camera`` hashes by its pose and intrinsics).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+import math
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.optim import LazyAdam
+from aoi3d.field.rays import as_aabb, camera_rays, ray_aabb, sample_uniform
+from aoi3d.field.render import RenderResult, volume_render
+
+if TYPE_CHECKING:
+    from aoi3d.scene.camera import Camera
+
+__all__ = ["FieldTrainer", "TrainView", "render_rays"]
+
+
+@dataclass(frozen=True, eq=False)
+class TrainView:
+    """One training frame: the camera it was taken with and its image (uint8 or float32 H×W×3
+    in [0, 1])."""
+
+    camera: Camera
+    image: np.ndarray
+
+
+def render_rays(
+    field: Field,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    t_near: torch.Tensor,
+    t_far: torch.Tensor,
+    step: float,
+    jitter: torch.Tensor | None = None,
+    explore: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> RenderResult:
+    """Sample the rays inside the box, skip empty space, query the field, composite.
+
+    Samples the field marks empty are skipped; ``explore`` > 0 keeps that fraction of them
+    at random (drawn from ``generator``), so that density can grow again where new frames
+    need it.
+    """
+    samples = sample_uniform(origins, dirs, t_near, t_far, step, jitter)
+    keep = field.occupied(samples.points)
+    if keep is not None and explore > 0:
+        lucky = torch.rand(keep.shape, generator=generator, device=keep.device) < explore
+        keep = keep | lucky
+    if keep is not None:
+        samples = samples.select(keep)
+    sigma, rgb = field.query(samples.points, dirs.index_select(0, samples.ray_index))
+    return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))
+
+
+def _image_tensor(image: np.ndarray, camera: Camera) -> torch.Tensor:
+    """The view's image as float32 (H·W, 3) in [0, 1], after checking it fits the camera."""
+    arr = np.asarray(image)
+    expected = (camera.height, camera.width, 3)
+    if arr.shape != expected:
+        raise ValueError(f"image shape {arr.shape} does not match the camera's {expected}")
+    if arr.dtype == np.uint8:
+        out = arr.astype(np.float32) / 255.0
+    elif np.issubdtype(arr.dtype, np.floating):
+        out = arr.astype(np.float32)
+        if not np.isfinite(out).all():
+            raise ValueError("image contains non-finite values")
+    else:
+        raise ValueError(f"image must be uint8 or float in [0, 1], got dtype {arr.dtype}")
+    return torch.from_numpy(np.ascontiguousarray(out)).reshape(-1, 3)
+
+
+_RENDER_CACHE_SIZE = 8
+_MALLOC_TUNED = False
+
+
+def _tune_malloc() -> None:
+    """Keep freed blocks in glibc's heap (no mmap/munmap and page faults on every step)."""
+    global _MALLOC_TUNED
+    if _MALLOC_TUNED or not sys.platform.startswith("linux"):
+        return
+    _MALLOC_TUNED = True
+    name = ctypes.util.find_library("c")
+    if name is None:
+        return
+    try:
+        libc = ctypes.CDLL(name)
+        m_trim_threshold, m_mmap_threshold = -1, -3
+        libc.mallopt(m_mmap_threshold, 1 << 30)
+        libc.mallopt(m_trim_threshold, 1 << 30)
+    except (OSError, AttributeError):  # not glibc
+        return
+
+
+class FieldTrainer:
+    """Trains the field ``cfg`` builds on the current views; renders any camera."""
+
+    def __init__(
+        self,
+        cfg: FieldConfig,
+        aabb: np.ndarray,
+        device: torch.device | str | None = None,
+        seed: int = 0,
+    ) -> None:
+        self.cfg = cfg
+        self.aabb = as_aabb(aabb)
+        self._device = torch.device(
+            device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
+        )
+        if self._device.type == "cpu":
+            if cfg.num_threads is not None:
+                torch.set_num_threads(cfg.num_threads)
+            if cfg.tune_malloc:
+                _tune_malloc()
+        self.seed = seed
+        self._aabb_t = torch.as_tensor(self.aabb, dtype=torch.float32, device=self._device)
+        self._ray_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # training cameras
+        self._render_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # other cameras
+        self._colour_cache: dict[int, tuple[TrainView, torch.Tensor]] = {}  # by view identity
+        self._views: list[TrainView] = []
+        self._rays: tuple[torch.Tensor, ...] | None = None  # origins, dirs, t_near, t_far, rgb
+        self.reset()
+
+    # --- state ----------------------------------------------------------------------------
+    @property
+    def device(self) -> torch.device:
+        return self._device
+
+    @property
+    def steps(self) -> int:
+        """Training steps taken since the last reset."""
+        return self._steps
+
+    @property
+    def n_views(self) -> int:
+        return len(self._views)
+
+    @property
+    def field(self) -> Field:
+        return self._field
+
+    def reset(self) -> None:
+        """A fresh model, optimizer and random stream (the views are kept)."""
+        self._generator = torch.Generator(device=self._device)
+        self._generator.manual_seed(self.seed)
+        self._field = self.cfg.build(self.aabb).to(self._device)
+        self._steps = 0
+        self._field.on_step(0)
+        self._optimizer = self._make_optimizer()
+
+    def _make_optimizer(self) -> LazyAdam:
+        return LazyAdam(self._field.param_groups(), betas=(0.9, 0.99), eps=self.cfg.adam_eps)
+
+    # --- views ----------------------------------------------------------------------------
+    def _new_rays(self, camera: Camera) -> tuple[torch.Tensor, ...]:
+        """origins, dirs, t_near, t_far of every pixel of ``camera`` (validated)."""
+        camera.validate()
+        origins, dirs = camera_rays(camera, self._device)
+        return (origins, dirs, *ray_aabb(origins, dirs, self._aabb_t))
+
+    def _colours(self, view: TrainView) -> torch.Tensor:
+        """The view's pixels as float32 (H·W, 3), cached while the view object is in use."""
+        cached = self._colour_cache.get(id(view))
+        if cached is None or cached[0] is not view:
+            cached = (view, _image_tensor(view.image, view.camera).to(self._device))
+        return cached[1]
+
+    def set_views(self, views: Sequence[TrainView]) -> None:
+        """Train on ``views`` from now on; the model and optimizer state are kept.
+
+        Rays are cached per camera and pixels per view object, so swapping a few views in a
+        large set costs little.
+        """
+        views = list(views)
+        for v in views:
+            if not isinstance(v, TrainView):
+                raise TypeError(f"views must be TrainView objects, got {type(v).__name__}")
+        colours = [self._colours(v) for v in views]
+        rays = []
+        for v in views:
+            if v.camera not in self._ray_cache:
+                self._ray_cache[v.camera] = self._new_rays(v.camera)
+            rays.append(self._ray_cache[v.camera])
+        cameras = {v.camera for v in views}
+        self._ray_cache = {c: r for c, r in self._ray_cache.items() if c in cameras}
+        self._colour_cache = {id(v): (v, c) for v, c in zip(views, colours, strict=True)}
+        self._views = views
+        if not views:
+            self._rays = None
+            return
+        parts = [torch.cat([r[i] for r in rays]) for i in range(4)]
+        self._rays = (*parts, torch.cat(colours))
+
+    # --- training -------------------------------------------------------------------------
+    def step(self, n: int = 1) -> float:
+        """``n`` training steps; the last step's photometric loss (MSE of the batch's colours,
+        without the regularisers), NaN when there are no views."""
+        if n < 0:
+            raise ValueError(f"n must be >= 0, got {n}")
+        if self._rays is None:
+            return math.nan
+        loss_value = math.nan
+        origins, dirs, t_near, t_far, rgb = self._rays
+        n_rays = origins.shape[0]
+        self._field.train()
+        for _ in range(n):
+            if self._field.on_step(self._steps):
+                self._optimizer = self._make_optimizer()
+            batch = torch.randint(
+                n_rays, (self.cfg.batch_rays,), generator=self._generator, device=self._device
+            )
+            jitter = torch.rand(self.cfg.batch_rays, generator=self._generator, device=self._device)
+            out = render_rays(
+                self._field,
+                origins.index_select(0, batch),
+                dirs.index_select(0, batch),
+                t_near.index_select(0, batch),
+                t_far.index_select(0, batch),
+                self.cfg.ray_step(self.aabb, self._steps),
+                jitter,
+                self.cfg.explore_empty,
+                self._generator,
+            )
+            target = rgb.index_select(0, batch)
+            mse = torch.mean((out.rgb - target) ** 2)
+            loss = mse
+            if self.cfg.sample_rgb_loss > 0:
+                err = ((out.sample_rgb - target.index_select(0, out.ray_index)) ** 2).sum(dim=1)
+                loss = loss + self.cfg.sample_rgb_loss * (out.weights * err).sum() / len(batch)
+            if self.cfg.opacity_loss > 0:
+                loss = loss + self.cfg.opacity_loss * out.opacity.sum() / len(batch)
+            self._optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self._optimizer.step()
+            self._steps += 1
+            loss_value = float(mse.detach())
+        return loss_value
+
+    # --- rendering ------------------------------------------------------------------------
+    @torch.no_grad()
+    def render(self, camera: Camera) -> np.ndarray:
+        """The field seen from ``camera``: float32 H×W×3 in [0, 1]."""
+        if camera in self._ray_cache:
+            origins, dirs, t_near, t_far = self._ray_cache[camera]
+        else:
+            cached = self._render_cache.pop(camera, None)
+            if cached is None:
+                cached = self._new_rays(camera)
+            self._render_cache[camera] = cached  # most recent last
+            while len(self._render_cache) > _RENDER_CACHE_SIZE:
+                del self._render_cache[next(iter(self._render_cache))]
+            origins, dirs, t_near, t_far = cached
+        self._field.eval()
+        step = self.cfg.ray_step(self.aabb, self._steps)
+        chunk = self.cfg.render_chunk_rays
+        out = torch.empty_like(origins)
+        for i in range(0, origins.shape[0], chunk):
+            s = slice(i, i + chunk)
+            out[s] = render_rays(self._field, origins[s], dirs[s], t_near[s], t_far[s], step).rgb
+        image = out.clamp_(0.0, 1.0).reshape(camera.height, camera.width, 3)
+        return image.cpu().numpy().astype(np.float32, copy=False)
