@@ -1,0 +1,141 @@
+"""REST API of the trainer: status, model reset and the latest novel-view render."""
+
+from __future__ import annotations
+
+import time
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, FastAPI, HTTPException
+from fastapi.responses import Response
+from pydantic import BaseModel, Field
+
+from aoi3d.clock import SimClock
+from aoi3d.field import BACKENDS, FieldConfig
+from aoi3d.scene import SceneDataset, load_dataset
+from services.kit.app import get_worker, service_app
+from services.kit.bus import Bus
+from services.trainer.settings import Settings
+from services.trainer.worker import TrainerStatus, TrainerWorker
+
+Worker = Annotated[TrainerWorker, Depends(get_worker)]
+
+
+class DecisionInfo(BaseModel):
+    decision_id: int = Field(description="Id of the decision the model trains on.", examples=[42])
+    time_ms: float = Field(description="Its epoch t (sim ms): the time renders represent.",
+                           examples=[1260.0])
+    policy: str = Field(description="The scheduler's policy spec.", examples=["mat:51"])
+    n_selected: int = Field(description="Frames the decision selected.", examples=[9])
+    n_missing: int = Field(description="Selected frames the trainer never received (skipped).",
+                           examples=[0])
+    age_ms: float = Field(description="Sim ms since the decision epoch.", examples=[35.0])
+
+
+class StatusResponse(BaseModel):
+    steps: int = Field(description="Training steps of the current model (since the last "
+                                   "reset); the Render's training_step.", examples=[1200])
+    steps_total: int = Field(description="Training steps since the service started.",
+                             examples=[5400])
+    steps_per_s: float = Field(description="Training steps per wall second over the last few "
+                                           "seconds.", examples=[38.5])
+    loss: float | None = Field(description="Loss of the last training step; null before the "
+                                           "first step after start or reset.",
+                               examples=[0.0123])
+    n_views: int = Field(description="Frames in the training set.", examples=[9])
+    decision: DecisionInfo | None = Field(description="The decision in force; null before the "
+                                                      "first one.")
+    backend: str = Field(description="Radiance-field backend.", examples=["grid"])
+    backends: list[str] = Field(description="Available backends.", examples=[["grid"]])
+    device: str = Field(description="Torch device the field trains on.", examples=["cpu"])
+    renders: int = Field(description="Renders published.", examples=[17])
+    frames_received: int = Field(description="Delivered frames accepted since start.",
+                                 examples=[5400])
+    frames_buffered: int = Field(description="Delivered frames held (encoded) for selections.",
+                                 examples=[144])
+    frames_missing: int = Field(description="Selected frames skipped since start because they "
+                                            "never arrived.", examples=[0])
+    resets: int = Field(description="Model resets since start.", examples=[0])
+    running: bool = Field(description="Whether the training thread is alive.", examples=[True])
+
+
+def _status_body(status: TrainerStatus) -> StatusResponse:
+    d = status.decision
+    return StatusResponse(
+        steps=status.steps, steps_total=status.steps_total,
+        steps_per_s=round(status.steps_per_s, 3), loss=status.loss, n_views=status.n_views,
+        decision=None if d is None else DecisionInfo(
+            decision_id=d.decision_id, time_ms=d.time_ms, policy=d.policy,
+            n_selected=d.n_selected, n_missing=d.n_missing,
+            age_ms=status.decision_age_ms if status.decision_age_ms is not None else 0.0),
+        backend=status.backend, backends=sorted(BACKENDS), device=status.device,
+        renders=status.renders, frames_received=status.frames_received,
+        frames_buffered=status.frames_buffered,
+        frames_missing=status.frames_missing, resets=status.resets, running=status.running)
+
+
+status_router = APIRouter(tags=["status"])
+
+
+@status_router.get("/status", summary="Training progress and the decision in force.")
+def get_status(worker: Worker) -> StatusResponse:
+    return _status_body(worker.status())
+
+
+model_router = APIRouter(tags=["model"])
+
+
+@model_router.post(
+    "/reset", summary="Re-initialise the radiance field (training set and frames kept).",
+    responses={503: {"description": "The training thread did not get to the reset in time."}})
+def post_reset(worker: Worker) -> StatusResponse:
+    if not worker.reset():
+        raise HTTPException(503, "the training thread did not perform the reset within 10 s; "
+                                 "check GET /status and /readyz")
+    return _status_body(worker.status())
+
+
+render_router = APIRouter(tags=["render"])
+
+
+@render_router.get(
+    "/render.png", summary="The latest render of the held-out (novel) view.",
+    response_class=Response,
+    responses={200: {"content": {"image/png": {}},
+                     "description": "PNG; headers X-Decision-Id, X-Time-Ms, X-Training-Step, "
+                                    "X-Views, X-Render-Age-S."},
+               404: {"description": "No render published yet."}})
+def get_render(worker: Worker) -> Response:
+    latest = worker.latest_render()
+    if latest is None:
+        raise HTTPException(
+            404, f"no render yet: the trainer renders the held-out camera every "
+                 f"{worker.settings.render_period_s:g} s once a decision has arrived")
+    headers = {"X-Decision-Id": str(latest.decision_id), "X-Time-Ms": f"{latest.time_ms:g}",
+               "X-Training-Step": str(latest.training_step), "X-Views": str(latest.n_views),
+               "X-Render-Age-S": f"{time.time() - latest.wall_s:.3f}",
+               "Cache-Control": "no-store"}
+    return Response(content=latest.png, media_type="image/png", headers=headers)
+
+
+def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
+               clock: SimClock | None = None, dataset: SceneDataset | None = None,
+               field_config: FieldConfig | None = None) -> FastAPI:
+    """The trainer's app. ``dataset`` defaults to ``load_dataset(settings.common.dataset)``
+    (read when the app starts); ``field_config`` overrides the backend's default config."""
+    settings = settings or Settings()
+    clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
+
+    def build_worker(the_bus: Bus, registry) -> TrainerWorker:
+        data = dataset if dataset is not None else load_dataset(settings.common.dataset)
+        return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock,
+                             field_config=field_config)
+
+    app = service_app(
+        title="aoi3d trainer",
+        description="Trains a radiance field on the frames each scheduler decision selects "
+                    "and publishes renders of the held-out novel view.",
+        settings=settings, build_worker=build_worker, bus=bus)
+    app.include_router(status_router)
+    app.include_router(model_router)
+    app.include_router(render_router)
+    return app

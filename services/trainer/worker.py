@@ -1,0 +1,437 @@
+"""The trainer worker: delivered frames + decisions in, renders of the novel view out.
+
+Bus callbacks only put raw payloads into :class:`Inbox` queues. One training thread owns
+the radiance field: between small chunks of ``steps_per_chunk`` steps it ingests the queued
+frames (kept per camera, still encoded), applies the newest decision (resolves its selected
+FrameRefs to frames, decodes them and swaps the training set, model kept), and every
+``render_period_s`` wall seconds renders the held-out camera and publishes a Render stamped
+with the decision in force.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, replace
+
+import torch
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from aoi3d.clock import SimClock
+from aoi3d.field import FieldConfig, FieldTrainer, TrainView
+from aoi3d.field import field_config as make_field_config
+from aoi3d.scene import SceneDataset
+from aoi3d.scene.camera import Camera
+from services.kit.bus import Bus, Inbox
+from services.kit.codec import (
+    FrameData,
+    camera_to_pb,
+    decode_decision,
+    decode_frame,
+    encode_png,
+)
+from services.kit.keys import Keys
+from services.kit.observe import Rejected, Rejections
+from services.kit.pb import aoi3d_pb2 as pb
+from services.trainer.settings import Settings
+
+log = logging.getLogger(__name__)
+
+RATE_WINDOW_S = 5.0
+"""Wall seconds over which ``steps_per_s`` is measured."""
+
+_IDLE_WAIT_S = 0.05
+_STOP_JOIN_S = 2.0
+
+
+def resolve_device(name: str) -> str:
+    """``auto`` → ``cuda`` when available else ``cpu``; ``cuda`` without CUDA is an error."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("device 'cuda' was requested but CUDA is not available here; "
+                         "use 'auto' or 'cpu'")
+    if name not in ("cpu", "cuda"):
+        raise ValueError(f"unknown device {name!r}; accepted: auto, cpu, cuda")
+    return name
+
+
+@dataclass(frozen=True)
+class DecisionInForce:
+    """The decision whose selection the model is being trained on."""
+
+    decision_id: int
+    time_ms: float
+    policy: str
+    n_selected: int
+    n_missing: int
+    applied_wall_s: float
+
+
+@dataclass(frozen=True)
+class LatestRender:
+    """The newest published render (PNG bytes and what it represents)."""
+
+    png: bytes
+    decision_id: int
+    time_ms: float
+    training_step: int
+    n_views: int
+    wall_s: float
+
+
+@dataclass(frozen=True)
+class TrainerStatus:
+    """A consistent snapshot of the trainer for ``GET /status``."""
+
+    steps: int
+    steps_total: int
+    steps_per_s: float
+    loss: float | None
+    n_views: int
+    decision: DecisionInForce | None
+    decision_age_ms: float | None
+    backend: str
+    device: str
+    renders: int
+    frames_received: int
+    frames_buffered: int
+    frames_missing: int
+    resets: int
+    running: bool
+
+
+class _StepRate:
+    """Steps per second over the last ``window_s`` wall seconds."""
+
+    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
+        self._window_s = window_s
+        self._samples: deque[tuple[float, int]] = deque()
+
+    def add(self, now_s: float, steps_total: int) -> float:
+        self._samples.append((now_s, steps_total))
+        while len(self._samples) > 2 and now_s - self._samples[1][0] >= self._window_s:
+            self._samples.popleft()
+        (t0, s0), (t1, s1) = self._samples[0], self._samples[-1]
+        return (s1 - s0) / (t1 - t0) if t1 > t0 else 0.0
+
+    def idle(self, now_s: float, steps_total: int) -> float:
+        """Record a moment without training (the rate decays to 0 over the window)."""
+        return self.add(now_s, steps_total)
+
+
+class TrainerWorker:
+    """Owns the radiance field and its training thread; see the module docstring."""
+
+    def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,
+                 dataset: SceneDataset, clock: SimClock,
+                 field_config: FieldConfig | None = None) -> None:
+        self.settings = settings
+        self.bus = bus
+        self.clock = clock
+        self.keys = Keys(settings.common.run_id)
+        self.backend = settings.backend
+        self.device = resolve_device(settings.device)
+        cfg = field_config or make_field_config(self.backend)
+        if settings.torch_threads:
+            cfg = replace(cfg, num_threads=settings.torch_threads)
+        self._field_config = cfg
+        self._aabb = dataset.aabb
+        self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
+        self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
+        self.trainer = FieldTrainer(self._field_config, self._aabb, device=self.device,
+                                    seed=settings.seed)
+
+        self.rejections = Rejections(registry)
+        self.m_steps = Counter("aoi3d_trainer_steps", "Training steps taken.",
+                               registry=registry)
+        self.m_rate = Gauge("aoi3d_trainer_steps_per_second",
+                            f"Training steps per wall second over the last {RATE_WINDOW_S:g} s.",
+                            registry=registry)
+        self.m_loss = Gauge("aoi3d_trainer_loss", "Photometric loss of the last training step.",
+                            registry=registry)
+        self.m_views = Gauge("aoi3d_trainer_views", "Frames in the training set.",
+                             registry=registry)
+        self.m_renders = Counter("aoi3d_renders", "Novel-view renders published.",
+                                 registry=registry)
+        self.m_decisions = Counter("aoi3d_trainer_decisions", "Decisions applied.",
+                                   registry=registry)
+        self.m_received = Counter("aoi3d_trainer_frames_received",
+                                  "Delivered frames accepted into the per-camera buffers.",
+                                  registry=registry)
+        self.m_missing = Counter(
+            "aoi3d_trainer_frames_missing",
+            "Selected frames skipped because the trainer never received them.",
+            registry=registry)
+        self.m_overflow = Counter(
+            "aoi3d_trainer_inbox_overflow",
+            "Frames and decisions dropped unread because the training thread fell behind.",
+            registry=registry)
+        self.m_loss.set(math.nan)
+
+        self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)))
+        self._decisions_in: Inbox = Inbox(maxsize=64)
+        self._frames: dict[int, deque[FrameData]] = {}
+        self._views: list[TrainView] = []
+        self._overflow_seen = 0
+
+        self._stop = threading.Event()
+        self._wake = threading.Event()
+        self._reset_lock = threading.Lock()
+        self._reset_requests: list[threading.Event] = []
+        self._thread: threading.Thread | None = None
+        self._rate = _StepRate()
+
+        # State shared with the HTTP threads, guarded by _state_lock.
+        self._state_lock = threading.Lock()
+        self._steps_total = 0
+        self._steps_per_s = 0.0
+        self._loss: float | None = None
+        self._n_views = 0
+        self._decision: DecisionInForce | None = None
+        self._renders = 0
+        self._latest: LatestRender | None = None
+        self._frames_received = 0
+        self._frames_buffered = 0
+        self._frames_missing = 0
+        self._resets = 0
+        self._error: str | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        self.bus.subscribe(self.keys.edge_frames, self._on_frame)
+        self.bus.subscribe(self.keys.decision, self._on_decision)
+        self._thread = threading.Thread(target=self._run, name="trainer", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=_STOP_JOIN_S)
+            if self._thread.is_alive():
+                log.warning("training thread did not stop within %.1f s", _STOP_JOIN_S)
+
+    def readiness(self) -> tuple[bool, str]:
+        if self._thread is None or not self._thread.is_alive():
+            return False, self._error or "training thread not running"
+        with self._state_lock:
+            if self._decision is None:
+                return True, "waiting for the first decision"
+            return True, f"training on decision {self._decision.decision_id}"
+
+    # ------------------------------------------------------------------ bus callbacks
+    def _on_frame(self, key: str, payload: bytes) -> None:
+        self._frames_in.put((key, payload))
+        self._wake.set()
+
+    def _on_decision(self, key: str, payload: bytes) -> None:
+        self._decisions_in.put((key, payload))
+        self._wake.set()
+
+    # ------------------------------------------------------------------ control (any thread)
+    def reset(self, timeout_s: float = 10.0) -> bool:
+        """Re-initialise the model (training set and buffered frames kept).
+
+        Done by the training thread between two chunks; returns False if it did not happen
+        within ``timeout_s``.
+        """
+        if self._thread is None or not self._thread.is_alive():
+            self._do_reset()
+            return True
+        done = threading.Event()
+        with self._reset_lock:
+            self._reset_requests.append(done)
+        self._wake.set()
+        return done.wait(timeout_s)
+
+    def status(self) -> TrainerStatus:
+        with self._state_lock:
+            decision = self._decision
+            return TrainerStatus(
+                steps=int(self.trainer.steps),
+                steps_total=self._steps_total,
+                steps_per_s=self._steps_per_s,
+                loss=self._loss,
+                n_views=self._n_views,
+                decision=decision,
+                decision_age_ms=None if decision is None
+                else self.clock.now_ms() - decision.time_ms,
+                backend=self.backend,
+                device=self.device,
+                renders=self._renders,
+                frames_received=self._frames_received,
+                frames_buffered=self._frames_buffered,
+                frames_missing=self._frames_missing,
+                resets=self._resets,
+                running=self._thread is not None and self._thread.is_alive(),
+            )
+
+    def latest_render(self) -> LatestRender | None:
+        with self._state_lock:
+            return self._latest
+
+    # ------------------------------------------------------------------ training thread
+    def _run(self) -> None:
+        next_render_s = time.monotonic() + self.settings.render_period_s
+        try:
+            while not self._stop.is_set():
+                self._wake.clear()
+                self._ingest()
+                if self._stop.is_set():
+                    break
+                if self._views:
+                    self._train_chunk()
+                else:
+                    self._record_idle()
+                now = time.monotonic()
+                if now >= next_render_s:
+                    self._render_and_publish()
+                    next_render_s += self.settings.render_period_s
+                    if next_render_s <= now:  # fell behind: skip, do not burst
+                        next_render_s = now + self.settings.render_period_s
+                if not self._views:
+                    self._wake.wait(min(_IDLE_WAIT_S, max(0.0, next_render_s - now)))
+        except Exception as err:  # keep the service up to report it on /readyz
+            self._error = f"training thread failed: {err!r}"
+            log.exception("training thread failed")
+
+    def _ingest(self) -> None:
+        # Decisions first, then frames: every frame sent before those decisions is then in.
+        decisions = self._decisions_in.drain()
+        for key, payload in self._frames_in.drain():
+            self._store_frame(key, payload)
+        overflow = self._frames_in.dropped + self._decisions_in.dropped
+        if overflow > self._overflow_seen:
+            self.m_overflow.inc(overflow - self._overflow_seen)
+            self._overflow_seen = overflow
+        newest: pb.Decision | None = None
+        for key, payload in decisions:
+            try:
+                msg = decode_decision(payload)
+                current = newest.decision_id if newest is not None else self._current_id()
+                if current is not None and msg.decision_id <= current:
+                    raise Rejected("stale_decision",
+                                   f"decision {msg.decision_id} is not newer than {current}")
+            except Rejected as err:
+                self.rejections.reject(err, key)
+                continue
+            newest = msg
+        if newest is not None:
+            self._apply_decision(newest)
+        with self._reset_lock:
+            requests, self._reset_requests = self._reset_requests, []
+        if requests:
+            self._do_reset()
+            for done in requests:
+                done.set()
+
+    def _current_id(self) -> int | None:
+        with self._state_lock:
+            return None if self._decision is None else self._decision.decision_id
+
+    def _store_frame(self, key: str, payload: bytes) -> None:
+        try:
+            frame = decode_frame(payload, self._camera_ids)
+        except Rejected as err:
+            self.rejections.reject(err, key)
+            return
+        buf = self._frames.get(frame.camera_id)
+        if buf is None:
+            buf = self._frames[frame.camera_id] = deque(maxlen=self.settings.frames_per_camera)
+        buf.append(frame)
+        self.m_received.inc()
+        with self._state_lock:
+            self._frames_received += 1
+            self._frames_buffered = sum(len(b) for b in self._frames.values())
+
+    def _find_frame(self, camera_id: int, generation_ms: float) -> FrameData | None:
+        for frame in reversed(self._frames.get(camera_id, ())):
+            if frame.generation_ms == generation_ms:
+                return frame
+        return None
+
+    def _apply_decision(self, decision: pb.Decision) -> None:
+        views: list[TrainView] = []
+        missing = 0
+        for ref in decision.selected:
+            frame = self._find_frame(ref.camera_id, ref.generation_ms)
+            if frame is None:
+                missing += 1
+                continue
+            try:
+                views.append(TrainView(camera=frame.camera, image=frame.rgb()))
+            except Rejected as err:
+                self.rejections.reject(err, self.keys.edge_frame(ref.camera_id))
+        if missing:
+            self.m_missing.inc(missing)
+            log.debug("decision %d: %d selected frame(s) never received",
+                      decision.decision_id, missing)
+        try:
+            self.trainer.set_views(views)
+        except ValueError as err:  # the field refuses the selection: keep the previous one
+            self.rejections.reject(Rejected("bad_selection", str(err)), self.keys.decision)
+            return
+        self._views = views
+        self.m_decisions.inc()
+        self.m_views.set(len(views))
+        with self._state_lock:
+            self._n_views = len(views)
+            self._frames_missing += missing
+            self._decision = DecisionInForce(
+                decision_id=decision.decision_id, time_ms=decision.time_ms,
+                policy=decision.policy, n_selected=len(decision.selected), n_missing=missing,
+                applied_wall_s=time.time())
+
+    def _train_chunk(self) -> None:
+        n = self.settings.steps_per_chunk
+        loss = float(self.trainer.step(n))
+        now = time.monotonic()
+        self.m_steps.inc(n)
+        if math.isfinite(loss):
+            self.m_loss.set(loss)
+        with self._state_lock:
+            self._steps_total += n
+            self._steps_per_s = self._rate.add(now, self._steps_total)
+            self._loss = loss if math.isfinite(loss) else None
+            rate = self._steps_per_s
+        self.m_rate.set(rate)
+
+    def _record_idle(self) -> None:
+        with self._state_lock:
+            self._steps_per_s = self._rate.idle(time.monotonic(), self._steps_total)
+            rate = self._steps_per_s
+        self.m_rate.set(rate)
+
+    def _render_and_publish(self) -> None:
+        with self._state_lock:
+            decision = self._decision
+        if decision is None:  # nothing to represent yet: no render before the first decision
+            return
+        camera = self.heldout_camera
+        rgb = self.trainer.render(camera)
+        image = encode_png(rgb)
+        pose, intrinsics = camera_to_pb(camera)
+        step = int(self.trainer.steps)
+        n_views = int(self.trainer.n_views)
+        msg = pb.Render(decision_id=decision.decision_id, time_ms=decision.time_ms, pose=pose,
+                        intrinsics=intrinsics, image=image, training_step=step,
+                        n_views=n_views, backend=self.backend)
+        self.bus.publish(self.keys.render, msg.SerializeToString())
+        self.m_renders.inc()
+        with self._state_lock:
+            self._renders += 1
+            self._latest = LatestRender(png=image.data, decision_id=decision.decision_id,
+                                        time_ms=decision.time_ms, training_step=step,
+                                        n_views=n_views, wall_s=time.time())
+
+    def _do_reset(self) -> None:
+        self.trainer.reset()  # keeps the views
+        with self._state_lock:
+            self._resets += 1
+            self._loss = None
+        self.m_loss.set(math.nan)
+        log.info("model reset (%d views kept)", len(self._views))
