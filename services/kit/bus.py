@@ -6,6 +6,7 @@ different subscriptions) and must return quickly: hand work to an :class:`Inbox`
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import threading
 from collections import deque
@@ -67,10 +68,8 @@ class ZenohBus:
             subs, pubs = self._subscribers, list(self._publishers.values())
             self._subscribers, self._publishers = [], {}
         for ent in subs + pubs:
-            try:
+            with contextlib.suppress(Exception):  # already gone with the session
                 ent.undeclare()
-            except Exception:  # already gone with the session
-                pass
         self._session.close()
 
 

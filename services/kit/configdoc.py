@@ -1,0 +1,73 @@
+"""The configuration reference: every environment variable the processes read.
+
+``python -m services.kit.configdoc`` prints it as a Markdown table; the README embeds it
+between markers and a test fails when the two drift apart.
+"""
+
+from __future__ import annotations
+
+import importlib
+from pathlib import Path
+
+from pydantic_settings import BaseSettings
+
+BEGIN, END = "<!-- config:begin -->", "<!-- config:end -->"
+
+
+def settings_classes() -> list[tuple[str, type[BaseSettings]]]:
+    from services.kit.settings import CommonSettings
+    from services.router import RouterSettings
+
+    out: list[tuple[str, type[BaseSettings]]] = [("all services", CommonSettings),
+                                                 ("router", RouterSettings)]
+    for name in ("camera", "network", "scheduler", "trainer", "metrics"):
+        out.append((name, importlib.import_module(f"services.{name}.settings").Settings))
+    return out
+
+
+def _default(field) -> str:
+    value = field.default_factory() if field.default_factory is not None else field.default
+    if isinstance(value, Path):
+        value = str(value)
+    if isinstance(value, list | tuple):
+        value = ",".join(str(v) for v in value)
+    if isinstance(value, dict):
+        value = "{}" if not value else str(value)
+    return f"`{value}`" if value not in ("", None) else "(empty)"
+
+
+def markdown() -> str:
+    rows = ["| variable | process | default | meaning |", "|---|---|---|---|"]
+    for process, cls in settings_classes():
+        prefix = cls.model_config.get("env_prefix", "")
+        for name, field in cls.model_fields.items():
+            if name == "common":
+                continue
+            desc = (field.description or "").replace("|", "\\|").replace("\n", " ")
+            rows.append(f"| `{prefix}{name.upper()}` | {process} | {_default(field)} | {desc} |")
+    return "\n".join(rows)
+
+
+def readme_section(readme: str) -> str:
+    start, end = readme.index(BEGIN) + len(BEGIN), readme.index(END)
+    return readme[start:end].strip()
+
+
+def update_readme(path: Path) -> bool:
+    """Rewrite the README's configuration table; True when it changed."""
+    text = path.read_text()
+    start, end = text.index(BEGIN) + len(BEGIN), text.index(END)
+    new = text[:start] + "\n" + markdown() + "\n" + text[end:]
+    if new != text:
+        path.write_text(new)
+    return new != text
+
+
+if __name__ == "__main__":
+    import sys
+
+    if sys.argv[1:] == ["--update"]:
+        readme = Path(__file__).resolve().parents[2] / "README.md"
+        print("README updated" if update_readme(readme) else "README already current")
+    else:
+        print(markdown())

@@ -1,0 +1,229 @@
+"""The real pipeline: `aoi3d up` starts a Zenoh router and the five services as processes.
+
+Everything is real — processes, uvicorn servers, Zenoh on 127.0.0.1 — on ports of its own
+so it does not collide with a pipeline a developer has running. The test talks to it the
+way an operator would: REST calls, /metrics scrapes and a Zenoh client session.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+
+import httpx
+import pytest
+
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+PORT_OFFSET = 10_000 + (os.getpid() % 500) * 10
+ZENOH_PORT = 17_000 + os.getpid() % 1000
+SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
+
+# The series each service documents (README, "Metrics"); every one must be exposed.
+DOCUMENTED_SERIES = {
+    "camera": ["aoi3d_frames_generated_total", "aoi3d_camera_ticks_skipped_total"],
+    "network": ["aoi3d_frames_offered_total", "aoi3d_frames_dropped_total",
+                "aoi3d_frames_delivered_total", "aoi3d_link_delay_seconds_bucket"],
+    "scheduler": ["aoi3d_aoi_seconds", "aoi3d_cameras_selected", "aoi3d_decisions_total"],
+    "trainer": ["aoi3d_trainer_steps_total", "aoi3d_trainer_steps_per_second",
+                "aoi3d_trainer_loss", "aoi3d_trainer_views", "aoi3d_renders_total"],
+    "metrics": ["aoi3d_render_psnr_db", "aoi3d_render_ssim", "aoi3d_reward",
+                "aoi3d_quality_total"],
+}
+
+
+def url(service: str, path: str) -> str:
+    port = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
+            "metrics": 8105}[service] + PORT_OFFSET
+    return f"http://127.0.0.1:{port}{path}"
+
+
+def wait_for(what: str, check, timeout_s: float = 60.0, every_s: float = 0.25):
+    deadline = time.monotonic() + timeout_s
+    last = None
+    while time.monotonic() < deadline:
+        try:
+            last = check()
+            if last:
+                return last
+        except (httpx.HTTPError, KeyError, ValueError) as err:
+            last = err
+        time.sleep(every_s)
+    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+
+
+def metric(service: str, name: str) -> float:
+    """Sum of a metric's samples (all label sets) from a service's /metrics."""
+    text = httpx.get(url(service, "/metrics"), timeout=5).text
+    values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+              if line.startswith(name) and (line[len(name):][:1] in (" ", "{"))]
+    if not values:
+        raise KeyError(name)
+    return sum(values)
+
+
+def processes_of_run(run_id: str) -> list[int]:
+    """PIDs of live processes whose environment carries this run id."""
+    needle = f"AOI3D_RUN_ID={run_id}".encode()
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit() or int(entry.name) == os.getpid():
+            continue
+        try:
+            if needle in (entry / "environ").read_bytes().split(b"\0"):
+                stat = (entry / "stat").read_text()
+                if stat.split(") ", 1)[1].split()[0] != "Z":
+                    pids.append(int(entry.name))
+        except OSError:
+            continue
+    return pids
+
+
+class Tap:
+    """A Zenoh client session that records the run's decisions and quality messages."""
+
+    def __init__(self, run_id: str) -> None:
+        import zenoh
+
+        from services.kit.settings import CommonSettings, zenoh_config
+
+        keys = Keys(run_id)
+        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"]))
+        self.session = zenoh.open(conf)
+        self.lock = threading.Lock()
+        self.decisions: list[tuple[float, pb.Decision]] = []
+        self.qualities: list[pb.Quality] = []
+        self.keys = keys
+        self.subs = [
+            self.session.declare_subscriber(keys.decision, self._on_decision),
+            self.session.declare_subscriber(keys.quality, self._on_quality),
+        ]
+
+    def _on_decision(self, sample) -> None:
+        msg = pb.Decision.FromString(sample.payload.to_bytes())
+        with self.lock:
+            self.decisions.append((time.monotonic(), msg))
+
+    def _on_quality(self, sample) -> None:
+        msg = pb.Quality.FromString(sample.payload.to_bytes())
+        with self.lock:
+            self.qualities.append(msg)
+
+    def decisions_after(self, t: float) -> list[pb.Decision]:
+        with self.lock:
+            return [d for ts, d in self.decisions if ts > t]
+
+    def publish(self, key: str, payload: bytes) -> None:
+        self.session.put(key, payload)
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
+
+
+@pytest.fixture(scope="module")
+def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from aoi3d.scene import SceneConfig, generate_dataset
+
+    path = tmp_path_factory.mktemp("scene") / "turbine"
+    generate_dataset(path, SceneConfig(width=48, height=36, duration_s=2.0, spp=2))
+    return path
+
+
+def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
+    run_id = f"it{uuid.uuid4().hex[:8]}"
+    log_dir = tmp_path / "logs"
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
+           str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1"]
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0")
+    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True, start_new_session=True)
+    tap = None
+    try:
+        for name in SERVICES:
+            wait_for(f"{name} /healthz",
+                     lambda n=name: httpx.get(url(n, "/healthz"), timeout=1).status_code == 200)
+        tap = Tap(run_id)
+
+        # frames flow end to end: offered → delivered → decisions → training → quality
+        wait_for("frames delivered", lambda: metric("network", "aoi3d_frames_delivered_total") > 20)
+        wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 5)
+        wait_for("training steps", lambda: httpx.get(url("trainer", "/status")).json()["steps"] > 0)
+        entries = wait_for("quality history",
+                           lambda: httpx.get(url("metrics", "/quality")).json()["history"],
+                           timeout_s=90)
+        assert all(math.isfinite(q["psnr_db"]) for q in entries)
+        assert all(q["lpips"] is None and "lpips" not in q["reward_terms"] for q in entries)
+        wait_for("Quality messages on Zenoh", lambda: tap.qualities)
+        assert all(math.isfinite(q.psnr_db) for q in tap.qualities)
+
+        # MAT 0 selects no camera; a large MAT selects most of them
+        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0})
+        assert r.status_code == 200, r.text
+        spec0 = r.json()["spec"]
+        zero = wait_for("decisions under MAT 0", lambda: [
+            d for d in tap.decisions_after(0) if d.policy == spec0][:5])
+        assert all(len(d.selected) == 0 for d in zero)
+        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000})
+        assert r.status_code == 200, r.text
+        spec1 = r.json()["spec"]
+        big = wait_for("decisions under MAT 10 s", lambda: [
+            d for d in tap.decisions_after(0) if d.policy == spec1][:5])
+        n_cams = len(big[-1].camera_ids)
+        assert all(len(d.selected) >= n_cams // 2 for d in big), [len(d.selected) for d in big]
+
+        # REST errors say what is wrong
+        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": -5})
+        assert r.status_code == 422 and "mat_ms" in r.text
+        r = httpx.put(url("network", "/channel"), json={"delay": "weird:1"})
+        assert r.status_code in (400, 422) and "exp:" in r.text
+
+        # malformed frames are dropped and counted, and nothing stops
+        for _ in range(5):
+            tap.publish(Keys(run_id).cam_frame(3), b"\x00garbage\xff")
+        wait_for("rejections counted", lambda: metric("network", "aoi3d_messages_rejected_total")
+                 >= 5)
+        before = metric("network", "aoi3d_frames_delivered_total")
+        wait_for("frames still delivered",
+                 lambda: metric("network", "aoi3d_frames_delivered_total") > before)
+
+        # every service exposes its documented series
+        for name, series in DOCUMENTED_SERIES.items():
+            text = httpx.get(url(name, "/metrics")).text
+            missing = [s for s in series if s not in text]
+            assert not missing, f"{name} /metrics lacks {missing}"
+
+        # a crashed service is restarted, and the restart is logged
+        state = json.loads((log_dir / "up.json").read_text())
+        os.kill(state["children"]["metrics"]["pid"], signal.SIGKILL)
+        wait_for("metrics restarted", lambda: json.loads(
+            (log_dir / "up.json").read_text())["children"]["metrics"]["restarts"] == 1,
+                 timeout_s=30)
+        wait_for("metrics healthy again",
+                 lambda: httpx.get(url("metrics", "/healthz"), timeout=1).status_code == 200)
+    finally:
+        if tap is not None:
+            tap.close()
+        up.send_signal(signal.SIGTERM)
+        try:
+            out, _ = up.communicate(timeout=40)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+            out, _ = up.communicate()
+    assert up.returncode == 0, out[-3000:]
+    assert "restarted" in out and "metrics" in out
+    # every process is gone afterwards
+    wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)
