@@ -1,0 +1,124 @@
+"""Benchmark: the live pipeline on this machine, as `make up` runs it.
+
+Starts ``aoi3d up`` on its own ports with the default scene, sets the policy, and after
+``--warmup-s`` samples every counter twice, ``--window-s`` apart: frames offered/delivered
+per second through camera → network, decisions per second, the trainer's steps per second,
+and the PSNR of the novel view over time (first renders vs the last ones). Writes
+``bench/results/pipeline-<policy>.json``.
+
+    python bench/pipeline.py --policy mat:51 --window-s 60
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFSET = 1000  # REST ports 9101..9105, so a running `make up` is not disturbed
+PORTS = {"camera": 9101, "network": 9102, "scheduler": 9103, "trainer": 9104, "metrics": 9105}
+
+
+def scrape(service: str) -> dict[str, float]:
+    text = httpx.get(f"http://127.0.0.1:{PORTS[service]}/metrics", timeout=5).text
+    out: dict[str, float] = {}
+    for line in text.splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        name, value = line.rsplit(" ", 1)
+        out[name.split("{")[0]] = out.get(name.split("{")[0], 0.0) + float(value)
+    return out
+
+
+def policy_body(spec: str) -> dict:
+    kind, _, arg = spec.partition(":")
+    if kind == "mat":
+        return {"kind": "mat", "mat_ms": float(arg)}
+    if kind == "freshest":
+        return {"kind": "freshest", "k": int(arg)}
+    return {"kind": kind}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--policy", default="mat:51", help="all | mat:<ms> | freshest:<k>")
+    ap.add_argument("--time-scale", type=float, default=0.1)
+    ap.add_argument("--warmup-s", type=float, default=10.0)
+    ap.add_argument("--window-s", type=float, default=60.0)
+    ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine"))
+    args = ap.parse_args()
+
+    log_dir = ROOT / "runs" / "bench-pipeline"
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", "bench",
+           "--zenoh-port", "7547", "--port-offset", str(OFFSET), "--log-dir", str(log_dir),
+           "--quiet", "--time-scale", str(args.time_scale)]
+    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                          start_new_session=True)
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                if all(httpx.get(f"http://127.0.0.1:{p}/healthz", timeout=1).status_code == 200
+                       for p in PORTS.values()):
+                    break
+            except httpx.HTTPError:
+                pass
+            if time.monotonic() > deadline or up.poll() is not None:
+                raise SystemExit("the pipeline did not come up; see runs/bench-pipeline/")
+            time.sleep(0.5)
+        t_ready = time.monotonic()
+        r = httpx.put(f"http://127.0.0.1:{PORTS['scheduler']}/policy",
+                      json=policy_body(args.policy))
+        r.raise_for_status()
+        time.sleep(args.warmup_s)
+        first = {s: scrape(s) for s in PORTS}
+        t0 = time.monotonic()
+        time.sleep(args.window_s)
+        last = {s: scrape(s) for s in PORTS}
+        dt = time.monotonic() - t0
+        status = httpx.get(f"http://127.0.0.1:{PORTS['trainer']}/status").json()
+        history = httpx.get(f"http://127.0.0.1:{PORTS['metrics']}/quality",
+                            params={"limit": 100000}).json()["history"]
+    finally:
+        os.killpg(up.pid, signal.SIGTERM)
+        up.wait(timeout=60)
+
+    def rate(service: str, name: str) -> float:
+        return (last[service].get(name, 0.0) - first[service].get(name, 0.0)) / dt
+
+    psnr = [q["psnr_db"] for q in history]
+    k = max(1, min(5, len(psnr) // 4))
+    result = {
+        "policy": args.policy, "time_scale": args.time_scale, "window_s": round(dt, 1),
+        "frames_generated_per_s": rate("camera", "aoi3d_frames_generated_total"),
+        "frames_offered_per_s": rate("network", "aoi3d_frames_offered_total"),
+        "frames_delivered_per_s": rate("network", "aoi3d_frames_delivered_total"),
+        "decisions_per_s": rate("scheduler", "aoi3d_decisions_total"),
+        "trainer_steps_per_s": rate("trainer", "aoi3d_trainer_steps_total"),
+        "renders_scored_per_s": rate("metrics", "aoi3d_quality_total"),
+        "mean_cameras_selected_at_end": last["scheduler"].get("aoi3d_cameras_selected"),
+        "renders_scored": len(psnr),
+        "psnr_first_renders_db": psnr[:k],
+        "psnr_last_renders_db": psnr[-k:],
+        "psnr_mean_first_db": statistics.fmean(psnr[:k]) if psnr else None,
+        "psnr_mean_last_db": statistics.fmean(psnr[-k:]) if psnr else None,
+        "seconds_since_ready": round(time.monotonic() - t_ready, 1),
+        "trainer_device": status.get("device"),
+    }
+    out = ROOT / "bench" / "results" / f"pipeline-{args.policy.replace(':', '')}.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=2) + "\n")
+    print(json.dumps(result, indent=2))
+
+
+if __name__ == "__main__":
+    main()
