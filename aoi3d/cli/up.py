@@ -42,23 +42,24 @@ def up(
 
     def show_where(sup: Supervisor) -> None:
         table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
-        for col in ("service", "REST API", "try"):
-            table.add_column(col)
+        for col in ("service", "REST API (docs at /docs)", "try"):
+            table.add_column(col, no_wrap=True)
         hints = {
             "camera": "GET /config",
             "network": "GET /channel",
-            "scheduler": "PUT /policy {\"kind\":\"mat\",\"mat_ms\":51}",
-            "trainer": "GET /status, GET /render.png",
-            "metrics": "GET /quality",
+            "scheduler": "GET /aoi, PUT /policy",
+            "trainer": "GET /status, /render.png",
+            "metrics": "GET /quality?limit=5",
         }
         for name in SERVICES:
-            base = f"http://127.0.0.1:{cfg.port(name)}"
-            table.add_row(name, f"{base}/docs", f"{base}{hints[name].split(' ', 1)[1]}"
-                          if hints[name].startswith("GET") else hints[name])
+            table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", hints[name])
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
         console.print(table)
-        console.print(f"Logs: {log_dir}/<service>.log · metrics: http://127.0.0.1:"
-                      f"{cfg.port('metrics')}/metrics · stop with Ctrl-C")
+        sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
+        console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
+                      """-d '{"kind":"mat","mat_ms":20}'""", soft_wrap=True)
+        console.print(f"Logs: {log_dir}/<service>.log · Prometheus metrics: <service>/metrics "
+                      "· stop with Ctrl-C", soft_wrap=True)
 
     code = Supervisor(cfg, on_ready=show_where).run()
     raise typer.Exit(code)
@@ -66,6 +67,8 @@ def up(
 
 def _ensure_scene(dataset: Path) -> None:
     """Use the dataset at ``dataset`` if there is one; else generate the default scene."""
+    import time
+
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
     from aoi3d.scene import SceneConfig, ensure_dataset, load_dataset
@@ -87,6 +90,8 @@ def _ensure_scene(dataset: Path) -> None:
                 task = progress.add_task(f"generating the scene into {dataset}", total=total)
             progress.update(task, completed=done)
 
+        t0 = time.perf_counter()
         ds = ensure_dataset(dataset, SceneConfig(), progress=report)
+    made = f", generated in {time.perf_counter() - t0:.1f} s" if task is not None else ""
     console.print(f"scene: {dataset} ({len(ds.cameras)} cameras × {ds.n_frames} frames, "
-                  f"{ds.width}×{ds.height})")
+                  f"{ds.width}×{ds.height}{made})")
