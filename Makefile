@@ -10,12 +10,13 @@ PROTO_OUT := services/kit/pb
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
 
-install: $(STAMP)  ## create the venv (if missing) and install aoi3d editable with dev extras
+install: $(STAMP)  ## create the venv (if missing), install aoi3d editable with dev extras, fetch the LPIPS weights
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e '.[dev]'
+	$(PY) -m aoi3d.lpips fetch
 	@touch $@
 
 up: install  ## generate the default scene if missing, run router + five services until Ctrl-C

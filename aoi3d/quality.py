@@ -14,8 +14,10 @@ in [0, 1]. Both metrics are computed with kornia in float64 with data range (``m
   ``skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
   use_sample_covariance=False, data_range=1, channel_axis=-1)``. Images must be at least 11×11.
 
-LPIPS arrives in a later issue: until an ``lpips_fn`` is passed, ``QualityScore.lpips`` is
-``None`` (never 0) and the reward uses only the terms listed in ``QualityScore.reward_terms``.
+LPIPS comes from :mod:`aoi3d.lpips` (``load_lpips_fn()``, AlexNet v0.1, weights cached by
+``python -m aoi3d.lpips fetch``) and is passed in as ``lpips_fn``. Without it,
+``QualityScore.lpips`` is ``None`` (never 0) and the reward uses only the terms listed in
+``QualityScore.reward_terms``.
 """
 
 from __future__ import annotations

@@ -105,6 +105,12 @@ def main() -> None:
         "decisions_per_s": rate("scheduler", "aoi3d_decisions_total"),
         "trainer_steps_per_s": rate("trainer", "aoi3d_trainer_steps_total"),
         "renders_scored_per_s": rate("metrics", "aoi3d_quality_total"),
+        "camera_ticks_skipped_per_s": rate("camera", "aoi3d_camera_ticks_skipped_total"),
+        "decisions_skipped_per_s": rate("scheduler", "aoi3d_decisions_skipped_total"),
+        "trainer_decisions_applied_per_s": rate("trainer", "aoi3d_trainer_decisions_total"),
+        "trainer_inbox_overflow_per_s": rate("trainer", "aoi3d_trainer_inbox_overflow_total"),
+        "trainer_steps_per_decision": (rate("trainer", "aoi3d_trainer_steps_total")
+                                       / max(rate("scheduler", "aoi3d_decisions_total"), 1e-9)),
         "mean_cameras_selected_at_end": last["scheduler"].get("aoi3d_cameras_selected"),
         "renders_scored": len(psnr),
         "psnr_first_renders_db": psnr[:k],
@@ -114,7 +120,8 @@ def main() -> None:
         "seconds_since_ready": round(time.monotonic() - t_ready, 1),
         "trainer_device": status.get("device"),
     }
-    out = ROOT / "bench" / "results" / f"pipeline-{args.policy.replace(':', '')}.json"
+    name = f"pipeline-{args.policy.replace(':', '')}-x{args.time_scale:g}.json"
+    out = ROOT / "bench" / "results" / name
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     print(json.dumps(result, indent=2))

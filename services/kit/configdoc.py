@@ -13,6 +13,13 @@ from pydantic_settings import BaseSettings
 
 BEGIN, END = "<!-- config:begin -->", "<!-- config:end -->"
 
+#: Variables the domain library reads directly (not through a settings class).
+DOMAIN_VARIABLES: dict[str, tuple[str, str]] = {
+    "AOI3D_LPIPS_WEIGHTS": ("`$XDG_CACHE_HOME/aoi3d/lpips`",
+                            "Folder of the cached LPIPS weights (`python -m aoi3d.lpips fetch` "
+                            "writes it, the metrics service reads it)."),
+}
+
 
 def settings_classes() -> list[tuple[str, type[BaseSettings]]]:
     from services.kit.settings import CommonSettings
@@ -45,6 +52,8 @@ def markdown() -> str:
                 continue
             desc = (field.description or "").replace("|", "\\|").replace("\n", " ")
             rows.append(f"| `{prefix}{name.upper()}` | {process} | {_default(field)} | {desc} |")
+    for var, (default, desc) in DOMAIN_VARIABLES.items():
+        rows.append(f"| `{var}` | aoi3d (domain) | {default} | {desc} |")
     return "\n".join(rows)
 
 

@@ -11,6 +11,10 @@ from services.metrics.settings import Settings
 def main() -> None:
     settings = Settings()
     setup_logging(settings.common.log_level, "metrics")
+    if settings.torch_threads:
+        import torch
+
+        torch.set_num_threads(settings.torch_threads)
     serve(create_app(settings), settings)
 
 

@@ -2,21 +2,26 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, FastAPI, Query
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
+from aoi3d.lpips import load_lpips_fn, weights_path
 from aoi3d.quality import LpipsFn
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
 from services.metrics.settings import Settings
 from services.metrics.worker import MetricsWorker, QualityRecord, mean_or_none
 
+log = logging.getLogger(__name__)
+
 DESCRIPTION = """\
 Scores each render of the held-out novel view against the ground-truth frame of the same
-time (PSNR, SSIM; LPIPS once available) and publishes a `Quality` message per render.
+time (PSNR, SSIM and, when its weights are cached, LPIPS) and publishes a `Quality` message
+per render. `reward_terms` says which metrics the reward was built from.
 
 Pairing: the truth frame generated exactly at the render's time t, else the newest generated
 within one generation period before t; otherwise the render is dropped and counted in
@@ -41,12 +46,12 @@ class QualityEntry(BaseModel):
                            examples=[24.3])
     ssim: float = Field(description="Mean SSIM (11x11 Gaussian window, sigma 1.5).",
                         examples=[0.81])
-    lpips: float | None = Field(description="LPIPS distance; null while LPIPS is unavailable "
-                                            "(never 0).", examples=[None])
+    lpips: float | None = Field(description="LPIPS distance (AlexNet, v0.1); null while LPIPS "
+                                            "is unavailable (never 0).", examples=[0.21])
     reward: float = Field(description="Weighted sum of the terms in reward_terms.",
                           examples=[0.891])
     reward_terms: list[str] = Field(description="Metrics the reward was built from.",
-                                    examples=[["psnr", "ssim"]])
+                                    examples=[["psnr", "ssim", "lpips"]])
     training_step: int = Field(description="Trainer step count when rendered.", examples=[5120])
     n_views: int = Field(description="Frames in the training set when rendered.", examples=[12])
     backend: str = Field(description="Radiance-field backend that rendered.", examples=["grid"])
@@ -73,7 +78,9 @@ class QualitySummary(BaseModel):
         examples=[2])
     window: int = Field(description="Entries the means are taken over (the history returned).",
                         examples=[50])
-    lpips_available: bool = Field(description="Whether LPIPS is computed.", examples=[False])
+    lpips_available: bool = Field(description="Whether LPIPS is computed (its weights are "
+                                              "cached and the lpips setting is on).",
+                                  examples=[True])
     reward_terms: list[str] = Field(description="Metrics the reward is built from now.",
                                     examples=[["psnr", "ssim"]])
     mean_psnr_db: float | None = Field(description="Mean PSNR over the window; null if empty.",
@@ -117,9 +124,28 @@ def get_quality(
     return QualityResponse(summary=summary, history=[QualityEntry.of(r) for r in records])
 
 
+def resolve_lpips_fn(settings: Settings, lpips_fn: LpipsFn | None = None) -> LpipsFn | None:
+    """The LPIPS function the worker uses: ``lpips_fn`` when given; else, with
+    ``settings.lpips`` on, the cached pretrained ``settings.lpips_net`` (None when not cached)."""
+    if lpips_fn is not None or not settings.lpips:
+        return lpips_fn
+    fn = load_lpips_fn(settings.lpips_net)
+    if fn is None:
+        log.warning("LPIPS unavailable: no %s weights at %s (run `python -m aoi3d.lpips "
+                    "fetch`); the reward uses PSNR and SSIM only", settings.lpips_net,
+                    weights_path(settings.lpips_net))
+    else:
+        log.info("LPIPS on (%s, v0.1)", settings.lpips_net)
+    return fn
+
+
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                clock: SimClock | None = None, lpips_fn: LpipsFn | None = None) -> FastAPI:
-    """The metrics service; ``bus``/``clock`` default to Zenoh and the shared clock."""
+    """The metrics service; ``bus``/``clock`` default to Zenoh and the shared clock.
+
+    LPIPS: ``lpips_fn`` when given, else the cached pretrained weights when ``settings.lpips``
+    is on (loaded when the service starts, see :func:`resolve_lpips_fn`).
+    """
     settings = settings or Settings()
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
@@ -129,7 +155,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             the_bus, registry, run_id=common.run_id, clock=clock,
             truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
             history=settings.history, inbox_size=settings.inbox_size,
-            weights=settings.reward_weights(), lpips_fn=lpips_fn)
+            weights=settings.reward_weights(), lpips_fn=resolve_lpips_fn(settings, lpips_fn))
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Literal
+
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
@@ -39,6 +41,16 @@ class Settings(ServiceSettings):
         _DEFAULT_WEIGHTS.lpips, allow_inf_nan=False,
         description="Reward weight of the LPIPS term (negative: lower LPIPS is better); "
                     "unused while LPIPS is unavailable.")
+    lpips: bool = Field(
+        True, description="Compute LPIPS when its weights are cached (`python -m aoi3d.lpips "
+                          "fetch`, run by `make install`); without them, or when false, LPIPS is "
+                          "null and the reward uses PSNR and SSIM only.")
+    lpips_net: Literal["alex", "vgg"] = Field(
+        "alex", description="LPIPS backbone: alex (the paper's) or vgg (VGG16).")
+    torch_threads: int = Field(
+        1, ge=0, le=256,
+        description="Torch CPU threads of this process (LPIPS); 0 keeps torch's default. One "
+                    "thread keeps LPIPS at ~4 ms a pair without competing with the trainer.")
 
     def reward_weights(self) -> RewardWeights:
         """The reward weights as the domain's :class:`RewardWeights`."""

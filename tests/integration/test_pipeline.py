@@ -21,6 +21,7 @@ from pathlib import Path
 import httpx
 import pytest
 
+from aoi3d.lpips import weights_path
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 
@@ -166,7 +167,11 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
                            lambda: httpx.get(url("metrics", "/quality")).json()["history"],
                            timeout_s=90)
         assert all(math.isfinite(q["psnr_db"]) for q in entries)
-        assert all(q["lpips"] is None and "lpips" not in q["reward_terms"] for q in entries)
+        # LPIPS is on exactly when its weights are cached (`make install` fetches them)
+        lpips_on = httpx.get(url("metrics", "/quality")).json()["summary"]["lpips_available"]
+        assert lpips_on == weights_path("alex").is_file()
+        assert all((q["lpips"] is not None) == lpips_on
+                   and ("lpips" in q["reward_terms"]) == lpips_on for q in entries)
         wait_for("Quality messages on Zenoh", lambda: tap.qualities)
         assert all(math.isfinite(q.psnr_db) for q in tap.qualities)
 

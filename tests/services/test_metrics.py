@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
+import services.metrics.app as metrics_app
 from aoi3d.clock import SimClock
+from aoi3d.lpips import LPIPS, load_lpips
 from aoi3d.quality import psnr, ssim
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.bus import MemoryBus
@@ -104,9 +106,12 @@ class Harness:
 def make_harness() -> Iterator[Callable[..., Harness]]:
     clients: list[TestClient] = []
 
-    def make(**app_kw) -> Harness:
+    def make(*, lpips: bool = False, **app_kw) -> Harness:
+        """The service on a memory bus; LPIPS off unless asked for (``lpips=True`` loads the
+        cached weights, ``lpips_fn=`` injects one), so no test depends on the cache."""
         bus = MemoryBus()
-        settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN))
+        settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN),
+                            lpips=lpips)
         app = create_app(settings, bus=bus,
                          clock=SimClock(epoch_s=time.time(), time_scale=1.0), **app_kw)
         client = TestClient(app)
@@ -232,6 +237,70 @@ def test_lpips_when_available_is_published_and_enters_the_reward(make_harness) -
     entry = h.client.get("/quality").json()["history"][-1]
     assert entry["lpips"] == 0.25 and entry["reward_terms"] == ["psnr", "ssim", "lpips"]
     assert metric(h.client.get("/metrics").text, "aoi3d_render_lpips") == 0.25
+
+
+def test_lpips_setting_loads_the_cached_weights(make_harness, monkeypatch) -> None:
+    calls: list[str] = []
+
+    def cached(net: str):
+        calls.append(net)
+        return lambda pred, gt: 0.125
+
+    monkeypatch.setattr(metrics_app, "load_lpips_fn", cached)
+    h = make_harness(lpips=True)
+    q = h.score(30.0, noisy(truth_image(30.0), seed=4))
+    assert calls == ["alex"]
+    assert q.HasField("lpips") and q.lpips == 0.125
+    assert list(q.reward_terms) == ["psnr", "ssim", "lpips"]
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim - 0.125)
+    summary = h.client.get("/quality").json()["summary"]
+    assert summary["lpips_available"] is True
+    assert summary["reward_terms"] == ["psnr", "ssim", "lpips"]
+    assert summary["mean_lpips"] == 0.125
+
+    make_harness(lpips=False)
+    assert calls == ["alex"]  # switched off: the weights are not even looked for
+
+
+def test_without_cached_weights_lpips_is_absent_and_the_reward_says_so(make_harness,
+                                                                       monkeypatch) -> None:
+    monkeypatch.setattr(metrics_app, "load_lpips_fn", lambda net: None)  # nothing cached
+    h = make_harness(lpips=True)
+    q = h.score(30.0, noisy(truth_image(30.0), seed=5))
+    assert not q.HasField("lpips")
+    assert list(q.reward_terms) == ["psnr", "ssim"]
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim)
+    summary = h.client.get("/quality").json()["summary"]
+    assert summary["lpips_available"] is False and summary["mean_lpips"] is None
+    assert summary["reward_terms"] == ["psnr", "ssim"]
+
+
+def test_images_too_small_for_lpips_are_rejected_as_unscorable(make_harness) -> None:
+    model = LPIPS("alex").eval()  # random weights: only the size check matters here
+    assert model.min_size > max(W, H)
+    h = make_harness(lpips_fn=model.distance)
+    h.bus.publish(KEYS.render, render(30.0, truth_image(30.0)))
+    h.bus.publish(KEYS.truth, truth(150.0, image=np.zeros((48, 64, 3), np.uint8)))
+    q = h.score(150.0, np.full((48, 64, 3), 40, np.uint8))
+    assert q.time_ms == 150.0 and q.HasField("lpips")  # the larger pair is scored
+    assert h.rejected("unscorable") == 1
+
+
+def test_pretrained_lpips_is_published_for_real_renders(make_harness) -> None:
+    model = load_lpips("alex")
+    if model is None:
+        pytest.skip("LPIPS alex weights not cached; run `python -m aoi3d.lpips fetch`")
+    h = make_harness(lpips_fn=model.distance)
+    yy, xx = np.mgrid[0:48, 0:64]
+    gt = (np.stack([np.sin(xx / 5.0), np.cos(yy / 6.0), np.sin((xx + yy) / 9.0)], -1) * 100
+          + 128).astype(np.uint8)
+    h.bus.publish(KEYS.truth, truth(150.0, image=gt))
+    pred = noisy(gt, seed=6, sigma=20.0)
+    q = h.score(150.0, pred)
+    expected = model.distance(decode_image(pb.Render.FromString(render(150.0, pred)).image), gt)
+    assert 0.0 < q.lpips == pytest.approx(expected, abs=1e-6)
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim - q.lpips)
+    assert h.score(150.0, gt).lpips == 0.0
 
 
 def test_bad_messages_are_counted_and_dropped(make_harness) -> None:

@@ -30,6 +30,7 @@ import pytest
 import yaml
 from pydantic_settings import BaseSettings
 
+from services.kit.configdoc import DOMAIN_VARIABLES
 from services.kit.settings import CommonSettings, ServiceSettings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -395,8 +396,9 @@ def dockerfile_problems(doc: dict[str, Any]) -> list[str]:
                 problems.append(f"{word} {argv}: neither python -m nor a project script")
         if word == "ENV":
             for var in re.findall(r"\b(AOI3D_[A-Z0-9_]+)=", args):
-                if var not in env_names(CommonSettings):
-                    problems.append(f"ENV {var} is not a CommonSettings field")
+                if var not in env_names(CommonSettings) and var not in DOMAIN_VARIABLES:
+                    problems.append(f"ENV {var} is neither a CommonSettings field nor a "
+                                    "documented domain variable")
     runs = " ".join(args for word, args in instructions if word == "RUN")
     torch_pin = next(d for d in project()["dependencies"] if d.startswith("torch"))
     if not re.search(r"pip install --index-url https://download\.pytorch\.org/whl/cpu "
