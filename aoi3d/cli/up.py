@@ -66,17 +66,22 @@ def up(
 
 
 def _ensure_scene(dataset: Path) -> None:
-    """Use the dataset at ``dataset`` if there is one; else generate the default scene."""
+    """Use the dataset at ``dataset`` if there is one (any layout ``open_dataset`` reads);
+    else generate the default synthetic scene there."""
     import time
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from aoi3d.scene import SceneConfig, ensure_dataset, load_dataset
+    from aoi3d.scene import SceneConfig, detect_layout, ensure_dataset, open_dataset
 
-    if (dataset / "transforms_train.json").exists():
-        ds = load_dataset(dataset)
-        console.print(f"scene: {dataset} ({len(ds.cameras)} cameras × {ds.n_frames} frames, "
-                      f"{ds.width}×{ds.height})")
+    try:
+        layout = detect_layout(dataset)
+    except FileNotFoundError:
+        layout = None
+    if layout is not None:
+        ds = open_dataset(dataset)
+        console.print(f"scene: {dataset} ({layout} layout, {len(ds.cameras)} cameras × "
+                      f"{ds.n_frames} frames, {ds.width}×{ds.height})")
         return
 
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/"

@@ -4,6 +4,9 @@ The scene is a wind turbine whose three blades turn at ``rotor_rpm`` on a textur
 under a sky, rendered by exact analytic ray casting (:class:`TurbineScene`). Camera 0 of the
 rig (:func:`make_rig`) is the held-out novel view; 1..N train. :func:`ensure_dataset` writes
 (or reuses) the frames and D-NeRF-style transforms; :func:`load_dataset` reads them back.
+Datasets researchers already have — DyNeRF videos (:mod:`aoi3d.scene.dynerf`), D-NeRF /
+nerfstudio transforms (:mod:`aoi3d.scene.dnerf`) — open with :func:`open_dataset`, which
+detects the layout; every reader presents the same :class:`SceneDataset` interface.
 """
 
 from aoi3d.scene.camera import Camera, look_at
@@ -14,21 +17,41 @@ from aoi3d.scene.dataset import (
     generate_dataset,
     load_dataset,
 )
+from aoi3d.scene.dnerf import DNeRFDataset, export_dnerf, load_dnerf
+from aoi3d.scene.dynerf import DyNeRFDataset, export_dynerf, load_dynerf
+from aoi3d.scene.layouts import (
+    EXPORT_FORMATS,
+    LAYOUTS,
+    detect_layout,
+    export_dataset,
+    open_dataset,
+)
 from aoi3d.scene.rig import HELDOUT_ID, make_rig
 from aoi3d.scene.turbine import SCENE_VERSION, SceneConfig, TurbineScene, to_uint8
 
 __all__ = [
+    "EXPORT_FORMATS",
     "HELDOUT_ID",
+    "LAYOUTS",
     "SCENE_VERSION",
     "Camera",
+    "DNeRFDataset",
+    "DyNeRFDataset",
     "Progress",
     "SceneConfig",
     "SceneDataset",
     "TurbineScene",
+    "detect_layout",
     "ensure_dataset",
+    "export_dataset",
+    "export_dnerf",
+    "export_dynerf",
     "generate_dataset",
     "load_dataset",
+    "load_dnerf",
+    "load_dynerf",
     "look_at",
     "make_rig",
+    "open_dataset",
     "to_uint8",
 ]

@@ -12,6 +12,9 @@ camera_id, frame_index}]`` with ``time = frame_index / n_frames`` ∈ [0, 1) and
 ``file_path`` relative to ``root``, and an ``aoi3d`` block (fps, n_frames, aabb, the scene
 config and its hash). :func:`load_dataset` needs nothing but these files.
 
+:class:`SceneDataset` is also the interface (and base class) of the readers of other layouts
+(:mod:`aoi3d.scene.dnerf`, :mod:`aoi3d.scene.dynerf`; :func:`aoi3d.scene.open_dataset`).
+
 Generation writes into a hidden sibling directory and renames it into place when complete,
 so an interrupted run never leaves something that looks like a dataset.
 """
@@ -43,6 +46,7 @@ from aoi3d.scene.turbine import AABB, SCENE_VERSION, SceneConfig, TurbineScene
 
 __all__ = [
     "FORMAT_VERSION",
+    "LAYOUT",
     "TEST_JSON",
     "TRAIN_JSON",
     "Progress",
@@ -53,6 +57,8 @@ __all__ = [
 ]
 
 FORMAT_VERSION = 1
+LAYOUT = "aoi3d"
+"""The name of the project's own on-disk layout (see :func:`aoi3d.scene.detect_layout`)."""
 TRAIN_JSON = "transforms_train.json"
 TEST_JSON = "transforms_test.json"
 CHUNK_FRAMES = 30
@@ -70,7 +76,17 @@ def _frame_relpath(camera_id: int, frame_index: int) -> str:
 
 @dataclass(frozen=True, eq=False)
 class SceneDataset:
-    """A generated scene on disk: cameras, timing and frame access."""
+    """A dynamic scene seen by a fixed camera rig: cameras, timing and frame access.
+
+    This is the interface every reader presents to the services and to experiments (the
+    project's own layout here, :mod:`aoi3d.scene.dnerf` and :mod:`aoi3d.scene.dynerf` for the
+    D-NeRF/nerfstudio and DyNeRF layouts, :func:`aoi3d.scene.open_dataset` to pick one):
+    camera ids are ``0..len(cameras)-1``, :attr:`heldout_id` is the novel view, every camera
+    has every frame ``0..n_frames-1``. This class reads the project's own layout (one PNG per
+    camera and frame, ``frames/camNN/FFFF.png``); readers of other layouts subclass it and
+    override :meth:`frame_relpath`, :meth:`frame`, :meth:`frame_png` and
+    :meth:`missing_frames` as needed.
+    """
 
     root: Path
     fps: int
@@ -82,8 +98,13 @@ class SceneDataset:
     aabb: np.ndarray
     train_ids: list[int]
     config: dict[str, Any] = field(default_factory=dict)
+    """The generating :class:`SceneConfig` as a dict; empty for datasets from elsewhere."""
     config_hash: str = ""
     heldout_id: int = HELDOUT_ID
+    layout: str = LAYOUT
+    """Which on-disk layout this was read from: ``aoi3d``, ``dnerf`` or ``dynerf``."""
+    camera_names: tuple[str, ...] = ()
+    """The source's name of each camera (e.g. ``cam03`` in DyNeRF); empty = ``camNN``."""
 
     @property
     def duration_ms(self) -> float:
@@ -99,15 +120,33 @@ class SceneDataset:
         """Scene time (ms, within the loop) of the frame shown at ``time_ms``."""
         return self.frame_index(time_ms) * 1000.0 / self.fps
 
-    def frame_path(self, camera_id: int, frame_index: int) -> Path:
+    def camera_name(self, camera_id: int) -> str:
+        """The source's name of a camera (``camNN`` unless the reader recorded another)."""
+        self._check(camera_id, 0)
+        return self.camera_names[camera_id] if self.camera_names else f"cam{camera_id:02d}"
+
+    def frame_time(self, camera_id: int, frame_index: int) -> float:
+        """Capture time of a frame as a fraction of the loop (the D-NeRF ``time``), [0, 1]."""
+        self._check(camera_id, frame_index)
+        return frame_index / self.n_frames
+
+    def _check(self, camera_id: int, frame_index: int) -> None:
         if not 0 <= camera_id < len(self.cameras):
             raise ValueError(f"camera_id must be in [0, {len(self.cameras)}), got {camera_id}")
         if not 0 <= frame_index < self.n_frames:
             raise ValueError(f"frame_index must be in [0, {self.n_frames}), got {frame_index}")
-        return self.root / _frame_relpath(camera_id, frame_index)
+
+    def frame_relpath(self, camera_id: int, frame_index: int) -> str:
+        """Path, relative to :attr:`root`, of the file that holds a frame."""
+        self._check(camera_id, frame_index)
+        return _frame_relpath(camera_id, frame_index)
+
+    def frame_path(self, camera_id: int, frame_index: int) -> Path:
+        """Absolute path of the file that holds a frame (raises ``ValueError`` on bad ids)."""
+        return self.root / self.frame_relpath(camera_id, frame_index)
 
     def frame_png(self, camera_id: int, frame_index: int) -> bytes:
-        """The PNG file's bytes, as stored."""
+        """The frame as PNG bytes (here: the PNG file's bytes, as stored)."""
         return self.frame_path(camera_id, frame_index).read_bytes()
 
     def frame(self, camera_id: int, frame_index: int) -> np.ndarray:
@@ -118,13 +157,18 @@ class SceneDataset:
     def missing_frames(self) -> int:
         """How many of the frame files listed by the dataset are absent."""
         return sum(
-            not (self.root / _frame_relpath(c, k)).is_file()
+            not self.frame_path(c, k).is_file()
             for c in range(len(self.cameras))
             for k in range(self.n_frames)
         )
 
     def scene_config(self) -> SceneConfig:
-        """The :class:`SceneConfig` this dataset was generated from."""
+        """The :class:`SceneConfig` this dataset was generated from (aoi3d layout only)."""
+        if not self.config:
+            raise ValueError(
+                f"{self.root}: a {self.layout} dataset has no aoi3d scene config "
+                "(only datasets generated by aoi3d do)"
+            )
         return SceneConfig.from_dict(self.config)
 
 

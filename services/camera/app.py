@@ -9,7 +9,7 @@ from prometheus_client import CollectorRegistry
 from pydantic import BaseModel, ConfigDict, Field
 
 from aoi3d.clock import SimClock
-from aoi3d.scene import SceneDataset, load_dataset
+from aoi3d.scene import SceneDataset, open_dataset
 from services.camera.settings import Settings
 from services.camera.worker import MAX_PERIOD_MS, CameraConfig, CameraConfigError, CameraWorker
 from services.kit.app import get_worker, service_app
@@ -94,7 +94,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> CameraWorker:
         return CameraWorker(
             bus=the_bus, registry=the_registry,
-            dataset=dataset if dataset is not None else load_dataset(common.dataset),
+            dataset=dataset if dataset is not None else open_dataset(common.dataset),
             clock=clock, keys=Keys(common.run_id), n_cameras=common.cameras,
             period_ms=settings.period_ms, paused=settings.paused,
             cameras=settings.active_cameras or None)
