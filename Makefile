@@ -34,8 +34,9 @@ proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 lint: install  ## ruff
 	$(VENV)/bin/ruff check .
 
-bench: install  ## benchmarks (results under bench/results/; about 3 minutes)
+bench: install  ## benchmarks (results under bench/results/; about 20 minutes)
 	$(PY) bench/channel.py
+	$(PY) bench/fields.py
 	$(PY) bench/pipeline.py --policy all --window-s 50
 	$(PY) bench/pipeline.py --policy mat:51 --window-s 50
 

@@ -1,21 +1,27 @@
-"""REST API of the trainer: status, model reset and the latest novel-view render."""
+"""REST API of the trainer: status, model reset, backend switch and the latest novel-view
+render."""
 
 from __future__ import annotations
 
 import time
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException
+from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
 from aoi3d.field import BACKENDS, FieldConfig
-from aoi3d.scene import SceneDataset, load_dataset
+from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
 from services.trainer.settings import Settings
-from services.trainer.worker import TrainerStatus, TrainerWorker
+from services.trainer.worker import (
+    BackendBuildError,
+    TrainerStatus,
+    TrainerWorker,
+    UnknownBackendError,
+)
 
 Worker = Annotated[TrainerWorker, Depends(get_worker)]
 
@@ -44,8 +50,10 @@ class StatusResponse(BaseModel):
     n_views: int = Field(description="Frames in the training set.", examples=[9])
     decision: DecisionInfo | None = Field(description="The decision in force; null before the "
                                                       "first one.")
-    backend: str = Field(description="Radiance-field backend.", examples=["grid"])
-    backends: list[str] = Field(description="Available backends.", examples=[["grid"]])
+    backend: str = Field(description="Radiance-field backend in use (PUT /backend changes it).",
+                         examples=["grid"])
+    backends: list[str] = Field(description="Available backends (aoi3d.field.BACKENDS).",
+                                examples=[["grid", "nerfacto", "ngp", "tensorf"]])
     device: str = Field(description="Torch device the field trains on.", examples=["cpu"])
     renders: int = Field(description="Renders published.", examples=[17])
     frames_received: int = Field(description="Delivered frames accepted since start.",
@@ -54,7 +62,8 @@ class StatusResponse(BaseModel):
                                  examples=[144])
     frames_missing: int = Field(description="Selected frames skipped since start because they "
                                             "never arrived.", examples=[0])
-    resets: int = Field(description="Model resets since start.", examples=[0])
+    resets: int = Field(description="Model resets since start (backend switches included).",
+                        examples=[0])
     running: bool = Field(description="Whether the training thread is alive.", examples=[True])
 
 
@@ -94,6 +103,47 @@ def post_reset(worker: Worker) -> StatusResponse:
     return _status_body(worker.status())
 
 
+class BackendRequest(BaseModel):
+    """The backend to train from now on."""
+
+    backend: str = Field(description="A registered backend name (GET /status lists them under "
+                                     "`backends`; `aoi3d field backends` describes them).",
+                         examples=["ngp"])
+
+
+_BACKEND_EXAMPLES = {
+    "ngp": {"summary": "Instant-NGP (hash grid + tiny MLP)", "value": {"backend": "ngp"}},
+    "grid": {"summary": "The dense voxel grid", "value": {"backend": "grid"}},
+}
+
+
+@model_router.put(
+    "/backend", summary="Switch the radiance-field backend (a new model; views and frames kept).",
+    description="Replaces the model by a fresh one of the named backend, built with its "
+                "default config on the same device and seed. The training set (the decision "
+                "in force) and the buffered frames are kept, and training resumes at once; "
+                "like POST /reset it restarts `steps` at 0 and counts in `resets`. Renders "
+                "from then on carry the new backend's name. The switch is done by the "
+                "training thread between two chunks of steps.",
+    responses={422: {"description": "Unknown backend; the detail lists the available ones."},
+               500: {"description": "The backend's model could not be built; the previous "
+                                    "backend keeps training."},
+               503: {"description": "The training thread did not get to the switch in time."}})
+def put_backend(worker: Worker,
+                body: Annotated[BackendRequest, Body(openapi_examples=_BACKEND_EXAMPLES)]
+                ) -> StatusResponse:
+    try:
+        switched = worker.set_backend(body.backend)
+    except UnknownBackendError as err:
+        raise HTTPException(422, str(err)) from None
+    except BackendBuildError as err:
+        raise HTTPException(500, str(err)) from None
+    if not switched:
+        raise HTTPException(503, "the training thread did not switch the backend within 30 s; "
+                                 "check GET /status and /readyz")
+    return _status_body(worker.status())
+
+
 render_router = APIRouter(tags=["render"])
 
 
@@ -120,20 +170,24 @@ def get_render(worker: Worker) -> Response:
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                clock: SimClock | None = None, dataset: SceneDataset | None = None,
                field_config: FieldConfig | None = None) -> FastAPI:
-    """The trainer's app. ``dataset`` defaults to ``load_dataset(settings.common.dataset)``
+    """The trainer's app. ``dataset`` defaults to ``open_dataset(settings.common.dataset)``
     (read when the app starts); ``field_config`` overrides the backend's default config."""
     settings = settings or Settings()
     clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
 
     def build_worker(the_bus: Bus, registry) -> TrainerWorker:
-        data = dataset if dataset is not None else load_dataset(settings.common.dataset)
+        data = dataset if dataset is not None else open_dataset(settings.common.dataset)
         return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock,
                              field_config=field_config)
 
     app = service_app(
         title="aoi3d trainer",
         description="Trains a radiance field on the frames each scheduler decision selects "
-                    "and publishes renders of the held-out novel view.",
+                    "and publishes renders of the held-out novel view. The backend (grid, "
+                    "ngp, tensorf, nerfacto, … whatever aoi3d.field.BACKENDS registers) is "
+                    "chosen at start (AOI3D_TRAINER_BACKEND) and can be switched at run time "
+                    "with `PUT /backend {\"backend\": \"ngp\"}`: the model restarts, views "
+                    "and buffered frames are kept.",
         settings=settings, build_worker=build_worker, bus=bus)
     app.include_router(status_router)
     app.include_router(model_router)

@@ -1,7 +1,7 @@
 """Settings of the trainer service (environment prefix ``AOI3D_TRAINER_``).
 
 The radiance-field backend is chosen by name from ``aoi3d.field.BACKENDS``, the one place
-that maps a backend name to its config (today only ``grid``).
+that maps a backend name to its config; ``PUT /backend`` switches it at run time.
 """
 
 from __future__ import annotations
@@ -21,8 +21,10 @@ class Settings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AOI3D_TRAINER_", extra="ignore")
 
     port: int = Field(8104, ge=0, le=65535, description="REST API port.")
-    backend: str = Field("grid", description="Radiance-field backend, one of "
-                                             "aoi3d.field.BACKENDS (available now: grid).",
+    backend: str = Field("grid", description="Radiance-field backend at start, a name in "
+                                             "aoi3d.field.BACKENDS (`aoi3d field backends` "
+                                             "lists them); `PUT /backend` switches it at run "
+                                             "time.",
                          examples=["grid"])
     steps_per_chunk: int = Field(
         1, ge=1, le=10_000,

@@ -5,7 +5,9 @@ the radiance field: between small chunks of ``steps_per_chunk`` steps it ingests
 frames (kept per camera, still encoded), applies the newest decision (resolves its selected
 FrameRefs to frames, decodes them and swaps the training set, model kept), and every
 ``render_period_s`` wall seconds renders the held-out camera and publishes a Render stamped
-with the decision in force.
+with the decision in force. Control requests from the HTTP threads — reset the model, switch
+the backend — are queued and carried out by the training thread between two chunks, so no
+other thread ever touches the model.
 """
 
 from __future__ import annotations
@@ -15,13 +17,13 @@ import math
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from aoi3d.clock import SimClock
-from aoi3d.field import FieldConfig, FieldTrainer, TrainView
+from aoi3d.field import BACKENDS, FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
 from aoi3d.scene import SceneDataset
 from aoi3d.scene.camera import Camera
@@ -45,6 +47,31 @@ RATE_WINDOW_S = 5.0
 
 _IDLE_WAIT_S = 0.05
 _STOP_JOIN_S = 2.0
+
+
+class UnknownBackendError(ValueError):
+    """The backend name is not in ``aoi3d.field.BACKENDS``; the message lists those that are."""
+
+
+class BackendBuildError(RuntimeError):
+    """The new backend's model could not be built; the previous one keeps training."""
+
+
+def check_backend(name: str) -> str:
+    """``name`` if it is a registered backend, else :class:`UnknownBackendError`."""
+    if name not in BACKENDS:
+        raise UnknownBackendError(
+            f"unknown backend {name!r}; available: {', '.join(sorted(BACKENDS))}")
+    return name
+
+
+@dataclass
+class _BackendRequest:
+    """A request to switch the backend, answered by the training thread."""
+
+    name: str
+    done: threading.Event = field(default_factory=threading.Event)
+    error: str | None = None
 
 
 def resolve_device(name: str) -> str:
@@ -133,17 +160,15 @@ class TrainerWorker:
         self.bus = bus
         self.clock = clock
         self.keys = Keys(settings.common.run_id)
-        self.backend = settings.backend
+        self.backend = check_backend(settings.backend)
         self.device = resolve_device(settings.device)
-        cfg = field_config or make_field_config(self.backend)
-        if settings.torch_threads:
-            cfg = replace(cfg, num_threads=settings.torch_threads)
-        self._field_config = cfg
+        # Configs given here are used whenever their backend is (re)built; others: defaults.
+        self._configs: dict[str, FieldConfig] = (
+            {} if field_config is None else {settings.backend: field_config})
         self._aabb = dataset.aabb
         self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
         self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
-        self.trainer = FieldTrainer(self._field_config, self._aabb, device=self.device,
-                                    seed=settings.seed)
+        self.trainer = self._build_trainer(self.backend)
 
         self.rejections = Rejections(registry)
         self.m_steps = Counter("aoi3d_trainer_steps", "Training steps taken.",
@@ -180,8 +205,9 @@ class TrainerWorker:
 
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._reset_lock = threading.Lock()
+        self._control_lock = threading.Lock()
         self._reset_requests: list[threading.Event] = []
+        self._backend_requests: list[_BackendRequest] = []
         self._thread: threading.Thread | None = None
         self._rate = _StepRate()
 
@@ -243,10 +269,33 @@ class TrainerWorker:
             self._do_reset()
             return True
         done = threading.Event()
-        with self._reset_lock:
+        with self._control_lock:
             self._reset_requests.append(done)
         self._wake.set()
         return done.wait(timeout_s)
+
+    def set_backend(self, name: str, timeout_s: float = 30.0) -> bool:
+        """Train a new model of backend ``name`` from now on (training set and buffered frames
+        kept; counts as a reset).
+
+        Raises :class:`UnknownBackendError` for a name not in ``aoi3d.field.BACKENDS`` and
+        :class:`BackendBuildError` when its model cannot be built (the previous one is kept).
+        Done by the training thread between two chunks; returns False if it did not happen
+        within ``timeout_s``.
+        """
+        check_backend(name)
+        request = _BackendRequest(name)
+        if self._thread is None or not self._thread.is_alive():
+            self._do_backend(request)
+        else:
+            with self._control_lock:
+                self._backend_requests.append(request)
+            self._wake.set()
+            if not request.done.wait(timeout_s):
+                return False
+        if request.error is not None:
+            raise BackendBuildError(request.error)
+        return True
 
     def status(self) -> TrainerStatus:
         with self._state_lock:
@@ -322,12 +371,15 @@ class TrainerWorker:
             newest = msg
         if newest is not None:
             self._apply_decision(newest)
-        with self._reset_lock:
+        with self._control_lock:
             requests, self._reset_requests = self._reset_requests, []
+            switches, self._backend_requests = self._backend_requests, []
         if requests:
             self._do_reset()
             for done in requests:
                 done.set()
+        for request in switches:
+            self._do_backend(request)
 
     def _current_id(self) -> int | None:
         with self._state_lock:
@@ -427,6 +479,38 @@ class TrainerWorker:
             self._latest = LatestRender(png=image.data, decision_id=decision.decision_id,
                                         time_ms=decision.time_ms, training_step=step,
                                         n_views=n_views, wall_s=time.time())
+
+    def _config(self, name: str) -> FieldConfig:
+        cfg = self._configs.get(name) or make_field_config(name)
+        if self.settings.torch_threads:
+            cfg = replace(cfg, num_threads=self.settings.torch_threads)
+        return cfg
+
+    def _build_trainer(self, name: str) -> FieldTrainer:
+        return FieldTrainer(self._config(name), self._aabb, device=self.device,
+                            seed=self.settings.seed)
+
+    def _do_backend(self, request: _BackendRequest) -> None:
+        """Replace the model by a new one of ``request.name``, on the current views."""
+        try:
+            trainer = self._build_trainer(request.name)
+            trainer.set_views(self._views)
+        except Exception as err:  # the caller hears of it; the old model trains on
+            request.error = (f"could not build backend {request.name!r} ({err!r}); still "
+                             f"training {self.backend!r}")
+            log.warning("%s", request.error)
+        else:
+            previous = self.backend
+            with self._state_lock:
+                self.trainer = trainer
+                self.backend = request.name
+                self._resets += 1
+                self._loss = None
+            self.m_loss.set(math.nan)
+            log.info("backend %s -> %s (%d views kept)", previous, request.name,
+                     len(self._views))
+        finally:
+            request.done.set()
 
     def _do_reset(self) -> None:
         self.trainer.reset()  # keeps the views

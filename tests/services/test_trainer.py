@@ -6,6 +6,7 @@ import io
 import math
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -14,7 +15,7 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
-from aoi3d.field import GridConfig
+from aoi3d.field import FieldConfig, GridConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.bus import MemoryBus
 from services.kit.codec import PNG, decode_image, decode_render, encode_frame
@@ -23,7 +24,7 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.trainer.app import create_app
 from services.trainer.settings import BACKENDS, Settings
-from services.trainer.worker import resolve_device
+from services.trainer.worker import BackendBuildError, UnknownBackendError, resolve_device
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
@@ -31,6 +32,20 @@ KEYS = Keys("trainertest")
 SMALL_GRID = GridConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine_from_step=0,
                         grid_sizes=(12,), upsample_steps=(), background_size=(4, 8),
                         render_chunk_rays=4096, tune_malloc=False)
+
+
+@dataclass(frozen=True)
+class TinyGrid(GridConfig):
+    """A second backend for the switch tests (its defaults are small)."""
+
+    batch_rays: int = 64
+    samples_coarse: int = 8
+    samples_fine: int = 8
+    fine_from_step: int = 0
+    grid_sizes: tuple[int, ...] = (6,)
+    upsample_steps: tuple[int, ...] = ()
+    background_size: tuple[int, int] = (4, 8)
+    tune_malloc: bool = False
 
 
 @pytest.fixture(scope="module")
@@ -250,6 +265,82 @@ def test_reset_keeps_views_and_restarts_the_model(client: TestClient, bus: Memor
     assert metric(client, "aoi3d_trainer_steps_total") >= before["steps_total"]
 
 
+def test_put_backend_switches_the_model_and_keeps_the_views(
+        client: TestClient, bus: MemoryBus, dataset: SceneDataset,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(BACKENDS, "tiny", TinyGrid)
+    publish_frames(bus, dataset, 0.0)
+    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(c, 0.0) for c in (1, 2, 3)]))
+    before = wait_for(lambda: (s := client.get("/status").json())["steps"] >= 40 and s,
+                      what="40 steps")
+    assert before["backend"] == "grid" and "tiny" in before["backends"]
+
+    resp = client.put("/backend", json={"backend": "tiny"})
+    assert resp.status_code == 200, resp.text
+    after = resp.json()
+    assert after["backend"] == "tiny" and after["resets"] == 1
+    assert after["steps"] < before["steps"] and after["steps_total"] >= before["steps_total"]
+    assert after["n_views"] == 3 and after["frames_buffered"] == N_TRAIN
+    assert after["decision"]["decision_id"] == 1
+    worker = client.app.state.worker
+    assert type(worker.trainer.cfg) is TinyGrid and worker.trainer.n_views == 3
+    wait_for(lambda: client.get("/status").json()["steps"] > after["steps"],
+             what="training resumes on the new backend")
+    wait_for(lambda: any(r.backend == "tiny" for r in renders(bus)), what="a render by tiny")
+
+    # Back to grid: the config the app was built with is used again, not grid's defaults.
+    resp = client.put("/backend", json={"backend": "grid"})
+    assert resp.status_code == 200 and resp.json()["backend"] == "grid"
+    assert resp.json()["resets"] == 2 and worker.trainer.cfg == SMALL_GRID
+
+    # Unknown names and bad bodies are refused; the model is left alone.
+    resp = client.put("/backend", json={"backend": "instant-nerf"})
+    assert resp.status_code == 422
+    assert resp.json()["detail"] == ("unknown backend 'instant-nerf'; available: "
+                                     + ", ".join(sorted(BACKENDS)))
+    assert client.put("/backend", json={"name": "grid"}).status_code == 422
+    status = client.get("/status").json()
+    assert status["backend"] == "grid" and status["resets"] == 2
+
+
+def test_a_backend_that_cannot_be_built_keeps_the_old_one(
+        client: TestClient, bus: MemoryBus, dataset: SceneDataset,
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setitem(BACKENDS, "broken", FieldConfig)  # FieldConfig builds no field
+    publish_frames(bus, dataset, 0.0)
+    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0), (2, 0.0)]))
+    wait_for(lambda: client.get("/status").json()["steps"] > 0, what="training")
+    resp = client.put("/backend", json={"backend": "broken"})
+    assert resp.status_code == 500
+    assert "could not build backend 'broken'" in resp.json()["detail"]
+    assert "still training 'grid'" in resp.json()["detail"]
+    steps = client.get("/status").json()["steps"]
+    status = wait_for(lambda: (s := client.get("/status").json())["steps"] > steps and s,
+                      what="grid trains on")
+    assert status["backend"] == "grid" and status["resets"] == 0 and status["running"]
+
+
+def test_set_backend_without_the_training_thread(dataset: SceneDataset,
+                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    from prometheus_client import CollectorRegistry
+
+    from services.trainer.worker import TrainerWorker
+
+    monkeypatch.setitem(BACKENDS, "tiny", TinyGrid)
+    monkeypatch.setitem(BACKENDS, "broken", FieldConfig)
+    settings = make_settings(torch_threads=1)
+    worker = TrainerWorker(settings, MemoryBus(), CollectorRegistry(), dataset=dataset,
+                           clock=SimClock(0.0, 1.0), field_config=SMALL_GRID)
+    with pytest.raises(UnknownBackendError, match="available: broken, grid, tiny"):
+        worker.set_backend("nope")
+    assert worker.set_backend("tiny") is True
+    assert worker.status().backend == "tiny"
+    assert worker.trainer.cfg == TinyGrid(num_threads=1)  # the service's threads apply
+    with pytest.raises(BackendBuildError, match="still training 'tiny'"):
+        worker.set_backend("broken")
+    assert worker.status().backend == "tiny" and worker.status().resets == 1
+
+
 def test_app_stops_promptly(dataset: SceneDataset) -> None:
     bus = MemoryBus()
     app = create_app(make_settings(), bus=bus, dataset=dataset, field_config=SMALL_GRID)
@@ -266,13 +357,16 @@ def test_app_stops_promptly(dataset: SceneDataset) -> None:
 
 def test_openapi_documents_the_routes(client: TestClient) -> None:
     paths = client.get("/openapi.json").json()["paths"]
-    assert {"/status", "/reset", "/render.png", "/metrics", "/readyz"} <= set(paths)
+    assert {"/status", "/reset", "/backend", "/render.png", "/metrics", "/readyz"} <= set(paths)
     assert "post" in paths["/reset"]
+    put = paths["/backend"]["put"]
+    assert {"200", "422", "500", "503"} <= set(put["responses"])
+    assert "views" in put["summary"] and "buffered frames are kept" in put["description"]
 
 
 def test_settings_validate_backend_and_device(monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(ValidationError, match="available: grid"):
-        Settings(backend="nerfacto")
+    with pytest.raises(ValidationError, match="available: " + ", ".join(sorted(BACKENDS))):
+        Settings(backend="no-such-backend")
     assert Settings().backend == "grid" and "grid" in BACKENDS
     with pytest.raises(ValidationError):
         Settings(device="tpu")
