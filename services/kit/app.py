@@ -94,3 +94,16 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
 
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning",
                 access_log=False)
+
+
+def run_service(name: str, settings_cls: Callable[[], ServiceSettings],
+                create_app: Callable[[ServiceSettings], FastAPI],
+                prepare: Callable[[ServiceSettings], None] | None = None) -> None:
+    """``python -m services.<name>``: settings from the environment, logging, then serve."""
+    from services.kit.observe import setup_logging
+
+    settings = settings_cls()
+    setup_logging(settings.common.log_level, name)
+    if prepare is not None:
+        prepare(settings)
+    serve(create_app(settings), settings)

@@ -121,22 +121,27 @@ class MemoryBus:
 class Inbox:
     """A bounded hand-off queue between a bus callback and a worker thread.
 
-    When full, the oldest item is dropped (frames: only the newest matters) and counted.
+    When full, the oldest item is dropped (frames: only the newest matters), counted in
+    ``dropped`` and reported to ``on_drop`` (e.g. a Prometheus counter's ``inc``).
     """
 
-    def __init__(self, maxsize: int = 256) -> None:
+    def __init__(self, maxsize: int = 256, on_drop: Callable[[], None] | None = None) -> None:
         self._items: deque = deque()
         self._maxsize = maxsize
         self._cond = threading.Condition()
+        self._on_drop = on_drop
         self.dropped = 0
 
     def put(self, item) -> None:
         with self._cond:
-            if len(self._items) >= self._maxsize:
+            overflow = len(self._items) >= self._maxsize
+            if overflow:
                 self._items.popleft()
                 self.dropped += 1
             self._items.append(item)
             self._cond.notify()
+        if overflow and self._on_drop is not None:
+            self._on_drop()
 
     def get(self, timeout: float | None = None):
         """The oldest item, or None after ``timeout`` seconds."""

@@ -1,22 +1,17 @@
 """``python -m services.metrics``: run the metrics service (settings from the environment)."""
 
-from __future__ import annotations
-
-from services.kit.app import serve
-from services.kit.observe import setup_logging
+from services.kit.app import run_service
 from services.metrics.app import create_app
 from services.metrics.settings import Settings
 
 
-def main() -> None:
-    settings = Settings()
-    setup_logging(settings.common.log_level, "metrics")
+def _torch_threads(settings: Settings) -> None:
+    """LPIPS runs on this process's torch threads; one keeps it off the trainer's cores."""
     if settings.torch_threads:
         import torch
 
         torch.set_num_threads(settings.torch_threads)
-    serve(create_app(settings), settings)
 
 
 if __name__ == "__main__":
-    main()
+    run_service("metrics", Settings, create_app, prepare=_torch_threads)

@@ -116,8 +116,7 @@ class MetricsWorker:
         self._period_ms = truth_period_ms
         self._weights = weights or RewardWeights()
         self._lpips_fn = lpips_fn
-        self._inbox = Inbox(inbox_size)
-        self._inbox_dropped_seen = 0
+        self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
         self._ring = TruthRing(truth_frames)  # used by the scoring thread only
         self._history: deque[QualityRecord] = deque(maxlen=history)
         self._scored = 0
@@ -206,10 +205,6 @@ class MetricsWorker:
     def _run(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=_POLL_S)
-            dropped = self._inbox.dropped
-            if dropped > self._inbox_dropped_seen:
-                self._m_inbox_dropped.inc(dropped - self._inbox_dropped_seen)
-                self._inbox_dropped_seen = dropped
             if item is None:
                 continue
             kind, key, payload = item

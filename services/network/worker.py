@@ -92,8 +92,7 @@ class NetworkWorker:
         self._reseed: dict[int, np.random.Generator] = {}
         self._stats = {n: LinkStats(n, self._links[n].delay) for n in self.camera_ids}
 
-        self._inbox = Inbox(inbox_size)
-        self._inbox_dropped_seen = 0
+        self._inbox = Inbox(inbox_size, on_drop=lambda: self._overflow.inc())
         self._heap: list[_Pending] = []
         self._heap_cond = threading.Condition()
         self._order = itertools.count()
@@ -217,9 +216,6 @@ class NetworkWorker:
     def _link_loop(self) -> None:
         while not self._stop.is_set():
             item = self._inbox.get(timeout=_POLL_S)
-            if self._inbox.dropped != self._inbox_dropped_seen:
-                self._overflow.inc(self._inbox.dropped - self._inbox_dropped_seen)
-                self._inbox_dropped_seen = self._inbox.dropped
             if item is None:
                 continue
             key, payload = item

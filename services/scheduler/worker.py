@@ -85,8 +85,7 @@ class SchedulerWorker:
         self._period_ms = float(decision_period_ms)
         self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
         self._accepted = frozenset(self.camera_ids)
-        self._inbox = Inbox(inbox_size)
-        self._inbox_dropped_seen = 0
+        self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
 
         self._lock = threading.Lock()  # guards everything below that routes read
         self._policy = policy
@@ -194,7 +193,6 @@ class SchedulerWorker:
                 continue
             wait_s = min(max(clock.wall_s(next_t) - clock.wall(), 0.0), _POLL_S)
             item = self._inbox.get(timeout=wait_s)
-            self._count_inbox_drops()
             if item is not None:
                 self._ingest(*item, now_ms=clock.now_ms())
             self._guarded(self._apply_pending, min(clock.now_ms(), next_t))
@@ -204,12 +202,6 @@ class SchedulerWorker:
             fn(t_ms)
         except Exception:  # a bug must not stop the decisions
             log.exception("%s at t = %s ms failed", fn.__name__, t_ms)
-
-    def _count_inbox_drops(self) -> None:
-        dropped = self._inbox.dropped
-        if dropped > self._inbox_dropped_seen:
-            self._m_inbox_dropped.inc(dropped - self._inbox_dropped_seen)
-            self._inbox_dropped_seen = dropped
 
     def _ingest(self, key: str, payload: bytes, *, now_ms: float) -> None:
         """Validate a delivered frame and queue it until its delivery time."""

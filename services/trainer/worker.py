@@ -197,11 +197,11 @@ class TrainerWorker:
             registry=registry)
         self.m_loss.set(math.nan)
 
-        self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)))
-        self._decisions_in: Inbox = Inbox(maxsize=64)
+        self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)),
+                                       on_drop=self.m_overflow.inc)
+        self._decisions_in: Inbox = Inbox(maxsize=64, on_drop=self.m_overflow.inc)
         self._frames: dict[int, deque[FrameData]] = {}
         self._views: list[TrainView] = []
-        self._overflow_seen = 0
 
         self._stop = threading.Event()
         self._wake = threading.Event()
@@ -353,10 +353,6 @@ class TrainerWorker:
         decisions = self._decisions_in.drain()
         for key, payload in self._frames_in.drain():
             self._store_frame(key, payload)
-        overflow = self._frames_in.dropped + self._decisions_in.dropped
-        if overflow > self._overflow_seen:
-            self.m_overflow.inc(overflow - self._overflow_seen)
-            self._overflow_seen = overflow
         newest: pb.Decision | None = None
         for key, payload in decisions:
             try:

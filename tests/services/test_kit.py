@@ -57,10 +57,12 @@ def test_keys_and_memory_bus() -> None:
 
 
 def test_inbox_drops_oldest_and_times_out() -> None:
-    box = Inbox(maxsize=2)
+    reported = []
+    box = Inbox(maxsize=2, on_drop=lambda: reported.append(1))
     for i in range(3):
         box.put(i)
-    assert box.dropped == 1 and box.get(0.01) == 1 and box.get(0.01) == 2
+    assert box.dropped == 1 and len(reported) == 1
+    assert box.get(0.01) == 1 and box.get(0.01) == 2
     assert box.get(0.01) is None
     threading.Timer(0.05, box.put, args=("late",)).start()
     assert box.get(2.0) == "late"
