@@ -12,9 +12,10 @@ from typing import Any
 
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.grid import DenseGridField, GridConfig
+from aoi3d.field.nerfacto import NerfactoConfig, NerfactoField
 from aoi3d.field.optim import LazyAdam
-from aoi3d.field.rays import RaySamples, camera_rays, ray_aabb, sample_uniform
-from aoi3d.field.render import RenderResult, volume_render
+from aoi3d.field.rays import RayBundle, RaySamples, camera_rays, ray_aabb, sample_uniform
+from aoi3d.field.render import RenderOptions, RenderResult, render_uniform, volume_render
 from aoi3d.field.trainer import FieldTrainer, TrainView, render_rays
 
 __all__ = [
@@ -25,18 +26,26 @@ __all__ = [
     "FieldTrainer",
     "GridConfig",
     "LazyAdam",
+    "NerfactoConfig",
+    "NerfactoField",
+    "RayBundle",
     "RaySamples",
+    "RenderOptions",
     "RenderResult",
     "TrainView",
     "camera_rays",
     "field_config",
     "ray_aabb",
     "render_rays",
+    "render_uniform",
     "sample_uniform",
     "volume_render",
 ]
 
-BACKENDS: dict[str, type[FieldConfig]] = {"grid": GridConfig}
+BACKENDS: dict[str, type[FieldConfig]] = {
+    "grid": GridConfig,
+    "nerfacto": NerfactoConfig,
+}
 """Radiance-field backends by name (``ngp``, ``tensorf``, ``nerfacto`` come later)."""
 
 

@@ -2,8 +2,13 @@
 ``Field`` interface the trainer drives (nerfstudio style: a config dataclass builds its field).
 
 A backend is a pair: ``XConfig(FieldConfig)`` with ``build(aabb) -> XField`` and
-``XField(Field)``. Ray generation, the sampler, the volume renderer and the training loop
-(``FieldTrainer``) are common to all of them.
+``XField(Field)``. Ray generation, the volume renderer and the training loop
+(``FieldTrainer``) are common to all of them. The field owns how its rays are sampled and
+rendered (nerfstudio's Model: sampling → field → rendering → losses) through
+:meth:`Field.render_rays`; the default is the shared uniform sampler with empty-space skipping
+(:func:`aoi3d.field.render.render_uniform`), which needs only ``query``/``background``/
+``occupied``. A field that samples otherwise overrides ``render_rays`` and may return extra
+loss terms in ``RenderResult.aux_loss``.
 """
 
 from __future__ import annotations
@@ -15,6 +20,9 @@ from typing import Any
 import numpy as np
 import torch
 from torch import nn
+
+from aoi3d.field.rays import RayBundle
+from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
 
 __all__ = ["Field", "FieldConfig"]
 
@@ -37,6 +45,9 @@ class FieldConfig:
     ``num_threads`` sets ``torch.set_num_threads`` when the trainer is built on the CPU
     (process-wide; None leaves torch's default). ``tune_malloc`` raises glibc's mmap/trim
     thresholds on Linux CPU so that per-step tensors reuse heap memory instead of fresh pages.
+    ``appearance_slots``: rows of the per-image appearance table of fields that have one (the
+    trainer maps each view's ``appearance_id`` — or its camera — to a row and recycles the
+    least recently used row when more ids come; fields without embeddings ignore it).
     """
 
     batch_rays: int = 1024
@@ -50,9 +61,16 @@ class FieldConfig:
     explore_empty: float = 0.02
     num_threads: int | None = None
     tune_malloc: bool = True
+    appearance_slots: int = 64
 
     def __post_init__(self) -> None:
-        for name in ("batch_rays", "samples_coarse", "samples_fine", "render_chunk_rays"):
+        for name in (
+            "batch_rays",
+            "samples_coarse",
+            "samples_fine",
+            "render_chunk_rays",
+            "appearance_slots",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("sample_rgb_loss", "opacity_loss"):
@@ -101,3 +119,17 @@ class Field(nn.Module, ABC):
         """Hook before training step ``step``; True when parameters were replaced (e.g. the
         grid was upsampled) and the optimizer must be rebuilt."""
         return False
+
+    def render_rays(self, rays: RayBundle, options: RenderOptions) -> RenderResult:
+        """Sample, query and composite ``rays``; in training (``self.training``) the result's
+        ``aux_loss`` may carry this field's extra loss terms, which the trainer adds.
+
+        Default: the shared uniform sampler at ``options.ray_step`` with empty-space skipping
+        (``occupied``), ``query``, ``background``, the volume renderer; ``rays.appearance``
+        is not used.
+        """
+        return render_uniform(self, rays, options)
+
+    def reset_appearance(self, rows: torch.Tensor) -> None:
+        """Hook: the trainer gave appearance ``rows`` (int64) to new images; a field with
+        per-image embeddings resets them to their initial value. Default: nothing."""

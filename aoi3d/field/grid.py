@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from aoi3d.field.background import latlong_background
 from aoi3d.field.base import Field, FieldConfig
 
 __all__ = ["DenseGridField", "GridConfig", "grid_shape", "trilinear"]
@@ -209,24 +210,7 @@ class DenseGridField(Field):
         return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
 
     def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        rows, cols = self.env.shape[:2]
-        up = self.cfg.up_axis
-        a, b = (up + 1) % 3, (up + 2) % 3
-        polar = torch.acos(dirs[:, up].clamp(-1.0, 1.0)) / math.pi  # 0 at zenith, 1 at nadir
-        azimuth = (torch.atan2(dirs[:, b], dirs[:, a]) / (2 * math.pi)) % 1.0
-        r = polar * (rows - 1)
-        r0 = r.floor().clamp(0, rows - 2)
-        fr = (r - r0)[:, None]
-        r0 = r0.long()
-        col = azimuth * cols
-        c0f = col.floor()
-        fc = (col - c0f)[:, None]
-        c0 = c0f.long() % cols
-        c1 = (c0 + 1) % cols
-        env = self.env
-        top = env[r0, c0] * (1 - fc) + env[r0, c1] * fc
-        bottom = env[r0 + 1, c0] * (1 - fc) + env[r0 + 1, c1] * fc
-        return torch.sigmoid(top * (1 - fr) + bottom * fr)
+        return latlong_background(self.env, dirs, self.cfg.up_axis)
 
     def param_groups(self) -> list[dict[str, Any]]:
         return [

@@ -2,7 +2,9 @@
 
 Shared by every field backend: a ray is an origin and a unit direction in world
 coordinates; samples are taken at a fixed world step inside the scene AABB only (outside the
-box the scene depends on the ray direction alone and is the field's background).
+box the scene depends on the ray direction alone and is the field's background). A
+:class:`RayBundle` is what a field's ``render_rays`` receives: rays, their chord through the
+box and, in training, the appearance row of the image each ray comes from.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import torch
 if TYPE_CHECKING:
     from aoi3d.scene.camera import Camera
 
-__all__ = ["RaySamples", "as_aabb", "camera_rays", "ray_aabb", "sample_uniform"]
+__all__ = ["RayBundle", "RaySamples", "as_aabb", "camera_rays", "ray_aabb", "sample_uniform"]
 
 
 def as_aabb(aabb: np.ndarray | torch.Tensor | list[list[float]]) -> np.ndarray:
@@ -57,6 +59,50 @@ def ray_aabb(
     t_near = torch.minimum(t0, t1).amax(dim=-1).clamp_min(0.0)
     t_far = torch.maximum(t0, t1).amin(dim=-1)
     return t_near, t_far
+
+
+@dataclass(frozen=True)
+class RayBundle:
+    """R rays: ``origins``, unit ``dirs`` (R, 3), box entry/exit ``t_near``, ``t_far`` (R,)
+    (a ray misses the box when ``t_far <= t_near``) and ``appearance`` (R,) int64: the row of
+    each ray's training image in the field's appearance table (see
+    ``FieldConfig.appearance_slots``), or None for a novel view (fields with per-image
+    embeddings then use their neutral one).
+    """
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    t_near: torch.Tensor
+    t_far: torch.Tensor
+    appearance: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        n = self.origins.shape[0]
+        if self.origins.shape != (n, 3) or self.dirs.shape != (n, 3):
+            raise ValueError(
+                f"origins and dirs must be (R, 3), got {tuple(self.origins.shape)}, "
+                f"{tuple(self.dirs.shape)}"
+            )
+        shapes = [self.t_near.shape, self.t_far.shape]
+        if self.appearance is not None:
+            shapes.append(self.appearance.shape)
+        if any(s != (n,) for s in shapes):
+            raise ValueError(f"t_near, t_far and appearance must be ({n},), got {shapes}")
+
+    @property
+    def n_rays(self) -> int:
+        return self.origins.shape[0]
+
+    def __getitem__(self, index: slice | torch.Tensor) -> RayBundle:
+        """The rays at ``index`` (a slice, or an int64 tensor of ray numbers)."""
+
+        def pick(x: torch.Tensor) -> torch.Tensor:
+            return x[index] if isinstance(index, slice) else x.index_select(0, index)
+
+        appearance = None if self.appearance is None else pick(self.appearance)
+        return RayBundle(
+            pick(self.origins), pick(self.dirs), pick(self.t_near), pick(self.t_far), appearance
+        )
 
 
 @dataclass(frozen=True)

@@ -8,21 +8,37 @@ c_bg(d) the background seen in the ray's direction.
 Samples are packed (only those inside the box, ray after ray, in order along each ray), so a
 ray may have any number of samples, none included. The exclusive prefix sums Σ_{j<i} σ_j δ_j
 are one float64 cumulative sum over all samples minus the sum of the rays before.
+
+:func:`render_uniform` is the default way a field renders rays (``Field.render_rays``): the
+uniform sampler at a fixed world step, empty-space skipping, the field, this compositor.
+Fields that sample otherwise (e.g. ``nerfacto``'s proposal sampling) override
+``Field.render_rays`` and return the same :class:`RenderResult`, with their own loss terms in
+``aux_loss``.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 
-__all__ = ["RenderResult", "volume_render"]
+from aoi3d.field.rays import RayBundle, sample_uniform
+
+if TYPE_CHECKING:
+    from aoi3d.field.base import Field
+
+__all__ = ["RenderOptions", "RenderResult", "render_uniform", "volume_render"]
 
 
 @dataclass(frozen=True)
 class RenderResult:
     """Colour (R, 3) and final transmittance T_N (R,) of each ray; weights T_i·α_i (P,),
-    colours (P, 3) and ray (P,) of each sample (for per-sample losses)."""
+    colours (P, 3), ray (P,) and opacity α_i (P,) of each sample (for per-sample losses).
+
+    ``aux_loss``: a scalar the field adds to the training loss (e.g. nerfacto's proposal and
+    distortion losses, already weighted), or None; the trainer adds it as it is.
+    """
 
     rgb: torch.Tensor
     transmittance: torch.Tensor
@@ -30,6 +46,25 @@ class RenderResult:
     sample_rgb: torch.Tensor
     ray_index: torch.Tensor
     opacity: torch.Tensor
+    aux_loss: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    """How the trainer asks a field to render one batch of rays.
+
+    ``ray_step``: world distance between samples of the uniform sampler (the trainer's
+    coarse-to-fine schedule, ``FieldConfig.ray_step``). ``jitter`` (R,) in [0, 1): stratified
+    offsets of each ray's samples in training, None (midpoints) when rendering.
+    ``explore``: fraction of skipped samples still trained on. ``generator``: the trainer's
+    random stream, for any other random draw (keeps a seeded run deterministic). Whether the
+    call is for training is the field's ``training`` flag (the trainer sets train/eval).
+    """
+
+    ray_step: float
+    jitter: torch.Tensor | None = None
+    explore: float = 0.0
+    generator: torch.Generator | None = None
 
 
 def volume_render(
@@ -69,3 +104,28 @@ def volume_render(
     color = rgb.new_zeros(n_rays, 3).index_add_(0, ray_index, weights[:, None] * rgb)
     color = color + transmittance[:, None] * background
     return RenderResult(color, transmittance, weights, rgb, ray_index, alpha)
+
+
+def render_uniform(field: Field, rays: RayBundle, options: RenderOptions) -> RenderResult:
+    """The default renderer: sample the rays inside the box at ``options.ray_step``, skip
+    empty space, query the field, composite over its background.
+
+    Samples the field marks empty (``Field.occupied``) are skipped; ``options.explore`` > 0
+    keeps that fraction of them at random (drawn from ``options.generator``), so that density
+    can grow again where new frames need it. Appearance rows are not used.
+    """
+    samples = sample_uniform(
+        rays.origins, rays.dirs, rays.t_near, rays.t_far, options.ray_step, options.jitter
+    )
+    keep = field.occupied(samples.points)
+    if keep is not None and options.explore > 0:
+        lucky = (
+            torch.rand(keep.shape, generator=options.generator, device=keep.device)
+            < options.explore
+        )
+        keep = keep | lucky
+    if keep is not None:
+        samples = samples.select(keep)
+    dirs = rays.dirs
+    sigma, rgb = field.query(samples.points, dirs.index_select(0, samples.ray_index))
+    return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))

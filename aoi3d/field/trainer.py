@@ -2,9 +2,21 @@
 
 The training set is swapped with :meth:`FieldTrainer.set_views` without touching the model
 (the live trainer swaps frames in and out continuously). Each step draws ``batch_rays``
-random pixels from the current views, samples them inside the box, volume-renders them and
-takes one Adam step on the mean squared colour error. The rays of each camera are computed
-once and cached by camera (the ``Camera`` hashes by its pose and intrinsics).
+random pixels from the current views and hands them to the field's
+:meth:`~aoi3d.field.base.Field.render_rays` (which samples, queries and composites: the shared
+uniform sampler with empty-space skipping by default, proposal sampling for ``nerfacto``),
+then takes one Adam step on the mean squared colour error plus the regularisers of
+``FieldConfig`` plus the field's own ``RenderResult.aux_loss``. One loop for every backend.
+The rays of each camera are computed once and cached by camera (the ``Camera`` hashes by its
+pose and intrinsics).
+
+Per-image appearance: each view has a stable key, its ``TrainView.appearance_id`` (the camera
+id in the services) or, when that is None, its camera. The trainer maps keys to rows of a
+fixed table of ``FieldConfig.appearance_slots`` rows and passes each ray's row to the field
+(``RayBundle.appearance``). A key keeps its row across ``set_views`` calls (and ``reset``), so
+embeddings survive the live trainer's view swaps; when a new key finds the table full, the
+least recently used row outside the current views is recycled (the field resets it). Novel
+views are rendered with ``appearance=None``: the field's neutral embedding.
 """
 
 from __future__ import annotations
@@ -13,7 +25,8 @@ import ctypes
 import ctypes.util
 import math
 import sys
-from collections.abc import Sequence
+from collections import OrderedDict
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -22,8 +35,8 @@ import torch
 
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.optim import LazyAdam
-from aoi3d.field.rays import as_aabb, camera_rays, ray_aabb, sample_uniform
-from aoi3d.field.render import RenderResult, volume_render
+from aoi3d.field.rays import RayBundle, as_aabb, camera_rays, ray_aabb
+from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
 
 if TYPE_CHECKING:
     from aoi3d.scene.camera import Camera
@@ -33,11 +46,18 @@ __all__ = ["FieldTrainer", "TrainView", "render_rays"]
 
 @dataclass(frozen=True, eq=False)
 class TrainView:
-    """One training frame: the camera it was taken with and its image (uint8 or float32 H×W×3
-    in [0, 1])."""
+    """One training frame: the camera it was taken with, its image (uint8 or float32 H×W×3
+    in [0, 1]) and ``appearance_id``, the stable key of its per-image appearance embedding
+    (e.g. the camera id; None: keyed by the camera itself)."""
 
     camera: Camera
     image: np.ndarray
+    appearance_id: int | None = None
+
+    def __post_init__(self) -> None:
+        a = self.appearance_id
+        if a is not None and (isinstance(a, bool) or not isinstance(a, int | np.integer)):
+            raise TypeError(f"appearance_id must be an int or None, got {a!r}")
 
 
 def render_rays(
@@ -51,21 +71,18 @@ def render_rays(
     explore: float = 0.0,
     generator: torch.Generator | None = None,
 ) -> RenderResult:
-    """Sample the rays inside the box, skip empty space, query the field, composite.
+    """The default renderer (:func:`aoi3d.field.render.render_uniform`): sample the rays
+    inside the box at ``step``, skip empty space, query the field, composite.
 
     Samples the field marks empty are skipped; ``explore`` > 0 keeps that fraction of them
     at random (drawn from ``generator``), so that density can grow again where new frames
-    need it.
+    need it. The trainer itself calls ``field.render_rays``, whose default this is.
     """
-    samples = sample_uniform(origins, dirs, t_near, t_far, step, jitter)
-    keep = field.occupied(samples.points)
-    if keep is not None and explore > 0:
-        lucky = torch.rand(keep.shape, generator=generator, device=keep.device) < explore
-        keep = keep | lucky
-    if keep is not None:
-        samples = samples.select(keep)
-    sigma, rgb = field.query(samples.points, dirs.index_select(0, samples.ray_index))
-    return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))
+    return render_uniform(
+        field,
+        RayBundle(origins, dirs, t_near, t_far),
+        RenderOptions(step, jitter, explore, generator),
+    )
 
 
 def _image_tensor(image: np.ndarray, camera: Camera) -> torch.Tensor:
@@ -83,6 +100,13 @@ def _image_tensor(image: np.ndarray, camera: Camera) -> torch.Tensor:
     else:
         raise ValueError(f"image must be uint8 or float in [0, 1], got dtype {arr.dtype}")
     return torch.from_numpy(np.ascontiguousarray(out)).reshape(-1, 3)
+
+
+def _appearance_key(view: TrainView) -> Hashable:
+    """The stable key of a view's appearance embedding: its id, else its camera."""
+    if view.appearance_id is not None:
+        return ("id", int(view.appearance_id))
+    return ("camera", view.camera)
 
 
 _RENDER_CACHE_SIZE = 8
@@ -133,7 +157,10 @@ class FieldTrainer:
         self._render_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # other cameras
         self._colour_cache: dict[int, tuple[TrainView, torch.Tensor]] = {}  # by view identity
         self._views: list[TrainView] = []
-        self._rays: tuple[torch.Tensor, ...] | None = None  # origins, dirs, t_near, t_far, rgb
+        # origins, dirs, t_near, t_far, rgb, appearance row of every pixel of the views:
+        self._rays: tuple[torch.Tensor, ...] | None = None
+        # appearance key → row, least recently used first:
+        self._appearance_rows: OrderedDict[Hashable, int] = OrderedDict()
         self.reset()
 
     # --- state ----------------------------------------------------------------------------
@@ -154,8 +181,13 @@ class FieldTrainer:
     def field(self) -> Field:
         return self._field
 
+    def appearance_row(self, view: TrainView) -> int | None:
+        """The appearance-table row of ``view``'s key, None when it has none yet."""
+        return self._appearance_rows.get(_appearance_key(view))
+
     def reset(self) -> None:
-        """A fresh model, optimizer and random stream (the views are kept)."""
+        """A fresh model, optimizer and random stream (the views and the appearance rows of
+        their keys are kept; the fresh field's embeddings start neutral)."""
         self._generator = torch.Generator(device=self._device)
         self._generator.manual_seed(self.seed)
         self._field = self.cfg.build(self.aabb).to(self._device)
@@ -180,11 +212,41 @@ class FieldTrainer:
             cached = (view, _image_tensor(view.image, view.camera).to(self._device))
         return cached[1]
 
+    def _assign_appearance(self, views: list[TrainView]) -> list[int]:
+        """The appearance row of each view: a key keeps its row; a new key takes a free row or
+        recycles the least recently used one outside ``views`` (the field resets it)."""
+        keys = [_appearance_key(v) for v in views]
+        current = set(keys)
+        slots = self.cfg.appearance_slots
+        if len(current) > slots:
+            raise ValueError(
+                f"{len(current)} distinct appearance ids in one training set, more than "
+                f"appearance_slots = {slots}"
+            )
+        rows = self._appearance_rows
+        for key in keys:  # the current views become the most recently used
+            if key in rows:
+                rows.move_to_end(key)
+        recycled = []
+        for key in keys:
+            if key in rows:
+                continue
+            if len(rows) < slots:
+                rows[key] = len(rows)
+            else:
+                oldest = next(k for k in rows if k not in current)
+                row = rows.pop(oldest)
+                rows[key] = row
+                recycled.append(row)
+        if recycled:
+            self._field.reset_appearance(torch.tensor(recycled, device=self._device))
+        return [rows[k] for k in keys]
+
     def set_views(self, views: Sequence[TrainView]) -> None:
         """Train on ``views`` from now on; the model and optimizer state are kept.
 
         Rays are cached per camera and pixels per view object, so swapping a few views in a
-        large set costs little.
+        large set costs little. Each view's appearance key keeps its row (see the module).
         """
         views = list(views)
         for v in views:
@@ -196,6 +258,7 @@ class FieldTrainer:
             if v.camera not in self._ray_cache:
                 self._ray_cache[v.camera] = self._new_rays(v.camera)
             rays.append(self._ray_cache[v.camera])
+        appearance = self._assign_appearance(views)
         cameras = {v.camera for v in views}
         self._ray_cache = {c: r for c, r in self._ray_cache.items() if c in cameras}
         self._colour_cache = {id(v): (v, c) for v, c in zip(views, colours, strict=True)}
@@ -204,18 +267,24 @@ class FieldTrainer:
             self._rays = None
             return
         parts = [torch.cat([r[i] for r in rays]) for i in range(4)]
-        self._rays = (*parts, torch.cat(colours))
+        rows = torch.cat(
+            [
+                torch.full((c.shape[0],), row, dtype=torch.long, device=self._device)
+                for c, row in zip(colours, appearance, strict=True)
+            ]
+        )
+        self._rays = (*parts, torch.cat(colours), rows)
 
     # --- training -------------------------------------------------------------------------
     def step(self, n: int = 1) -> float:
         """``n`` training steps; the last step's photometric loss (MSE of the batch's colours,
-        without the regularisers), NaN when there are no views."""
+        without the regularisers and the field's ``aux_loss``), NaN when there are no views."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         if self._rays is None:
             return math.nan
         loss_value = math.nan
-        origins, dirs, t_near, t_far, rgb = self._rays
+        origins, dirs, t_near, t_far, rgb, appearance = self._rays
         n_rays = origins.shape[0]
         self._field.train()
         for _ in range(n):
@@ -225,17 +294,20 @@ class FieldTrainer:
                 n_rays, (self.cfg.batch_rays,), generator=self._generator, device=self._device
             )
             jitter = torch.rand(self.cfg.batch_rays, generator=self._generator, device=self._device)
-            out = render_rays(
-                self._field,
+            rays = RayBundle(
                 origins.index_select(0, batch),
                 dirs.index_select(0, batch),
                 t_near.index_select(0, batch),
                 t_far.index_select(0, batch),
+                appearance.index_select(0, batch),
+            )
+            options = RenderOptions(
                 self.cfg.ray_step(self.aabb, self._steps),
                 jitter,
                 self.cfg.explore_empty,
                 self._generator,
             )
+            out = self._field.render_rays(rays, options)
             target = rgb.index_select(0, batch)
             mse = torch.mean((out.rgb - target) ** 2)
             loss = mse
@@ -244,6 +316,8 @@ class FieldTrainer:
                 loss = loss + self.cfg.sample_rgb_loss * (out.weights * err).sum() / len(batch)
             if self.cfg.opacity_loss > 0:
                 loss = loss + self.cfg.opacity_loss * out.opacity.sum() / len(batch)
+            if out.aux_loss is not None:
+                loss = loss + out.aux_loss
             self._optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self._optimizer.step()
@@ -254,7 +328,8 @@ class FieldTrainer:
     # --- rendering ------------------------------------------------------------------------
     @torch.no_grad()
     def render(self, camera: Camera) -> np.ndarray:
-        """The field seen from ``camera``: float32 H×W×3 in [0, 1]."""
+        """The field seen from ``camera``: float32 H×W×3 in [0, 1] (a novel view: rendered
+        with the field's neutral appearance, whatever the camera)."""
         if camera in self._ray_cache:
             origins, dirs, t_near, t_far = self._ray_cache[camera]
         else:
@@ -266,11 +341,12 @@ class FieldTrainer:
                 del self._render_cache[next(iter(self._render_cache))]
             origins, dirs, t_near, t_far = cached
         self._field.eval()
-        step = self.cfg.ray_step(self.aabb, self._steps)
+        options = RenderOptions(self.cfg.ray_step(self.aabb, self._steps))
+        rays = RayBundle(origins, dirs, t_near, t_far)
         chunk = self.cfg.render_chunk_rays
         out = torch.empty_like(origins)
         for i in range(0, origins.shape[0], chunk):
             s = slice(i, i + chunk)
-            out[s] = render_rays(self._field, origins[s], dirs[s], t_near[s], t_far[s], step).rgb
+            out[s] = self._field.render_rays(rays[s], options).rgb
         image = out.clamp_(0.0, 1.0).reshape(camera.height, camera.width, 3)
         return image.cpu().numpy().astype(np.float32, copy=False)

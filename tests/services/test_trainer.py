@@ -331,7 +331,8 @@ def test_set_backend_without_the_training_thread(dataset: SceneDataset,
     settings = make_settings(torch_threads=1)
     worker = TrainerWorker(settings, MemoryBus(), CollectorRegistry(), dataset=dataset,
                            clock=SimClock(0.0, 1.0), field_config=SMALL_GRID)
-    with pytest.raises(UnknownBackendError, match="available: broken, grid, tiny"):
+    listing = r"available: (.*, )?broken, (.*, )?grid, (.*, )?tiny"
+    with pytest.raises(UnknownBackendError, match=listing):
         worker.set_backend("nope")
     assert worker.set_backend("tiny") is True
     assert worker.status().backend == "tiny"

@@ -1,0 +1,681 @@
+"""``nerfacto``: nerfstudio's nerfacto design, scaled for a small CPU.
+
+A model that owns its sampling (it overrides :meth:`Field.render_rays`):
+
+1. **Proposal sampling** (mip-NeRF 360 / nerfacto). Each ray's chord through the box is cut
+   into ``proposal_samples[0]`` uniform bins (one stratified jitter per ray in training);
+   a tiny density-only hash grid — the proposal network — gives their weights
+   w_i = T_i (1 − exp(−σ_i δ_i)); the next bins are drawn from that histogram by inverse-CDF
+   (PDF) resampling (:func:`sample_pdf`), where the weight concentrates. With more proposal
+   networks this repeats; the last resampling gives ``fine_samples`` bins for the field.
+   Early on the proposal weights are annealed towards uniform (w^a, a: 0 → 1 over
+   ``proposal_anneal_steps``), so the first steps sample the whole chord.
+2. **The field**: a multiresolution hash encoding (Instant-NGP; :class:`HashEncoding`, int32
+   XOR hashing with power-of-two tables, small levels dense) and a small MLP giving density
+   (exp, initial σ ≈ ``init_density``) and geometry features; a colour MLP reads those, the
+   view direction (real spherical harmonics) and the per-image **appearance embedding**.
+3. **Losses** (``RenderResult.aux_loss``): the interlevel (proposal, histogram) loss
+   (:func:`interlevel_loss`), which teaches each proposal network to bound the field's
+   weights (the field's weights and bins are detached: the loss trains the proposal networks
+   only, and nothing else trains them), and the distortion loss (:func:`distortion_loss`) on
+   the field's weights. The trainer adds its own MSE and ``sample_rgb_loss``.
+4. **Background**: a lat-long map of the ray direction only (as ``grid``), composited with the
+   transmittance left when the ray leaves the box.
+
+Appearance embeddings: a fixed table of ``FieldConfig.appearance_slots`` rows, indexed by the
+rows the trainer assigns per stable image key (``RayBundle.appearance``), initialised at zero.
+A novel view (``appearance`` None) uses the **mean of the rows trained so far**: the colour
+head has only ever seen trained embeddings, and their mean is the centre of that set — the
+best guess for the lighting of an unseen camera (nerfstudio's default,
+``use_average_appearance_embedding``). Zero would be equivalent only while every row is still
+at its initial value; unused rows are left out of the mean so they do not pull it to zero.
+
+Scaled for a 2-core CPU. Measured on the 96×72 turbine, 18 views, PSNR of held-out camera 0
+at 5/15/30/60 s of process CPU time on one thread (torch 2.13, machine shared, ±0.5 dB):
+nerfstudio's proportions (64 proposal samples through 5 levels × 2 features, 24 field
+samples, 1024 rays) 23.2/26.0/29.3/32.2 dB at 8.8k rays/s, render 0.7–1.9 s; 48 → 16 samples
+with a 4 × 1 proposal grid 24.3/29.0/32.0/33.7 at 16k rays/s; then 512 rays and 32 → 16
+samples 25.7/30.4/32.3/33.4; + distortion loss 0.002 26.1/29.7/32.6/33.7; + the trainer's
+``sample_rgb_loss`` 0.01 (these defaults) 27.1/31.8/33.0/33.4 at 15–16k rays/s, render
+0.16–0.2 s. Without appearance embeddings +0.5–0.9 dB (this scene has no per-camera exposure
+changes to explain). No better: lr 2e-2, a 32-wide colour MLP, 2^15 tables, 512 cells with
+2^17 tables, 256-ray batches (stall at 31.6 dB), ``opacity_loss`` 1e-3 (−1.2 dB at 30 s),
+annealing over 100 or 1000 steps (within noise).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from aoi3d.field.background import latlong_background
+from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.rays import RayBundle
+from aoi3d.field.render import RenderOptions, RenderResult, volume_render
+
+__all__ = [
+    "HashEncoding",
+    "NerfactoConfig",
+    "NerfactoField",
+    "distortion_loss",
+    "interlevel_loss",
+    "sample_pdf",
+    "spherical_harmonics",
+    "weights_from_density",
+]
+
+# Instant-NGP's hashing primes (the first is 1), as wrapped int32: products wrap like uint32,
+# and the low bits that the power-of-two mask keeps are the same.
+_PRIMES_I32 = (1, 2654435761 - (1 << 32), 805459861)
+
+
+@dataclass(frozen=True)
+class NerfactoConfig(FieldConfig):
+    """The nerfacto backend.
+
+    Field: ``levels`` hash levels of ``features_per_level`` features, resolutions growing
+    geometrically from ``base_resolution`` to ``max_resolution`` (cells along the longest box
+    side), tables of 2^``log2_table_size`` rows (a level with fewer vertices is stored
+    densely); a density MLP with ``hidden_dim`` units gives σ and ``geo_features`` features;
+    the colour MLP (``color_hidden_dim`` units, two hidden layers) reads them with the view
+    direction's spherical harmonics of ``direction_sh_levels`` bands (0: none) and an
+    appearance embedding of ``appearance_dim`` (0: none). ``init_density``: σ at the start.
+
+    Proposal sampling: ``proposal_samples[k]`` bins go through proposal network k (the first
+    uniformly placed), ``fine_samples`` bins through the field; each proposal network is a
+    hash grid of ``proposal_levels`` × ``proposal_features`` up to
+    ``proposal_max_resolutions[k]`` cells with a ``proposal_hidden_dim`` MLP.
+    ``histogram_padding`` is added to the weights before resampling;
+    ``proposal_anneal_steps``/``proposal_anneal_slope``: the annealing of the proposal weights
+    (nerfstudio's schedule). Losses: ``interlevel_loss_weight`` × the proposal loss,
+    ``distortion_loss_weight`` × the distortion loss (0: off).
+
+    Learning rates (Adam): ``lr_field`` (hash table and MLPs), ``lr_proposal``,
+    ``lr_appearance``, ``lr_background``; ``background_size`` (rows, columns) of the lat-long
+    map, ``up_axis`` its pole. The inherited uniform-sampler settings (``samples_coarse``,
+    ``samples_fine``, ``fine_from_step``, ``explore_empty``) are not used by this backend.
+    """
+
+    levels: int = 8
+    features_per_level: int = 2
+    log2_table_size: int = 16
+    base_resolution: int = 16
+    max_resolution: int = 256
+    hidden_dim: int = 64
+    geo_features: int = 15
+    color_hidden_dim: int = 64
+    direction_sh_levels: int = 2
+    appearance_dim: int = 8
+    init_density: float = 0.1
+    proposal_samples: tuple[int, ...] = (32,)
+    fine_samples: int = 16
+    proposal_levels: int = 4
+    proposal_features: int = 1
+    proposal_log2_table_size: int = 14
+    proposal_base_resolution: int = 16
+    proposal_max_resolutions: tuple[int, ...] = (128,)
+    proposal_hidden_dim: int = 16
+    histogram_padding: float = 0.01
+    proposal_anneal_steps: int = 300
+    proposal_anneal_slope: float = 10.0
+    interlevel_loss_weight: float = 1.0
+    distortion_loss_weight: float = 0.002
+    lr_field: float = 1e-2
+    lr_proposal: float = 1e-2
+    lr_appearance: float = 1e-2
+    lr_background: float = 0.05
+    background_size: tuple[int, int] = (64, 128)
+    up_axis: int = 2
+    batch_rays: int = 512
+    opacity_loss: float = 0.0
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        positive = (
+            "levels",
+            "features_per_level",
+            "base_resolution",
+            "hidden_dim",
+            "color_hidden_dim",
+            "fine_samples",
+            "proposal_levels",
+            "proposal_features",
+            "proposal_base_resolution",
+            "proposal_hidden_dim",
+        )
+        for name in positive:
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("geo_features", "appearance_dim", "proposal_anneal_steps"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("log2_table_size", "proposal_log2_table_size"):
+            if not 4 <= getattr(self, name) <= 24:
+                raise ValueError(f"{name} must be in [4, 24], got {getattr(self, name)}")
+        if self.max_resolution < self.base_resolution:
+            raise ValueError(
+                f"max_resolution {self.max_resolution} < base_resolution {self.base_resolution}"
+            )
+        if not 0 <= self.direction_sh_levels <= 4:
+            raise ValueError(f"direction_sh_levels must be in 0..4, got {self.direction_sh_levels}")
+        if not self.proposal_samples or min(self.proposal_samples) < 1:
+            raise ValueError(
+                f"proposal_samples must be non-empty, each >= 1, got {self.proposal_samples}"
+            )
+        if (
+            len(self.proposal_max_resolutions) != len(self.proposal_samples)
+            or min(self.proposal_max_resolutions) < self.proposal_base_resolution
+        ):
+            raise ValueError(
+                "proposal_max_resolutions needs one entry >= proposal_base_resolution per "
+                f"proposal network ({len(self.proposal_samples)}), got "
+                f"{self.proposal_max_resolutions}"
+            )
+        if not self.init_density > 0:
+            raise ValueError(f"init_density must be > 0, got {self.init_density}")
+        if not self.histogram_padding >= 0 or not self.proposal_anneal_slope >= 1:
+            raise ValueError(
+                "histogram_padding must be >= 0 and proposal_anneal_slope >= 1, got "
+                f"{self.histogram_padding}, {self.proposal_anneal_slope}"
+            )
+        for name in ("interlevel_loss_weight", "distortion_loss_weight"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("lr_field", "lr_proposal", "lr_appearance", "lr_background"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if min(self.background_size) < 2:
+            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
+        if self.up_axis not in (0, 1, 2):
+            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
+
+    def anneal_exponent(self, step: int) -> float:
+        """Exponent a of the proposal weights w^a used for resampling at training ``step``."""
+        if self.proposal_anneal_steps == 0:
+            return 1.0
+        x = min(max(step / self.proposal_anneal_steps, 0.0), 1.0)
+        b = self.proposal_anneal_slope
+        return (b * x) / ((b - 1) * x + 1)
+
+    def build(self, aabb: np.ndarray) -> NerfactoField:
+        return NerfactoField(self, aabb)
+
+
+# --- building blocks ---------------------------------------------------------------------------
+class _TruncExp(torch.autograd.Function):
+    """exp(x) whose gradient uses exp(min(x, 15)) (Instant-NGP's trunc_exp: no overflow)."""
+
+    @staticmethod
+    def forward(ctx: Any, x: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(x)
+        return torch.exp(x)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> torch.Tensor:
+        (x,) = ctx.saved_tensors
+        return grad * torch.exp(x.clamp_max(15.0))
+
+
+def _trunc_exp(x: torch.Tensor) -> torch.Tensor:
+    return _TruncExp.apply(x)
+
+
+class HashEncoding(nn.Module):
+    """Multiresolution hash encoding (Müller et al. 2022) of points in the unit cube.
+
+    Level l has ``n_l = floor(base · b^l)`` cells per unit, b chosen so that the last level
+    has ``max_resolution``; the features at a point are the trilinear interpolation of its 8
+    surrounding vertices, all levels concatenated (P, levels·features). Every level has a
+    table of T = 2^``log2_table_size`` rows. A level whose vertex grid fits in T rows once each
+    axis is padded to a power of two is indexed densely (x | y·2^a | z·2^2a, no collisions);
+    the others hash with (x ⊕ y·π₂ ⊕ z·π₃) mod T in int32. Both are an XOR of per-axis
+    terms, masked per axis, with the level's offset l·T OR-ed into the x term, so all levels
+    are indexed in one batched computation. Table values start uniform in ±1e-4.
+    """
+
+    def __init__(
+        self,
+        levels: int,
+        features: int,
+        log2_table_size: int,
+        base_resolution: int,
+        max_resolution: int,
+        generator: torch.Generator | None = None,
+    ) -> None:
+        super().__init__()
+        growth = (
+            math.exp((math.log(max_resolution) - math.log(base_resolution)) / (levels - 1))
+            if levels > 1
+            else 1.0
+        )
+        res = [math.floor(base_resolution * growth**lvl + 1e-6) for lvl in range(levels)]
+        multipliers = []
+        for n in res:
+            bits = max(1, math.ceil(math.log2(n + 1)))  # vertices 0..n per axis
+            dense = 3 * bits <= log2_table_size
+            multipliers.append((1, 1 << bits, 1 << (2 * bits)) if dense else _PRIMES_I32)
+        size = 1 << log2_table_size
+        self.levels, self.features, self.table_size = levels, features, size
+        self.resolutions = tuple(res)
+        self.dense_levels = sum(1 for m in multipliers if m != _PRIMES_I32)
+        self.register_buffer("_res", torch.tensor(res, dtype=torch.float32), persistent=False)
+        mult = torch.tensor(multipliers, dtype=torch.int32).T[:, :, None]  # (3, L, 1)
+        self.register_buffer("_mult", mult.contiguous(), persistent=False)
+        offset = torch.arange(levels, dtype=torch.int32)[:, None] * size  # (L, 1)
+        self.register_buffer("_offset", offset, persistent=False)
+        table = torch.rand(levels * size, features, generator=generator) * 2e-4 - 1e-4
+        self.table = nn.Parameter(table)
+
+    @property
+    def out_dim(self) -> int:
+        return self.levels * self.features
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Features (P, levels·features) of points ``x`` (P, 3) in [0, 1] (clamped)."""
+        n_points, n_levels = x.shape[0], self.levels
+        # Level-major layout (…, L·P): every elementwise op runs over one long contiguous axis.
+        xt = x.detach().clamp(0.0, 1.0).T.contiguous()
+        pos = xt[:, None, :] * self._res[None, :, None]  # (3, L, P)
+        base = torch.minimum(pos.floor(), (self._res - 1)[None, :, None])
+        frac = (pos - base).view(3, -1)
+        lower = base.to(torch.int32).mul_(self._mult)  # (3, L, P) per-axis terms
+        terms = torch.stack([lower, lower + self._mult], dim=1)  # (3, 2, L, P): lower, upper
+        terms.bitwise_and_(self.table_size - 1)
+        terms[0].bitwise_or_(self._offset)
+        terms = terms.view(3, 2, -1)
+        idx = (terms[0][:, None, None] ^ terms[1][None, :, None]) ^ terms[2][None, None, :]
+        wts = torch.stack([1.0 - frac, frac], dim=1)  # (3, 2, L·P)
+        w = (wts[0][:, None, None] * wts[1][None, :, None]) * wts[2][None, None, :]
+        out = _HashGather.apply(self.table, idx.view(8, -1), w.view(8, -1))  # (L·P, F)
+        out = out.view(n_levels, n_points, self.features)
+        return out.transpose(0, 1).reshape(n_points, self.out_dim)
+
+
+class _HashGather(torch.autograd.Function):
+    """out[q] = Σ_k w[k, q] · table[idx[k, q]] for the 8 corners k of each (level, point) q.
+
+    Pairs of features are gathered and scattered as one complex64 value: 1-D ``index_select``
+    and ``index_add_`` have fast CPU paths that their 2-D (row) forms lack (measured, torch
+    2.13, 1.5M rows: gather 8 vs 18 ms, scatter 19 vs 35 ms); the weighting is real
+    arithmetic (complex × real multiplies are slow). The gradient is dense (one batch touches
+    most rows of the fine levels anyway).
+    """
+
+    @staticmethod
+    def forward(ctx: Any, table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
+        ctx.save_for_backward(idx, w)
+        ctx.table_shape = table.shape
+        flat = idx.reshape(-1)
+        n_q, n_feat = w.shape[1], table.shape[1]
+        if n_feat == 1:
+            rows = table.view(-1).index_select(0, flat).view(8, n_q)
+            return torch.einsum("kq,kq->q", rows, w)[:, None]
+        if n_feat == 2:
+            rows = torch.view_as_real(torch.view_as_complex(table).index_select(0, flat))
+        else:
+            rows = table.index_select(0, flat)
+        return torch.einsum("kqf,kq->qf", rows.view(8, n_q, n_feat), w)
+
+    @staticmethod
+    def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[torch.Tensor, None, None]:
+        idx, w = ctx.saved_tensors
+        n_rows, n_feat = ctx.table_shape
+        flat = idx.reshape(-1)
+        g = grad_out.contiguous()
+        if n_feat == 1:
+            contrib = (w * g.view(1, -1)).view(-1)
+            return g.new_zeros(n_rows).index_add_(0, flat, contrib)[:, None], None, None
+        contrib = (w[..., None] * g[None]).view(-1, n_feat)
+        if n_feat == 2:
+            grad = g.new_zeros(n_rows, 2)
+            torch.view_as_complex(grad).index_add_(0, flat, torch.view_as_complex(contrib))
+            return grad, None, None
+        return g.new_zeros(n_rows, n_feat).index_add_(0, flat, contrib), None, None
+
+
+def spherical_harmonics(dirs: torch.Tensor, levels: int) -> torch.Tensor:
+    """Real spherical harmonics of unit ``dirs`` (P, 3), bands 0..levels−1: (P, levels²)."""
+    if levels == 0:
+        return dirs.new_zeros(dirs.shape[0], 0)
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, 0.28209479177387814)]
+    if levels > 1:
+        out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
+    if levels > 2:
+        xx, yy, zz = x * x, y * y, z * z
+        out += [
+            1.0925484305920792 * x * y,
+            -1.0925484305920792 * y * z,
+            0.94617469575755997 * zz - 0.31539156525251999,
+            -1.0925484305920792 * x * z,
+            0.54627421529603959 * (xx - yy),
+        ]
+    if levels > 3:
+        out += [
+            0.59004358992664352 * y * (-3.0 * xx + yy),
+            2.8906114426405538 * x * y * z,
+            0.45704579946446572 * y * (1.0 - 5.0 * zz),
+            0.3731763325901154 * z * (5.0 * zz - 3.0),
+            0.45704579946446572 * x * (1.0 - 5.0 * zz),
+            1.4453057213202769 * z * (xx - yy),
+            0.59004358992664352 * x * (-xx + 3.0 * yy),
+        ]
+    return torch.stack(out, dim=-1)
+
+
+def weights_from_density(sigma: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
+    """Volume-rendering weights w_i = T_i (1 − exp(−σ_i δ_i)) of dense samples (R, N)."""
+    tau = sigma * deltas
+    before = torch.cumsum(tau, dim=-1) - tau
+    return torch.exp(-before) * -torch.expm1(-tau)
+
+
+def sample_pdf(
+    edges: torch.Tensor,
+    weights: torch.Tensor,
+    n_samples: int,
+    jitter: torch.Tensor | None = None,
+    padding: float = 0.01,
+) -> torch.Tensor:
+    """Inverse-CDF resampling of a piecewise-constant histogram: ``n_samples`` new bins.
+
+    ``edges`` (R, N+1) sorted bin edges, ``weights`` (R, N) ≥ 0 (``padding`` is added to
+    each, so empty histograms give uniform bins). Returns the edges (R, n_samples+1) of the new
+    bins, sorted, within [edges[:, 0], edges[:, -1]], denser where the weights are: the
+    quantiles u_k = (k + j)/(n_samples+1), k = 0..n_samples, of the histogram, with ``jitter``
+    j (R,) in [0, 1) (stratified, training) or 0.5 (None). Not differentiable (detached).
+    """
+    if edges.shape[-1] != weights.shape[-1] + 1 or edges.shape[:-1] != weights.shape[:-1]:
+        raise ValueError(
+            f"edges must be (R, N+1) for weights (R, N), got {tuple(edges.shape)}, "
+            f"{tuple(weights.shape)}"
+        )
+    if n_samples < 1:
+        raise ValueError(f"n_samples must be >= 1, got {n_samples}")
+    edges, weights = edges.detach(), weights.detach()
+    w = weights + padding
+    total = w.sum(dim=-1, keepdim=True)
+    w = w + F.relu(1e-5 - total) / w.shape[-1]  # all-zero rows (padding 0): uniform
+    pdf = w / w.sum(dim=-1, keepdim=True)
+    cdf = torch.cat([torch.zeros_like(pdf[:, :1]), torch.cumsum(pdf, dim=-1).clamp_max(1.0)], -1)
+    m = n_samples + 1
+    k = torch.arange(m, device=edges.device, dtype=edges.dtype)
+    j = 0.5 if jitter is None else jitter[:, None]
+    u = ((k[None, :] + j) / m).expand(edges.shape[0], m).contiguous()
+    above = torch.searchsorted(cdf.contiguous(), u, right=True).clamp_max(cdf.shape[-1] - 1)
+    below = (above - 1).clamp_min(0)
+    cdf0, cdf1 = cdf.gather(-1, below), cdf.gather(-1, above)
+    e0, e1 = edges.gather(-1, below), edges.gather(-1, above)
+    span = cdf1 - cdf0
+    t = torch.where(span > 0, (u - cdf0) / span.clamp_min(1e-12), torch.zeros_like(u)).clamp(0, 1)
+    return e0 + t * (e1 - e0)
+
+
+def _outer(
+    starts: torch.Tensor,
+    ends: torch.Tensor,
+    env_starts: torch.Tensor,
+    env_ends: torch.Tensor,
+    env_weights: torch.Tensor,
+) -> torch.Tensor:
+    """Σ of ``env_weights`` over the envelope bins that overlap each bin [starts, ends]."""
+    n_env = env_weights.shape[-1]
+    cum = torch.cat([torch.zeros_like(env_weights[:, :1]), torch.cumsum(env_weights, -1)], -1)
+    lo = (torch.searchsorted(env_starts.contiguous(), starts.contiguous(), right=True) - 1).clamp(
+        0, n_env - 1
+    )
+    hi = torch.searchsorted(env_ends.contiguous(), ends.contiguous(), right=True).clamp(
+        0, n_env - 1
+    )
+    return cum[:, 1:].gather(-1, hi) - cum[:, :-1].gather(-1, lo)
+
+
+def interlevel_loss(
+    edges: torch.Tensor,
+    weights: torch.Tensor,
+    proposal_edges: torch.Tensor,
+    proposal_weights: torch.Tensor,
+) -> torch.Tensor:
+    """mip-NeRF 360's proposal loss: mean over bins of max(0, w − bound)² / (w + ε), where
+    bound is the proposal weight summed over the proposal bins overlapping each field bin.
+
+    ``edges`` (R, N+1) and ``weights`` (R, N) of the field are detached (the field is not
+    pulled towards the proposal); the gradient reaches ``proposal_weights`` (R, M) only. Zero
+    when the proposal's weights bound the field's everywhere.
+    """
+    e, w = edges.detach(), weights.detach()
+    bound = _outer(
+        e[:, :-1], e[:, 1:], proposal_edges[:, :-1], proposal_edges[:, 1:], proposal_weights
+    )
+    return torch.mean(F.relu(w - bound) ** 2 / (w + 1e-7))
+
+
+def distortion_loss(edges: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """mip-NeRF 360's distortion loss Σ_ij w_i w_j |m_i − m_j| + ⅓ Σ_i w_i² δ_i, mean over rays
+    (``edges`` (R, N+1) normalised along each ray, e.g. to [0, 1]; ``weights`` (R, N))."""
+    mid = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    width = edges[:, 1:] - edges[:, :-1]
+    wm = weights * mid
+    w_before = torch.cumsum(weights, -1) - weights
+    wm_before = torch.cumsum(wm, -1) - wm
+    pairs = 2.0 * (weights * (mid * w_before - wm_before)).sum(-1)
+    own = (weights**2 * width).sum(-1) / 3.0
+    return (pairs + own).mean()
+
+
+def _mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
+    """``layers`` hidden ReLU layers; weights uninitialised until :func:`_init_mlp`."""
+    mods: list[nn.Module] = []
+    for i in range(layers):
+        mods += [nn.utils.skip_init(nn.Linear, n_in if i == 0 else hidden, hidden), nn.ReLU()]
+    mods.append(nn.utils.skip_init(nn.Linear, hidden if layers else n_in, n_out))
+    return nn.Sequential(*mods)
+
+
+class _ProposalNetwork(nn.Module):
+    """Density only: a small hash grid and a one-hidden-layer MLP."""
+
+    def __init__(self, cfg: NerfactoConfig, max_resolution: int, gen: torch.Generator) -> None:
+        super().__init__()
+        self.encoding = HashEncoding(
+            cfg.proposal_levels,
+            cfg.proposal_features,
+            cfg.proposal_log2_table_size,
+            cfg.proposal_base_resolution,
+            max_resolution,
+            gen,
+        )
+        self.mlp = _mlp(self.encoding.out_dim, cfg.proposal_hidden_dim, 1, 1)
+        self.log_init_density = math.log(cfg.init_density)
+
+    def forward(self, x_unit: torch.Tensor) -> torch.Tensor:
+        raw = self.mlp(self.encoding(x_unit)).squeeze(-1)
+        return _trunc_exp(raw + self.log_init_density)
+
+
+# --- the field -------------------------------------------------------------------------------
+class NerfactoField(Field):
+    """Hash-grid field with proposal sampling, per-image appearance and a direction-only
+    background; renders its own rays (see the module)."""
+
+    def __init__(self, cfg: NerfactoConfig, aabb: np.ndarray) -> None:
+        super().__init__()
+        self.cfg = cfg
+        box = torch.as_tensor(np.asarray(aabb, dtype=np.float64), dtype=torch.float32)
+        self.register_buffer("aabb", box)
+        # Points → unit cube by the longest side (cubic cells).
+        self.register_buffer("_scale", 1.0 / (box[1] - box[0]).max())
+        gen = torch.Generator().manual_seed(0)  # the module's init (torch's global RNG untouched)
+        self.encoding = HashEncoding(
+            cfg.levels,
+            cfg.features_per_level,
+            cfg.log2_table_size,
+            cfg.base_resolution,
+            cfg.max_resolution,
+            gen,
+        )
+        self.density_mlp = _mlp(self.encoding.out_dim, cfg.hidden_dim, 1 + cfg.geo_features, 1)
+        n_dir = cfg.direction_sh_levels**2
+        self.color_mlp = _mlp(
+            cfg.geo_features + n_dir + cfg.appearance_dim, cfg.color_hidden_dim, 3, 2
+        )
+        for mlp in (self.density_mlp, self.color_mlp):
+            _init_mlp(mlp, gen)
+        self.proposals = nn.ModuleList(
+            _ProposalNetwork(cfg, r, gen) for r in cfg.proposal_max_resolutions
+        )
+        for p in self.proposals:
+            _init_mlp(p.mlp, gen)
+        self.appearance = nn.Parameter(torch.zeros(cfg.appearance_slots, cfg.appearance_dim))
+        self.register_buffer("appearance_used", torch.zeros(cfg.appearance_slots, dtype=torch.bool))
+        rows, cols = cfg.background_size
+        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
+        self.log_init_density = math.log(cfg.init_density)
+        self._step = 0
+
+    # --- the Field interface -------------------------------------------------------------
+    def _unit(self, points: torch.Tensor) -> torch.Tensor:
+        return (points - self.aabb[0]) * self._scale
+
+    def _field(
+        self, points: torch.Tensor, dirs: torch.Tensor, embedding: torch.Tensor | None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """σ (P,) and colour (P, 3) with appearance ``embedding`` (P, dim) or (dim,)."""
+        h = self.density_mlp(self.encoding(self._unit(points)))
+        sigma = _trunc_exp(h[:, 0] + self.log_init_density)
+        inputs = [h[:, 1:], spherical_harmonics(dirs, self.cfg.direction_sh_levels)]
+        if self.cfg.appearance_dim:
+            if embedding is None:
+                embedding = self.neutral_appearance()
+            if embedding.ndim == 1:
+                embedding = embedding.expand(points.shape[0], -1)
+            inputs.append(embedding)
+        rgb = torch.sigmoid(self.color_mlp(torch.cat(inputs, dim=-1)))
+        return sigma, rgb
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The field at ``points`` with the neutral appearance."""
+        return self._field(points, dirs, None)
+
+    def background(self, dirs: torch.Tensor) -> torch.Tensor:
+        return latlong_background(self.env, dirs, self.cfg.up_axis)
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        cfg = self.cfg
+        groups = [
+            {
+                "params": [
+                    self.encoding.table,
+                    *self.density_mlp.parameters(),
+                    *self.color_mlp.parameters(),
+                ],
+                "lr": cfg.lr_field,
+            },
+            {"params": list(self.proposals.parameters()), "lr": cfg.lr_proposal},
+            {"params": [self.env], "lr": cfg.lr_background},
+        ]
+        if cfg.appearance_dim:
+            groups.append({"params": [self.appearance], "lr": cfg.lr_appearance})
+        return groups
+
+    def on_step(self, step: int) -> bool:
+        self._step = step
+        return False
+
+    @torch.no_grad()
+    def reset_appearance(self, rows: torch.Tensor) -> None:
+        self.appearance.index_fill_(0, rows, 0.0)
+        self.appearance_used.index_fill_(0, rows, False)
+
+    def neutral_appearance(self) -> torch.Tensor:
+        """The embedding of a novel view: the mean of the rows trained so far (zero before)."""
+        used = self.appearance_used
+        if not bool(used.any()):
+            return self.appearance.new_zeros(self.cfg.appearance_dim)
+        return self.appearance[used].mean(dim=0)
+
+    # --- sampling and rendering ----------------------------------------------------------
+    def render_rays(self, rays: RayBundle, options: RenderOptions) -> RenderResult:
+        """Proposal sampling → field → volume rendering; in training, ``aux_loss`` holds the
+        interlevel (and distortion) losses."""
+        cfg = self.cfg
+        background = self.background(rays.dirs)
+        hit = (rays.t_far > rays.t_near).nonzero().squeeze(1)
+        origins, dirs = rays.origins.index_select(0, hit), rays.dirs.index_select(0, hit)
+        near = rays.t_near.index_select(0, hit)[:, None]
+        chord = (rays.t_far.index_select(0, hit) - rays.t_near.index_select(0, hit))[:, None]
+        n_hit = hit.shape[0]
+        training = self.training
+        generator = options.generator
+
+        # Uniform bins over the chord, one stratified offset per ray (s in [0, 1] along it).
+        n0 = cfg.proposal_samples[0]
+        k = torch.arange(n0 + 1, device=origins.device, dtype=origins.dtype)
+        s_edges = (k / n0).expand(n_hit, n0 + 1)
+        jitter = options.jitter.index_select(0, hit)[:, None] if options.jitter is not None else 0.5
+        s_points = (k[:-1] + jitter) / n0
+        proposal_levels: list[tuple[torch.Tensor, torch.Tensor]] = []
+        exponent = cfg.anneal_exponent(self._step) if training else 1.0
+        for level, proposal in enumerate(self.proposals):
+            n = s_points.shape[-1]
+            x = origins[:, None, :] + dirs[:, None, :] * (near + s_points * chord)[..., None]
+            sigma = proposal(self._unit(x.reshape(-1, 3))).view(n_hit, n)
+            w = weights_from_density(sigma, (s_edges[:, 1:] - s_edges[:, :-1]) * chord)
+            proposal_levels.append((s_edges, w))
+            n_next = (
+                cfg.proposal_samples[level + 1]
+                if level + 1 < len(self.proposals)
+                else cfg.fine_samples
+            )
+            resample_jitter = (
+                torch.rand(n_hit, generator=generator, device=origins.device) if training else None
+            )
+            sample_w = w.detach() ** exponent if exponent != 1.0 else w.detach()
+            s_edges = sample_pdf(s_edges, sample_w, n_next, resample_jitter, cfg.histogram_padding)
+            s_points = 0.5 * (s_edges[:, 1:] + s_edges[:, :-1])
+
+        n_fine = cfg.fine_samples
+        deltas = (s_edges[:, 1:] - s_edges[:, :-1]) * chord  # (H, n_fine)
+        points = origins[:, None, :] + dirs[:, None, :] * (near + s_points * chord)[..., None]
+        ray_index = hit.repeat_interleave(n_fine)
+        sample_dirs = dirs.repeat_interleave(n_fine, dim=0)
+        embedding = None
+        if cfg.appearance_dim and rays.appearance is not None:
+            rows = rays.appearance.index_select(0, hit)
+            if training:
+                with torch.no_grad():
+                    self.appearance_used.index_fill_(0, rows, True)
+            embedding = self.appearance.index_select(0, rows).repeat_interleave(n_fine, dim=0)
+        sigma, rgb = self._field(points.reshape(-1, 3), sample_dirs, embedding)
+        out = volume_render(sigma, rgb, deltas.reshape(-1), ray_index, background)
+        if not (training and torch.is_grad_enabled()):
+            return out
+        weights = out.weights.view(n_hit, n_fine)
+        aux = (
+            sum(
+                (interlevel_loss(s_edges, weights, e, w) for e, w in proposal_levels),
+                start=weights.new_zeros(()),
+            )
+            * cfg.interlevel_loss_weight
+        )
+        if cfg.distortion_loss_weight > 0:
+            aux = aux + cfg.distortion_loss_weight * distortion_loss(s_edges, weights)
+        return RenderResult(
+            out.rgb, out.transmittance, out.weights, out.sample_rgb, out.ray_index, out.opacity, aux
+        )
+
+
+def _init_mlp(mlp: nn.Sequential, gen: torch.Generator) -> None:
+    """Kaiming-uniform weights, zero biases, drawn from ``gen`` (deterministic per config)."""
+    with torch.no_grad():
+        for m in mlp:
+            if isinstance(m, nn.Linear):
+                bound = math.sqrt(6.0 / m.in_features)
+                m.weight.uniform_(-bound, bound, generator=gen)
+                m.bias.zero_()
