@@ -12,10 +12,13 @@ from typing import Any
 
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.grid import DenseGridField, GridConfig
+from aoi3d.field.nerf import NerfMlpConfig, NerfMlpField
 from aoi3d.field.nerfacto import NerfactoConfig, NerfactoField
+from aoi3d.field.ngp import NgpConfig, NgpField
 from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, RaySamples, camera_rays, ray_aabb, sample_uniform
 from aoi3d.field.render import RenderOptions, RenderResult, render_uniform, volume_render
+from aoi3d.field.tensorf import TensorfConfig, TensorfField
 from aoi3d.field.trainer import FieldTrainer, TrainView, render_rays
 
 __all__ = [
@@ -26,12 +29,18 @@ __all__ = [
     "FieldTrainer",
     "GridConfig",
     "LazyAdam",
+    "NerfMlpConfig",
+    "NerfMlpField",
     "NerfactoConfig",
     "NerfactoField",
+    "NgpConfig",
+    "NgpField",
     "RayBundle",
     "RaySamples",
     "RenderOptions",
     "RenderResult",
+    "TensorfConfig",
+    "TensorfField",
     "TrainView",
     "camera_rays",
     "field_config",
@@ -44,6 +53,9 @@ __all__ = [
 
 BACKENDS: dict[str, type[FieldConfig]] = {
     "grid": GridConfig,
+    "ngp": NgpConfig,
+    "tensorf": TensorfConfig,
+    "nerf": NerfMlpConfig,
     "nerfacto": NerfactoConfig,
 }
 """Radiance-field backends by name (``ngp``, ``tensorf``, ``nerfacto`` come later)."""

@@ -1,0 +1,405 @@
+"""``ngp``: a multiresolution hash encoding and a tiny MLP (Instant-NGP, Müller et al. 2022).
+
+A point's feature vector concatenates, over ``n_levels`` resolutions growing geometrically
+from ``base_resolution`` to ``max_resolution`` (cells along the longest box side, cubic
+cells), the trilinear interpolation of ``features`` learned values at the 8 corners of its
+cell. A coarse level whose vertices fit in the table is indexed densely (one row per vertex);
+a finer one hashes vertex (x, y, z) to ``(x · 1 ⊕ y · 2654435761 ⊕ z · 805459861) & (T − 1)``
+in int32 (the products wrap around like uint32, the mask keeps the low bits; no int64, no
+remainder). A tiny MLP maps the features to a raw density and geometry features,
+σ = softplus(raw + shift) (the shift makes the initial density ``init_density``), and a
+second one maps those (and, when ``view_dependent``, an SH encoding of the ray direction) to
+the colour. Empty space is skipped with an occupancy grid: every ``occupancy_every`` steps a
+random part of its cells is probed at a random point each, every cell's density estimate
+decays by ``occupancy_decay`` and takes the maximum with its new probe (Instant-NGP's EMA),
+and a cell is kept while its estimate gives an opacity above ``occupancy_alpha`` at the fine
+ray step. The trainer's opacity loss clears the initial fog, so skipping starts to pay within
+a few dozen steps. Rays that leave the box see the lat-long background shared with ``grid``.
+
+The table lookup is ``row_gather`` (``embedding_bag`` forward, ``index_add_`` backward). Its
+gradient is dense by default: with 8 levels × 2^16 rows most hashed rows are touched by every
+batch, and the row-sparse gradient + ``LazyAdam`` (``sparse_grad=True``, the ``grid``
+backend's trick) measured slower here (315 against 365 steps in 30 CPU-seconds, 1 thread).
+The CPU cost is the 8 × ``n_levels`` rows per sample, hence the defaults: 512 rays a step,
+32 then 128 samples per box diagonal, occupancy from step 30 (each measured better on the
+turbine at 5–30 s than 1024 rays, 64/160 samples, step 100).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from aoi3d.field.background import latlong_background
+from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.gather import row_gather
+
+__all__ = ["HashEncoding", "NgpConfig", "NgpField", "hash_vertices"]
+
+PRIMES = (1, 2654435761, 805459861)
+"""Instant-NGP's spatial hash primes for x, y, z."""
+
+
+def _as_int32(value: int) -> int:
+    """``value`` mod 2³² as a signed int32 (so int32 multiplication wraps like uint32)."""
+    value &= 0xFFFFFFFF
+    return value - (1 << 32) if value >= 1 << 31 else value
+
+
+@dataclass(frozen=True)
+class NgpConfig(FieldConfig):
+    """The hash-grid backend.
+
+    Encoding: ``n_levels`` levels of ``features`` features each, a table of
+    2^``log2_table_size`` rows per hashed level, resolutions from ``base_resolution`` to
+    ``max_resolution`` cells along the longest box side; table entries start uniform in
+    ±``init_scale``; ``sparse_grad`` makes the table's gradient row-sparse (for
+    ``LazyAdam``). MLPs: ``hidden`` units, one hidden layer each; ``geo_features`` features
+    pass from the density MLP to the colour MLP, which also sees a degree-2 SH encoding of
+    the ray direction when ``view_dependent`` (no gain measured: the scene is Lambertian);
+    without ``colour_mlp`` the density MLP outputs the colour itself. ``init_seed`` seeds the
+    initial weights. ``init_density``: σ everywhere at the start. Adam learning rates:
+    ``lr_table``, ``lr_mlp``, ``lr_background``. Background: lat-long map of
+    ``background_size`` (rows, columns) around ``up_axis``. Occupancy grid: cubic cells,
+    ``occupancy_size`` along the longest side, first built at step ``occupancy_from_step``
+    (all cells probed), then every ``occupancy_every`` steps a random ``occupancy_fraction``
+    of them; threshold ``occupancy_alpha`` on 1 − exp(−σ·δ_fine).
+    """
+
+    batch_rays: int = 512
+    samples_coarse: int = 32
+    samples_fine: int = 128
+    n_levels: int = 8
+    features: int = 4
+    log2_table_size: int = 16
+    base_resolution: int = 16
+    max_resolution: int = 256
+    init_scale: float = 1e-4
+    sparse_grad: bool = False
+    hidden: int = 64
+    geo_features: int = 15
+    colour_mlp: bool = True
+    view_dependent: bool = False
+    init_seed: int = 0
+    init_density: float = 0.1
+    lr_table: float = 0.05
+    lr_mlp: float = 0.001
+    lr_background: float = 0.05
+    background_size: tuple[int, int] = (64, 128)
+    up_axis: int = 2
+    occupancy_size: int = 64
+    occupancy_from_step: int = 30
+    occupancy_every: int = 16
+    occupancy_fraction: float = 0.25
+    occupancy_decay: float = 0.95
+    occupancy_alpha: float = 1e-3
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        for name in ("n_levels", "features", "hidden", "geo_features"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if not 4 <= self.log2_table_size <= 30:
+            raise ValueError(f"log2_table_size must be in [4, 30], got {self.log2_table_size}")
+        if not 2 <= self.base_resolution <= self.max_resolution:
+            raise ValueError(
+                "need 2 <= base_resolution <= max_resolution, got "
+                f"{self.base_resolution}, {self.max_resolution}"
+            )
+        for name in ("init_scale", "init_density", "lr_table", "lr_mlp", "lr_background"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.view_dependent and not self.colour_mlp:
+            raise ValueError("view_dependent needs the colour MLP (colour_mlp=True)")
+        if min(self.background_size) < 2:
+            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
+        if self.up_axis not in (0, 1, 2):
+            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
+        if self.occupancy_size < 1 or self.occupancy_from_step < 0 or self.occupancy_every < 1:
+            raise ValueError(
+                "occupancy_size >= 1, occupancy_from_step >= 0 and occupancy_every >= 1 needed, "
+                f"got {self.occupancy_size}, {self.occupancy_from_step}, {self.occupancy_every}"
+            )
+        if not 0 < self.occupancy_fraction <= 1 or not 0 <= self.occupancy_decay <= 1:
+            raise ValueError(
+                "occupancy_fraction must be in (0, 1] and occupancy_decay in [0, 1], got "
+                f"{self.occupancy_fraction}, {self.occupancy_decay}"
+            )
+        if not 0 < self.occupancy_alpha < 1:
+            raise ValueError(f"occupancy_alpha must be in (0, 1), got {self.occupancy_alpha}")
+
+    def build(self, aabb: np.ndarray) -> NgpField:
+        return NgpField(self, aabb)
+
+
+# --- the hash encoding ------------------------------------------------------------------------
+def hash_vertices(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, mask: int) -> torch.Tensor:
+    """Instant-NGP's spatial hash of int32 vertex coordinates (broadcast), in [0, mask]."""
+    if x.dtype != torch.int32 or y.dtype != torch.int32 or z.dtype != torch.int32:
+        raise TypeError("vertex coordinates must be int32")
+    return ((x ^ (y * _P1)) ^ (z * _P2)) & mask
+
+
+_P1, _P2 = _as_int32(PRIMES[1]), _as_int32(PRIMES[2])
+_BITS = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=torch.int32)
+"""Corner k of a cell is vertex base + _BITS[k] (x major, z minor)."""
+
+
+class HashEncoding(nn.Module):
+    """Multiresolution hash encoding of points inside the box: (P, 3) → (P, levels·features).
+
+    Level l has ``resolutions[l]`` cells along the longest box side; cells are cubic, so a
+    shorter side gets proportionally fewer. Levels whose vertices fit in 2^log2_table_size
+    rows are indexed densely, the others hashed. All levels share one parameter ``table``
+    (rows, features); ``offsets[l]`` is the first row of level l.
+    """
+
+    def __init__(
+        self,
+        aabb: np.ndarray,
+        n_levels: int,
+        features: int,
+        log2_table_size: int,
+        base_resolution: int,
+        max_resolution: int,
+        init_scale: float = 1e-4,
+        sparse_grad: bool = False,
+    ) -> None:
+        super().__init__()
+        self.sparse_grad = sparse_grad
+        box = np.asarray(aabb, dtype=np.float64)
+        extent = box[1] - box[0]
+        longest = float(extent.max())
+        growth = (
+            math.exp((math.log(max_resolution) - math.log(base_resolution)) / (n_levels - 1))
+            if n_levels > 1
+            else 1.0
+        )
+        table_rows = 1 << log2_table_size
+        self.mask = table_rows - 1
+        self.features = features
+        resolutions, cells, sizes = [], [], []
+        for level in range(n_levels):
+            res = math.floor(base_resolution * growth**level + 1e-9)
+            n = [max(1, math.ceil(float(e) / longest * res - 1e-9)) for e in extent]
+            vertices = math.prod(c + 1 for c in n)
+            resolutions.append(res)
+            cells.append(n)
+            sizes.append(min(vertices, table_rows))
+        self.n_levels = n_levels
+        self.resolutions = resolutions
+        # Resolutions increase, so the dense levels (all vertices fit) come first.
+        self.n_dense = sum(1 for n in cells if math.prod(c + 1 for c in n) <= table_rows)
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        self.register_buffer("origin", torch.tensor(box[0], dtype=torch.float32))
+        self.register_buffer(
+            "scale", torch.tensor([r / longest for r in resolutions], dtype=torch.float32)
+        )
+        self.register_buffer("cells", torch.tensor(cells, dtype=torch.float32))  # (L, 3)
+        self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.int32))
+        strides = [[(n[1] + 1) * (n[2] + 1), n[2] + 1, 1] for n in cells[: self.n_dense]]
+        strides_t = torch.tensor(strides, dtype=torch.int32).view(-1, 3)
+        self.register_buffer("strides", strides_t.T.contiguous())  # (3, Ld)
+        corner = (_BITS[:, None, :] * strides_t[None]).sum(-1, dtype=torch.int32)  # (8, Ld)
+        self.register_buffer("corner_offsets", corner[:, None, :])
+        table = torch.empty(int(offsets[-1]), features).uniform_(-init_scale, init_scale)
+        self.table = nn.Parameter(table)
+
+    @property
+    def out_features(self) -> int:
+        return self.n_levels * self.features
+
+    def indices(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Table rows (8, P, L) int32 and trilinear weights (8, P, L) of ``points`` (P, 3):
+        corner k of each point's cell at each level (see ``_BITS``)."""
+        rel = points - self.origin
+        base, frac = [], []
+        for axis in range(3):
+            pos = rel[:, axis, None] * self.scale  # (P, L), in cells of each level
+            hi = self.cells[:, axis]
+            pos = torch.minimum(pos.clamp_min(0.0), hi)
+            b = torch.minimum(pos.floor(), hi - 1)
+            frac.append(pos - b)
+            base.append(b.to(torch.int32))
+        wx, wy, wz = (torch.stack([1.0 - f, f]) for f in frac)  # (2, P, L) each
+        w = (wx[:, None, None] * wy[None, :, None]) * wz[None, None, :]
+        n_points, nd = points.shape[0], self.n_dense
+        parts = []
+        if nd:
+            row = self.offsets[:nd] + base[0][:, :nd] * self.strides[0]
+            row = row + base[1][:, :nd] * self.strides[1] + base[2][:, :nd] * self.strides[2]
+            parts.append(row + self.corner_offsets)  # (8, P, Ld)
+        if nd < self.n_levels:
+            x, y, z = (b[:, nd:] for b in base)
+            hx = torch.stack([x, x + 1])  # (2, P, Lh)
+            hy = torch.stack([y * _P1, (y + 1) * _P1])
+            hz = torch.stack([z * _P2, (z + 1) * _P2])
+            h = (hx[:, None, None] ^ hy[None, :, None]) ^ hz[None, None, :]
+            h = h.bitwise_and_(self.mask).view(8, n_points, -1)
+            parts.append(h + self.offsets[nd:])
+        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=2)
+        return idx, w.view(8, n_points, self.n_levels)
+
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        idx, w = self.indices(points)
+        out = row_gather(self.table, idx.view(8, -1), w.view(8, -1), self.sparse_grad)
+        return out.view(points.shape[0], self.out_features)
+
+
+def sh_degree2(dirs: torch.Tensor) -> torch.Tensor:
+    """Real spherical harmonics up to degree 2 of unit directions (P, 3) → (P, 9)."""
+    x, y, z = dirs.unbind(-1)
+    return torch.stack(
+        [
+            torch.full_like(x, 0.28209479),
+            0.48860251 * y,
+            0.48860251 * z,
+            0.48860251 * x,
+            1.09254843 * x * y,
+            1.09254843 * y * z,
+            0.31539157 * (3 * z * z - 1),
+            1.09254843 * x * z,
+            0.54627421 * (x * x - y * y),
+        ],
+        dim=-1,
+    )
+
+
+# --- the field --------------------------------------------------------------------------------
+class NgpField(Field):
+    """Hash encoding + tiny MLPs inside the box, occupancy grid, lat-long background."""
+
+    def __init__(self, cfg: NgpConfig, aabb: np.ndarray) -> None:
+        super().__init__()
+        self.cfg = cfg
+        box = np.asarray(aabb, dtype=np.float64)
+        self.register_buffer("aabb", torch.tensor(box, dtype=torch.float32))
+        with torch.random.fork_rng(devices=[]):  # initial weights from ``init_seed`` only
+            torch.manual_seed(cfg.init_seed)
+            self.encoding = HashEncoding(
+                box,
+                cfg.n_levels,
+                cfg.features,
+                cfg.log2_table_size,
+                cfg.base_resolution,
+                cfg.max_resolution,
+                cfg.init_scale,
+                cfg.sparse_grad,
+            )
+            outputs = 1 + (cfg.geo_features if cfg.colour_mlp else 3)
+            self.density_mlp = nn.Sequential(
+                nn.Linear(self.encoding.out_features, cfg.hidden),
+                nn.ReLU(),
+                nn.Linear(cfg.hidden, outputs),
+            )
+            colour_in = cfg.geo_features + (9 if cfg.view_dependent else 0)
+            self.colour_mlp = (
+                nn.Sequential(nn.Linear(colour_in, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, 3))
+                if cfg.colour_mlp
+                else None
+            )
+        self.density_shift = math.log(math.expm1(cfg.init_density))
+        rows, cols = cfg.background_size
+        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
+        # The occupancy grid: cubic cells, a density estimate per cell.
+        extent = box[1] - box[0]
+        cell = float(extent.max()) / cfg.occupancy_size
+        self.occupancy_shape = tuple(max(1, math.ceil(float(e) / cell - 1e-9)) for e in extent)
+        self.register_buffer("cell_size", torch.full((3,), cell, dtype=torch.float32))
+        self.register_buffer("density_estimate", torch.zeros(math.prod(self.occupancy_shape)))
+        fine_step = cfg.ray_step(box, cfg.fine_from_step)
+        self.sigma_min = -math.log1p(-cfg.occupancy_alpha) / fine_step
+        self._occupancy: torch.Tensor | None = None  # (cells,) bool; None: skip nothing
+        self._probe_generator: torch.Generator | None = None
+
+    # --- the Field interface -------------------------------------------------------------
+    def density(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """σ (P,) and the geometry features (P, geo_features) at ``points``."""
+        out = self.density_mlp(self.encoding(points))
+        return F.softplus(out[:, 0] + self.density_shift), out[:, 1:]
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        sigma, geo = self.density(points)
+        if self.colour_mlp is None:
+            return sigma, torch.sigmoid(geo)
+        if self.cfg.view_dependent:
+            geo = torch.cat([geo, sh_degree2(dirs)], dim=1)
+        return sigma, torch.sigmoid(self.colour_mlp(geo))
+
+    def background(self, dirs: torch.Tensor) -> torch.Tensor:
+        return latlong_background(self.env, dirs, self.cfg.up_axis)
+
+    def param_groups(self) -> list[dict[str, Any]]:
+        mlp = list(self.density_mlp.parameters())
+        if self.colour_mlp is not None:
+            mlp += list(self.colour_mlp.parameters())
+        return [
+            {"params": [self.encoding.table], "lr": self.cfg.lr_table},
+            {"params": mlp, "lr": self.cfg.lr_mlp},
+            {"params": [self.env], "lr": self.cfg.lr_background},
+        ]
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor | None:
+        if self._occupancy is None:
+            return None
+        return self._occupancy.index_select(0, self._cell_index(points))
+
+    def on_step(self, step: int) -> bool:
+        cfg = self.cfg
+        if step < cfg.occupancy_from_step:
+            self._occupancy = None
+        elif self._occupancy is None:
+            self.update_occupancy(fraction=1.0)
+        elif (step - cfg.occupancy_from_step) % cfg.occupancy_every == 0:
+            self.update_occupancy(cfg.occupancy_fraction)
+        return False
+
+    # --- the occupancy grid ---------------------------------------------------------------
+    def _cell_index(self, points: torch.Tensor) -> torch.Tensor:
+        nx, ny, nz = self.occupancy_shape
+        hi = torch.tensor([nx - 1, ny - 1, nz - 1], device=points.device)
+        c = ((points - self.aabb[0]) / self.cell_size).floor().long()
+        c = torch.minimum(c.clamp_min(0), hi)
+        return (c[:, 0] * ny + c[:, 1]) * nz + c[:, 2]
+
+    @property
+    def occupancy(self) -> torch.Tensor | None:
+        """Occupied cells (X, Y, Z) bool, None before the grid is first built."""
+        if self._occupancy is None:
+            return None
+        return self._occupancy.view(self.occupancy_shape)
+
+    @torch.no_grad()
+    def update_occupancy(self, fraction: float = 1.0) -> None:
+        """Probe a random ``fraction`` of the cells at a random point each, decay every cell's
+        density estimate and keep the maximum with the probes; cells whose estimate gives an
+        opacity above ``occupancy_alpha`` are occupied."""
+        device = self.density_estimate.device
+        if self._probe_generator is None or self._probe_generator.device != device:
+            self._probe_generator = torch.Generator(device=device)
+            self._probe_generator.manual_seed(0x6E6770)
+        gen = self._probe_generator
+        n_cells = self.density_estimate.shape[0]
+        if fraction >= 1.0:
+            cells = torch.arange(n_cells, device=device)
+        else:
+            count = max(1, round(fraction * n_cells))
+            cells = torch.randint(n_cells, (count,), generator=gen, device=device)
+        _, ny, nz = self.occupancy_shape
+        ijk = torch.stack([cells // (ny * nz), cells // nz % ny, cells % nz], dim=1)
+        jitter = torch.rand(cells.shape[0], 3, generator=gen, device=device)
+        points = self.aabb[0] + (ijk.to(jitter.dtype) + jitter) * self.cell_size
+        points = torch.minimum(points, self.aabb[1])
+        was_training = self.training
+        self.eval()
+        sigma = torch.cat([self.density(p)[0] for p in points.split(65536)])
+        self.train(was_training)
+        estimate = self.density_estimate.mul_(self.cfg.occupancy_decay)
+        estimate.scatter_reduce_(0, cells, sigma, reduce="amax")
+        self._occupancy = estimate > self.sigma_min
