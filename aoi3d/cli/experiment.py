@@ -1,0 +1,572 @@
+"""``aoi3d experiment …``: the paper's tradeoff figures, each with one command.
+
+Every command runs a sweep of episodes (:mod:`aoi3d.experiment`) on all local cores (or a
+Ray cluster with ``--ray-address``), caches each episode under ``--cache`` (an interrupted
+sweep resumes; a re-run computes only what is missing; commands share episodes), and writes
+CSV, JSON (with the full config, the code version and the machine) and PNG figures to
+``--out``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import numpy as np
+import typer
+from PIL import Image
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from aoi3d.channel import DelaySpecError, parse_delay
+from aoi3d.experiment import (
+    PRESETS,
+    EpisodeConfig,
+    EpisodeResult,
+    Job,
+    Preset,
+    ResultCache,
+    SweepOutcome,
+    aggregate,
+    default_workers,
+    get_preset,
+    run_jobs,
+)
+from aoi3d.experiment.figures import plot_compare, plot_delay, plot_tradeoff, plot_views
+from aoi3d.experiment.report import code_version, machine, write_csv, write_json
+from aoi3d.experiment.sweep import lpips_available
+from aoi3d.policy import PolicySpecError, parse_policy
+from aoi3d.scene import SceneDataset
+
+app = typer.Typer(no_args_is_help=True, add_completion=False)
+console = Console()
+
+
+@app.callback()
+def experiment() -> None:
+    """Sweeps and figures of the timeliness–fidelity tradeoff on a virtual clock."""
+
+
+# --- options shared by every command ---------------------------------------------------------
+PresetOpt = Annotated[str, typer.Option(
+    help=f"Budget preset: {', '.join(PRESETS)} (quick: ≤ 10 min on 2 cores; paper: Γ every "
+         "10 ms, 40 simulations per point).")]
+DatasetOpt = Annotated[Path | None, typer.Option(
+    help="Scene dataset (any layout `aoi3d scene` reads); the default turbine scene is "
+         "generated there if the folder does not exist. Default: the preset's (data/turbine).")]
+OutOpt = Annotated[Path | None, typer.Option(
+    help="Output folder (CSV, JSON, PNG). Default: runs/experiments/<command>-<preset>.")]
+CacheOpt = Annotated[Path, typer.Option(
+    help="Episode cache shared by all commands (delete it to recompute everything).")]
+SeedsOpt = Annotated[int | None, typer.Option(
+    min=1, help="Independent simulations per point (default: the preset's).")]
+StepsOpt = Annotated[int | None, typer.Option(
+    min=1, help="Training steps per decision (default: the preset's).")]
+CarryOpt = Annotated[str | None, typer.Option(
+    help="Model between decisions: warm (kept, as the live trainer) or fresh (per-time).")]
+BackendOpt = Annotated[str | None, typer.Option(help="Radiance-field backend (BACKENDS).")]
+WorkersOpt = Annotated[int | None, typer.Option(
+    min=1, help="Worker processes (default: all local cores).")]
+ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per worker.")]
+RayOpt = Annotated[str | None, typer.Option(
+    help="Run the episodes on Ray: an address (auto, ray://host:10001) or 'local'. Needs "
+         "pip install '.[cluster]'.")]
+LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
+SetOpt = Annotated[list[str] | None, typer.Option(
+    "--set", help="Override any episode config field, KEY=VALUE (VALUE as JSON where it "
+                  "parses), e.g. --set warmup_ms=600 --set field='{\"batch_rays\": 512}'.")]
+DelayOpt = Annotated[str, typer.Option(help="Delay spec of the links, e.g. exp:60 (ms).")]
+DeviceOpt = Annotated[str | None, typer.Option(
+    help="Torch device of the radiance field: cpu or cuda (default: the preset's, cpu).")]
+
+
+@dataclass
+class _Setup:
+    command: str
+    preset: Preset
+    cfg: EpisodeConfig
+    dataset: SceneDataset
+    out: Path
+    cache: ResultCache
+    seeds: int
+    workers: int
+    threads: int
+    ray_address: str | None
+    started: float
+
+
+def _parse_sets(sets: Sequence[str] | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for item in sets or ():
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise typer.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="'--set'")
+        try:
+            value: Any = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def _int_list(text: str | None, name: str) -> tuple[int, ...] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(int(v) for v in text.replace(" ", "").split(",") if v)
+    except ValueError:
+        raise typer.BadParameter(f"expected comma-separated whole ms, got {text!r}",
+                                 param_hint=name) from None
+    if not values or min(values) < 0:
+        raise typer.BadParameter(f"expected values >= 0, got {text!r}", param_hint=name)
+    return values
+
+
+def _delay(spec: str, name: str = "'--delay'") -> str:
+    try:
+        return parse_delay(spec).spec
+    except DelaySpecError as err:
+        raise typer.BadParameter(str(err), param_hint=name) from None
+
+
+def _open_dataset(path: Path) -> SceneDataset:
+    from aoi3d.scene import SceneConfig, ensure_dataset, open_dataset
+
+    if path.exists():
+        return open_dataset(path)
+    console.print(f"no dataset at {path}: generating the default turbine scene there")
+    return ensure_dataset(path, SceneConfig(), workers=default_workers())
+
+
+def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, cache: Path,
+           seeds: int | None, steps: int | None, carry: str | None, backend: str | None,
+           workers: int | None, threads: int, ray_address: str | None, lpips: bool,
+           sets: Sequence[str] | None, device: str | None = None) -> _Setup:
+    try:
+        chosen = get_preset(preset)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="'--preset'") from None
+    changes: dict[str, Any] = {"lpips": lpips}
+    for key, value in (("steps_per_epoch", steps), ("carry", carry), ("backend", backend),
+                       ("device", device)):
+        if value is not None:
+            changes[key] = value
+    if dataset is not None:
+        changes["dataset"] = str(dataset)
+    changes.update(_parse_sets(sets))
+    try:
+        cfg = EpisodeConfig.from_dict({**chosen.episode.to_dict(), **changes})
+        from aoi3d.field import field_config
+
+        field_config(cfg.backend, **cfg.field)  # unknown backend or field key: fail now
+    except (TypeError, ValueError) as err:
+        raise typer.BadParameter(str(err)) from None
+    if cfg.device == "cuda" and ray_address is None:
+        import torch
+
+        if not torch.cuda.is_available():
+            raise typer.BadParameter("device cuda asked for, but CUDA is not available here",
+                                     param_hint="'--device'")
+    ds = _open_dataset(Path(cfg.dataset))
+    folder = out if out is not None else Path("runs/experiments") / f"{command}-{chosen.name}"
+    folder.mkdir(parents=True, exist_ok=True)
+    return _Setup(
+        command=command, preset=chosen, cfg=cfg, dataset=ds, out=folder,
+        cache=ResultCache(cache), seeds=seeds if seeds is not None else chosen.seeds,
+        workers=workers if workers is not None else default_workers(), threads=threads,
+        ray_address=ray_address, started=time.time(),
+    )
+
+
+def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
+    where = (f"Ray ({setup.ray_address})" if setup.ray_address
+             else f"{min(setup.workers, len(jobs))} process(es) × {setup.threads} thread(s)")
+    console.print(f"[bold]{label}[/]: {len(jobs)} episodes on {where}; cache {setup.cache.root}")
+    columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+               MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+               TimeRemainingColumn())
+    try:
+        with Progress(*columns, console=console, transient=False) as bar:
+            task = bar.add_task(label, total=None)
+
+            def report(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
+
+            outcome = run_jobs(setup.cfg, jobs, cache=setup.cache, workers=setup.workers,
+                               threads_per_worker=setup.threads,
+                               ray_address=setup.ray_address, progress=report,
+                               dataset=setup.dataset)
+    except KeyboardInterrupt:
+        console.print(f"[yellow]interrupted[/]: finished episodes are kept in "
+                      f"{setup.cache.root}; run the same command again to resume")
+        raise typer.Exit(130) from None
+    console.print(f"{outcome.computed} episode(s) computed, {outcome.cached} from the cache, "
+                  f"{outcome.wall_s:.1f} s")
+    return outcome
+
+
+def _episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
+    return [{k: v for k, v in r.to_dict().items() if k != "epochs"} for r in results]
+
+
+def _meta(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
+          ) -> dict[str, Any]:
+    episode_s = [r.wall_s for o in outcomes for r in o.results]
+    return {
+        "command": f"aoi3d experiment {setup.command}",
+        "args": args,
+        "preset": setup.preset.to_dict(),
+        "episode_config": setup.cfg.to_dict(),
+        "lpips": lpips_available(setup.cfg),
+        "seeds": setup.seeds,
+        "workers": setup.workers if setup.ray_address is None else None,
+        "threads_per_worker": setup.threads,
+        "ray_address": setup.ray_address,
+        "code_version": code_version(),
+        "machine": machine(),
+        "wall_s": time.time() - setup.started,
+        "episodes_computed": sum(o.computed for o in outcomes),
+        "episodes_cached": sum(o.cached for o in outcomes),
+        "episode_wall_s_mean": float(np.mean(episode_s)) if episode_s else None,
+    }
+
+
+def _fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
+    if mean is None or not math.isfinite(mean):
+        return "—"
+    text = f"{mean:.{digits}f}"
+    if half is not None and math.isfinite(half):
+        text += f" ± {half:.{digits}f}"
+    return text
+
+
+def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
+    table = Table(title=title)
+    for name in (first, "n", "PSNR (dB)", "SSIM", "LPIPS", "cameras", "AoI used (ms)"):
+        table.add_column(name, justify="right")
+    for r in rows:
+        table.add_row(str(r[first]), str(r["n"]), _fmt(r["psnr_db"], r["psnr_db_ci95"]),
+                      _fmt(r["ssim"], r["ssim_ci95"], 3), _fmt(r["lpips"], r["lpips_ci95"], 3),
+                      _fmt(r["n_selected"], None, 1), _fmt(r["aoi_used_ms"], None, 0))
+    console.print(table)
+
+
+def _gamma_of(policy: str) -> float | None:
+    parsed = parse_policy(policy)
+    return float(parsed.mat_ms) if parsed.kind == "mat" else None  # type: ignore[attr-defined]
+
+
+def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any]],
+                                                              dict[str, Any] | None]:
+    rows = aggregate(results)
+    points = []
+    reference = None
+    for row in rows:
+        gamma = _gamma_of(row["policy"])
+        if gamma is None:
+            reference = row
+        else:
+            points.append({"gamma_ms": gamma, **row})
+    points.sort(key=lambda r: r["gamma_ms"])
+    return points, reference
+
+
+def _best_gamma(points: Sequence[dict[str, Any]]) -> float:
+    psnr = np.array([np.nan if p["psnr_db"] is None else p["psnr_db"] for p in points], float)
+    if not np.isfinite(psnr).any():
+        raise RuntimeError("no finite PSNR in the sweep")
+    return float(points[int(np.nanargmax(psnr))]["gamma_ms"])
+
+
+def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
+           ) -> dict[str, Any]:
+    """Per metric: the best swept Γ and whether it is an interior maximum — strictly better
+    than both ends of the sweep and than the reference policy (``all``)."""
+    out: dict[str, Any] = {}
+    for metric, sign in _SIGNS.items():
+        values = np.array([np.nan if p[metric] is None else sign * p[metric] for p in points])
+        if len(points) < 3 or not np.isfinite(values).all():
+            continue
+        best = int(np.argmax(values))
+        rivals = [values[0], values[-1]]
+        if reference is not None and reference.get(metric) is not None:
+            rivals.append(sign * reference[metric])
+        out[metric] = {"best_gamma_ms": points[best]["gamma_ms"],
+                       "best": points[best][metric],
+                       "interior_maximum": bool(values[best] > max(rivals))}
+    return out
+
+
+_SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}
+"""Metrics an optimum can be taken over, and their sign (LPIPS: lower is better)."""
+
+
+def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
+    policies = [f"mat:{g}" for g in gammas] + ["all"]
+    return [Job(p, delay, s) for s in range(seeds) for p in policies]
+
+
+# --- commands --------------------------------------------------------------------------------
+@app.command()
+def tradeoff(
+    preset: PresetOpt = "quick",
+    gammas: Annotated[str | None, typer.Option(
+        help="MAT thresholds Γ in ms, comma-separated (default: the preset's).")] = None,
+    delay: DelayOpt = "exp:60",
+    dataset: DatasetOpt = None,
+    out: OutOpt = None,
+    cache: CacheOpt = Path("runs/experiments/cache"),
+    seeds: SeedsOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    carry: CarryOpt = None,
+    backend: BackendOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    ray_address: RayOpt = None,
+    lpips: LpipsOpt = True,
+    device: DeviceOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Fig. 4: PSNR, SSIM and LPIPS against the MAT Γ (mean of S simulations, 95% band),
+    with the cameras used and the AoI of the used frames; `all` as the reference."""
+    setup = _setup("tradeoff", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
+                   backend, workers, threads, ray_address, lpips, set_, device)
+    gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.gammas_ms
+    delay = _delay(delay)
+    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seeds), "tradeoff")
+    points, reference = _tradeoff_rows(outcome.results)
+    best = _best_gamma(points)
+    shape = _shape(points, reference)
+    args = {"gammas_ms": list(gamma_list), "delay": delay}
+    meta = _meta(setup, [outcome], args)
+    write_csv(setup.out / "points.csv", points + ([reference] if reference else []))
+    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
+    write_json(setup.out / "results.json", {
+        "meta": meta, "best_gamma_ms": best, "shape": shape, "points": points,
+        "reference": reference,
+        "episodes": [r.to_dict() for r in outcome.results],
+    })
+    mean_y = parse_delay(delay).mean_ms
+    plot_tradeoff(points, setup.out / "tradeoff.png", reference=reference, title=(
+        f"Quality of the novel view vs MAT Γ — E[Y] = {mean_y:g} ms, "
+        f"C = {setup.cfg.period_ms} ms, N = {setup.cfg.n_cameras or len(setup.dataset.train_ids)}, "
+        f"S = {setup.seeds}, {setup.cfg.carry} model, {setup.cfg.steps_per_epoch} steps/decision"))
+    _table(points + ([{"gamma_ms": "all", **reference}] if reference else []), "gamma_ms",
+           f"tradeoff at {delay} (mean ± 95% CI over {setup.seeds} seeds)")
+    for metric, info in shape.items():
+        verdict = ("an interior maximum" if info["interior_maximum"] else
+                   "not an interior maximum (an end of the sweep or `all` is as good)")
+        console.print(f"{metric}: best at Γ = {info['best_gamma_ms']:g} ms "
+                      f"({info['best']:.3f}): {verdict}")
+    console.print(f"results in {setup.out}")
+
+
+@app.command()
+def views(
+    preset: PresetOpt = "quick",
+    gammas: Annotated[str | None, typer.Option(
+        help="Γ values to show, comma-separated (default: the preset's).")] = None,
+    rows: Annotated[int, typer.Option(min=1, help="Seeds shown, one row each.")] = 1,
+    delay: DelayOpt = "exp:60",
+    dataset: DatasetOpt = None,
+    out: OutOpt = None,
+    cache: CacheOpt = Path("runs/experiments/cache"),
+    steps_per_epoch: StepsOpt = None,
+    carry: CarryOpt = None,
+    backend: BackendOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    ray_address: RayOpt = None,
+    lpips: LpipsOpt = True,
+    device: DeviceOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Fig. 5: the novel view for several Γ (and `all`) next to the ground truth, at the last
+    scored decision of an episode."""
+    setup = _setup("views", preset, dataset, out, cache, rows, steps_per_epoch, carry, backend,
+                   workers, threads, ray_address, lpips, set_, device)
+    gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.view_gammas_ms
+    delay = _delay(delay)
+    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, rows), "views")
+    ds = setup.dataset
+    grid: list[list[tuple[str, np.ndarray]]] = []
+    saved = []
+    for seed in range(rows):
+        members = [(r, p, k) for r, p, k in zip(outcome.results, outcome.plans, outcome.keys,
+                                                strict=True) if r.seed == seed]
+        plan = members[0][1]
+        last = [d for d in plan.decisions if d.scored][-1]
+        truth_index = ds.frame_index(last.eval_ms + plan.scene_offset_ms)
+        row = [(f"truth, t = {last.eval_ms} ms", ds.frame(ds.heldout_id, truth_index))]
+        for result, _, key in members:
+            png = setup.cache.render_png(key)
+            if png is None:
+                raise RuntimeError(f"render of {result.policy} missing from the cache ({key})")
+            name = setup.out / f"view_seed{seed}_{result.policy.replace(':', '')}.png"
+            name.write_bytes(png)
+            saved.append(name.name)
+            image = np.asarray(Image.open(name).convert("RGB"))
+            score = result.epochs[-1]
+            label = "all" if result.policy == "all" else f"Γ = {result.policy.split(':')[1]} ms"
+            row.append((f"{label}\n{score.psnr_db:.1f} dB, {score.n_selected} cams", image))
+        grid.append(row)
+    meta = _meta(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay,
+                                    "rows": rows})
+    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
+    write_json(setup.out / "results.json", {"meta": meta, "renders": saved,
+                                            "episodes": [r.to_dict() for r in outcome.results]})
+    plot_views(grid, setup.out / "views.png", title=(
+        f"Novel view (camera {ds.heldout_id}) vs MAT Γ at {delay}, {setup.cfg.carry} model"))
+    console.print(f"views in {setup.out / 'views.png'}")
+
+
+@app.command("delay")
+def delay_cmd(
+    preset: PresetOpt = "quick",
+    delays: Annotated[str | None, typer.Option(
+        help="Delay specs, comma-separated, e.g. exp:20,exp:60 (default: the preset's).")] = None,
+    gammas: Annotated[str | None, typer.Option(
+        help="Γ values searched, comma-separated ms (default: the preset's).")] = None,
+    metric: Annotated[str, typer.Option(
+        help="What the optimal Γ optimises: psnr_db, ssim, reward (maximised) or lpips "
+             "(minimised). The others' optima are written too.")] = "psnr_db",
+    dataset: DatasetOpt = None,
+    out: OutOpt = None,
+    cache: CacheOpt = Path("runs/experiments/cache"),
+    seeds: SeedsOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    carry: CarryOpt = None,
+    backend: BackendOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    ray_address: RayOpt = None,
+    lpips: LpipsOpt = True,
+    device: DeviceOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """Fig. 6: the optimal Γ (highest mean PSNR, or ``--metric``) against the mean delay."""
+    if metric not in _SIGNS:
+        raise typer.BadParameter(f"unknown metric {metric!r}; accepted: {', '.join(_SIGNS)}",
+                                 param_hint="'--metric'")
+    setup = _setup("delay", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
+                   backend, workers, threads, ray_address, lpips, set_, device)
+    if seeds is None:
+        setup.seeds = setup.preset.delay_seeds
+    delay_list = ([_delay(d.strip(), "'--delays'") for d in delays.split(",") if d.strip()]
+                  if delays else list(setup.preset.delays))
+    gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.delay_gammas_ms
+    jobs = [Job(f"mat:{g}", d, s) for s in range(setup.seeds) for d in delay_list
+            for g in gamma_list]
+    outcome = _run(setup, jobs, "delay")
+    curves = []
+    optima = []
+    for d in delay_list:
+        points, _ = _tradeoff_rows([r for r in outcome.results if r.delay == d])
+        curves.extend(points)
+        row: dict[str, Any] = {"delay": d, "mean_delay_ms": parse_delay(d).mean_ms,
+                               "metric": metric}
+        for name, sign in _SIGNS.items():
+            values = np.array([np.nan if p[name] is None else sign * p[name] for p in points])
+            if not np.isfinite(values).any():
+                continue
+            best = points[int(np.nanargmax(values))]
+            half = best[f"{name}_ci95"]
+            floor = sign * best[name] - (half if math.isfinite(half) else 0.0)
+            near = [p["gamma_ms"] for p, v in zip(points, values, strict=True) if v >= floor]
+            suffix = "" if name == metric else f"_{name}"
+            row.update({f"best_gamma_ms{suffix}": best["gamma_ms"],
+                        f"best{suffix or '_value'}": best[name],
+                        f"best_ci95{suffix}": half,
+                        f"near_best_min_ms{suffix}": min(near),
+                        f"near_best_max_ms{suffix}": max(near)})
+        optima.append(row)
+    meta = _meta(setup, [outcome], {"delays": delay_list, "gammas_ms": list(gamma_list)})
+    write_csv(setup.out / "optima.csv", optima)
+    write_csv(setup.out / "curves.csv", curves)
+    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
+    write_json(setup.out / "results.json", {"meta": meta, "optima": optima, "curves": curves,
+                                            "episodes": [r.to_dict() for r in outcome.results]})
+    plot_delay(optima, curves, setup.out / "delay.png", metric=metric, title=(
+        f"Optimal MAT Γ vs mean delay — C = {setup.cfg.period_ms} ms, S = {setup.seeds}, "
+        f"{setup.cfg.carry} model"))
+    table = Table(title=f"optimal Γ per delay (best mean {metric})")
+    for name in ("delay", "E[Y] (ms)", "best Γ (ms)", metric, "Γ within the CI"):
+        table.add_column(name, justify="right")
+    for o in optima:
+        table.add_row(o["delay"], f"{o['mean_delay_ms']:g}", f"{o['best_gamma_ms']:g}",
+                      _fmt(o["best_value"], o["best_ci95"], 3),
+                      f"{o['near_best_min_ms']:g}–{o['near_best_max_ms']:g}")
+    console.print(table)
+    console.print(f"results in {setup.out}")
+
+
+@app.command()
+def compare(
+    preset: PresetOpt = "quick",
+    policy: Annotated[list[str] | None, typer.Option(
+        "--policy", help="Policy spec (repeat): all, mat:<ms>, mat:best, freshest:<k>, "
+                         "wait:<ms>, or any registered kind. Default: the preset's.")] = None,
+    mat_ms: Annotated[float | None, typer.Option(
+        help="Γ for mat:best; default: the best Γ of the preset's tradeoff sweep (cached).")]
+    = None,
+    delay: DelayOpt = "exp:60",
+    dataset: DatasetOpt = None,
+    out: OutOpt = None,
+    cache: CacheOpt = Path("runs/experiments/cache"),
+    seeds: SeedsOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    carry: CarryOpt = None,
+    backend: BackendOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    ray_address: RayOpt = None,
+    lpips: LpipsOpt = True,
+    device: DeviceOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """All policies side by side on the same seeds (same channel draws, same model seeds)."""
+    setup = _setup("compare", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
+                   backend, workers, threads, ray_address, lpips, set_, device)
+    delay = _delay(delay)
+    specs = list(policy) if policy else list(setup.preset.compare)
+    outcomes = []
+    if "mat:best" in specs and mat_ms is None:
+        sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seeds),
+                     "tradeoff (for mat:best)")
+        outcomes.append(sweep)
+        mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0])
+    resolved = []
+    for spec in specs:
+        text = f"mat:{mat_ms:g}" if spec == "mat:best" else spec
+        try:
+            resolved.append(parse_policy(text).spec)
+        except PolicySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+    resolved = list(dict.fromkeys(resolved))
+    outcome = _run(setup, [Job(p, delay, s) for s in range(setup.seeds) for p in resolved],
+                   "compare")
+    outcomes.append(outcome)
+    rows = aggregate(outcome.results)
+    meta = _meta(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms})
+    write_csv(setup.out / "compare.csv", rows)
+    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
+    write_json(setup.out / "results.json", {"meta": meta, "policies": rows,
+                                            "episodes": [r.to_dict() for r in outcome.results]})
+    plot_compare(rows, setup.out / "compare.png", title=(
+        f"Policies at {delay}, S = {setup.seeds} (same seeds), {setup.cfg.carry} model"))
+    _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over {setup.seeds} seeds)")
+    console.print(f"results in {setup.out}")

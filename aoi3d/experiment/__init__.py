@@ -1,0 +1,63 @@
+"""Experiments on a virtual clock: the episode engine, sweeps, figures (``aoi3d experiment``).
+
+The same scene, links, AoI, policies, radiance field and quality code as the live services,
+composed in one process and driven slot by slot: deterministic per seed, as fast as the
+machine allows. :mod:`~aoi3d.experiment.config` holds the episode config and the presets,
+:mod:`~aoi3d.experiment.episode` plans and runs one episode, :mod:`~aoi3d.experiment.sweep`
+runs many (cached, on local cores or Ray), :mod:`~aoi3d.experiment.figures` draws them.
+"""
+
+import aoi3d.policy.wait  # noqa: F401  (registers ``wait:<ms>`` with the policy registry)
+from aoi3d.experiment.config import (
+    CAMERA_PHASES,
+    CARRY_MODES,
+    PRESETS,
+    EpisodeConfig,
+    Preset,
+    get_preset,
+)
+from aoi3d.experiment.episode import (
+    ENGINE_VERSION,
+    EpisodePlan,
+    EpisodeResult,
+    EpochScore,
+    PlannedDecision,
+    plan_episode,
+    plan_key,
+    run_plan,
+)
+from aoi3d.experiment.sweep import (
+    METRICS,
+    Job,
+    ResultCache,
+    SweepOutcome,
+    aggregate,
+    default_workers,
+    mean_ci95,
+    run_jobs,
+)
+
+__all__ = [
+    "CAMERA_PHASES",
+    "CARRY_MODES",
+    "ENGINE_VERSION",
+    "METRICS",
+    "PRESETS",
+    "EpisodeConfig",
+    "EpisodePlan",
+    "EpisodeResult",
+    "EpochScore",
+    "Job",
+    "PlannedDecision",
+    "Preset",
+    "ResultCache",
+    "SweepOutcome",
+    "aggregate",
+    "default_workers",
+    "get_preset",
+    "mean_ci95",
+    "plan_episode",
+    "plan_key",
+    "run_jobs",
+    "run_plan",
+]

@@ -1,0 +1,417 @@
+"""One episode on the virtual clock: channel → AoI → policy → radiance field → quality.
+
+An episode runs in two stages, so that a sweep knows what it must compute before it trains:
+
+1. :func:`plan_episode` (cheap, milliseconds) simulates the N links with
+   :func:`aoi3d.channel.simulate` for the seed and applies the policy to the AoI vector at
+   every decision epoch. The channel does not depend on what the policy selects, so the whole
+   selection — which camera's frame, generated when, at which decision — is known up front:
+   an :class:`EpisodePlan`. A policy that waits (``wait:<ω>``, see
+   :mod:`aoi3d.policy.wait`) is asked at t + ω, and its render is scored against the truth
+   at t + ω.
+2. :func:`run_plan` trains a :class:`aoi3d.field.FieldTrainer` on the planned frames
+   (each selected camera's newest delivered frame, generated at U_n(t)) with the configured
+   budget, renders the held-out camera at each scored decision and scores it against the
+   ground truth of that time (the held-out camera's frame at that time) — the only use of
+   the truth.
+
+The numbers are a function of the plan, the config and the seed alone (channel draws from
+``camera_rngs(seed, N)``, camera phases and the scene offset from an auxiliary stream of the
+same seed, the model's ray sampling from ``seed``): two policies that select the same frames
+give the same numbers, which is what :func:`plan_key` lets a sweep exploit.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+
+from aoi3d.channel import simulate
+from aoi3d.experiment.config import EpisodeConfig
+from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.policy import Policy, parse_policy
+from aoi3d.policy.wait import wait_ms_of
+from aoi3d.quality import LpipsFn, score
+from aoi3d.scene import SceneDataset
+
+__all__ = [
+    "ENGINE_VERSION",
+    "EpisodePlan",
+    "EpisodeResult",
+    "EpochScore",
+    "PlannedDecision",
+    "dataset_fingerprint",
+    "plan_episode",
+    "plan_key",
+    "run_plan",
+    "set_torch_threads",
+]
+
+ENGINE_VERSION = 1
+"""Bump when the numbers of an unchanged plan would change (invalidates cached results)."""
+
+_AUX_STREAM = 0xE9
+"""spawn_key of the auxiliary random stream (camera phases, scene offset); the links use the
+children 0..N−1 of ``SeedSequence(seed)``, so this never collides with them."""
+
+
+@dataclass(frozen=True)
+class PlannedDecision:
+    """One decision: taken at ``decision_ms``, selecting at (and rendered for) ``eval_ms``.
+
+    ``cameras``: the selected camera ids; ``gen_ms``: the generation slot U_n(eval_ms) of each
+    one's newest delivered frame; ``aoi_ms``: their AoI at ``eval_ms``. ``n_known``: cameras
+    with some delivered frame. ``train``: the model trains on this selection; ``scored``: the
+    novel view is rendered and scored after it.
+    """
+
+    decision_ms: int
+    eval_ms: int
+    cameras: tuple[int, ...]
+    gen_ms: tuple[int, ...]
+    aoi_ms: tuple[float, ...]
+    n_known: int
+    mean_aoi_all_ms: float
+    train: bool
+    scored: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "decision_ms": self.decision_ms, "eval_ms": self.eval_ms,
+            "cameras": list(self.cameras), "gen_ms": list(self.gen_ms),
+            "aoi_ms": list(self.aoi_ms), "n_known": self.n_known,
+            "mean_aoi_all_ms": self.mean_aoi_all_ms, "train": self.train, "scored": self.scored,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> PlannedDecision:
+        return cls(
+            decision_ms=int(d["decision_ms"]), eval_ms=int(d["eval_ms"]),
+            cameras=tuple(int(c) for c in d["cameras"]), gen_ms=tuple(int(g) for g in d["gen_ms"]),
+            aoi_ms=tuple(float(a) for a in d["aoi_ms"]), n_known=int(d["n_known"]),
+            mean_aoi_all_ms=float(d["mean_aoi_all_ms"]), train=bool(d["train"]),
+            scored=bool(d["scored"]),
+        )
+
+
+@dataclass(frozen=True)
+class EpisodePlan:
+    """What an episode will train on and when it is scored (see :func:`plan_episode`)."""
+
+    config: EpisodeConfig
+    policy: str
+    seed: int
+    wait_ms: int
+    scene_offset_ms: int
+    phase_ms: tuple[int, ...]
+    decisions: tuple[PlannedDecision, ...]
+    drop_ratio: float
+
+    @property
+    def reported(self) -> list[PlannedDecision]:
+        """Decisions of the scored span that train the model (their frames are 'used')."""
+        return [d for d in self.decisions if d.train and d.decision_ms >= self.config.warmup_ms]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "config": self.config.to_dict(), "policy": self.policy, "seed": self.seed,
+            "wait_ms": self.wait_ms, "scene_offset_ms": self.scene_offset_ms,
+            "phase_ms": list(self.phase_ms), "drop_ratio": self.drop_ratio,
+            "decisions": [d.to_dict() for d in self.decisions],
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EpisodePlan:
+        return cls(
+            config=EpisodeConfig.from_dict(d["config"]), policy=str(d["policy"]),
+            seed=int(d["seed"]), wait_ms=int(d["wait_ms"]),
+            scene_offset_ms=int(d["scene_offset_ms"]),
+            phase_ms=tuple(int(p) for p in d["phase_ms"]), drop_ratio=float(d["drop_ratio"]),
+            decisions=tuple(PlannedDecision.from_dict(x) for x in d["decisions"]),
+        )
+
+
+def _train_ids(cfg: EpisodeConfig, dataset: SceneDataset) -> list[int]:
+    ids = list(dataset.train_ids)
+    if cfg.n_cameras is None:
+        return ids
+    if cfg.n_cameras > len(ids):
+        raise ValueError(f"n_cameras={cfg.n_cameras} but the dataset at {dataset.root} has "
+                         f"only {len(ids)} training cameras")
+    return ids[: cfg.n_cameras]
+
+
+def _aux_rng(seed: int) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_AUX_STREAM,)))
+
+
+def plan_episode(
+    cfg: EpisodeConfig, dataset: SceneDataset, policy: Policy | str, seed: int
+) -> EpisodePlan:
+    """Simulate the links for ``seed`` and apply ``policy`` at every decision epoch."""
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
+        raise ValueError(f"seed must be an int >= 0, got {seed!r}")
+    seed = int(seed)
+    pol = parse_policy(policy)
+    pol.reset()
+    wait = wait_ms_of(pol)
+    ids = _train_ids(cfg, dataset)
+    n = len(ids)
+    aux = _aux_rng(seed)
+    phases = (aux.integers(0, cfg.period_ms, n) if cfg.camera_phase == "random"
+              else np.zeros(n, dtype=np.int64))
+    loop_ms = max(1, math.floor(dataset.duration_ms))
+    offset = int(aux.integers(0, loop_ms)) if cfg.random_scene_offset else 0
+    run = simulate(cfg.delay, cfg.period_ms, n, cfg.end_ms + wait + 1, seed, phase_ms=phases)
+
+    times = cfg.decision_times_ms()
+    first_scored = next(i for i, t in enumerate(times) if t >= cfg.warmup_ms)
+    decisions = []
+    for i, t in enumerate(times):
+        scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
+        train = scored or cfg.carry == "warm"
+        s = t + wait
+        newest = run.newest_ms(s)
+        aoi = s - newest
+        mask = np.asarray(pol.select(aoi), dtype=bool)
+        if mask.shape != (n,):
+            raise ValueError(f"policy {pol.spec!r} returned a mask of shape {mask.shape}, "
+                             f"expected ({n},)")
+        mask &= ~np.isnan(aoi)  # never a camera without a frame, whatever the policy says
+        chosen = np.flatnonzero(mask)
+        known = ~np.isnan(aoi)
+        decisions.append(PlannedDecision(
+            decision_ms=t, eval_ms=s,
+            cameras=tuple(ids[j] for j in chosen),
+            gen_ms=tuple(int(newest[j]) for j in chosen),
+            aoi_ms=tuple(float(aoi[j]) for j in chosen),
+            n_known=int(known.sum()),
+            mean_aoi_all_ms=float(aoi[known].mean()) if known.any() else math.nan,
+            train=train, scored=scored,
+        ))
+    offered = int(run.offered.sum())
+    return EpisodePlan(
+        config=cfg, policy=pol.spec, seed=seed, wait_ms=wait, scene_offset_ms=offset,
+        phase_ms=tuple(int(p) for p in phases), decisions=tuple(decisions),
+        drop_ratio=float(run.dropped.sum() / offered) if offered else math.nan,
+    )
+
+
+def dataset_fingerprint(dataset: SceneDataset) -> dict[str, Any]:
+    """What identifies a dataset's content for the result cache."""
+    return {
+        "root": str(dataset.root), "layout": dataset.layout, "config_hash": dataset.config_hash,
+        "fps": dataset.fps, "n_frames": dataset.n_frames, "size": [dataset.width, dataset.height],
+        "cameras": len(dataset.cameras), "heldout_id": dataset.heldout_id,
+        "aabb": np.asarray(dataset.aabb).tolist(),
+    }
+
+
+def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
+    """The cache key of a plan's numbers: everything they depend on, the policy's name not
+    (two policies with the same selections share one result). ``lpips``: whether LPIPS will
+    be computed (its weights are available and the config asks for it)."""
+    cfg = plan.config
+    doc = {
+        "engine": ENGINE_VERSION,
+        "dataset": dataset_fingerprint(dataset),
+        "field": _field_dict(cfg),
+        "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
+        "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips],
+        "seed": plan.seed, "scene_offset_ms": plan.scene_offset_ms,
+        "decisions": [
+            [d.eval_ms, d.cameras, d.gen_ms, d.train, d.scored] for d in plan.decisions
+            if d.train or d.scored
+        ],
+    }
+    text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def _field_dict(cfg: EpisodeConfig) -> dict[str, Any]:
+    fc = field_config(cfg.backend, **cfg.field)
+    out = {k: v for k, v in vars(fc).items() if k != "num_threads"}
+    return {"backend": cfg.backend, "type": type(fc).__name__, **out}
+
+
+@dataclass(frozen=True)
+class EpochScore:
+    """The quality of the novel view after one scored decision."""
+
+    decision_ms: int
+    eval_ms: int
+    n_selected: int
+    aoi_used_ms: float
+    psnr_db: float
+    ssim: float
+    lpips: float | None
+    reward: float
+    loss: float
+    steps: int
+
+
+@dataclass(frozen=True)
+class EpisodeResult:
+    """An episode's numbers: per scored decision, and their means (the episode's point)."""
+
+    key: str
+    policy: str
+    delay: str
+    seed: int
+    epochs: tuple[EpochScore, ...]
+    n_selected: float
+    """Mean number of cameras used per training decision of the scored span."""
+    aoi_used_ms: float
+    """Mean AoI (at the time it is used) of the frames used in the scored span; NaN: none."""
+    mean_aoi_all_ms: float
+    """Mean AoI over all cameras at those decisions (what the channel offers)."""
+    drop_ratio: float
+    psnr_db: float
+    ssim: float
+    lpips: float | None
+    reward: float
+    train_steps: int
+    wall_s: float
+
+    def to_dict(self) -> dict[str, Any]:
+        out = {k: v for k, v in vars(self).items() if k != "epochs"}
+        out["epochs"] = [vars(e) for e in self.epochs]
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> EpisodeResult:
+        data = dict(d)
+        data["epochs"] = tuple(EpochScore(**e) for e in d["epochs"])
+        return cls(**data)
+
+    def relabel(self, policy: str, delay: str) -> EpisodeResult:
+        """The same numbers under another policy's name (a shared, cached plan)."""
+        return EpisodeResult(**{**vars(self), "policy": policy, "delay": delay})
+
+
+def _nanmean(values: list[float]) -> float:
+    arr = np.asarray(values, dtype=np.float64)
+    arr = arr[~np.isnan(arr)]
+    return float(arr.mean()) if arr.size else math.nan
+
+
+class _Frames:
+    """Decoded frames of the dataset at channel times (scene time = channel time + offset).
+
+    Keeps one :class:`TrainView` per camera — its newest — so that the trainer's per-view
+    pixel cache hits while a camera's frame does not change, and memory stays bounded.
+    """
+
+    def __init__(self, dataset: SceneDataset, offset_ms: int) -> None:
+        self.ds = dataset
+        self.offset_ms = offset_ms
+        self._views: dict[int, tuple[int, TrainView]] = {}
+
+    def index(self, time_ms: int) -> int:
+        """The scene frame shown at channel time ``time_ms``."""
+        return self.ds.frame_index(time_ms + self.offset_ms)
+
+    def view(self, camera_id: int, gen_ms: int) -> TrainView:
+        """Camera ``camera_id``'s frame generated at ``gen_ms``."""
+        k = self.index(gen_ms)
+        held = self._views.get(camera_id)
+        if held is None or held[0] != k:
+            held = (k, TrainView(self.ds.cameras[camera_id], self.ds.frame(camera_id, k)))
+            self._views[camera_id] = held
+        return held[1]
+
+    def truth(self, time_ms: int) -> np.ndarray:
+        """The held-out camera's frame at ``time_ms``: the ground truth of the novel view."""
+        return self.ds.frame(self.ds.heldout_id, self.index(time_ms))
+
+
+def run_plan(
+    plan: EpisodePlan,
+    dataset: SceneDataset,
+    *,
+    key: str = "",
+    lpips_fn: LpipsFn | None = None,
+    on_render: Callable[[PlannedDecision, np.ndarray], None] | None = None,
+) -> tuple[EpisodeResult, bytes]:
+    """Train, render and score the plan; returns the result and the PNG of the last render.
+
+    ``on_render(decision, image)`` sees every scored render (float32 H×W×3 in [0, 1]).
+    """
+    cfg = plan.config
+    started = time.perf_counter()
+    trainer = FieldTrainer(field_config(cfg.backend, **cfg.field), dataset.aabb,
+                           device=cfg.device, seed=plan.seed)
+    frames = _Frames(dataset, plan.scene_offset_ms)
+    heldout = dataset.cameras[dataset.heldout_id]
+    epochs: list[EpochScore] = []
+    last_image: np.ndarray | None = None
+    loss = math.nan
+    for d in plan.decisions:
+        if d.train:
+            if cfg.carry == "fresh":
+                trainer.reset()
+            if d.cameras:
+                trainer.set_views([frames.view(c, g) for c, g in
+                                   zip(d.cameras, d.gen_ms, strict=True)])
+                loss = trainer.step(cfg.steps_per_epoch)
+            else:
+                loss = math.nan
+        if not d.scored:
+            continue
+        image = trainer.render(heldout)
+        quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn)
+        epochs.append(EpochScore(
+            decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
+            aoi_used_ms=float(np.mean(d.aoi_ms)) if d.aoi_ms else math.nan,
+            psnr_db=quality.psnr_db, ssim=quality.ssim, lpips=quality.lpips,
+            reward=quality.reward, loss=float(loss), steps=trainer.steps,
+        ))
+        last_image = image
+        if on_render is not None:
+            on_render(d, image)
+    used = plan.reported
+    aois = [a for d in used for a in d.aoi_ms]
+    lpips_values = [e.lpips for e in epochs if e.lpips is not None]
+    result = EpisodeResult(
+        key=key, policy=plan.policy, delay=cfg.delay, seed=plan.seed, epochs=tuple(epochs),
+        n_selected=float(np.mean([len(d.cameras) for d in used])) if used else 0.0,
+        aoi_used_ms=float(np.mean(aois)) if aois else math.nan,
+        mean_aoi_all_ms=_nanmean([d.mean_aoi_all_ms for d in used]),
+        drop_ratio=plan.drop_ratio,
+        psnr_db=float(np.mean([e.psnr_db for e in epochs])),
+        ssim=float(np.mean([e.ssim for e in epochs])),
+        lpips=float(np.mean(lpips_values)) if len(lpips_values) == len(epochs) else None,
+        reward=float(np.mean([e.reward for e in epochs])),
+        train_steps=_total_steps(plan),
+        wall_s=time.perf_counter() - started,
+    )
+    return result, _png(last_image)
+
+
+def _total_steps(plan: EpisodePlan) -> int:
+    return sum(plan.config.steps_per_epoch for d in plan.decisions if d.train and d.cameras)
+
+
+def _png(image: np.ndarray | None) -> bytes:
+    if image is None:
+        return b""
+    buf = io.BytesIO()
+    Image.fromarray((np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)).save(buf, "PNG")
+    return buf.getvalue()
+
+
+def set_torch_threads(threads: int) -> None:
+    """Torch intra-op threads of this process (workers of a sweep use 1 each by default)."""
+    if threads < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    torch.set_num_threads(threads)

@@ -1,0 +1,332 @@
+"""Sweeps: many (policy, delay, seed) episodes, cached, run on local cores or a Ray cluster.
+
+A sweep plans every job first (:func:`aoi3d.experiment.episode.plan_episode`, cheap), keys
+it (:func:`plan_key`) and looks the key up in the :class:`ResultCache`; only missing keys are
+computed, each once even when several jobs share it (two thresholds Γ that select the same
+frames). Results are written to the cache as they complete, by this process alone, so an
+interrupted sweep resumes where it stopped and a re-run computes only what is missing.
+
+Execution: ``workers=1`` runs in this process; more run in a process pool (``spawn``, each
+worker with ``threads_per_worker`` torch threads, 1 by default: episodes are small and the
+pool is the parallelism); ``ray_address`` runs every episode as a Ray task instead
+(``pip install .[cluster]``; the dataset must be readable at the same path on every node).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import multiprocessing
+import os
+import time
+from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy import stats
+
+from aoi3d.experiment.config import EpisodeConfig
+from aoi3d.experiment.episode import (
+    EpisodePlan,
+    EpisodeResult,
+    plan_episode,
+    plan_key,
+    run_plan,
+    set_torch_threads,
+)
+from aoi3d.lpips import weights_path
+from aoi3d.scene import SceneDataset, open_dataset
+
+__all__ = [
+    "METRICS",
+    "Job",
+    "ResultCache",
+    "SweepOutcome",
+    "aggregate",
+    "default_workers",
+    "lpips_available",
+    "mean_ci95",
+    "run_jobs",
+]
+
+METRICS = ("psnr_db", "ssim", "lpips", "reward", "n_selected", "aoi_used_ms", "mean_aoi_all_ms")
+"""The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval)."""
+
+Progress = Callable[[int, int], None]
+"""``progress(done, total)`` in episodes to compute (cache hits are not counted)."""
+
+
+@dataclass(frozen=True)
+class Job:
+    """One episode to run: a policy spec, a delay spec, a seed."""
+
+    policy: str
+    delay: str
+    seed: int
+
+
+class ResultCache:
+    """Episode results on disk: ``<root>/<key[:2]>/<key>.json`` and the last render ``.png``.
+
+    Written atomically (temporary file, then rename; the JSON last), so a result is either
+    complete or absent.
+    """
+
+    def __init__(self, root: str | Path) -> None:
+        self.root = Path(root)
+
+    def _path(self, key: str, suffix: str) -> Path:
+        if len(key) < 8 or not all(c in "0123456789abcdef" for c in key):
+            raise ValueError(f"bad cache key {key!r}")
+        return self.root / key[:2] / f"{key}{suffix}"
+
+    def get(self, key: str) -> EpisodeResult | None:
+        """The cached result of ``key``, or None (a corrupt entry counts as missing)."""
+        path = self._path(key, ".json")
+        try:
+            return EpisodeResult.from_dict(json.loads(path.read_text()))
+        except (OSError, ValueError, KeyError, TypeError):
+            return None
+
+    def render_png(self, key: str) -> bytes | None:
+        """The PNG of the last scored render of ``key``'s episode, or None."""
+        try:
+            data = self._path(key, ".png").read_bytes()
+        except OSError:
+            return None
+        return data or None
+
+    def put(self, result: EpisodeResult, png: bytes = b"") -> None:
+        """Store ``result`` (under ``result.key``) and its last render."""
+        path = self._path(result.key, ".json")
+        path.parent.mkdir(parents=True, exist_ok=True)
+        _atomic_write(path.with_suffix(".png"), png)
+        _atomic_write(path, json.dumps(result.to_dict()).encode())
+
+    def __contains__(self, key: str) -> bool:
+        return self._path(key, ".json").is_file()
+
+
+def _atomic_write(path: Path, data: bytes) -> None:
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+@dataclass(frozen=True)
+class SweepOutcome:
+    """Results in job order, with what was computed and what came from the cache."""
+
+    results: list[EpisodeResult]
+    plans: list[EpisodePlan]
+    keys: list[str]
+    computed: int
+    cached: int
+    wall_s: float
+
+
+def default_workers() -> int:
+    """All local cores (``os.process_cpu_count`` where known)."""
+    count = getattr(os, "process_cpu_count", os.cpu_count)()
+    return max(1, count or 1)
+
+
+def lpips_available(cfg: EpisodeConfig) -> bool:
+    """Whether episodes of ``cfg`` will compute LPIPS (asked for, and weights cached)."""
+    return cfg.lpips and weights_path("alex").is_file()
+
+
+# --- workers ---------------------------------------------------------------------------------
+_DATASETS: dict[str, SceneDataset] = {}
+_LPIPS: dict[str, Any] = {}
+
+
+def _dataset(path: str) -> SceneDataset:
+    ds = _DATASETS.get(path)
+    if ds is None:
+        ds = _DATASETS[path] = open_dataset(path)
+    return ds
+
+
+def _lpips_fn(device: str) -> Any:
+    if device not in _LPIPS:
+        from aoi3d.lpips import load_lpips_fn
+
+        _LPIPS[device] = load_lpips_fn(device=device)
+    return _LPIPS[device]
+
+
+def _init_worker(threads: int) -> None:
+    set_torch_threads(threads)
+
+
+def _work(plan_doc: dict[str, Any], key: str, lpips: bool,
+          threads: int | None = None) -> tuple[dict[str, Any], bytes]:
+    """Run one planned episode (any process: plain data in, plain data out)."""
+    if threads is not None:
+        set_torch_threads(threads)
+    plan = EpisodePlan.from_dict(plan_doc)
+    ds = _dataset(plan.config.dataset)
+    lpips_fn = _lpips_fn(plan.config.device) if lpips else None
+    if lpips and lpips_fn is None:
+        raise RuntimeError("LPIPS weights vanished while the sweep ran")
+    result, png = run_plan(plan, ds, key=key, lpips_fn=lpips_fn)
+    return result.to_dict(), png
+
+
+# --- the sweep -------------------------------------------------------------------------------
+def run_jobs(
+    cfg: EpisodeConfig,
+    jobs: Sequence[Job],
+    *,
+    cache: ResultCache | None = None,
+    workers: int | None = None,
+    threads_per_worker: int = 1,
+    ray_address: str | None = None,
+    progress: Progress | None = None,
+    dataset: SceneDataset | None = None,
+) -> SweepOutcome:
+    """Run ``jobs`` (each ``cfg`` with the job's delay) and return their results in order.
+
+    ``workers``: processes (None: :func:`default_workers`; 1: this process).
+    ``ray_address``: run on Ray (``auto``, ``ray://host:port``, or ``local`` to start a local
+    instance) instead of the process pool. ``cache``: where results are kept between runs.
+    """
+    started = time.perf_counter()
+    if threads_per_worker < 1:
+        raise ValueError(f"threads_per_worker must be >= 1, got {threads_per_worker}")
+    ds = dataset if dataset is not None else open_dataset(cfg.dataset)
+    lpips = lpips_available(cfg)
+    plans: list[EpisodePlan] = []
+    keys: list[str] = []
+    for job in jobs:
+        plan = plan_episode(cfg.with_(delay=job.delay), ds, job.policy, job.seed)
+        plans.append(plan)
+        keys.append(plan_key(plan, ds, lpips=lpips))
+
+    found: dict[str, EpisodeResult] = {}
+    todo: dict[str, EpisodePlan] = {}
+    for key, plan in zip(keys, plans, strict=True):
+        if key in found or key in todo:
+            continue
+        hit = cache.get(key) if cache is not None else None
+        if hit is not None:
+            found[key] = hit
+        else:
+            todo[key] = plan
+    cached = len(found)
+    # Seed-major order: an interrupted sweep has covered every point with its first seeds.
+    position = {k: i for i, k in enumerate(todo)}
+    order = sorted(todo, key=lambda k: (todo[k].seed, position[k]))
+
+    def done(result: EpisodeResult, png: bytes) -> None:
+        found[result.key] = result
+        if cache is not None:
+            cache.put(result, png)
+        if progress is not None:
+            progress(len(found) - cached, len(order))
+
+    if progress is not None:
+        progress(0, len(order))
+    n_workers = default_workers() if workers is None else workers
+    if n_workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    items = [(todo[k].to_dict(), k) for k in order]
+    if items and ray_address is not None:
+        _run_ray(items, lpips, threads_per_worker, ray_address, done)
+    elif items and (n_workers == 1 or len(items) == 1):
+        previous = torch.get_num_threads()
+        set_torch_threads(threads_per_worker)
+        _DATASETS.setdefault(cfg.dataset, ds)
+        try:
+            for doc, key in items:
+                result, png = _work(doc, key, lpips)
+                done(EpisodeResult.from_dict(result), png)
+        finally:
+            set_torch_threads(previous)
+    elif items:
+        _run_pool(items, lpips, min(n_workers, len(items)), threads_per_worker, done)
+
+    results = [found[k].relabel(p.policy, p.config.delay)
+               for k, p in zip(keys, plans, strict=True)]
+    return SweepOutcome(results=results, plans=plans, keys=keys, computed=len(order),
+                        cached=cached, wall_s=time.perf_counter() - started)
+
+
+def _run_pool(items: list[tuple[dict[str, Any], str]], lpips: bool, workers: int, threads: int,
+              done: Callable[[EpisodeResult, bytes], None]) -> None:
+    ctx = multiprocessing.get_context("spawn")
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+                               initargs=(threads,))
+    try:
+        pending: set[Future[tuple[dict[str, Any], bytes]]] = {
+            pool.submit(_work, doc, key, lpips) for doc, key in items
+        }
+        while pending:
+            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                result, png = fut.result()
+                done(EpisodeResult.from_dict(result), png)
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _run_ray(items: list[tuple[dict[str, Any], str]], lpips: bool, threads: int, address: str,
+             done: Callable[[EpisodeResult, bytes], None]) -> None:
+    try:
+        import ray
+    except ImportError:
+        raise RuntimeError("--ray-address needs Ray: pip install '.[cluster]'") from None
+    if not ray.is_initialized():
+        ray.init(address=None if address == "local" else address,
+                 log_to_driver=False, include_dashboard=False)
+    remote = ray.remote(num_cpus=threads)(_work)
+    refs = [remote.remote(doc, key, lpips, threads) for doc, key in items]
+    try:
+        while refs:
+            ready, refs = ray.wait(refs, num_returns=1)
+            for ref in ready:
+                result, png = ray.get(ref)
+                done(EpisodeResult.from_dict(result), png)
+    finally:
+        for ref in refs:
+            ray.cancel(ref)
+
+
+# --- statistics ------------------------------------------------------------------------------
+def mean_ci95(values: Iterable[float | None]) -> tuple[float, float, int]:
+    """Mean, half-width of the 95% confidence interval (Student t) and the count of the
+    finite values; the half-width is NaN below two values."""
+    arr = np.asarray([np.nan if v is None else v for v in values], dtype=np.float64)
+    arr = arr[np.isfinite(arr)]
+    n = int(arr.size)
+    if n == 0:
+        return math.nan, math.nan, 0
+    mean = float(arr.mean())
+    if n < 2:
+        return mean, math.nan, n
+    half = float(stats.t.ppf(0.975, n - 1) * arr.std(ddof=1) / math.sqrt(n))
+    return mean, half, n
+
+
+def aggregate(results: Sequence[EpisodeResult],
+              by: Sequence[str] = ("policy", "delay")) -> list[dict[str, Any]]:
+    """One row per group of ``by``: ``n`` episodes, ``<metric>`` mean and ``<metric>_ci95``
+    half-width for each of :data:`METRICS`, in first-seen order of the groups."""
+    groups: dict[tuple[Any, ...], list[EpisodeResult]] = {}
+    for r in results:
+        groups.setdefault(tuple(getattr(r, b) for b in by), []).append(r)
+    rows = []
+    for group, members in groups.items():
+        row: dict[str, Any] = dict(zip(by, group, strict=True))
+        row["n"] = len(members)
+        for metric in METRICS:
+            mean, half, _ = mean_ci95(getattr(r, metric) for r in members)
+            row[metric] = mean
+            row[f"{metric}_ci95"] = half
+        rows.append(row)
+    return rows

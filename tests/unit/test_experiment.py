@@ -1,0 +1,283 @@
+"""The experiment engine: plans, episodes, ω-wait, the cache, sweeps and the CLI (tiny scene)."""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from aoi3d.channel import simulate
+from aoi3d.experiment import (
+    EpisodeConfig,
+    Job,
+    ResultCache,
+    aggregate,
+    mean_ci95,
+    plan_episode,
+    plan_key,
+    run_jobs,
+    run_plan,
+)
+from aoi3d.policy import PolicySpecError, parse_policy, policy_from_json
+from aoi3d.policy.wait import WaitPolicy, wait_ms_of
+from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+
+N_TRAIN = 4
+TINY_FIELD = {
+    "batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],
+    "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000,
+}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
+    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=N_TRAIN,
+                      rotor_rpm=60.0, spp=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg)
+
+
+@pytest.fixture(scope="module")
+def cfg(dataset: SceneDataset) -> EpisodeConfig:
+    return EpisodeConfig(dataset=str(dataset.root), field=dict(TINY_FIELD), warmup_ms=150,
+                         scored_ms=90, score_every=1, steps_per_epoch=2, lpips=False)
+
+
+# --- ω-wait ----------------------------------------------------------------------------------
+def test_wait_policy_spec_json_and_selection() -> None:
+    pol = parse_policy("wait:40")
+    assert isinstance(pol, WaitPolicy) and pol.spec == "wait:40" and wait_ms_of(pol) == 40
+    assert policy_from_json(pol.to_json()) == pol
+    mask = pol.select(np.array([40.0, 41.0, np.nan, 0.0]))
+    assert mask.tolist() == [True, False, False, True]  # Δ ≤ ω; unknown never
+    assert wait_ms_of(parse_policy("mat:50")) == 0
+    for bad in ("wait", "wait:-1", "wait:2.5", "wait:x", "wait:1:2"):
+        with pytest.raises(PolicySpecError, match="Accepted forms"):
+            parse_policy(bad)
+
+
+def test_wait_evaluates_at_t_plus_omega(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    omega = 45
+    plan = plan_episode(cfg, dataset, "wait:45", seed=3)
+    run = simulate(cfg.delay, cfg.period_ms, N_TRAIN, cfg.end_ms + omega + 1, 3)
+    assert plan.wait_ms == omega
+    for d in plan.decisions:
+        assert d.eval_ms == d.decision_ms + omega
+        newest = run.newest_ms(d.eval_ms)
+        expected = [i + 1 for i in range(N_TRAIN) if newest[i] >= d.decision_ms]
+        assert list(d.cameras) == expected  # captured since t, delivered by t + ω
+        assert all(0 < a <= omega for a in d.aoi_ms)
+    assert any(d.cameras for d in plan.decisions)
+    # The render is scored against the truth at t + ω.
+    seen = []
+    result, _ = run_plan(plan, dataset, on_render=lambda d, img: seen.append(d.eval_ms))
+    assert [e.eval_ms for e in result.epochs] == seen
+    assert seen == [d.decision_ms + omega for d in plan.decisions if d.scored]
+    # ω = 0 never selects: a frame needs at least one slot on the link.
+    assert not any(d.cameras for d in plan_episode(cfg, dataset, "wait:0", 3).decisions)
+
+
+# --- plans -----------------------------------------------------------------------------------
+def test_plan_uses_newest_delivered_frames(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    plan = plan_episode(cfg, dataset, "mat:70", seed=5)
+    run = simulate(cfg.delay, cfg.period_ms, N_TRAIN, cfg.end_ms + 1, 5)
+    assert [d.decision_ms for d in plan.decisions] == list(range(30, cfg.end_ms, 30))
+    for d in plan.decisions:
+        aoi = run.aoi_ms(d.eval_ms)
+        chosen = [i + 1 for i in range(N_TRAIN) if aoi[i] < 70]
+        assert list(d.cameras) == chosen
+        assert list(d.gen_ms) == [int(run.newest_ms(d.eval_ms)[c - 1]) for c in chosen]
+        assert list(d.aoi_ms) == [d.eval_ms - g for g in d.gen_ms]
+    # warm: every decision trains; only the scored span is scored.
+    assert all(d.train for d in plan.decisions)
+    assert [d.decision_ms for d in plan.decisions if d.scored] == [150, 180, 210]
+
+
+def test_fresh_trains_only_scored_decisions(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    plan = plan_episode(cfg.with_(carry="fresh", score_every=2), dataset, "all", 1)
+    assert [d.decision_ms for d in plan.decisions if d.train] == [150, 210]
+    assert all(d.scored == d.train for d in plan.decisions)
+
+
+def test_aoi_of_used_frames(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    plan = plan_episode(cfg, dataset, "all", seed=2)
+    result, png = run_plan(plan, dataset)
+    run = simulate(cfg.delay, cfg.period_ms, N_TRAIN, cfg.end_ms + 1, 2)
+    ts = [t for t in range(30, cfg.end_ms, 30) if t >= cfg.warmup_ms]
+    aois = np.concatenate([run.aoi_ms(t) for t in ts])
+    aois = aois[~np.isnan(aois)]
+    assert result.aoi_used_ms == pytest.approx(aois.mean())
+    assert result.n_selected == pytest.approx(len(aois) / len(ts))
+    assert png.startswith(b"\x89PNG")
+    scored = [d for d in plan.decisions if d.scored]
+    assert [e.aoi_used_ms for e in result.epochs] == pytest.approx(
+        [np.mean(d.aoi_ms) for d in scored])
+
+
+def test_same_selection_same_key(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    # Cameras capture at k·30 and decisions fall on k·30: every AoI is a multiple of 30, so
+    # Γ = 70 and Γ = 80 select the same frames and share one result; Γ = 40 does not.
+    keys = {g: plan_key(plan_episode(cfg, dataset, f"mat:{g}", 4), dataset, lpips=False)
+            for g in (40, 70, 80)}
+    assert keys[70] == keys[80] != keys[40]
+    other_seed = plan_key(plan_episode(cfg, dataset, "mat:70", 5), dataset, lpips=False)
+    assert other_seed != keys[70]
+
+
+def test_bad_config() -> None:
+    with pytest.raises(ValueError, match="carry"):
+        EpisodeConfig(carry="sometimes")
+    with pytest.raises(ValueError, match="Accepted forms"):
+        EpisodeConfig(delay="exp")
+    with pytest.raises(ValueError, match="steps_per_epoch"):
+        EpisodeConfig(steps_per_epoch=0)
+    with pytest.raises(ValueError, match="unknown episode config"):
+        EpisodeConfig.from_dict({"warmup": 3})
+
+
+# --- episodes --------------------------------------------------------------------------------
+def test_episode_is_deterministic(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    a, png_a = run_plan(plan_episode(cfg, dataset, "all", 7), dataset)
+    b, png_b = run_plan(plan_episode(cfg, dataset, "all", 7), dataset)
+    assert [e.psnr_db for e in a.epochs] == [e.psnr_db for e in b.epochs]
+    assert (a.ssim, a.aoi_used_ms, a.train_steps) == (b.ssim, b.aoi_used_ms, b.train_steps)
+    assert png_a == png_b
+    c, _ = run_plan(plan_episode(cfg, dataset, "all", 8), dataset)
+    assert [e.psnr_db for e in c.epochs] != [e.psnr_db for e in a.epochs]
+    assert all(math.isfinite(e.psnr_db) and 0 < e.ssim <= 1 for e in a.epochs)
+    assert a.train_steps == 2 * sum(1 for d in plan_episode(cfg, dataset, "all", 7).decisions
+                                    if d.cameras)
+
+
+def test_empty_selection_trains_nothing(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    result, _ = run_plan(plan_episode(cfg, dataset, "mat:0", 1), dataset)
+    assert result.train_steps == 0 and result.n_selected == 0
+    assert math.isnan(result.aoi_used_ms)
+    assert all(e.steps == 0 for e in result.epochs)
+
+
+# --- sweeps and the cache --------------------------------------------------------------------
+def test_cache_resumes_an_interrupted_sweep(cfg: EpisodeConfig, dataset: SceneDataset,
+                                            tmp_path) -> None:
+    jobs = [Job(p, "exp:60", s) for s in range(2) for p in ("mat:40", "mat:70", "all")]
+    cache = ResultCache(tmp_path / "cache")
+
+    class Stop(Exception):
+        pass
+
+    def stop_after_two(done: int, total: int) -> None:
+        if done == 2:
+            raise Stop
+
+    with pytest.raises(Stop):
+        run_jobs(cfg, jobs, cache=cache, workers=1, progress=stop_after_two, dataset=dataset)
+    assert len(list(cache.root.glob("*/*.json"))) == 2
+    resumed = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    n_unique = len(set(resumed.keys))
+    assert (resumed.cached, resumed.computed) == (2, n_unique - 2)
+    again = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    assert (again.cached, again.computed) == (n_unique, 0)
+    fresh = run_jobs(cfg, jobs, cache=None, workers=1, dataset=dataset)
+    assert [r.psnr_db for r in resumed.results] == [r.psnr_db for r in fresh.results]
+    assert [r.policy for r in resumed.results] == [j.policy for j in jobs]
+    assert [r.seed for r in resumed.results] == [j.seed for j in jobs]
+
+
+@pytest.mark.slow  # two spawned workers import torch: ~8 s on 2 cores
+def test_process_pool_matches_serial(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    jobs = [Job("all", "exp:60", 0), Job("mat:70", "exp:30", 1)]
+    serial = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    pooled = run_jobs(cfg, jobs, workers=2, dataset=dataset)
+    assert [r.psnr_db for r in pooled.results] == [r.psnr_db for r in serial.results]
+    assert [r.delay for r in pooled.results] == ["exp:60", "exp:30"]
+
+
+def test_ray_matches_serial(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    pytest.importorskip("ray", reason="Ray is optional (pip install '.[cluster]')")
+    jobs = [Job("all", "exp:60", 0), Job("mat:70", "exp:60", 1)]
+    serial = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    on_ray = run_jobs(cfg, jobs, ray_address="local", dataset=dataset)
+    assert [r.psnr_db for r in on_ray.results] == [r.psnr_db for r in serial.results]
+
+
+def test_mean_ci95_and_aggregate() -> None:
+    mean, half, n = mean_ci95([1.0, 2.0, 3.0, None, math.nan])
+    assert (mean, n) == (2.0, 3)
+    assert half == pytest.approx(4.302652729749464 * 1.0 / math.sqrt(3))
+    assert math.isnan(mean_ci95([5.0])[1])
+    assert mean_ci95([])[2] == 0
+
+
+# --- the CLI ---------------------------------------------------------------------------------
+def _cli(args: list[str]):
+    from aoi3d.cli.experiment import app
+
+    return CliRunner().invoke(app, args, catch_exceptions=False)
+
+
+def _common(dataset: SceneDataset, tmp_path, out: str) -> list[str]:
+    sets = [f"field={json.dumps(TINY_FIELD)}", "warmup_ms=150", "scored_ms=60", "score_every=1"]
+    args = ["--dataset", str(dataset.root), "--out", str(tmp_path / out), "--cache",
+            str(tmp_path / "cache"), "--workers", "1", "--steps-per-epoch", "2", "--no-lpips"]
+    for s in sets:
+        args += ["--set", s]
+    return args
+
+
+def test_cli_tradeoff_end_to_end(dataset: SceneDataset, tmp_path) -> None:
+    res = _cli(["tradeoff", "--gammas", "0,40,70", "--seeds", "2",
+                *_common(dataset, tmp_path, "t")])
+    assert res.exit_code == 0, res.output
+    out = tmp_path / "t"
+    for name in ("points.csv", "episodes.csv", "results.json", "tradeoff.png"):
+        assert (out / name).stat().st_size > 0, name
+    doc = json.loads((out / "results.json").read_text())
+    assert doc["meta"]["code_version"] and doc["meta"]["machine"]["cpu_count"] >= 1
+    assert doc["meta"]["episode_config"]["steps_per_epoch"] == 2
+    assert [p["gamma_ms"] for p in doc["points"]] == [0, 40, 70]
+    assert doc["points"][0]["n_selected"] == 0 and doc["points"][0]["n"] == 2
+    assert doc["reference"]["policy"] == "all"
+    with (out / "episodes.csv").open() as fh:
+        assert len(list(csv.DictReader(fh))) == 2 * 4
+    # A re-run computes nothing; the other commands reuse the cached episodes.
+    res = _cli(["tradeoff", "--gammas", "0,40,70", "--seeds", "2",
+                *_common(dataset, tmp_path, "t")])
+    assert "0 episode(s) computed" in res.output
+    res = _cli(["views", "--gammas", "40,70", *_common(dataset, tmp_path, "v")])
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "v" / "views.png").is_file()
+    assert "0 episode(s) computed" in res.output
+    res = _cli(["compare", "--seeds", "2", "--policy", "all", "--policy", "mat:best",
+                "--policy", "freshest:2", "--policy", "wait:40",
+                *_common(dataset, tmp_path, "c")])
+    assert res.exit_code == 0, res.output
+    rows = json.loads((tmp_path / "c" / "results.json").read_text())["policies"]
+    names = [r["policy"] for r in rows]
+    assert names[0] == "all" and names[1].startswith("mat:") and names[2:] == ["freshest:2",
+                                                                               "wait:40"]
+    assert (tmp_path / "c" / "compare.png").is_file()
+
+
+def test_cli_delay_and_bad_input(dataset: SceneDataset, tmp_path) -> None:
+    res = _cli(["delay", "--delays", "exp:30,exp:90", "--gammas", "40,70", "--seeds", "1",
+                *_common(dataset, tmp_path, "d")])
+    assert res.exit_code == 0, res.output
+    optima = json.loads((tmp_path / "d" / "results.json").read_text())["optima"]
+    assert [o["mean_delay_ms"] for o in optima] == [30, 90]
+    assert all(o["best_gamma_ms"] in (40, 70) for o in optima)
+    assert (tmp_path / "d" / "delay.png").is_file()
+    from aoi3d.cli.experiment import app
+
+    runner = CliRunner()
+    bad = runner.invoke(app, ["compare", "--policy", "bogus:1",
+                              *_common(dataset, tmp_path, "x")])
+    assert bad.exit_code == 2 and "Accepted forms" in bad.output
+    bad = runner.invoke(app, ["tradeoff", "--delay", "exp", *_common(dataset, tmp_path, "x")])
+    assert bad.exit_code == 2
+    bad = runner.invoke(app, ["tradeoff", "--set", "carry=never",
+                              *_common(dataset, tmp_path, "x")])
+    assert bad.exit_code == 2 and "carry" in bad.output
+    assert aggregate([]) == []
