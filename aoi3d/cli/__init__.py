@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import typer
 
-from aoi3d.cli import channel, field, scene, up
+from aoi3d.cli import channel, experiment, field, scene, up
 
 app = typer.Typer(
     name="aoi3d",
@@ -18,6 +18,8 @@ app = typer.Typer(
 app.add_typer(scene.app, name="scene", help="Generate and inspect the synthetic dynamic scene.")
 app.add_typer(channel.app, name="channel", help="Simulate the cameras' D/G/1/0 uplinks and AoI.")
 app.add_typer(field.app, name="field", help="Radiance-field backends: list, train and score.")
+app.add_typer(experiment.app, name="experiment",
+              help="Reproduce the paper's tradeoff figures on a virtual clock.")
 app.command("up", help=up.up.__doc__)(up.up)
 
 
