@@ -58,7 +58,7 @@ BACKENDS: dict[str, type[FieldConfig]] = {
     "nerf": NerfMlpConfig,
     "nerfacto": NerfactoConfig,
 }
-"""Radiance-field backends by name (``ngp``, ``tensorf``, ``nerfacto`` come later)."""
+"""Radiance-field backends by name: grid, ngp, tensorf, nerfacto and the reference nerf MLP."""
 
 
 def field_config(name: str, **overrides: Any) -> FieldConfig:

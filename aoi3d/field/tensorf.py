@@ -7,8 +7,8 @@ bilinearly (planes) and linearly (lines); the appearance features are the
 ``3 · app_components`` products P^c_{m,r} · L^c_{m,r}, decoded to colour by a linear basis
 (or a tiny MLP when ``decoder_hidden`` > 0) and a sigmoid. The scene is Lambertian, so the
 colour does not depend on the ray direction. Density is σ = softplus(raw + shift) — the shift
-makes the initial density ``init_density``; TensoRF's exp activation diverged to NaN here
-with grid learning rates ≥ 0.1.
+makes the initial density ``init_density`` (a prototype with TensoRF's exp activation
+diverged to NaN at grid learning rates ≥ 0.1).
 
 Planes and lines span the box with vertices on its faces and cubic voxels (``grid_shape``);
 they start coarse and are resampled (bilinear / linear) to the next of ``grid_sizes`` at
@@ -18,7 +18,14 @@ resets its learning rates there). The alpha mask: from ``mask_from_step``, every
 by outer products of planes and lines), and a cell is kept when a vertex within one cell of
 it has an opacity 1 − exp(−σ·δ_fine) above ``mask_alpha``; ``occupied`` skips the others.
 Rays leaving the box see the shared lat-long background. Lookups use ``row_gather``
-(``embedding_bag`` forward, ``index_add_`` backward).
+(``embedding_bag`` forward, ``index_add_`` backward; the planes are small, so their gradient
+stays dense).
+
+Defaults, measured on the turbine (18 views, 1 CPU thread): a linear basis with 8/16
+components and grids from 48 vertices stalled near 23 dB for hundreds of steps with some
+initial seeds (fog that fits the training views, not the novel one); 4/8 components, a
+64-unit MLP decoder, grid lr 0.1, grids from 64 vertices and 32 samples per diagonal for the
+first 300 steps reached 29.3–31.2 dB at 400 steps on every seed tried, at 30–50k rays/s.
 """
 
 from __future__ import annotations
