@@ -58,6 +58,9 @@ def generate(
     n_train: Annotated[int, typer.Option(help="Training cameras (camera 0 is held out).")] = (
         _D.n_train
     ),
+    framing: Annotated[str, typer.Option(
+        help="site: the whole turbine from a 170° arc; rotor: a close-up of the rotor from a "
+             "60° arc (the experiments' scene, with --rotor-rpm 6).")] = _D.framing,
     workers: Annotated[int, typer.Option(help="Rendering processes.")] = 1,
     force: Annotated[
         bool, typer.Option(help="Regenerate even when a dataset of this config is there.")
@@ -74,6 +77,7 @@ def generate(
             rotor_rpm=rotor_rpm,
             spp=spp,
             seed=seed,
+            framing=framing,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc

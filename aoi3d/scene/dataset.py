@@ -42,7 +42,7 @@ from PIL import Image
 
 from aoi3d.scene.camera import Camera
 from aoi3d.scene.rig import HELDOUT_ID, make_rig
-from aoi3d.scene.turbine import AABB, SCENE_VERSION, SceneConfig, TurbineScene
+from aoi3d.scene.turbine import AABB, ROTOR_AABB, SCENE_VERSION, SceneConfig, TurbineScene
 
 __all__ = [
     "FORMAT_VERSION",
@@ -373,7 +373,7 @@ def generate_dataset(
                     advance(job.result())
         train_ids = list(range(1, len(cameras)))
         for name, ids in ((TRAIN_JSON, train_ids), (TEST_JSON, [HELDOUT_ID])):
-            doc = _transforms(ids, cameras, cfg, AABB)
+            doc = _transforms(ids, cameras, cfg, ROTOR_AABB if cfg.framing == "rotor" else AABB)
             (tmp / name).write_text(json.dumps(doc, indent=1))
         _swap_in(tmp, path, token)
     finally:

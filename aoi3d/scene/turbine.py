@@ -39,6 +39,8 @@ from aoi3d.scene.camera import Camera
 __all__ = [
     "AABB",
     "BLADES",
+    "FRAMINGS",
+    "ROTOR_AABB",
     "SCENE_VERSION",
     "SceneConfig",
     "TurbineScene",
@@ -56,6 +58,11 @@ GROUND_HALF = 2.0
 """Half side of the square textured ground slab (its top is the plane z = 0)."""
 AABB = np.array([[-GROUND_HALF, -GROUND_HALF, -0.05], [GROUND_HALF, GROUND_HALF, 2.7]])
 """The box that holds every surface of the scene, (2, 3): rows min, max."""
+ROTOR_AABB = np.array([[-1.0, -0.65, 0.55], [1.0, 0.45, 2.6]])
+"""The box that holds every surface the ``rotor`` framing can see (the rotor, the spinner, the
+nacelle and the top of the tower; the ground lies outside its cameras' view)."""
+FRAMINGS = ("site", "rotor")
+"""How the rig frames the scene (:attr:`SceneConfig.framing`)."""
 
 TOWER_HEIGHT = 1.62
 TOWER_R_BASE = 0.10
@@ -119,8 +126,15 @@ class SceneConfig:
     """Samples per pixel *per axis* (spp × spp stratified samples)."""
     seed: int = 0
     """Seed of the texture noise (not of the geometry or the rig)."""
+    framing: str = "site"
+    """How the rig frames the turbine (see :mod:`aoi3d.scene.rig`): ``site`` — the whole
+    turbine, its ground and the hut from a 170° arc, the blades a few per cent of the pixels;
+    ``rotor`` — a close-up of the rotor from a 60° forward-facing arc (the DyNeRF-like capture
+    the experiments use), the blades a large share of the pixels."""
 
     def __post_init__(self) -> None:
+        if self.framing not in FRAMINGS:
+            raise ValueError(f"framing must be one of {FRAMINGS}, got {self.framing!r}")
         for name in ("width", "height", "fps", "n_train", "spp", "seed"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
@@ -184,9 +198,10 @@ class SceneConfig:
     @property
     def config_hash(self) -> str:
         """A short stable hash of the config and :data:`SCENE_VERSION` (dataset cache key)."""
-        payload = json.dumps(
-            {"scene_version": SCENE_VERSION, **self.to_dict()}, sort_keys=True, default=float
-        )
+        doc = self.to_dict()
+        if doc["framing"] == "site":  # the original framing: datasets made before it stay valid
+            del doc["framing"]
+        payload = json.dumps({"scene_version": SCENE_VERSION, **doc}, sort_keys=True, default=float)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
@@ -414,8 +429,9 @@ class TurbineScene:
     # -- public API -------------------------------------------------------------------------
     @property
     def aabb(self) -> np.ndarray:
-        """The box (2, 3) holding every surface; outside it only the background remains."""
-        return AABB.copy()
+        """The box (2, 3) holding every surface the rig sees; outside it only the background
+        remains (the ``rotor`` framing's cameras see only the upper part of the turbine)."""
+        return (ROTOR_AABB if self.cfg.framing == "rotor" else AABB).copy()
 
     def rotor_angle_rad(self, t_s: float | np.ndarray) -> np.ndarray:
         """Rotor angle at scene time ``t_s`` (blade 0 points up at t = 0)."""
