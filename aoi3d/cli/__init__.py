@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import typer
 
-from aoi3d.cli import channel, experiment, field, scene, up
+from aoi3d.cli import channel, experiment, field, ppo, scene, up
 
 app = typer.Typer(
     name="aoi3d",
@@ -20,6 +20,7 @@ app.add_typer(channel.app, name="channel", help="Simulate the cameras' D/G/1/0 u
 app.add_typer(field.app, name="field", help="Radiance-field backends: list, train and score.")
 app.add_typer(experiment.app, name="experiment",
               help="Reproduce the paper's tradeoff figures on a virtual clock.")
+app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO agent.")
 app.command("up", help=up.up.__doc__)(up.up)
 
 

@@ -1,0 +1,309 @@
+"""``aoi3d ppo …``: train the single-step PPO frame-selection agent, evaluate it.
+
+``train`` runs :func:`aoi3d.rl.train.train` (batches of one-step episodes of
+``aoi3d/FrameSelection-v0`` on a pool of env workers, one PPO update per batch, checkpoints,
+``episodes.csv``, ``updates.csv``, ``reward.png``, ``config.json``); ``eval`` scores a
+checkpoint's deterministic policy — and, with ``--compare``, other policies on the same
+episodes — on held-out seeds, with 95% confidence intervals. ``presets`` lists the budgets.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+from rich.table import Table
+
+from aoi3d.cli.experiment import _open_dataset, _parse_sets, _short_label
+from aoi3d.experiment import EpisodeConfig, default_workers
+from aoi3d.experiment.report import code_version, machine, write_csv, write_json
+from aoi3d.policy import PolicySpecError
+from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+from aoi3d.rl.train import (
+    EVAL_SEED_BASE,
+    PPO_PRESETS,
+    TrainConfig,
+    TrainProgress,
+    eval_seeds,
+    evaluate,
+    get_ppo_preset,
+    train,
+)
+
+app = typer.Typer(no_args_is_help=True, add_completion=False)
+console = Console()
+
+
+@app.callback()
+def ppo() -> None:
+    """Single-step PPO over the AoI vector: train, evaluate."""
+
+
+_COLUMNS = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+            MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+            TimeRemainingColumn())
+
+PresetOpt = Annotated[str, typer.Option(
+    help=f"PPO budget preset: {', '.join(PPO_PRESETS)} (`aoi3d ppo presets` shows them).")]
+DatasetOpt = Annotated[Path | None, typer.Option(
+    help="Scene dataset (default: the preset's, data/turbine, generated if missing).")]
+StepsOpt = Annotated[int | None, typer.Option(
+    min=1, help="Radiance-field training steps per episode (default: the preset's).")]
+WorkersOpt = Annotated[int | None, typer.Option(
+    min=1, help="Env worker processes (default: all local cores).")]
+ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per env worker.")]
+CacheOpt = Annotated[Path | None, typer.Option(
+    help="Result cache of (seed, selection, budget) episodes, shared between runs. "
+         "Default: runs/ppo/cache.")]
+NoCacheOpt = Annotated[bool, typer.Option(
+    "--no-cache", help="Compute every episode (no result cache).")]
+DeviceOpt = Annotated[str | None, typer.Option(
+    help="Torch device of the radiance field: cpu or cuda (default: the preset's, cpu). "
+         "The agent itself is a tiny MLP and runs on the CPU.")]
+SetOpt = Annotated[list[str] | None, typer.Option(
+    "--set", help="Override an episode config field, KEY=VALUE (JSON where it parses), "
+                  "e.g. --set delay=exp:40.")]
+LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS (when its weights are cached).")]
+
+
+def _episode_config(base: EpisodeConfig, dataset: Path | None, steps: int | None,
+                    device: str | None, lpips: bool, sets: list[str] | None) -> EpisodeConfig:
+    changes: dict[str, Any] = {"lpips": lpips}
+    if dataset is not None:
+        changes["dataset"] = str(dataset)
+    if steps is not None:
+        changes["steps_per_epoch"] = steps
+    if device is not None:
+        changes["device"] = device
+    changes.update(_parse_sets(sets))
+    try:
+        cfg = EpisodeConfig.from_dict({**base.to_dict(), **changes})
+        from aoi3d.field import field_config
+
+        field_config(cfg.backend, **cfg.field)
+    except (TypeError, ValueError) as err:
+        raise typer.BadParameter(str(err)) from None
+    if cfg.device == "cuda":
+        import torch
+
+        if not torch.cuda.is_available():
+            raise typer.BadParameter("device cuda asked for, but CUDA is not available here",
+                                     param_hint="'--device'")
+    return cfg
+
+
+def _cache(cache: Path | None, no_cache: bool) -> Path | None:
+    if no_cache:
+        return None
+    return cache if cache is not None else Path("runs/ppo/cache")
+
+
+def _fmt(mean: float | None, half: float | None = None, digits: int = 3) -> str:
+    if mean is None or not math.isfinite(mean):
+        return "—"
+    text = f"{mean:.{digits}f}"
+    if half is not None and math.isfinite(half):
+        text += f" ± {half:.{digits}f}"
+    return text
+
+
+@app.command()
+def presets() -> None:
+    """List the PPO presets."""
+    table = Table(title="PPO presets")
+    for name in ("preset", "episodes", "batch", "steps/episode", "delay", "eval seeds", "note"):
+        table.add_column(name)
+    for p in PPO_PRESETS.values():
+        table.add_row(p.name, str(p.episodes), str(p.batch_size),
+                      str(p.episode.steps_per_epoch), p.episode.delay, str(p.eval_seeds), p.note)
+    console.print(table)
+
+
+@app.command("train")
+def train_cmd(
+    preset: PresetOpt = "quick",
+    episodes: Annotated[int | None, typer.Option(
+        min=1, help="Training episodes (default: the preset's, 600).")] = None,
+    batch_size: Annotated[int | None, typer.Option(
+        min=1, help="Episodes per PPO update (default: the preset's).")] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="Output folder (checkpoints, CSV, plot). Default: runs/ppo/<preset>.")] = None,
+    resume: Annotated[bool, typer.Option(
+        help="Continue from <out>/checkpoint.pt (same options; --episodes may grow).")]
+    = False,
+    lr: Annotated[float | None, typer.Option(help="Adam step size.")] = None,
+    clip_eps: Annotated[float | None, typer.Option(help="PPO clip ε.")] = None,
+    seed: Annotated[int | None, typer.Option(
+        min=0, help="Agent seed (weights, sampled actions, minibatches).")] = None,
+    ppo_set: Annotated[list[str] | None, typer.Option(
+        "--ppo-set", help="Override a PPOConfig field, KEY=VALUE (e.g. ent_coef=0.0).")]
+    = None,
+    checkpoint_every: Annotated[int, typer.Option(
+        min=1, help="PPO updates between two checkpoints.")] = 5,
+    dataset: DatasetOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    cache: CacheOpt = None,
+    no_cache: NoCacheOpt = False,
+    device: DeviceOpt = None,
+    lpips: LpipsOpt = True,
+    set_: SetOpt = None,
+) -> None:
+    """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
+    try:
+        chosen = get_ppo_preset(preset)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="'--preset'") from None
+    episode = _episode_config(chosen.episode, dataset, steps_per_epoch, device, lpips, set_)
+    ds = _open_dataset(Path(episode.dataset))
+    n = episode.n_cameras or len(ds.train_ids)
+    hyper: dict[str, Any] = {**dict(chosen.ppo), **_parse_sets(ppo_set)}
+    for key, value in (("lr", lr), ("clip_eps", clip_eps), ("seed", seed)):
+        if value is not None:
+            hyper[key] = value
+    try:
+        ppo_cfg = PPOConfig.from_dict({**hyper, "n_cameras": n})
+        cfg = TrainConfig(episode=episode, ppo=ppo_cfg,
+                          episodes=episodes if episodes is not None else chosen.episodes,
+                          batch_size=batch_size if batch_size is not None else chosen.batch_size,
+                          checkpoint_every=checkpoint_every, preset=chosen.name)
+    except (TypeError, ValueError) as err:
+        raise typer.BadParameter(str(err)) from None
+    folder = out if out is not None else Path("runs/ppo") / chosen.name
+    n_workers = workers if workers is not None else default_workers()
+    cache_dir = _cache(cache, no_cache)
+    console.print(f"[bold]PPO training[/]: {cfg.episodes} episodes in batches of "
+                  f"{cfg.batch_size}, {episode.steps_per_epoch} field steps each, on "
+                  f"{n_workers} worker(s) × {threads} thread(s); out {folder}; cache "
+                  f"{cache_dir or 'off'}")
+    try:
+        with Progress(*_COLUMNS, console=console, transient=False) as bar:
+            task = bar.add_task("episodes", total=cfg.episodes)
+
+            def report(p: TrainProgress) -> None:
+                text = f"update {p.updates}"
+                if p.moving_reward is not None:
+                    text += f", reward (moving avg) {p.moving_reward:.3f}"
+                bar.update(task, completed=p.done, description=text)
+
+            summary = train(cfg, folder, dataset=ds, workers=n_workers, threads=threads,
+                            cache=cache_dir, resume=resume, progress=report)
+    except FileExistsError as err:
+        raise typer.BadParameter(f"{err}", param_hint="'--out' / '--resume'") from None
+    except FileNotFoundError as err:
+        raise typer.BadParameter(str(err), param_hint="'--resume'") from None
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    except KeyboardInterrupt:
+        console.print(f"[yellow]interrupted[/]: the last checkpoint is in {folder}; run the "
+                      "same command with --resume to continue")
+        raise typer.Exit(130) from None
+    console.print(
+        f"{summary.episodes} episodes, {summary.updates} updates in {summary.wall_s:.0f} s "
+        f"({summary.computed} computed, {summary.cached} from the cache); mean reward "
+        f"{summary.reward_first:.4f} (first episodes) → {summary.reward_last:.4f} (last)")
+    console.print(f"files in {folder}: {', '.join(summary.files)}")
+
+
+@app.command("eval")
+def eval_cmd(
+    checkpoint: Annotated[Path, typer.Option(help="A checkpoint of `aoi3d ppo train`.")],
+    seeds: Annotated[int | None, typer.Option(
+        min=1, help="Held-out episodes (seeds from 1,000,000 on; never a training seed). "
+                    "Default: the preset's.")] = None,
+    seed_offset: Annotated[int, typer.Option(
+        min=0, help="Skip this many held-out seeds (another held-out set).")] = 0,
+    compare: Annotated[list[str] | None, typer.Option(
+        "--compare", help="Also score this policy on the same episodes (repeat), e.g. "
+                          "all, mat:100, freshest:9.")] = None,
+    preset: Annotated[str | None, typer.Option(
+        help="Take the episode config from this PPO preset instead of the checkpoint's.")]
+    = None,
+    out: Annotated[Path | None, typer.Option(
+        help="Output folder (default: <checkpoint folder>/eval).")] = None,
+    dataset: DatasetOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    cache: CacheOpt = None,
+    no_cache: NoCacheOpt = False,
+    device: DeviceOpt = None,
+    lpips: LpipsOpt = True,
+    set_: SetOpt = None,
+) -> None:
+    """Mean PSNR/SSIM/LPIPS/reward (95% CI) of the checkpoint's deterministic policy on
+    held-out seeds; writes eval.csv, eval_summary.csv and eval.json."""
+    started = time.time()
+    try:
+        agent, extra = SingleStepPPO.load_with_extra(checkpoint)
+    except (FileNotFoundError, ValueError) as err:
+        raise typer.BadParameter(str(err), param_hint="'--checkpoint'") from None
+    chosen = None
+    if preset is not None or "episode_config" not in extra:
+        try:
+            chosen = get_ppo_preset(preset or "quick")
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--preset'") from None
+        base = chosen.episode
+    else:
+        base = EpisodeConfig.from_dict(dict(extra["episode_config"]))
+        name = extra.get("preset")
+        chosen = PPO_PRESETS.get(name) if isinstance(name, str) else None
+    episode = _episode_config(base, dataset, steps_per_epoch, device, lpips, set_)
+    count = seeds if seeds is not None else (chosen.eval_seeds if chosen else 40)
+    seed_list = eval_seeds(count, seed_offset)
+    ds = _open_dataset(Path(episode.dataset))
+    specs = [f"ppo:{checkpoint}", *(compare or [])]
+    folder = out if out is not None else checkpoint.parent / "eval"
+    folder.mkdir(parents=True, exist_ok=True)
+    n_workers = workers if workers is not None else default_workers()
+    console.print(f"[bold]PPO evaluation[/]: {len(specs)} policies × {count} held-out seeds "
+                  f"({seed_list[0]}…{seed_list[-1]}), {episode.steps_per_epoch} field steps "
+                  f"per episode, {n_workers} worker(s)")
+    try:
+        with Progress(*_COLUMNS, console=console, transient=False) as bar:
+            task = bar.add_task("episodes", total=len(specs) * count)
+            outcome = evaluate(
+                specs, episode, seed_list, dataset=ds, workers=n_workers, threads=threads,
+                cache=_cache(cache, no_cache),
+                aoi_scale_ms=agent.config.aoi_scale_ms,
+                progress=lambda done, total: bar.update(task, completed=done, total=total))
+    except PolicySpecError as err:
+        raise typer.BadParameter(str(err), param_hint="'--compare'") from None
+    except ValueError as err:
+        raise typer.BadParameter(str(err)) from None
+    meta = {"command": "aoi3d ppo eval", "checkpoint": str(checkpoint),
+            "policies": specs, "seeds": seed_list, "eval_seed_base": EVAL_SEED_BASE,
+            "episode_config": episode.to_dict(), "train_config": extra.get("train_config"),
+            "code_version": code_version(), "machine": machine(),
+            "wall_s": time.time() - started}
+    write_csv(folder / "eval.csv", outcome.rows)
+    write_csv(folder / "eval_summary.csv", outcome.summary)
+    write_json(folder / "eval.json", {"meta": meta, "summary": outcome.summary,
+                                      "episodes": outcome.rows})
+    table = Table(title=f"held-out seeds: mean ± 95% CI over {count} episodes")
+    for name in ("policy", "reward", "PSNR (dB)", "SSIM", "LPIPS", "cameras",
+                 "Δ reward (PPO − this)"):
+        table.add_column(name, justify="right")
+    for r in outcome.summary:
+        table.add_row(_short_label(r["policy"]), _fmt(r["reward"], r["reward_ci95"], 4),
+                      _fmt(r["psnr"], r["psnr_ci95"], 2), _fmt(r["ssim"], r["ssim_ci95"]),
+                      _fmt(r["lpips"], r["lpips_ci95"]), _fmt(r["n_selected"], None, 1),
+                      _fmt(r.get("first_minus_this_reward"),
+                           r.get("first_minus_this_reward_ci95"), 4))
+    console.print(table)
+    console.print(f"results in {folder}")
