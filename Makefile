@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench clean help
+.PHONY: install up test test-fast proto lint bench bench-ray figures clean help
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -34,11 +34,29 @@ proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 lint: install  ## ruff
 	$(VENV)/bin/ruff check .
 
-bench: install  ## benchmarks (results under bench/results/; about 20 minutes)
+bench: install bench-ray  ## benchmarks (results under bench/results/; about 25 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
 	$(PY) bench/pipeline.py --policy all --window-s 50
 	$(PY) bench/pipeline.py --policy mat:51 --window-s 50
+	$(PY) bench/scheduler_learning.py --seconds 20
+	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
+	$(PY) bench/staleness.py --dataset data/turbine-rotor
+	$(PY) bench/staleness.py --dataset data/turbine
+
+bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
+	$(PY) -m pip install -q -e '.[dev,cluster]'
+	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
+
+figures: install  ## the quick-preset experiment figures, copied to docs/figures/ (see docs/experiments.md)
+	rm -rf runs/experiments/figures-cache
+	time $(VENV)/bin/aoi3d experiment tradeoff --preset quick --cache runs/experiments/figures-cache
+	time $(VENV)/bin/aoi3d experiment delay --preset quick --cache runs/experiments/figures-cache
+	$(VENV)/bin/aoi3d experiment views --preset quick --cache runs/experiments/figures-cache
+	$(VENV)/bin/aoi3d experiment compare --preset quick --cache runs/experiments/figures-cache
+	mkdir -p docs/figures
+	cp runs/experiments/tradeoff-quick/tradeoff.png runs/experiments/delay-quick/delay.png \
+	   runs/experiments/views-quick/views.png runs/experiments/compare-quick/compare.png docs/figures/
 
 clean:  ## remove caches and run logs (keeps the venv and the dataset)
 	rm -rf .pytest_cache .ruff_cache runs

@@ -8,7 +8,8 @@ C = 30 ms), five times, in two ways:
 - ``trace``: ``simulate`` + ``ChannelRun.aoi_trace`` (the AoI vector materialised at every
   slot, what a per-slot consumer such as a scheduler replay needs).
 
-Reports best and median throughput and writes ``bench/results/channel.json``.
+Reports best and median throughput and writes ``bench/results/channel.json``; exits 1 when
+the median of either way is below :data:`TARGET` camera-slots/s (the experiments issue's bar).
 Run: ``make bench`` (or ``python bench/channel.py``).
 """
 
@@ -23,6 +24,8 @@ from pathlib import Path
 from aoi3d.channel import channel_statistics, parse_delay, simulate
 
 N_CAMERAS, DURATION_MS, PERIOD_MS, REPEATS = 18, 600_000, 30, 5
+TARGET = 1e7
+"""Camera-slots per second the channel + AoI simulation must reach."""
 
 
 def timed(work) -> list[float]:
@@ -62,6 +65,11 @@ def main() -> None:
               f"(best of {REPEATS}) = {r['camera_slots_per_s_best']:.3g} camera-slots/s "
               f"(median {r['camera_slots_per_s_median']:.3g})")
     print(f"written to {out}")
+    slow = [name for name, r in result["cases"].items()
+            if r["camera_slots_per_s_median"] < TARGET]
+    if slow:
+        raise SystemExit(f"below the target of {TARGET:.0e} camera-slots/s: {', '.join(slow)}")
+    print(f"both at least {TARGET:.0e} camera-slots/s (the target)")
 
 
 if __name__ == "__main__":

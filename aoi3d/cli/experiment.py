@@ -46,6 +46,7 @@ from aoi3d.experiment import (
     get_preset,
     run_jobs,
 )
+from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
 from aoi3d.experiment.figures import plot_compare, plot_delay, plot_tradeoff, plot_views
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.experiment.sweep import lpips_available
@@ -66,8 +67,9 @@ PresetOpt = Annotated[str, typer.Option(
     help=f"Budget preset: {', '.join(PRESETS)} (quick: ≤ 10 min on 2 cores; paper: Γ every "
          "10 ms, 40 simulations per point).")]
 DatasetOpt = Annotated[Path | None, typer.Option(
-    help="Scene dataset (any layout `aoi3d scene` reads); the default turbine scene is "
-         "generated there if the folder does not exist. Default: the preset's (data/turbine).")]
+    help="Scene dataset (any layout `aoi3d scene` reads); the experiments' scene (the rotor "
+         "close-up at 6 rpm) is generated there if the folder does not exist. Default: "
+         f"{EXPERIMENT_DATASET}.")]
 OutOpt = Annotated[Path | None, typer.Option(
     help="Output folder (CSV, JSON, PNG). Default: runs/experiments/<command>-<preset>.")]
 CacheOpt = Annotated[Path, typer.Option(
@@ -144,12 +146,16 @@ def _delay(spec: str, name: str = "'--delay'") -> str:
 
 
 def _open_dataset(path: Path) -> SceneDataset:
-    from aoi3d.scene import SceneConfig, ensure_dataset, open_dataset
+    """The experiments' own dataset folder is (re)generated when missing or of another scene
+    config; any other folder is read as it is (generated with the experiments' scene if it
+    does not exist)."""
+    from aoi3d.scene import ensure_dataset, open_dataset
 
-    if path.exists():
+    own = path.absolute() == Path(EXPERIMENT_DATASET).absolute()
+    if path.exists() and not own:
         return open_dataset(path)
-    console.print(f"no dataset at {path}: generating the default turbine scene there")
-    return ensure_dataset(path, SceneConfig(), workers=default_workers())
+    with console.status(f"scene dataset {path} (generated if missing or stale) …"):
+        return ensure_dataset(path, EXPERIMENT_SCENE, workers=default_workers())
 
 
 def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, cache: Path,
@@ -256,11 +262,13 @@ def _fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
 
 def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
     table = Table(title=title)
-    for name in (first, "n", "PSNR (dB)", "SSIM", "LPIPS", "cameras", "AoI used (ms)"):
+    for name in (first, "n", "PSNR (dB)", "SSIM", "LPIPS", "reward", "cameras",
+                 "AoI used (ms)"):
         table.add_column(name, justify="right")
     for r in rows:
         table.add_row(str(r[first]), str(r["n"]), _fmt(r["psnr_db"], r["psnr_db_ci95"]),
                       _fmt(r["ssim"], r["ssim_ci95"], 3), _fmt(r["lpips"], r["lpips_ci95"], 3),
+                      _fmt(r["reward"], r["reward_ci95"], 3),
                       _fmt(r["n_selected"], None, 1), _fmt(r["aoi_used_ms"], None, 0))
     console.print(table)
 
@@ -285,11 +293,14 @@ def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any
     return points, reference
 
 
-def _best_gamma(points: Sequence[dict[str, Any]]) -> float:
-    psnr = np.array([np.nan if p["psnr_db"] is None else p["psnr_db"] for p in points], float)
-    if not np.isfinite(psnr).any():
-        raise RuntimeError("no finite PSNR in the sweep")
-    return float(points[int(np.nanargmax(psnr))]["gamma_ms"])
+def _best_gamma(points: Sequence[dict[str, Any]], metric: str = "psnr_db") -> float:
+    """The swept Γ with the best mean ``metric`` (LPIPS: lowest)."""
+    sign = _SIGNS[metric]
+    values = np.array([np.nan if p[metric] is None else sign * p[metric] for p in points],
+                      float)
+    if not np.isfinite(values).any():
+        raise RuntimeError(f"no finite {metric} in the sweep")
+    return float(points[int(np.nanargmax(values))]["gamma_ms"])
 
 
 def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
@@ -313,6 +324,14 @@ def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
 
 _SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}
 """Metrics an optimum can be taken over, and their sign (LPIPS: lower is better)."""
+
+
+def _short_label(spec: str) -> str:
+    """A policy's name for a figure: ``ppo:<folder>/<file>`` rather than the whole path."""
+    if not spec.startswith("ppo:"):
+        return spec
+    path = Path(spec[len("ppo:"):])
+    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
 
 
 def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
@@ -405,6 +424,8 @@ def views(
     ds = setup.dataset
     grid: list[list[tuple[str, np.ndarray]]] = []
     saved = []
+    for old in setup.out.glob("view_seed*.png"):  # renders of an earlier run of this folder
+        old.unlink()
     for seed in range(rows):
         members = [(r, p, k) for r, p, k in zip(outcome.results, outcome.plans, outcome.keys,
                                                 strict=True) if r.seed == seed]
@@ -523,6 +544,9 @@ def compare(
     mat_ms: Annotated[float | None, typer.Option(
         help="Γ for mat:best; default: the best Γ of the preset's tradeoff sweep (cached).")]
     = None,
+    best_metric: Annotated[str, typer.Option(
+        help="What mat:best's Γ is best at in the tradeoff sweep: psnr_db, ssim, reward "
+             "(maximised) or lpips (minimised).")] = "psnr_db",
     delay: DelayOpt = "exp:60",
     dataset: DatasetOpt = None,
     out: OutOpt = None,
@@ -538,35 +562,51 @@ def compare(
     device: DeviceOpt = None,
     set_: SetOpt = None,
 ) -> None:
-    """All policies side by side on the same seeds (same channel draws, same model seeds)."""
+    """All policies side by side on the same seeds (same channel draws, same model seeds).
+
+    ``ppo:<checkpoint>`` applies a trained agent's deterministic action at every decision."""
+    if best_metric not in _SIGNS:
+        raise typer.BadParameter(f"unknown metric {best_metric!r}; accepted: "
+                                 f"{', '.join(_SIGNS)}", param_hint="'--best-metric'")
     setup = _setup("compare", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
                    backend, workers, threads, ray_address, lpips, set_, device)
     delay = _delay(delay)
     specs = list(policy) if policy else list(setup.preset.compare)
+    n_cameras = setup.cfg.n_cameras or len(setup.dataset.train_ids)
+    resolved = []
+    for spec in specs:  # validate every spec before any sweep runs
+        if spec == "mat:best":
+            continue
+        try:
+            parsed = parse_policy(spec)
+        except PolicySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+        trained_for = getattr(parsed, "n_cameras", n_cameras)  # a ppo checkpoint's N
+        if trained_for != n_cameras:
+            raise typer.BadParameter(f"{spec} was trained for {trained_for} cameras; this "
+                                     f"comparison has {n_cameras}", param_hint="'--policy'")
     outcomes = []
     if "mat:best" in specs and mat_ms is None:
         sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seeds),
                      "tradeoff (for mat:best)")
         outcomes.append(sweep)
-        mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0])
-    resolved = []
+        mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0], best_metric)
     for spec in specs:
         text = f"mat:{mat_ms:g}" if spec == "mat:best" else spec
-        try:
-            resolved.append(parse_policy(text).spec)
-        except PolicySpecError as err:
-            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+        resolved.append(parse_policy(text).spec)
     resolved = list(dict.fromkeys(resolved))
     outcome = _run(setup, [Job(p, delay, s) for s in range(setup.seeds) for p in resolved],
                    "compare")
     outcomes.append(outcome)
     rows = aggregate(outcome.results)
-    meta = _meta(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms})
+    meta = _meta(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms,
+                                   "best_metric": best_metric})
     write_csv(setup.out / "compare.csv", rows)
     write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
     write_json(setup.out / "results.json", {"meta": meta, "policies": rows,
                                             "episodes": [r.to_dict() for r in outcome.results]})
-    plot_compare(rows, setup.out / "compare.png", title=(
+    plot_compare([{**r, "policy": _short_label(r["policy"])} for r in rows],
+                 setup.out / "compare.png", title=(
         f"Policies at {delay}, S = {setup.seeds} (same seeds), {setup.cfg.carry} model"))
     _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over {setup.seeds} seeds)")
     console.print(f"results in {setup.out}")

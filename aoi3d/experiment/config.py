@@ -40,16 +40,34 @@ from typing import Any
 
 from aoi3d.channel import parse_delay
 from aoi3d.quality import RewardWeights
+from aoi3d.scene import SceneConfig
 
 __all__ = [
     "CAMERA_PHASES",
     "CARRY_MODES",
+    "EXPERIMENT_DATASET",
+    "EXPERIMENT_SCENE",
     "PRESETS",
     "EpisodeConfig",
     "Preset",
     "get_preset",
 ]
 
+EXPERIMENT_SCENE = SceneConfig(framing="rotor", rotor_rpm=6.0)
+"""The scene of the experiments: the turbine's rotor in close-up from a 60° forward-facing arc
+(DyNeRF-like), turning at 6 rpm (a utility-scale rotor's speed; 3 blade passes per 10-s loop).
+
+Why not the default scene (``framing="site"``, 18 rpm): there the blades are a few per cent
+of the pixels, so a frame's age costs little (18 views: 30.0, 28.5, 27.0, 26.4 dB at 0, 1, 2,
+5 frames old) while missing views cost the ground and the tower; PSNR rose with Γ to a plateau
+(quick preset, E[Y] = 60 ms: 26.8 dB at Γ = 100 ms, 27.3 dB at 160 ms and with ``all``). In
+the close-up the blades are a large share of the pixels, age costs more frame by frame (18
+views: 31.4, 27.8, 24.7, 23.1, 21.6 dB at 0, 1, 2, 3, 5 frames old), and from the narrower
+arc five views one frame old render the central novel view as well as eighteen (27.6 dB
+against 27.8); at 18 rpm one frame of age already cost 7 dB, so even the freshest frames were
+too stale to trade against. Measured with ``bench/staleness.py``; See docs/experiments.md."""
+EXPERIMENT_DATASET = "data/turbine-rotor"
+"""Where the experiments' scene is generated (when missing or of another config)."""
 CARRY_MODES = ("warm", "fresh")
 CAMERA_PHASES = ("sync", "random")
 
@@ -63,16 +81,18 @@ def _int_at_least(name: str, value: Any, minimum: int) -> None:
 class EpisodeConfig:
     """Everything that determines an episode's numbers, except the policy and the seed.
 
-    ``dataset``: a folder :func:`aoi3d.scene.open_dataset` reads. ``n_cameras``: the first N
-    training cameras of the dataset (None: all). ``camera_phase``: ``sync`` — every camera
-    generates at t = k·C, as the live rig does — or ``random`` — camera n at k·C + φ_n with φ_n
-    uniform in [0, C) drawn from the seed. ``random_scene_offset``: the episode's slot 0 shows
-    the scene at a time drawn from the seed (uniform over the loop), so that seeds see
-    different phases of the motion; else at scene time 0. ``field``: overrides of the
-    backend's default config (``aoi3d.field.field_config(backend, **field)``).
+    ``dataset``: a folder :func:`aoi3d.scene.open_dataset` reads (the commands generate
+    :data:`EXPERIMENT_SCENE` at :data:`EXPERIMENT_DATASET` when it is missing).
+    ``n_cameras``: the first N training cameras of the dataset (None: all).
+    ``camera_phase``: ``sync`` — every camera generates at t = k·C, as the live rig does —
+    or ``random`` — camera n at k·C + φ_n with φ_n uniform in [0, C) drawn from the seed.
+    ``random_scene_offset``: the episode's slot 0 shows the scene at a time drawn from the seed
+    (uniform over the loop), so that seeds see different phases of the motion; else at scene
+    time 0. ``field``: overrides of the backend's default config
+    (``aoi3d.field.field_config(backend, **field)``).
     """
 
-    dataset: str = "data/turbine"
+    dataset: str = EXPERIMENT_DATASET
     backend: str = "grid"
     field: dict[str, Any] = dc_field(default_factory=dict)
     delay: str = "exp:60"
@@ -197,11 +217,11 @@ PRESETS: dict[str, Preset] = {
         episode=_QUICK_EPISODE,
         gammas_ms=(0, 40, 70, 100, 130, 160),
         seeds=3,
-        delays=("exp:20", "exp:40", "exp:60"),
-        delay_gammas_ms=(40, 70, 100, 160),
+        delays=("exp:20", "exp:60", "exp:100"),
+        delay_gammas_ms=(40, 70, 100, 130, 160),
         delay_seeds=2,
-        view_gammas_ms=(40, 70, 100),
-        compare=("all", "mat:best", "freshest:9", "wait:40"),
+        view_gammas_ms=(40, 70, 160),
+        compare=("all", "mat:best", "freshest:6", "wait:40"),
         note="≤ 10 min per command on 2 CPU cores (4 scored decisions × 300 steps per "
              "episode); the shape, not the last decimal",
     ),
@@ -214,7 +234,7 @@ PRESETS: dict[str, Preset] = {
         delay_gammas_ms=(*_TEN_MS, 210, 240, 300),
         delay_seeds=20,
         view_gammas_ms=(40, 70, 100, 130),
-        compare=("all", "mat:best", "freshest:9", "wait:40", "wait:70"),
+        compare=("all", "mat:best", "freshest:6", "freshest:9", "wait:40", "wait:70"),
         note="Γ every 10 ms (0–180: the paper's 0–120 and beyond, where the optimum of "
              "this model lies), 40 simulations per point, 8 scored decisions × 1000 steps "
              "per episode: for a GPU or a cluster",
