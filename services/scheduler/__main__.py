@@ -4,5 +4,15 @@ from services.kit.app import run_service
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
 
+
+def _torch_threads(settings: Settings) -> None:
+    """A ppo policy acts and learns on this process's torch threads; its network is tiny, so
+    one thread is fastest and leaves the cores to the trainer."""
+    if settings.torch_threads:
+        import torch
+
+        torch.set_num_threads(settings.torch_threads)
+
+
 if __name__ == "__main__":
-    run_service("scheduler", Settings, create_app)
+    run_service("scheduler", Settings, create_app, prepare=_torch_threads)

@@ -2,18 +2,20 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from aoi3d.clock import SimClock
 from aoi3d.policy import ACCEPTED_FORMS, Policy, PolicySpecError, parse_policy, policy_from_json
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
+from services.scheduler.learner import LearnerStatus
 from services.scheduler.settings import Settings
-from services.scheduler.worker import SchedulerWorker, check_policy_fits
+from services.scheduler.worker import SchedulerWorker, check_policy_fits, place_policy
 
 DESCRIPTION = """\
 Tracks the Age of Information (AoI) of every training camera from the frames the network
@@ -22,7 +24,16 @@ publishes a `Decision` (the frames the trainer uses).
 
 Policies: `{"kind": "all"}`, `{"kind": "mat", "mat_ms": 51}` (use camera n iff its AoI is
 below the maximum acceptable AoI Γ = mat_ms), `{"kind": "freshest", "k": 6}` (the k cameras
-with the smallest AoI). A new policy is used from the next decision on.
+with the smallest AoI), `{"kind": "ppo", "checkpoint": "<path>", "learn": false}` (a trained
+single-step PPO agent's deterministic action). A new policy is used from the next decision on.
+
+With `"learn": true` the PPO policy keeps learning online: each decision samples the agent's
+stochastic action, the metrics service's `Quality` for that decision is its reward, and every
+`AOI3D_SCHEDULER_LEARN_BATCH_SIZE` rewarded decisions make one PPO update. The agent
+(weights and optimizer state) is written to its online checkpoint (`save_to`, default
+`<stem>.online.pt` next to the checkpoint) every `AOI3D_SCHEDULER_LEARN_CHECKPOINT_EVERY`
+updates, when the policy is replaced and on shutdown. `GET /policy` shows the learning
+state under `online`; Prometheus has the `aoi3d_ppo_*` series.
 """
 
 Scheduler = Annotated[SchedulerWorker, Depends(get_worker)]
@@ -46,9 +57,62 @@ class PolicyRequest(BaseModel):
     k: int | None = Field(
         None, description="kind freshest: how many cameras (those with the smallest AoI) to "
                           "use, 0..N.", examples=[6])
+    checkpoint: str | None = Field(
+        None, description="kind ppo: path of a SingleStepPPO checkpoint, as the scheduler "
+                          "process sees it; trained for N cameras.",
+        examples=["runs/ppo/quick/final.pt"])
+    learn: StrictBool | None = Field(
+        None, description="kind ppo: keep learning online from the rewards of the decisions "
+                          "(default false: the deterministic action, nothing learned).",
+        examples=[False])
+    save_to: str | None = Field(
+        None, description="kind ppo with learn: file the online checkpoint is written to "
+                          "(default <checkpoint stem>.online.pt next to the checkpoint; the "
+                          "source is overwritten only when named here).",
+        examples=["runs/ppo/live.online.pt"])
     spec: str | None = Field(None, description="Read-only (responses); ignored in requests.")
     accepted_forms: list[str] | None = Field(
         None, description="Read-only (responses); ignored in requests.")
+    online: dict[str, Any] | None = Field(
+        None, description="Read-only (responses); ignored in requests.")
+
+
+class OnlineStatus(BaseModel):
+    """Online learning of a ppo policy with learn=true (since it was put)."""
+
+    save_to: str = Field(description="Where the online checkpoint is written.",
+                         examples=["runs/ppo/final.online.pt"])
+    batch_size: int = Field(description="Rewarded decisions per update.", examples=[8])
+    episodes_learned: int = Field(description="Decisions whose reward went into an update.",
+                                  examples=[64])
+    agent_episodes: int = Field(
+        description="Episodes the agent has learned in all, its checkpoint's included.",
+        examples=[4864])
+    updates: int = Field(description="PPO updates made.", examples=[8])
+    pending_rewards: int = Field(description="Decisions waiting for their reward.",
+                                 examples=[3])
+    batch_filled: int = Field(description="Rewarded decisions waiting for the next update.",
+                              examples=[5])
+    expired: int = Field(description="Decisions whose reward did not come in time.",
+                         examples=[0])
+    unscored: int = Field(description="Decisions no render represented (a later decision's "
+                                      "reward came first).", examples=[410])
+    ignored: dict[str, int] = Field(description="Quality messages not used, by reason.",
+                                    examples=[{"unknown": 2}])
+    mean_reward: float | None = Field(description="Mean reward of the latest update's batch.",
+                                      examples=[0.71])
+    entropy: float | None = Field(description="Policy entropy (nats) at the latest decision.",
+                                  examples=[9.8])
+    last_update: dict[str, float] | None = Field(
+        description="Statistics of the latest update (losses, entropy, approx_kl, clip_frac, "
+                    "mean_reward).")
+    checkpoints_saved: int = Field(description="Online checkpoints written.", examples=[0])
+    last_saved_s: float | None = Field(description="Unix time of the latest write.",
+                                       examples=[None])
+
+    @classmethod
+    def of(cls, status: LearnerStatus) -> OnlineStatus:
+        return cls(**dataclasses.asdict(status))
 
 
 class PolicyResponse(BaseModel):
@@ -59,49 +123,69 @@ class PolicyResponse(BaseModel):
     kind: str = Field(description="Policy kind.", examples=["mat"])
     mat_ms: float | None = Field(None, description="kind mat: Γ in ms.", examples=[51])
     k: int | None = Field(None, description="kind freshest: cameras used.", examples=[None])
+    checkpoint: str | None = Field(None, description="kind ppo: the checkpoint loaded.",
+                                   examples=[None])
+    learn: bool | None = Field(None, description="kind ppo: learning online.", examples=[None])
+    save_to: str | None = Field(None, description="kind ppo, learning: the online checkpoint.",
+                                examples=[None])
     spec: str = Field(description="The policy's text spec (as in the Decision messages).",
                       examples=["mat:51"])
-    accepted_forms: list[str] = Field(description="Text forms of every known policy kind.",
-                                      examples=[["all", "mat:<ms>", "freshest:<k>"]])
+    accepted_forms: list[str] = Field(
+        description="Text forms of every known policy kind.",
+        examples=[["all", "mat:<ms>", "freshest:<k>", "ppo:<checkpoint>"]])
+    online: OnlineStatus | None = Field(None, description="kind ppo, learning: its state.")
 
     @classmethod
-    def of(cls, policy: Policy) -> PolicyResponse:
-        return cls(**policy.to_json(), spec=policy.spec, accepted_forms=list(ACCEPTED_FORMS))
+    def of(cls, policy: Policy, status: LearnerStatus | None = None) -> PolicyResponse:
+        online = None if status is None else OnlineStatus.of(status)
+        return cls(**policy.to_json(), spec=policy.spec, accepted_forms=list(ACCEPTED_FORMS),
+                   save_to=None if status is None else status.save_to, online=online)
 
 
 policy_router = APIRouter(prefix="/policy", tags=["policy"])
-_READ_ONLY = {"spec", "accepted_forms"}  # response fields, so a GET body can be PUT back
+_READ_ONLY = {"spec", "accepted_forms", "online"}  # response fields: a GET body can be PUT back
 
 _POLICY_EXAMPLES = {
     "mat": {"summary": "MAT with Γ = 51 ms", "value": {"kind": "mat", "mat_ms": 51}},
     "all": {"summary": "Every camera with a known AoI", "value": {"kind": "all"}},
     "freshest": {"summary": "The 6 freshest cameras", "value": {"kind": "freshest", "k": 6}},
+    "ppo": {"summary": "A trained PPO agent (deterministic)",
+            "value": {"kind": "ppo", "checkpoint": "runs/ppo/quick/final.pt", "learn": False}},
+    "ppo-learn": {"summary": "A PPO agent that keeps learning online",
+                  "value": {"kind": "ppo", "checkpoint": "runs/ppo/quick/final.pt",
+                            "learn": True}},
 }
 
 
-@policy_router.get("", summary="The selection policy in force.",
+def _policy_state(worker: SchedulerWorker) -> PolicyResponse:
+    policy, learner = worker.policy_and_learner()
+    return PolicyResponse.of(policy, None if learner is None else learner.status())
+
+
+@policy_router.get("", summary="The selection policy in force (and its online learning).",
                    response_model_exclude_none=True)
 def get_policy(worker: Scheduler) -> PolicyResponse:
-    return PolicyResponse.of(worker.policy)
+    return _policy_state(worker)
 
 
 @policy_router.put(
     "", summary="Replace the selection policy (used from the next decision on).",
     response_model_exclude_none=True,
-    responses={422: {"description": "Invalid policy; the detail says what is wrong and lists "
-                                    "the accepted forms."}})
+    responses={422: {"description": "Invalid policy (for ppo also: checkpoint missing or "
+                                    "unreadable, trained for another N, online checkpoint not "
+                                    "writable); the detail says what is wrong and lists the "
+                                    "accepted forms."}})
 def put_policy(
     worker: Scheduler,
     body: Annotated[PolicyRequest, Body(openapi_examples=_POLICY_EXAMPLES)],
 ) -> PolicyResponse:
     data: dict[str, Any] = body.model_dump(exclude_none=True, exclude=_READ_ONLY)
+    save_to = data.pop("save_to", None)  # the scheduler's, not the policy's
     try:
-        policy = policy_from_json(data)
-        check_policy_fits(policy, len(worker.camera_ids))
+        worker.set_policy(policy_from_json(data), save_to=save_to)
     except PolicySpecError as err:
         raise HTTPException(status_code=422, detail=str(err)) from None
-    worker.set_policy(policy)
-    return PolicyResponse.of(policy)
+    return _policy_state(worker)
 
 
 # ---------------------------------------------------------------- /aoi
@@ -176,14 +260,15 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     settings = settings or Settings()
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
-    policy = parse_policy(settings.policy)
+    policy = place_policy(parse_policy(settings.policy), settings.device)
     check_policy_fits(policy, common.cameras)  # fail at start-up, not at the first decision
 
     def build_worker(the_bus: Bus, registry) -> SchedulerWorker:
         return SchedulerWorker(the_bus, registry, run_id=common.run_id,
                                n_cameras=common.cameras, clock=clock, policy=policy,
                                decision_period_ms=settings.decision_period_ms,
-                               inbox_size=settings.inbox_size)
+                               inbox_size=settings.inbox_size,
+                               learn=settings.learn_config(), device=settings.device)
 
     app = service_app(title="aoi3d scheduler", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus)
