@@ -48,15 +48,21 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
 
-figures: install  ## the quick-preset experiment figures, copied to docs/figures/ (see docs/experiments.md)
-	rm -rf runs/experiments/figures-cache
+figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
+	rm -rf runs/experiments/figures-cache runs/ppo/figures
 	time $(VENV)/bin/aoi3d experiment tradeoff --preset quick --cache runs/experiments/figures-cache
 	time $(VENV)/bin/aoi3d experiment delay --preset quick --cache runs/experiments/figures-cache
 	$(VENV)/bin/aoi3d experiment views --preset quick --cache runs/experiments/figures-cache
-	$(VENV)/bin/aoi3d experiment compare --preset quick --cache runs/experiments/figures-cache
+	time $(VENV)/bin/aoi3d ppo train --preset quick --out runs/ppo/figures
+	time $(VENV)/bin/aoi3d ppo eval --checkpoint runs/ppo/figures/final.pt --seeds 40 \
+	    --compare all --compare mat:70 --compare mat:100 --compare mat:130 --compare freshest:6
+	$(VENV)/bin/aoi3d experiment compare --preset quick --cache runs/experiments/figures-cache \
+	    --policy all --policy mat:best --policy freshest:6 --policy wait:40 \
+	    --policy ppo:runs/ppo/figures/final.pt
 	mkdir -p docs/figures
 	cp runs/experiments/tradeoff-quick/tradeoff.png runs/experiments/delay-quick/delay.png \
 	   runs/experiments/views-quick/views.png runs/experiments/compare-quick/compare.png docs/figures/
+	cp runs/ppo/figures/reward.png docs/figures/ppo_reward.png
 
 clean:  ## remove caches and run logs (keeps the venv and the dataset)
 	rm -rf .pytest_cache .ruff_cache runs

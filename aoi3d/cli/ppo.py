@@ -29,6 +29,7 @@ from rich.table import Table
 
 from aoi3d.cli.experiment import _open_dataset, _parse_sets, _short_label
 from aoi3d.experiment import EpisodeConfig, default_workers
+from aoi3d.experiment.config import EXPERIMENT_DATASET
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.policy import PolicySpecError
 from aoi3d.rl.agent import PPOConfig, SingleStepPPO
@@ -59,7 +60,8 @@ _COLUMNS = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
 PresetOpt = Annotated[str, typer.Option(
     help=f"PPO budget preset: {', '.join(PPO_PRESETS)} (`aoi3d ppo presets` shows them).")]
 DatasetOpt = Annotated[Path | None, typer.Option(
-    help="Scene dataset (default: the preset's, data/turbine, generated if missing).")]
+    help="Scene dataset (default: the preset's, the experiments' scene at "
+         f"{EXPERIMENT_DATASET}, generated if missing).")]
 StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Radiance-field training steps per episode (default: the preset's).")]
 WorkersOpt = Annotated[int | None, typer.Option(
