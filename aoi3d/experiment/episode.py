@@ -55,6 +55,7 @@ __all__ = [
     "plan_key",
     "run_plan",
     "set_torch_threads",
+    "train_ids",
 ]
 
 ENGINE_VERSION = 1
@@ -141,7 +142,8 @@ class EpisodePlan:
         )
 
 
-def _train_ids(cfg: EpisodeConfig, dataset: SceneDataset) -> list[int]:
+def train_ids(cfg: EpisodeConfig, dataset: SceneDataset) -> list[int]:
+    """The episode's training cameras: the dataset's, or its first ``cfg.n_cameras``."""
     ids = list(dataset.train_ids)
     if cfg.n_cameras is None:
         return ids
@@ -165,7 +167,7 @@ def plan_episode(
     pol = parse_policy(policy)
     pol.reset()
     wait = wait_ms_of(pol)
-    ids = _train_ids(cfg, dataset)
+    ids = train_ids(cfg, dataset)
     n = len(ids)
     aux = _aux_rng(seed)
     phases = (aux.integers(0, cfg.period_ms, n) if cfg.camera_phase == "random"

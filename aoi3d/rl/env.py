@@ -50,6 +50,7 @@ from aoi3d.experiment import (
     plan_key,
     run_plan,
 )
+from aoi3d.experiment.episode import train_ids
 from aoi3d.experiment.sweep import lpips_available
 from aoi3d.policy import AllPolicy
 from aoi3d.quality import LpipsFn
@@ -119,7 +120,7 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.lpips = self.config.lpips and (lpips_fn is not None
                                             or lpips_available(self.config))
         self._lpips_fn = lpips_fn if self.lpips else None  # else loaded by the first step
-        self.camera_ids: tuple[int, ...] = tuple(_train_ids(self.config, ds))
+        self.camera_ids: tuple[int, ...] = tuple(train_ids(self.config, ds))
         n = len(self.camera_ids)
         self.observation_space = spaces.Box(0.0, 1.0, shape=(obs_size(n),), dtype=np.float32)
         self.action_space = spaces.MultiBinary(n)
@@ -256,14 +257,3 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     def _observation(self) -> np.ndarray:
         assert self._aoi is not None
         return encode_aoi(self._aoi, self.aoi_scale_ms)
-
-
-def _train_ids(cfg: EpisodeConfig, dataset: SceneDataset) -> list[int]:
-    ids = list(dataset.train_ids)
-    if cfg.n_cameras is None:
-        return ids
-    if cfg.n_cameras > len(ids):
-        raise ValueError(f"n_cameras={cfg.n_cameras} but the dataset at {dataset.root} has "
-                         f"only {len(ids)} training cameras")
-    return ids[: cfg.n_cameras]
-
