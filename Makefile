@@ -50,11 +50,11 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 
 figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
 	rm -rf runs/experiments/figures-cache runs/ppo/figures
-	time $(VENV)/bin/aoi3d experiment tradeoff --preset quick --cache runs/experiments/figures-cache
-	time $(VENV)/bin/aoi3d experiment delay --preset quick --cache runs/experiments/figures-cache
+	$(VENV)/bin/aoi3d experiment tradeoff --preset quick --cache runs/experiments/figures-cache
+	$(VENV)/bin/aoi3d experiment delay --preset quick --cache runs/experiments/figures-cache
 	$(VENV)/bin/aoi3d experiment views --preset quick --cache runs/experiments/figures-cache
-	time $(VENV)/bin/aoi3d ppo train --preset quick --out runs/ppo/figures
-	time $(VENV)/bin/aoi3d ppo eval --checkpoint runs/ppo/figures/final.pt --seeds 40 \
+	$(VENV)/bin/aoi3d ppo train --preset quick --out runs/ppo/figures
+	$(VENV)/bin/aoi3d ppo eval --checkpoint runs/ppo/figures/final.pt --seeds 40 \
 	    --compare all --compare mat:70 --compare mat:100 --compare mat:130 --compare freshest:6
 	$(VENV)/bin/aoi3d experiment compare --preset quick --cache runs/experiments/figures-cache \
 	    --policy all --policy mat:best --policy freshest:6 --policy wait:40 \
