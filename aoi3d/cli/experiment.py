@@ -9,7 +9,6 @@ CSV, JSON (with the full config, the code version and the machine) and PNG figur
 
 from __future__ import annotations
 
-import json
 import math
 import time
 from collections.abc import Sequence
@@ -22,17 +21,20 @@ import typer
 from PIL import Image
 from rich.console import Console
 from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
     Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
 )
 from rich.table import Table
 
 from aoi3d.channel import DelaySpecError, parse_delay
+from aoi3d.cli.common import (
+    LpipsOpt,
+    ThreadsOpt,
+    WorkersOpt,
+    open_experiment_dataset,
+    parse_sets,
+    progress_columns,
+    short_label,
+)
 from aoi3d.experiment import (
     PRESETS,
     EpisodeConfig,
@@ -46,7 +48,7 @@ from aoi3d.experiment import (
     get_preset,
     run_jobs,
 )
-from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
+from aoi3d.experiment.config import EXPERIMENT_DATASET
 from aoi3d.experiment.figures import plot_compare, plot_delay, plot_tradeoff, plot_views
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.experiment.sweep import lpips_available
@@ -81,13 +83,9 @@ StepsOpt = Annotated[int | None, typer.Option(
 CarryOpt = Annotated[str | None, typer.Option(
     help="Model between decisions: warm (kept, as the live trainer) or fresh (per-time).")]
 BackendOpt = Annotated[str | None, typer.Option(help="Radiance-field backend (BACKENDS).")]
-WorkersOpt = Annotated[int | None, typer.Option(
-    min=1, help="Worker processes (default: all local cores).")]
-ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per worker.")]
 RayOpt = Annotated[str | None, typer.Option(
     help="Run the episodes on Ray: an address (auto, ray://host:10001) or 'local'. Needs "
          "pip install '.[cluster]'.")]
-LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
 SetOpt = Annotated[list[str] | None, typer.Option(
     "--set", help="Override any episode config field, KEY=VALUE (VALUE as JSON where it "
                   "parses), e.g. --set warmup_ms=600 --set field='{\"batch_rays\": 512}'.")]
@@ -111,20 +109,6 @@ class _Setup:
     started: float
 
 
-def _parse_sets(sets: Sequence[str] | None) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for item in sets or ():
-        key, sep, text = item.partition("=")
-        if not sep or not key.strip():
-            raise typer.BadParameter(f"expected KEY=VALUE, got {item!r}", param_hint="'--set'")
-        try:
-            value: Any = json.loads(text)
-        except json.JSONDecodeError:
-            value = text
-        out[key.strip()] = value
-    return out
-
-
 def _int_list(text: str | None, name: str) -> tuple[int, ...] | None:
     if text is None:
         return None
@@ -145,19 +129,6 @@ def _delay(spec: str, name: str = "'--delay'") -> str:
         raise typer.BadParameter(str(err), param_hint=name) from None
 
 
-def _open_dataset(path: Path) -> SceneDataset:
-    """The experiments' own dataset folder is (re)generated when missing or of another scene
-    config; any other folder is read as it is (generated with the experiments' scene if it
-    does not exist)."""
-    from aoi3d.scene import ensure_dataset, open_dataset
-
-    own = path.absolute() == Path(EXPERIMENT_DATASET).absolute()
-    if path.exists() and not own:
-        return open_dataset(path)
-    with console.status(f"scene dataset {path} (generated if missing or stale) …"):
-        return ensure_dataset(path, EXPERIMENT_SCENE, workers=default_workers())
-
-
 def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, cache: Path,
            seeds: int | None, steps: int | None, carry: str | None, backend: str | None,
            workers: int | None, threads: int, ray_address: str | None, lpips: bool,
@@ -173,7 +144,7 @@ def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, ca
             changes[key] = value
     if dataset is not None:
         changes["dataset"] = str(dataset)
-    changes.update(_parse_sets(sets))
+    changes.update(parse_sets(sets))
     try:
         cfg = EpisodeConfig.from_dict({**chosen.episode.to_dict(), **changes})
         from aoi3d.field import field_config
@@ -187,7 +158,7 @@ def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, ca
         if not torch.cuda.is_available():
             raise typer.BadParameter("device cuda asked for, but CUDA is not available here",
                                      param_hint="'--device'")
-    ds = _open_dataset(Path(cfg.dataset))
+    ds = open_experiment_dataset(Path(cfg.dataset), console)
     folder = out if out is not None else Path("runs/experiments") / f"{command}-{chosen.name}"
     folder.mkdir(parents=True, exist_ok=True)
     return _Setup(
@@ -202,11 +173,8 @@ def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
     where = (f"Ray ({setup.ray_address})" if setup.ray_address
              else f"{min(setup.workers, len(jobs))} process(es) × {setup.threads} thread(s)")
     console.print(f"[bold]{label}[/]: {len(jobs)} episodes on {where}; cache {setup.cache.root}")
-    columns = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-               MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
-               TimeRemainingColumn())
     try:
-        with Progress(*columns, console=console, transient=False) as bar:
+        with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task(label, total=None)
 
             def report(done: int, total: int) -> None:
@@ -324,14 +292,6 @@ def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
 
 _SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}
 """Metrics an optimum can be taken over, and their sign (LPIPS: lower is better)."""
-
-
-def _short_label(spec: str) -> str:
-    """A policy's name for a figure: ``ppo:<folder>/<file>`` rather than the whole path."""
-    if not spec.startswith("ppo:"):
-        return spec
-    path = Path(spec[len("ppo:"):])
-    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
 
 
 def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
@@ -605,7 +565,7 @@ def compare(
     write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
     write_json(setup.out / "results.json", {"meta": meta, "policies": rows,
                                             "episodes": [r.to_dict() for r in outcome.results]})
-    plot_compare([{**r, "policy": _short_label(r["policy"])} for r in rows],
+    plot_compare([{**r, "policy": short_label(r["policy"])} for r in rows],
                  setup.out / "compare.png", title=(
         f"Policies at {delay}, S = {setup.seeds} (same seeds), {setup.cfg.carry} model"))
     _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over {setup.seeds} seeds)")

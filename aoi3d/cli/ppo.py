@@ -17,17 +17,19 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
     Progress,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
 )
 from rich.table import Table
 
-from aoi3d.cli.experiment import _open_dataset, _parse_sets, _short_label
+from aoi3d.cli.common import (
+    LpipsOpt,
+    ThreadsOpt,
+    WorkersOpt,
+    open_experiment_dataset,
+    parse_sets,
+    progress_columns,
+    short_label,
+)
 from aoi3d.experiment import EpisodeConfig, default_workers
 from aoi3d.experiment.config import EXPERIMENT_DATASET
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
@@ -53,10 +55,6 @@ def ppo() -> None:
     """Single-step PPO over the AoI vector: train, evaluate."""
 
 
-_COLUMNS = (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
-            MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
-            TimeRemainingColumn())
-
 PresetOpt = Annotated[str, typer.Option(
     help=f"PPO budget preset: {', '.join(PPO_PRESETS)} (`aoi3d ppo presets` shows them).")]
 DatasetOpt = Annotated[Path | None, typer.Option(
@@ -64,9 +62,6 @@ DatasetOpt = Annotated[Path | None, typer.Option(
          f"{EXPERIMENT_DATASET}, generated if missing).")]
 StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Radiance-field training steps per episode (default: the preset's).")]
-WorkersOpt = Annotated[int | None, typer.Option(
-    min=1, help="Env worker processes (default: all local cores).")]
-ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per env worker.")]
 CacheOpt = Annotated[Path | None, typer.Option(
     help="Result cache of (seed, selection, budget) episodes, shared between runs. "
          "Default: runs/ppo/cache.")]
@@ -78,7 +73,6 @@ DeviceOpt = Annotated[str | None, typer.Option(
 SetOpt = Annotated[list[str] | None, typer.Option(
     "--set", help="Override an episode config field, KEY=VALUE (JSON where it parses), "
                   "e.g. --set delay=exp:40.")]
-LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS (when its weights are cached).")]
 
 
 def _episode_config(base: EpisodeConfig, dataset: Path | None, steps: int | None,
@@ -90,7 +84,7 @@ def _episode_config(base: EpisodeConfig, dataset: Path | None, steps: int | None
         changes["steps_per_epoch"] = steps
     if device is not None:
         changes["device"] = device
-    changes.update(_parse_sets(sets))
+    changes.update(parse_sets(sets))
     try:
         cfg = EpisodeConfig.from_dict({**base.to_dict(), **changes})
         from aoi3d.field import field_config
@@ -171,9 +165,9 @@ def train_cmd(
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="'--preset'") from None
     episode = _episode_config(chosen.episode, dataset, steps_per_epoch, device, lpips, set_)
-    ds = _open_dataset(Path(episode.dataset))
+    ds = open_experiment_dataset(Path(episode.dataset), console)
     n = episode.n_cameras or len(ds.train_ids)
-    hyper: dict[str, Any] = {**dict(chosen.ppo), **_parse_sets(ppo_set)}
+    hyper: dict[str, Any] = {**dict(chosen.ppo), **parse_sets(ppo_set, "--ppo-set")}
     for key, value in (("lr", lr), ("clip_eps", clip_eps), ("seed", seed)):
         if value is not None:
             hyper[key] = value
@@ -193,7 +187,7 @@ def train_cmd(
                   f"{n_workers} worker(s) × {threads} thread(s); out {folder}; cache "
                   f"{cache_dir or 'off'}")
     try:
-        with Progress(*_COLUMNS, console=console, transient=False) as bar:
+        with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task("episodes", total=cfg.episodes)
 
             def report(p: TrainProgress) -> None:
@@ -268,7 +262,7 @@ def eval_cmd(
     episode = _episode_config(base, dataset, steps_per_epoch, device, lpips, set_)
     count = seeds if seeds is not None else (chosen.eval_seeds if chosen else 40)
     seed_list = eval_seeds(count, seed_offset)
-    ds = _open_dataset(Path(episode.dataset))
+    ds = open_experiment_dataset(Path(episode.dataset), console)
     specs = [f"ppo:{checkpoint}", *(compare or [])]
     folder = out if out is not None else checkpoint.parent / "eval"
     folder.mkdir(parents=True, exist_ok=True)
@@ -277,7 +271,7 @@ def eval_cmd(
                   f"({seed_list[0]}…{seed_list[-1]}), {episode.steps_per_epoch} field steps "
                   f"per episode, {n_workers} worker(s)")
     try:
-        with Progress(*_COLUMNS, console=console, transient=False) as bar:
+        with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task("episodes", total=len(specs) * count)
             outcome = evaluate(
                 specs, episode, seed_list, dataset=ds, workers=n_workers, threads=threads,
@@ -302,7 +296,7 @@ def eval_cmd(
                  "Δ reward (PPO − this)"):
         table.add_column(name, justify="right")
     for r in outcome.summary:
-        table.add_row(_short_label(r["policy"]), _fmt(r["reward"], r["reward_ci95"], 4),
+        table.add_row(short_label(r["policy"]), _fmt(r["reward"], r["reward_ci95"], 4),
                       _fmt(r["psnr"], r["psnr_ci95"], 2), _fmt(r["ssim"], r["ssim_ci95"]),
                       _fmt(r["lpips"], r["lpips_ci95"]), _fmt(r["n_selected"], None, 1),
                       _fmt(r.get("first_minus_this_reward"),

@@ -1,0 +1,85 @@
+"""What the sweep-running command groups (`aoi3d experiment`, `aoi3d ppo`) share: option
+types, ``KEY=VALUE`` overrides, the progress bar's columns, the experiments' dataset and the
+short label of a policy in tables and figures."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    ProgressColumn,
+    SpinnerColumn,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
+from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
+from aoi3d.experiment.sweep import default_workers
+from aoi3d.scene import SceneDataset
+
+__all__ = [
+    "LpipsOpt",
+    "ThreadsOpt",
+    "WorkersOpt",
+    "open_experiment_dataset",
+    "parse_sets",
+    "progress_columns",
+    "short_label",
+]
+
+WorkersOpt = Annotated[int | None, typer.Option(
+    min=1, help="Worker processes (default: all local cores).")]
+ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per worker process.")]
+LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
+
+
+def parse_sets(sets: Sequence[str] | None, option: str = "--set") -> dict[str, Any]:
+    """``KEY=VALUE`` items as a dict, VALUE parsed as JSON where it parses (else the text)."""
+    out: dict[str, Any] = {}
+    for item in sets or ():
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise typer.BadParameter(f"expected KEY=VALUE, got {item!r}",
+                                     param_hint=f"'{option}'")
+        try:
+            value: Any = json.loads(text)
+        except json.JSONDecodeError:
+            value = text
+        out[key.strip()] = value
+    return out
+
+
+def progress_columns() -> tuple[ProgressColumn, ...]:
+    """A sweep's progress bar: spinner, label, bar, done/total, elapsed, ETA."""
+    return (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
+            MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
+            TimeRemainingColumn())
+
+
+def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
+    """The experiments' own dataset folder is (re)generated when missing or of another scene
+    config; any other folder is read as it is (generated with the experiments' scene if it
+    does not exist)."""
+    from aoi3d.scene import ensure_dataset, open_dataset
+
+    own = path.absolute() == Path(EXPERIMENT_DATASET).absolute()
+    if path.exists() and not own:
+        return open_dataset(path)
+    with console.status(f"scene dataset {path} (generated if missing or stale) …"):
+        return ensure_dataset(path, EXPERIMENT_SCENE, workers=default_workers())
+
+
+def short_label(spec: str) -> str:
+    """A policy's name for a table or figure: ``ppo:<folder>/<file>``, not the whole path."""
+    if not spec.startswith("ppo:"):
+        return spec
+    path = Path(spec[len("ppo:"):])
+    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
