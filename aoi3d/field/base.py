@@ -24,7 +24,24 @@ from torch import nn
 from aoi3d.field.rays import RayBundle
 from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
 
-__all__ = ["Field", "FieldConfig"]
+__all__ = ["Field", "FieldConfig", "check_background_and_schedule"]
+
+
+def check_background_and_schedule(background_size: tuple[int, int], up_axis: int,
+                                  schedule: str, from_step: int, every: int,
+                                  alpha: float) -> None:
+    """Validate what the grid-like configs share: the background map's size and pole axis, and
+    an empty-space schedule (``<schedule>_from_step``, ``<schedule>_every``,
+    ``<schedule>_alpha``, e.g. ``occupancy`` or ``mask``); ``ValueError`` names the field."""
+    if min(background_size) < 2:
+        raise ValueError(f"background_size must be >= (2, 2), got {background_size}")
+    if up_axis not in (0, 1, 2):
+        raise ValueError(f"up_axis must be 0, 1 or 2, got {up_axis}")
+    if from_step < 0 or every < 1:
+        raise ValueError(f"{schedule}_from_step must be >= 0 and {schedule}_every >= 1, got "
+                         f"{from_step}, {every}")
+    if not 0 < alpha < 1:
+        raise ValueError(f"{schedule}_alpha must be in (0, 1), got {alpha}")
 
 
 @dataclass(frozen=True)

@@ -30,7 +30,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.base import Field, FieldConfig, check_background_and_schedule
 
 __all__ = ["DenseGridField", "GridConfig", "grid_shape", "trilinear"]
 
@@ -76,17 +76,9 @@ class GridConfig(FieldConfig):
             raise ValueError(f"upsample_steps must be increasing and >= 1: {self.upsample_steps}")
         if not self.init_density > 0:
             raise ValueError(f"init_density must be > 0, got {self.init_density}")
-        if min(self.background_size) < 2:
-            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
-        if self.up_axis not in (0, 1, 2):
-            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
-        if self.occupancy_from_step < 0 or self.occupancy_every < 1:
-            raise ValueError(
-                "occupancy_from_step must be >= 0 and occupancy_every >= 1, got "
-                f"{self.occupancy_from_step}, {self.occupancy_every}"
-            )
-        if not 0 < self.occupancy_alpha < 1:
-            raise ValueError(f"occupancy_alpha must be in (0, 1), got {self.occupancy_alpha}")
+        check_background_and_schedule(self.background_size, self.up_axis, "occupancy",
+                                      self.occupancy_from_step, self.occupancy_every,
+                                      self.occupancy_alpha)
 
     def stage(self, step: int) -> int:
         """Index into ``grid_sizes`` of the resolution used at training step ``step``."""

@@ -40,7 +40,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.base import Field, FieldConfig, check_background_and_schedule
 from aoi3d.field.gather import row_gather
 from aoi3d.field.grid import grid_shape
 
@@ -107,17 +107,8 @@ class TensorfConfig(FieldConfig):
         for name in ("init_scale", "init_density", "lr_grid", "lr_decoder", "lr_background"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if min(self.background_size) < 2:
-            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
-        if self.up_axis not in (0, 1, 2):
-            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
-        if self.mask_from_step < 0 or self.mask_every < 1:
-            raise ValueError(
-                "mask_from_step must be >= 0 and mask_every >= 1, got "
-                f"{self.mask_from_step}, {self.mask_every}"
-            )
-        if not 0 < self.mask_alpha < 1:
-            raise ValueError(f"mask_alpha must be in (0, 1), got {self.mask_alpha}")
+        check_background_and_schedule(self.background_size, self.up_axis, "mask",
+                                      self.mask_from_step, self.mask_every, self.mask_alpha)
 
     def stage(self, step: int) -> int:
         """Index into ``grid_sizes`` of the resolution used at training step ``step``."""

@@ -74,6 +74,24 @@ def metric(service: str, name: str) -> float:
     return sum(values)
 
 
+def stop_pipeline(up: subprocess.Popen) -> str:
+    """SIGTERM ``aoi3d up`` (SIGKILL its group after 40 s); returns its output. Safe in a
+    ``finally``: it asserts nothing, so a failure of the test body is not masked."""
+    up.send_signal(signal.SIGTERM)
+    try:
+        out, _ = up.communicate(timeout=40)
+    except subprocess.TimeoutExpired:
+        os.killpg(up.pid, signal.SIGKILL)
+        out, _ = up.communicate()
+    return out
+
+
+def assert_clean_exit(up: subprocess.Popen, out: str, run_id: str) -> None:
+    """``aoi3d up`` exited 0 and left no process of the run behind."""
+    assert up.returncode == 0, out[-3000:]
+    wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)
+
+
 def processes_of_run(run_id: str) -> list[int]:
     """PIDs of live processes whose environment carries this run id."""
     needle = f"AOI3D_RUN_ID={run_id}".encode()
@@ -222,13 +240,6 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     finally:
         if tap is not None:
             tap.close()
-        up.send_signal(signal.SIGTERM)
-        try:
-            out, _ = up.communicate(timeout=40)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            out, _ = up.communicate()
-    assert up.returncode == 0, out[-3000:]
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)  # and every process is gone afterwards
     assert "restarted" in out and "metrics" in out
-    # every process is gone afterwards
-    wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import math
 import os
-import signal
 import subprocess
 import sys
 import time
@@ -30,9 +29,10 @@ from tests.integration.test_pipeline import (
     SERVICES,
     ZENOH_PORT,
     Tap,
+    assert_clean_exit,
     metric,
-    processes_of_run,
     small_dataset,  # noqa: F401 - a fixture, used by name
+    stop_pipeline,
     url,
     wait_for,
 )
@@ -114,11 +114,5 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
     finally:
         if tap is not None:
             tap.close()
-        up.send_signal(signal.SIGTERM)
-        try:
-            out, _ = up.communicate(timeout=40)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
-            out, _ = up.communicate()
-    assert up.returncode == 0, out[-3000:]
-    wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)
