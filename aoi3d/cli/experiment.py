@@ -81,7 +81,9 @@ SeedsOpt = Annotated[int | None, typer.Option(
 StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Training steps per decision (default: the preset's).")]
 CarryOpt = Annotated[str | None, typer.Option(
-    help="Model between decisions: warm (kept, as the live trainer) or fresh (per-time).")]
+    help="Model between decisions: fresh (per-time: a new model per scored decision), "
+         "warm (one model, rendered as it is) or fork (the live trainer's: a copy of the warm "
+         "model trains --set render_steps=K steps on the scored decision's frames).")]
 BackendOpt = Annotated[str | None, typer.Option(help="Radiance-field backend (BACKENDS).")]
 RayOpt = Annotated[str | None, typer.Option(
     help="Run the episodes on Ray: an address (auto, ray://host:10001) or 'local'. Needs "

@@ -21,6 +21,12 @@ Model carry-over (``carry``):
   its frames by several decisions, so the freshness of the frames is blurred by the model's
   own lag. Use it to study the live setting; it needs long warm-ups to be comparable.
 
+- ``fork`` — the warm model, trained ``steps_per_epoch`` steps at every decision, is the start
+  of each scored decision's reconstruction: a copy of it trains ``render_steps`` more steps on
+  exactly that decision's frames and renders the held-out view (the live trainer's default;
+  :mod:`aoi3d.field.carry` is the one implementation of all three modes, used here and by
+  the trainer service).
+
 Compute is fixed per decision, whatever the policy selects; an empty selection trains
 nothing (as in the live trainer) and the render shows the model as it is (fresh: untrained).
 
@@ -39,6 +45,7 @@ from dataclasses import field as dc_field
 from typing import Any
 
 from aoi3d.channel import parse_delay
+from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.quality import RewardWeights
 from aoi3d.scene import SceneConfig
 
@@ -68,7 +75,6 @@ against 27.8); at 18 rpm one frame of age already cost 7 dB, so even the freshes
 too stale to trade against. Measured with ``bench/staleness.py``; See docs/experiments.md."""
 EXPERIMENT_DATASET = "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
-CARRY_MODES = ("warm", "fresh")
 CAMERA_PHASES = ("sync", "random")
 
 
@@ -106,6 +112,7 @@ class EpisodeConfig:
     score_every: int = 5
     steps_per_epoch: int = 10
     carry: str = "warm"
+    render_steps: int = 0
     random_scene_offset: bool = True
     lpips: bool = True
     reward: RewardWeights = dc_field(default_factory=RewardWeights)
@@ -124,8 +131,11 @@ class EpisodeConfig:
             _int_at_least(name, getattr(self, name), 0)
         if self.n_cameras is not None:
             _int_at_least("n_cameras", self.n_cameras, 1)
-        if self.carry not in CARRY_MODES:
-            raise ValueError(f"carry must be one of {CARRY_MODES}, got {self.carry!r}")
+        check_carry(self.carry, self.steps_per_epoch if self.carry == "fresh"
+                    else self.render_steps)
+        if self.carry != "fork" and self.render_steps:
+            raise ValueError(f"render_steps applies to carry 'fork' only (carry "
+                             f"{self.carry!r} got render_steps={self.render_steps})")
         if self.camera_phase not in CAMERA_PHASES:
             raise ValueError(
                 f"camera_phase must be one of {CAMERA_PHASES}, got {self.camera_phase!r}")

@@ -39,6 +39,7 @@ from PIL import Image
 from aoi3d.channel import simulate
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.field.carry import Reconstruction
 from aoi3d.policy import Policy, parse_policy
 from aoi3d.policy.wait import wait_ms_of
 from aoi3d.quality import LpipsFn, score
@@ -181,7 +182,7 @@ def plan_episode(
     decisions = []
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
-        train = scored or cfg.carry == "warm"
+        train = scored or cfg.carry != "fresh"  # warm and fork train at every decision
         s = t + wait
         newest = run.newest_ms(s)
         aoi = s - newest
@@ -229,6 +230,7 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "dataset": dataset_fingerprint(dataset),
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
+        **({"render_steps": cfg.render_steps} if cfg.carry == "fork" else {}),
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips],
         "seed": plan.seed, "scene_offset_ms": plan.scene_offset_ms,
         "decisions": [
@@ -353,6 +355,7 @@ def run_plan(
     started = time.perf_counter()
     trainer = FieldTrainer(field_config(cfg.backend, **cfg.field), dataset.aabb,
                            device=cfg.device, seed=plan.seed)
+    rec = Reconstruction(trainer, cfg.carry, _render_budget(cfg))
     frames = _Frames(dataset, plan.scene_offset_ms)
     heldout = dataset.cameras[dataset.heldout_id]
     epochs: list[EpochScore] = []
@@ -360,23 +363,20 @@ def run_plan(
     loss = math.nan
     for d in plan.decisions:
         if d.train:
-            if cfg.carry == "fresh":
-                trainer.reset()
-            if d.cameras:
-                trainer.set_views([frames.view(c, g) for c, g in
-                                   zip(d.cameras, d.gen_ms, strict=True)])
-                loss = trainer.step(cfg.steps_per_epoch)
-            else:
-                loss = math.nan
+            rec.set_views([frames.view(c, g) for c, g in zip(d.cameras, d.gen_ms, strict=True)])
+            loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
-        image = trainer.render(heldout)
+        rendered = rec.render_decision(heldout)
+        if rendered.render_steps:
+            loss = rendered.loss
+        image = rendered.image
         quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn)
         epochs.append(EpochScore(
             decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
             aoi_used_ms=float(np.mean(d.aoi_ms)) if d.aoi_ms else math.nan,
             psnr_db=quality.psnr_db, ssim=quality.ssim, lpips=quality.lpips,
-            reward=quality.reward, loss=float(loss), steps=trainer.steps,
+            reward=quality.reward, loss=float(loss), steps=rendered.steps,
         ))
         last_image = image
         if on_render is not None:
@@ -400,8 +400,20 @@ def run_plan(
     return result, _png(last_image)
 
 
+def _render_budget(cfg: EpisodeConfig) -> int:
+    """Steps spent on a scored decision's own frames: ``fresh`` trains each scored decision
+    ``steps_per_epoch`` steps from scratch, ``fork`` a copy of the warm model
+    ``render_steps`` steps, ``warm`` none."""
+    return {"fresh": cfg.steps_per_epoch, "fork": cfg.render_steps, "warm": 0}[cfg.carry]
+
+
 def _total_steps(plan: EpisodePlan) -> int:
-    return sum(plan.config.steps_per_epoch for d in plan.decisions if d.train and d.cameras)
+    """Training steps an episode takes (background and per scored decision)."""
+    cfg = plan.config
+    background = 0 if cfg.carry == "fresh" else cfg.steps_per_epoch
+    per_render = _render_budget(cfg)
+    return sum((background if d.train else 0) + (per_render if d.scored else 0)
+               for d in plan.decisions if d.cameras)
 
 
 def _png(image: np.ndarray | None) -> bytes:

@@ -21,6 +21,7 @@ views are rendered with ``appearance=None``: the field's neutral embedding.
 
 from __future__ import annotations
 
+import copy
 import ctypes
 import ctypes.util
 import math
@@ -194,6 +195,27 @@ class FieldTrainer:
         self._steps = 0
         self._field.on_step(0)
         self._optimizer = self._make_optimizer()
+
+    def fork(self) -> FieldTrainer:
+        """An independent copy of this trainer: the model, its optimizer state, its step count
+        and its random stream are copied, the views and the ray caches shared (read-only).
+
+        Training the copy leaves this trainer untouched: the live trainer and the experiments'
+        ``fork`` carry train a copy of the warm model on one decision's frames, render it and
+        drop it (see :mod:`aoi3d.field.carry`).
+        """
+        twin = object.__new__(FieldTrainer)
+        twin.__dict__.update(self.__dict__)
+        twin._field = copy.deepcopy(self._field)
+        twin._optimizer = twin._make_optimizer()
+        twin._optimizer.load_state_dict(self._optimizer.state_dict())  # deep-copies the state
+        twin._generator = torch.Generator(device=self._device)
+        twin._generator.set_state(self._generator.get_state())
+        twin._ray_cache = dict(self._ray_cache)
+        twin._render_cache = dict(self._render_cache)
+        twin._colour_cache = dict(self._colour_cache)
+        twin._appearance_rows = OrderedDict(self._appearance_rows)
+        return twin
 
     def _make_optimizer(self) -> LazyAdam:
         return LazyAdam(self._field.param_groups(), betas=(0.9, 0.99), eps=self.cfg.adam_eps)
