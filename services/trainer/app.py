@@ -4,7 +4,7 @@ render."""
 from __future__ import annotations
 
 import time
-from typing import Annotated
+from typing import Annotated, Literal
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
 from fastapi.responses import Response
@@ -18,6 +18,7 @@ from services.kit.bus import Bus
 from services.trainer.settings import Settings
 from services.trainer.worker import (
     BackendBuildError,
+    CarryError,
     TrainerStatus,
     TrainerWorker,
     UnknownBackendError,
@@ -55,6 +56,10 @@ class StatusResponse(BaseModel):
     backends: list[str] = Field(description="Available backends (aoi3d.field.BACKENDS).",
                                 examples=[["grid", "nerfacto", "ngp", "tensorf"]])
     device: str = Field(description="Torch device the field trains on.", examples=["cpu"])
+    carry: str = Field(description="How renders are made (PUT /carry): fresh, fork or warm.",
+                       examples=["fresh"])
+    render_steps: int = Field(description="Training steps spent on a rendered decision's own "
+                                          "frames (fork, fresh).", examples=[100])
     renders: int = Field(description="Renders published.", examples=[17])
     frames_received: int = Field(description="Delivered frames accepted since start.",
                                  examples=[5400])
@@ -77,6 +82,7 @@ def _status_body(status: TrainerStatus) -> StatusResponse:
             n_selected=d.n_selected, n_missing=d.n_missing,
             age_ms=status.decision_age_ms if status.decision_age_ms is not None else 0.0),
         backend=status.backend, backends=sorted(BACKENDS), device=status.device,
+        carry=status.carry, render_steps=status.render_steps,
         renders=status.renders, frames_received=status.frames_received,
         frames_buffered=status.frames_buffered,
         frames_missing=status.frames_missing, resets=status.resets, running=status.running)
@@ -144,6 +150,40 @@ def put_backend(worker: Worker,
     return _status_body(worker.status())
 
 
+class CarryRequest(BaseModel):
+    """How renders are made from the next render on."""
+
+    carry: Literal["fork", "fresh", "warm"] = Field(
+        description="fresh: a new model trains `render_steps` steps on the rendered "
+                    "decision's frames alone, then renders (the paper's per-time "
+                    "reconstruction; the default); fork: a copy of the continuously trained "
+                    "model does; warm: the continuously trained model renders as it is.",
+        examples=["fresh"])
+    render_steps: int | None = Field(
+        None, ge=1, le=100_000,
+        description="Steps on a rendered decision's own frames; null keeps the current "
+                    "value.", examples=[100])
+
+
+@model_router.put(
+    "/carry", summary="Change how renders are made (fresh, fork or warm).",
+    description="The experiments' carry modes (`aoi3d experiment ... --carry`), the same code "
+                "(aoi3d.field.carry). Takes effect at the next render; the continuously "
+                "trained model (fork, warm) and the decision in force are kept.",
+    responses={422: {"description": "Unknown carry mode or render budget."},
+               503: {"description": "The training thread did not get to the change in time."}})
+def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
+    steps = body.render_steps if body.render_steps is not None else worker.carry.render_steps
+    try:
+        done = worker.set_carry(body.carry, steps)
+    except CarryError as err:
+        raise HTTPException(422, str(err)) from None
+    if not done:
+        raise HTTPException(503, "the training thread did not change the carry within 10 s; "
+                                 "check GET /status and /readyz")
+    return _status_body(worker.status())
+
+
 render_router = APIRouter(tags=["render"])
 
 
@@ -151,17 +191,23 @@ render_router = APIRouter(tags=["render"])
     "/render.png", summary="The latest render of the held-out (novel) view.",
     response_class=Response,
     responses={200: {"content": {"image/png": {}},
-                     "description": "PNG; headers X-Decision-Id, X-Time-Ms, X-Training-Step, "
-                                    "X-Views, X-Render-Age-S."},
+                     "description": "PNG; headers X-Decision-Id, X-Time-Ms (the time it "
+                                    "represents), X-Training-Step, X-Views, X-Carry, "
+                                    "X-Render-Steps, X-Frames-Age-Ms (mean age of its frames "
+                                    "at X-Time-Ms), X-Render-Age-S (wall s since the "
+                                    "publication)."},
                404: {"description": "No render published yet."}})
 def get_render(worker: Worker) -> Response:
     latest = worker.latest_render()
     if latest is None:
         raise HTTPException(
-            404, f"no render yet: the trainer renders the held-out camera every "
-                 f"{worker.settings.render_period_s:g} s once a decision has arrived")
+            404, f"no render yet: the trainer renders the held-out camera "
+                 f"{worker.settings.render_period_s:g} s after each previous render once a "
+                 f"decision has arrived")
     headers = {"X-Decision-Id": str(latest.decision_id), "X-Time-Ms": f"{latest.time_ms:g}",
                "X-Training-Step": str(latest.training_step), "X-Views": str(latest.n_views),
+               "X-Carry": latest.carry, "X-Render-Steps": str(latest.render_steps),
+               "X-Frames-Age-Ms": f"{latest.frames_age_ms:g}",
                "X-Render-Age-S": f"{time.time() - latest.wall_s:.3f}",
                "Cache-Control": "no-store"}
     return Response(content=latest.png, media_type="image/png", headers=headers)

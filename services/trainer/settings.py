@@ -33,8 +33,19 @@ class Settings(ServiceSettings):
                     "default grid step on 2 CPU cores takes ~30 ms); the per-chunk overhead is "
                     "microseconds.")
     render_period_s: float = Field(
-        2.0, gt=0, le=3600,
-        description="Wall seconds between two renders of the held-out camera.")
+        0.5, gt=0, le=3600,
+        description="Wall seconds of background training between the end of one render of "
+                    "the held-out camera and the start of the next.")
+    carry: Literal["fork", "fresh", "warm"] = Field(
+        "fresh",
+        description="How a render is made (aoi3d.field.carry, the experiments' carry modes): "
+                    "fresh = the paper's per-time reconstruction, a new model trains "
+                    "render_steps steps on the rendered decision's frames alone; fork = a copy "
+                    "of the continuously trained model does; warm = the continuously trained "
+                    "model renders as it is. `PUT /carry` changes it at run time.")
+    render_steps: int = Field(
+        100, ge=1, le=100_000,
+        description="Training steps spent on a rendered decision's own frames (fork, fresh).")
     device: Literal["auto", "cpu", "cuda"] = Field(
         "auto", description="Torch device: auto (CUDA when available, else CPU), cpu or cuda.")
     torch_threads: int = Field(

@@ -1,13 +1,16 @@
 """The trainer worker: delivered frames + decisions in, renders of the novel view out.
 
 Bus callbacks only put raw payloads into :class:`Inbox` queues. One training thread owns
-the radiance field: between small chunks of ``steps_per_chunk`` steps it ingests the queued
-frames (kept per camera, still encoded), applies the newest decision (resolves its selected
-FrameRefs to frames, decodes them and swaps the training set, model kept), and every
-``render_period_s`` wall seconds renders the held-out camera and publishes a Render stamped
-with the decision in force. Control requests from the HTTP threads — reset the model, switch
-the backend — are queued and carried out by the training thread between two chunks, so no
-other thread ever touches the model.
+the radiance field, driven by an :class:`aoi3d.field.carry.Reconstruction` (the experiments'
+carry modes, the same code): between small chunks of ``steps_per_chunk`` background steps it
+ingests the queued frames (kept per camera, still encoded), applies the newest decision
+(resolves its selected FrameRefs to frames, decodes them and swaps the training set, model
+kept), and ``render_period_s`` wall seconds after the previous render it renders the
+decision in force — with the default ``fork`` carry, a copy of the model trained
+``render_steps`` steps on exactly that decision's frames — and publishes a Render stamped
+with that decision and the generation times of its frames. Control requests from the HTTP
+threads — reset the model, switch the backend or the carry — are queued and carried out by
+the training thread between two chunks, so no other thread ever touches the model.
 """
 
 from __future__ import annotations
@@ -19,12 +22,14 @@ import time
 from collections import deque
 from dataclasses import dataclass, field, replace
 
+import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from aoi3d.clock import SimClock
 from aoi3d.field import BACKENDS, FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
+from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
 from aoi3d.scene import SceneDataset
 from aoi3d.scene.camera import Camera
 from services.kit.bus import Bus, Inbox
@@ -65,6 +70,18 @@ def check_backend(name: str) -> str:
     return name
 
 
+class CarryError(ValueError):
+    """A carry mode or render budget the trainer cannot use; nothing was changed."""
+
+
+@dataclass(frozen=True)
+class CarrySetting:
+    """How renders are made: the carry mode and the steps on a rendered decision's frames."""
+
+    carry: str
+    render_steps: int
+
+
 @dataclass
 class _BackendRequest:
     """A request to switch the backend, answered by the training thread."""
@@ -88,7 +105,9 @@ def resolve_device(name: str) -> str:
 
 @dataclass(frozen=True)
 class DecisionInForce:
-    """The decision whose selection the model is being trained on."""
+    """The decision whose selection the model is being trained on.
+
+    ``generation_ms``: generation times of the frames it selected that the trainer holds."""
 
     decision_id: int
     time_ms: float
@@ -96,11 +115,16 @@ class DecisionInForce:
     n_selected: int
     n_missing: int
     applied_wall_s: float
+    generation_ms: tuple[float, ...] = ()
 
 
 @dataclass(frozen=True)
 class LatestRender:
-    """The newest published render (PNG bytes and what it represents)."""
+    """The newest published render (PNG bytes and what it represents).
+
+    ``frames_age_ms``: mean age of its frames at ``time_ms`` (NaN: none); ``lag_ms``: sim ms
+    from ``time_ms`` to the render's publication; ``age_s``: wall s from the decision taking
+    effect at the trainer to the publication."""
 
     png: bytes
     decision_id: int
@@ -108,6 +132,11 @@ class LatestRender:
     training_step: int
     n_views: int
     wall_s: float
+    carry: str = "warm"
+    render_steps: int = 0
+    frames_age_ms: float = math.nan
+    lag_ms: float = math.nan
+    age_s: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -123,6 +152,8 @@ class TrainerStatus:
     decision_age_ms: float | None
     backend: str
     device: str
+    carry: str
+    render_steps: int
     renders: int
     frames_received: int
     frames_buffered: int
@@ -169,6 +200,9 @@ class TrainerWorker:
         self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
         self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
         self.trainer = self._build_trainer(self.backend)
+        check_carry(settings.carry, settings.render_steps)
+        self.carry = CarrySetting(settings.carry, settings.render_steps)
+        self.rec = Reconstruction(self.trainer, self.carry.carry, self.carry.render_steps)
 
         self.rejections = Rejections(registry)
         self.m_steps = Counter("aoi3d_trainer_steps", "Training steps taken.",
@@ -191,11 +225,29 @@ class TrainerWorker:
             "aoi3d_trainer_frames_missing",
             "Selected frames skipped because the trainer never received them.",
             registry=registry)
+        self.m_render_age = Gauge(
+            "aoi3d_render_age_seconds",
+            "Wall seconds from the rendered decision taking effect at the trainer to the "
+            "render's publication (the compute lag a viewer sees).", registry=registry)
+        self.m_render_lag = Gauge(
+            "aoi3d_render_lag_sim_seconds",
+            "Sim seconds from the time the latest render represents to its publication.",
+            registry=registry)
+        self.m_frames_age = Gauge(
+            "aoi3d_render_frames_age_seconds",
+            "Mean age (sim s) at the represented time of the frames the latest render's "
+            "decision selected: how stale what it shows is.", registry=registry)
+        self.m_render_steps = Gauge(
+            "aoi3d_render_steps",
+            "Training steps spent on the latest rendered decision's own frames (carry fork or "
+            "fresh; 0 for warm).", registry=registry)
         self.m_overflow = Counter(
             "aoi3d_trainer_inbox_overflow",
             "Frames and decisions dropped unread because the training thread fell behind.",
             registry=registry)
         self.m_loss.set(math.nan)
+        for gauge in (self.m_render_age, self.m_render_lag, self.m_frames_age):
+            gauge.set(math.nan)
 
         self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)),
                                        on_drop=self.m_overflow.inc)
@@ -207,6 +259,7 @@ class TrainerWorker:
         self._wake = threading.Event()
         self._control_lock = threading.Lock()
         self._reset_requests: list[threading.Event] = []
+        self._carry_requests: list[tuple[CarrySetting, threading.Event]] = []
         self._backend_requests: list[_BackendRequest] = []
         self._thread: threading.Thread | None = None
         self._rate = _StepRate()
@@ -297,6 +350,25 @@ class TrainerWorker:
             raise BackendBuildError(request.error)
         return True
 
+    def set_carry(self, carry: str, render_steps: int, timeout_s: float = 10.0) -> bool:
+        """Make renders with ``carry`` and ``render_steps`` from the next render on (the model
+        and the decision in force are kept). Raises :class:`CarryError` — nothing changed —
+        for an unknown mode or budget. Done by the training thread between two chunks;
+        returns False if it did not happen within ``timeout_s``."""
+        try:
+            check_carry(carry, render_steps)
+        except ValueError as err:
+            raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
+        setting = CarrySetting(carry, int(render_steps))
+        if self._thread is None or not self._thread.is_alive():
+            self._do_carry(setting)
+            return True
+        done = threading.Event()
+        with self._control_lock:
+            self._carry_requests.append((setting, done))
+        self._wake.set()
+        return done.wait(timeout_s)
+
     def status(self) -> TrainerStatus:
         with self._state_lock:
             decision = self._decision
@@ -311,6 +383,8 @@ class TrainerWorker:
                 else self.clock.now_ms() - decision.time_ms,
                 backend=self.backend,
                 device=self.device,
+                carry=self.carry.carry,
+                render_steps=self.carry.render_steps,
                 renders=self._renders,
                 frames_received=self._frames_received,
                 frames_buffered=self._frames_buffered,
@@ -332,17 +406,18 @@ class TrainerWorker:
                 self._ingest()
                 if self._stop.is_set():
                     break
-                if self._views:
+                training = bool(self._views) and self.rec.trains_in_background
+                if training:
                     self._train_chunk()
                 else:
                     self._record_idle()
                 now = time.monotonic()
                 if now >= next_render_s:
                     self._render_and_publish()
-                    next_render_s += self.settings.render_period_s
-                    if next_render_s <= now:  # fell behind: skip, do not burst
-                        next_render_s = now + self.settings.render_period_s
-                if not self._views:
+                    # background training gets render_period_s between two renders, however
+                    # long a render (with its own training) took
+                    next_render_s = time.monotonic() + self.settings.render_period_s
+                if not training:
                     self._wake.wait(min(_IDLE_WAIT_S, max(0.0, next_render_s - now)))
         except Exception as err:  # keep the service up to report it on /readyz
             self._error = f"training thread failed: {err!r}"
@@ -370,6 +445,10 @@ class TrainerWorker:
         with self._control_lock:
             requests, self._reset_requests = self._reset_requests, []
             switches, self._backend_requests = self._backend_requests, []
+            carries, self._carry_requests = self._carry_requests, []
+        for setting, done in carries:
+            self._do_carry(setting)
+            done.set()
         if requests:
             self._do_reset()
             for done in requests:
@@ -404,6 +483,7 @@ class TrainerWorker:
 
     def _apply_decision(self, decision: pb.Decision) -> None:
         views: list[TrainView] = []
+        generation: list[float] = []
         missing = 0
         for ref in decision.selected:
             frame = self._find_frame(ref.camera_id, ref.generation_ms)
@@ -412,6 +492,7 @@ class TrainerWorker:
                 continue
             try:
                 views.append(TrainView(camera=frame.camera, image=frame.rgb()))
+                generation.append(float(frame.generation_ms))
             except Rejected as err:
                 self.rejections.reject(err, self.keys.edge_frame(ref.camera_id))
         if missing:
@@ -419,7 +500,7 @@ class TrainerWorker:
             log.debug("decision %d: %d selected frame(s) never received",
                       decision.decision_id, missing)
         try:
-            self.trainer.set_views(views)
+            self.rec.set_views(views)
         except ValueError as err:  # the field refuses the selection: keep the previous one
             self.rejections.reject(Rejected("bad_selection", str(err)), self.keys.decision)
             return
@@ -432,11 +513,14 @@ class TrainerWorker:
             self._decision = DecisionInForce(
                 decision_id=decision.decision_id, time_ms=decision.time_ms,
                 policy=decision.policy, n_selected=len(decision.selected), n_missing=missing,
-                applied_wall_s=time.time())
+                applied_wall_s=time.time(), generation_ms=tuple(generation))
 
     def _train_chunk(self) -> None:
         n = self.settings.steps_per_chunk
-        loss = float(self.trainer.step(n))
+        self._count_steps(n, float(self.rec.train(n)))
+
+    def _count_steps(self, n: int, loss: float) -> None:
+        """Account for ``n`` training steps (background or a render's own) ending at ``loss``."""
         now = time.monotonic()
         self.m_steps.inc(n)
         if math.isfinite(loss):
@@ -460,21 +544,35 @@ class TrainerWorker:
         if decision is None:  # nothing to represent yet: no render before the first decision
             return
         camera = self.heldout_camera
-        rgb = self.trainer.render(camera)
-        image = encode_png(rgb)
+        rendered = self.rec.render_decision(camera)
+        if rendered.render_steps:
+            self._count_steps(rendered.render_steps, rendered.loss)
+        image = encode_png(rendered.image)
         pose, intrinsics = camera_to_pb(camera)
-        step = int(self.trainer.steps)
-        n_views = int(self.trainer.n_views)
+        gens = decision.generation_ms
+        frames_age_ms = (decision.time_ms - float(np.mean(gens))) if gens else math.nan
+        lag_ms = self.clock.now_ms() - decision.time_ms
+        wall = time.time()
+        age_s = wall - decision.applied_wall_s
         msg = pb.Render(decision_id=decision.decision_id, time_ms=decision.time_ms, pose=pose,
-                        intrinsics=intrinsics, image=image, training_step=step,
-                        n_views=n_views, backend=self.backend)
+                        intrinsics=intrinsics, image=image, training_step=rendered.steps,
+                        n_views=rendered.n_views, backend=self.backend,
+                        frame_generation_ms=list(gens), carry=self.carry.carry,
+                        render_steps=rendered.render_steps)
         self.bus.publish(self.keys.render, msg.SerializeToString())
         self.m_renders.inc()
+        self.m_render_age.set(age_s)
+        self.m_render_lag.set(lag_ms / 1000.0)
+        self.m_frames_age.set(frames_age_ms / 1000.0)
+        self.m_render_steps.set(rendered.render_steps)
         with self._state_lock:
             self._renders += 1
             self._latest = LatestRender(png=image.data, decision_id=decision.decision_id,
-                                        time_ms=decision.time_ms, training_step=step,
-                                        n_views=n_views, wall_s=time.time())
+                                        time_ms=decision.time_ms, training_step=rendered.steps,
+                                        n_views=rendered.n_views, wall_s=wall,
+                                        carry=self.carry.carry,
+                                        render_steps=rendered.render_steps,
+                                        frames_age_ms=frames_age_ms, lag_ms=lag_ms, age_s=age_s)
 
     def _config(self, name: str) -> FieldConfig:
         cfg = self._configs.get(name) or make_field_config(name)
@@ -497,8 +595,11 @@ class TrainerWorker:
             log.warning("%s", request.error)
         else:
             previous = self.backend
+            rec = Reconstruction(trainer, self.carry.carry, self.carry.render_steps)
+            rec.set_views(self._views)
             with self._state_lock:
                 self.trainer = trainer
+                self.rec = rec
                 self.backend = request.name
                 self._resets += 1
                 self._loss = None
@@ -507,6 +608,16 @@ class TrainerWorker:
                      len(self._views))
         finally:
             request.done.set()
+
+    def _do_carry(self, setting: CarrySetting) -> None:
+        """Render with ``setting`` from now on (model and decision in force kept)."""
+        rec = Reconstruction(self.trainer, setting.carry, setting.render_steps)
+        rec.set_views(self._views)
+        with self._state_lock:
+            self.rec = rec
+            self.carry = setting
+        log.info("renders: carry %s, %d steps per rendered decision", setting.carry,
+                 setting.render_steps)
 
     def _do_reset(self) -> None:
         self.trainer.reset()  # keeps the views
