@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import typer
 
-from aoi3d.cli import channel, experiment, field, ppo, scene, up
+from aoi3d.cli import channel, experiment, field, live, ppo, scene, up
 
 app = typer.Typer(
     name="aoi3d",
@@ -21,6 +21,7 @@ app.add_typer(field.app, name="field", help="Radiance-field backends: list, trai
 app.add_typer(experiment.app, name="experiment",
               help="Reproduce the paper's tradeoff figures on a virtual clock.")
 app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO agent.")
+app.add_typer(live.app, name="live", help="Drive and measure the running pipeline.")
 app.command("up", help=up.up.__doc__)(up.up)
 
 
