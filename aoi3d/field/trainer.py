@@ -208,7 +208,8 @@ class FieldTrainer:
         twin.__dict__.update(self.__dict__)
         twin._field = copy.deepcopy(self._field)
         twin._optimizer = twin._make_optimizer()
-        twin._optimizer.load_state_dict(self._optimizer.state_dict())  # deep-copies the state
+        # load_state_dict keeps tensors already on the right device and dtype: copy them first
+        twin._optimizer.load_state_dict(copy.deepcopy(self._optimizer.state_dict()))
         twin._generator = torch.Generator(device=self._device)
         twin._generator.set_state(self._generator.get_state())
         twin._ray_cache = dict(self._ray_cache)
