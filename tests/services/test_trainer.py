@@ -132,6 +132,8 @@ def renders(bus: MemoryBus) -> list[pb.Render]:
 # ------------------------------------------------------------------------ tests
 def test_trains_on_the_decision_and_publishes_renders(client: TestClient, bus: MemoryBus,
                                                        dataset: SceneDataset) -> None:
+    # the continuously trained model, rendered as it is (the fresh default: further below)
+    assert client.put("/carry", json={"carry": "warm"}).status_code == 200
     publish_frames(bus, dataset, 0.0)
     publish_frames(bus, dataset, 100.0)
     # Cameras 1-3 at 100 ms are delivered; camera 4's frame at 900 ms never was.
@@ -314,8 +316,8 @@ def test_a_backend_that_cannot_be_built_keeps_the_old_one(
     assert resp.status_code == 500
     assert "could not build backend 'broken'" in resp.json()["detail"]
     assert "still training 'grid'" in resp.json()["detail"]
-    steps = client.get("/status").json()["steps"]
-    status = wait_for(lambda: (s := client.get("/status").json())["steps"] > steps and s,
+    steps = client.get("/status").json()["steps_total"]
+    status = wait_for(lambda: (s := client.get("/status").json())["steps_total"] > steps and s,
                       what="grid trains on")
     assert status["backend"] == "grid" and status["resets"] == 0 and status["running"]
 
@@ -425,3 +427,43 @@ def test_torch_threads_go_into_the_field_config(dataset: SceneDataset) -> None:
         assert worker.trainer.cfg.num_threads == 1 and torch.get_num_threads() == 1
     finally:
         torch.set_num_threads(before)
+
+
+def test_renders_carry_their_decision_frames_and_the_carry(client: TestClient, bus: MemoryBus,
+                                                           dataset: SceneDataset) -> None:
+    status = client.get("/status").json()
+    assert (status["carry"], status["render_steps"]) == ("fresh", 100)
+    resp = client.put("/carry", json={"carry": "fresh", "render_steps": 5})
+    assert resp.status_code == 200 and resp.json()["render_steps"] == 5
+    publish_frames(bus, dataset, 0.0)
+    publish_frames(bus, dataset, 100.0)
+    bus.publish(KEYS.decision, decision_payload(3, 160.0, [(1, 100.0), (2, 0.0)]))
+    render = wait_for(lambda: next((r for r in renders(bus) if r.decision_id == 3), None),
+                      what="a render of decision 3")
+    assert render.carry == "fresh" and render.render_steps == 5
+    assert render.training_step == 5 and render.n_views == 2  # a new model, its 5 steps
+    assert sorted(render.frame_generation_ms) == [0.0, 100.0]
+    assert metric(client, "aoi3d_render_frames_age_seconds") == pytest.approx(0.11)
+    assert metric(client, "aoi3d_render_steps") == 5
+    assert metric(client, "aoi3d_render_age_seconds") >= 0
+    png = client.get("/render.png")
+    assert png.headers["x-carry"] == "fresh" and png.headers["x-render-steps"] == "5"
+    assert float(png.headers["x-frames-age-ms"]) == pytest.approx(110.0)
+
+    # warm: the continuously trained model renders as it is; fork: a copy trains 4 steps
+    assert client.put("/carry", json={"carry": "warm"}).json()["carry"] == "warm"
+    wait_for(lambda: any(r.carry == "warm" and r.render_steps == 0 for r in renders(bus)),
+             what="a warm render")
+    assert client.put("/carry", json={"carry": "fork", "render_steps": 4}).status_code == 200
+    fork = wait_for(lambda: next((r for r in renders(bus) if r.carry == "fork"), None),
+                    what="a fork render")
+    assert fork.render_steps == 4 and fork.training_step >= 4
+
+
+def test_put_carry_refuses_bad_settings_and_changes_nothing(client: TestClient) -> None:
+    for body in ({"carry": "cold"}, {"carry": "fork", "render_steps": 0}, {},
+                 {"carry": "fresh", "render_steps": 1.5}):
+        resp = client.put("/carry", json=body)
+        assert resp.status_code == 422, body
+    status = client.get("/status").json()
+    assert (status["carry"], status["render_steps"]) == ("fresh", 100)
