@@ -3,10 +3,11 @@
 Starts ``aoi3d up`` on its own ports with the default scene, sets the policy, and after
 ``--warmup-s`` samples every counter twice, ``--window-s`` apart: frames offered/delivered
 per second through camera → network, decisions per second, the trainer's steps per second,
-and the PSNR of the novel view over time (first renders vs the last ones). Writes
-``bench/results/pipeline-<policy>.json``.
+the quality of the renders of the window's decisions (mean ± 95% CI), and how late they come:
+the render lag (sim ms from the time a render represents to its scoring) and the same in wall
+seconds. Writes ``bench/results/pipeline-<policy>-x<time scale>.json``.
 
-    python bench/pipeline.py --policy mat:51 --window-s 60
+    python bench/pipeline.py --policy mat:70 --window-s 60 --time-scale 1
 """
 
 from __future__ import annotations
@@ -50,11 +51,11 @@ def policy_body(spec: str) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--policy", default="mat:51", help="all | mat:<ms> | freshest:<k>")
+    ap.add_argument("--policy", default="mat:70", help="all | mat:<ms> | freshest:<k>")
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--warmup-s", type=float, default=10.0)
     ap.add_argument("--window-s", type=float, default=60.0)
-    ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine"))
+    ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine-rotor"))
     args = ap.parse_args()
 
     log_dir = ROOT / "runs" / "bench-pipeline"
@@ -81,11 +82,17 @@ def main() -> None:
         r.raise_for_status()
         time.sleep(args.warmup_s)
         first = {s: scrape(s) for s in PORTS}
+        decision = f"http://127.0.0.1:{PORTS['scheduler']}/decision"
+        id0 = httpx.get(decision, timeout=30).json()["decision_id"]
         t0 = time.monotonic()
         time.sleep(args.window_s)
         last = {s: scrape(s) for s in PORTS}
+        id1 = httpx.get(decision, timeout=30).json()["decision_id"]
         dt = time.monotonic() - t0
-        status = httpx.get(f"http://127.0.0.1:{PORTS['trainer']}/status").json()
+        status = httpx.get(f"http://127.0.0.1:{PORTS['trainer']}/status", timeout=30).json()
+        # the window's last decisions are rendered a render's compute later
+        rate_now = status.get("steps_per_s") or 1.0
+        time.sleep(min(120.0, 2.0 + 1.5 * (status.get("render_steps") or 0) / rate_now))
         history = httpx.get(f"http://127.0.0.1:{PORTS['metrics']}/quality",
                             params={"limit": 100000}).json()["history"]
     finally:
@@ -97,6 +104,17 @@ def main() -> None:
 
     psnr = [q["psnr_db"] for q in history]
     k = max(1, min(5, len(psnr) // 4))
+    window = [q for q in history if id0 <= q["decision_id"] <= id1]
+
+    def stat(values: list[float]) -> dict:
+        values = [v for v in values if v is not None]
+        if len(values) < 2:
+            return {"mean": values[0] if values else None, "ci95": None, "n": len(values)}
+        from scipy import stats
+
+        half = stats.t.ppf(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
+        return {"mean": statistics.fmean(values), "ci95": float(half), "n": len(values)}
+
     result = {
         "policy": args.policy, "time_scale": args.time_scale, "window_s": round(dt, 1),
         "frames_generated_per_s": rate("camera", "aoi3d_frames_generated_total"),
@@ -117,6 +135,15 @@ def main() -> None:
         "psnr_last_renders_db": psnr[-k:],
         "psnr_mean_first_db": statistics.fmean(psnr[:k]) if psnr else None,
         "psnr_mean_last_db": statistics.fmean(psnr[-k:]) if psnr else None,
+        "carry": status.get("carry"), "render_steps": status.get("render_steps"),
+        "window_renders": len(window),
+        "window_psnr_db": stat([q["psnr_db"] for q in window]),
+        "window_psnr_dynamic_db": stat([q.get("psnr_dynamic_db") for q in window]),
+        "window_ssim": stat([q["ssim"] for q in window]),
+        "window_lpips": stat([q["lpips"] for q in window]),
+        "window_views": stat([q["n_views"] for q in window]),
+        "render_lag_sim_ms": stat([q["lag_ms"] for q in window]),
+        "render_lag_wall_s": stat([q["lag_ms"] / 1000.0 / args.time_scale for q in window]),
         "seconds_since_ready": round(time.monotonic() - t_ready, 1),
         "trainer_device": status.get("device"),
     }

@@ -38,7 +38,9 @@ DOCUMENTED_SERIES = {
                 "aoi3d_frames_delivered_total", "aoi3d_link_delay_seconds_bucket"],
     "scheduler": ["aoi3d_aoi_seconds", "aoi3d_cameras_selected", "aoi3d_decisions_total"],
     "trainer": ["aoi3d_trainer_steps_total", "aoi3d_trainer_steps_per_second",
-                "aoi3d_trainer_loss", "aoi3d_trainer_views", "aoi3d_renders_total"],
+                "aoi3d_trainer_loss", "aoi3d_trainer_views", "aoi3d_renders_total",
+                "aoi3d_render_age_seconds", "aoi3d_render_lag_sim_seconds",
+                "aoi3d_render_frames_age_seconds", "aoi3d_render_steps"],
     "metrics": ["aoi3d_render_psnr_db", "aoi3d_render_ssim", "aoi3d_reward",
                 "aoi3d_quality_total"],
 }
@@ -167,7 +169,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1"]
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0")
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_TRAINER_RENDER_STEPS="30")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
@@ -222,6 +224,24 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         before = metric("network", "aoi3d_frames_delivered_total")
         wait_for("frames still delivered",
                  lambda: metric("network", "aoi3d_frames_delivered_total") > before)
+
+        # `aoi3d live sweep` measures policies on this pipeline, Quality by decision id
+        scale = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+        sweep = subprocess.run(
+            [sys.executable, "-m", "aoi3d", "live", "sweep", "--policies", "mat:70,all",
+             "--settle-s", "1", "--measure-s", str(10 * scale), "--port-offset",
+             str(PORT_OFFSET), "--no-sim", "--json", "--out", str(tmp_path / "sweep"),
+             "--timeout-s", str(30 * scale)],
+            capture_output=True, text=True, timeout=300 * scale)
+        assert sweep.returncode == 0, sweep.stderr[-3000:]
+        doc = json.loads(sweep.stdout)
+        assert [r["policy"] for r in doc["results"]] == ["mat:70", "all"]
+        for r in doc["results"]:
+            assert r["n"] >= 1 and math.isfinite(r["psnr_db"]["mean"]), r
+        assert doc["results"][1]["cameras_used"]["mean"] == len(big[-1].camera_ids)
+        assert doc["settings"]["carry"] == "fresh"
+        assert {"points.csv", "renders.csv", "results.json", "live_sweep.png"} <= {
+            f.name for f in (tmp_path / "sweep").iterdir()}
 
         # every service exposes its documented series
         for name, series in DOCUMENTED_SERIES.items():

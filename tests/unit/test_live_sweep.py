@@ -1,0 +1,63 @@
+"""`aoi3d live sweep`'s statistics: per-policy summaries and the interior-maximum test."""
+
+from __future__ import annotations
+
+import pytest
+
+from aoi3d.cli.live import Measurement, interior_maximum, summarise
+
+
+def stat(mean: float | None, ci95: float | None) -> dict:
+    return {"mean": mean, "ci95": ci95, "n": 10}
+
+
+def results(*points: tuple[str, float, float]) -> list[dict]:
+    return [{"policy": p, "psnr_db": stat(m, h), "lpips": stat(-m / 100, h / 100)}
+            for p, m, h in points]
+
+
+def test_interior_maximum_needs_the_ci_clear_of_both_ends() -> None:
+    clear = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.5),
+                                     ("all", 24.0, 0.3)), "psnr_db")
+    assert clear == {"best": "mat:70", "best_mean": 26.0, "interior": True, "beyond_ci": True}
+    overlap = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 1.5),
+                                       ("all", 25.0, 0.3)), "psnr_db")
+    assert overlap["interior"] and not overlap["beyond_ci"]
+    end = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 23.0, 0.5),
+                                   ("all", 24.0, 0.3)), "psnr_db")
+    assert end["best"] == "all" and not end["interior"] and not end["beyond_ci"]
+    # LPIPS: lower is better
+    low = interior_maximum(results(("a", 20.0, 1.0), ("b", 26.0, 0.5), ("c", 24.0, 0.3)),
+                           "lpips")
+    assert low["best"] == "b" and low["beyond_ci"]
+    # an unknown CI never counts as separated; too few policies or a missing metric: None
+    unknown = interior_maximum(results(("a", 20.0, 1.0), ("b", 26.0, 0.5), ("c", 24.0, 0.3))
+                               [:1] + [{"policy": "b", "psnr_db": stat(26.0, None)}]
+                               + results(("c", 24.0, 0.3)), "psnr_db")
+    assert unknown["interior"] and not unknown["beyond_ci"]
+    assert interior_maximum(results(("a", 1.0, 0.1), ("b", 2.0, 0.1)), "psnr_db") is None
+    assert interior_maximum([{"policy": p, "psnr_db": stat(None, None)} for p in "abc"],
+                            "psnr_db") is None
+
+
+def test_summarise_groups_by_policy_over_repeats() -> None:
+    def decision(n: int, aoi: float) -> dict:
+        return {"policy": "mat:70", "selected": [{"aoi_ms": aoi}] * n}
+
+    ms = [
+        Measurement("mat:70", 0, 1, 9, 10.0, [{"psnr_db": 25.0, "n_views": 4},
+                                              {"psnr_db": 27.0, "n_views": 6}],
+                    [decision(4, 30.0), decision(6, 60.0)]),
+        Measurement("all", 0, 10, 19, 10.0, [{"psnr_db": 24.0, "n_views": 18}], []),
+        Measurement("mat:70", 1, 20, 29, 10.0, [{"psnr_db": 26.0, "n_views": 5}],
+                    [decision(5, 60.0), decision(0, 0.0)]),
+    ]
+    out = summarise(ms, ["mat:70", "all"])
+    assert [r["policy"] for r in out] == ["mat:70", "all"]
+    first = out[0]
+    assert first["n"] == 3
+    assert first["psnr_db"]["mean"] == pytest.approx(26.0) and first["psnr_db"]["ci95"] > 0
+    assert first["cameras_used"]["mean"] == pytest.approx(15 / 4)
+    assert first["aoi_used_ms"]["mean"] == pytest.approx(50.0)  # empty decisions have none
+    assert first["psnr_dynamic_db"] == {"mean": None, "ci95": None, "n": 0}
+    assert out[1]["psnr_db"] == {"mean": 24.0, "ci95": None, "n": 1}
