@@ -131,6 +131,8 @@ class Measurement:
     wall_s: float
     qualities: list[dict[str, Any]]
     decisions: list[dict[str, Any]]
+    render_png: bytes = b""
+    render_decision: int | None = None
 
 
 def _wait(what: str, check: Callable[[], Any], timeout_s: float, every_s: float = 0.25) -> Any:
@@ -173,12 +175,27 @@ def measure_policy(pipe: Pipeline, policy: dict[str, Any], spec: str, *, settle_
                         f"while measuring {spec!r}")
     # the renders of the window's decisions come a render's compute later: wait for them
     lo, hi = first["decision_id"], last["decision_id"]
+    png, png_decision = _latest_render(pipe)
     time.sleep(_render_latency_s(pipe))
     history = pipe.call("GET", "metrics", "/quality", params={"limit": 1000})["history"]
     qualities = [q for q in history if lo <= q["decision_id"] <= hi]
     return Measurement(policy=spec, repeat=repeat, first_decision=lo, last_decision=hi,
                        wall_s=time.monotonic() - started, qualities=qualities,
-                       decisions=[d for d in decisions if d["policy"] == spec])
+                       decisions=[d for d in decisions if d["policy"] == spec],
+                       render_png=png, render_decision=png_decision)
+
+
+def _latest_render(pipe: Pipeline) -> tuple[bytes, int | None]:
+    """The trainer's latest render (PNG) and the decision it represents."""
+    import httpx
+
+    try:
+        resp = pipe.client.get(pipe.url("trainer", "/render.png"))
+    except httpx.HTTPError:
+        return b"", None
+    if resp.status_code != 200:
+        return b"", None
+    return resp.content, int(resp.headers.get("x-decision-id", "0"))
 
 
 def _render_latency_s(pipe: Pipeline) -> float:
@@ -321,6 +338,47 @@ def _table(results: Sequence[dict[str, Any]], sim: dict[str, Any] | None) -> Tab
                       "–" if s is None or live is None else f"{live - s:+.2f}"]
         table.add_row(*cells)
     return table
+
+
+def plot_views(measurements: Sequence[Measurement], dataset: Path, path: Path,
+               title: str) -> Path | None:
+    """Each policy's last render beside the ground truth of the same time (the held-out
+    camera's frame at the scene time the metrics service paired it with)."""
+    import io
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from PIL import Image
+
+    from aoi3d.scene import open_dataset
+
+    pairs = []
+    for m in measurements:
+        entry = next((q for q in m.qualities if q["decision_id"] == m.render_decision), None)
+        if not m.render_png or entry is None:
+            continue
+        pairs.append((m, entry, np.asarray(Image.open(io.BytesIO(m.render_png)).convert("RGB"))))
+    if not pairs:
+        return None
+    ds = open_dataset(dataset)
+    fig, axes = plt.subplots(2, len(pairs), figsize=(3.2 * len(pairs), 5.2), squeeze=False,
+                             constrained_layout=True)
+    for col, (m, entry, image) in enumerate(pairs):
+        truth = ds.frame(ds.heldout_id, ds.frame_index(entry["scene_time_ms"]))
+        axes[0, col].imshow(image, interpolation="nearest")
+        axes[0, col].set_title(f"{m.policy} (repeat {m.repeat + 1})\n"
+                               f"{entry['psnr_db']:.1f} dB, {entry['n_views']} views", fontsize=9)
+        axes[1, col].imshow(truth, interpolation="nearest")
+        axes[1, col].set_title(f"truth, t = {entry['time_ms']:.0f} ms", fontsize=9)
+        for ax in axes[:, col]:
+            ax.set_axis_off()
+    fig.suptitle(title)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
 
 
 # --- starting a pipeline ---------------------------------------------------------------------
@@ -474,7 +532,8 @@ def sweep(
                      "backend": status1.get("backend")},
         "sim": sim_doc,
         "wall_s": {"live": live_wall_s, "total": time.monotonic() - started},
-        "measurements": [vars(m) for m in measurements],
+        "measurements": [{k: v for k, v in vars(m).items() if k != "render_png"}
+                         for m in measurements],
     }
     from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 
@@ -490,6 +549,9 @@ def sweep(
     plot(results, sim_doc, out / "live_sweep.png",
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
          f"decision, {steps_per_s:.0f} trainer steps/s, {measure_s:g} s × {repeats} per policy")
+    plot_views(measurements, dataset, out / "live_views.png",
+               "Live renders (top) and the truth of the same time (bottom), last render of "
+               "each window")
     if json_:
         print(json.dumps({k: doc[k] for k in ("results", "interior_maximum", "settings",
                                                "wall_s")}, default=str))
