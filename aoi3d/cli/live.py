@@ -557,7 +557,7 @@ def sweep(
         print(json.dumps({k: doc[k] for k in ("results", "interior_maximum", "settings",
                                                "wall_s")}, default=str))
     else:
-        Console().print(_table(results, sim_doc))
+        Console(width=160).print(_table(results, sim_doc))
         for metric, info in shape.items():
             if info is not None:
                 verdict = ("an interior maximum beyond its 95% CI" if info["beyond_ci"] else
