@@ -10,12 +10,13 @@ with vertices on its faces and cubic voxels; it starts coarse and is upsampled t
 map of the ray direction sampled bilinearly (the scene outside the box depends on the
 direction only).
 
-The trilinear interpolation is a hand-written gather whose backward scatters with
-``index_add_`` into a row-sparse gradient. Measured with torch 2.13 on 2 CPU cores, 200k
-samples on a 128×128×89 grid, forward + backward: 78 / 58 ms on 1 / 2 threads against
-62 / 67 ms for ``grid_sample`` — on par; what pays is the sparse gradient: ``LazyAdam`` then
-updates only the rows a batch reached, where a dense Adam step over that grid costs
-29 / 18 ms.
+The trilinear interpolation is the shared one of flat grids
+(:func:`aoi3d.field.encodings.interpolate`: ``row_gather`` of the 8 corners, whose backward
+scatters with ``index_add_`` into a row-sparse gradient). Measured with torch 2.13 on 2 CPU
+cores, 200k samples on a 128×128×89 grid, forward + backward: a hand-written gather took
+78 / 58 ms on 1 / 2 threads against 62 / 67 ms for ``grid_sample`` — on par; what pays is the
+sparse gradient: ``LazyAdam`` then updates only the rows a batch reached, where a dense Adam
+step over that grid costs 29 / 18 ms.
 """
 
 from __future__ import annotations
@@ -31,8 +32,9 @@ from torch import nn
 
 from aoi3d.field.background import latlong_background
 from aoi3d.field.base import Field, FieldConfig, check_background_and_schedule
+from aoi3d.field.encodings import cell_index, grid_shape, interpolate, resample, vertex_coords
 
-__all__ = ["DenseGridField", "GridConfig", "grid_shape", "trilinear"]
+__all__ = ["DenseGridField", "GridConfig"]
 
 
 @dataclass(frozen=True)
@@ -88,74 +90,6 @@ class GridConfig(FieldConfig):
         return DenseGridField(self, aabb)
 
 
-def grid_shape(aabb: np.ndarray, size: int) -> tuple[int, int, int]:
-    """Vertices per axis: ``size`` along the longest side, cubic voxels, at least 2 per axis."""
-    extent = np.asarray(aabb[1], dtype=np.float64) - np.asarray(aabb[0], dtype=np.float64)
-    voxel = float(extent.max()) / (size - 1)
-    return tuple(max(2, round(float(e) / voxel) + 1) for e in extent)  # type: ignore[return-value]
-
-
-class _Gather(torch.autograd.Function):
-    """out[p] = Σ_k w[p, k] · table[idx[p, k]].
-
-    The backward returns a row-sparse COO gradient: the rows the batch touched, each summed
-    with ``index_add_`` into a compact buffer (cache-friendly, and ``LazyAdam`` then updates
-    only those rows).
-    """
-
-    @staticmethod
-    def forward(ctx: Any, table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(idx, w)
-        ctx.n_rows = table.shape[0]
-        rows = table.index_select(0, idx.reshape(-1)).view(*idx.shape, table.shape[1])
-        return torch.bmm(w[:, None, :], rows).squeeze(1)
-
-    @staticmethod
-    def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[torch.Tensor, None, None]:
-        idx, w = ctx.saved_tensors
-        n_rows, channels = ctx.n_rows, grad_out.shape[1]
-        flat = idx.reshape(-1)
-        touched = torch.zeros(n_rows, dtype=torch.bool, device=flat.device)
-        touched[flat] = True
-        rows = touched.nonzero().squeeze(1)  # sorted, unique
-        position = torch.empty(n_rows, dtype=torch.long, device=flat.device)
-        position[rows] = torch.arange(rows.shape[0], device=flat.device)
-        contrib = (w[..., None] * grad_out[:, None, :]).reshape(-1, channels)
-        values = grad_out.new_zeros(rows.shape[0], channels).index_add_(0, position[flat], contrib)
-        grad = torch.sparse_coo_tensor(
-            rows[None], values, (n_rows, channels), is_coalesced=True, check_invariants=False
-        )
-        return grad, None, None
-
-
-def trilinear(
-    table: torch.Tensor, shape: tuple[int, int, int], coords: torch.Tensor
-) -> torch.Tensor:
-    """Trilinear interpolation of a grid stored flat, channels last.
-
-    ``table`` (X·Y·Z, C), vertex (i, j, k) at row (i·Y + j)·Z + k; ``coords`` (P, 3) in vertex
-    units, clamped to the grid. Returns (P, C), differentiable with respect to ``table``.
-    """
-    nx, ny, nz = shape
-    hi = torch.tensor([nx - 1, ny - 1, nz - 1], device=coords.device, dtype=coords.dtype)
-    c = torch.minimum(coords.clamp_min(0.0), hi)
-    base = torch.minimum(c.floor(), hi - 1)
-    f = c - base
-    b = base.long()
-    row = (b[:, 0] * ny + b[:, 1]) * nz + b[:, 2]
-    offsets = torch.tensor(
-        [0, 1, nz, nz + 1, ny * nz, ny * nz + 1, ny * nz + nz, ny * nz + nz + 1],
-        device=coords.device,
-    )
-    idx = row[:, None] + offsets[None, :]
-    g = 1.0 - f
-    wx = torch.stack([g[:, 0], f[:, 0]], dim=1)
-    wy = torch.stack([g[:, 1], f[:, 1]], dim=1)
-    wz = torch.stack([g[:, 2], f[:, 2]], dim=1)
-    w = (wx[:, :, None, None] * wy[:, None, :, None] * wz[:, None, None, :]).reshape(-1, 8)
-    return _Gather.apply(table, idx, w)
-
-
 def _dilate_cells(vertices: torch.Tensor, axis: int) -> torch.Tensor:
     """Along ``axis``: n vertex flags → n − 1 cell flags, cell c = any(vertices c−1 … c+2)."""
     n = vertices.shape[axis]
@@ -192,13 +126,9 @@ class DenseGridField(Field):
         self._occupancy: torch.Tensor | None = None  # (cells,) bool, None: skip nothing
 
     # --- the Field interface -------------------------------------------------------------
-    def _coords(self, points: torch.Tensor) -> torch.Tensor:
-        """World points → vertex units (0 … n−1 along each axis)."""
-        scale = torch.tensor([n - 1 for n in self.shape], device=points.device, dtype=points.dtype)
-        return (points - self.aabb[0]) * (scale / (self.aabb[1] - self.aabb[0]))
-
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        raw = trilinear(self.grid, self.shape, self._coords(points))
+        coords = vertex_coords(points, self.aabb, self.shape)
+        raw = interpolate(self.grid, self.shape, coords, sparse=True)
         return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
 
     def background(self, dirs: torch.Tensor) -> torch.Tensor:
@@ -213,10 +143,8 @@ class DenseGridField(Field):
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None:
         if self._occupancy is None:
             return None
-        nx, ny, nz = self.shape
-        cells = torch.tensor([nx - 2, ny - 2, nz - 2], device=points.device)
-        c = torch.minimum(self._coords(points).floor().long().clamp_min(0), cells)
-        index = (c[:, 0] * (ny - 1) + c[:, 1]) * (nz - 1) + c[:, 2]
+        cells = [n - 1 for n in self.shape]
+        index = cell_index(vertex_coords(points, self.aabb, self.shape), cells)
         return self._occupancy.index_select(0, index)
 
     def on_step(self, step: int) -> bool:
@@ -246,8 +174,5 @@ class DenseGridField(Field):
         """Resample the grid trilinearly to ``size`` vertices along the longest side."""
         new_shape = grid_shape(self.aabb.cpu().numpy(), size)
         with torch.no_grad():
-            c = self.grid.shape[1]
-            vol = self.grid.detach().T.reshape(1, c, *self.shape)
-            vol = F.interpolate(vol, size=new_shape, mode="trilinear", align_corners=True)
-            self.grid = nn.Parameter(vol.reshape(c, -1).T.contiguous())
+            self.grid = nn.Parameter(resample(self.grid, self.shape, new_shape))
         self.shape = new_shape

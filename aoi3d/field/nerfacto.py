@@ -10,10 +10,13 @@ A model that owns its sampling (it overrides :meth:`Field.render_rays`):
    networks this repeats; the last resampling gives ``fine_samples`` bins for the field.
    Early on the proposal weights are annealed towards uniform (w^a, a: 0 → 1 over
    ``proposal_anneal_steps``), so the first steps sample the whole chord.
-2. **The field**: a multiresolution hash encoding (Instant-NGP; :class:`HashEncoding`, int32
-   XOR hashing with power-of-two tables, small levels dense) and a small MLP giving density
+2. **The field**: the shared multiresolution hash encoding
+   (:class:`aoi3d.field.encodings.HashEncoding`, ``"aligned"`` layout: a table of
+   2^``log2_table_size`` rows per level, small levels dense on cubes padded to a power of
+   two) and a small MLP giving density
    (exp, initial σ ≈ ``init_density``) and geometry features; a colour MLP reads those, the
-   view direction (real spherical harmonics) and the per-image **appearance embedding**.
+   view direction (real spherical harmonics, :func:`~aoi3d.field.encodings.spherical_harmonics`)
+   and the per-image **appearance embedding**.
 3. **Losses** (``RenderResult.aux_loss``): the interlevel (proposal, histogram) loss
    (:func:`interlevel_loss`), which teaches each proposal network to bound the field's
    weights (the field's weights and bins are detached: the loss trains the proposal networks
@@ -56,23 +59,18 @@ from torch import nn
 
 from aoi3d.field.background import latlong_background
 from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.encodings import HashEncoding, spherical_harmonics
 from aoi3d.field.rays import RayBundle
 from aoi3d.field.render import RenderOptions, RenderResult, volume_render
 
 __all__ = [
-    "HashEncoding",
     "NerfactoConfig",
     "NerfactoField",
     "distortion_loss",
     "interlevel_loss",
     "sample_pdf",
-    "spherical_harmonics",
     "weights_from_density",
 ]
-
-# Instant-NGP's hashing primes (the first is 1), as wrapped int32: products wrap like uint32,
-# and the low bits that the power-of-two mask keeps are the same.
-_PRIMES_I32 = (1, 2654435761 - (1 << 32), 805459861)
 
 
 @dataclass(frozen=True)
@@ -226,149 +224,6 @@ def _trunc_exp(x: torch.Tensor) -> torch.Tensor:
     return _TruncExp.apply(x)
 
 
-class HashEncoding(nn.Module):
-    """Multiresolution hash encoding (Müller et al. 2022) of points in the unit cube.
-
-    Level l has ``n_l = floor(base · b^l)`` cells per unit, b chosen so that the last level
-    has ``max_resolution``; the features at a point are the trilinear interpolation of its 8
-    surrounding vertices, all levels concatenated (P, levels·features). Every level has a
-    table of T = 2^``log2_table_size`` rows. A level whose vertex grid fits in T rows once each
-    axis is padded to a power of two is indexed densely (x | y·2^a | z·2^2a, no collisions);
-    the others hash with (x ⊕ y·π₂ ⊕ z·π₃) mod T in int32. Both are an XOR of per-axis
-    terms, masked per axis, with the level's offset l·T OR-ed into the x term, so all levels
-    are indexed in one batched computation. Table values start uniform in ±1e-4.
-    """
-
-    def __init__(
-        self,
-        levels: int,
-        features: int,
-        log2_table_size: int,
-        base_resolution: int,
-        max_resolution: int,
-        generator: torch.Generator | None = None,
-    ) -> None:
-        super().__init__()
-        growth = (
-            math.exp((math.log(max_resolution) - math.log(base_resolution)) / (levels - 1))
-            if levels > 1
-            else 1.0
-        )
-        res = [math.floor(base_resolution * growth**lvl + 1e-6) for lvl in range(levels)]
-        multipliers = []
-        for n in res:
-            bits = max(1, math.ceil(math.log2(n + 1)))  # vertices 0..n per axis
-            dense = 3 * bits <= log2_table_size
-            multipliers.append((1, 1 << bits, 1 << (2 * bits)) if dense else _PRIMES_I32)
-        size = 1 << log2_table_size
-        self.levels, self.features, self.table_size = levels, features, size
-        self.resolutions = tuple(res)
-        self.dense_levels = sum(1 for m in multipliers if m != _PRIMES_I32)
-        self.register_buffer("_res", torch.tensor(res, dtype=torch.float32), persistent=False)
-        mult = torch.tensor(multipliers, dtype=torch.int32).T[:, :, None]  # (3, L, 1)
-        self.register_buffer("_mult", mult.contiguous(), persistent=False)
-        offset = torch.arange(levels, dtype=torch.int32)[:, None] * size  # (L, 1)
-        self.register_buffer("_offset", offset, persistent=False)
-        table = torch.rand(levels * size, features, generator=generator) * 2e-4 - 1e-4
-        self.table = nn.Parameter(table)
-
-    @property
-    def out_dim(self) -> int:
-        return self.levels * self.features
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Features (P, levels·features) of points ``x`` (P, 3) in [0, 1] (clamped)."""
-        n_points, n_levels = x.shape[0], self.levels
-        # Level-major layout (…, L·P): every elementwise op runs over one long contiguous axis.
-        xt = x.detach().clamp(0.0, 1.0).T.contiguous()
-        pos = xt[:, None, :] * self._res[None, :, None]  # (3, L, P)
-        base = torch.minimum(pos.floor(), (self._res - 1)[None, :, None])
-        frac = (pos - base).view(3, -1)
-        lower = base.to(torch.int32).mul_(self._mult)  # (3, L, P) per-axis terms
-        terms = torch.stack([lower, lower + self._mult], dim=1)  # (3, 2, L, P): lower, upper
-        terms.bitwise_and_(self.table_size - 1)
-        terms[0].bitwise_or_(self._offset)
-        terms = terms.view(3, 2, -1)
-        idx = (terms[0][:, None, None] ^ terms[1][None, :, None]) ^ terms[2][None, None, :]
-        wts = torch.stack([1.0 - frac, frac], dim=1)  # (3, 2, L·P)
-        w = (wts[0][:, None, None] * wts[1][None, :, None]) * wts[2][None, None, :]
-        out = _HashGather.apply(self.table, idx.view(8, -1), w.view(8, -1))  # (L·P, F)
-        out = out.view(n_levels, n_points, self.features)
-        return out.transpose(0, 1).reshape(n_points, self.out_dim)
-
-
-class _HashGather(torch.autograd.Function):
-    """out[q] = Σ_k w[k, q] · table[idx[k, q]] for the 8 corners k of each (level, point) q.
-
-    Pairs of features are gathered and scattered as one complex64 value: 1-D ``index_select``
-    and ``index_add_`` have fast CPU paths that their 2-D (row) forms lack (measured, torch
-    2.13, 1.5M rows: gather 8 vs 18 ms, scatter 19 vs 35 ms); the weighting is real
-    arithmetic (complex × real multiplies are slow). The gradient is dense (one batch touches
-    most rows of the fine levels anyway).
-    """
-
-    @staticmethod
-    def forward(ctx: Any, table: torch.Tensor, idx: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-        ctx.save_for_backward(idx, w)
-        ctx.table_shape = table.shape
-        flat = idx.reshape(-1)
-        n_q, n_feat = w.shape[1], table.shape[1]
-        if n_feat == 1:
-            rows = table.view(-1).index_select(0, flat).view(8, n_q)
-            return torch.einsum("kq,kq->q", rows, w)[:, None]
-        if n_feat == 2:
-            rows = torch.view_as_real(torch.view_as_complex(table).index_select(0, flat))
-        else:
-            rows = table.index_select(0, flat)
-        return torch.einsum("kqf,kq->qf", rows.view(8, n_q, n_feat), w)
-
-    @staticmethod
-    def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[torch.Tensor, None, None]:
-        idx, w = ctx.saved_tensors
-        n_rows, n_feat = ctx.table_shape
-        flat = idx.reshape(-1)
-        g = grad_out.contiguous()
-        if n_feat == 1:
-            contrib = (w * g.view(1, -1)).view(-1)
-            return g.new_zeros(n_rows).index_add_(0, flat, contrib)[:, None], None, None
-        contrib = (w[..., None] * g[None]).view(-1, n_feat)
-        if n_feat == 2:
-            grad = g.new_zeros(n_rows, 2)
-            torch.view_as_complex(grad).index_add_(0, flat, torch.view_as_complex(contrib))
-            return grad, None, None
-        return g.new_zeros(n_rows, n_feat).index_add_(0, flat, contrib), None, None
-
-
-def spherical_harmonics(dirs: torch.Tensor, levels: int) -> torch.Tensor:
-    """Real spherical harmonics of unit ``dirs`` (P, 3), bands 0..levels−1: (P, levels²)."""
-    if levels == 0:
-        return dirs.new_zeros(dirs.shape[0], 0)
-    x, y, z = dirs.unbind(-1)
-    out = [torch.full_like(x, 0.28209479177387814)]
-    if levels > 1:
-        out += [-0.48860251190291987 * y, 0.48860251190291987 * z, -0.48860251190291987 * x]
-    if levels > 2:
-        xx, yy, zz = x * x, y * y, z * z
-        out += [
-            1.0925484305920792 * x * y,
-            -1.0925484305920792 * y * z,
-            0.94617469575755997 * zz - 0.31539156525251999,
-            -1.0925484305920792 * x * z,
-            0.54627421529603959 * (xx - yy),
-        ]
-    if levels > 3:
-        out += [
-            0.59004358992664352 * y * (-3.0 * xx + yy),
-            2.8906114426405538 * x * y * z,
-            0.45704579946446572 * y * (1.0 - 5.0 * zz),
-            0.3731763325901154 * z * (5.0 * zz - 3.0),
-            0.45704579946446572 * x * (1.0 - 5.0 * zz),
-            1.4453057213202769 * z * (xx - yy),
-            0.59004358992664352 * x * (-xx + 3.0 * yy),
-        ]
-    return torch.stack(out, dim=-1)
-
-
 def weights_from_density(sigma: torch.Tensor, deltas: torch.Tensor) -> torch.Tensor:
     """Volume-rendering weights w_i = T_i (1 − exp(−σ_i δ_i)) of dense samples (R, N)."""
     tau = sigma * deltas
@@ -481,21 +336,25 @@ def _mlp(n_in: int, hidden: int, n_out: int, layers: int) -> nn.Sequential:
 class _ProposalNetwork(nn.Module):
     """Density only: a small hash grid and a one-hidden-layer MLP."""
 
-    def __init__(self, cfg: NerfactoConfig, max_resolution: int, gen: torch.Generator) -> None:
+    def __init__(
+        self, cfg: NerfactoConfig, aabb: np.ndarray, max_resolution: int, gen: torch.Generator
+    ) -> None:
         super().__init__()
         self.encoding = HashEncoding(
+            aabb,
             cfg.proposal_levels,
             cfg.proposal_features,
             cfg.proposal_log2_table_size,
             cfg.proposal_base_resolution,
             max_resolution,
-            gen,
+            layout="aligned",
+            generator=gen,
         )
-        self.mlp = _mlp(self.encoding.out_dim, cfg.proposal_hidden_dim, 1, 1)
+        self.mlp = _mlp(self.encoding.out_features, cfg.proposal_hidden_dim, 1, 1)
         self.log_init_density = math.log(cfg.init_density)
 
-    def forward(self, x_unit: torch.Tensor) -> torch.Tensor:
-        raw = self.mlp(self.encoding(x_unit)).squeeze(-1)
+    def forward(self, points: torch.Tensor) -> torch.Tensor:
+        raw = self.mlp(self.encoding(points)).squeeze(-1)
         return _trunc_exp(raw + self.log_init_density)
 
 
@@ -507,20 +366,22 @@ class NerfactoField(Field):
     def __init__(self, cfg: NerfactoConfig, aabb: np.ndarray) -> None:
         super().__init__()
         self.cfg = cfg
-        box = torch.as_tensor(np.asarray(aabb, dtype=np.float64), dtype=torch.float32)
-        self.register_buffer("aabb", box)
-        # Points → unit cube by the longest side (cubic cells).
-        self.register_buffer("_scale", 1.0 / (box[1] - box[0]).max())
+        box = np.asarray(aabb, dtype=np.float64)
+        self.register_buffer("aabb", torch.as_tensor(box, dtype=torch.float32))
         gen = torch.Generator().manual_seed(0)  # the module's init (torch's global RNG untouched)
         self.encoding = HashEncoding(
+            box,
             cfg.levels,
             cfg.features_per_level,
             cfg.log2_table_size,
             cfg.base_resolution,
             cfg.max_resolution,
-            gen,
+            layout="aligned",
+            generator=gen,
         )
-        self.density_mlp = _mlp(self.encoding.out_dim, cfg.hidden_dim, 1 + cfg.geo_features, 1)
+        self.density_mlp = _mlp(
+            self.encoding.out_features, cfg.hidden_dim, 1 + cfg.geo_features, 1
+        )
         n_dir = cfg.direction_sh_levels**2
         self.color_mlp = _mlp(
             cfg.geo_features + n_dir + cfg.appearance_dim, cfg.color_hidden_dim, 3, 2
@@ -528,7 +389,7 @@ class NerfactoField(Field):
         for mlp in (self.density_mlp, self.color_mlp):
             _init_mlp(mlp, gen)
         self.proposals = nn.ModuleList(
-            _ProposalNetwork(cfg, r, gen) for r in cfg.proposal_max_resolutions
+            _ProposalNetwork(cfg, box, r, gen) for r in cfg.proposal_max_resolutions
         )
         for p in self.proposals:
             _init_mlp(p.mlp, gen)
@@ -540,14 +401,11 @@ class NerfactoField(Field):
         self._step = 0
 
     # --- the Field interface -------------------------------------------------------------
-    def _unit(self, points: torch.Tensor) -> torch.Tensor:
-        return (points - self.aabb[0]) * self._scale
-
     def _field(
         self, points: torch.Tensor, dirs: torch.Tensor, embedding: torch.Tensor | None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """σ (P,) and colour (P, 3) with appearance ``embedding`` (P, dim) or (dim,)."""
-        h = self.density_mlp(self.encoding(self._unit(points)))
+        h = self.density_mlp(self.encoding(points))
         sigma = _trunc_exp(h[:, 0] + self.log_init_density)
         inputs = [h[:, 1:], spherical_harmonics(dirs, self.cfg.direction_sh_levels)]
         if self.cfg.appearance_dim:
@@ -625,7 +483,7 @@ class NerfactoField(Field):
         for level, proposal in enumerate(self.proposals):
             n = s_points.shape[-1]
             x = origins[:, None, :] + dirs[:, None, :] * (near + s_points * chord)[..., None]
-            sigma = proposal(self._unit(x.reshape(-1, 3))).view(n_hit, n)
+            sigma = proposal(x.reshape(-1, 3)).view(n_hit, n)
             w = weights_from_density(sigma, (s_edges[:, 1:] - s_edges[:, :-1]) * chord)
             proposal_levels.append((s_edges, w))
             n_next = (

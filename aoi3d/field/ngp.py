@@ -1,29 +1,28 @@
 """``ngp``: a multiresolution hash encoding and a tiny MLP (Instant-NGP, Müller et al. 2022).
 
-A point's feature vector concatenates, over ``n_levels`` resolutions growing geometrically
-from ``base_resolution`` to ``max_resolution`` (cells along the longest box side, cubic
-cells), the trilinear interpolation of ``features`` learned values at the 8 corners of its
-cell. A coarse level whose vertices fit in the table is indexed densely (one row per vertex);
-a finer one hashes vertex (x, y, z) to ``(x · 1 ⊕ y · 2654435761 ⊕ z · 805459861) & (T − 1)``
-in int32: the products wrap around like uint32 and the mask keeps the low bits (216k
-points × 6 levels, 1 thread: 2.3 ms, against 4.8 ms in int64 and 10.6 ms with a
-remainder). A tiny MLP maps the features to a raw density and geometry features,
-σ = softplus(raw + shift) (the shift makes the initial density ``init_density``), and a
-second one maps those (and, when ``view_dependent``, an SH encoding of the ray direction) to
-the colour. Empty space is skipped with an occupancy grid: every ``occupancy_every`` steps a
-random part of its cells is probed at a random point each, every cell's density estimate
-decays by ``occupancy_decay`` and takes the maximum with its new probe (Instant-NGP's EMA),
-and a cell is kept while its estimate gives an opacity above ``occupancy_alpha`` at the fine
-ray step. The trainer's opacity loss clears the initial fog, so skipping starts to pay within
-a few dozen steps. Rays that leave the box see the lat-long background shared with ``grid``.
+A point's feature vector is the shared hash encoding
+(:class:`aoi3d.field.encodings.HashEncoding`, ``"packed"`` layout: each level's vertex grid
+covers the box, coarse levels stored densely, finer ones hashed, levels back to back in one
+table) of ``n_levels`` resolutions growing geometrically from ``base_resolution`` to
+``max_resolution`` cells along the longest box side. A tiny MLP maps the features to a raw
+density and geometry features, σ = softplus(raw + shift) (the shift makes the initial
+density ``init_density``), and a second one maps those (and, when ``view_dependent``, an SH
+encoding of the ray direction) to the colour. Empty space is skipped with an occupancy grid:
+every ``occupancy_every`` steps a random part of its cells is probed at a random point each,
+every cell's density estimate decays by ``occupancy_decay`` and takes the maximum with its
+new probe (Instant-NGP's EMA), and a cell is kept while its estimate gives an opacity above
+``occupancy_alpha`` at the fine ray step. The trainer's opacity loss clears the initial fog,
+so skipping starts to pay within a few dozen steps. Rays that leave the box see the lat-long
+background shared with ``grid``.
 
-The table lookup is ``row_gather`` (``embedding_bag`` forward, ``index_add_`` backward). Its
-gradient is dense by default: with 8 levels × 2^16 rows most hashed rows are touched by every
-batch, and the row-sparse gradient + ``LazyAdam`` (``sparse_grad=True``, the ``grid``
-backend's trick) measured slower here (315 against 365 steps in 30 CPU-seconds, 1 thread).
-The CPU cost is the 8 × ``n_levels`` rows per sample, hence the defaults: 512 rays a step,
-32 then 128 samples per box diagonal, occupancy from step 30 (each measured better on the
-turbine at 5–30 s than 1024 rays, 64/160 samples, step 100).
+The table lookup is ``encodings.row_gather`` (``embedding_bag`` forward, ``index_add_``
+backward for 4 features). Its gradient is dense by default: with 8 levels × 2^16 rows most
+hashed rows are touched by every batch, and the row-sparse gradient + ``LazyAdam``
+(``sparse_grad=True``, the ``grid`` backend's trick) measured slower here (315 against 365
+steps in 30 CPU-seconds, 1 thread). The CPU cost is the 8 × ``n_levels`` rows per sample,
+hence the defaults: 512 rays a step, 32 then 128 samples per box diagonal, occupancy from
+step 30 (each measured better on the turbine at 5–30 s than 1024 rays, 64/160 samples, step
+100).
 """
 
 from __future__ import annotations
@@ -39,19 +38,9 @@ from torch import nn
 
 from aoi3d.field.background import latlong_background
 from aoi3d.field.base import Field, FieldConfig
-from aoi3d.field.gather import row_gather
+from aoi3d.field.encodings import HashEncoding, cell_index, spherical_harmonics
 
-__all__ = ["HashEncoding", "NgpConfig", "NgpField", "hash_vertices"]
-
-PRIMES = (1, 2654435761, 805459861)
-"""Instant-NGP's spatial hash primes for x, y, z."""
-
-
-def _as_int32(value: int) -> int:
-    """``value`` mod 2³² as a signed int32 (so int32 multiplication wraps like uint32)."""
-    value &= 0xFFFFFFFF
-    return value - (1 << 32) if value >= 1 << 31 else value
-
+__all__ = ["NgpConfig", "NgpField"]
 
 @dataclass(frozen=True)
 class NgpConfig(FieldConfig):
@@ -139,139 +128,6 @@ class NgpConfig(FieldConfig):
         return NgpField(self, aabb)
 
 
-# --- the hash encoding ------------------------------------------------------------------------
-def hash_vertices(x: torch.Tensor, y: torch.Tensor, z: torch.Tensor, mask: int) -> torch.Tensor:
-    """Instant-NGP's spatial hash of int32 vertex coordinates (broadcast), in [0, mask]."""
-    if x.dtype != torch.int32 or y.dtype != torch.int32 or z.dtype != torch.int32:
-        raise TypeError("vertex coordinates must be int32")
-    return ((x ^ (y * _P1)) ^ (z * _P2)) & mask
-
-
-_P1, _P2 = _as_int32(PRIMES[1]), _as_int32(PRIMES[2])
-_BITS = torch.tensor([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], dtype=torch.int32)
-"""Corner k of a cell is vertex base + _BITS[k] (x major, z minor)."""
-
-
-class HashEncoding(nn.Module):
-    """Multiresolution hash encoding of points inside the box: (P, 3) → (P, levels·features).
-
-    Level l has ``resolutions[l]`` cells along the longest box side; cells are cubic, so a
-    shorter side gets proportionally fewer. Levels whose vertices fit in 2^log2_table_size
-    rows are indexed densely, the others hashed. All levels share one parameter ``table``
-    (rows, features); ``offsets[l]`` is the first row of level l.
-    """
-
-    def __init__(
-        self,
-        aabb: np.ndarray,
-        n_levels: int,
-        features: int,
-        log2_table_size: int,
-        base_resolution: int,
-        max_resolution: int,
-        init_scale: float = 1e-4,
-        sparse_grad: bool = False,
-    ) -> None:
-        super().__init__()
-        self.sparse_grad = sparse_grad
-        box = np.asarray(aabb, dtype=np.float64)
-        extent = box[1] - box[0]
-        longest = float(extent.max())
-        growth = (
-            math.exp((math.log(max_resolution) - math.log(base_resolution)) / (n_levels - 1))
-            if n_levels > 1
-            else 1.0
-        )
-        table_rows = 1 << log2_table_size
-        self.mask = table_rows - 1
-        self.features = features
-        resolutions, cells, sizes = [], [], []
-        for level in range(n_levels):
-            res = math.floor(base_resolution * growth**level + 1e-9)
-            n = [max(1, math.ceil(float(e) / longest * res - 1e-9)) for e in extent]
-            vertices = math.prod(c + 1 for c in n)
-            resolutions.append(res)
-            cells.append(n)
-            sizes.append(min(vertices, table_rows))
-        self.n_levels = n_levels
-        self.resolutions = resolutions
-        # Resolutions increase, so the dense levels (all vertices fit) come first.
-        self.n_dense = sum(1 for n in cells if math.prod(c + 1 for c in n) <= table_rows)
-        offsets = np.concatenate([[0], np.cumsum(sizes)])
-        self.register_buffer("origin", torch.tensor(box[0], dtype=torch.float32))
-        self.register_buffer(
-            "scale", torch.tensor([r / longest for r in resolutions], dtype=torch.float32)
-        )
-        self.register_buffer("cells", torch.tensor(cells, dtype=torch.float32))  # (L, 3)
-        self.register_buffer("offsets", torch.tensor(offsets[:-1], dtype=torch.int32))
-        strides = [[(n[1] + 1) * (n[2] + 1), n[2] + 1, 1] for n in cells[: self.n_dense]]
-        strides_t = torch.tensor(strides, dtype=torch.int32).view(-1, 3)
-        self.register_buffer("strides", strides_t.T.contiguous())  # (3, Ld)
-        corner = (_BITS[:, None, :] * strides_t[None]).sum(-1, dtype=torch.int32)  # (8, Ld)
-        self.register_buffer("corner_offsets", corner[:, None, :])
-        table = torch.empty(int(offsets[-1]), features).uniform_(-init_scale, init_scale)
-        self.table = nn.Parameter(table)
-
-    @property
-    def out_features(self) -> int:
-        return self.n_levels * self.features
-
-    def indices(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Table rows (8, P, L) int32 and trilinear weights (8, P, L) of ``points`` (P, 3):
-        corner k of each point's cell at each level (see ``_BITS``)."""
-        rel = points - self.origin
-        base, frac = [], []
-        for axis in range(3):
-            pos = rel[:, axis, None] * self.scale  # (P, L), in cells of each level
-            hi = self.cells[:, axis]
-            pos = torch.minimum(pos.clamp_min(0.0), hi)
-            b = torch.minimum(pos.floor(), hi - 1)
-            frac.append(pos - b)
-            base.append(b.to(torch.int32))
-        wx, wy, wz = (torch.stack([1.0 - f, f]) for f in frac)  # (2, P, L) each
-        w = (wx[:, None, None] * wy[None, :, None]) * wz[None, None, :]
-        n_points, nd = points.shape[0], self.n_dense
-        parts = []
-        if nd:
-            row = self.offsets[:nd] + base[0][:, :nd] * self.strides[0]
-            row = row + base[1][:, :nd] * self.strides[1] + base[2][:, :nd] * self.strides[2]
-            parts.append(row + self.corner_offsets)  # (8, P, Ld)
-        if nd < self.n_levels:
-            x, y, z = (b[:, nd:] for b in base)
-            hx = torch.stack([x, x + 1])  # (2, P, Lh)
-            hy = torch.stack([y * _P1, (y + 1) * _P1])
-            hz = torch.stack([z * _P2, (z + 1) * _P2])
-            h = (hx[:, None, None] ^ hy[None, :, None]) ^ hz[None, None, :]
-            h = h.bitwise_and_(self.mask).view(8, n_points, -1)
-            parts.append(h + self.offsets[nd:])
-        idx = parts[0] if len(parts) == 1 else torch.cat(parts, dim=2)
-        return idx, w.view(8, n_points, self.n_levels)
-
-    def forward(self, points: torch.Tensor) -> torch.Tensor:
-        idx, w = self.indices(points)
-        out = row_gather(self.table, idx.view(8, -1), w.view(8, -1), self.sparse_grad)
-        return out.view(points.shape[0], self.out_features)
-
-
-def sh_degree2(dirs: torch.Tensor) -> torch.Tensor:
-    """Real spherical harmonics up to degree 2 of unit directions (P, 3) → (P, 9)."""
-    x, y, z = dirs.unbind(-1)
-    return torch.stack(
-        [
-            torch.full_like(x, 0.28209479),
-            0.48860251 * y,
-            0.48860251 * z,
-            0.48860251 * x,
-            1.09254843 * x * y,
-            1.09254843 * y * z,
-            0.31539157 * (3 * z * z - 1),
-            1.09254843 * x * z,
-            0.54627421 * (x * x - y * y),
-        ],
-        dim=-1,
-    )
-
-
 # --- the field --------------------------------------------------------------------------------
 class NgpField(Field):
     """Hash encoding + tiny MLPs inside the box, occupancy grid, lat-long background."""
@@ -290,8 +146,8 @@ class NgpField(Field):
                 cfg.log2_table_size,
                 cfg.base_resolution,
                 cfg.max_resolution,
-                cfg.init_scale,
-                cfg.sparse_grad,
+                init_scale=cfg.init_scale,
+                sparse_grad=cfg.sparse_grad,
             )
             outputs = 1 + (cfg.geo_features if cfg.colour_mlp else 3)
             self.density_mlp = nn.Sequential(
@@ -330,7 +186,7 @@ class NgpField(Field):
         if self.colour_mlp is None:
             return sigma, torch.sigmoid(geo)
         if self.cfg.view_dependent:
-            geo = torch.cat([geo, sh_degree2(dirs)], dim=1)
+            geo = torch.cat([geo, spherical_harmonics(dirs, 3)], dim=1)
         return sigma, torch.sigmoid(self.colour_mlp(geo))
 
     def background(self, dirs: torch.Tensor) -> torch.Tensor:
@@ -363,11 +219,7 @@ class NgpField(Field):
 
     # --- the occupancy grid ---------------------------------------------------------------
     def _cell_index(self, points: torch.Tensor) -> torch.Tensor:
-        nx, ny, nz = self.occupancy_shape
-        hi = torch.tensor([nx - 1, ny - 1, nz - 1], device=points.device)
-        c = ((points - self.aabb[0]) / self.cell_size).floor().long()
-        c = torch.minimum(c.clamp_min(0), hi)
-        return (c[:, 0] * ny + c[:, 1]) * nz + c[:, 2]
+        return cell_index((points - self.aabb[0]) / self.cell_size, self.occupancy_shape)
 
     @property
     def occupancy(self) -> torch.Tensor | None:

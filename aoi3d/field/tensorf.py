@@ -41,8 +41,15 @@ from torch import nn
 
 from aoi3d.field.background import latlong_background
 from aoi3d.field.base import Field, FieldConfig, check_background_and_schedule
-from aoi3d.field.gather import row_gather
-from aoi3d.field.grid import grid_shape
+from aoi3d.field.encodings import (
+    cell_index,
+    corner_rows,
+    grid_shape,
+    linear_corners,
+    resample,
+    row_gather,
+    vertex_coords,
+)
 
 __all__ = ["VM_MODES", "TensorfConfig", "TensorfField"]
 
@@ -118,17 +125,6 @@ class TensorfConfig(FieldConfig):
         return TensorfField(self, aabb)
 
 
-def _linear_corners(
-    coords: torch.Tensor, n: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Along one axis of ``n`` vertices: lower vertex (int32), upper vertex and the fraction
-    towards it, for ``coords`` in vertex units (clamped to the axis)."""
-    c = coords.clamp(0.0, n - 1.0)
-    base = c.floor().clamp_max(n - 2.0)
-    lo = base.to(torch.int32)
-    return lo, lo + 1, c - base
-
-
 class TensorfField(Field):
     """Three plane/line pairs for density and appearance, a colour decoder, an alpha mask."""
 
@@ -167,26 +163,16 @@ class TensorfField(Field):
         self._mask: torch.Tensor | None = None  # (cells,) bool; None: skip nothing
 
     # --- the Field interface -------------------------------------------------------------
-    def _coords(self, points: torch.Tensor) -> torch.Tensor:
-        """World points → vertex units (0 … n−1 along each axis)."""
-        scale = torch.tensor([n - 1 for n in self.shape], device=points.device, dtype=points.dtype)
-        return (points - self.aabb[0]) * (scale / (self.aabb[1] - self.aabb[0]))
-
     def _features(self, points: torch.Tensor) -> list[torch.Tensor]:
         """Plane × line products of each VM pair at ``points``: three (P, R_σ + R_c)."""
-        coords = self._coords(points)
-        axes = [_linear_corners(coords[:, a], n) for a, n in enumerate(self.shape)]
+        coords = vertex_coords(points, self.aabb, self.shape)
+        axes = [linear_corners(coords[:, a], n) for a, n in enumerate(self.shape)]
         out = []
+        shape = self.shape
         for m, (u, v, w) in enumerate(VM_MODES):
-            (u0, u1, fu), (v0, v1, fv) = axes[u], axes[v]
-            nv = self.shape[v]
-            ru0, ru1 = u0 * nv, u1 * nv
-            idx = torch.stack([ru0 + v0, ru0 + v1, ru1 + v0, ru1 + v1])
-            gu, gv = 1.0 - fu, 1.0 - fv
-            weights = torch.stack([gu * gv, gu * fv, fu * gv, fu * fv])
-            plane = row_gather(self.planes[m], idx, weights)
-            w0, w1, fw = axes[w]
-            line = row_gather(self.lines[m], torch.stack([w0, w1]), torch.stack([1.0 - fw, fw]))
+            plane_rows = corner_rows([axes[u], axes[v]], (shape[u], shape[v]))
+            plane = row_gather(self.planes[m], *plane_rows)
+            line = row_gather(self.lines[m], *corner_rows([axes[w]], (shape[w],)))
             out.append(plane * line)
         return out
 
@@ -214,10 +200,8 @@ class TensorfField(Field):
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None:
         if self._mask is None:
             return None
-        nx, ny, nz = self.shape
-        cells = torch.tensor([nx - 2, ny - 2, nz - 2], device=points.device)
-        c = torch.minimum(self._coords(points).floor().long().clamp_min(0), cells)
-        index = (c[:, 0] * (ny - 1) + c[:, 1]) * (nz - 1) + c[:, 2]
+        cells = [n - 1 for n in self.shape]
+        index = cell_index(vertex_coords(points, self.aabb, self.shape), cells)
         return self._mask.index_select(0, index)
 
     def on_step(self, step: int) -> bool:
@@ -273,19 +257,15 @@ class TensorfField(Field):
         longest side (the function is kept up to interpolation) and rebuild the alpha mask
         on the new cells."""
         new_shape = grid_shape(self.aabb.cpu().numpy(), size)
-        planes, lines = [], []
-        for m, (u, v, w) in enumerate(VM_MODES):
-            c = self.planes[m].shape[1]
-            plane = self.planes[m].detach().T.reshape(1, c, self.shape[u], self.shape[v])
-            plane = F.interpolate(
-                plane, size=(new_shape[u], new_shape[v]), mode="bilinear", align_corners=True
-            )
-            planes.append(nn.Parameter(plane.reshape(c, -1).T.contiguous()))
-            line = self.lines[m].detach().T.reshape(1, c, self.shape[w])
-            line = F.interpolate(line, size=new_shape[w], mode="linear", align_corners=True)
-            lines.append(nn.Parameter(line.reshape(c, -1).T.contiguous()))
-        self.planes = nn.ParameterList(planes)
-        self.lines = nn.ParameterList(lines)
+        old = self.shape
+        self.planes = nn.ParameterList(
+            nn.Parameter(resample(p, (old[u], old[v]), (new_shape[u], new_shape[v])))
+            for p, (u, v, _) in zip(self.planes, VM_MODES, strict=True)
+        )
+        self.lines = nn.ParameterList(
+            nn.Parameter(resample(line, (old[w],), (new_shape[w],)))
+            for line, (_, _, w) in zip(self.lines, VM_MODES, strict=True)
+        )
         self.shape = new_shape
         if self._mask is not None:  # the mask follows the grid's cells
             self.update_alpha_mask()

@@ -12,9 +12,8 @@ import torch
 
 from aoi3d.field import BACKENDS, FieldTrainer, TrainView, field_config
 from aoi3d.field.background import latlong_background
-from aoi3d.field.gather import row_gather
 from aoi3d.field.nerf import NerfMlpConfig, positional_encoding
-from aoi3d.field.ngp import HashEncoding, NgpConfig, NgpField, hash_vertices
+from aoi3d.field.ngp import NgpConfig, NgpField
 from aoi3d.field.tensorf import VM_MODES, TensorfConfig, TensorfField
 from aoi3d.scene.camera import Camera, look_at
 
@@ -117,75 +116,6 @@ def test_config_validation() -> None:
 
 
 # --- the hash function and the encoding -------------------------------------------------------
-def _reference_hash(x: int, y: int, z: int, mask: int) -> int:
-    return (x ^ (y * 2654435761) ^ (z * 805459861)) & 0xFFFFFFFF & mask
-
-
-def test_hash_is_int32_in_range_deterministic_and_the_uint32_hash() -> None:
-    gen = torch.Generator().manual_seed(0)
-    v = torch.randint(0, 5000, (3, 20000), generator=gen, dtype=torch.int32)
-    mask = (1 << 14) - 1
-    h = hash_vertices(v[0], v[1], v[2], mask)
-    assert h.dtype == torch.int32
-    assert int(h.min()) >= 0 and int(h.max()) <= mask
-    assert torch.equal(h, hash_vertices(v[0], v[1], v[2], mask))
-    for i in range(50):
-        x, y, z = (int(v[a, i]) for a in range(3))
-        assert int(h[i]) == _reference_hash(x, y, z, mask)
-    # The hash spreads: 20k random vertices fill most of 16k buckets (uniform: 1 − e^−1.22).
-    assert torch.unique(h).numel() > 0.6 * (mask + 1)
-    with pytest.raises(TypeError, match="int32"):
-        hash_vertices(v[0].long(), v[1], v[2], mask)
-
-
-def test_encoding_rows_and_weights() -> None:
-    enc = HashEncoding(FLAT_BOX, 6, 2, 12, 4, 64)
-    assert 0 < enc.n_dense < enc.n_levels  # both kinds of level are exercised
-    gen = torch.Generator().manual_seed(1)
-    points = torch.rand(300, 3, generator=gen) * torch.tensor([4.0, 4.0, 2.75])
-    points = points + torch.tensor([-2.0, -2.0, -0.05])
-    points[0] = torch.tensor(FLAT_BOX[1], dtype=torch.float32)  # the far corner
-    idx, w = enc.indices(points)
-    assert idx.shape == w.shape == (8, 300, 6) and idx.dtype == torch.int32
-    torch.testing.assert_close(w.sum(0), torch.ones(300, 6))
-    assert int(idx.min()) >= 0 and int(idx.max()) < enc.table.shape[0]
-    for level in range(enc.n_levels):
-        pos = (points - enc.origin) * enc.scale[level]
-        cells = enc.cells[level]
-        pos = torch.minimum(pos.clamp_min(0.0), cells)
-        base = torch.minimum(pos.floor(), cells - 1)
-        frac, base = pos - base, base.int()
-        for k in range(8):
-            bits = torch.tensor([k >> 2 & 1, k >> 1 & 1, k & 1], dtype=torch.int32)
-            vertex = base + bits
-            if level < enc.n_dense:
-                n = cells.int() + 1
-                row = (vertex[:, 0] * n[1] + vertex[:, 1]) * n[2] + vertex[:, 2]
-            else:
-                row = hash_vertices(vertex[:, 0], vertex[:, 1], vertex[:, 2], enc.mask)
-            assert torch.equal(idx[k, :, level], row + enc.offsets[level])
-            weight = torch.where(bits.bool(), frac, 1 - frac).prod(dim=1)
-            torch.testing.assert_close(w[k, :, level], weight)
-
-
-def test_row_gather_matches_autograd_dense_and_sparse() -> None:
-    gen = torch.Generator().manual_seed(2)
-    table = torch.randn(30, 3, dtype=torch.float64, generator=gen, requires_grad=True)
-    idx = torch.randint(30, (8, 40), generator=gen, dtype=torch.int32)
-    w = torch.rand(8, 40, dtype=torch.float64, generator=gen)
-    grad_out = torch.randn(40, 3, dtype=torch.float64, generator=gen)
-    ref = (table[idx.long()] * w[..., None]).sum(0)
-    (ref_grad,) = torch.autograd.grad(ref, table, grad_out)
-    for sparse in (False, True):
-        out = row_gather(table, idx, w, sparse)
-        torch.testing.assert_close(out, ref)
-        (grad,) = torch.autograd.grad(out, table, grad_out)
-        assert grad.is_sparse == sparse
-        torch.testing.assert_close(grad.to_dense() if sparse else grad, ref_grad)
-    with pytest.raises(ValueError, match="idx and w"):
-        row_gather(table, idx, w[:4])
-
-
 # --- shared pieces ----------------------------------------------------------------------------
 def test_positional_encoding() -> None:
     x = torch.tensor([[0.25, -0.5, 1.0]])

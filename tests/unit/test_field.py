@@ -22,7 +22,7 @@ from aoi3d.field import (
     sample_uniform,
     volume_render,
 )
-from aoi3d.field.grid import _dilate_cells, grid_shape, trilinear
+from aoi3d.field.grid import _dilate_cells
 from aoi3d.scene.camera import Camera, look_at
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -191,31 +191,6 @@ def test_camera_rays_are_the_cameras_pixels() -> None:
 
 
 # --- the grid --------------------------------------------------------------------------------
-def test_trilinear_matches_grid_sample_and_its_gradient() -> None:
-    torch.manual_seed(1)
-    shape = (5, 4, 6)
-    table = torch.randn(math.prod(shape), 3, requires_grad=True)
-    coords = torch.rand(50, 3) * torch.tensor([4.0, 3.0, 5.0])
-    coords[0] = torch.tensor([4.0, 3.0, 5.0])  # the far corner
-    out = trilinear(table, shape, coords)
-    vol = table.T.reshape(1, 3, *shape)
-    # grid_sample wants (x, y, z) = (last, middle, first) axis, normalised to [-1, 1].
-    norm = coords / torch.tensor([4.0, 3.0, 5.0]) * 2 - 1
-    ref = F.grid_sample(vol, norm.flip(-1).view(1, 1, 1, -1, 3), align_corners=True)
-    ref = ref.view(3, -1).T
-    torch.testing.assert_close(out, ref, atol=1e-5, rtol=1e-5)
-    weights = torch.randn(50, 3)
-    (grad,) = torch.autograd.grad((out * weights).sum(), table)
-    (ref_grad,) = torch.autograd.grad((ref * weights).sum(), table)
-    assert grad.is_sparse
-    torch.testing.assert_close(grad.to_dense(), ref_grad, atol=1e-5, rtol=1e-5)
-
-
-def test_grid_shape_has_cubic_voxels() -> None:
-    assert grid_shape(np.array([[-2, -2, -0.05], [2, 2, 2.7]]), 129) == (129, 129, 89)
-    assert grid_shape(BOX, 2) == (2, 2, 2)
-
-
 def test_occupancy_dilation_matches_max_pooling() -> None:
     torch.manual_seed(2)
     for shape in [(2, 3, 4), (6, 7, 9)]:

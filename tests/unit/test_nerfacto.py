@@ -13,13 +13,11 @@ from aoi3d.field import BACKENDS, FieldTrainer, GridConfig, TrainView, field_con
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.grid import DenseGridField
 from aoi3d.field.nerfacto import (
-    HashEncoding,
     NerfactoConfig,
     NerfactoField,
     distortion_loss,
     interlevel_loss,
     sample_pdf,
-    spherical_harmonics,
     weights_from_density,
 )
 from aoi3d.field.rays import RayBundle, camera_rays, ray_aabb
@@ -301,43 +299,6 @@ def test_distortion_loss_matches_the_double_sum() -> None:
 
 
 # --- the field's parts -------------------------------------------------------------------------
-def test_hash_encoding_interpolates_its_table_and_has_the_right_gradient() -> None:
-    enc = HashEncoding(3, 2, 12, 4, 16).double()
-    assert enc.resolutions == (4, 8, 16) and enc.dense_levels == 2  # 5³, 9³ fit; 17³ does not
-    with torch.no_grad():
-        enc.table.normal_(generator=torch.Generator().manual_seed(3))
-    # At a vertex of level 0 the level's features are that vertex's row (dense: x|y<<3|z<<6).
-    x = torch.tensor([[0.25, 0.5, 0.75]], dtype=torch.float64)  # vertex (1, 2, 3) of 4 cells
-    torch.testing.assert_close(enc(x)[0, :2], enc.table[1 + (2 << 3) + (3 << 6)].detach())
-    pts = torch.rand(6, 3, dtype=torch.float64, generator=torch.Generator().manual_seed(4))
-    for feats in (1, 2, 3):  # the three gather paths; one dense and one hashed level each
-        small = HashEncoding(2, feats, 5, 2, 4).double()
-        table = small.table.detach().clone().requires_grad_()
-        torch.autograd.gradcheck(
-            lambda t, m=small: torch.func.functional_call(m, {"table": t}, (pts,)), (table,)
-        )
-
-
-def test_hash_levels_index_distinct_vertices_without_collisions_when_dense() -> None:
-    enc = HashEncoding(1, 1, 12, 7, 7)  # 8³ = 512 vertices ≤ 4096 rows: dense
-    with torch.no_grad():
-        enc.table.copy_(torch.arange(4096, dtype=torch.float32)[:, None])
-    g = torch.arange(8, dtype=torch.float32) / 7
-    verts = torch.cartesian_prod(g, g, g)
-    rows = enc(verts).squeeze(1).round().long()
-    assert rows.unique().numel() == 512
-
-
-def test_spherical_harmonics_are_orthonormal() -> None:
-    d = torch.nn.functional.normalize(torch.randn(200000, 3, dtype=torch.float64), dim=-1)
-    for levels in range(5):
-        sh = spherical_harmonics(d, levels)
-        assert sh.shape == (200000, levels**2)
-        gram = 4 * math.pi * sh.T @ sh / d.shape[0]
-        eye = torch.eye(levels**2, dtype=torch.float64)
-        torch.testing.assert_close(gram, eye, atol=0.03, rtol=0)
-
-
 # --- nerfacto end to end ---------------------------------------------------------------------
 def test_nerfacto_trains_renders_and_keeps_its_parameters_on_set_views() -> None:
     trainer = FieldTrainer(_tiny(), BOX, device="cpu", seed=0)
