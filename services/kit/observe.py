@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections import deque
 
 from prometheus_client import CollectorRegistry, Counter
 
@@ -58,3 +59,24 @@ def setup_logging(level: str, service: str) -> None:
         level=getattr(logging, level.upper(), logging.INFO),
         format=f"%(asctime)s {service} %(levelname)s %(name)s: %(message)s",
     )
+
+
+class RateMeter:
+    """A counter's rate per wall second over the last ``window_s`` seconds (e.g. training
+    steps per second): feed it the running total with :meth:`add`."""
+
+    def __init__(self, window_s: float = 5.0) -> None:
+        self._window_s = window_s
+        self._samples: deque[tuple[float, int]] = deque()
+
+    def add(self, now_s: float, total: int) -> float:
+        """Record ``total`` at ``now_s``; the rate over the window."""
+        self._samples.append((now_s, total))
+        while len(self._samples) > 2 and now_s - self._samples[1][0] >= self._window_s:
+            self._samples.popleft()
+        (t0, s0), (t1, s1) = self._samples[0], self._samples[-1]
+        return (s1 - s0) / (t1 - t0) if t1 > t0 else 0.0
+
+    def idle(self, now_s: float, total: int) -> float:
+        """Record a moment without progress (the rate decays to 0 over the window)."""
+        return self.add(now_s, total)

@@ -16,13 +16,13 @@ from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
 from services.trainer.settings import Settings
-from services.trainer.worker import (
+from services.trainer.state import (
     BackendBuildError,
     CarryError,
     TrainerStatus,
-    TrainerWorker,
     UnknownBackendError,
 )
+from services.trainer.worker import TrainerWorker
 
 Worker = Annotated[TrainerWorker, Depends(get_worker)]
 

@@ -19,31 +19,40 @@ import logging
 import math
 import threading
 import time
-from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from aoi3d.clock import SimClock
-from aoi3d.field import BACKENDS, FieldConfig, FieldTrainer, TrainView
+from aoi3d.field import FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
 from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
 from aoi3d.scene import SceneDataset
 from aoi3d.scene.camera import Camera
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import (
-    FrameData,
     camera_to_pb,
     decode_decision,
     decode_frame,
     encode_png,
 )
 from services.kit.keys import Keys
-from services.kit.observe import Rejected, Rejections
+from services.kit.observe import RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.trainer.control import ControlQueue
+from services.trainer.frames import FrameBuffer
 from services.trainer.settings import Settings
+from services.trainer.state import (
+    BackendBuildError,
+    CarryError,
+    CarrySetting,
+    DecisionInForce,
+    LatestRender,
+    TrainerStatus,
+    check_backend,
+)
 
 log = logging.getLogger(__name__)
 
@@ -54,40 +63,11 @@ _IDLE_WAIT_S = 0.05
 _STOP_JOIN_S = 2.0
 
 
-class UnknownBackendError(ValueError):
-    """The backend name is not in ``aoi3d.field.BACKENDS``; the message lists those that are."""
-
-
-class BackendBuildError(RuntimeError):
-    """The new backend's model could not be built; the previous one keeps training."""
-
-
-def check_backend(name: str) -> str:
-    """``name`` if it is a registered backend, else :class:`UnknownBackendError`."""
-    if name not in BACKENDS:
-        raise UnknownBackendError(
-            f"unknown backend {name!r}; available: {', '.join(sorted(BACKENDS))}")
-    return name
-
-
-class CarryError(ValueError):
-    """A carry mode or render budget the trainer cannot use; nothing was changed."""
-
-
-@dataclass(frozen=True)
-class CarrySetting:
-    """How renders are made: the carry mode and the steps on a rendered decision's frames."""
-
-    carry: str
-    render_steps: int
-
-
 @dataclass
 class _BackendRequest:
-    """A request to switch the backend, answered by the training thread."""
+    """A request to switch the backend; the training thread fills ``error`` if it fails."""
 
     name: str
-    done: threading.Event = field(default_factory=threading.Event)
     error: str | None = None
 
 
@@ -101,84 +81,6 @@ def resolve_device(name: str) -> str:
     if name not in ("cpu", "cuda"):
         raise ValueError(f"unknown device {name!r}; accepted: auto, cpu, cuda")
     return name
-
-
-@dataclass(frozen=True)
-class DecisionInForce:
-    """The decision whose selection the model is being trained on.
-
-    ``generation_ms``: generation times of the frames it selected that the trainer holds."""
-
-    decision_id: int
-    time_ms: float
-    policy: str
-    n_selected: int
-    n_missing: int
-    applied_wall_s: float
-    generation_ms: tuple[float, ...] = ()
-
-
-@dataclass(frozen=True)
-class LatestRender:
-    """The newest published render (PNG bytes and what it represents).
-
-    ``frames_age_ms``: mean age of its frames at ``time_ms`` (NaN: none); ``lag_ms``: sim ms
-    from ``time_ms`` to the render's publication; ``age_s``: wall s from the decision taking
-    effect at the trainer to the publication."""
-
-    png: bytes
-    decision_id: int
-    time_ms: float
-    training_step: int
-    n_views: int
-    wall_s: float
-    carry: str = "warm"
-    render_steps: int = 0
-    frames_age_ms: float = math.nan
-    lag_ms: float = math.nan
-    age_s: float = math.nan
-
-
-@dataclass(frozen=True)
-class TrainerStatus:
-    """A consistent snapshot of the trainer for ``GET /status``."""
-
-    steps: int
-    steps_total: int
-    steps_per_s: float
-    loss: float | None
-    n_views: int
-    decision: DecisionInForce | None
-    decision_age_ms: float | None
-    backend: str
-    device: str
-    carry: str
-    render_steps: int
-    renders: int
-    frames_received: int
-    frames_buffered: int
-    frames_missing: int
-    resets: int
-    running: bool
-
-
-class _StepRate:
-    """Steps per second over the last ``window_s`` wall seconds."""
-
-    def __init__(self, window_s: float = RATE_WINDOW_S) -> None:
-        self._window_s = window_s
-        self._samples: deque[tuple[float, int]] = deque()
-
-    def add(self, now_s: float, steps_total: int) -> float:
-        self._samples.append((now_s, steps_total))
-        while len(self._samples) > 2 and now_s - self._samples[1][0] >= self._window_s:
-            self._samples.popleft()
-        (t0, s0), (t1, s1) = self._samples[0], self._samples[-1]
-        return (s1 - s0) / (t1 - t0) if t1 > t0 else 0.0
-
-    def idle(self, now_s: float, steps_total: int) -> float:
-        """Record a moment without training (the rate decays to 0 over the window)."""
-        return self.add(now_s, steps_total)
 
 
 class TrainerWorker:
@@ -252,17 +154,14 @@ class TrainerWorker:
         self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)),
                                        on_drop=self.m_overflow.inc)
         self._decisions_in: Inbox = Inbox(maxsize=64, on_drop=self.m_overflow.inc)
-        self._frames: dict[int, deque[FrameData]] = {}
+        self._frames = FrameBuffer(settings.frames_per_camera)
         self._views: list[TrainView] = []
 
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._control_lock = threading.Lock()
-        self._reset_requests: list[threading.Event] = []
-        self._carry_requests: list[tuple[CarrySetting, threading.Event]] = []
-        self._backend_requests: list[_BackendRequest] = []
+        self._control = ControlQueue(self._wake)
         self._thread: threading.Thread | None = None
-        self._rate = _StepRate()
+        self._rate = RateMeter(RATE_WINDOW_S)
 
         # State shared with the HTTP threads, guarded by _state_lock.
         self._state_lock = threading.Lock()
@@ -318,14 +217,8 @@ class TrainerWorker:
         Done by the training thread between two chunks; returns False if it did not happen
         within ``timeout_s``.
         """
-        if self._thread is None or not self._thread.is_alive():
-            self._do_reset()
-            return True
-        done = threading.Event()
-        with self._control_lock:
-            self._reset_requests.append(done)
-        self._wake.set()
-        return done.wait(timeout_s)
+        return self._control.call(self._do_reset, thread_alive=self._running(),
+                                  timeout_s=timeout_s)
 
     def set_backend(self, name: str, timeout_s: float = 30.0) -> bool:
         """Train a new model of backend ``name`` from now on (training set and buffered frames
@@ -338,14 +231,9 @@ class TrainerWorker:
         """
         check_backend(name)
         request = _BackendRequest(name)
-        if self._thread is None or not self._thread.is_alive():
-            self._do_backend(request)
-        else:
-            with self._control_lock:
-                self._backend_requests.append(request)
-            self._wake.set()
-            if not request.done.wait(timeout_s):
-                return False
+        if not self._control.call(lambda: self._do_backend(request),
+                                  thread_alive=self._running(), timeout_s=timeout_s):
+            return False
         if request.error is not None:
             raise BackendBuildError(request.error)
         return True
@@ -360,14 +248,11 @@ class TrainerWorker:
         except ValueError as err:
             raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
         setting = CarrySetting(carry, int(render_steps))
-        if self._thread is None or not self._thread.is_alive():
-            self._do_carry(setting)
-            return True
-        done = threading.Event()
-        with self._control_lock:
-            self._carry_requests.append((setting, done))
-        self._wake.set()
-        return done.wait(timeout_s)
+        return self._control.call(lambda: self._do_carry(setting),
+                                  thread_alive=self._running(), timeout_s=timeout_s)
+
+    def _running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
 
     def status(self) -> TrainerStatus:
         with self._state_lock:
@@ -442,19 +327,7 @@ class TrainerWorker:
             newest = msg
         if newest is not None:
             self._apply_decision(newest)
-        with self._control_lock:
-            requests, self._reset_requests = self._reset_requests, []
-            switches, self._backend_requests = self._backend_requests, []
-            carries, self._carry_requests = self._carry_requests, []
-        for setting, done in carries:
-            self._do_carry(setting)
-            done.set()
-        if requests:
-            self._do_reset()
-            for done in requests:
-                done.set()
-        for request in switches:
-            self._do_backend(request)
+        self._control.run_pending()
 
     def _current_id(self) -> int | None:
         with self._state_lock:
@@ -466,27 +339,18 @@ class TrainerWorker:
         except Rejected as err:
             self.rejections.reject(err, key)
             return
-        buf = self._frames.get(frame.camera_id)
-        if buf is None:
-            buf = self._frames[frame.camera_id] = deque(maxlen=self.settings.frames_per_camera)
-        buf.append(frame)
+        self._frames.add(frame)
         self.m_received.inc()
         with self._state_lock:
             self._frames_received += 1
-            self._frames_buffered = sum(len(b) for b in self._frames.values())
-
-    def _find_frame(self, camera_id: int, generation_ms: float) -> FrameData | None:
-        for frame in reversed(self._frames.get(camera_id, ())):
-            if frame.generation_ms == generation_ms:
-                return frame
-        return None
+            self._frames_buffered = len(self._frames)
 
     def _apply_decision(self, decision: pb.Decision) -> None:
         views: list[TrainView] = []
         generation: list[float] = []
         missing = 0
         for ref in decision.selected:
-            frame = self._find_frame(ref.camera_id, ref.generation_ms)
+            frame = self._frames.find(ref.camera_id, ref.generation_ms)
             if frame is None:
                 missing += 1
                 continue
@@ -606,8 +470,6 @@ class TrainerWorker:
             self.m_loss.set(math.nan)
             log.info("backend %s -> %s (%d views kept)", previous, request.name,
                      len(self._views))
-        finally:
-            request.done.set()
 
     def _do_carry(self, setting: CarrySetting) -> None:
         """Render with ``setting`` from now on (model and decision in force kept)."""

@@ -24,7 +24,8 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.trainer.app import create_app
 from services.trainer.settings import BACKENDS, Settings
-from services.trainer.worker import BackendBuildError, UnknownBackendError, resolve_device
+from services.trainer.state import BackendBuildError, UnknownBackendError
+from services.trainer.worker import resolve_device
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10

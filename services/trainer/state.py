@@ -1,0 +1,110 @@
+"""What the trainer service reports and accepts: its status types, settings and errors.
+
+Plain data shared by the training thread (:mod:`services.trainer.worker`) and the REST
+layer (:mod:`services.trainer.app`); nothing here touches the model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from aoi3d.field import BACKENDS
+
+__all__ = [
+    "BackendBuildError",
+    "CarryError",
+    "CarrySetting",
+    "DecisionInForce",
+    "LatestRender",
+    "TrainerStatus",
+    "UnknownBackendError",
+    "check_backend",
+]
+
+
+class UnknownBackendError(ValueError):
+    """The backend name is not in ``aoi3d.field.BACKENDS``; the message lists those that are."""
+
+
+class BackendBuildError(RuntimeError):
+    """The new backend's model could not be built; the previous one keeps training."""
+
+
+def check_backend(name: str) -> str:
+    """``name`` if it is a registered backend, else :class:`UnknownBackendError`."""
+    if name not in BACKENDS:
+        raise UnknownBackendError(
+            f"unknown backend {name!r}; available: {', '.join(sorted(BACKENDS))}")
+    return name
+
+
+class CarryError(ValueError):
+    """A carry mode or render budget the trainer cannot use; nothing was changed."""
+
+
+@dataclass(frozen=True)
+class CarrySetting:
+    """How renders are made: the carry mode and the steps on a rendered decision's frames."""
+
+    carry: str
+    render_steps: int
+
+
+@dataclass(frozen=True)
+class DecisionInForce:
+    """The decision whose selection the model is being trained on.
+
+    ``generation_ms``: generation times of the frames it selected that the trainer holds."""
+
+    decision_id: int
+    time_ms: float
+    policy: str
+    n_selected: int
+    n_missing: int
+    applied_wall_s: float
+    generation_ms: tuple[float, ...] = ()
+
+
+@dataclass(frozen=True)
+class LatestRender:
+    """The newest published render (PNG bytes and what it represents).
+
+    ``frames_age_ms``: mean age of its frames at ``time_ms`` (NaN: none); ``lag_ms``: sim ms
+    from ``time_ms`` to the render's publication; ``age_s``: wall s from the decision taking
+    effect at the trainer to the publication."""
+
+    png: bytes
+    decision_id: int
+    time_ms: float
+    training_step: int
+    n_views: int
+    wall_s: float
+    carry: str = "warm"
+    render_steps: int = 0
+    frames_age_ms: float = math.nan
+    lag_ms: float = math.nan
+    age_s: float = math.nan
+
+
+@dataclass(frozen=True)
+class TrainerStatus:
+    """A consistent snapshot of the trainer for ``GET /status``."""
+
+    steps: int
+    steps_total: int
+    steps_per_s: float
+    loss: float | None
+    n_views: int
+    decision: DecisionInForce | None
+    decision_age_ms: float | None
+    backend: str
+    device: str
+    carry: str
+    render_steps: int
+    renders: int
+    frames_received: int
+    frames_buffered: int
+    frames_missing: int
+    resets: int
+    running: bool
