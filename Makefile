@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray figures clean help
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures clean help
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -37,8 +37,9 @@ lint: install  ## ruff
 bench: install bench-ray  ## benchmarks (results under bench/results/; about 25 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
-	$(PY) bench/pipeline.py --policy all --window-s 50
-	$(PY) bench/pipeline.py --policy mat:51 --window-s 50
+	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.1 --window-s 60
+	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.3 --window-s 60
+	$(PY) bench/pipeline.py --policy mat:70 --time-scale 1 --window-s 60
 	$(PY) bench/scheduler_learning.py --seconds 20
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine-rotor
@@ -47,6 +48,11 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 25 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
+
+bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 25 min)
+	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
+	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
+	    --sim-seeds 4 --out bench/results/live-sweep
 
 figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
 	rm -rf runs/experiments/figures-cache runs/ppo/figures

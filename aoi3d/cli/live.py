@@ -54,13 +54,32 @@ def mean_ci95(values: Sequence[float | None]) -> dict[str, float | int | None]:
             "ci95": None if not math.isfinite(half) else half, "n": n}
 
 
-def interior_maximum(results: Sequence[dict[str, Any]], metric: str) -> dict[str, Any] | None:
-    """Whether the best policy by ``metric`` is interior and beyond its confidence interval.
+def welch_ci95(a: dict[str, Any], b: dict[str, Any]) -> float | None:
+    """Half-width of the 95% CI of ``mean(a) − mean(b)`` for two independent samples given
+    as ``{"mean", "ci95", "n"}`` (Welch–Satterthwaite degrees of freedom); None when either
+    lacks a CI."""
+    from scipy import stats
 
-    The policies are taken in sweep order (fresh to stale: the first and the last are the
-    ends). Interior: the best mean is neither end's, and its 95% interval lies strictly above
-    (below, for LPIPS) both ends' intervals — non-overlapping CIs, a conservative test.
-    None when the metric is missing or fewer than three policies were measured.
+    if a.get("ci95") is None or b.get("ci95") is None or a["n"] < 2 or b["n"] < 2:
+        return None
+    # back from each half-width to its variance of the mean
+    va = (a["ci95"] / stats.t.ppf(0.975, a["n"] - 1)) ** 2
+    vb = (b["ci95"] / stats.t.ppf(0.975, b["n"] - 1)) ** 2
+    if va + vb == 0:
+        return 0.0
+    dof = (va + vb) ** 2 / (va ** 2 / (a["n"] - 1) + vb ** 2 / (b["n"] - 1))
+    return float(stats.t.ppf(0.975, dof) * math.sqrt(va + vb))
+
+
+def interior_maximum(results: Sequence[dict[str, Any]], metric: str) -> dict[str, Any] | None:
+    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty.
+
+    The criterion, stated before measuring: the policies are taken in sweep order (fresh to
+    stale; the first and the last are the ends). The maximum is *interior* when the best
+    mean is neither end's, and *beyond its confidence interval* when, for both ends, the 95%
+    confidence interval of the difference best − end (Welch, renders as independent samples)
+    lies above zero (below, for LPIPS). None when the metric is missing or fewer than three
+    policies were measured.
     """
     sign = _SIGNS[metric]
     stats = [r.get(metric) or {} for r in results]
@@ -68,12 +87,17 @@ def interior_maximum(results: Sequence[dict[str, Any]], metric: str) -> dict[str
         return None
     means = [sign * s["mean"] for s in stats]
     best = max(range(len(means)), key=means.__getitem__)
-    half = [s.get("ci95") if s.get("ci95") is not None else math.inf for s in stats]
     interior = 0 < best < len(means) - 1
+    ends = {}
+    for end in (0, len(means) - 1):
+        half = welch_ci95(stats[best], stats[end])
+        diff = sign * (means[best] - means[end])
+        ends[results[end]["policy"]] = {"difference": diff, "ci95": half}
     separated = interior and all(
-        means[best] - half[best] > means[end] + half[end] for end in (0, len(means) - 1))
+        e["ci95"] is not None and sign * e["difference"] - e["ci95"] > 0
+        for e in ends.values())
     return {"best": results[best]["policy"], "best_mean": stats[best]["mean"],
-            "interior": interior, "beyond_ci": bool(separated)}
+            "interior": interior, "beyond_ci": bool(separated), "best_minus_end": ends}
 
 
 # --- talking to the pipeline -----------------------------------------------------------------
@@ -424,9 +448,9 @@ def sweep(
         min=0, help="Wall seconds after setting a policy (and resetting) before measuring.")]
     = 10.0,
     measure_s: Annotated[float, typer.Option(
-        min=1, help="Wall seconds of decisions measured per policy and repeat.")] = 60.0,
+        min=1, help="Wall seconds of decisions measured per policy and repeat.")] = 90.0,
     repeats: Annotated[int, typer.Option(
-        min=1, help="Passes over the policies (interleaved, so drift hits every policy).")] = 1,
+        min=1, help="Passes over the policies (interleaved, so drift hits every policy).")] = 2,
     reset_each: Annotated[bool, typer.Option(
         help="POST /reset on the trainer after each policy change.")] = True,
     url_base: Annotated[str, typer.Option(help="Scheme and host of the services.")]

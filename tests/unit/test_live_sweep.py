@@ -16,13 +16,16 @@ def results(*points: tuple[str, float, float]) -> list[dict]:
             for p, m, h in points]
 
 
-def test_interior_maximum_needs_the_ci_clear_of_both_ends() -> None:
+def test_interior_maximum_needs_the_difference_to_both_ends_significant() -> None:
     clear = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.5),
                                      ("all", 24.0, 0.3)), "psnr_db")
-    assert clear == {"best": "mat:70", "best_mean": 26.0, "interior": True, "beyond_ci": True}
-    overlap = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 1.5),
-                                       ("all", 25.0, 0.3)), "psnr_db")
-    assert overlap["interior"] and not overlap["beyond_ci"]
+    assert clear["best"] == "mat:70" and clear["interior"] and clear["beyond_ci"]
+    assert clear["best_minus_end"]["all"]["difference"] == pytest.approx(2.0)
+    # Welch: sqrt(0.5² + 0.3²) with n = 10 each (the t quantiles nearly cancel)
+    assert clear["best_minus_end"]["all"]["ci95"] == pytest.approx(0.583, abs=0.01)
+    close = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.8),
+                                     ("all", 25.5, 0.3)), "psnr_db")
+    assert close["interior"] and not close["beyond_ci"]
     end = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 23.0, 0.5),
                                    ("all", 24.0, 0.3)), "psnr_db")
     assert end["best"] == "all" and not end["interior"] and not end["beyond_ci"]
@@ -31,13 +34,27 @@ def test_interior_maximum_needs_the_ci_clear_of_both_ends() -> None:
                            "lpips")
     assert low["best"] == "b" and low["beyond_ci"]
     # an unknown CI never counts as separated; too few policies or a missing metric: None
-    unknown = interior_maximum(results(("a", 20.0, 1.0), ("b", 26.0, 0.5), ("c", 24.0, 0.3))
-                               [:1] + [{"policy": "b", "psnr_db": stat(26.0, None)}]
-                               + results(("c", 24.0, 0.3)), "psnr_db")
+    unknown = interior_maximum([*results(("a", 20.0, 1.0)),
+                                {"policy": "b", "psnr_db": stat(26.0, None)},
+                                *results(("c", 24.0, 0.3))], "psnr_db")
     assert unknown["interior"] and not unknown["beyond_ci"]
     assert interior_maximum(results(("a", 1.0, 0.1), ("b", 2.0, 0.1)), "psnr_db") is None
     assert interior_maximum([{"policy": p, "psnr_db": stat(None, None)} for p in "abc"],
                             "psnr_db") is None
+
+
+def test_welch_matches_scipy_on_raw_samples() -> None:
+    import numpy as np
+    from scipy import stats
+
+    from aoi3d.cli.live import mean_ci95, welch_ci95
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(25, 2, 40), rng.normal(24, 1, 25)
+    half = welch_ci95(mean_ci95(list(a)), mean_ci95(list(b)))
+    res = stats.ttest_ind(a, b, equal_var=False)
+    lo, hi = res.confidence_interval(0.95)
+    assert half == pytest.approx((hi - lo) / 2, rel=1e-9)
 
 
 def test_summarise_groups_by_policy_over_repeats() -> None:
