@@ -27,6 +27,11 @@ from services.kit.pb import aoi3d_pb2 as pb
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+"""Every wait and timeout of the live tests is multiplied by this (a slow or busy machine:
+set AOI3D_TEST_TIMEOUT_SCALE=3)."""
+HTTP = httpx.Client(timeout=30 * SCALE)
+"""The tests' REST client: never httpx's default 5 s timeout."""
 PORT_OFFSET = 10_000 + (os.getpid() % 500) * 10
 ZENOH_PORT = 17_000 + os.getpid() % 1000
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
@@ -53,6 +58,8 @@ def url(service: str, path: str) -> str:
 
 
 def wait_for(what: str, check, timeout_s: float = 60.0, every_s: float = 0.25):
+    """Poll ``check`` until it returns something truthy; ``timeout_s`` is scaled by SCALE."""
+    timeout_s *= SCALE
     deadline = time.monotonic() + timeout_s
     last = None
     while time.monotonic() < deadline:
@@ -68,7 +75,7 @@ def wait_for(what: str, check, timeout_s: float = 60.0, every_s: float = 0.25):
 
 def metric(service: str, name: str) -> float:
     """Sum of a metric's samples (all label sets) from a service's /metrics."""
-    text = httpx.get(url(service, "/metrics"), timeout=5).text
+    text = HTTP.get(url(service, "/metrics")).text
     values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
               if line.startswith(name) and (line[len(name):][:1] in (" ", "{"))]
     if not values:
@@ -81,7 +88,7 @@ def stop_pipeline(up: subprocess.Popen) -> str:
     ``finally``: it asserts nothing, so a failure of the test body is not masked."""
     up.send_signal(signal.SIGTERM)
     try:
-        out, _ = up.communicate(timeout=40)
+        out, _ = up.communicate(timeout=40 * SCALE)
     except subprocess.TimeoutExpired:
         os.killpg(up.pid, signal.SIGKILL)
         out, _ = up.communicate()
@@ -176,19 +183,19 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     try:
         for name in SERVICES:
             wait_for(f"{name} /healthz",
-                     lambda n=name: httpx.get(url(n, "/healthz"), timeout=1).status_code == 200)
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200)
         tap = Tap(run_id)
 
         # frames flow end to end: offered → delivered → decisions → training → quality
         wait_for("frames delivered", lambda: metric("network", "aoi3d_frames_delivered_total") > 20)
         wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 5)
-        wait_for("training steps", lambda: httpx.get(url("trainer", "/status")).json()["steps"] > 0)
+        wait_for("training steps", lambda: HTTP.get(url("trainer", "/status")).json()["steps"] > 0)
         entries = wait_for("quality history",
-                           lambda: httpx.get(url("metrics", "/quality")).json()["history"],
+                           lambda: HTTP.get(url("metrics", "/quality")).json()["history"],
                            timeout_s=90)
         assert all(math.isfinite(q["psnr_db"]) for q in entries)
         # LPIPS is on exactly when its weights are cached (`make install` fetches them)
-        lpips_on = httpx.get(url("metrics", "/quality")).json()["summary"]["lpips_available"]
+        lpips_on = HTTP.get(url("metrics", "/quality")).json()["summary"]["lpips_available"]
         assert lpips_on == weights_path("alex").is_file()
         assert all((q["lpips"] is not None) == lpips_on
                    and ("lpips" in q["reward_terms"]) == lpips_on for q in entries)
@@ -196,13 +203,13 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         assert all(math.isfinite(q.psnr_db) for q in tap.qualities)
 
         # MAT 0 selects no camera; a large MAT selects most of them
-        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0})
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0})
         assert r.status_code == 200, r.text
         spec0 = r.json()["spec"]
         zero = wait_for("decisions under MAT 0", lambda: [
             d for d in tap.decisions_after(0) if d.policy == spec0][:5])
         assert all(len(d.selected) == 0 for d in zero)
-        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000})
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000})
         assert r.status_code == 200, r.text
         spec1 = r.json()["spec"]
         big = wait_for("decisions under MAT 10 s", lambda: [
@@ -211,9 +218,9 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         assert all(len(d.selected) >= n_cams // 2 for d in big), [len(d.selected) for d in big]
 
         # REST errors say what is wrong
-        r = httpx.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": -5})
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": -5})
         assert r.status_code == 422 and "mat_ms" in r.text
-        r = httpx.put(url("network", "/channel"), json={"delay": "weird:1"})
+        r = HTTP.put(url("network", "/channel"), json={"delay": "weird:1"})
         assert r.status_code in (400, 422) and "exp:" in r.text
 
         # malformed frames are dropped and counted, and nothing stops
@@ -226,7 +233,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
                  lambda: metric("network", "aoi3d_frames_delivered_total") > before)
 
         # `aoi3d live sweep` measures policies on this pipeline, Quality by decision id
-        scale = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+        scale = SCALE
         sweep = subprocess.run(
             [sys.executable, "-m", "aoi3d", "live", "sweep", "--policies", "mat:70,all",
              "--settle-s", "1", "--measure-s", str(10 * scale), "--port-offset",
@@ -245,7 +252,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
 
         # every service exposes its documented series
         for name, series in DOCUMENTED_SERIES.items():
-            text = httpx.get(url(name, "/metrics")).text
+            text = HTTP.get(url(name, "/metrics")).text
             missing = [s for s in series if s not in text]
             assert not missing, f"{name} /metrics lacks {missing}"
 
@@ -256,7 +263,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
             (log_dir / "up.json").read_text())["children"]["metrics"]["restarts"] == 1,
                  timeout_s=30)
         wait_for("metrics healthy again",
-                 lambda: httpx.get(url("metrics", "/healthz"), timeout=1).status_code == 200)
+                 lambda: HTTP.get(url("metrics", "/healthz")).status_code == 200)
     finally:
         if tap is not None:
             tap.close()

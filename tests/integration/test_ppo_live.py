@@ -20,11 +20,11 @@ import time
 import uuid
 from pathlib import Path
 
-import httpx
 import pytest
 
 from aoi3d.rl.agent import SingleStepPPO
 from tests.integration.test_pipeline import (
+    HTTP,
     PORT_OFFSET,
     SERVICES,
     ZENOH_PORT,
@@ -54,17 +54,17 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1"]
     env = dict(os.environ, AOI3D_SCHEDULER_POLICY="all", AOI3D_SCHEDULER_LEARN_BATCH_SIZE="2",
-               AOI3D_TRAINER_RENDER_PERIOD_S="0.5")
+               AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
     try:
         for name in SERVICES:
             wait_for(f"{name} /healthz",
-                     lambda n=name: httpx.get(url(n, "/healthz"), timeout=1).status_code == 200)
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200)
         tap = Tap(run_id)
         sched = url("scheduler", "/policy")
-        assert httpx.get(sched).json()["spec"] == "all"
+        assert HTTP.get(sched).json()["spec"] == "all"
 
         # under `all`, decisions use every camera with a known AoI, even ones included
         t0 = time.monotonic()
@@ -74,7 +74,7 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
         assert all(len(d.selected) == sum(map(math.isfinite, d.aoi_ms)) for d in before)
 
         # switch to the checkpoint: from now on, the known odd cameras and nothing else
-        r = httpx.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": False})
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": False})
         assert r.status_code == 200, r.text
         assert r.json()["spec"] == f"ppo:{ckpt}" and r.json()["learn"] is False
         t1 = time.monotonic()
@@ -86,12 +86,12 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
             assert [s.camera_id for s in d.selected] == known_odd
             assert known_odd  # frames flow: it really selects something
         # bad checkpoints are refused, and the policy stays
-        r = httpx.put(sched, json={"kind": "ppo", "checkpoint": str(tmp_path / "none.pt")})
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(tmp_path / "none.pt")})
         assert r.status_code == 422 and "no PPO checkpoint" in r.text
-        assert httpx.get(sched).json()["spec"] == f"ppo:{ckpt}"
+        assert HTTP.get(sched).json()["spec"] == f"ppo:{ckpt}"
 
         # learn online: the metrics service's Quality of each rendered decision is its reward
-        r = httpx.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": True})
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": True})
         assert r.status_code == 200, r.text
         assert r.json()["learn"] is True and r.json()["save_to"] == str(online)
         wait_for("episodes learned online",
@@ -99,13 +99,13 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
                  timeout_s=30)
         assert metric("scheduler", "aoi3d_ppo_updates_total") >= 1
         assert metric("scheduler", "aoi3d_ppo_learning") == 1
-        state = httpx.get(sched).json()["online"]
+        state = HTTP.get(sched).json()["online"]
         assert state["episodes_learned"] >= 2 and math.isfinite(state["mean_reward"])
         assert math.isfinite(metric("scheduler", "aoi3d_ppo_mean_reward"))
         assert math.isfinite(metric("scheduler", "aoi3d_ppo_policy_entropy"))
 
         # back to a rule: learning stops and the online checkpoint is written
-        r = httpx.put(sched, json={"kind": "all"})
+        r = HTTP.put(sched, json={"kind": "all"})
         assert r.status_code == 200, r.text
         assert metric("scheduler", "aoi3d_ppo_learning") == 0
         learned = SingleStepPPO.load(online)
