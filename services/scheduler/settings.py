@@ -22,10 +22,12 @@ class Settings(ServiceSettings):
         30.0, gt=0, le=60_000, allow_inf_nan=False,
         description="Sim ms between two decisions; decisions are taken at t = k·period.")
     policy: str = Field(
-        "mat:51", description="Initial selection policy spec: all | mat:<mat_ms> | "
-                              "freshest:<k> | ppo:<checkpoint> (deterministic, not learning; "
-                              "`PUT /policy` with learn=true learns online).",
-        examples=["mat:51", "all", "freshest:6", "ppo:runs/ppo/quick/final.pt"])
+        "mat:70", description="Initial selection policy spec: all | mat:<mat_ms> | "
+                              "freshest:<k> | wait:<ms> | ppo:<checkpoint> (deterministic, not "
+                              "learning; `PUT /policy` with learn=true learns online). mat:70 "
+                              "is the live optimum on the default scene (README, 'The "
+                              "tradeoff, live').",
+        examples=["mat:70", "all", "freshest:6", "ppo:models/ppo/quick/final.pt"])
     inbox_size: int = Field(
         1024, ge=1, le=100_000,
         description="Delivered frames queued between the bus and the decision thread "
