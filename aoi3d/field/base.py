@@ -13,7 +13,10 @@ loss terms in ``RenderResult.aux_loss``.
 
 from __future__ import annotations
 
+import math
 from abc import ABC, abstractmethod
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,22 +24,50 @@ import numpy as np
 import torch
 from torch import nn
 
+from aoi3d.field.background import latlong_background
+from aoi3d.field.encodings import cell_index, grid_shape, vertex_coords
 from aoi3d.field.rays import RayBundle
 from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
 
-__all__ = ["Field", "FieldConfig", "check_background_and_schedule"]
+__all__ = [
+    "CoarseToFineConfig",
+    "CoarseToFineField",
+    "Field",
+    "FieldConfig",
+    "check_at_least",
+    "check_positive",
+    "check_schedule",
+    "seeded",
+]
 
 
-def check_background_and_schedule(background_size: tuple[int, int], up_axis: int,
-                                  schedule: str, from_step: int, every: int,
-                                  alpha: float) -> None:
-    """Validate what the grid-like configs share: the background map's size and pole axis, and
-    an empty-space schedule (``<schedule>_from_step``, ``<schedule>_every``,
+@contextmanager
+def seeded(seed: int) -> Iterator[None]:
+    """Inside: torch's global generator seeded with ``seed``; after: its state as before (so
+    a field's initial weights depend on its seed only)."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        yield
+
+
+# --- validation the configs share -----------------------------------------------------------
+def check_at_least(cfg: Any, minimum: int, names: Iterable[str]) -> None:
+    """``ValueError`` naming the first of the fields ``names`` of ``cfg`` below ``minimum``."""
+    for name in names:
+        if getattr(cfg, name) < minimum:
+            raise ValueError(f"{name} must be >= {minimum}, got {getattr(cfg, name)}")
+
+
+def check_positive(cfg: Any, names: Iterable[str]) -> None:
+    """``ValueError`` naming the first of the fields ``names`` of ``cfg`` not > 0 (NaN too)."""
+    for name in names:
+        if not getattr(cfg, name) > 0:
+            raise ValueError(f"{name} must be > 0, got {getattr(cfg, name)}")
+
+
+def check_schedule(schedule: str, from_step: int, every: int, alpha: float) -> None:
+    """Validate an empty-space schedule (``<schedule>_from_step``, ``<schedule>_every``,
     ``<schedule>_alpha``, e.g. ``occupancy`` or ``mask``); ``ValueError`` names the field."""
-    if min(background_size) < 2:
-        raise ValueError(f"background_size must be >= (2, 2), got {background_size}")
-    if up_axis not in (0, 1, 2):
-        raise ValueError(f"up_axis must be 0, 1 or 2, got {up_axis}")
     if from_step < 0 or every < 1:
         raise ValueError(f"{schedule}_from_step must be >= 0 and {schedule}_every >= 1, got "
                          f"{from_step}, {every}")
@@ -65,6 +96,8 @@ class FieldConfig:
     ``appearance_slots``: rows of the per-image appearance table of fields that have one (the
     trainer maps each view's ``appearance_id`` — or its camera — to a row and recycles the
     least recently used row when more ids come; fields without embeddings ignore it).
+    Background (every backend's, :mod:`aoi3d.field.background`): a lat-long map of
+    ``background_size`` (rows, columns) around ``up_axis``, learned at ``lr_background``.
     """
 
     batch_rays: int = 1024
@@ -79,20 +112,20 @@ class FieldConfig:
     num_threads: int | None = None
     tune_malloc: bool = True
     appearance_slots: int = 64
+    lr_background: float = 0.05
+    background_size: tuple[int, int] = (64, 128)
+    up_axis: int = 2
 
     def __post_init__(self) -> None:
-        for name in (
-            "batch_rays",
-            "samples_coarse",
-            "samples_fine",
-            "render_chunk_rays",
-            "appearance_slots",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("sample_rgb_loss", "opacity_loss"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        names = ("batch_rays", "samples_coarse", "samples_fine", "render_chunk_rays",
+                 "appearance_slots")
+        check_at_least(self, 1, names)
+        check_at_least(self, 0, ("sample_rgb_loss", "opacity_loss"))
+        check_positive(self, ("lr_background",))
+        if min(self.background_size) < 2:
+            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
+        if self.up_axis not in (0, 1, 2):
+            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
         if not 0 <= self.explore_empty <= 1:
             raise ValueError(f"explore_empty must be in [0, 1], got {self.explore_empty}")
         if self.fine_from_step < 0:
@@ -106,22 +139,50 @@ class FieldConfig:
         n = self.samples_coarse if step < self.fine_from_step else self.samples_fine
         return diagonal / n
 
+    def density_threshold(self, aabb: np.ndarray, alpha: float) -> float:
+        """The density σ whose opacity 1 − exp(−σ·δ) at the fine ray step δ is ``alpha``
+        (empty-space skipping keeps what is above it)."""
+        return -math.log1p(-alpha) / self.ray_step(aabb, self.fine_from_step)
+
     def build(self, aabb: np.ndarray) -> Field:
         """The field this config describes, covering ``aabb`` (2, 3)."""
         raise NotImplementedError(f"{type(self).__name__} builds no field")
 
 
 class Field(nn.Module, ABC):
-    """Maps points inside the box to density and colour, and directions to the background."""
+    """Maps points inside the box to density and colour, and directions to the background.
+
+    The built-in backends start with :meth:`_setup` (their config ``cfg``, the box buffer
+    ``aabb`` and the lat-long background map ``env``), which the default :meth:`background`
+    and :meth:`background_group` use.
+    """
+
+    cfg: FieldConfig
+    env: nn.Parameter
+
+    def _setup(self, cfg: FieldConfig, aabb: np.ndarray) -> np.ndarray:
+        """Keep ``cfg``, register the box (2, 3) as buffer ``aabb`` and create the background
+        map ``env`` (rows, columns, 3) at zero; returns the box as float64."""
+        self.cfg = cfg
+        box = np.asarray(aabb, dtype=np.float64)
+        self.register_buffer("aabb", torch.tensor(box, dtype=torch.float32))
+        rows, cols = cfg.background_size
+        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
+        return box
 
     @abstractmethod
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density σ ≥ 0 (P,) and colour in [0, 1] (P, 3) at world ``points`` seen along
         ``dirs`` (P, 3)."""
 
-    @abstractmethod
     def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        """Colour in [0, 1] (R, 3) of rays leaving the box with unit directions ``dirs``."""
+        """Colour in [0, 1] (R, 3) of rays leaving the box with unit directions ``dirs``;
+        default: the lat-long map ``env`` around ``cfg.up_axis``."""
+        return latlong_background(self.env, dirs, self.cfg.up_axis)
+
+    def background_group(self) -> dict[str, Any]:
+        """The optimizer parameter group of the background map."""
+        return {"params": [self.env], "lr": self.cfg.lr_background}
 
     @abstractmethod
     def param_groups(self) -> list[dict[str, Any]]:
@@ -150,3 +211,69 @@ class Field(nn.Module, ABC):
     def reset_appearance(self, rows: torch.Tensor) -> None:
         """Hook: the trainer gave appearance ``rows`` (int64) to new images; a field with
         per-image embeddings resets them to their initial value. Default: nothing."""
+
+
+# --- backends on vertex grids refined coarse to fine ----------------------------------------
+@dataclass(frozen=True)
+class CoarseToFineConfig(FieldConfig):
+    """A backend on vertex grids refined coarse to fine (``grid``, ``tensorf``):
+    ``grid_sizes``: vertices along the longest box side at each stage (the other sides get the
+    same voxel size); stage k + 1 starts at training step ``upsample_steps[k]``."""
+
+    grid_sizes: tuple[int, ...] = (48, 96, 128)
+    upsample_steps: tuple[int, ...] = (300, 1000)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        sizes, steps = self.grid_sizes, self.upsample_steps
+        if not sizes or min(sizes) < 2:
+            raise ValueError(f"grid_sizes must be non-empty, each >= 2, got {sizes}")
+        if len(steps) != len(sizes) - 1:
+            raise ValueError(
+                f"upsample_steps needs len(grid_sizes) - 1 = {len(sizes) - 1} entries, got {steps}"
+            )
+        if list(steps) != sorted(steps) or (steps and steps[0] < 1):
+            raise ValueError(f"upsample_steps must be increasing and >= 1: {steps}")
+
+    def stage(self, step: int) -> int:
+        """Index into ``grid_sizes`` of the resolution used at training step ``step``."""
+        return sum(1 for s in self.upsample_steps if step >= s)
+
+
+class CoarseToFineField(Field):
+    """A field on vertex grids spanning the box (vertices on its faces, cubic voxels) of
+    ``shape`` vertices per axis, the stage of ``cfg.grid_sizes`` in force; :meth:`resize`
+    resamples its grids when a stage begins (:meth:`_advance`, from ``on_step``)."""
+
+    cfg: CoarseToFineConfig
+
+    def _setup(self, cfg: FieldConfig, aabb: np.ndarray) -> np.ndarray:
+        box = super()._setup(cfg, aabb)
+        self._stage = 0
+        self.shape = grid_shape(box, self.cfg.grid_sizes[0])
+        return box
+
+    @abstractmethod
+    def resize(self, size: int) -> None:
+        """Resample the grids to ``size`` vertices along the longest side; sets ``shape``."""
+
+    def _advance(self, step: int) -> bool:
+        """Resize when training step ``step`` begins a new stage; True when it did."""
+        stage = self.cfg.stage(step)
+        if stage == self._stage:
+            return False
+        self.resize(self.cfg.grid_sizes[stage])
+        self._stage = stage
+        return True
+
+    def _coords(self, points: torch.Tensor) -> torch.Tensor:
+        """World ``points`` (P, 3) in vertex units of the current grid."""
+        return vertex_coords(points, self.aabb, self.shape)
+
+    def _at_cells(self, cells: torch.Tensor | None, points: torch.Tensor) -> torch.Tensor | None:
+        """Per-cell values ``cells`` (Π(n − 1),) of the current grid at world ``points`` (None
+        stays None)."""
+        if cells is None:
+            return None
+        index = cell_index(self._coords(points), [n - 1 for n in self.shape])
+        return cells.index_select(0, index)

@@ -23,8 +23,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.base import Field, FieldConfig, check_at_least, check_positive, seeded
 
 __all__ = ["NerfMlpConfig", "NerfMlpField", "positional_encoding"]
 
@@ -38,9 +37,8 @@ class NerfMlpConfig(FieldConfig):
     60 s against 28.5 with 1024 and 29.0 with 256 rays). The loss is the plain photometric
     MSE: without empty-space skipping the opacity (sparsity) loss only empties the box (stuck
     at 22.4 dB for 60 s against 28.5 without it), and the per-sample colour loss goes with
-    it. ``init_density``: σ about everywhere at the start. Adam learning rates: ``lr_mlp``,
-    ``lr_background``. Background: lat-long map of ``background_size`` around ``up_axis``.
-    ``init_seed`` seeds the initial weights.
+    it. ``init_density``: σ about everywhere at the start. Adam learning rate: ``lr_mlp``
+    (the background's is inherited). ``init_seed`` seeds the initial weights.
     """
 
     batch_rays: int = 512
@@ -53,25 +51,13 @@ class NerfMlpConfig(FieldConfig):
     frequencies: int = 6
     init_density: float = 0.1
     lr_mlp: float = 5e-3
-    lr_background: float = 0.05
-    background_size: tuple[int, int] = (64, 128)
-    up_axis: int = 2
     init_seed: int = 0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("layers", "width"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.frequencies < 0:
-            raise ValueError(f"frequencies must be >= 0, got {self.frequencies}")
-        for name in ("init_density", "lr_mlp", "lr_background"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if min(self.background_size) < 2:
-            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
-        if self.up_axis not in (0, 1, 2):
-            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
+        check_at_least(self, 1, ("layers", "width"))
+        check_at_least(self, 0, ("frequencies",))
+        check_positive(self, ("init_density", "lr_mlp"))
 
     def build(self, aabb: np.ndarray) -> NerfMlpField:
         return NerfMlpField(self, aabb)
@@ -91,32 +77,22 @@ class NerfMlpField(Field):
 
     def __init__(self, cfg: NerfMlpConfig, aabb: np.ndarray) -> None:
         super().__init__()
-        self.cfg = cfg
-        box = np.asarray(aabb, dtype=np.float64)
-        self.register_buffer("aabb", torch.tensor(box, dtype=torch.float32))
+        self._setup(cfg, aabb)
         layers: list[nn.Module] = []
         width_in = 3 * (1 + 2 * cfg.frequencies)
-        with torch.random.fork_rng(devices=[]):  # initial weights from ``init_seed`` only
-            torch.manual_seed(cfg.init_seed)
+        with seeded(cfg.init_seed):  # initial weights from ``init_seed`` only
             for _ in range(cfg.layers):
                 layers += [nn.Linear(width_in, cfg.width), nn.ReLU()]
                 width_in = cfg.width
             layers.append(nn.Linear(width_in, 4))
             self.mlp = nn.Sequential(*layers)
         self.density_shift = math.log(math.expm1(cfg.init_density))
-        rows, cols = cfg.background_size
-        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         x = (points - self.aabb[0]) * (2.0 / (self.aabb[1] - self.aabb[0])) - 1.0
         out = self.mlp(positional_encoding(x, self.cfg.frequencies))
         return F.softplus(out[:, 0] + self.density_shift), torch.sigmoid(out[:, 1:])
 
-    def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        return latlong_background(self.env, dirs, self.cfg.up_axis)
-
     def param_groups(self) -> list[dict[str, Any]]:
-        return [
-            {"params": list(self.mlp.parameters()), "lr": self.cfg.lr_mlp},
-            {"params": [self.env], "lr": self.cfg.lr_background},
-        ]
+        return [{"params": list(self.mlp.parameters()), "lr": self.cfg.lr_mlp},
+                self.background_group()]

@@ -57,8 +57,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.base import Field, FieldConfig, check_at_least, check_positive
 from aoi3d.field.encodings import HashEncoding, spherical_harmonics
 from aoi3d.field.rays import RayBundle
 from aoi3d.field.render import RenderOptions, RenderResult, volume_render
@@ -95,9 +94,9 @@ class NerfactoConfig(FieldConfig):
     ``distortion_loss_weight`` × the distortion loss (0: off).
 
     Learning rates (Adam): ``lr_field`` (hash table and MLPs), ``lr_proposal``,
-    ``lr_appearance``, ``lr_background``; ``background_size`` (rows, columns) of the lat-long
-    map, ``up_axis`` its pole. The inherited uniform-sampler settings (``samples_coarse``,
-    ``samples_fine``, ``fine_from_step``, ``explore_empty``) are not used by this backend.
+    ``lr_appearance`` (the background's is inherited). The inherited uniform-sampler
+    settings (``samples_coarse``, ``samples_fine``, ``fine_from_step``, ``explore_empty``) are
+    not used by this backend.
     """
 
     levels: int = 8
@@ -127,32 +126,18 @@ class NerfactoConfig(FieldConfig):
     lr_field: float = 1e-2
     lr_proposal: float = 1e-2
     lr_appearance: float = 1e-2
-    lr_background: float = 0.05
-    background_size: tuple[int, int] = (64, 128)
-    up_axis: int = 2
     batch_rays: int = 512
     opacity_loss: float = 0.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        positive = (
-            "levels",
-            "features_per_level",
-            "base_resolution",
-            "hidden_dim",
-            "color_hidden_dim",
-            "fine_samples",
-            "proposal_levels",
-            "proposal_features",
-            "proposal_base_resolution",
-            "proposal_hidden_dim",
-        )
-        for name in positive:
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("geo_features", "appearance_dim", "proposal_anneal_steps"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        at_least_1 = ("levels", "features_per_level", "base_resolution", "hidden_dim",
+                      "color_hidden_dim", "fine_samples", "proposal_levels", "proposal_features",
+                      "proposal_base_resolution", "proposal_hidden_dim")
+        check_at_least(self, 1, at_least_1)
+        check_at_least(self, 0, ("geo_features", "appearance_dim", "proposal_anneal_steps",
+                                 "interlevel_loss_weight", "distortion_loss_weight"))
+        check_positive(self, ("init_density", "lr_field", "lr_proposal", "lr_appearance"))
         for name in ("log2_table_size", "proposal_log2_table_size"):
             if not 4 <= getattr(self, name) <= 24:
                 raise ValueError(f"{name} must be in [4, 24], got {getattr(self, name)}")
@@ -175,23 +160,11 @@ class NerfactoConfig(FieldConfig):
                 f"proposal network ({len(self.proposal_samples)}), got "
                 f"{self.proposal_max_resolutions}"
             )
-        if not self.init_density > 0:
-            raise ValueError(f"init_density must be > 0, got {self.init_density}")
         if not self.histogram_padding >= 0 or not self.proposal_anneal_slope >= 1:
             raise ValueError(
                 "histogram_padding must be >= 0 and proposal_anneal_slope >= 1, got "
                 f"{self.histogram_padding}, {self.proposal_anneal_slope}"
             )
-        for name in ("interlevel_loss_weight", "distortion_loss_weight"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("lr_field", "lr_proposal", "lr_appearance", "lr_background"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if min(self.background_size) < 2:
-            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
-        if self.up_axis not in (0, 1, 2):
-            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
 
     def anneal_exponent(self, step: int) -> float:
         """Exponent a of the proposal weights w^a used for resampling at training ``step``."""
@@ -365,9 +338,7 @@ class NerfactoField(Field):
 
     def __init__(self, cfg: NerfactoConfig, aabb: np.ndarray) -> None:
         super().__init__()
-        self.cfg = cfg
-        box = np.asarray(aabb, dtype=np.float64)
-        self.register_buffer("aabb", torch.as_tensor(box, dtype=torch.float32))
+        box = self._setup(cfg, aabb)
         gen = torch.Generator().manual_seed(0)  # the module's init (torch's global RNG untouched)
         self.encoding = HashEncoding(
             box,
@@ -395,8 +366,6 @@ class NerfactoField(Field):
             _init_mlp(p.mlp, gen)
         self.appearance = nn.Parameter(torch.zeros(cfg.appearance_slots, cfg.appearance_dim))
         self.register_buffer("appearance_used", torch.zeros(cfg.appearance_slots, dtype=torch.bool))
-        rows, cols = cfg.background_size
-        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
         self.log_init_density = math.log(cfg.init_density)
         self._step = 0
 
@@ -421,9 +390,6 @@ class NerfactoField(Field):
         """The field at ``points`` with the neutral appearance."""
         return self._field(points, dirs, None)
 
-    def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        return latlong_background(self.env, dirs, self.cfg.up_axis)
-
     def param_groups(self) -> list[dict[str, Any]]:
         cfg = self.cfg
         groups = [
@@ -436,7 +402,7 @@ class NerfactoField(Field):
                 "lr": cfg.lr_field,
             },
             {"params": list(self.proposals.parameters()), "lr": cfg.lr_proposal},
-            {"params": [self.env], "lr": cfg.lr_background},
+            self.background_group(),
         ]
         if cfg.appearance_dim:
             groups.append({"params": [self.appearance], "lr": cfg.lr_appearance})

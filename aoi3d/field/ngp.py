@@ -36,8 +36,14 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.base import (
+    Field,
+    FieldConfig,
+    check_at_least,
+    check_positive,
+    check_schedule,
+    seeded,
+)
 from aoi3d.field.encodings import HashEncoding, cell_index, spherical_harmonics
 
 __all__ = ["NgpConfig", "NgpField"]
@@ -55,8 +61,7 @@ class NgpConfig(FieldConfig):
     the ray direction when ``view_dependent`` (no gain measured: the scene is Lambertian);
     without ``colour_mlp`` the density MLP outputs the colour itself. ``init_seed`` seeds the
     initial weights. ``init_density``: σ everywhere at the start. Adam learning rates:
-    ``lr_table``, ``lr_mlp``, ``lr_background``. Background: lat-long map of
-    ``background_size`` (rows, columns) around ``up_axis``. Occupancy grid: cubic cells,
+    ``lr_table``, ``lr_mlp`` (the background's is inherited). Occupancy grid: cubic cells,
     ``occupancy_size`` along the longest side, first built at step ``occupancy_from_step``
     (all cells probed), then every ``occupancy_every`` steps a random ``occupancy_fraction``
     of them; threshold ``occupancy_alpha`` on 1 − exp(−σ·δ_fine).
@@ -80,9 +85,6 @@ class NgpConfig(FieldConfig):
     init_density: float = 0.1
     lr_table: float = 0.05
     lr_mlp: float = 0.001
-    lr_background: float = 0.05
-    background_size: tuple[int, int] = (64, 128)
-    up_axis: int = 2
     occupancy_size: int = 64
     occupancy_from_step: int = 30
     occupancy_every: int = 16
@@ -92,9 +94,9 @@ class NgpConfig(FieldConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("n_levels", "features", "hidden", "geo_features"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_at_least(self, 1, ("n_levels", "features", "hidden", "geo_features",
+                                 "occupancy_size"))
+        check_positive(self, ("init_scale", "init_density", "lr_table", "lr_mlp"))
         if not 4 <= self.log2_table_size <= 30:
             raise ValueError(f"log2_table_size must be in [4, 30], got {self.log2_table_size}")
         if not 2 <= self.base_resolution <= self.max_resolution:
@@ -102,27 +104,15 @@ class NgpConfig(FieldConfig):
                 "need 2 <= base_resolution <= max_resolution, got "
                 f"{self.base_resolution}, {self.max_resolution}"
             )
-        for name in ("init_scale", "init_density", "lr_table", "lr_mlp", "lr_background"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
         if self.view_dependent and not self.colour_mlp:
             raise ValueError("view_dependent needs the colour MLP (colour_mlp=True)")
-        if min(self.background_size) < 2:
-            raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
-        if self.up_axis not in (0, 1, 2):
-            raise ValueError(f"up_axis must be 0, 1 or 2, got {self.up_axis}")
-        if self.occupancy_size < 1 or self.occupancy_from_step < 0 or self.occupancy_every < 1:
-            raise ValueError(
-                "occupancy_size >= 1, occupancy_from_step >= 0 and occupancy_every >= 1 needed, "
-                f"got {self.occupancy_size}, {self.occupancy_from_step}, {self.occupancy_every}"
-            )
         if not 0 < self.occupancy_fraction <= 1 or not 0 <= self.occupancy_decay <= 1:
             raise ValueError(
                 "occupancy_fraction must be in (0, 1] and occupancy_decay in [0, 1], got "
                 f"{self.occupancy_fraction}, {self.occupancy_decay}"
             )
-        if not 0 < self.occupancy_alpha < 1:
-            raise ValueError(f"occupancy_alpha must be in (0, 1), got {self.occupancy_alpha}")
+        check_schedule("occupancy", self.occupancy_from_step, self.occupancy_every,
+                       self.occupancy_alpha)
 
     def build(self, aabb: np.ndarray) -> NgpField:
         return NgpField(self, aabb)
@@ -134,11 +124,8 @@ class NgpField(Field):
 
     def __init__(self, cfg: NgpConfig, aabb: np.ndarray) -> None:
         super().__init__()
-        self.cfg = cfg
-        box = np.asarray(aabb, dtype=np.float64)
-        self.register_buffer("aabb", torch.tensor(box, dtype=torch.float32))
-        with torch.random.fork_rng(devices=[]):  # initial weights from ``init_seed`` only
-            torch.manual_seed(cfg.init_seed)
+        box = self._setup(cfg, aabb)
+        with seeded(cfg.init_seed):  # initial weights from ``init_seed`` only
             self.encoding = HashEncoding(
                 box,
                 cfg.n_levels,
@@ -162,16 +149,13 @@ class NgpField(Field):
                 else None
             )
         self.density_shift = math.log(math.expm1(cfg.init_density))
-        rows, cols = cfg.background_size
-        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
         # The occupancy grid: cubic cells, a density estimate per cell.
         extent = box[1] - box[0]
         cell = float(extent.max()) / cfg.occupancy_size
         self.occupancy_shape = tuple(max(1, math.ceil(float(e) / cell - 1e-9)) for e in extent)
         self.register_buffer("cell_size", torch.full((3,), cell, dtype=torch.float32))
         self.register_buffer("density_estimate", torch.zeros(math.prod(self.occupancy_shape)))
-        fine_step = cfg.ray_step(box, cfg.fine_from_step)
-        self.sigma_min = -math.log1p(-cfg.occupancy_alpha) / fine_step
+        self.sigma_min = cfg.density_threshold(box, cfg.occupancy_alpha)
         self._occupancy: torch.Tensor | None = None  # (cells,) bool; None: skip nothing
         self._probe_generator: torch.Generator | None = None
 
@@ -189,9 +173,6 @@ class NgpField(Field):
             geo = torch.cat([geo, spherical_harmonics(dirs, 3)], dim=1)
         return sigma, torch.sigmoid(self.colour_mlp(geo))
 
-    def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        return latlong_background(self.env, dirs, self.cfg.up_axis)
-
     def param_groups(self) -> list[dict[str, Any]]:
         mlp = list(self.density_mlp.parameters())
         if self.colour_mlp is not None:
@@ -199,7 +180,7 @@ class NgpField(Field):
         return [
             {"params": [self.encoding.table], "lr": self.cfg.lr_table},
             {"params": mlp, "lr": self.cfg.lr_mlp},
-            {"params": [self.env], "lr": self.cfg.lr_background},
+            self.background_group(),
         ]
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None:

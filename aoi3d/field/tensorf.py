@@ -39,16 +39,21 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from aoi3d.field.background import latlong_background
-from aoi3d.field.base import Field, FieldConfig, check_background_and_schedule
+from aoi3d.field.base import (
+    CoarseToFineConfig,
+    CoarseToFineField,
+    check_at_least,
+    check_positive,
+    check_schedule,
+    seeded,
+)
 from aoi3d.field.encodings import (
-    cell_index,
+    cells_near,
     corner_rows,
     grid_shape,
     linear_corners,
     resample,
     row_gather,
-    vertex_coords,
 )
 
 __all__ = ["VM_MODES", "TensorfConfig", "TensorfField"]
@@ -58,17 +63,15 @@ VM_MODES = ((0, 1, 2), (0, 2, 1), (1, 2, 0))
 
 
 @dataclass(frozen=True)
-class TensorfConfig(FieldConfig):
+class TensorfConfig(CoarseToFineConfig):
     """The VM-decomposition backend.
 
-    ``grid_sizes``: vertices along the longest box side at each coarse-to-fine stage (cubic
-    voxels); stage k + 1 starts at training step ``upsample_steps[k]``.
+    Coarse to fine: ``grid_sizes`` at ``upsample_steps`` (:class:`CoarseToFineConfig`).
     ``density_components`` / ``app_components``: components per plane/line pair (R_σ, R_c).
     ``decoder_hidden``: 0 decodes colour with a linear basis (3·R_c → 3), else a tiny MLP with
     that many hidden units. ``init_scale``: standard deviation of the initial components.
     ``init_density``: σ everywhere at the start. Adam learning rates: ``lr_grid`` (planes and
-    lines), ``lr_decoder``, ``lr_background``. Background: lat-long map of
-    ``background_size`` around ``up_axis``. Alpha mask: see the module docstring
+    lines), ``lr_decoder`` (the background's is inherited). Alpha mask: see the module docstring
     (``mask_from_step``, ``mask_every``, ``mask_alpha``). ``init_seed`` seeds the initial
     components and decoder.
     """
@@ -77,7 +80,6 @@ class TensorfConfig(FieldConfig):
     samples_coarse: int = 32
     samples_fine: int = 160
     grid_sizes: tuple[int, ...] = (64, 96, 128)
-    upsample_steps: tuple[int, ...] = (300, 1000)
     density_components: int = 4
     app_components: int = 8
     decoder_hidden: int = 64
@@ -85,9 +87,6 @@ class TensorfConfig(FieldConfig):
     init_density: float = 0.1
     lr_grid: float = 0.1
     lr_decoder: float = 0.01
-    lr_background: float = 0.05
-    background_size: tuple[int, int] = (64, 128)
-    up_axis: int = 2
     mask_from_step: int = 100
     mask_every: int = 16
     mask_alpha: float = 1e-3
@@ -95,49 +94,23 @@ class TensorfConfig(FieldConfig):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not self.grid_sizes or min(self.grid_sizes) < 2:
-            raise ValueError(f"grid_sizes must be non-empty, each >= 2, got {self.grid_sizes}")
-        if len(self.upsample_steps) != len(self.grid_sizes) - 1:
-            raise ValueError(
-                f"upsample_steps needs len(grid_sizes) - 1 = {len(self.grid_sizes) - 1} entries, "
-                f"got {self.upsample_steps}"
-            )
-        if list(self.upsample_steps) != sorted(self.upsample_steps) or (
-            self.upsample_steps and self.upsample_steps[0] < 1
-        ):
-            raise ValueError(f"upsample_steps must be increasing and >= 1: {self.upsample_steps}")
-        for name in ("density_components", "app_components"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.decoder_hidden < 0:
-            raise ValueError(f"decoder_hidden must be >= 0, got {self.decoder_hidden}")
-        for name in ("init_scale", "init_density", "lr_grid", "lr_decoder", "lr_background"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        check_background_and_schedule(self.background_size, self.up_axis, "mask",
-                                      self.mask_from_step, self.mask_every, self.mask_alpha)
-
-    def stage(self, step: int) -> int:
-        """Index into ``grid_sizes`` of the resolution used at training step ``step``."""
-        return sum(1 for s in self.upsample_steps if step >= s)
+        check_at_least(self, 1, ("density_components", "app_components"))
+        check_at_least(self, 0, ("decoder_hidden",))
+        check_positive(self, ("init_scale", "init_density", "lr_grid", "lr_decoder"))
+        check_schedule("mask", self.mask_from_step, self.mask_every, self.mask_alpha)
 
     def build(self, aabb: np.ndarray) -> TensorfField:
         return TensorfField(self, aabb)
 
 
-class TensorfField(Field):
+class TensorfField(CoarseToFineField):
     """Three plane/line pairs for density and appearance, a colour decoder, an alpha mask."""
 
     def __init__(self, cfg: TensorfConfig, aabb: np.ndarray) -> None:
         super().__init__()
-        self.cfg = cfg
-        box = np.asarray(aabb, dtype=np.float64)
-        self.register_buffer("aabb", torch.tensor(box, dtype=torch.float32))
-        self._stage = 0
-        self.shape = grid_shape(box, cfg.grid_sizes[0])
+        box = self._setup(cfg, aabb)
         channels = cfg.density_components + cfg.app_components
-        with torch.random.fork_rng(devices=[]):  # initial values from ``init_seed`` only
-            torch.manual_seed(cfg.init_seed)
+        with seeded(cfg.init_seed):  # initial values from ``init_seed`` only
             self.planes = nn.ParameterList(
                 nn.Parameter(cfg.init_scale * torch.randn(self.shape[u] * self.shape[v], channels))
                 for u, v, _ in VM_MODES
@@ -156,16 +129,13 @@ class TensorfField(Field):
             else:
                 self.decoder = nn.Linear(features, 3)
         self.density_shift = math.log(math.expm1(cfg.init_density))
-        rows, cols = cfg.background_size
-        self.env = nn.Parameter(torch.zeros(rows, cols, 3))
-        fine_step = cfg.ray_step(box, cfg.fine_from_step)
-        self.sigma_min = -math.log1p(-cfg.mask_alpha) / fine_step
+        self.sigma_min = cfg.density_threshold(box, cfg.mask_alpha)
         self._mask: torch.Tensor | None = None  # (cells,) bool; None: skip nothing
 
     # --- the Field interface -------------------------------------------------------------
     def _features(self, points: torch.Tensor) -> list[torch.Tensor]:
         """Plane × line products of each VM pair at ``points``: three (P, R_σ + R_c)."""
-        coords = vertex_coords(points, self.aabb, self.shape)
+        coords = self._coords(points)
         axes = [linear_corners(coords[:, a], n) for a, n in enumerate(self.shape)]
         out = []
         shape = self.shape
@@ -187,35 +157,24 @@ class TensorfField(Field):
         app = torch.cat([p[:, rd:] for p in parts], dim=1)
         return F.softplus(raw + self.density_shift), torch.sigmoid(self.decoder(app))
 
-    def background(self, dirs: torch.Tensor) -> torch.Tensor:
-        return latlong_background(self.env, dirs, self.cfg.up_axis)
-
     def param_groups(self) -> list[dict[str, Any]]:
         return [
             {"params": [*self.planes, *self.lines], "lr": self.cfg.lr_grid},
             {"params": list(self.decoder.parameters()), "lr": self.cfg.lr_decoder},
-            {"params": [self.env], "lr": self.cfg.lr_background},
+            self.background_group(),
         ]
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None:
-        if self._mask is None:
-            return None
-        cells = [n - 1 for n in self.shape]
-        index = cell_index(vertex_coords(points, self.aabb, self.shape), cells)
-        return self._mask.index_select(0, index)
+        return self._at_cells(self._mask, points)
 
     def on_step(self, step: int) -> bool:
         cfg = self.cfg
-        stage = cfg.stage(step)
-        resized = stage != self._stage
-        if resized:
-            self.upsample(cfg.grid_sizes[stage])
-            self._stage = stage
+        resized = self._advance(step)
         if step < cfg.mask_from_step:
             self._mask = None
         elif self._mask is None or (
             not resized and (step - cfg.mask_from_step) % cfg.mask_every == 0
-        ):  # (``upsample`` rebuilt an existing mask)
+        ):  # (``resize`` rebuilt an existing mask)
             self.update_alpha_mask()
         return resized
 
@@ -237,10 +196,7 @@ class TensorfField(Field):
     @torch.no_grad()
     def update_alpha_mask(self) -> None:
         """Keep the cells with a vertex within one cell above the opacity threshold."""
-        dense = (self.vertex_density() > self.sigma_min).float()[None, None]
-        cells = F.max_pool3d(dense, 2, stride=1)
-        cells = F.max_pool3d(cells, 3, stride=1, padding=1)
-        self._mask = cells.reshape(-1) > 0
+        self._mask = cells_near(self.vertex_density() > self.sigma_min).reshape(-1)
 
     @property
     def alpha_mask(self) -> torch.Tensor | None:
@@ -252,7 +208,7 @@ class TensorfField(Field):
 
     # --- coarse to fine -------------------------------------------------------------------
     @torch.no_grad()
-    def upsample(self, size: int) -> None:
+    def resize(self, size: int) -> None:
         """Resample planes (bilinear) and lines (linear) to ``size`` vertices along the
         longest side (the function is kept up to interpolation) and rebuild the alpha mask
         on the new cells."""

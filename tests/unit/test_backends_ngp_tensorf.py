@@ -268,7 +268,7 @@ def test_tensorf_upsampling_keeps_the_function_and_the_rendered_image() -> None:
     with torch.no_grad():
         sigma, rgb = field.query(points, points)
     before = trainer.render(_camera(45.0))
-    field.upsample(24)
+    field.resize(24)
     assert field.shape == (24, 24, 24) and field.planes[0].shape[0] == 24 * 24
     with torch.no_grad():
         sigma_up, rgb_up = field.query(points, points)

@@ -13,6 +13,7 @@ import torch.nn.functional as F
 from aoi3d.field.encodings import (
     HashEncoding,
     cell_index,
+    cells_near,
     corner_rows,
     grid_shape,
     hash_vertices,
@@ -25,14 +26,6 @@ from aoi3d.field.encodings import (
 
 UNIT_BOX = np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]])
 FLAT_BOX = np.array([[-2.0, -2.0, -0.05], [2.0, 2.0, 2.7]])  # the turbine's proportions
-
-
-@pytest.fixture(autouse=True)
-def _one_thread() -> object:
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def _points_in(box: np.ndarray, n: int, seed: int) -> torch.Tensor:
@@ -296,3 +289,12 @@ def test_resample_keeps_a_linear_function(
     out = resample(linear(shape), shape, new_shape)
     assert out.shape == (math.prod(new_shape), 2) and out.is_contiguous()
     torch.testing.assert_close(out, linear(new_shape), atol=1e-5, rtol=0)
+
+
+def test_cells_near_matches_max_pooling() -> None:
+    torch.manual_seed(2)
+    for shape in [(2, 3, 4), (6, 7, 9)]:
+        flags = torch.rand(shape) > 0.9
+        ref = F.max_pool3d(flags.float()[None, None], 2, stride=1)
+        ref = F.max_pool3d(ref, 3, stride=1, padding=1)[0, 0] > 0
+        assert torch.equal(cells_near(flags), ref)

@@ -7,7 +7,6 @@ import math
 import numpy as np
 import pytest
 import torch
-import torch.nn.functional as F
 
 from aoi3d.field import (
     BACKENDS,
@@ -22,7 +21,6 @@ from aoi3d.field import (
     sample_uniform,
     volume_render,
 )
-from aoi3d.field.grid import _dilate_cells
 from aoi3d.scene.camera import Camera, look_at
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -191,18 +189,6 @@ def test_camera_rays_are_the_cameras_pixels() -> None:
 
 
 # --- the grid --------------------------------------------------------------------------------
-def test_occupancy_dilation_matches_max_pooling() -> None:
-    torch.manual_seed(2)
-    for shape in [(2, 3, 4), (6, 7, 9)]:
-        flags = torch.rand(shape) > 0.9
-        cells = flags
-        for axis in range(3):
-            cells = _dilate_cells(cells, axis)
-        ref = F.max_pool3d(flags.float()[None, None], 2, stride=1)
-        ref = F.max_pool3d(ref, 3, stride=1, padding=1)[0, 0] > 0
-        assert torch.equal(cells, ref)
-
-
 def test_occupancy_skips_empty_voxels_only() -> None:
     cfg = _tiny_cfg(grid_sizes=(9,), upsample_steps=(), occupancy_from_step=0)
     field = DenseGridField(cfg, BOX)
