@@ -1,0 +1,31 @@
+"""The PPO checkpoint shipped in models/ppo/quick (the README's PPO example uses it)."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from aoi3d.experiment.config import EXPERIMENT_SCENE
+from aoi3d.policy import parse_policy
+
+ROOT = Path(__file__).resolve().parents[2]
+SHIPPED = ROOT / "models" / "ppo" / "quick"
+
+
+def test_shipped_checkpoint_loads_and_fits_the_default_scene() -> None:
+    policy = parse_policy(f"ppo:{SHIPPED / 'final.pt'}")
+    assert policy.kind == "ppo"
+    assert policy.n_cameras == EXPERIMENT_SCENE.n_train == 18
+    aoi = np.array([30.0, 60.0, 90.0, np.nan] * 4 + [30.0, 120.0])
+    mask = np.asarray(policy.select(aoi), dtype=bool)
+    assert mask.shape == (18,) and not mask[3]  # never a camera without a frame
+
+
+def test_shipped_checkpoint_comes_with_its_training_record() -> None:
+    command = (SHIPPED / "COMMAND").read_text()
+    assert "aoi3d ppo train --preset quick" in command
+    with (SHIPPED / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == 600
