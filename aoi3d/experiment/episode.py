@@ -13,7 +13,8 @@ An episode runs in two stages, so that a sweep knows what it must compute before
    (each selected camera's newest delivered frame, generated at U_n(t)) with the configured
    budget, renders the held-out camera at each scored decision and scores it against the
    ground truth of that time (the held-out camera's frame at that time) — the only use of
-   the truth.
+   the truth — over the whole image and over the dynamic region, the pixels that changed
+   since the truth at t − C and t − 2C (:func:`aoi3d.quality.dynamic_mask`).
 
 The numbers are a function of the plan, the config and the seed alone (channel draws from
 ``camera_rngs(seed, N)``, camera phases and the scene offset from an auxiliary stream of the
@@ -42,7 +43,7 @@ from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
 from aoi3d.policy import Policy, parse_policy
 from aoi3d.policy.wait import wait_ms_of
-from aoi3d.quality import LpipsFn, score
+from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
 from aoi3d.scene import SceneDataset
 
 __all__ = [
@@ -250,7 +251,8 @@ def _field_dict(cfg: EpisodeConfig) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class EpochScore:
-    """The quality of the novel view after one scored decision."""
+    """The quality of the novel view after one scored decision; ``*_dynamic*``: over the
+    dynamic region (:func:`aoi3d.quality.dynamic_mask`; None where its mask is empty)."""
 
     decision_ms: int
     eval_ms: int
@@ -262,6 +264,9 @@ class EpochScore:
     reward: float
     loss: float
     steps: int
+    psnr_dynamic_db: float | None
+    ssim_dynamic: float | None
+    dynamic_fraction: float
 
 
 @dataclass(frozen=True)
@@ -284,6 +289,12 @@ class EpisodeResult:
     ssim: float
     lpips: float | None
     reward: float
+    psnr_dynamic_db: float | None
+    """Mean dynamic-region PSNR over the scored decisions whose mask is not empty; None: none."""
+    ssim_dynamic: float | None
+    """Mean dynamic-region SSIM, likewise."""
+    dynamic_fraction: float
+    """Mean pixel fraction of the dynamic mask over the scored decisions."""
     train_steps: int
     wall_s: float
 
@@ -294,6 +305,9 @@ class EpisodeResult:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> EpisodeResult:
+        """The result :meth:`to_dict` wrote; a document lacking a field (one cached before
+        the dynamic-region scores existed) raises TypeError — the sweep's cache takes it as
+        a miss and recomputes it under the same key, so every result has every field."""
         data = dict(d)
         data["epochs"] = tuple(EpochScore(**e) for e in d["epochs"])
         return cls(**data)
@@ -301,6 +315,12 @@ class EpisodeResult:
     def relabel(self, policy: str, delay: str) -> EpisodeResult:
         """The same numbers under another policy's name (a shared, cached plan)."""
         return EpisodeResult(**{**vars(self), "policy": policy, "delay": delay})
+
+
+def _mean_or_none(values: list[float | None]) -> float | None:
+    """The mean of the values that are not None; None when there are none."""
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
 
 
 def _nanmean(values: list[float]) -> float:
@@ -338,6 +358,11 @@ class _Frames:
         """The held-out camera's frame at ``time_ms``: the ground truth of the novel view."""
         return self.ds.frame(self.ds.heldout_id, self.index(time_ms))
 
+    def truth_before(self, time_ms: int, period_ms: int) -> list[np.ndarray]:
+        """The truth at ``time_ms`` − k·``period_ms``, k = 1..K: what the dynamic mask
+        compares the truth at ``time_ms`` with."""
+        return [self.truth(time_ms - k * period_ms) for k in range(1, DYNAMIC_FRAMES + 1)]
+
 
 def run_plan(
     plan: EpisodePlan,
@@ -371,12 +396,15 @@ def run_plan(
         if rendered.render_steps:
             loss = rendered.loss
         image = rendered.image
-        quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn)
+        quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn,
+                        previous=frames.truth_before(d.eval_ms, cfg.period_ms))
+        dyn = quality.dynamic
         epochs.append(EpochScore(
             decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
             aoi_used_ms=float(np.mean(d.aoi_ms)) if d.aoi_ms else math.nan,
             psnr_db=quality.psnr_db, ssim=quality.ssim, lpips=quality.lpips,
             reward=quality.reward, loss=float(loss), steps=rendered.steps,
+            psnr_dynamic_db=dyn.psnr_db, ssim_dynamic=dyn.ssim, dynamic_fraction=dyn.fraction,
         ))
         last_image = image
         if on_render is not None:
@@ -394,6 +422,9 @@ def run_plan(
         ssim=float(np.mean([e.ssim for e in epochs])),
         lpips=float(np.mean(lpips_values)) if len(lpips_values) == len(epochs) else None,
         reward=float(np.mean([e.reward for e in epochs])),
+        psnr_dynamic_db=_mean_or_none([e.psnr_dynamic_db for e in epochs]),
+        ssim_dynamic=_mean_or_none([e.ssim_dynamic for e in epochs]),
+        dynamic_fraction=float(np.mean([e.dynamic_fraction for e in epochs])),
         train_steps=_total_steps(plan),
         wall_s=time.perf_counter() - started,
     )
