@@ -232,11 +232,12 @@ def _fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
 
 def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
     table = Table(title=title)
-    for name in (first, "n", "PSNR (dB)", "SSIM", "LPIPS", "reward", "cameras",
-                 "AoI used (ms)"):
+    for name in (first, "n", "PSNR (dB)", "dynamic PSNR (dB)", "SSIM", "LPIPS", "reward",
+                 "cameras", "AoI used (ms)"):
         table.add_column(name, justify="right")
     for r in rows:
         table.add_row(str(r[first]), str(r["n"]), _fmt(r["psnr_db"], r["psnr_db_ci95"]),
+                      _fmt(r["psnr_dynamic_db"], r["psnr_dynamic_db_ci95"]),
                       _fmt(r["ssim"], r["ssim_ci95"], 3), _fmt(r["lpips"], r["lpips_ci95"], 3),
                       _fmt(r["reward"], r["reward_ci95"], 3),
                       _fmt(r["n_selected"], None, 1), _fmt(r["aoi_used_ms"], None, 0))
@@ -292,8 +293,10 @@ def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
     return out
 
 
-_SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}
-"""Metrics an optimum can be taken over, and their sign (LPIPS: lower is better)."""
+_SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0, "psnr_dynamic_db": 1.0,
+          "ssim_dynamic": 1.0}
+"""Metrics an optimum can be taken over, and their sign (LPIPS: lower is better);
+``*_dynamic*``: over the dynamic region (:mod:`aoi3d.quality`)."""
 
 
 def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
@@ -425,8 +428,9 @@ def delay_cmd(
     gammas: Annotated[str | None, typer.Option(
         help="Γ values searched, comma-separated ms (default: the preset's).")] = None,
     metric: Annotated[str, typer.Option(
-        help="What the optimal Γ optimises: psnr_db, ssim, reward (maximised) or lpips "
-             "(minimised). The others' optima are written too.")] = "psnr_db",
+        help="What the optimal Γ optimises: psnr_db, ssim, reward, psnr_dynamic_db, "
+             "ssim_dynamic (the dynamic region's; maximised) or lpips (minimised). The others' "
+             "optima are written too.")] = "psnr_db",
     dataset: DatasetOpt = None,
     out: OutOpt = None,
     cache: CacheOpt = Path("runs/experiments/cache"),
@@ -507,8 +511,8 @@ def compare(
         help="Γ for mat:best; default: the best Γ of the preset's tradeoff sweep (cached).")]
     = None,
     best_metric: Annotated[str, typer.Option(
-        help="What mat:best's Γ is best at in the tradeoff sweep: psnr_db, ssim, reward "
-             "(maximised) or lpips (minimised).")] = "psnr_db",
+        help="What mat:best's Γ is best at in the tradeoff sweep: psnr_db, ssim, reward, "
+             "psnr_dynamic_db, ssim_dynamic (maximised) or lpips (minimised).")] = "psnr_db",
     delay: DelayOpt = "exp:60",
     dataset: DatasetOpt = None,
     out: OutOpt = None,

@@ -23,10 +23,14 @@ _PANELS = (
     ("psnr_db", "PSNR (dB)"),
     ("ssim", "SSIM"),
     ("lpips", "LPIPS (lower is better)"),
+    ("reward", "reward"),
+    ("psnr_dynamic_db", "dynamic-region PSNR (dB)"),
+    ("ssim_dynamic", "dynamic-region SSIM"),
     ("n_selected", "cameras used"),
     ("aoi_used_ms", "AoI of the used frames (ms)"),
-    ("reward", "reward"),
 )
+"""The tradeoff figure's panels, in order (two rows of four); ``dynamic-region``: over the
+pixels that moved (:func:`aoi3d.quality.dynamic_mask`)."""
 
 
 def _values(rows: Sequence[dict[str, Any]], metric: str) -> tuple[np.ndarray, np.ndarray]:
@@ -46,11 +50,12 @@ def _band(ax: Any, x: np.ndarray, mean: np.ndarray, half: np.ndarray, **kw: Any)
 
 def plot_tradeoff(rows: Sequence[dict[str, Any]], path: Path, *, title: str,
                   reference: dict[str, Any] | None = None) -> Path:
-    """Fig. 4: each metric against the MAT Γ (``gamma_ms`` of each row), mean and 95% band;
+    """Fig. 4: each metric against the MAT Γ (``gamma_ms`` of each row), mean and 95% band —
+    the full-image scores on top, the dynamic-region PSNR and SSIM below them;
     ``reference`` (e.g. the policy ``all``) is drawn as a dashed line."""
     rows = sorted(rows, key=lambda r: r["gamma_ms"])
     x = np.array([r["gamma_ms"] for r in rows], float)
-    fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)
+    fig, axes = plt.subplots(2, 4, figsize=(17, 7), constrained_layout=True)
     for ax, (metric, label) in zip(axes.flat, _PANELS, strict=True):
         mean, half = _values(rows, metric)
         if not np.isfinite(mean).any():
@@ -63,13 +68,13 @@ def plot_tradeoff(rows: Sequence[dict[str, Any]], path: Path, *, title: str,
             value = float(reference[metric])
             if math.isfinite(value):
                 ax.axhline(value, ls="--", color="grey", lw=1, label=reference.get("policy", ""))
-        if metric == "psnr_db" and np.isfinite(mean).any():
+        if metric in ("psnr_db", "psnr_dynamic_db") and np.isfinite(mean).any():
             best = int(np.nanargmax(mean))
             ax.axvline(x[best], ls=":", color="k", lw=1, label=f"best Γ = {x[best]:g} ms")
         ax.set_xlabel("MAT Γ (ms)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        if metric == "psnr_db":
+        if metric in ("psnr_db", "psnr_dynamic_db"):
             ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.savefig(path, dpi=120)
@@ -134,8 +139,8 @@ def plot_delay(optima: Sequence[dict[str, Any]], curves: Sequence[dict[str, Any]
 def plot_compare(rows: Sequence[dict[str, Any]], path: Path, *, title: str) -> Path:
     """The policies side by side: mean and 95% interval of each metric."""
     names = [r["policy"] for r in rows]
-    fig, axes = plt.subplots(1, 5, figsize=(16, 3.8), constrained_layout=True)
-    panels = ("psnr_db", "ssim", "lpips", "n_selected", "aoi_used_ms")
+    fig, axes = plt.subplots(1, 6, figsize=(19, 3.8), constrained_layout=True)
+    panels = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "n_selected", "aoi_used_ms")
     labels = dict(_PANELS)
     for ax, metric in zip(axes, panels, strict=True):
         mean, half = _values(rows, metric)
@@ -149,7 +154,7 @@ def plot_compare(rows: Sequence[dict[str, Any]], path: Path, *, title: str) -> P
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(labels[metric])
         finite = mean[np.isfinite(mean)]
-        if metric in ("psnr_db", "ssim") and finite.size:
+        if metric in ("psnr_db", "psnr_dynamic_db", "ssim") and finite.size:
             span = float(finite.max() - finite.min()) or 1.0
             ax.set_ylim(float(finite.min()) - span, float(finite.max()) + span)
         else:

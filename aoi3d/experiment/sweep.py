@@ -53,8 +53,10 @@ __all__ = [
     "run_jobs",
 ]
 
-METRICS = ("psnr_db", "ssim", "lpips", "reward", "n_selected", "aoi_used_ms", "mean_aoi_all_ms")
-"""The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval)."""
+METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic",
+           "dynamic_fraction", "n_selected", "aoi_used_ms", "mean_aoi_all_ms")
+"""The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval;
+``*_dynamic*``: over the dynamic region, see :mod:`aoi3d.quality`)."""
 
 Progress = Callable[[int, int], None]
 """``progress(done, total)`` in episodes to compute (cache hits are not counted)."""
@@ -85,7 +87,8 @@ class ResultCache:
         return self.root / key[:2] / f"{key}{suffix}"
 
     def get(self, key: str) -> EpisodeResult | None:
-        """The cached result of ``key``, or None (a corrupt entry counts as missing)."""
+        """The cached result of ``key``, or None (a corrupt entry, or one written before a
+        field of :class:`EpisodeResult` existed, counts as missing)."""
         path = self._path(key, ".json")
         try:
             return EpisodeResult.from_dict(json.loads(path.read_text()))

@@ -153,6 +153,32 @@ def test_episode_is_deterministic(cfg: EpisodeConfig, dataset: SceneDataset) -> 
                                     if d.cameras)
 
 
+def test_episode_scores_the_dynamic_region_of_the_truth(cfg: EpisodeConfig,
+                                                        dataset: SceneDataset) -> None:
+    from aoi3d.quality import dynamic_mask, dynamic_score
+
+    plan = plan_episode(cfg, dataset, "all", 3)
+    renders = []
+    result, _ = run_plan(plan, dataset, on_render=lambda d, image: renders.append((d, image)))
+    assert len(renders) == len(result.epochs) > 0
+
+    def truth(t_ms: int) -> np.ndarray:
+        return dataset.frame(dataset.heldout_id, dataset.frame_index(t_ms + plan.scene_offset_ms))
+
+    for (d, image), e in zip(renders, result.epochs, strict=True):
+        c = cfg.period_ms
+        mask = dynamic_mask(truth(d.eval_ms), [truth(d.eval_ms - c), truth(d.eval_ms - 2 * c)])
+        expected = dynamic_score(image, truth(d.eval_ms), mask)
+        assert 0 < e.dynamic_fraction < 1 and e.dynamic_fraction == expected.fraction
+        assert e.psnr_dynamic_db == pytest.approx(expected.psnr_db, abs=1e-9)
+        assert e.ssim_dynamic == pytest.approx(expected.ssim, abs=1e-9)
+        assert e.psnr_dynamic_db != pytest.approx(e.psnr_db, abs=1e-3)
+    assert result.psnr_dynamic_db == pytest.approx(np.mean([e.psnr_dynamic_db
+                                                            for e in result.epochs]))
+    assert result.dynamic_fraction == pytest.approx(np.mean([e.dynamic_fraction
+                                                             for e in result.epochs]))
+
+
 def test_empty_selection_trains_nothing(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
     result, _ = run_plan(plan_episode(cfg, dataset, "mat:0", 1), dataset)
     assert result.train_steps == 0 and result.n_selected == 0
@@ -185,6 +211,20 @@ def test_cache_resumes_an_interrupted_sweep(cfg: EpisodeConfig, dataset: SceneDa
     assert [r.psnr_db for r in resumed.results] == [r.psnr_db for r in fresh.results]
     assert [r.policy for r in resumed.results] == [j.policy for j in jobs]
     assert [r.seed for r in resumed.results] == [j.seed for j in jobs]
+    # An entry cached before the dynamic-region scores existed is a miss, recomputed in place.
+    key = resumed.keys[0]
+    path = cache.root / key[:2] / f"{key}.json"
+    doc = json.loads(path.read_text())
+    assert doc["psnr_dynamic_db"] is not None
+    for name in ("psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction"):
+        del doc[name]
+        for epoch in doc["epochs"]:
+            del epoch[name]
+    path.write_text(json.dumps(doc))
+    assert cache.get(key) is None
+    healed = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    assert (healed.cached, healed.computed) == (n_unique - 1, 1)
+    assert cache.get(key).psnr_dynamic_db == resumed.results[0].psnr_dynamic_db
 
 
 @pytest.mark.slow  # two spawned workers import torch: ~8 s on 2 cores
@@ -244,7 +284,17 @@ def test_cli_tradeoff_end_to_end(dataset: SceneDataset, tmp_path) -> None:
     assert doc["points"][0]["n_selected"] == 0 and doc["points"][0]["n"] == 2
     assert doc["reference"]["policy"] == "all"
     with (out / "episodes.csv").open() as fh:
-        assert len(list(csv.DictReader(fh))) == 2 * 4
+        episodes = list(csv.DictReader(fh))
+    assert len(episodes) == 2 * 4
+    assert all(float(e["psnr_dynamic_db"]) > 0 and 0 < float(e["dynamic_fraction"]) < 1
+               for e in episodes)
+    with (out / "points.csv").open() as fh:
+        points = list(csv.DictReader(fh))
+    for column in ("psnr_dynamic_db", "psnr_dynamic_db_ci95", "ssim_dynamic",
+                   "dynamic_fraction"):
+        assert column in points[0], column
+    assert all(math.isfinite(float(p["psnr_dynamic_db"])) for p in points)
+    assert "psnr_dynamic_db" in doc["shape"]
     # A re-run computes nothing; the other commands reuse the cached episodes.
     res = _cli(["tradeoff", "--gammas", "0,40,70", "--seeds", "2",
                 *_common(dataset, tmp_path, "t")])
