@@ -196,4 +196,6 @@ def decode_render(payload: bytes) -> tuple[pb.Render, Camera]:
 def decode_quality(payload: bytes) -> pb.Quality:
     msg = _parse(pb.Quality, payload)
     _finite("quality time", msg.time_ms)
+    if msg.HasField("dynamic_fraction") and not 0.0 <= msg.dynamic_fraction <= 1.0:
+        raise Rejected("malformed", f"dynamic_fraction {msg.dynamic_fraction} is not in [0, 1]")
     return msg

@@ -14,7 +14,7 @@ from aoi3d.quality import LpipsFn
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
 from services.metrics.settings import Settings
-from services.metrics.worker import MetricsWorker, QualityRecord, mean_or_none
+from services.metrics.worker import MetricsWorker, QualityRecord, mean_of_present, mean_or_none
 
 log = logging.getLogger(__name__)
 
@@ -26,6 +26,13 @@ per render. `reward_terms` says which metrics the reward was built from.
 Pairing: the truth frame generated exactly at the render's time t, else the newest generated
 within one generation period before t; otherwise the render is dropped and counted in
 `aoi3d_messages_rejected_total{reason="no_truth"}`.
+
+Dynamic region: besides the full-image scores, PSNR and SSIM over the pixels of the view that
+move — those whose ground truth changed by more than 8/255 in some channel since the truth
+frames one and two generation periods earlier, dilated by one pixel (`aoi3d.quality`) — and
+the fraction of the image they cover. Null when those earlier frames are missing
+(`no_history`) or nothing moved (`empty_mask`, scores only), counted in
+`aoi3d_quality_dynamic_missing_total{reason}`; never 0. The reward uses the full image only.
 """
 
 Metrics = Annotated[MetricsWorker, Depends(get_worker)]
@@ -57,6 +64,17 @@ class QualityEntry(BaseModel):
     backend: str = Field(description="Radiance-field backend that rendered.", examples=["grid"])
     lag_ms: float = Field(description="Sim ms between t and the scoring of the render.",
                           examples=[180.0])
+    psnr_dynamic_db: float | None = Field(
+        description="PSNR in dB over the dynamic region (the pixels whose truth changed over "
+                    "the last two generation periods, dilated by 1 px); null when the earlier "
+                    "truth frames were missing or nothing moved (never 0).", examples=[17.8])
+    ssim_dynamic: float | None = Field(
+        description="Mean of the SSIM map over the dynamic region; null likewise.",
+        examples=[0.62])
+    dynamic_fraction: float | None = Field(
+        description="Pixels in the dynamic region / pixels of the image (0 when nothing "
+                    "moved); null when the earlier truth frames were missing.",
+        examples=[0.148])
 
     @classmethod
     def of(cls, record: QualityRecord) -> QualityEntry:
@@ -65,7 +83,9 @@ class QualityEntry(BaseModel):
                    psnr_db=record.psnr_db, ssim=record.ssim, lpips=record.lpips,
                    reward=record.reward, reward_terms=list(record.reward_terms),
                    training_step=record.training_step, n_views=record.n_views,
-                   backend=record.backend, lag_ms=record.lag_ms)
+                   backend=record.backend, lag_ms=record.lag_ms,
+                   psnr_dynamic_db=record.psnr_dynamic_db, ssim_dynamic=record.ssim_dynamic,
+                   dynamic_fraction=record.dynamic_fraction)
 
 
 class QualitySummary(BaseModel):
@@ -92,6 +112,24 @@ class QualitySummary(BaseModel):
         examples=[None])
     mean_reward: float | None = Field(description="Mean reward over the window; null if empty.",
                                       examples=[0.88])
+    dynamic_window: int = Field(
+        description="Entries of the window with a dynamic-region PSNR (the dynamic means are "
+                    "taken over these).", examples=[48])
+    mean_psnr_dynamic_db: float | None = Field(
+        description="Mean dynamic-region PSNR over dynamic_window; null if it is empty.",
+        examples=[17.5])
+    mean_ssim_dynamic: float | None = Field(
+        description="Mean dynamic-region SSIM over dynamic_window; null if it is empty.",
+        examples=[0.6])
+    mean_dynamic_fraction: float | None = Field(
+        description="Mean pixel fraction of the dynamic mask over the window's entries that "
+                    "have one; null if none.", examples=[0.15])
+    dynamic_no_history_total: int = Field(
+        description="Renders scored since start without a dynamic score because the truth "
+                    "frames one and two periods earlier were missing.", examples=[2])
+    dynamic_empty_mask_total: int = Field(
+        description="Renders scored since start whose dynamic mask was empty (nothing moved).",
+        examples=[0])
 
 
 class QualityResponse(BaseModel):
@@ -120,6 +158,12 @@ def get_quality(
         mean_ssim=mean_or_none([r.ssim for r in records]),
         mean_lpips=mean_or_none([r.lpips for r in records]),
         mean_reward=mean_or_none([r.reward for r in records]),
+        dynamic_window=sum(r.psnr_dynamic_db is not None for r in records),
+        mean_psnr_dynamic_db=mean_of_present([r.psnr_dynamic_db for r in records]),
+        mean_ssim_dynamic=mean_of_present([r.ssim_dynamic for r in records]),
+        mean_dynamic_fraction=mean_of_present([r.dynamic_fraction for r in records]),
+        dynamic_no_history_total=worker.dynamic_missing("no_history"),
+        dynamic_empty_mask_total=worker.dynamic_missing("empty_mask"),
     )
     return QualityResponse(summary=summary, history=[QualityEntry.of(r) for r in records])
 

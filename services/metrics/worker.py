@@ -5,6 +5,15 @@ Bus handlers only enqueue; one scoring thread decodes, pairs, calls
 decision time t is compared with the ground-truth frame generated exactly at t; failing
 that, with the newest one generated in [t − C, t] (C = ``truth_period_ms``); failing that the
 render is rejected with reason ``no_truth`` (counted in ``aoi3d_messages_rejected_total``).
+
+Dynamic region: the truth frame paired with a render, generated at t', is compared with the
+truth frames generated at t' − C and t' − 2C (each the newest generated within half a period
+of that time, from the same ring) to build the mask of :func:`aoi3d.quality.dynamic_mask`;
+the render's PSNR and SSIM over it and its pixel fraction go into the Quality message. When
+those earlier frames are missing (the first two periods, a gap, a size change) the dynamic
+fields are absent and the render is counted in ``aoi3d_quality_dynamic_missing_total`` with
+reason ``no_history``; an empty mask (nothing moved) leaves the two scores absent and counts
+reason ``empty_mask``. The full-image scores and the reward do not depend on either.
 """
 
 from __future__ import annotations
@@ -20,7 +29,8 @@ import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from aoi3d.clock import SimClock
-from aoi3d.quality import LpipsFn, RewardWeights, score
+from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
+from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import decode_frame, decode_image, decode_render
 from services.kit.keys import Keys
@@ -28,9 +38,6 @@ from services.kit.observe import Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 
 log = logging.getLogger(__name__)
-
-HELDOUT_ID = 0
-"""Camera id of the held-out novel view, the only camera accepted on the truth key."""
 
 _POLL_S = 0.1  # longest wait on the inbox before checking the stop flag
 _TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
@@ -80,6 +87,21 @@ class TruthRing:
         raise Rejected("no_truth", f"no ground-truth frame generated at t = {time_ms:g} ms or "
                                    f"within {period_ms:g} ms before it ({held})")
 
+    def before(self, generation_ms: float, period_ms: float, count: int
+               ) -> list[TruthFrame] | None:
+        """The frames generated at ``generation_ms`` − k·``period_ms``, k = 1..``count``:
+        for each, the newest generated in (that time − period/2, that time + period/2];
+        None when any of them is missing."""
+        half = period_ms / 2.0
+        frames = []
+        for k in range(1, count + 1):
+            target = generation_ms - k * period_ms
+            i = bisect.bisect_right(self._times, target + half) - 1
+            if i < 0 or self._times[i] <= target - half:
+                return None
+            frames.append(self._frames[self._times[i]])
+        return frames
+
 
 @dataclass(frozen=True)
 class QualityRecord:
@@ -99,6 +121,12 @@ class QualityRecord:
     backend: str
     lag_ms: float
     """Sim ms between the render's time t and its scoring."""
+    psnr_dynamic_db: float | None = None
+    """PSNR over the dynamic region; None when its mask is empty or could not be built."""
+    ssim_dynamic: float | None = None
+    """SSIM over the dynamic region; None likewise."""
+    dynamic_fraction: float | None = None
+    """Pixel fraction of the dynamic mask; None when the earlier truth frames were missing."""
 
 
 class MetricsWorker:
@@ -139,8 +167,27 @@ class MetricsWorker:
                              "before the first.", registry=registry)
         self._m_reward = Gauge("aoi3d_reward", "Reward of the latest scored render; NaN before "
                                "the first.", registry=registry)
-        for gauge in (self._m_psnr, self._m_ssim, self._m_reward):
+        self._m_psnr_dyn = Gauge(
+            "aoi3d_render_psnr_dynamic_db", "PSNR of the latest scored render over the dynamic "
+            "region, the pixels whose truth changed over the last two frame periods (dB); NaN "
+            "when that render has none.", registry=registry)
+        self._m_ssim_dyn = Gauge(
+            "aoi3d_render_ssim_dynamic", "SSIM of the latest scored render over the dynamic "
+            "region; NaN when that render has none.", registry=registry)
+        self._m_dyn_fraction = Gauge(
+            "aoi3d_render_dynamic_fraction", "Pixel fraction of the latest scored render's "
+            "dynamic mask (0 to 1); NaN when the earlier truth frames were missing.",
+            registry=registry)
+        for gauge in (self._m_psnr, self._m_ssim, self._m_reward, self._m_psnr_dyn,
+                      self._m_ssim_dyn, self._m_dyn_fraction):
             gauge.set(math.nan)
+        self._m_dyn_missing = Counter(
+            "aoi3d_quality_dynamic_missing", "Scored renders without a dynamic-region score: "
+            "no_history (the truth frames one and two periods earlier were missing) or "
+            "empty_mask (nothing in the view moved).", ["reason"], registry=registry)
+        for reason in ("no_history", "empty_mask"):
+            self._m_dyn_missing.labels(reason=reason)
+        self._dyn_missing = {"no_history": 0, "empty_mask": 0}  # guarded by _lock
         # Exported only when LPIPS is available: a 0 would read as a perfect score.
         self._m_lpips = None
         if lpips_fn is not None:
@@ -189,6 +236,11 @@ class MetricsWorker:
         with self._lock:
             return self._scored
 
+    def dynamic_missing(self, reason: str) -> int:
+        """Scored renders without a dynamic score, by reason (no_history, empty_mask)."""
+        with self._lock:
+            return self._dyn_missing[reason]
+
     def history(self, limit: int | None = None) -> list[QualityRecord]:
         """The most recent ``limit`` results (all kept when None), oldest first."""
         with self._lock:
@@ -234,10 +286,12 @@ class MetricsWorker:
             raise Rejected("image_size_mismatch",
                            f"render is {pred.shape[1]}x{pred.shape[0]} but the ground truth is "
                            f"{gt.shape[1]}x{gt.shape[0]}")
+        previous = self._previous_truth(truth, gt.shape)
         try:
-            q = score(pred, gt, self._weights, lpips_fn=self._lpips_fn)
+            q = score(pred, gt, self._weights, lpips_fn=self._lpips_fn, previous=previous)
         except ValueError as err:
             raise Rejected("unscorable", str(err)) from err
+        dyn = q.dynamic
 
         msg = pb.Quality(decision_id=render.decision_id, time_ms=render.time_ms,
                          scene_time_ms=truth.scene_time_ms, psnr_db=q.psnr_db, ssim=q.ssim,
@@ -246,6 +300,12 @@ class MetricsWorker:
                          truth_time_ms=truth.generation_ms)
         if q.lpips is not None:
             msg.lpips = q.lpips  # proto3 optional: left unset (absent) when unavailable
+        if dyn is not None:
+            msg.dynamic_fraction = dyn.fraction
+            if dyn.psnr_db is not None:
+                msg.psnr_dynamic_db = dyn.psnr_db
+            if dyn.ssim is not None:
+                msg.ssim_dynamic = dyn.ssim
         self._bus.publish(self._keys.quality, msg.SerializeToString())
 
         lag_ms = self._clock.now_ms() - render.time_ms
@@ -254,18 +314,59 @@ class MetricsWorker:
             truth_time_ms=truth.generation_ms, scene_time_ms=truth.scene_time_ms,
             psnr_db=q.psnr_db, ssim=q.ssim, lpips=q.lpips, reward=q.reward,
             reward_terms=q.reward_terms, training_step=render.training_step,
-            n_views=render.n_views, backend=render.backend, lag_ms=lag_ms)
+            n_views=render.n_views, backend=render.backend, lag_ms=lag_ms,
+            psnr_dynamic_db=dyn.psnr_db if dyn else None,
+            ssim_dynamic=dyn.ssim if dyn else None,
+            dynamic_fraction=dyn.fraction if dyn else None)
+        missing = ("no_history" if dyn is None else
+                   "empty_mask" if dyn.psnr_db is None else None)
         with self._lock:
             self._history.append(record)
             self._scored += 1
+            if missing is not None:
+                self._dyn_missing[missing] += 1
         self._m_quality.inc()
         self._m_psnr.set(q.psnr_db)
         self._m_ssim.set(q.ssim)
         self._m_reward.set(q.reward)
+        self._m_psnr_dyn.set(_or_nan(record.psnr_dynamic_db))
+        self._m_ssim_dyn.set(_or_nan(record.ssim_dynamic))
+        self._m_dyn_fraction.set(_or_nan(record.dynamic_fraction))
+        if missing is not None:
+            self._m_dyn_missing.labels(reason=missing).inc()
         if self._m_lpips is not None and q.lpips is not None:
             self._m_lpips.set(q.lpips)
         if math.isfinite(lag_ms) and lag_ms >= 0:
             self._m_lag.observe(lag_ms / 1000.0)
+
+
+    def _previous_truth(self, truth: TruthFrame, shape: tuple[int, ...]
+                        ) -> list[np.ndarray] | None:
+        """The decoded truth one to K periods before ``truth`` (see :meth:`TruthRing.before`),
+        or None when a frame is missing, undecodable or of another size."""
+        frames = self._ring.before(truth.generation_ms, self._period_ms, DYNAMIC_FRAMES)
+        if frames is None:
+            return None
+        images = []
+        for frame in frames:
+            try:
+                image = decode_image(frame.image)
+            except Rejected:
+                return None
+            if image.shape != shape:
+                return None
+            images.append(image)
+        return images
+
+
+def _or_nan(value: float | None) -> float:
+    return math.nan if value is None else value
+
+
+def mean_of_present(values: list[float | None]) -> float | None:
+    """The mean of the values that are not None, or None when there are none."""
+    present = [v for v in values if v is not None]
+    return float(np.mean(present)) if present else None
 
 
 def mean_or_none(values: list[float | None]) -> float | None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+import os
 import time
 from collections.abc import Callable, Iterator
 
@@ -12,7 +14,7 @@ from fastapi.testclient import TestClient
 import services.metrics.app as metrics_app
 from aoi3d.clock import SimClock
 from aoi3d.lpips import LPIPS, load_lpips
-from aoi3d.quality import psnr, ssim
+from aoi3d.quality import dynamic_mask, dynamic_score, psnr, ssim
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.bus import MemoryBus
 from services.kit.codec import camera_to_pb, decode_image, decode_quality, encode_frame, encode_png
@@ -27,6 +29,8 @@ RUN = "test-metrics"
 KEYS = Keys(RUN)
 W, H = 24, 18
 PERIOD_MS = 30.0
+TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+"""Every wait of these tests is multiplied by it (a slow or loaded machine: set it to 3)."""
 
 
 def _camera(width: int = W, height: int = H) -> Camera:
@@ -65,7 +69,7 @@ def render(time_ms: float, image: np.ndarray, *, decision_id: int = 7, step: int
 
 
 def wait_for(cond: Callable[[], bool], timeout_s: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
     while not cond():
         if time.monotonic() > deadline:
             raise AssertionError("condition not met in time")
@@ -179,6 +183,112 @@ def test_render_without_truth_is_rejected_and_counted(make_harness) -> None:
     # a truth frame arriving later makes a later render at that time scorable
     h.bus.publish(KEYS.truth, truth(120.0))
     assert h.score(120.1, truth_image(120.0)).truth_time_ms == 120.0
+
+
+# ---------------------------------------------------------------- the dynamic region
+SIDE = 4
+
+
+def square_scene(col: int, row: int = 7) -> np.ndarray:
+    """A static background with a bright SIDE×SIDE square at (row, col), uint8."""
+    img = np.full((H, W, 3), 50, np.uint8)
+    img[row:row + SIDE, col:col + SIDE] = 200
+    return img
+
+
+def grown(col: int, row: int = 7) -> np.ndarray:
+    mask = np.zeros((H, W), bool)
+    mask[row - 1:row + SIDE + 1, col - 1:col + SIDE + 1] = True
+    return mask
+
+
+def test_dynamic_region_score_in_quality_rest_and_metrics(make_harness) -> None:
+    h = make_harness()
+    # The truth at t − 2C, t − C, t: the square moves 7 px a period (t = 360 ms).
+    for gen_ms, col in ((300.0, 2), (330.0, 9), (360.0, 16)):
+        h.bus.publish(KEYS.truth, truth(gen_ms, image=square_scene(col)))
+    mask = grown(2) | grown(9) | grown(16)
+    gt = square_scene(16)
+    pred = gt.astype(np.int16)
+    pred[mask] += 25   # every masked value off by 25 levels: 20·log10(255/25) dB
+    pred[~mask] -= 40  # the static part is worse, and must not count
+    q = h.score(360.0, pred.astype(np.uint8), decision_id=5)
+    assert q.truth_time_ms == 360.0
+    assert q.HasField("psnr_dynamic_db") and q.HasField("ssim_dynamic")
+    assert q.psnr_dynamic_db == pytest.approx(20 * math.log10(255 / 25), abs=1e-9)
+    assert q.dynamic_fraction == pytest.approx(mask.sum() / (W * H)) == 3 * 36 / (W * H)
+    assert q.ssim_dynamic == pytest.approx(
+        dynamic_score(pred.astype(np.uint8), gt, mask).ssim, abs=1e-9)
+    full_mse = (mask.sum() * 25**2 + (~mask).sum() * 40**2) / mask.size / 255**2
+    assert q.psnr_db == pytest.approx(10 * math.log10(1 / full_mse), abs=1e-9)
+    assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim)  # full image only
+
+    body = h.client.get("/quality").json()
+    entry = body["history"][-1]
+    assert entry["decision_id"] == 5
+    assert entry["psnr_dynamic_db"] == pytest.approx(q.psnr_dynamic_db)
+    assert entry["ssim_dynamic"] == pytest.approx(q.ssim_dynamic)
+    assert entry["dynamic_fraction"] == pytest.approx(q.dynamic_fraction)
+    summary = body["summary"]
+    assert summary["dynamic_window"] == 1 and summary["window"] == 1
+    assert summary["mean_psnr_dynamic_db"] == pytest.approx(q.psnr_dynamic_db)
+    assert summary["dynamic_no_history_total"] == 0
+
+    text = h.client.get("/metrics").text
+    assert metric(text, "aoi3d_render_psnr_dynamic_db") == pytest.approx(q.psnr_dynamic_db)
+    assert metric(text, "aoi3d_render_ssim_dynamic") == pytest.approx(q.ssim_dynamic)
+    assert metric(text, "aoi3d_render_dynamic_fraction") == pytest.approx(q.dynamic_fraction)
+
+
+def test_dynamic_score_without_earlier_truth_is_null_and_counted(make_harness) -> None:
+    h = make_harness()  # truth at 0, 30, 60, 90 ms
+    for t in (0.0, 30.0):  # t − 2C (and at 0 also t − C) was never generated
+        q = h.score(t, noisy(truth_image(t), seed=int(t)))
+        assert math.isfinite(q.psnr_db)  # the full-image scores are there
+        for name in ("psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction"):
+            assert not q.HasField(name), name
+    q = h.score(90.0, noisy(truth_image(90.0), seed=2))  # 30 and 60 are there
+    assert q.HasField("psnr_dynamic_db") and q.dynamic_fraction > 0
+    expected = dynamic_mask(truth_image(90.0), [truth_image(60.0), truth_image(30.0)])
+    assert q.dynamic_fraction == pytest.approx(expected.mean())
+    body = h.client.get("/quality").json()
+    assert [e["psnr_dynamic_db"] is None for e in body["history"]] == [True, True, False]
+    assert body["history"][0]["dynamic_fraction"] is None
+    summary = body["summary"]
+    assert summary["dynamic_no_history_total"] == 2 and summary["dynamic_window"] == 1
+    assert summary["mean_psnr_dynamic_db"] == pytest.approx(q.psnr_dynamic_db)
+    assert summary["mean_psnr_db"] is not None
+    text = h.client.get("/metrics").text
+    assert metric(text, 'aoi3d_quality_dynamic_missing_total{reason="no_history"}') == 2
+    assert metric(text, 'aoi3d_quality_dynamic_missing_total{reason="empty_mask"}') == 0
+    h.score(0.0, truth_image(0.0))  # the latest render has no dynamic score: NaN, not stale
+    assert math.isnan(metric(h.client.get("/metrics").text, "aoi3d_render_psnr_dynamic_db"))
+
+
+def test_static_view_has_an_empty_mask_and_no_dynamic_scores(make_harness) -> None:
+    h = make_harness()
+    still = square_scene(9)
+    for gen_ms in (600.0, 630.0, 660.0):
+        h.bus.publish(KEYS.truth, truth(gen_ms, image=still))
+    q = h.score(660.0, noisy(still, seed=9))
+    assert q.HasField("dynamic_fraction") and q.dynamic_fraction == 0.0
+    assert not q.HasField("psnr_dynamic_db") and not q.HasField("ssim_dynamic")
+    entry = h.client.get("/quality").json()["history"][-1]
+    assert entry["psnr_dynamic_db"] is None and entry["dynamic_fraction"] == 0.0
+    assert h.client.get("/quality").json()["summary"]["dynamic_empty_mask_total"] == 1
+    assert metric(h.client.get("/metrics").text,
+                  'aoi3d_quality_dynamic_missing_total{reason="empty_mask"}') == 1
+
+
+def test_truth_ring_finds_the_frames_one_and_two_periods_before() -> None:
+    ring = TruthRing(capacity=8)
+    img = pb.Image()
+    for gen_ms in (0.0, 31.0, 58.0, 90.0, 200.0):  # jittered generation times
+        ring.add(TruthFrame(generation_ms=gen_ms, scene_time_ms=gen_ms, image=img))
+    assert [f.generation_ms for f in ring.before(90.0, 30.0, 2)] == [58.0, 31.0]
+    assert [f.generation_ms for f in ring.before(58.0, 30.0, 2)] == [31.0, 0.0]
+    assert ring.before(200.0, 30.0, 1) is None  # nothing near 170 ms
+    assert ring.before(31.0, 30.0, 2) is None   # nothing near −29 ms
 
 
 def test_truth_ring_keeps_the_newest_frames() -> None:
@@ -322,3 +432,13 @@ def test_bad_messages_are_counted_and_dropped(make_harness) -> None:
     assert h.rejected("non_finite") == 1
     assert h.rejected("image_size_mismatch") == 1
     assert h.rejected("malformed") + h.rejected("bad_image") + h.rejected("bad_pose") == 2
+
+
+def test_decode_quality_rejects_a_dynamic_fraction_outside_0_1() -> None:
+    from services.kit.observe import Rejected
+
+    ok = pb.Quality(time_ms=30.0, psnr_dynamic_db=18.0, dynamic_fraction=0.25)
+    assert decode_quality(ok.SerializeToString()).dynamic_fraction == 0.25
+    for bad in (1.5, -0.1, float("nan")):
+        with pytest.raises(Rejected, match="dynamic_fraction"):
+            decode_quality(pb.Quality(time_ms=30.0, dynamic_fraction=bad).SerializeToString())

@@ -127,7 +127,7 @@ class Render(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -138,6 +138,9 @@ class Quality(_message.Message):
     REWARD_TERMS_FIELD_NUMBER: _ClassVar[int]
     TRAINING_STEP_FIELD_NUMBER: _ClassVar[int]
     TRUTH_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    PSNR_DYNAMIC_DB_FIELD_NUMBER: _ClassVar[int]
+    SSIM_DYNAMIC_FIELD_NUMBER: _ClassVar[int]
+    DYNAMIC_FRACTION_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -148,4 +151,7 @@ class Quality(_message.Message):
     reward_terms: _containers.RepeatedScalarFieldContainer[str]
     training_step: int
     truth_time_ms: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ...) -> None: ...
+    psnr_dynamic_db: float
+    ssim_dynamic: float
+    dynamic_fraction: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ...) -> None: ...
