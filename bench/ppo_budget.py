@@ -3,7 +3,7 @@ the experiments' 300?
 
 Scores rule policies on the same one-decision episodes of ``aoi3d/FrameSelection-v0`` (the
 experiment quick preset's episode config, ``steps_per_epoch`` 100 and 300) with
-:func:`aoi3d.rl.train.evaluate` on seeds 2,000,000+ (neither training nor held-out seeds), and
+:func:`aoi3d.rl.evaluate.evaluate` on seeds 2,000,000+ (neither training nor held-out seeds), and
 reports per budget the mean reward/PSNR/SSIM/LPIPS of each policy, their ranking, the
 Spearman correlation of the two rankings, and the wall time of a computed episode.
 Writes ``bench/results/ppo_budget.json``. Run: ``python bench/ppo_budget.py [SEEDS]``
@@ -22,7 +22,7 @@ from scipy import stats
 
 from aoi3d.experiment import get_preset
 from aoi3d.experiment.report import machine
-from aoi3d.rl.train import evaluate
+from aoi3d.rl.evaluate import evaluate
 
 POLICIES = ("all", "mat:40", "mat:70", "mat:100", "mat:160", "freshest:6", "freshest:12")
 BUDGETS = (100, 300)

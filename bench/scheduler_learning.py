@@ -31,14 +31,14 @@ import torch
 from prometheus_client import CollectorRegistry
 
 from aoi3d.clock import SimClock
+from aoi3d.policy import PPOPolicy
 from aoi3d.rl.agent import PPOConfig, SingleStepPPO
-from aoi3d.rl.policy import PPOPolicy
+from aoi3d.rl.online import LearnConfig
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.bus import MemoryBus
 from services.kit.codec import encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.scheduler.learner import LearnConfig
 from services.scheduler.worker import SchedulerWorker
 
 N_CAMERAS = 18

@@ -34,17 +34,17 @@ from aoi3d.experiment import EpisodeConfig, default_workers
 from aoi3d.experiment.config import EXPERIMENT_DATASET
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.policy import PolicySpecError
-from aoi3d.rl.agent import PPOConfig, SingleStepPPO
-from aoi3d.rl.train import (
+from aoi3d.policy.ppo import PPOConfig
+from aoi3d.rl.agent import SingleStepPPO
+from aoi3d.rl.evaluate import evaluate
+from aoi3d.rl.presets import (
     EVAL_SEED_BASE,
     PPO_PRESETS,
     TrainConfig,
-    TrainProgress,
     eval_seeds,
-    evaluate,
     get_ppo_preset,
-    train,
 )
+from aoi3d.rl.train import TrainProgress, train
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = Console()

@@ -7,7 +7,6 @@ machine allows. :mod:`~aoi3d.experiment.config` holds the episode config and the
 runs many (cached, on local cores or Ray), :mod:`~aoi3d.experiment.figures` draws them.
 """
 
-import aoi3d.policy.wait  # noqa: F401  (registers ``wait:<ms>`` with the policy registry)
 from aoi3d.experiment.config import (
     CAMERA_PHASES,
     CARRY_MODES,

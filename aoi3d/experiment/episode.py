@@ -4,7 +4,8 @@ An episode runs in two stages, so that a sweep knows what it must compute before
 
 1. :func:`plan_episode` (cheap, milliseconds) simulates the N links with
    :func:`aoi3d.channel.simulate` for the seed and applies the policy to the AoI vector at
-   every decision epoch. The channel does not depend on what the policy selects, so the whole
+   every decision epoch with :func:`aoi3d.policy.decide.decide` — the decision step the live
+   scheduler takes too. The channel does not depend on what the policy selects, so the whole
    selection — which camera's frame, generated when, at which decision — is known up front:
    an :class:`EpisodePlan`. A policy that waits (``wait:<ω>``, see
    :mod:`aoi3d.policy.wait`) is asked at t + ω, and its render is scored against the truth
@@ -29,7 +30,7 @@ import io
 import json
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -37,24 +38,26 @@ import numpy as np
 import torch
 from PIL import Image
 
-from aoi3d.channel import simulate
+from aoi3d.channel import ChannelRun, simulate
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
-from aoi3d.policy import Policy, parse_policy
-from aoi3d.policy.wait import wait_ms_of
+from aoi3d.policy import Policy, Selection, decide, parse_policy, wait_ms_of
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
 from aoi3d.scene import SceneDataset
 
 __all__ = [
     "ENGINE_VERSION",
+    "EpisodeLinks",
     "EpisodePlan",
     "EpisodeResult",
     "EpochScore",
     "PlannedDecision",
     "dataset_fingerprint",
+    "episode_links",
     "plan_episode",
     "plan_key",
+    "planned_decision",
     "run_plan",
     "set_torch_threads",
     "train_ids",
@@ -159,16 +162,44 @@ def _aux_rng(seed: int) -> np.random.Generator:
     return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(_AUX_STREAM,)))
 
 
-def plan_episode(
-    cfg: EpisodeConfig, dataset: SceneDataset, policy: Policy | str, seed: int
-) -> EpisodePlan:
-    """Simulate the links for ``seed`` and apply ``policy`` at every decision epoch."""
+@dataclass(frozen=True, eq=False)
+class EpisodeLinks:
+    """The N links of one episode's seed: what every decision of the episode reads.
+
+    ``camera_ids``: the training cameras, in AoI-vector order; ``phase_ms``: each camera's
+    first generation slot; ``scene_offset_ms``: where in the scene's loop channel time 0
+    falls; ``run``: the simulated links (:class:`aoi3d.channel.ChannelRun`), up to
+    ``run.duration_ms``.
+    """
+
+    seed: int
+    camera_ids: tuple[int, ...]
+    phase_ms: tuple[int, ...]
+    scene_offset_ms: int
+    run: ChannelRun
+
+    def newest_ms(self, t_ms: int) -> np.ndarray:
+        """U(t): generation slot of each camera's newest frame delivered by slot t (NaN:
+        none yet) — the ``newest_at`` of :func:`aoi3d.policy.decide.decide`."""
+        if t_ms >= self.run.duration_ms:
+            raise ValueError(f"the links were simulated up to {self.run.duration_ms} ms; "
+                             f"a decision needs them at {t_ms} ms")
+        return self.run.newest_ms(t_ms)
+
+    @property
+    def drop_ratio(self) -> float:
+        offered = int(self.run.offered.sum())
+        return float(self.run.dropped.sum() / offered) if offered else math.nan
+
+
+def episode_links(cfg: EpisodeConfig, dataset: SceneDataset, seed: int, *,
+                  wait_ms: int = 0) -> EpisodeLinks:
+    """Simulate the links of episode ``seed`` far enough for decisions that wait
+    ``wait_ms`` after the config's last epoch (channel draws from ``camera_rngs(seed, N)``;
+    camera phases, then the scene offset, from the auxiliary stream of the seed)."""
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"seed must be an int >= 0, got {seed!r}")
     seed = int(seed)
-    pol = parse_policy(policy)
-    pol.reset()
-    wait = wait_ms_of(pol)
     ids = train_ids(cfg, dataset)
     n = len(ids)
     aux = _aux_rng(seed)
@@ -176,38 +207,51 @@ def plan_episode(
               else np.zeros(n, dtype=np.int64))
     loop_ms = max(1, math.floor(dataset.duration_ms))
     offset = int(aux.integers(0, loop_ms)) if cfg.random_scene_offset else 0
-    run = simulate(cfg.delay, cfg.period_ms, n, cfg.end_ms + wait + 1, seed, phase_ms=phases)
+    run = simulate(cfg.delay, cfg.period_ms, n, cfg.end_ms + wait_ms + 1, seed, phase_ms=phases)
+    return EpisodeLinks(seed=seed, camera_ids=tuple(ids),
+                        phase_ms=tuple(int(p) for p in phases), scene_offset_ms=offset, run=run)
 
+
+def planned_decision(sel: Selection, camera_ids: Sequence[int], *, train: bool,
+                     scored: bool) -> PlannedDecision:
+    """The plan's record of one decision step's :class:`~aoi3d.policy.decide.Selection`."""
+    return PlannedDecision(
+        decision_ms=int(sel.decision_ms), eval_ms=int(sel.eval_ms),
+        cameras=sel.cameras(camera_ids),
+        gen_ms=tuple(int(g) for g in sel.gen_ms),
+        aoi_ms=tuple(float(a) for a in sel.selected_aoi_ms),
+        n_known=int(sel.known.sum()), mean_aoi_all_ms=sel.mean_aoi_all_ms,
+        train=train, scored=scored,
+    )
+
+
+def plan_episode(
+    cfg: EpisodeConfig, dataset: SceneDataset, policy: Policy | str, seed: int, *,
+    links: EpisodeLinks | None = None,
+) -> EpisodePlan:
+    """Simulate the links for ``seed`` and take the policy's decision at every epoch
+    (:func:`aoi3d.policy.decide.decide`; a waiting policy decides at t + ω). ``links``:
+    the episode's links when the caller has them already (:func:`episode_links` of the same
+    config, dataset and seed, simulated far enough for the policy's wait)."""
+    pol = parse_policy(policy)
+    pol.reset()
+    wait = wait_ms_of(pol)
+    if links is None:
+        links = episode_links(cfg, dataset, seed, wait_ms=wait)
+    elif links.seed != seed:
+        raise ValueError(f"links of seed {links.seed} given for episode seed {seed}")
     times = cfg.decision_times_ms()
     first_scored = next(i for i, t in enumerate(times) if t >= cfg.warmup_ms)
     decisions = []
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
         train = scored or cfg.carry != "fresh"  # warm and fork train at every decision
-        s = t + wait
-        newest = run.newest_ms(s)
-        aoi = s - newest
-        mask = np.asarray(pol.select(aoi), dtype=bool)
-        if mask.shape != (n,):
-            raise ValueError(f"policy {pol.spec!r} returned a mask of shape {mask.shape}, "
-                             f"expected ({n},)")
-        mask &= ~np.isnan(aoi)  # never a camera without a frame, whatever the policy says
-        chosen = np.flatnonzero(mask)
-        known = ~np.isnan(aoi)
-        decisions.append(PlannedDecision(
-            decision_ms=t, eval_ms=s,
-            cameras=tuple(ids[j] for j in chosen),
-            gen_ms=tuple(int(newest[j]) for j in chosen),
-            aoi_ms=tuple(float(aoi[j]) for j in chosen),
-            n_known=int(known.sum()),
-            mean_aoi_all_ms=float(aoi[known].mean()) if known.any() else math.nan,
-            train=train, scored=scored,
-        ))
-    offered = int(run.offered.sum())
+        sel = decide(pol, t, links.newest_ms)
+        decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
-        config=cfg, policy=pol.spec, seed=seed, wait_ms=wait, scene_offset_ms=offset,
-        phase_ms=tuple(int(p) for p in phases), decisions=tuple(decisions),
-        drop_ratio=float(run.dropped.sum() / offered) if offered else math.nan,
+        config=cfg, policy=pol.spec, seed=links.seed, wait_ms=wait,
+        scene_offset_ms=links.scene_offset_ms, phase_ms=links.phase_ms,
+        decisions=tuple(decisions), drop_ratio=links.drop_ratio,
     )
 
 

@@ -1,49 +1,57 @@
-"""Frame-selection policies over the AoI vector: all, MAT (``mat:<ms>``), freshest-k, and a
-trained PPO agent (``ppo:<checkpoint>``, :mod:`aoi3d.rl.policy`)."""
+"""Frame-selection policies over the AoI vector, and the one decision step that applies them.
 
-from collections.abc import Mapping
-from typing import Any
+Importing this package registers every kind, in this order: ``all``, ``mat:<ms>``,
+``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>`` (:mod:`~aoi3d.policy.wait`)
+and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`; torch loads only with a checkpoint, from
+:mod:`~aoi3d.policy.actor`). :func:`~aoi3d.policy.decide.decide` is the decision step every
+setting uses. This package imports nothing from :mod:`aoi3d.rl` or :mod:`aoi3d.experiment`:
+they build on it.
+"""
 
+from aoi3d.policy import ppo, rules, wait
 from aoi3d.policy.base import (
     ACCEPTED_FORMS,
     Policy,
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
+    check_fits,
+    learns,
     parse_policy,
+    place_on,
     policy_from_json,
     register_policy,
+    wait_ms_of,
 )
+from aoi3d.policy.decide import Selection, decide
+from aoi3d.policy.ppo import PPOConfig, PPOPolicy
 from aoi3d.policy.rules import AllPolicy, FreshestPolicy, MatPolicy
+from aoi3d.policy.wait import WaitPolicy
 
-
-# ``ppo`` is registered here, but built by aoi3d.rl.policy, imported on first use: importing
-# the policies stays free of torch, and aoi3d.rl (which imports aoi3d.policy.base) never
-# meets a half-initialised aoi3d.policy.
-def _ppo_from_args(fields: list[str]) -> Policy:
-    from aoi3d.rl.policy import ppo_from_args
-
-    return ppo_from_args(fields)
-
-
-def _ppo_from_json(params: Mapping[str, Any]) -> Policy:
-    from aoi3d.rl.policy import ppo_from_json
-
-    return ppo_from_json(params)
-
-
-register_policy(PolicyKind("ppo", "ppo:<checkpoint>", _ppo_from_args, _ppo_from_json))
+# One place, one order, whatever was imported first (the error messages list the forms so).
+for _kind in (*rules.KINDS, wait.KIND, ppo.KIND):
+    register_policy(_kind)
+del _kind
 
 __all__ = [
     "ACCEPTED_FORMS",
     "AllPolicy",
     "FreshestPolicy",
     "MatPolicy",
+    "PPOConfig",
+    "PPOPolicy",
     "Policy",
     "PolicyKind",
     "PolicySpecError",
+    "Selection",
+    "WaitPolicy",
     "as_aoi_vector",
+    "check_fits",
+    "decide",
+    "learns",
     "parse_policy",
+    "place_on",
     "policy_from_json",
     "register_policy",
+    "wait_ms_of",
 ]

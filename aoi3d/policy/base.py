@@ -1,13 +1,27 @@
-"""The policy interface, its errors, and the registry of policy kinds.
+"""The policy interface, its errors, the registry of policy kinds, and the questions a
+caller asks a policy.
 
 A policy looks at the AoI vector Δ(t) (ms, NaN = unknown) at a decision time and selects the
 cameras whose newest frames the trainer uses. Every policy has a canonical text spec
 (``mat:51``) and a JSON form (``{"kind": "mat", "mat_ms": 51}``); both round-trip through
 ``parse_policy`` / ``policy_from_json``.
 
-A new kind (e.g. ``ppo``, a torch model over the AoI vector, or ``wait:<ms>``) plugs in by
-implementing ``Policy`` and calling ``register_policy(PolicyKind(...))``; nothing here changes.
-Stateful policies clear their per-episode state in ``reset()``.
+A new kind plugs in by implementing ``Policy`` and calling ``register_policy(PolicyKind(...))``;
+nothing here changes. Stateful policies clear their per-episode state in ``reset()``.
+
+Beyond ``Policy``, a kind may answer the questions its callers have by defining optional
+members; the functions below read them, with the default of a kind that does not:
+
+- ``wait_ms`` (int ≥ 0, default 0) — :func:`wait_ms_of`: how long after the decision epoch
+  t the policy selects (the AoI is taken, and the render scored, at t + ``wait_ms``);
+- ``check_fits(n_cameras)`` — :func:`check_fits`: raise ``PolicySpecError`` when the policy
+  cannot serve a rig of N cameras (default: it can);
+- ``on_device(device)`` — :func:`place_on`: the policy with its model on a torch device
+  (``auto``, ``cpu``, ``cuda``; default: the policy itself, it has no model);
+- ``learns`` (bool, default False) — :func:`learns`: whether the policy asks its caller to
+  keep learning from the rewards of its decisions.
+
+So a service asks the policy, never switches on its kind.
 """
 
 from __future__ import annotations
@@ -175,3 +189,34 @@ def integer(name: str, value: Any, *, minimum: int = 0) -> int:
     if x < minimum:
         raise PolicySpecError(f"{name} must be >= {minimum}, got {value!r}")
     return int(x)
+
+
+# The questions a caller asks a policy (optional members; see the module docstring).
+
+
+def wait_ms_of(policy: Policy) -> int:
+    """How long ``policy`` waits after a decision epoch before it selects (0: decides at once)."""
+    wait = getattr(policy, "wait_ms", 0)
+    if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
+        raise ValueError(f"policy {policy.spec!r} declares wait_ms={wait!r}; need an int >= 0")
+    return int(wait)
+
+
+def check_fits(policy: Policy, n_cameras: int) -> None:
+    """Raise ``PolicySpecError`` when ``policy`` cannot serve a rig of ``n_cameras`` cameras
+    (e.g. more cameras asked for than there are, a model trained for another N)."""
+    check = getattr(policy, "check_fits", None)
+    if check is not None:
+        check(n_cameras)
+
+
+def place_on(policy: Policy, device: str) -> Policy:
+    """``policy`` with its model on ``device`` (``auto``, ``cpu`` or ``cuda``); a policy
+    without a model passes through. ``PolicySpecError`` when the device cannot be had."""
+    move = getattr(policy, "on_device", None)
+    return policy if move is None else move(device)
+
+
+def learns(policy: Policy) -> bool:
+    """Whether ``policy`` asks its caller to keep learning from its decisions' rewards."""
+    return bool(getattr(policy, "learns", False))

@@ -17,7 +17,6 @@ from aoi3d.policy.base import (
     format_number,
     integer,
     number,
-    register_policy,
 )
 
 
@@ -92,6 +91,12 @@ class FreshestPolicy:
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind, "k": self.k}
 
+    def check_fits(self, n_cameras: int) -> None:
+        """k must not exceed the rig's N cameras."""
+        if not 0 <= self.k <= n_cameras:
+            raise PolicySpecError(f"freshest k must be in 0..{n_cameras} (the training "
+                                  f"cameras), got {self.k}", self.to_json())
+
     def reset(self) -> None:
         """Stateless."""
 
@@ -130,6 +135,9 @@ def _freshest_from_json(params: Mapping[str, Any]) -> FreshestPolicy:
     return FreshestPolicy(params["k"])
 
 
-register_policy(PolicyKind("all", "all", _all_from_args, _all_from_json))
-register_policy(PolicyKind("mat", "mat:<ms>", _mat_from_args, _mat_from_json))
-register_policy(PolicyKind("freshest", "freshest:<k>", _freshest_from_args, _freshest_from_json))
+KINDS = (
+    PolicyKind("all", "all", _all_from_args, _all_from_json),
+    PolicyKind("mat", "mat:<ms>", _mat_from_args, _mat_from_json),
+    PolicyKind("freshest", "freshest:<k>", _freshest_from_args, _freshest_from_json),
+)
+"""The rule kinds, registered by :mod:`aoi3d.policy`."""

@@ -12,10 +12,10 @@ latency). ω = 0 selects nothing (no frame arrives in the slot it is captured).
 
 A policy has no clock, so the time shift is declared, not performed: :attr:`WaitPolicy.wait_ms`
 tells the caller to evaluate the AoI vector — and render, and score — at t + ω, and
-:meth:`WaitPolicy.select` then applies ``Δ ≤ ω`` to that vector. :func:`wait_ms_of` reads the
-shift of any policy (0 for those that decide at once). The experiment engine honours it; the
-live scheduler does not yet, which is why :mod:`aoi3d.policy` does not import this module
-(importing it registers the kind).
+:meth:`WaitPolicy.select` then applies ``Δ ≤ ω`` to that vector. The caller is always
+:func:`aoi3d.policy.decide.decide`, which reads the shift with
+:func:`aoi3d.policy.base.wait_ms_of` (0 for the policies that decide at once): the experiment
+engine and the live scheduler alike decide at t + ω and stamp the decision with that time.
 """
 
 from __future__ import annotations
@@ -27,17 +27,16 @@ from typing import Any, ClassVar
 import numpy as np
 
 from aoi3d.policy.base import (
-    Policy,
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
     expect_fields,
     expect_keys,
     integer,
-    register_policy,
+    wait_ms_of,
 )
 
-__all__ = ["WaitPolicy", "wait_ms_of"]
+__all__ = ["KIND", "WaitPolicy", "wait_ms_of"]
 
 
 @dataclass(frozen=True)
@@ -68,14 +67,6 @@ class WaitPolicy:
         """Stateless."""
 
 
-def wait_ms_of(policy: Policy) -> int:
-    """How long ``policy`` waits after a decision epoch before it selects (0: decides at once)."""
-    wait = getattr(policy, "wait_ms", 0)
-    if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
-        raise ValueError(f"policy {policy.spec!r} declares wait_ms={wait!r}; need an int >= 0")
-    return int(wait)
-
-
 def _wait_from_args(fields: list[str]) -> WaitPolicy:
     (value,) = expect_fields("wait", fields, ("ms",))
     return WaitPolicy(integer("wait_ms", value, minimum=0))
@@ -88,4 +79,5 @@ def _wait_from_json(params: Mapping[str, Any]) -> WaitPolicy:
     return WaitPolicy(params["wait_ms"])
 
 
-register_policy(PolicyKind("wait", "wait:<ms>", _wait_from_args, _wait_from_json))
+KIND = PolicyKind("wait", "wait:<ms>", _wait_from_args, _wait_from_json)
+"""The ``wait`` kind, registered by :mod:`aoi3d.policy`."""

@@ -3,17 +3,19 @@
 An episode of this environment is a single step — the paper's single-step formulation:
 
 - :meth:`FrameSelectionEnv.reset` (seed s) simulates the N links for seed s with the
-  experiment engine (:func:`aoi3d.experiment.plan_episode`: the same channel, camera phases
-  and scene offset as an experiment episode of seed s), past the warm-up, and picks one of
-  the config's scored decision epochs t (uniformly, from a stream of s). The observation is
-  the AoI vector Δ(t), encoded by :func:`aoi3d.rl.obs.encode_aoi`.
+  experiment engine (:func:`aoi3d.experiment.episode.episode_links` and
+  :func:`~aoi3d.experiment.plan_episode`: the same channel, camera phases and scene offset as
+  an experiment episode of seed s), past the warm-up, and picks one of the config's scored
+  decision epochs t (uniformly, from a stream of s). The observation is the AoI vector Δ(t),
+  encoded by :func:`aoi3d.policy.obs.encode_aoi`.
 - :meth:`FrameSelectionEnv.step` (a 0/1 mask over the N cameras) trains a *fresh* radiance
   field (``carry="fresh"``, model seed s) ``steps_per_epoch`` steps on the selected cameras'
   newest delivered frames (generated at U_n(t)), renders the held-out camera for time t and
   scores it against the truth: reward = w·(PSNR, SSIM, LPIPS) with the config's
-  :class:`aoi3d.quality.RewardWeights`. ``terminated`` is always True. Cameras whose AoI is
-  unknown cannot be used (their bits are ignored); an empty selection is a valid action and
-  scores the untrained model.
+  :class:`aoi3d.quality.RewardWeights`. ``terminated`` is always True. The action is taken
+  through the decision step every setting shares (:func:`aoi3d.policy.decide.decide`, with
+  the action in the policy's place): cameras whose AoI is unknown cannot be used (their bits
+  are ignored); an empty selection is a valid action and scores the untrained model.
 
 The training and scoring is :func:`aoi3d.experiment.run_plan` on a one-decision plan, so
 the numbers are those of the experiment engine, and results can be kept in a
@@ -50,11 +52,12 @@ from aoi3d.experiment import (
     plan_key,
     run_plan,
 )
-from aoi3d.experiment.episode import train_ids
+from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decision, train_ids
 from aoi3d.experiment.sweep import lpips_available
-from aoi3d.policy import AllPolicy
+from aoi3d.policy import AllPolicy, Policy, Selection, check_fits, decide, wait_ms_of
+from aoi3d.policy.decide import Act
+from aoi3d.policy.obs import encode_aoi, obs_size
 from aoi3d.quality import LpipsFn
-from aoi3d.rl.obs import encode_aoi, obs_size
 from aoi3d.scene import SceneDataset, open_dataset
 
 __all__ = ["FrameSelectionEnv", "StepOutcome"]
@@ -126,8 +129,8 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.action_space = spaces.MultiBinary(n)
         self._plan: EpisodePlan | None = None
         self._decision: PlannedDecision | None = None
+        self._links: EpisodeLinks | None = None
         self._aoi: np.ndarray | None = None
-        self._gen: np.ndarray | None = None
         self._last_image: np.ndarray | None = None
         self.last_outcome: StepOutcome | None = None
 
@@ -155,18 +158,14 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
             episode_seed = int(seed)
         else:
             episode_seed = int(self.np_random.integers(0, 2**31 - 1))
-        plan = plan_episode(self.config, self.dataset, AllPolicy(), episode_seed)
+        links = episode_links(self.config, self.dataset, episode_seed)
+        plan = plan_episode(self.config, self.dataset, AllPolicy(), episode_seed, links=links)
         scored = [d for d in plan.decisions if d.scored]
         pick = np.random.default_rng(np.random.SeedSequence(episode_seed,
                                                             spawn_key=(_PICK_STREAM,)))
         decision = scored[int(pick.integers(len(scored)))]
-        position = {cam: i for i, cam in enumerate(self.camera_ids)}
-        aoi = np.full(self.n_cameras, np.nan)
-        gen = np.full(self.n_cameras, -1, dtype=np.int64)
-        for cam, a, g in zip(decision.cameras, decision.aoi_ms, decision.gen_ms, strict=True):
-            aoi[position[cam]] = a
-            gen[position[cam]] = g
-        self._plan, self._decision, self._aoi, self._gen = plan, decision, aoi, gen
+        aoi = self._select(decision.decision_ms, links).aoi_ms
+        self._plan, self._decision, self._links, self._aoi = plan, decision, links, aoi
         self._last_image = None
         info = {"seed": episode_seed, "eval_ms": decision.eval_ms, "aoi": aoi.copy()}
         return self._observation(), info
@@ -221,20 +220,35 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     def plan_for(self, mask: np.ndarray) -> EpisodePlan:
         """The one-decision plan that trains on the cameras of ``mask`` (boolean, N) at the
         current episode's decision epoch; cameras of unknown AoI are dropped."""
-        if self._plan is None or self._decision is None or self._aoi is None:
+        if self._plan is None or self._decision is None or self._links is None:
             raise RuntimeError("call reset() first")
-        assert self._gen is not None
-        use = np.asarray(mask, dtype=bool) & ~np.isnan(self._aoi)
-        idx = np.flatnonzero(use)
-        decision = replace(
-            self._decision,
-            cameras=tuple(self.camera_ids[i] for i in idx),
-            gen_ms=tuple(int(self._gen[i]) for i in idx),
-            aoi_ms=tuple(float(self._aoi[i]) for i in idx),
-            train=True, scored=True,
-        )
-        bits = "".join("1" if u else "0" for u in use)
+        action = np.asarray(mask, dtype=bool)
+        sel = self._select(self._decision.decision_ms, self._links, act=lambda _a, _s: action)
+        bits = "".join("1" if u else "0" for u in sel.mask)
+        decision = planned_decision(sel, self.camera_ids, train=True, scored=True)
         return replace(self._plan, policy=f"mask:{bits}", decisions=(decision,))
+
+    def check_policy(self, policy: Policy) -> None:
+        """``ValueError`` unless ``policy`` can act here: it must fit the N cameras and decide
+        at the epoch (a waiting policy is scored by ``aoi3d experiment compare``)."""
+        if wait_ms_of(policy):
+            raise ValueError(f"{policy.spec}: the environment decides at the epoch; waiting "
+                             "policies are scored by `aoi3d experiment compare`")
+        check_fits(policy, self.n_cameras)
+
+    def policy_action(self, policy: Policy) -> np.ndarray:
+        """What ``policy`` selects at the current episode's decision epoch (bool per camera),
+        by the decision step every setting shares (:meth:`check_policy` first)."""
+        if self._decision is None or self._links is None:
+            raise RuntimeError("call reset() first")
+        self.check_policy(policy)
+        return decide(policy, self._decision.decision_ms, self._links.newest_ms).mask
+
+    @staticmethod
+    def _select(t_ms: int, links: EpisodeLinks, act: Act | None = None) -> Selection:
+        """The decision step at epoch ``t_ms``: every known camera, or ``act``'s bits (the
+        agent's action in place of a policy; the env decides at the epoch, no wait)."""
+        return decide(AllPolicy(), t_ms, links.newest_ms, act=act)
 
     def _lpips(self) -> LpipsFn | None:
         if self.lpips and self._lpips_fn is None:

@@ -10,12 +10,20 @@ from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from aoi3d.clock import SimClock
-from aoi3d.policy import ACCEPTED_FORMS, Policy, PolicySpecError, parse_policy, policy_from_json
+from aoi3d.policy import (
+    ACCEPTED_FORMS,
+    Policy,
+    PolicySpecError,
+    check_fits,
+    parse_policy,
+    place_on,
+    policy_from_json,
+)
+from aoi3d.rl.online import LearnerStatus
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
-from services.scheduler.learner import LearnerStatus
 from services.scheduler.settings import Settings
-from services.scheduler.worker import SchedulerWorker, check_policy_fits, place_policy
+from services.scheduler.worker import SchedulerWorker
 
 DESCRIPTION = """\
 Tracks the Age of Information (AoI) of every training camera from the frames the network
@@ -24,8 +32,12 @@ publishes a `Decision` (the frames the trainer uses).
 
 Policies: `{"kind": "all"}`, `{"kind": "mat", "mat_ms": 51}` (use camera n iff its AoI is
 below the maximum acceptable AoI Γ = mat_ms), `{"kind": "freshest", "k": 6}` (the k cameras
-with the smallest AoI), `{"kind": "ppo", "checkpoint": "<path>", "learn": false}` (a trained
-single-step PPO agent's deterministic action). A new policy is used from the next decision on.
+with the smallest AoI), `{"kind": "wait", "wait_ms": 40}` (ω-wait: the decision of epoch t
+is taken at t + ω with the frames captured since t and delivered by then; the `Decision` is
+stamped t + ω, the time its render is scored against), `{"kind": "ppo", "checkpoint":
+"<path>", "learn": false}` (a trained single-step PPO agent's deterministic action). A new
+policy is used from the next decision on. The decision step is the experiments' own
+(`aoi3d.policy.decide`): a policy selects the same frames here as on the virtual clock.
 
 With `"learn": true` the PPO policy keeps learning online: each decision samples the agent's
 stochastic action, the metrics service's `Quality` for that decision is its reward, and every
@@ -49,7 +61,8 @@ class PolicyRequest(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    kind: str = Field(description="Policy kind: all, mat or freshest.", examples=["mat"])
+    kind: str = Field(description="Policy kind: all, mat, freshest, wait or ppo.",
+                      examples=["mat"])
     mat_ms: float | None = Field(
         None, description="kind mat: the maximum acceptable AoI Γ in ms (finite, >= 0); "
                           "camera n is used iff its AoI < mat_ms. 0 selects no camera.",
@@ -57,6 +70,10 @@ class PolicyRequest(BaseModel):
     k: int | None = Field(
         None, description="kind freshest: how many cameras (those with the smallest AoI) to "
                           "use, 0..N.", examples=[6])
+    wait_ms: int | None = Field(
+        None, description="kind wait: ω in whole ms (>= 0); the decision of epoch t is taken "
+                          "at t + ω and uses camera n iff its AoI then is <= ω (a frame "
+                          "captured since t). 0 selects no camera.", examples=[40])
     checkpoint: str | None = Field(
         None, description="kind ppo: path of a SingleStepPPO checkpoint, as the scheduler "
                           "process sees it; trained for N cameras.",
@@ -123,6 +140,7 @@ class PolicyResponse(BaseModel):
     kind: str = Field(description="Policy kind.", examples=["mat"])
     mat_ms: float | None = Field(None, description="kind mat: Γ in ms.", examples=[51])
     k: int | None = Field(None, description="kind freshest: cameras used.", examples=[None])
+    wait_ms: int | None = Field(None, description="kind wait: ω in ms.", examples=[None])
     checkpoint: str | None = Field(None, description="kind ppo: the checkpoint loaded.",
                                    examples=[None])
     learn: bool | None = Field(None, description="kind ppo: learning online.", examples=[None])
@@ -132,7 +150,7 @@ class PolicyResponse(BaseModel):
                       examples=["mat:51"])
     accepted_forms: list[str] = Field(
         description="Text forms of every known policy kind.",
-        examples=[["all", "mat:<ms>", "freshest:<k>", "ppo:<checkpoint>"]])
+        examples=[["all", "mat:<ms>", "freshest:<k>", "wait:<ms>", "ppo:<checkpoint>"]])
     online: OnlineStatus | None = Field(None, description="kind ppo, learning: its state.")
 
     @classmethod
@@ -149,6 +167,8 @@ _POLICY_EXAMPLES = {
     "mat": {"summary": "MAT with Γ = 51 ms", "value": {"kind": "mat", "mat_ms": 51}},
     "all": {"summary": "Every camera with a known AoI", "value": {"kind": "all"}},
     "freshest": {"summary": "The 6 freshest cameras", "value": {"kind": "freshest", "k": 6}},
+    "wait": {"summary": "ω-wait of 40 ms (decides at t + 40 ms)",
+             "value": {"kind": "wait", "wait_ms": 40}},
     "ppo": {"summary": "A trained PPO agent (deterministic)",
             "value": {"kind": "ppo", "checkpoint": "runs/ppo/quick/final.pt", "learn": False}},
     "ppo-learn": {"summary": "A PPO agent that keeps learning online",
@@ -227,9 +247,12 @@ class DecisionResponse(BaseModel):
     """The latest published decision."""
 
     decision_id: int = Field(description="Increasing id of the decision.", examples=[401])
-    time_ms: float = Field(description="Decision epoch t (sim ms).", examples=[12030.0])
+    time_ms: float = Field(
+        description="Time the selection is for (sim ms): the decision epoch t, or t + ω for "
+                    "a wait policy; the AoI is taken, and the render scored, at this time.",
+        examples=[12030.0])
     camera_ids: list[int] = Field(description="Cameras of the AoI vector.", examples=[[1, 2, 3]])
-    aoi_ms: list[float | None] = Field(description="AoI at t per camera; null = unknown.",
+    aoi_ms: list[float | None] = Field(description="AoI at time_ms per camera; null = unknown.",
                                        examples=[[30.0, None, 95.0]])
     selected: list[FrameRefModel] = Field(description="Frames chosen for training.")
     policy: str = Field(description="Spec of the policy that decided.", examples=["mat:51"])
@@ -260,8 +283,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     settings = settings or Settings()
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
-    policy = place_policy(parse_policy(settings.policy), settings.device)
-    check_policy_fits(policy, common.cameras)  # fail at start-up, not at the first decision
+    policy = place_on(parse_policy(settings.policy), settings.device)
+    check_fits(policy, common.cameras)  # fail at start-up, not at the first decision
 
     def build_worker(the_bus: Bus, registry) -> SchedulerWorker:
         return SchedulerWorker(the_bus, registry, run_id=common.run_id,

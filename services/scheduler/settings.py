@@ -8,8 +8,8 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.policy import parse_policy
+from aoi3d.rl.online import LearnConfig
 from services.kit.settings import ServiceSettings
-from services.scheduler.learner import LearnConfig
 
 
 class Settings(ServiceSettings):

@@ -1,26 +1,32 @@
-"""The scheduler worker: AoI tracking of delivered frames and the periodic frame selection.
+"""The scheduler worker: AoI tracking of delivered frames and the periodic decision.
 
 Bus handlers only enqueue. The decision thread applies delivered frames to an
 :class:`aoi3d.aoi.AoITracker` in order of their delivery time and, at every decision epoch
-t = k·period (sim ms), applies the current :mod:`aoi3d.policy` policy to the AoI vector and
-publishes a ``Decision``. A frame counts for the decision at t iff it was delivered at or
-before t (``delivery_ms <= t``), so a frame that reaches this process a little early (clock
-jitter between processes) is held back until its delivery time; a frame without a delivery
-stamp counts as delivered when it is received.
+t = k·period (sim ms), takes the decision step every setting shares,
+:func:`aoi3d.policy.decide.decide`, with the tracker as U(s), and publishes a ``Decision``.
+A frame counts for a decision at s iff it was delivered at or before s (``delivery_ms <=
+s``), so a frame that reaches this process a little early (clock jitter between processes) is
+held back until its delivery time; a frame without a delivery stamp counts as delivered when
+it is received.
 
-Online learning (PPO): a ``ppo`` policy put with ``learn: true`` gets an
-:class:`~services.scheduler.learner.OnlineLearner`. The decision thread then asks the learner
-for a sampled action (``_decide`` is the only place a policy is consulted) and the learner
-remembers the pending decision; the worker subscribes ``Keys.quality`` (handler: enqueue
-only), and a second thread, the learning thread, decodes the ``Quality`` messages, hands
-their rewards to the learner, expires rewards that never came and runs the PPO updates and
-checkpoints. The decision thread acts with the learner's own copy of the agent, so it never
-waits for an update. Replacing the policy or stopping the worker closes the learner (which
-writes its online checkpoint).
+A policy that waits (``wait:<ω>``) decides the epoch t at s = t + ω: the thread waits until
+s, the AoI vector is the one at s, and the Decision is stamped ``time_ms = s`` — the time its
+render is scored against, exactly as in the experiments (:func:`aoi3d.experiment.plan_episode`).
+
+The scheduler asks the policy, never its kind: whether it fits N cameras
+(:func:`aoi3d.policy.check_fits`), where its model goes (:func:`aoi3d.policy.place_on`),
+whether it learns (:func:`aoi3d.policy.learns`). A policy that learns (``ppo`` with
+``learn: true``) gets an :class:`aoi3d.rl.online.OnlineLearner`: the decision step then takes
+the learner's sampled action, the worker subscribes ``Keys.quality`` (handler: enqueue only),
+and a second thread, the learning thread, decodes the ``Quality`` messages and hands their
+rewards, expiry and updates to the learner. What the learner does reaches Prometheus through
+its hook (:class:`services.scheduler.metrics.LearnerMetrics`). Replacing the policy or
+stopping the worker closes the learner (which writes its online checkpoint).
 """
 
 from __future__ import annotations
 
+import functools
 import heapq
 import itertools
 import logging
@@ -33,18 +39,23 @@ from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from aoi3d.aoi import AoITracker
 from aoi3d.clock import SimClock
-from aoi3d.policy import FreshestPolicy, Policy, PolicySpecError
+from aoi3d.device import check_device
+from aoi3d.policy import (
+    Policy,
+    PolicySpecError,
+    check_fits,
+    decide,
+    learns,
+    place_on,
+    wait_ms_of,
+)
+from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import decode_frame, decode_quality
 from services.kit.keys import Keys
 from services.kit.observe import Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
-from services.scheduler.learner import (
-    LearnConfig,
-    LearnerMetrics,
-    OnlineLearner,
-    online_checkpoint_path,
-)
+from services.scheduler.metrics import LearnerMetrics
 
 log = logging.getLogger(__name__)
 
@@ -53,57 +64,6 @@ MAX_AHEAD_MS = 60_000.0
 sender's clock (epoch/time scale) disagrees with ours."""
 
 _POLL_S = 0.05  # longest wait before re-checking the clock and the stop flag
-
-
-def check_policy_fits(policy: Policy, n_cameras: int) -> None:
-    """Raise ``PolicySpecError`` when ``policy`` does not fit a rig of ``n_cameras``: more
-    cameras asked for than there are, or a PPO checkpoint trained for another N."""
-    if isinstance(policy, FreshestPolicy) and not 0 <= policy.k <= n_cameras:
-        raise PolicySpecError(f"freshest k must be in 0..{n_cameras} (the training cameras), "
-                              f"got {policy.k}", policy.to_json())
-    if policy.kind == "ppo":
-        from aoi3d.rl.policy import PPOPolicy  # loaded already: the registry built ``policy``
-
-        assert isinstance(policy, PPOPolicy)
-        if policy.n_cameras != n_cameras:
-            raise PolicySpecError(
-                f"PPO checkpoint {policy.checkpoint} was trained for {policy.n_cameras} "
-                f"cameras, but this scheduler has N = {n_cameras}", policy.to_json())
-
-
-def is_learning(policy: Policy) -> bool:
-    """Whether ``policy`` asks the scheduler to learn online (a ``ppo`` policy, learn on)."""
-    return policy.kind == "ppo" and bool(getattr(policy, "learn", False))
-
-
-def resolve_device(device: str) -> str:
-    """``auto`` → ``cuda`` when available, else ``cpu``; ``cpu``/``cuda`` as they are."""
-    if device not in ("auto", "cpu", "cuda"):
-        raise ValueError(f"device must be auto, cpu or cuda, got {device!r}")
-    if device != "auto":
-        return device
-    import torch
-
-    return "cuda" if torch.cuda.is_available() else "cpu"
-
-
-def place_policy(policy: Policy, device: str) -> Policy:
-    """``policy`` with a ``ppo`` agent on ``device`` (loaded again from its checkpoint when
-    the registry loaded it elsewhere); other policies pass through."""
-    if policy.kind != "ppo":
-        return policy
-    from aoi3d.rl.policy import PPOPolicy
-
-    assert isinstance(policy, PPOPolicy)
-    dev = resolve_device(device)
-    if policy.agent.device.type == dev:
-        return policy
-    import torch
-
-    if dev == "cuda" and not torch.cuda.is_available():
-        raise PolicySpecError("the scheduler's device is cuda (AOI3D_SCHEDULER_DEVICE), but "
-                              "CUDA is not available here", policy.to_json())
-    return PPOPolicy.from_checkpoint(policy.checkpoint, learn=policy.learn, device=dev)
 
 
 @dataclass(frozen=True)
@@ -140,8 +100,8 @@ class SchedulerWorker:
             raise ValueError(f"decision_period_ms must be > 0, got {decision_period_ms}")
         if n_cameras < 1:
             raise ValueError(f"n_cameras must be >= 1, got {n_cameras}")
-        resolve_device(device)  # fail on a bad name now, not at the first ppo policy
-        check_policy_fits(policy, n_cameras)
+        check_device(device)  # fail on a bad name now, not at the first policy with a model
+        check_fits(policy, n_cameras)
         self._bus = bus
         self._keys = Keys(run_id)
         self._clock = clock
@@ -189,7 +149,7 @@ class SchedulerWorker:
             "aoi3d_inbox_dropped", "Frames dropped because the decision thread fell behind.",
             registry=registry)
         self._m_learn = LearnerMetrics(registry)
-        self._install(place_policy(policy, device), save_to=None)
+        self._install(place_on(policy, device), save_to=None)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -247,16 +207,16 @@ class SchedulerWorker:
         ``PolicySpecError`` — with nothing changed — when the policy does not fit the rig,
         ``save_to`` is given without learning, or the online checkpoint cannot be written.
         """
-        check_policy_fits(policy, len(self.camera_ids))
-        if save_to is not None and not is_learning(policy):
+        check_fits(policy, len(self.camera_ids))
+        if save_to is not None and not learns(policy):
             raise PolicySpecError("save_to applies only to a ppo policy with learn: true",
                                   policy.to_json())
-        policy = place_policy(policy, self._device)
+        policy = place_on(policy, self._device)
         old = self._install(policy, save_to=save_to)
         if old is not None:
             self._close_learner(old)
         log.info("policy set to %s%s", policy.spec, " (learning online)"
-                 if is_learning(policy) else "")
+                 if learns(policy) else "")
         return policy
 
     @property
@@ -273,24 +233,17 @@ class SchedulerWorker:
     def _install(self, policy: Policy, *, save_to: str | None) -> OnlineLearner | None:
         """Make ``policy`` (and its learner) current; returns the replaced learner."""
         learner = None
-        if is_learning(policy):
-            from aoi3d.rl.policy import PPOPolicy
-
-            assert isinstance(policy, PPOPolicy)
+        if learns(policy):
             try:
-                path = online_checkpoint_path(policy.checkpoint, save_to)
+                learner = OnlineLearner.for_policy(policy, save_to=save_to,
+                                                   config=self._learn_cfg, hook=self._m_learn,
+                                                   wall=self._clock.wall)
             except ValueError as err:
                 raise PolicySpecError(str(err), policy.to_json()) from None
-            learner = OnlineLearner(policy.agent, source=policy.checkpoint, save_to=path,
-                                    config=self._learn_cfg, metrics=self._m_learn,
-                                    wall=self._clock.wall)
         with self._lock:
             old, self._learner = self._learner, learner
             self._policy = policy
-        self._m_learn.learning.set(1 if learner is not None else 0)
-        if learner is None:
-            self._m_learn.entropy.set(math.nan)
-            self._m_learn.pending.set(0)
+        self._m_learn.learning_changed(learner is not None)
         return old
 
     def _close_learner(self, learner: OnlineLearner) -> None:
@@ -320,31 +273,36 @@ class SchedulerWorker:
         self._inbox.put((key, payload))
 
     def _run(self) -> None:
+        """Epoch t = next_t is decided at s = t + the policy's wait (the policy in force
+        when s comes; one read per pass, so the wait and the decision agree)."""
         clock = self._clock
         next_t = math.ceil(clock.now_ms() / self._period_ms) * self._period_ms
         while not self._stop.is_set():
             now = clock.now_ms()
-            if now >= next_t:
-                behind = math.floor((now - next_t) / self._period_ms)
+            policy, learner = self.policy_and_learner()
+            due = next_t + wait_ms_of(policy)
+            if now >= due:
+                behind = math.floor((now - due) / self._period_ms)
                 if behind > 0:  # skip missed epochs rather than bursting decisions
                     self._m_skipped.inc(behind)
                     next_t += behind * self._period_ms
                 for item in self._inbox.drain():
                     self._ingest(*item, now_ms=now)
-                self._guarded(self._decide, next_t)
+                self._guarded(functools.partial(self._decide, policy=policy, learner=learner),
+                              next_t)
                 next_t += self._period_ms
                 continue
-            wait_s = min(max(clock.wall_s(next_t) - clock.wall(), 0.0), _POLL_S)
+            wait_s = min(max(clock.wall_s(due) - clock.wall(), 0.0), _POLL_S)
             item = self._inbox.get(timeout=wait_s)
             if item is not None:
                 self._ingest(*item, now_ms=clock.now_ms())
-            self._guarded(self._apply_pending, min(clock.now_ms(), next_t))
+            self._guarded(self._apply_pending, min(clock.now_ms(), due))
 
     def _guarded(self, fn, t_ms: float) -> None:
         try:
             fn(t_ms)
         except Exception:  # a bug must not stop the decisions
-            log.exception("%s at t = %s ms failed", fn.__name__, t_ms)
+            log.exception("%s at t = %s ms failed", getattr(fn, "__name__", fn), t_ms)
 
     def _ingest(self, key: str, payload: bytes, *, now_ms: float) -> None:
         """Validate a delivered frame and queue it until its delivery time."""
@@ -377,38 +335,35 @@ class SchedulerWorker:
                 if self._tracker.deliver(cam, gen_ms):  # it is the camera's newest frame
                     self._newest[cam] = NewestFrame(sequence=seq, generation_ms=gen_ms)
 
-    def _decide(self, t_ms: float) -> None:
-        """Apply the policy to the AoI vector at ``t_ms`` and publish the Decision."""
-        self._apply_pending(t_ms)
+    def _newest_at(self, s_ms: float) -> np.ndarray:
+        """U(s) from the frames delivered by ``s_ms`` (the decision step's ``newest_at``)."""
+        self._apply_pending(s_ms)
         with self._lock:
-            policy = self._policy
-            learner = self._learner
-            aoi = np.asarray(self._tracker.aoi_ms(t_ms), dtype=np.float64).copy()
-            newest = dict(self._newest)
+            return np.asarray(self._tracker.newest_ms, dtype=np.float64).copy()
+
+    def _decide(self, t_ms: float, *, policy: Policy, learner: OnlineLearner | None) -> None:
+        """Take the decision step of epoch ``t_ms`` and publish the Decision (stamped with
+        the time the selection is for: t, or t + ω for a waiting policy)."""
         decision_id = self._decision_id + 1
-        if learner is not None:  # learning: a sampled action, remembered until its reward
-            chosen = np.asarray(learner.decide(decision_id, t_ms, aoi), dtype=bool)
-        else:
-            chosen = np.asarray(policy.select(aoi), dtype=bool)
-        if chosen.shape != aoi.shape:
-            raise RuntimeError(f"policy {policy.spec} returned a selection of shape "
-                               f"{chosen.shape} for {aoi.shape[0]} cameras")
-        chosen &= np.isfinite(aoi)  # an unknown AoI is never selected
+        act = None if learner is None else functools.partial(learner.act, decision_id)
+        sel = decide(policy, t_ms, self._newest_at, act=act)
+        with self._lock:
+            newest = dict(self._newest)
         selected = [
             pb.FrameRef(camera_id=cam, sequence=newest[cam].sequence,
-                        generation_ms=newest[cam].generation_ms, aoi_ms=float(aoi[i]))
-            for i, cam in enumerate(self.camera_ids) if chosen[i]
+                        generation_ms=newest[cam].generation_ms, aoi_ms=float(sel.aoi_ms[i]))
+            for i, cam in zip(sel.indices, sel.cameras(self.camera_ids), strict=True)
         ]
         self._decision_id = decision_id
-        msg = pb.Decision(decision_id=decision_id, time_ms=t_ms,
-                          camera_ids=list(self.camera_ids), aoi_ms=[float(a) for a in aoi],
-                          selected=selected, policy=policy.spec)
+        msg = pb.Decision(decision_id=decision_id, time_ms=sel.eval_ms,
+                          camera_ids=list(self.camera_ids), aoi_ms=[float(a) for a in sel.aoi_ms],
+                          selected=selected, policy=sel.policy)
         self._bus.publish(self._keys.decision, msg.SerializeToString())
         with self._lock:
             self._last_decision = msg
         self._m_decisions.inc()
         self._m_selected.set(len(selected))
-        for cam, a in zip(self.camera_ids, aoi, strict=True):
+        for cam, a in zip(self.camera_ids, sel.aoi_ms, strict=True):
             if math.isfinite(a):
                 self._m_aoi.labels(camera=str(cam)).set(a / 1000.0)
 

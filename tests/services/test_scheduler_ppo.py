@@ -20,11 +20,11 @@ from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
 from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+from aoi3d.rl.online import LearnConfig, online_checkpoint_path
 from services.kit.bus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
-from services.scheduler.learner import LearnConfig, online_checkpoint_path
 from services.scheduler.settings import Settings
 from tests.services.test_scheduler import (
     KEYS,
@@ -179,7 +179,7 @@ def test_bad_ppo_checkpoints_are_rejected_with_a_clear_422(make_harness, tmp_pat
     cases = [
         ({"checkpoint": str(tmp_path / "missing.pt")}, "no PPO checkpoint at"),
         ({"checkpoint": str(garbage)}, "not a readable PPO checkpoint"),
-        ({"checkpoint": str(other_n)}, "trained for 5 cameras, but this scheduler has N = 4"),
+        ({"checkpoint": str(other_n)}, "trained for 5 cameras, but there are N = 4"),
         ({}, 'ppo needs "checkpoint"'),
         ({"checkpoint": str(good), "learn": "yes"}, "learn"),
         ({"checkpoint": str(good), "gamma": 1}, "does not take key(s) ['gamma']"),
@@ -216,10 +216,10 @@ def test_ppo_agent_goes_to_the_configured_device(ckpt: Path, device: str) -> Non
         r = client.put("/policy", json={"kind": "ppo", "checkpoint": str(ckpt)})
         if torch.cuda.is_available():
             assert r.status_code == 200, r.text
-            assert app.state.worker.policy.agent.device.type == "cuda"
+            assert app.state.worker.policy.device == "cuda"
         elif device == "auto":
             assert r.status_code == 200, r.text
-            assert app.state.worker.policy.agent.device.type == "cpu"
+            assert app.state.worker.policy.device == "cpu"
         else:
             assert r.status_code == 422 and "CUDA is not available" in r.text, r.text
 

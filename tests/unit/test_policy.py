@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -190,3 +191,66 @@ def test_a_new_kind_plugs_in_through_the_registry() -> None:
         ACCEPTED_FORMS.remove("oldest")
     assert forms_before == ACCEPTED_FORMS
     assert forms_before[:3] == ["all", "mat:<ms>", "freshest:<k>"]
+
+
+# --- the registry and the decision step ------------------------------------------------------
+def test_importing_the_package_registers_every_kind_without_torch_or_upward_imports() -> None:
+    """A fresh interpreter: ``import aoi3d.policy`` alone knows all five kinds, in one order,
+    and loads neither torch nor aoi3d.rl nor aoi3d.experiment."""
+    import subprocess
+    import sys
+
+    code = ("import sys, aoi3d.policy as p; print(p.ACCEPTED_FORMS); "
+            "print(sorted(m for m in sys.modules if m == 'torch' or m.startswith("
+            "('aoi3d.rl', 'aoi3d.experiment'))))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, timeout=60).stdout.splitlines()
+    assert out == ["['all', 'mat:<ms>', 'freshest:<k>', 'wait:<ms>', 'ppo:<checkpoint>']", "[]"]
+
+
+def test_decide_takes_the_aoi_at_t_plus_the_wait_and_never_an_unknown_camera() -> None:
+    from aoi3d.policy import decide
+
+    deliveries = {0: [(0.0, 5.0), (30.0, 70.0)], 1: [(10.0, 95.0)], 2: []}  # (gen, delivery)
+
+    def newest_at(s: float) -> np.ndarray:
+        out = np.full(3, NAN)
+        for cam, frames in deliveries.items():
+            gens = [g for g, d in frames if d <= s]
+            if gens:
+                out[cam] = max(gens)
+        return out
+
+    asked: list[float] = []
+    sel = decide(parse_policy("all"), 60, newest_at)
+    assert (sel.decision_ms, sel.eval_ms, sel.policy) == (60, 60, "all")
+    np.testing.assert_array_equal(sel.aoi_ms, [60.0, NAN, NAN])
+    assert sel.mask.tolist() == [True, False, False]
+    # wait:40 decides epoch 60 at 100: camera 0's frame of 30 arrived at 70, camera 1's at 95
+    sel = decide(parse_policy("wait:40"), 60, lambda s: asked.append(s) or newest_at(s))
+    assert asked == [100] and sel.eval_ms == 100
+    np.testing.assert_array_equal(sel.aoi_ms, [70.0, 90.0, NAN])
+    assert sel.mask.tolist() == [False, False, False]  # neither was captured since t = 60
+    assert sel.cameras([11, 12, 13]) == () and math.isnan(decide(
+        parse_policy("all"), 1, newest_at).mean_aoi_all_ms)
+    # an agent's action in the policy's place: its bits, less the unknown camera
+    sel = decide(parse_policy("mat:0"), 100, newest_at, act=lambda aoi, s: np.ones(3, bool))
+    assert sel.mask.tolist() == [True, True, False] and sel.cameras([11, 12, 13]) == (11, 12)
+    assert sel.gen_ms.tolist() == [30.0, 10.0] and sel.selected_aoi_ms.tolist() == [70.0, 90.0]
+    with pytest.raises(ValueError, match="selection of shape"):
+        decide(parse_policy("all"), 100, newest_at, act=lambda aoi, s: np.ones(2, bool))
+
+
+def test_policies_answer_their_own_questions() -> None:
+    from aoi3d.policy import check_fits, learns, place_on, wait_ms_of
+
+    fresh = parse_policy("freshest:5")
+    check_fits(fresh, 5)
+    with pytest.raises(PolicySpecError, match=r"0\.\.4"):
+        check_fits(fresh, 4)
+    for spec in ("all", "mat:10", "wait:20"):
+        policy = parse_policy(spec)
+        check_fits(policy, 1)  # any rig
+        assert place_on(policy, "cuda") is policy  # no model to place
+        assert not learns(policy)
+    assert wait_ms_of(parse_policy("wait:20")) == 20 and wait_ms_of(parse_policy("all")) == 0

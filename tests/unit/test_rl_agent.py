@@ -237,3 +237,72 @@ def test_ppo_policy_errors(tmp_path) -> None:
                 {"kind": "ppo", "checkpoint": str(path), "lr": 1}):
         with pytest.raises(PolicySpecError):
             policy_from_json(doc)
+
+
+def test_ppo_policy_answers_its_questions(tmp_path) -> None:
+    from aoi3d.policy import check_fits, learns, place_on
+
+    path = tmp_path / "agent.pt"
+    _trained(5).save(path)
+    pol = parse_policy(f"ppo:{path}")
+    check_fits(pol, 5)
+    with pytest.raises(PolicySpecError, match="trained for 5 cameras, but there are N = 4"):
+        check_fits(pol, 4)
+    assert not learns(pol)
+    assert learns(policy_from_json({"kind": "ppo", "checkpoint": str(path), "learn": True}))
+    assert place_on(pol, "cpu") is pol and pol.device == "cpu"
+    if not torch.cuda.is_available():
+        with pytest.raises(PolicySpecError, match="CUDA is not available"):
+            place_on(pol, "cuda")
+    with pytest.raises(PolicySpecError, match="unknown device"):
+        place_on(pol, "tpu")
+
+
+# --- online learning -------------------------------------------------------------------------
+def test_online_learner_matches_rewards_updates_and_reports_to_its_hook(tmp_path) -> None:
+    """The domain learner without the scheduler: sampled actions by decision id, rewards in
+    decision order (earlier pending ones unscored), an update per batch — the same update as
+    offline training — and a checkpoint on close; everything reported to the hook."""
+    from aoi3d.rl.online import LearnConfig, LearnerHook, OnlineLearner, Outcome
+
+    class Events(LearnerHook):
+        def __init__(self) -> None:
+            self.seen: list[tuple] = []
+
+        def rewarded(self, unscored: int, pending: int) -> None:
+            self.seen.append(("rewarded", unscored, pending))
+
+        def ignored(self, reason: str) -> None:
+            self.seen.append(("ignored", reason))
+
+        def updated(self, episodes, stats, seconds) -> None:
+            self.seen.append(("updated", episodes, stats["mean_reward"]))
+
+        def saved(self, path) -> None:
+            self.seen.append(("saved", path.name))
+
+    agent = SingleStepPPO(PPOConfig(n_cameras=3, seed=7))
+    twin = SingleStepPPO(PPOConfig(n_cameras=3, seed=7))
+    hook = Events()
+    learner = OnlineLearner(agent, source="src.pt", save_to=tmp_path / "online.pt",
+                            config=LearnConfig(batch_size=2), hook=hook, wall=lambda: 0.0)
+    aois = [np.array([10.0, 200.0, np.nan]), np.array([50.0, 20.0, 300.0]),
+            np.array([90.0, 60.0, 30.0])]
+    bits = [learner.act(i, aoi, 30.0 * i) for i, aoi in enumerate(aois, start=1)]
+    # the acting copy samples what the agent would have sampled from its own generator
+    expected = [twin.act(twin.observe(a)).action.astype(bool) for a in aois]
+    assert [b.tolist() for b in bits] == [e.tolist() for e in expected]
+    assert learner.reward(1, 30.0, 0.5) == Outcome.USED
+    assert learner.reward(1, 30.0, 0.5) == Outcome.DUPLICATE
+    assert learner.reward(3, 90.0, 0.1) == Outcome.USED  # decision 2: unscored
+    assert learner.reward(2, 60.0, 0.3) == Outcome.LATE
+    stats = learner.update_if_ready()
+    assert stats is not None and stats["mean_reward"] == pytest.approx(0.3)
+    assert learner.update_if_ready() is None
+    assert agent.updates == 1 and agent.episodes == 2
+    assert learner.close() == tmp_path / "online.pt"
+    assert hook.seen == [("rewarded", 0, 2), ("ignored", "duplicate"), ("rewarded", 1, 0),
+                         ("ignored", "late"), ("updated", 2, pytest.approx(0.3)),
+                         ("saved", "online.pt")]
+    saved = SingleStepPPO.load(tmp_path / "online.pt")
+    assert saved.updates == 1 and saved.episodes == 2

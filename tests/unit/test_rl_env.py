@@ -17,16 +17,16 @@ import aoi3d.rl
 from aoi3d.experiment import EpisodeConfig, ResultCache, plan_episode, plan_key, run_plan
 from aoi3d.rl import ENV_ID, PPOConfig, SingleStepPPO
 from aoi3d.rl.env import FrameSelectionEnv
-from aoi3d.rl.train import (
+from aoi3d.rl.evaluate import evaluate
+from aoi3d.rl.presets import (
     EVAL_SEED_BASE,
     PPO_PRESETS,
     TRAIN_SEED_BASE,
     TrainConfig,
     eval_seeds,
-    evaluate,
-    train,
     train_seed,
 )
+from aoi3d.rl.train import train
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 
 N_TRAIN = 4
@@ -280,7 +280,7 @@ def test_experiment_compare_accepts_a_ppo_checkpoint(dataset: SceneDataset, tmp_
 
 
 def test_worker_pool_matches_in_process(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
-    from aoi3d.rl.train import EnvPool
+    from aoi3d.rl.pool import EnvPool
 
     items = [(7, np.array([1, 0, 1, 1], np.int8)), (8, np.array([0, 1, 1, 0], np.int8))]
     with EnvPool(cfg, aoi_scale_ms=300.0, cache=None, workers=1) as pool:

@@ -1,14 +1,15 @@
-"""Online PPO in the live scheduler: each decision is a one-step episode, its Quality the reward.
+"""Online PPO: each decision of the live scheduler is a one-step episode, its Quality the reward.
 
-While a ``ppo`` policy with ``learn: true`` is in force, the scheduler's decision thread asks
-:meth:`OnlineLearner.decide` for a *sampled* action (not the deterministic one) and the
-learner remembers ``decision_id → (observation, action, log π(action))`` as a pending
-episode. The metrics service later publishes a ``Quality`` whose ``decision_id`` names the
-decision the scored render was trained under; its ``reward`` closes that episode. Every
-``batch_size`` closed episodes the learner runs one PPO update
-(:meth:`aoi3d.rl.agent.SingleStepPPO.update`), and it writes the agent (weights, optimizer
-state, generator) to its online checkpoint every ``checkpoint_every`` updates and when it is
-closed (policy replaced, service stopped).
+While a ``ppo`` policy that learns (``learn: true``) is in force, the scheduler's decision
+step (:func:`aoi3d.policy.decide.decide`) takes its selection from :meth:`OnlineLearner.act`
+— a *sampled* action, not the deterministic one — and the learner remembers
+``decision_id → (observation, action, log π(action))`` as a pending episode. The metrics
+service later publishes a ``Quality`` whose ``decision_id`` names the decision the scored
+render was trained under; its ``reward`` closes that episode (:meth:`OnlineLearner.reward`).
+Every ``batch_size`` closed episodes the learner runs one PPO update (:func:`aoi3d.rl.ppo.update`,
+the same as offline training), and it writes the agent (weights, optimizer state, generator)
+to its online checkpoint every ``checkpoint_every`` updates and when it is closed (policy
+replaced, service stopped).
 
 What can go wrong with the rewards, and what happens:
 
@@ -23,20 +24,26 @@ What can go wrong with the rewards, and what happens:
   ``duplicate`` (its reward was already used), ``late`` (it had expired or was unscored),
   ``time_mismatch`` (its time is not the decision's: not a render of this decision).
 
-The action bits of cameras whose AoI is unknown are masked out of the published selection
-(an unknown AoI is never selected) but the sampled bits and their log-probability are what
-the update sees: those bits do not change the reward, so they add noise, not bias.
+The action bits of cameras whose AoI is unknown are masked out of the selection by the
+decision step (an unknown AoI is never selected) but the sampled bits and their
+log-probability are what the update sees: those bits do not change the reward, so they add
+noise, not bias.
 
 An update must not hold up a decision: the decision thread acts with its own copy of the
 agent (same weights, its generator started from the loaded agent's state), and the learning
 thread updates the agent and then copies the new weights into the acting copy — a lock held
 for a ``load_state_dict`` of a tiny network, not for the update.
 
-The learner is used from three threads: the decision thread (:meth:`decide`), the scheduler's
-learning thread (:meth:`reward`, :meth:`expire`, :meth:`update_if_ready`) and the REST
-threads (:meth:`status`, :meth:`close`). ``_lock`` guards the bookkeeping, ``_act_lock`` the
-acting copy and ``_agent_lock`` the learning agent (updates, saves). ``_lock`` may be taken
-while ``_agent_lock`` is held (to book an update), never the other way round.
+The learner is used from three threads: the decision thread (:meth:`OnlineLearner.act`), the
+caller's learning thread (:meth:`~OnlineLearner.reward`, :meth:`~OnlineLearner.expire`,
+:meth:`~OnlineLearner.update_if_ready`) and readers (:meth:`~OnlineLearner.status`,
+:meth:`~OnlineLearner.close`). ``_lock`` guards the bookkeeping, ``_act_lock`` the acting copy
+and ``_agent_lock`` the learning agent (updates, saves). ``_lock`` may be taken while
+``_agent_lock`` is held (to book an update), never the other way round.
+
+What the learner does is reported to a :class:`LearnerHook` (the scheduler's Prometheus
+series); the domain knows no metrics library. This module imports torch only through the
+agent it is given (:meth:`OnlineLearner.for_policy` loads one).
 """
 
 from __future__ import annotations
@@ -47,17 +54,23 @@ import os
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
-if TYPE_CHECKING:  # torch is imported only once a ppo policy is loaded
+from aoi3d.policy.base import Policy
+from aoi3d.policy.ppo import PPOPolicy
+from aoi3d.rl.batch import Batch, Episode
+
+if TYPE_CHECKING:  # torch is imported only once an agent is loaded
     from aoi3d.rl.agent import SingleStepPPO
+
+__all__ = ["LearnConfig", "LearnerHook", "LearnerStatus", "OnlineLearner", "Outcome",
+           "online_checkpoint_path"]
 
 log = logging.getLogger(__name__)
 
@@ -127,49 +140,29 @@ def online_checkpoint_path(checkpoint: str | Path, save_to: str | Path | None = 
     return path
 
 
-class LearnerMetrics:
-    """The online-learning series of one scheduler; created once per registry and shared by
-    the learners that come and go as the policy changes."""
+class LearnerHook:
+    """What an :class:`OnlineLearner` reports as it goes (e.g. to metrics); every method
+    here does nothing. Some are called with the learner's bookkeeping lock held: keep them
+    quick and never call back into the learner."""
 
-    def __init__(self, registry: CollectorRegistry) -> None:
-        self.learning = Gauge(
-            "aoi3d_ppo_learning", "1 while a ppo policy learns online (learn: true), else 0.",
-            registry=registry)
-        self.episodes = Counter(
-            "aoi3d_ppo_episodes_learned",
-            "Decisions (one-step episodes) whose reward went into a PPO update.",
-            registry=registry)
-        self.updates = Counter("aoi3d_ppo_updates", "Online PPO updates.", registry=registry)
-        self.mean_reward = Gauge(
-            "aoi3d_ppo_mean_reward", "Mean reward of the latest update's batch; NaN before "
-                                     "the first update.", registry=registry)
-        self.entropy = Gauge(
-            "aoi3d_ppo_policy_entropy",
-            "Entropy (nats, summed over the N camera bits) of the learning policy at the "
-            "latest decision; NaN while not learning.", registry=registry)
-        self.pending = Gauge(
-            "aoi3d_ppo_pending_rewards", "Learn-mode decisions waiting for their reward.",
-            registry=registry)
-        self.expired = Counter(
-            "aoi3d_ppo_rewards_expired",
-            "Learn-mode decisions dropped because no reward came within "
-            "learn_reward_timeout_s.", registry=registry)
-        self.unscored = Counter(
-            "aoi3d_ppo_decisions_unscored",
-            "Learn-mode decisions that no render represented (a later decision's reward came "
-            "first; renders are scored in decision order).", registry=registry)
-        self.ignored = Counter(
-            "aoi3d_ppo_rewards_ignored",
-            "Quality messages not used for learning, by reason: unknown, duplicate, late, "
-            "time_mismatch, inbox_overflow.", ["reason"], registry=registry)
-        self.update_seconds = Histogram(
-            "aoi3d_ppo_update_seconds", "Wall time of one online PPO update.",
-            buckets=(0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0), registry=registry)
-        self.checkpoints = Counter(
-            "aoi3d_ppo_checkpoints", "Online checkpoints written.", registry=registry)
-        self.learning.set(0)
-        self.mean_reward.set(math.nan)
-        self.entropy.set(math.nan)
+    def acted(self, entropy: float, pending: int) -> None:
+        """A decision's action was sampled (its policy entropy); ``pending`` now wait."""
+
+    def rewarded(self, unscored: int, pending: int) -> None:
+        """A reward closed an episode; ``unscored`` earlier decisions were dropped with it."""
+
+    def expired(self, n: int, pending: int) -> None:
+        """``n`` pending decisions expired without a reward."""
+
+    def ignored(self, reason: str) -> None:
+        """A reward was not used (``unknown``, ``duplicate``, ``late``, ``time_mismatch``,
+        or the caller's reason, e.g. ``inbox_overflow``)."""
+
+    def updated(self, episodes: int, stats: Mapping[str, float], seconds: float) -> None:
+        """A PPO update on ``episodes`` episodes took ``seconds``; its statistics."""
+
+    def saved(self, path: Path) -> None:
+        """The online checkpoint was written to ``path``."""
 
 
 @dataclass
@@ -181,16 +174,6 @@ class _Pending:
     action: np.ndarray
     logp: float
     born_s: float
-
-
-@dataclass(frozen=True)
-class _Episode:
-    """A rewarded decision, ready for the next update."""
-
-    obs: np.ndarray
-    action: np.ndarray
-    logp: float
-    reward: float
 
 
 @dataclass(frozen=True)
@@ -225,29 +208,30 @@ class _Counts:
 
 
 class OnlineLearner:
-    """Acts stochastically for the scheduler and learns from the decisions' rewards.
+    """Acts stochastically for a live decision loop and learns from the decisions' rewards.
 
     ``agent``: the loaded agent (it is updated in place); ``source``: the checkpoint it came
     from (recorded in the online checkpoint); ``save_to``: where the online checkpoint goes;
-    ``wall``: the wall clock in seconds (expiry; injectable for tests).
+    ``hook``: told what happens (:class:`LearnerHook`); ``wall``: the wall clock in seconds
+    (expiry; injectable for tests).
     """
 
-    def __init__(self, agent: SingleStepPPO, *, source: str, save_to: Path,
-                 config: LearnConfig, metrics: LearnerMetrics,
+    def __init__(self, agent: SingleStepPPO, *, source: str, save_to: str | Path,
+                 config: LearnConfig | None = None, hook: LearnerHook | None = None,
                  wall: Callable[[], float] = time.time) -> None:
         self.agent = agent
         self.source = source
         self.save_to = Path(save_to)
-        self.config = config
-        self._m = metrics
+        self.config = config or LearnConfig()
+        self._hook = hook or LearnerHook()
         self._wall = wall
         self._lock = threading.Lock()
         self._agent_lock = threading.Lock()
         self._act_lock = threading.Lock()
-        self._acting = _acting_copy(agent)
+        self._acting = agent.copy()
         self._pending: OrderedDict[int, _Pending] = OrderedDict()  # by decision id (= by age)
         self._resolved: OrderedDict[int, Outcome | str] = OrderedDict()
-        self._batch: list[_Episode] = []
+        self._batch: list[Episode] = []
         self._counts = _Counts()
         self._unsaved_updates = 0
         self._last_stats: dict[str, float] | None = None
@@ -255,10 +239,33 @@ class OnlineLearner:
         self._last_saved_s: float | None = None
         self._closed = False
 
+    @classmethod
+    def for_policy(cls, policy: Policy, *, save_to: str | Path | None = None,
+                   config: LearnConfig | None = None, hook: LearnerHook | None = None,
+                   wall: Callable[[], float] = time.time) -> OnlineLearner:
+        """A learner for a ``ppo`` policy (any other kind is a ``ValueError``): its
+        checkpoint loaded as a learning agent (with the optimizer state and the generator's
+        position) on the policy's device; the online checkpoint goes to ``save_to``
+        (default: :func:`online_checkpoint_path`). Raises ``ValueError`` when the checkpoint
+        cannot be loaded or the online checkpoint could not be written."""
+        if not isinstance(policy, PPOPolicy):
+            raise ValueError(f"{policy.spec}: only a ppo policy can learn online")
+        from aoi3d.rl.agent import SingleStepPPO
+
+        path = online_checkpoint_path(policy.checkpoint, save_to)
+        try:
+            agent = SingleStepPPO.load(policy.checkpoint, device=policy.device)
+        except FileNotFoundError as err:
+            raise ValueError(str(err)) from None
+        return cls(agent, source=policy.checkpoint, save_to=path, config=config, hook=hook,
+                   wall=wall)
+
     # ------------------------------------------------------------------ the decision thread
-    def decide(self, decision_id: int, time_ms: float, aoi_ms: np.ndarray) -> np.ndarray:
-        """Sample the action for the decision at ``time_ms`` and remember it until its
-        reward comes; returns the selection (bool per camera, unknown AoI never selected)."""
+    def act(self, decision_id: int, aoi_ms: np.ndarray, time_ms: float) -> np.ndarray:
+        """Sample the action for decision ``decision_id`` on the AoI vector at ``time_ms``
+        and remember it until its reward comes; returns the sampled bits (bool per camera;
+        the decision step drops the cameras of unknown AoI). As an
+        :data:`aoi3d.policy.decide.Act`: ``functools.partial(learner.act, decision_id)``."""
         aoi = np.asarray(aoi_ms, dtype=np.float64)
         obs = self.agent.observe(aoi)
         with self._act_lock:
@@ -270,9 +277,8 @@ class OnlineLearner:
                                                       action=action, logp=float(act.logp),
                                                       born_s=self._wall())
                 self._last_entropy = float(act.entropy)
-                self._m.pending.set(len(self._pending))
-                self._m.entropy.set(act.entropy)
-        return action.astype(bool) & ~np.isnan(aoi)
+                self._hook.acted(float(act.entropy), len(self._pending))
+        return action.astype(bool)
 
     # ------------------------------------------------------------------ the learning thread
     def reward(self, decision_id: int, time_ms: float, reward: float) -> Outcome:
@@ -293,16 +299,17 @@ class OnlineLearner:
                 self._ignore(Outcome.TIME_MISMATCH)
                 return Outcome.TIME_MISMATCH
             # renders are scored in decision order: earlier pending decisions get no reward
+            unscored = 0
             while (first_id := next(iter(self._pending))) != decision_id:
                 self._pending.popitem(last=False)
                 self._resolve(first_id, "unscored")
-                self._counts.unscored += 1
-                self._m.unscored.inc()
+                unscored += 1
+            self._counts.unscored += unscored
             del self._pending[decision_id]
             self._resolve(decision_id, Outcome.USED)
-            self._batch.append(_Episode(obs=entry.obs, action=entry.action, logp=entry.logp,
-                                        reward=float(reward)))
-            self._m.pending.set(len(self._pending))
+            self._batch.append(Episode(obs=entry.obs, action=entry.action, logp=entry.logp,
+                                       reward=float(reward)))
+            self._hook.rewarded(unscored, len(self._pending))
         return Outcome.USED
 
     def ignore(self, reason: str) -> None:
@@ -324,8 +331,7 @@ class OnlineLearner:
                 n += 1
             if n:
                 self._counts.expired += n
-                self._m.expired.inc(n)
-                self._m.pending.set(len(self._pending))
+                self._hook.expired(n, len(self._pending))
         return n
 
     def update_if_ready(self) -> dict[str, float] | None:
@@ -336,13 +342,11 @@ class OnlineLearner:
             if self._closed or len(self._batch) < b:
                 return None
             batch, self._batch = self._batch[:b], self._batch[b:]
-        obs = np.stack([e.obs for e in batch])
-        actions = np.stack([e.action for e in batch])
-        logp = np.array([e.logp for e in batch], dtype=np.float64)
-        rewards = np.array([e.reward for e in batch], dtype=np.float64)
+        from aoi3d.rl import ppo  # torch: loaded with the agent already
+
         t0 = time.perf_counter()
         with self._agent_lock:
-            stats = self.agent.update(obs, actions, logp, rewards)
+            stats = ppo.update(self.agent, Batch.of(batch))
             weights = {k: v.detach().clone() for k, v in self.agent.net.state_dict().items()}
             with self._lock:  # booked before the agent is free: close() sees this update
                 self._counts.episodes += b
@@ -353,10 +357,7 @@ class OnlineLearner:
         elapsed = time.perf_counter() - t0
         with self._act_lock:
             self._acting.net.load_state_dict(weights)
-        self._m.update_seconds.observe(elapsed)
-        self._m.episodes.inc(b)
-        self._m.updates.inc()
-        self._m.mean_reward.set(stats["mean_reward"])
+        self._hook.updated(b, stats, elapsed)
         log.info("PPO update %d on %d episodes in %.1f ms: mean reward %.4f, entropy %.3f, "
                  "approx KL %.4f", self.agent.updates, b, elapsed * 1e3, stats["mean_reward"],
                  stats["entropy"], stats["approx_kl"])
@@ -379,7 +380,7 @@ class OnlineLearner:
             self._unsaved_updates = 0
             self._counts.checkpoints += 1
             self._last_saved_s = time.time()
-        self._m.checkpoints.inc()
+        self._hook.saved(self.save_to)
         log.info("online PPO checkpoint written to %s (%d episodes learned here)",
                  self.save_to, counts.episodes)
         return self.save_to
@@ -429,21 +430,10 @@ class OnlineLearner:
     # ------------------------------------------------------------------ helpers (under _lock)
     def _ignore(self, reason: str) -> None:
         self._counts.ignored[reason] = self._counts.ignored.get(reason, 0) + 1
-        self._m.ignored.labels(reason=str(reason)).inc()
+        self._hook.ignored(str(reason))
 
     def _resolve(self, decision_id: int, outcome: Outcome | str) -> None:
         self._resolved[decision_id] = outcome
         while len(self._resolved) > _RESOLVED_KEPT:
             self._resolved.popitem(last=False)
 
-
-def _acting_copy(agent: SingleStepPPO) -> SingleStepPPO:
-    """A second agent with ``agent``'s config, weights and generator state: the decision
-    thread samples from it while ``agent`` learns."""
-    from aoi3d.rl.agent import SingleStepPPO
-
-    twin = SingleStepPPO(agent.config, device=str(agent.device))
-    twin.net.load_state_dict(agent.net.state_dict())
-    twin.generator.set_state(agent.generator.get_state())
-    twin.net.eval()
-    return twin

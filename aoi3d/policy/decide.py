@@ -1,0 +1,112 @@
+"""One decision: the AoI vector at the evaluation time → a policy → the selected cameras.
+
+Every caller that selects frames goes through :func:`decide` — the experiment engine
+(:func:`aoi3d.experiment.plan_episode`, on the simulated links), the live scheduler
+(``services/scheduler``, on the frames the network delivered), the gymnasium environment
+(:class:`aoi3d.rl.env.FrameSelectionEnv`, the agent's action) and the online learner
+(:class:`aoi3d.rl.online.OnlineLearner`, a sampled action) — so a policy means the same in
+all of them. A decision taken at epoch t:
+
+1. asks the policy when it selects: at s = t + ``wait_ms`` (:func:`wait_ms_of`; 0 for every
+   policy but ``wait:<ω>``, which selects at t + ω);
+2. reads U(s), the generation time of each camera's newest frame delivered by s (NaN: none
+   yet), from the caller's ``newest_at`` — the only thing that differs between the settings;
+3. forms the AoI vector Δ(s) = s − U(s) (NaN = unknown);
+4. selects: ``policy.select(Δ(s))``, or the caller's ``act(Δ(s), s)`` when an agent acts
+   in the policy's place (the env's action, the learner's sampled bits);
+5. drops every camera whose AoI is unknown, whatever was selected.
+
+The :class:`Selection` holds s (the time the selection is for: the render made from it is
+scored against the truth at s), the whole AoI and U vectors, and the mask; callers read the
+selected cameras, their generation times and their AoIs from it.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from aoi3d.policy.base import Policy, as_aoi_vector, wait_ms_of
+
+__all__ = ["Act", "NewestAt", "Selection", "decide"]
+
+NewestAt = Callable[[Any], np.ndarray]
+"""``newest_at(s)``: U_n(s) per camera — the generation time (ms) of camera n's newest frame
+delivered by time s; NaN where none was."""
+
+Act = Callable[[np.ndarray, Any], np.ndarray]
+"""``act(aoi_ms, eval_ms)``: an agent's selection bits on the AoI vector at ``eval_ms``, in
+place of the policy's own ``select``."""
+
+
+@dataclass(frozen=True, eq=False)
+class Selection:
+    """What one decision selected.
+
+    ``decision_ms``: the epoch t; ``eval_ms``: s = t + the policy's wait, when the AoI was
+    taken (and the time the render made from the selection stands for); ``aoi_ms`` and
+    ``newest_ms``: Δ(s) and U(s) of every camera (NaN: unknown); ``mask``: the selected
+    cameras (never one of unknown AoI); ``policy``: the spec of the policy that decided.
+    """
+
+    decision_ms: Any
+    eval_ms: Any
+    aoi_ms: np.ndarray
+    newest_ms: np.ndarray
+    mask: np.ndarray
+    policy: str
+
+    @property
+    def indices(self) -> np.ndarray:
+        """Positions (in the AoI vector) of the selected cameras, ascending."""
+        return np.flatnonzero(self.mask)
+
+    def cameras(self, camera_ids: Sequence[int]) -> tuple[int, ...]:
+        """The selected cameras' ids, given the ids of the vector's positions."""
+        return tuple(int(camera_ids[i]) for i in self.indices)
+
+    @property
+    def gen_ms(self) -> np.ndarray:
+        """U_n(s) of the selected cameras: their frames' generation times."""
+        return self.newest_ms[self.mask]
+
+    @property
+    def selected_aoi_ms(self) -> np.ndarray:
+        """Δ_n(s) of the selected cameras."""
+        return self.aoi_ms[self.mask]
+
+    @property
+    def known(self) -> np.ndarray:
+        """Cameras with some delivered frame (known AoI)."""
+        return ~np.isnan(self.aoi_ms)
+
+    @property
+    def mean_aoi_all_ms(self) -> float:
+        """Mean AoI over the cameras whose AoI is known; NaN when none is."""
+        known = self.known
+        return float(self.aoi_ms[known].mean()) if known.any() else math.nan
+
+
+def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
+           act: Act | None = None) -> Selection:
+    """Take the decision of epoch ``decision_ms`` (see the module docstring).
+
+    ``newest_at``: the caller's U(s) (the simulated links' ``newest_ms``, the scheduler's
+    tracker). ``act``: an agent's selection in place of ``policy.select`` (the policy still
+    says when to select and names the decision). A selection of the wrong shape raises
+    ``ValueError``.
+    """
+    eval_ms = decision_ms + wait_ms_of(policy)
+    newest = as_aoi_vector(newest_at(eval_ms))
+    aoi = eval_ms - newest
+    bits = policy.select(aoi) if act is None else act(aoi, eval_ms)
+    mask = np.asarray(bits, dtype=bool)
+    if mask.shape != aoi.shape:
+        raise ValueError(f"policy {policy.spec!r} returned a selection of shape {mask.shape}, "
+                         f"expected ({aoi.shape[0]},)")
+    return Selection(decision_ms=decision_ms, eval_ms=eval_ms, aoi_ms=aoi, newest_ms=newest,
+                     mask=mask & ~np.isnan(aoi), policy=policy.spec)

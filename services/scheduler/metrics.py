@@ -1,0 +1,98 @@
+"""The scheduler's Prometheus series of online learning: the learner's hook, translated.
+
+:class:`aoi3d.rl.online.OnlineLearner` reports what it does to a
+:class:`~aoi3d.rl.online.LearnerHook`; :class:`LearnerMetrics` is that hook as ``aoi3d_ppo_*``
+series. No learning happens here.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+
+from aoi3d.rl.online import LearnerHook
+
+__all__ = ["LearnerMetrics"]
+
+
+class LearnerMetrics(LearnerHook):
+    """The online-learning series of one scheduler: the hook its learners report to.
+    Created once per registry and shared by the learners that come and go as the policy
+    changes."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.learning = Gauge(
+            "aoi3d_ppo_learning", "1 while a ppo policy learns online (learn: true), else 0.",
+            registry=registry)
+        self.episodes = Counter(
+            "aoi3d_ppo_episodes_learned",
+            "Decisions (one-step episodes) whose reward went into a PPO update.",
+            registry=registry)
+        self.updates = Counter("aoi3d_ppo_updates", "Online PPO updates.", registry=registry)
+        self.mean_reward = Gauge(
+            "aoi3d_ppo_mean_reward", "Mean reward of the latest update's batch; NaN before "
+                                     "the first update.", registry=registry)
+        self.entropy = Gauge(
+            "aoi3d_ppo_policy_entropy",
+            "Entropy (nats, summed over the N camera bits) of the learning policy at the "
+            "latest decision; NaN while not learning.", registry=registry)
+        self.pending = Gauge(
+            "aoi3d_ppo_pending_rewards", "Learn-mode decisions waiting for their reward.",
+            registry=registry)
+        self.expired_total = Counter(
+            "aoi3d_ppo_rewards_expired",
+            "Learn-mode decisions dropped because no reward came within "
+            "learn_reward_timeout_s.", registry=registry)
+        self.unscored = Counter(
+            "aoi3d_ppo_decisions_unscored",
+            "Learn-mode decisions that no render represented (a later decision's reward came "
+            "first; renders are scored in decision order).", registry=registry)
+        self.ignored_total = Counter(
+            "aoi3d_ppo_rewards_ignored",
+            "Quality messages not used for learning, by reason: unknown, duplicate, late, "
+            "time_mismatch, inbox_overflow.", ["reason"], registry=registry)
+        self.update_seconds = Histogram(
+            "aoi3d_ppo_update_seconds", "Wall time of one online PPO update.",
+            buckets=(0.001, 0.003, 0.01, 0.03, 0.1, 0.3, 1.0, 3.0), registry=registry)
+        self.checkpoints = Counter(
+            "aoi3d_ppo_checkpoints", "Online checkpoints written.", registry=registry)
+        self.learning.set(0)
+        self.mean_reward.set(math.nan)
+        self.entropy.set(math.nan)
+
+    # ------------------------------------------------------------------ LearnerHook
+    def acted(self, entropy: float, pending: int) -> None:
+        self.entropy.set(entropy)
+        self.pending.set(pending)
+
+    def rewarded(self, unscored: int, pending: int) -> None:
+        if unscored:
+            self.unscored.inc(unscored)
+        self.pending.set(pending)
+
+    def expired(self, n: int, pending: int) -> None:
+        self.expired_total.inc(n)
+        self.pending.set(pending)
+
+    def ignored(self, reason: str) -> None:
+        self.ignored_total.labels(reason=reason).inc()
+
+    def updated(self, episodes: int, stats: Mapping[str, float], seconds: float) -> None:
+        self.update_seconds.observe(seconds)
+        self.episodes.inc(episodes)
+        self.updates.inc()
+        self.mean_reward.set(stats["mean_reward"])
+
+    def saved(self, path: Path) -> None:
+        self.checkpoints.inc()
+
+    # ------------------------------------------------------------------ the scheduler's
+    def learning_changed(self, learning: bool) -> None:
+        """A learner was installed (``learning``) or none is in force any more."""
+        self.learning.set(1 if learning else 0)
+        if not learning:
+            self.entropy.set(math.nan)
+            self.pending.set(0)
