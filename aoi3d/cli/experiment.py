@@ -9,9 +9,11 @@ CSV, JSON (with the full config, the code version and the machine) and PNG figur
 
 from __future__ import annotations
 
+import functools
+import inspect
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any
@@ -131,44 +133,109 @@ def _delay(spec: str, name: str = "'--delay'") -> str:
         raise typer.BadParameter(str(err), param_hint=name) from None
 
 
-def _setup(command: str, preset: str, dataset: Path | None, out: Path | None, cache: Path,
-           seeds: int | None, steps: int | None, carry: str | None, backend: str | None,
-           workers: int | None, threads: int, ray_address: str | None, lpips: bool,
-           sets: Sequence[str] | None, device: str | None = None) -> _Setup:
-    try:
-        chosen = get_preset(preset)
-    except ValueError as err:
-        raise typer.BadParameter(str(err), param_hint="'--preset'") from None
-    changes: dict[str, Any] = {"lpips": lpips}
-    for key, value in (("steps_per_epoch", steps), ("carry", carry), ("backend", backend),
-                       ("device", device)):
-        if value is not None:
-            changes[key] = value
-    if dataset is not None:
-        changes["dataset"] = str(dataset)
-    changes.update(parse_sets(sets))
-    try:
-        cfg = EpisodeConfig.from_dict({**chosen.episode.to_dict(), **changes})
-        from aoi3d.field import field_config
+def _shared_options(
+    dataset: DatasetOpt = None,
+    out: OutOpt = None,
+    cache: CacheOpt = Path("runs/experiments/cache"),
+    seeds: SeedsOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    carry: CarryOpt = None,
+    backend: BackendOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    ray_address: RayOpt = None,
+    lpips: LpipsOpt = True,
+    device: DeviceOpt = None,
+    set_: SetOpt = None,
+) -> None:
+    """The options every experiment command takes after its own (a signature only: see
+    :func:`_experiment_command`)."""
 
-        field_config(cfg.backend, **cfg.field)  # unknown backend or field key: fail now
-    except (TypeError, ValueError) as err:
-        raise typer.BadParameter(str(err)) from None
-    if cfg.device == "cuda" and ray_address is None:
-        import torch
 
-        if not torch.cuda.is_available():
-            raise typer.BadParameter("device cuda asked for, but CUDA is not available here",
-                                     param_hint="'--device'")
-    ds = open_experiment_dataset(Path(cfg.dataset), console)
-    folder = out if out is not None else Path("runs/experiments") / f"{command}-{chosen.name}"
-    folder.mkdir(parents=True, exist_ok=True)
-    return _Setup(
-        command=command, preset=chosen, cfg=cfg, dataset=ds, out=folder,
-        cache=ResultCache(cache), seeds=seeds if seeds is not None else chosen.seeds,
-        workers=workers if workers is not None else default_workers(), threads=threads,
-        ray_address=ray_address, started=time.time(),
-    )
+@dataclass(frozen=True)
+class _Shared:
+    """The values of :func:`_shared_options` for one invocation."""
+
+    dataset: Path | None
+    out: Path | None
+    cache: Path
+    steps_per_epoch: int | None
+    carry: str | None
+    backend: str | None
+    workers: int | None
+    threads: int
+    ray_address: str | None
+    lpips: bool
+    device: str | None
+    set_: list[str] | None
+    seeds: int | None = None
+
+    def setup(self, command: str, preset: str, *, seeds: int | None = None) -> _Setup:
+        """Validate the options, open (or generate) the dataset and make the output folder;
+        ``seeds``: the command's own seed count when it has no ``--seeds`` (default: the
+        ``--seeds`` given, else the preset's)."""
+        try:
+            chosen = get_preset(preset)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--preset'") from None
+        changes: dict[str, Any] = {"lpips": self.lpips}
+        for key, value in (("steps_per_epoch", self.steps_per_epoch), ("carry", self.carry),
+                           ("backend", self.backend), ("device", self.device)):
+            if value is not None:
+                changes[key] = value
+        if self.dataset is not None:
+            changes["dataset"] = str(self.dataset)
+        changes.update(parse_sets(self.set_))
+        try:
+            cfg = EpisodeConfig.from_dict({**chosen.episode.to_dict(), **changes})
+            from aoi3d.field import field_config
+
+            field_config(cfg.backend, **cfg.field)  # unknown backend or field key: fail now
+        except (TypeError, ValueError) as err:
+            raise typer.BadParameter(str(err)) from None
+        if cfg.device == "cuda" and self.ray_address is None:
+            import torch
+
+            if not torch.cuda.is_available():
+                raise typer.BadParameter("device cuda asked for, but CUDA is not available "
+                                         "here", param_hint="'--device'")
+        ds = open_experiment_dataset(Path(cfg.dataset), console)
+        folder = (self.out if self.out is not None
+                  else Path("runs/experiments") / f"{command}-{chosen.name}")
+        folder.mkdir(parents=True, exist_ok=True)
+        count = seeds if seeds is not None else self.seeds
+        return _Setup(
+            command=command, preset=chosen, cfg=cfg, dataset=ds, out=folder,
+            cache=ResultCache(self.cache), seeds=count if count is not None else chosen.seeds,
+            workers=self.workers if self.workers is not None else default_workers(),
+            threads=self.threads, ray_address=self.ray_address, started=time.time(),
+        )
+
+
+def _experiment_command(*, seeds: bool = True) -> Callable[[Callable[..., None]],
+                                                           Callable[..., None]]:
+    """Make an experiment command from ``body(shared: _Shared, <its own options>)``: the
+    command's options are the body's own followed by :func:`_shared_options` (without
+    ``--seeds`` when ``seeds`` is False), and the body receives the shared ones as one
+    :class:`_Shared`. Register the result with ``app.command()``."""
+    shared = [p for p in inspect.signature(_shared_options, eval_str=True).parameters.values()
+              if seeds or p.name != "seeds"]
+    names = [p.name for p in shared]
+
+    def decorate(body: Callable[..., None]) -> Callable[..., None]:
+        own = list(inspect.signature(body, eval_str=True).parameters.values())[1:]
+
+        @functools.wraps(body)
+        def command(**kwargs: Any) -> None:
+            common = _Shared(**{name: kwargs.pop(name) for name in names})
+            body(common, **kwargs)
+
+        params = own + shared
+        command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+        command.__annotations__ = {p.name: p.annotation for p in params}
+        return command
+
+    return decorate
 
 
 def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
@@ -197,6 +264,27 @@ def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
 
 def _episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
     return [{k: v for k, v in r.to_dict().items() if k != "epochs"} for r in results]
+
+
+def _write(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any],
+           episodes: Sequence[EpisodeResult], csvs: dict[str, Sequence[dict[str, Any]]],
+           **doc: Any) -> None:
+    """What every command writes to ``setup.out``: the CSVs in ``csvs`` (file name → rows),
+    ``episodes.csv`` (one row per episode) and ``results.json`` (``meta`` — the command, its
+    arguments, the config, the code version and the machine —, then ``doc``, then the
+    episodes with their per-decision scores)."""
+    meta = _meta(setup, outcomes, args)
+    for name, rows in csvs.items():
+        write_csv(setup.out / name, rows)
+    write_csv(setup.out / "episodes.csv", _episode_rows(episodes))
+    write_json(setup.out / "results.json", {"meta": meta, **doc,
+                                            "episodes": [r.to_dict() for r in episodes]})
+
+
+def _check_metric(metric: str, hint: str) -> None:
+    if metric not in _SIGNS:
+        raise typer.BadParameter(f"unknown metric {metric!r}; accepted: {', '.join(_SIGNS)}",
+                                 param_hint=hint)
 
 
 def _meta(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
@@ -306,44 +394,26 @@ def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
 
 # --- commands --------------------------------------------------------------------------------
 @app.command()
+@_experiment_command()
 def tradeoff(
+    shared: _Shared,
     preset: PresetOpt = "quick",
     gammas: Annotated[str | None, typer.Option(
         help="MAT thresholds Γ in ms, comma-separated (default: the preset's).")] = None,
     delay: DelayOpt = "exp:60",
-    dataset: DatasetOpt = None,
-    out: OutOpt = None,
-    cache: CacheOpt = Path("runs/experiments/cache"),
-    seeds: SeedsOpt = None,
-    steps_per_epoch: StepsOpt = None,
-    carry: CarryOpt = None,
-    backend: BackendOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    ray_address: RayOpt = None,
-    lpips: LpipsOpt = True,
-    device: DeviceOpt = None,
-    set_: SetOpt = None,
 ) -> None:
     """Fig. 4: PSNR, SSIM and LPIPS against the MAT Γ (mean of S simulations, 95% band),
     with the cameras used and the AoI of the used frames; `all` as the reference."""
-    setup = _setup("tradeoff", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
-                   backend, workers, threads, ray_address, lpips, set_, device)
+    setup = shared.setup("tradeoff", preset)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.gammas_ms
     delay = _delay(delay)
     outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seeds), "tradeoff")
     points, reference = _tradeoff_rows(outcome.results)
     best = _best_gamma(points)
     shape = _shape(points, reference)
-    args = {"gammas_ms": list(gamma_list), "delay": delay}
-    meta = _meta(setup, [outcome], args)
-    write_csv(setup.out / "points.csv", points + ([reference] if reference else []))
-    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
-    write_json(setup.out / "results.json", {
-        "meta": meta, "best_gamma_ms": best, "shape": shape, "points": points,
-        "reference": reference,
-        "episodes": [r.to_dict() for r in outcome.results],
-    })
+    _write(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay}, outcome.results,
+           {"points.csv": points + ([reference] if reference else [])},
+           best_gamma_ms=best, shape=shape, points=points, reference=reference)
     mean_y = parse_delay(delay).mean_ms
     plot_tradeoff(points, setup.out / "tradeoff.png", reference=reference, title=(
         f"Quality of the novel view vs MAT Γ — E[Y] = {mean_y:g} ms, "
@@ -360,29 +430,18 @@ def tradeoff(
 
 
 @app.command()
+@_experiment_command(seeds=False)
 def views(
+    shared: _Shared,
     preset: PresetOpt = "quick",
     gammas: Annotated[str | None, typer.Option(
         help="Γ values to show, comma-separated (default: the preset's).")] = None,
     rows: Annotated[int, typer.Option(min=1, help="Seeds shown, one row each.")] = 1,
     delay: DelayOpt = "exp:60",
-    dataset: DatasetOpt = None,
-    out: OutOpt = None,
-    cache: CacheOpt = Path("runs/experiments/cache"),
-    steps_per_epoch: StepsOpt = None,
-    carry: CarryOpt = None,
-    backend: BackendOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    ray_address: RayOpt = None,
-    lpips: LpipsOpt = True,
-    device: DeviceOpt = None,
-    set_: SetOpt = None,
 ) -> None:
     """Fig. 5: the novel view for several Γ (and `all`) next to the ground truth, at the last
     scored decision of an episode."""
-    setup = _setup("views", preset, dataset, out, cache, rows, steps_per_epoch, carry, backend,
-                   workers, threads, ray_address, lpips, set_, device)
+    setup = shared.setup("views", preset, seeds=rows)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.view_gammas_ms
     delay = _delay(delay)
     outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, rows), "views")
@@ -410,18 +469,17 @@ def views(
             label = "all" if result.policy == "all" else f"Γ = {result.policy.split(':')[1]} ms"
             row.append((f"{label}\n{score.psnr_db:.1f} dB, {score.n_selected} cams", image))
         grid.append(row)
-    meta = _meta(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay,
-                                    "rows": rows})
-    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
-    write_json(setup.out / "results.json", {"meta": meta, "renders": saved,
-                                            "episodes": [r.to_dict() for r in outcome.results]})
+    _write(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay, "rows": rows},
+           outcome.results, {}, renders=saved)
     plot_views(grid, setup.out / "views.png", title=(
         f"Novel view (camera {ds.heldout_id}) vs MAT Γ at {delay}, {setup.cfg.carry} model"))
     console.print(f"views in {setup.out / 'views.png'}")
 
 
 @app.command("delay")
+@_experiment_command()
 def delay_cmd(
+    shared: _Shared,
     preset: PresetOpt = "quick",
     delays: Annotated[str | None, typer.Option(
         help="Delay specs, comma-separated, e.g. exp:20,exp:60 (default: the preset's).")] = None,
@@ -431,27 +489,11 @@ def delay_cmd(
         help="What the optimal Γ optimises: psnr_db, ssim, reward, psnr_dynamic_db, "
              "ssim_dynamic (the dynamic region's; maximised) or lpips (minimised). The others' "
              "optima are written too.")] = "psnr_db",
-    dataset: DatasetOpt = None,
-    out: OutOpt = None,
-    cache: CacheOpt = Path("runs/experiments/cache"),
-    seeds: SeedsOpt = None,
-    steps_per_epoch: StepsOpt = None,
-    carry: CarryOpt = None,
-    backend: BackendOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    ray_address: RayOpt = None,
-    lpips: LpipsOpt = True,
-    device: DeviceOpt = None,
-    set_: SetOpt = None,
 ) -> None:
     """Fig. 6: the optimal Γ (highest mean PSNR, or ``--metric``) against the mean delay."""
-    if metric not in _SIGNS:
-        raise typer.BadParameter(f"unknown metric {metric!r}; accepted: {', '.join(_SIGNS)}",
-                                 param_hint="'--metric'")
-    setup = _setup("delay", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
-                   backend, workers, threads, ray_address, lpips, set_, device)
-    if seeds is None:
+    _check_metric(metric, "'--metric'")
+    setup = shared.setup("delay", preset)
+    if shared.seeds is None:
         setup.seeds = setup.preset.delay_seeds
     delay_list = ([_delay(d.strip(), "'--delays'") for d in delays.split(",") if d.strip()]
                   if delays else list(setup.preset.delays))
@@ -481,12 +523,9 @@ def delay_cmd(
                         f"near_best_min_ms{suffix}": min(near),
                         f"near_best_max_ms{suffix}": max(near)})
         optima.append(row)
-    meta = _meta(setup, [outcome], {"delays": delay_list, "gammas_ms": list(gamma_list)})
-    write_csv(setup.out / "optima.csv", optima)
-    write_csv(setup.out / "curves.csv", curves)
-    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
-    write_json(setup.out / "results.json", {"meta": meta, "optima": optima, "curves": curves,
-                                            "episodes": [r.to_dict() for r in outcome.results]})
+    _write(setup, [outcome], {"delays": delay_list, "gammas_ms": list(gamma_list)},
+           outcome.results, {"optima.csv": optima, "curves.csv": curves},
+           optima=optima, curves=curves)
     plot_delay(optima, curves, setup.out / "delay.png", metric=metric, title=(
         f"Optimal MAT Γ vs mean delay — C = {setup.cfg.period_ms} ms, S = {setup.seeds}, "
         f"{setup.cfg.carry} model"))
@@ -502,7 +541,9 @@ def delay_cmd(
 
 
 @app.command()
+@_experiment_command()
 def compare(
+    shared: _Shared,
     preset: PresetOpt = "quick",
     policy: Annotated[list[str] | None, typer.Option(
         "--policy", help="Policy spec (repeat): all, mat:<ms>, mat:best, freshest:<k>, "
@@ -514,28 +555,12 @@ def compare(
         help="What mat:best's Γ is best at in the tradeoff sweep: psnr_db, ssim, reward, "
              "psnr_dynamic_db, ssim_dynamic (maximised) or lpips (minimised).")] = "psnr_db",
     delay: DelayOpt = "exp:60",
-    dataset: DatasetOpt = None,
-    out: OutOpt = None,
-    cache: CacheOpt = Path("runs/experiments/cache"),
-    seeds: SeedsOpt = None,
-    steps_per_epoch: StepsOpt = None,
-    carry: CarryOpt = None,
-    backend: BackendOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    ray_address: RayOpt = None,
-    lpips: LpipsOpt = True,
-    device: DeviceOpt = None,
-    set_: SetOpt = None,
 ) -> None:
     """All policies side by side on the same seeds (same channel draws, same model seeds).
 
     ``ppo:<checkpoint>`` applies a trained agent's deterministic action at every decision."""
-    if best_metric not in _SIGNS:
-        raise typer.BadParameter(f"unknown metric {best_metric!r}; accepted: "
-                                 f"{', '.join(_SIGNS)}", param_hint="'--best-metric'")
-    setup = _setup("compare", preset, dataset, out, cache, seeds, steps_per_epoch, carry,
-                   backend, workers, threads, ray_address, lpips, set_, device)
+    _check_metric(best_metric, "'--best-metric'")
+    setup = shared.setup("compare", preset)
     delay = _delay(delay)
     specs = list(policy) if policy else list(setup.preset.compare)
     n_cameras = setup.cfg.n_cameras or len(setup.dataset.train_ids)
@@ -565,12 +590,9 @@ def compare(
                    "compare")
     outcomes.append(outcome)
     rows = aggregate(outcome.results)
-    meta = _meta(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms,
-                                   "best_metric": best_metric})
-    write_csv(setup.out / "compare.csv", rows)
-    write_csv(setup.out / "episodes.csv", _episode_rows(outcome.results))
-    write_json(setup.out / "results.json", {"meta": meta, "policies": rows,
-                                            "episodes": [r.to_dict() for r in outcome.results]})
+    _write(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms,
+                             "best_metric": best_metric},
+           outcome.results, {"compare.csv": rows}, policies=rows)
     plot_compare([{**r, "policy": short_label(r["policy"])} for r in rows],
                  setup.out / "compare.png", title=(
         f"Policies at {delay}, S = {setup.seeds} (same seeds), {setup.cfg.carry} model"))

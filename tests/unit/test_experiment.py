@@ -334,3 +334,22 @@ def test_cli_delay_and_bad_input(dataset: SceneDataset, tmp_path) -> None:
                               *_common(dataset, tmp_path, "x")])
     assert bad.exit_code == 2 and "carry" in bad.output
     assert aggregate([]) == []
+
+
+def test_cli_commands_take_their_own_options_then_the_shared_ones() -> None:
+    import typer.main
+
+    from aoi3d.cli.experiment import app
+
+    shared = ["dataset", "out", "cache", "seeds", "steps_per_epoch", "carry", "backend",
+              "workers", "threads", "ray_address", "lpips", "device", "set_"]
+    own = {"tradeoff": ["preset", "gammas", "delay"],
+           "views": ["preset", "gammas", "rows", "delay"],
+           "delay": ["preset", "delays", "gammas", "metric"],
+           "compare": ["preset", "policy", "mat_ms", "best_metric", "delay"]}
+    commands = typer.main.get_command(app).commands
+    assert set(commands) == set(own)
+    for name, sub in commands.items():
+        expected = own[name] + [s for s in shared if name != "views" or s != "seeds"]
+        assert [p.name for p in sub.params] == expected, name
+    assert "--set" in next(p for p in commands["tradeoff"].params if p.name == "set_").opts
