@@ -22,10 +22,10 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-import torch
 from prometheus_client import CollectorRegistry, Counter, Gauge
 
 from aoi3d.clock import SimClock
+from aoi3d.device import resolve_device
 from aoi3d.field import FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
 from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
@@ -69,18 +69,6 @@ class _BackendRequest:
 
     name: str
     error: str | None = None
-
-
-def resolve_device(name: str) -> str:
-    """``auto`` → ``cuda`` when available else ``cpu``; ``cuda`` without CUDA is an error."""
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device 'cuda' was requested but CUDA is not available here; "
-                         "use 'auto' or 'cpu'")
-    if name not in ("cpu", "cuda"):
-        raise ValueError(f"unknown device {name!r}; accepted: auto, cpu, cuda")
-    return name
 
 
 class TrainerWorker:

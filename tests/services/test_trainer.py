@@ -15,6 +15,7 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
+from aoi3d.device import resolve_device
 from aoi3d.field import FieldConfig, GridConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.bus import MemoryBus
@@ -25,7 +26,6 @@ from services.kit.settings import CommonSettings
 from services.trainer.app import create_app
 from services.trainer.settings import BACKENDS, Settings
 from services.trainer.state import BackendBuildError, UnknownBackendError
-from services.trainer.worker import resolve_device
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
