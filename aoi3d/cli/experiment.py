@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import inspect
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -58,7 +59,7 @@ from aoi3d.policy import PolicySpecError, parse_policy
 from aoi3d.scene import SceneDataset
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console()
+console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
 
 
 @app.callback()

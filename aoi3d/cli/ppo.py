@@ -10,6 +10,7 @@ episodes — on held-out seeds, with 95% confidence intervals. ``presets`` lists
 from __future__ import annotations
 
 import math
+import sys
 import time
 from pathlib import Path
 from typing import Annotated, Any
@@ -47,7 +48,7 @@ from aoi3d.rl.presets import (
 from aoi3d.rl.train import TrainProgress, train
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console()
+console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
 
 
 @app.callback()
