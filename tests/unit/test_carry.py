@@ -12,21 +12,18 @@ from aoi3d.experiment import EpisodeConfig, plan_episode, run_plan
 from aoi3d.field import FieldTrainer, GridConfig, TrainView
 from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+from tests.unit.test_experiment import TINY_FIELD
 
 N_TRAIN = 4
 TINY = GridConfig(batch_rays=64, samples_coarse=12, samples_fine=12, fine_from_step=0,
                   grid_sizes=(10,), upsample_steps=(), background_size=(4, 8),
                   tune_malloc=False, num_threads=None)
-TINY_FIELD = {
-    "batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],
-    "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000,
-}
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=24, height=18, fps=30, duration_s=0.5, n_train=N_TRAIN,
-                      rotor_rpm=60.0, spp=1)
+                      rotor_rpm=80.0, spp=1)
     return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
 
 
