@@ -11,9 +11,12 @@ detects the layout; every reader presents the same :class:`SceneDataset` interfa
 
 from aoi3d.scene.camera import Camera, look_at
 from aoi3d.scene.dataset import (
+    DatasetError,
+    DatasetNotFound,
     Progress,
     SceneDataset,
     ensure_dataset,
+    generate_command,
     generate_dataset,
     load_dataset,
 )
@@ -36,6 +39,8 @@ __all__ = [
     "SCENE_VERSION",
     "Camera",
     "DNeRFDataset",
+    "DatasetError",
+    "DatasetNotFound",
     "DyNeRFDataset",
     "Progress",
     "SceneConfig",
@@ -46,6 +51,7 @@ __all__ = [
     "export_dataset",
     "export_dnerf",
     "export_dynerf",
+    "generate_command",
     "generate_dataset",
     "load_dataset",
     "load_dnerf",

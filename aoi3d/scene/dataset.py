@@ -49,9 +49,12 @@ __all__ = [
     "LAYOUT",
     "TEST_JSON",
     "TRAIN_JSON",
+    "DatasetError",
+    "DatasetNotFound",
     "Progress",
     "SceneDataset",
     "ensure_dataset",
+    "generate_command",
     "generate_dataset",
     "load_dataset",
 ]
@@ -68,6 +71,47 @@ log = logging.getLogger(__name__)
 
 Progress = Callable[[int, int], None]
 """``progress(done, total)`` in frames (all cameras together)."""
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_END = b"\x00\x00\x00\x00IEND\xaeB`\x82"
+"""A PNG file's first 8 and last 12 bytes (its signature and the empty ``IEND`` chunk): a file
+without them is not a PNG or was cut short."""
+
+
+class DatasetError(ValueError):
+    """A dataset that cannot be used as it is.
+
+    ``str(err)`` is one line that names the file (also in :attr:`path`) and says what to do;
+    the commands and the services print that line and exit non-zero, no traceback. Readers
+    raise it (or :class:`DatasetNotFound`) for a missing folder or file, a file that is not
+    valid JSON, a folder of no known layout, a frame that is missing, empty or cut short.
+    """
+
+    def __init__(self, message: str, *, path: str | Path | None = None) -> None:
+        super().__init__(" ".join(str(message).split()))
+        self.path = None if path is None else Path(path)
+
+
+class DatasetNotFound(DatasetError, FileNotFoundError):
+    """The dataset folder, or a file it needs, is not there (also a ``FileNotFoundError``)."""
+
+
+def generate_command(root: str | Path, config: dict[str, Any] | None = None) -> str:
+    """The ``aoi3d scene generate`` command that writes the scene of ``config`` (a
+    :class:`SceneConfig` as a dict; default: the default scene) to ``root``: only the
+    options that differ from the defaults."""
+    parts = ["aoi3d scene generate", "--out", str(root)]
+    default = SceneConfig().to_dict()
+    for key, value in (config or {}).items():
+        if key in default and value != default[key]:
+            text = f"{value:g}" if isinstance(value, float) else str(value)
+            parts += [f"--{key.replace('_', '-')}", text]
+    return " ".join(parts)
+
+
+def _short_list(items: list[str], shown: int = 3) -> str:
+    more = f" and {len(items) - shown} more" if len(items) > shown else ""
+    return ", ".join(items[:shown]) + more
 
 
 def _frame_relpath(camera_id: int, frame_index: int) -> str:
@@ -145,14 +189,44 @@ class SceneDataset:
         """Absolute path of the file that holds a frame (raises ``ValueError`` on bad ids)."""
         return self.root / self.frame_relpath(camera_id, frame_index)
 
+    def fix_hint(self) -> str:
+        """What to do about a missing or damaged file of this dataset (the end of a
+        :class:`DatasetError`'s line)."""
+        if self.layout == LAYOUT and self.config:
+            return f"regenerate the dataset: {generate_command(self.root, self.config)} --force"
+        return (f"restore the file from where the {self.layout} dataset came from (or export "
+                "it again with `aoi3d scene export`)")
+
     def frame_png(self, camera_id: int, frame_index: int) -> bytes:
-        """The frame as PNG bytes (here: the PNG file's bytes, as stored)."""
-        return self.frame_path(camera_id, frame_index).read_bytes()
+        """The frame as PNG bytes (here: the PNG file's bytes, as stored).
+
+        Raises :class:`DatasetNotFound` / :class:`DatasetError` (naming the file) when the file
+        is missing, unreadable or not a whole PNG (signature and end chunk are checked)."""
+        path = self.frame_path(camera_id, frame_index)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            raise DatasetNotFound(f"{path}: frame file is missing; {self.fix_hint()}",
+                                  path=path) from None
+        except OSError as err:
+            raise DatasetError(f"{path}: frame file cannot be read ({err.strerror or err}); "
+                               f"{self.fix_hint()}", path=path) from None
+        problem = _png_problem(data[:8], data[-12:], len(data))
+        if problem:
+            raise DatasetError(f"{path}: {problem}; {self.fix_hint()}", path=path)
+        return data
 
     def frame(self, camera_id: int, frame_index: int) -> np.ndarray:
-        """The decoded frame: uint8 (H, W, 3)."""
-        with Image.open(BytesIO(self.frame_png(camera_id, frame_index))) as img:
-            return np.asarray(img.convert("RGB"), dtype=np.uint8)
+        """The decoded frame: uint8 (H, W, 3). Raises :class:`DatasetError` (naming the
+        file) when it cannot be read or decoded."""
+        data = self.frame_png(camera_id, frame_index)
+        try:
+            with Image.open(BytesIO(data)) as img:
+                return np.asarray(img.convert("RGB"), dtype=np.uint8)
+        except (OSError, SyntaxError, ValueError) as err:  # PIL's errors for broken images
+            path = self.frame_path(camera_id, frame_index)
+            raise DatasetError(f"{path}: frame cannot be decoded ({err}); {self.fix_hint()}",
+                               path=path) from None
 
     def missing_frames(self) -> int:
         """How many of the frame files listed by the dataset are absent."""
@@ -162,6 +236,49 @@ class SceneDataset:
             for k in range(self.n_frames)
         )
 
+    def check_frames(self, *, decode: int = 1) -> list[tuple[Path, str]]:
+        """Every frame file's problems, as ``(path, what)``: missing, empty, or (PNG files)
+        without a PNG's first or last bytes, i.e. not a PNG or cut short. Then ``decode``
+        frames spread over the cameras are decoded too. Empty when all is well.
+
+        Reads 20 bytes of each file: ≈ 0.1 s of CPU for 19 cameras × 300 frames."""
+        problems: list[tuple[Path, str]] = []
+        seen: set[str] = set()
+        for c in range(len(self.cameras)):
+            for k in range(self.n_frames):
+                rel = self.frame_relpath(c, k)
+                if rel in seen:
+                    continue
+                seen.add(rel)
+                path = self.root / rel
+                what = _file_problem(path)
+                if what:
+                    problems.append((path, what))
+        if problems or decode < 1:
+            return problems
+        n = len(self.cameras)
+        for i in range(decode):
+            c, k = (self.heldout_id + i) % n, (i * 7919) % self.n_frames
+            try:
+                self.frame(c, k)
+            except DatasetError as err:
+                problems.append((err.path or self.frame_path(c, k), str(err)))
+        return problems
+
+    def require_frames(self, *, decode: int = 1) -> SceneDataset:
+        """Raise :class:`DatasetError` (one line naming the bad files and what to do) unless
+        :meth:`check_frames` finds nothing; returns self."""
+        problems = self.check_frames(decode=decode)
+        if problems:
+            missing = [p for p, what in problems if what == "missing"]
+            cls = DatasetNotFound if len(missing) == len(problems) else DatasetError
+            files = _short_list([f"{p.relative_to(self.root) if p.is_relative_to(self.root) else p}"
+                                 f" ({what if len(what) < 60 else 'cannot be decoded'})"
+                                 for p, what in problems])
+            raise cls(f"{self.root}: {len(problems)} frame file(s) missing or damaged: {files}; "
+                      f"{self.fix_hint()}", path=problems[0][0])
+        return self
+
     def scene_config(self) -> SceneConfig:
         """The :class:`SceneConfig` this dataset was generated from (aoi3d layout only)."""
         if not self.config:
@@ -170,6 +287,35 @@ class SceneDataset:
                 "(only datasets generated by aoi3d do)"
             )
         return SceneConfig.from_dict(self.config)
+
+
+def _png_problem(head: bytes, tail: bytes, size: int) -> str:
+    if size == 0:
+        return "frame file is empty"
+    if head != PNG_SIGNATURE:
+        return "frame file is not a PNG"
+    if tail != PNG_END:
+        return "frame file is cut short (a truncated PNG)"
+    return ""
+
+
+def _file_problem(path: Path) -> str:
+    """``""`` if ``path`` looks whole, else what is wrong (PNG files: first and last bytes)."""
+    try:
+        size = path.stat().st_size
+        if path.suffix.lower() != ".png" or size == 0:
+            return "" if size else "empty"
+        with open(path, "rb") as f:
+            head = f.read(8)
+            f.seek(max(0, size - 12))
+            tail = f.read(12)
+    except FileNotFoundError:
+        return "missing"
+    except OSError as err:
+        return f"unreadable ({err.strerror or err})"
+    problem = _png_problem(head, tail, size)
+    return {"frame file is not a PNG": "not a PNG",
+            "frame file is cut short (a truncated PNG)": "truncated"}.get(problem, problem)
 
 
 # =============================================================================================
@@ -393,7 +539,7 @@ def ensure_dataset(
     cfg = cfg if cfg is not None else SceneConfig()
     with contextlib.suppress(FileNotFoundError, ValueError):
         ds = load_dataset(path)
-        if ds.config_hash == cfg.config_hash and ds.missing_frames() == 0:
+        if ds.config_hash == cfg.config_hash and not ds.check_frames(decode=0):
             return ds
     return generate_dataset(path, cfg, progress, workers=workers)
 
@@ -401,19 +547,26 @@ def ensure_dataset(
 # =============================================================================================
 # Reading
 # =============================================================================================
+def _regenerate(root: Path) -> str:
+    return f"regenerate it: {generate_command(root)} --force (with the scene's options)"
+
+
 def _read_json(path: Path) -> dict[str, Any]:
     if not path.is_file():
-        raise FileNotFoundError(f"no scene dataset here: {path} is missing")
+        raise DatasetNotFound(f"no scene dataset here: {path} is missing; generate one with "
+                              f"`{generate_command(path.parent)}`", path=path)
     try:
         doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from exc
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path} is not valid JSON ({exc}); {_regenerate(path.parent)}",
+                           path=path) from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("aoi3d"), dict):
-        raise ValueError(f"{path} has no 'aoi3d' block; not an aoi3d scene dataset")
+        raise DatasetError(f"{path} has no 'aoi3d' block; not an aoi3d scene dataset: "
+                           f"{_regenerate(path.parent)}", path=path)
     if doc["aoi3d"].get("format_version") != FORMAT_VERSION:
-        raise ValueError(
+        raise DatasetError(
             f"{path}: format_version {doc['aoi3d'].get('format_version')!r}, "
-            f"expected {FORMAT_VERSION}"
+            f"expected {FORMAT_VERSION}; {_regenerate(path.parent)}", path=path
         )
     return doc
 
@@ -436,39 +589,51 @@ def _cameras_of(doc: dict[str, Any], source: Path) -> dict[int, Camera]:
             )
             cam.validate()
             cams[cam_id] = cam
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"{source}: malformed frames/intrinsics ({exc!r})") from exc
+    except (KeyError, TypeError, ValueError) as exc:
+        raise DatasetError(f"{source}: malformed frames/intrinsics ({exc!r}); "
+                           f"{_regenerate(source.parent)}", path=source) from exc
     return cams
 
 
 def load_dataset(path: str | Path) -> SceneDataset:
     """Read a dataset from its two transforms files (no scene code involved)."""
     root = Path(path).absolute()
+
     train = _read_json(root / TRAIN_JSON)
-    test = _read_json(root / TEST_JSON)
     meta = train["aoi3d"]
+
+    def bad(what: str) -> DatasetError:
+        config = meta.get("config")
+        fix = (f"regenerate it: {generate_command(root, config)} --force"
+               if isinstance(config, dict) else _regenerate(root))
+        return DatasetError(f"{root / TRAIN_JSON}: {what}; {fix}", path=root / TRAIN_JSON)
+
+    test = _read_json(root / TEST_JSON)
     if test["aoi3d"].get("config_hash") != meta.get("config_hash"):
-        raise ValueError(f"{root}: train and test transforms come from different configs")
+        raise bad("train and test transforms come from different configs")
     train_cams = _cameras_of(train, root / TRAIN_JSON)
     test_cams = _cameras_of(test, root / TEST_JSON)
     if set(train_cams) & set(test_cams):
-        raise ValueError(f"{root}: cameras {sorted(set(train_cams) & set(test_cams))} in both")
+        raise bad(f"cameras {sorted(set(train_cams) & set(test_cams))} in both")
     all_cams = {**train_cams, **test_cams}
     if sorted(all_cams) != list(range(len(all_cams))):
-        raise ValueError(f"{root}: camera ids must be 0..N, got {sorted(all_cams)}")
-    heldout = int(meta.get("heldout_id", HELDOUT_ID))
+        raise bad(f"camera ids must be 0..N, got {sorted(all_cams)}")
+    try:
+        heldout = int(meta.get("heldout_id", HELDOUT_ID))
+    except (TypeError, ValueError) as exc:
+        raise bad(f"malformed heldout_id ({exc!r})") from exc
     if heldout not in test_cams:
-        raise ValueError(f"{root}: held-out camera {heldout} not in {TEST_JSON}")
+        raise bad(f"held-out camera {heldout} not in {TEST_JSON}")
     try:
         aabb = np.asarray(meta["aabb"], dtype=np.float64)
         fps, n_frames = int(meta["fps"]), int(meta["n_frames"])
         config, config_hash = dict(meta["config"]), str(meta["config_hash"])
     except (KeyError, TypeError, ValueError) as exc:
-        raise ValueError(f"{root}: malformed 'aoi3d' block ({exc!r})") from exc
+        raise bad(f"malformed 'aoi3d' block ({exc!r})") from exc
     if aabb.shape != (2, 3) or not np.all(aabb[0] < aabb[1]):
-        raise ValueError(f"{root}: aabb must be (2, 3) with min < max, got {aabb.tolist()}")
+        raise bad(f"aabb must be (2, 3) with min < max, got {aabb.tolist()}")
     if fps < 1 or n_frames < 1:
-        raise ValueError(f"{root}: fps and n_frames must be ≥ 1, got {fps}, {n_frames}")
+        raise bad(f"fps and n_frames must be ≥ 1, got {fps}, {n_frames}")
     cameras = [all_cams[i] for i in range(len(all_cams))]
     return SceneDataset(
         root=root,

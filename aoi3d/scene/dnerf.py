@@ -35,7 +35,8 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -44,7 +45,7 @@ import numpy as np
 from PIL import Image
 
 from aoi3d.scene.camera import Camera
-from aoi3d.scene.dataset import SceneDataset
+from aoi3d.scene.dataset import PNG_END, DatasetError, DatasetNotFound, SceneDataset
 from aoi3d.scene.media import PngCache, encode_png, replace_dir, resize_area, target_size
 
 __all__ = [
@@ -117,20 +118,40 @@ class DNeRFDataset(SceneDataset):
         return resize_area(image, (cam.width, cam.height))
 
     def frame(self, camera_id: int, frame_index: int) -> np.ndarray:
-        """The decoded frame: uint8 (H, W, 3), alpha composited, resized to the camera."""
-        with Image.open(self.frame_path(camera_id, frame_index)) as img:
+        """The decoded frame: uint8 (H, W, 3), alpha composited, resized to the camera.
+        Raises :class:`~aoi3d.scene.DatasetError` naming the file if it cannot be read."""
+        path = self.frame_path(camera_id, frame_index)
+        with self._reading(path), Image.open(path) as img:
             return self._convert(camera_id, img)
 
     def frame_png(self, camera_id: int, frame_index: int) -> bytes:
         """The file's bytes when it is an RGB PNG of the camera's size; else the converted
         frame encoded as PNG (cached)."""
         path = self.frame_path(camera_id, frame_index)
-        with Image.open(path) as img:
+        with self._reading(path), Image.open(path) as img:
             if not self._needs_conversion(camera_id, img):
-                return path.read_bytes()
+                data = path.read_bytes()
+                if data[-12:] != PNG_END:
+                    raise DatasetError(f"{path}: image file is cut short (a truncated PNG); "
+                                       f"{self.fix_hint()}", path=path)
+                return data
         return self.png_cache.get(
             (camera_id, frame_index), lambda: encode_png(self.frame(camera_id, frame_index))
         )
+
+    @contextmanager
+    def _reading(self, path: Path) -> Iterator[None]:
+        """Errors of reading or decoding ``path``, as one-line :class:`DatasetError`."""
+        try:
+            yield
+        except DatasetError:
+            raise
+        except FileNotFoundError:
+            raise DatasetNotFound(f"{path}: image file is missing; {self.fix_hint()}",
+                                  path=path) from None
+        except (OSError, SyntaxError, ValueError) as err:  # PIL's errors for broken images
+            raise DatasetError(f"{path}: image cannot be decoded ({err}); {self.fix_hint()}",
+                               path=path) from None
 
 
 # =============================================================================================

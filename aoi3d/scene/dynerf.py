@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from aoi3d.scene.camera import Camera
-from aoi3d.scene.dataset import SceneDataset
+from aoi3d.scene.dataset import DatasetError, DatasetNotFound, SceneDataset
 from aoi3d.scene.media import PngCache, encode_png, replace_dir, target_size
 
 __all__ = [
@@ -316,11 +316,17 @@ class DyNeRFDataset(SceneDataset):
             frames = self._videos.get(camera_id)
             if frames is None:
                 cam = self.cameras[camera_id]
-                frames = decode_video(self.root / self.video_relpaths[camera_id],
-                                      (cam.width, cam.height), self.n_frames)
+                path = self.root / self.video_relpaths[camera_id]
+                try:
+                    frames = decode_video(path, (cam.width, cam.height), self.n_frames)
+                except FileNotFoundError:
+                    raise DatasetNotFound(f"{path}: video is missing; {self.fix_hint()}",
+                                          path=path) from None
+                except ValueError as err:
+                    raise DatasetError(f"{path}: {err}; {self.fix_hint()}", path=path) from None
                 if len(frames) < self.n_frames:
-                    raise ValueError(f"{self.video_relpaths[camera_id]} decoded to "
-                                     f"{len(frames)} frames, the dataset has {self.n_frames}")
+                    raise DatasetError(f"{path}: decoded to {len(frames)} frames, the dataset "
+                                       f"has {self.n_frames}; {self.fix_hint()}", path=path)
                 self._videos[camera_id] = frames
         return frames
 
@@ -342,6 +348,21 @@ class DyNeRFDataset(SceneDataset):
             i not in self._videos and not (self.root / rel).is_file()
             for i, rel in enumerate(self.video_relpaths)
         )
+
+    def check_frames(self, *, decode: int = 1) -> list[tuple[Path, str]]:
+        """Each camera's video that is neither decoded nor a non-empty file on disk, as
+        ``(path, what)`` (``decode`` is ignored: the reader probed every video already, and
+        decoding one means decoding the whole video)."""
+        problems = []
+        for i, rel in enumerate(self.video_relpaths):
+            path = self.root / rel
+            if i in self._videos:
+                continue
+            if not path.is_file():
+                problems.append((path, "missing"))
+            elif path.stat().st_size == 0:
+                problems.append((path, "empty"))
+        return problems
 
     def preload(self, workers: int = 1, *, png: bool = False) -> DyNeRFDataset:
         """Decode every camera now (``workers`` ffmpeg processes at once) and, with ``png``,

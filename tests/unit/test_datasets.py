@@ -538,7 +538,7 @@ def test_open_dataset_detects_each_layout(synthetic, dnerf_dir, dynerf_dir, tmp_
     (tmp_path / "empty").mkdir()
     with pytest.raises(FileNotFoundError, match=r"poses_bounds\.npy"):
         detect_layout(tmp_path / "empty")
-    with pytest.raises(FileNotFoundError, match="not a directory"):
+    with pytest.raises(FileNotFoundError, match="nothing does not exist"):
         open_dataset(tmp_path / "nothing")
 
 
@@ -616,4 +616,4 @@ def test_cli_export_and_info_on_any_layout(synthetic: SceneDataset, tmp_path: Pa
                                         str(tmp_path / "x"), "--dataset", str(synthetic.root)])
     assert bad.exit_code != 0 and not (tmp_path / "x").exists()
     missing = runner.invoke(scene_cli.app, ["info", str(tmp_path / "nothing")])
-    assert missing.exit_code == 1 and "not a directory" in " ".join(missing.output.split())
+    assert missing.exit_code == 1 and "nothing does not exist" in " ".join(missing.output.split())
