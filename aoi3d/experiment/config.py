@@ -47,7 +47,7 @@ from typing import Any
 from aoi3d.channel import parse_delay
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.quality import RewardWeights
-from aoi3d.scene import SceneConfig
+from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
 
 __all__ = [
     "CAMERA_PHASES",
@@ -60,7 +60,7 @@ __all__ = [
     "get_preset",
 ]
 
-EXPERIMENT_SCENE = SceneConfig(framing="rotor", rotor_rpm=6.0)
+EXPERIMENT_SCENE = FRAMING_SCENES["rotor"]  # SceneConfig(framing="rotor", rotor_rpm=6.0)
 """The scene of the experiments: the turbine's rotor in close-up from a 60° forward-facing arc
 (DyNeRF-like), turning at 6 rpm (a utility-scale rotor's speed; 3 blade passes per 10-s loop).
 
@@ -73,7 +73,7 @@ views: 31.4, 27.8, 24.7, 23.1, 21.6 dB at 0, 1, 2, 3, 5 frames old), and from th
 arc five views one frame old render the central novel view as well as eighteen (27.6 dB
 against 27.8); at 18 rpm one frame of age already cost 7 dB, so even the freshest frames were
 too stale to trade against. Measured with ``bench/staleness.py``; See docs/experiments.md."""
-EXPERIMENT_DATASET = "data/turbine-rotor"
+EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
 CAMERA_PHASES = ("sync", "random")
 
