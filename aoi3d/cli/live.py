@@ -366,8 +366,8 @@ def _table(results: Sequence[dict[str, Any]], sim: dict[str, Any] | None) -> Tab
 
 def plot_views(measurements: Sequence[Measurement], dataset: Path, path: Path,
                title: str) -> Path | None:
-    """Each policy's last render beside the ground truth of the same time (the held-out
-    camera's frame at the scene time the metrics service paired it with)."""
+    """Each policy's last render (of its last window) beside the ground truth of the same
+    time (the held-out camera's frame at the scene time the metrics service paired it with)."""
     import io
 
     import matplotlib
@@ -379,8 +379,9 @@ def plot_views(measurements: Sequence[Measurement], dataset: Path, path: Path,
 
     from aoi3d.scene import open_dataset
 
+    last = {m.policy: m for m in measurements}  # the last window of each policy
     pairs = []
-    for m in measurements:
+    for m in last.values():
         entry = next((q for q in m.qualities if q["decision_id"] == m.render_decision), None)
         if not m.render_png or entry is None:
             continue
@@ -575,8 +576,8 @@ def sweep(
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
          f"decision, {steps_per_s:.0f} trainer steps/s, {measure_s:g} s × {repeats} per policy")
     plot_views(measurements, dataset, out / "live_views.png",
-               "Live renders (top) and the truth of the same time (bottom), last render of "
-               "each window")
+               "Live renders (top) and the truth of the same time (bottom), the last render "
+               "of each policy")
     if json_:
         print(json.dumps({k: doc[k] for k in ("results", "interior_maximum", "settings",
                                                "wall_s")}, default=str))
