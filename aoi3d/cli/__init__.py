@@ -1,19 +1,43 @@
 """``aoi3d`` — the command line, the composition root for commands.
 
-Each command group lives in its own module and is mounted here.
+Each command group lives in its own module and is mounted here. The modules import only what
+their options need (typer, rich, the light scene package); torch, the experiment engine and
+the services load inside the commands that use them, so ``import aoi3d.cli`` and
+``aoi3d --help`` stay fast (a test checks both).
+
+A dataset that cannot be read (:class:`aoi3d.scene.DatasetError`) ends any command with one
+line, ``error: <file>: <what>; <what to do>``, and exit status 1.
 """
 
 from __future__ import annotations
 
+import inspect
+
+import click
 import typer
+from typer.core import TyperGroup
 
 from aoi3d.cli import channel, experiment, field, live, ppo, scene, up
+from aoi3d.cli.common import fail
+from aoi3d.scene.dataset import DatasetError
+
+
+class _Root(TyperGroup):
+    """The ``aoi3d`` group: every command's :class:`DatasetError` becomes one line."""
+
+    def invoke(self, ctx: click.Context):  # type: ignore[override]
+        try:
+            return super().invoke(ctx)
+        except DatasetError as err:
+            fail(err)
+
 
 app = typer.Typer(
     name="aoi3d",
     help="Timeliness–fidelity tradeoff in real-time 3D scene representation.",
     no_args_is_help=True,
     add_completion=False,
+    cls=_Root,
 )
 app.add_typer(scene.app, name="scene", help="Generate and inspect the synthetic dynamic scene.")
 app.add_typer(channel.app, name="channel", help="Simulate the cameras' D/G/1/0 uplinks and AoI.")
@@ -22,7 +46,7 @@ app.add_typer(experiment.app, name="experiment",
               help="Reproduce the paper's tradeoff figures on a virtual clock.")
 app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO agent.")
 app.add_typer(live.app, name="live", help="Drive and measure the running pipeline.")
-app.command("up", help=up.up.__doc__)(up.up)
+app.command("up", help=inspect.getdoc(up.up))(up.up)
 
 
 def main() -> None:

@@ -1,22 +1,19 @@
-"""``aoi3d channel …``: simulate the cameras' D/G/1/0 uplinks and compare with the theory."""
+"""``aoi3d channel …``: simulate the cameras' D/G/1/0 uplinks and compare with the theory.
+
+Cameras are numbered 1..N as in the pipeline (camera 0, the held-out view, has no uplink).
+The channel package (scipy) is imported inside the command.
+"""
 
 from __future__ import annotations
 
 import json
 import time
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
-from aoi3d.channel import (
-    DelaySpecError,
-    channel_statistics,
-    channel_theory,
-    parse_delay,
-    simulate,
-)
+if TYPE_CHECKING:
+    from rich.console import Console
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 
@@ -35,6 +32,8 @@ def _fmt(value: Any, digits: int = 2) -> str:
 
 
 def _table(result: dict[str, Any], console: Console) -> None:
+    from rich.table import Table
+
     cfg = result["config"]
     theory = result["theory"]
     table = Table(
@@ -43,7 +42,7 @@ def _table(result: dict[str, Any], console: Console) -> None:
             f"{cfg['duration_s']:g} s, seed {cfg['seed']} (AoI in ms)"
         )
     )
-    for name in ("link", "mean AoI", "p50", "p99", "drop", "deliv/s", "offered", "dropped",
+    for name in ("camera", "mean AoI", "p50", "p99", "drop", "deliv/s", "offered", "dropped",
                  "delivered"):
         table.add_column(name, justify="right")
 
@@ -62,7 +61,7 @@ def _table(result: dict[str, Any], console: Console) -> None:
         )
 
     for cam in result["per_camera"]:
-        row(str(cam["link"]), cam)
+        row(str(cam["camera"]), cam)
     table.add_section()
     row("all", result, style="bold")
     row("theory", theory, style="cyan")
@@ -81,7 +80,19 @@ def simulate_cmd(
     phase_ms: Annotated[int, typer.Option(min=0, help="First generation slot (ms).")] = 0,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object.")] = False,
 ) -> None:
-    """Simulate the links and print AoI and drop statistics next to the exact theory."""
+    """Simulate the links and print AoI and drop statistics next to the exact theory.
+
+    Cameras are numbered 1..N, as in the pipeline (``per_camera[i]["camera"]`` in the JSON)."""
+    from rich.console import Console
+
+    from aoi3d.channel import (
+        DelaySpecError,
+        channel_statistics,
+        channel_theory,
+        parse_delay,
+        simulate,
+    )
+
     try:
         dist = parse_delay(delay)
     except DelaySpecError as err:
@@ -90,6 +101,9 @@ def simulate_cmd(
     started = time.perf_counter()
     run = simulate(dist, period_ms, cameras, duration_ms, seed, phase_ms=phase_ms)
     stats = channel_statistics(run)
+    stats["per_camera"] = [{"camera": entry["link"] + 1,
+                            **{k: v for k, v in entry.items() if k != "link"}}
+                           for entry in stats["per_camera"]]  # links 0..N-1 → cameras 1..N
     elapsed_s = time.perf_counter() - started
     try:
         theory: dict[str, Any] = channel_theory(dist, period_ms).to_dict()

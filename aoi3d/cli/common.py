@@ -1,34 +1,31 @@
-"""What the sweep-running command groups (`aoi3d experiment`, `aoi3d ppo`) share: option
-types, ``KEY=VALUE`` overrides, the progress bar's columns, the experiments' dataset and the
-short label of a policy in tables and figures."""
+"""What the command groups share: option types, ``KEY=VALUE`` overrides, the progress bar's
+columns, the experiments' dataset, the short label of a policy in tables and figures, and the
+one-line error exit.
+
+Light on purpose: every ``aoi3d`` command (``--help`` included) imports this module, so it
+imports neither torch nor the experiment engine (those load inside the commands).
+"""
 
 from __future__ import annotations
 
 import json
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
-from rich.console import Console
-from rich.progress import (
-    BarColumn,
-    MofNCompleteColumn,
-    ProgressColumn,
-    SpinnerColumn,
-    TextColumn,
-    TimeElapsedColumn,
-    TimeRemainingColumn,
-)
 
-from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
-from aoi3d.experiment.sweep import default_workers
-from aoi3d.scene import SceneDataset
+if TYPE_CHECKING:
+    from rich.console import Console
+    from rich.progress import ProgressColumn
+
+    from aoi3d.scene import SceneDataset
 
 __all__ = [
     "LpipsOpt",
     "ThreadsOpt",
     "WorkersOpt",
+    "fail",
     "open_experiment_dataset",
     "parse_sets",
     "progress_columns",
@@ -57,24 +54,42 @@ def parse_sets(sets: Sequence[str] | None, option: str = "--set") -> dict[str, A
     return out
 
 
+def fail(message: object, code: int = 1) -> NoReturn:
+    """Print ``error: <message>`` as one line on stderr (never wrapped) and exit ``code``."""
+    typer.echo(f"error: {' '.join(str(message).split())}", err=True)
+    raise typer.Exit(code)
+
+
 def progress_columns() -> tuple[ProgressColumn, ...]:
     """A sweep's progress bar: spinner, label, bar, done/total, elapsed, ETA."""
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        SpinnerColumn,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
     return (SpinnerColumn(), TextColumn("{task.description}"), BarColumn(),
             MofNCompleteColumn(), TimeElapsedColumn(), TextColumn("ETA"),
             TimeRemainingColumn())
 
 
 def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
-    """The experiments' own dataset folder is (re)generated when missing or of another scene
-    config; any other folder is read as it is (generated with the experiments' scene if it
-    does not exist)."""
+    """The experiments' own dataset folder is (re)generated when missing, damaged or of another
+    scene config; any other folder is read as it is, every frame file checked (a bad one:
+    :class:`~aoi3d.scene.DatasetError`), and generated with the experiments' scene only if it
+    does not exist."""
+    from aoi3d.experiment.sweep import default_workers
     from aoi3d.scene import ensure_dataset, open_dataset
+    from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
 
-    own = path.absolute() == Path(EXPERIMENT_DATASET).absolute()
+    own = path.absolute() == Path(FRAMING_DATASETS["rotor"]).absolute()
     if path.exists() and not own:
-        return open_dataset(path)
+        return open_dataset(path, verify=True)
     with console.status(f"scene dataset {path} (generated if missing or stale) …"):
-        return ensure_dataset(path, EXPERIMENT_SCENE, workers=default_workers())
+        return ensure_dataset(path, FRAMING_SCENES["rotor"], workers=default_workers())
 
 
 def short_label(spec: str) -> str:

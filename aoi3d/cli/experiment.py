@@ -5,6 +5,9 @@ Ray cluster with ``--ray-address``), caches each episode under ``--cache`` (an i
 sweep resumes; a re-run computes only what is missing; commands share episodes), and writes
 CSV, JSON (with the full config, the code version and the machine) and PNG figures to
 ``--out``.
+
+The experiment engine (torch), the figures (matplotlib) and the channel (scipy) are imported
+inside the commands, so that ``aoi3d --help`` and the other commands start without them.
 """
 
 from __future__ import annotations
@@ -17,18 +20,13 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
-from PIL import Image
 from rich.console import Console
-from rich.progress import (
-    Progress,
-)
 from rich.table import Table
 
-from aoi3d.channel import DelaySpecError, parse_delay
 from aoi3d.cli.common import (
     LpipsOpt,
     ThreadsOpt,
@@ -38,25 +36,22 @@ from aoi3d.cli.common import (
     progress_columns,
     short_label,
 )
-from aoi3d.experiment import (
-    PRESETS,
-    EpisodeConfig,
-    EpisodeResult,
-    Job,
-    Preset,
-    ResultCache,
-    SweepOutcome,
-    aggregate,
-    default_workers,
-    get_preset,
-    run_jobs,
-)
-from aoi3d.experiment.config import EXPERIMENT_DATASET
-from aoi3d.experiment.figures import plot_compare, plot_delay, plot_tradeoff, plot_views
-from aoi3d.experiment.report import code_version, machine, write_csv, write_json
-from aoi3d.experiment.sweep import lpips_available
-from aoi3d.policy import PolicySpecError, parse_policy
-from aoi3d.scene import SceneDataset
+from aoi3d.scene.framings import FRAMING_DATASETS
+
+if TYPE_CHECKING:
+    from aoi3d.experiment import (
+        EpisodeConfig,
+        EpisodeResult,
+        Job,
+        Preset,
+        ResultCache,
+        SweepOutcome,
+    )
+    from aoi3d.scene import SceneDataset
+
+PRESET_NAMES = ("quick", "paper")
+"""The names of :data:`aoi3d.experiment.PRESETS`, for ``--help`` without importing the engine
+(a test keeps them equal)."""
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
@@ -69,12 +64,12 @@ def experiment() -> None:
 
 # --- options shared by every command ---------------------------------------------------------
 PresetOpt = Annotated[str, typer.Option(
-    help=f"Budget preset: {', '.join(PRESETS)} (quick: ≤ 10 min on 2 cores; paper: Γ every "
+    help=f"Budget preset: {', '.join(PRESET_NAMES)} (quick: ≤ 10 min on 2 cores; paper: Γ every "
          "10 ms, 40 simulations per point).")]
 DatasetOpt = Annotated[Path | None, typer.Option(
     help="Scene dataset (any layout `aoi3d scene` reads); the experiments' scene (the rotor "
          "close-up at 6 rpm) is generated there if the folder does not exist. Default: "
-         f"{EXPERIMENT_DATASET}.")]
+         f"{FRAMING_DATASETS['rotor']}.")]
 OutOpt = Annotated[Path | None, typer.Option(
     help="Output folder (CSV, JSON, PNG). Default: runs/experiments/<command>-<preset>.")]
 CacheOpt = Annotated[Path, typer.Option(
@@ -128,6 +123,8 @@ def _int_list(text: str | None, name: str) -> tuple[int, ...] | None:
 
 
 def _delay(spec: str, name: str = "'--delay'") -> str:
+    from aoi3d.channel import DelaySpecError, parse_delay
+
     try:
         return parse_delay(spec).spec
     except DelaySpecError as err:
@@ -175,6 +172,8 @@ class _Shared:
         """Validate the options, open (or generate) the dataset and make the output folder;
         ``seeds``: the command's own seed count when it has no ``--seeds`` (default: the
         ``--seeds`` given, else the preset's)."""
+        from aoi3d.experiment import EpisodeConfig, ResultCache, default_workers, get_preset
+
         try:
             chosen = get_preset(preset)
         except ValueError as err:
@@ -240,6 +239,10 @@ def _experiment_command(*, seeds: bool = True) -> Callable[[Callable[..., None]]
 
 
 def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
+    from rich.progress import Progress
+
+    from aoi3d.experiment import run_jobs
+
     where = (f"Ray ({setup.ray_address})" if setup.ray_address
              else f"{min(setup.workers, len(jobs))} process(es) × {setup.threads} thread(s)")
     console.print(f"[bold]{label}[/]: {len(jobs)} episodes on {where}; cache {setup.cache.root}")
@@ -274,6 +277,8 @@ def _write(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
     ``episodes.csv`` (one row per episode) and ``results.json`` (``meta`` — the command, its
     arguments, the config, the code version and the machine —, then ``doc``, then the
     episodes with their per-decision scores)."""
+    from aoi3d.experiment.report import write_csv, write_json
+
     meta = _meta(setup, outcomes, args)
     for name, rows in csvs.items():
         write_csv(setup.out / name, rows)
@@ -290,6 +295,9 @@ def _check_metric(metric: str, hint: str) -> None:
 
 def _meta(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
           ) -> dict[str, Any]:
+    from aoi3d.experiment.report import code_version, machine
+    from aoi3d.experiment.sweep import lpips_available
+
     episode_s = [r.wall_s for o in outcomes for r in o.results]
     return {
         "command": f"aoi3d experiment {setup.command}",
@@ -334,12 +342,16 @@ def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
 
 
 def _gamma_of(policy: str) -> float | None:
+    from aoi3d.policy import parse_policy
+
     parsed = parse_policy(policy)
     return float(parsed.mat_ms) if parsed.kind == "mat" else None  # type: ignore[attr-defined]
 
 
 def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any]],
                                                               dict[str, Any] | None]:
+    from aoi3d.experiment import aggregate
+
     rows = aggregate(results)
     points = []
     reference = None
@@ -389,6 +401,8 @@ _SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0, "psnr_dynam
 
 
 def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
+    from aoi3d.experiment import Job
+
     policies = [f"mat:{g}" for g in gammas] + ["all"]
     return [Job(p, delay, s) for s in range(seeds) for p in policies]
 
@@ -405,6 +419,9 @@ def tradeoff(
 ) -> None:
     """Fig. 4: PSNR, SSIM and LPIPS against the MAT Γ (mean of S simulations, 95% band),
     with the cameras used and the AoI of the used frames; `all` as the reference."""
+    from aoi3d.channel import parse_delay
+    from aoi3d.experiment.figures import plot_tradeoff
+
     setup = shared.setup("tradeoff", preset)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.gammas_ms
     delay = _delay(delay)
@@ -442,6 +459,10 @@ def views(
 ) -> None:
     """Fig. 5: the novel view for several Γ (and `all`) next to the ground truth, at the last
     scored decision of an episode."""
+    from PIL import Image
+
+    from aoi3d.experiment.figures import plot_views
+
     setup = shared.setup("views", preset, seeds=rows)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.view_gammas_ms
     delay = _delay(delay)
@@ -492,6 +513,10 @@ def delay_cmd(
              "optima are written too.")] = "psnr_db",
 ) -> None:
     """Fig. 6: the optimal Γ (highest mean PSNR, or ``--metric``) against the mean delay."""
+    from aoi3d.channel import parse_delay
+    from aoi3d.experiment import Job
+    from aoi3d.experiment.figures import plot_delay
+
     _check_metric(metric, "'--metric'")
     setup = shared.setup("delay", preset)
     if shared.seeds is None:
@@ -560,6 +585,10 @@ def compare(
     """All policies side by side on the same seeds (same channel draws, same model seeds).
 
     ``ppo:<checkpoint>`` applies a trained agent's deterministic action at every decision."""
+    from aoi3d.experiment import Job, aggregate
+    from aoi3d.experiment.figures import plot_compare
+    from aoi3d.policy import PolicySpecError, parse_policy
+
     _check_metric(best_metric, "'--best-metric'")
     setup = shared.setup("compare", preset)
     delay = _delay(delay)

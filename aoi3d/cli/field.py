@@ -18,7 +18,9 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from aoi3d.cli.common import fail
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
+from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS
 
 if TYPE_CHECKING:
     from aoi3d.field import FieldConfig
@@ -98,7 +100,7 @@ def train(
         "grid"
     ),
     dataset: Annotated[Path, typer.Option(help="Dataset folder (aoi3d, D-NeRF or DyNeRF).")] = (
-        Path("data/turbine")
+        Path(FRAMING_DATASETS[DEFAULT_FRAMING])
     ),
     cameras: Annotated[
         str | None, typer.Option(help="Training cameras, e.g. 1-18 or 1,4,8 (default: all "
@@ -146,8 +148,7 @@ def train(
     try:
         ds = open_dataset(dataset)
     except (FileNotFoundError, ValueError, ImportError) as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(1) from exc
+        fail(exc)
     try:
         ids = parse_cameras(cameras, ds) if cameras is not None else list(ds.train_ids)
     except ValueError as exc:

@@ -5,6 +5,9 @@
 ``episodes.csv``, ``updates.csv``, ``reward.png``, ``config.json``); ``eval`` scores a
 checkpoint's deterministic policy — and, with ``--compare``, other policies on the same
 episodes — on held-out seeds, with 95% confidence intervals. ``presets`` lists the budgets.
+
+Torch, the agent and the experiment engine are imported inside the commands, so that
+``aoi3d --help`` and the other commands start without them.
 """
 
 from __future__ import annotations
@@ -13,13 +16,10 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 from rich.console import Console
-from rich.progress import (
-    Progress,
-)
 from rich.table import Table
 
 from aoi3d.cli.common import (
@@ -31,21 +31,15 @@ from aoi3d.cli.common import (
     progress_columns,
     short_label,
 )
-from aoi3d.experiment import EpisodeConfig, default_workers
-from aoi3d.experiment.config import EXPERIMENT_DATASET
-from aoi3d.experiment.report import code_version, machine, write_csv, write_json
-from aoi3d.policy import PolicySpecError
-from aoi3d.policy.ppo import PPOConfig
-from aoi3d.rl.agent import SingleStepPPO
-from aoi3d.rl.evaluate import evaluate
-from aoi3d.rl.presets import (
-    EVAL_SEED_BASE,
-    PPO_PRESETS,
-    TrainConfig,
-    eval_seeds,
-    get_ppo_preset,
-)
-from aoi3d.rl.train import TrainProgress, train
+from aoi3d.scene.framings import FRAMING_DATASETS
+
+if TYPE_CHECKING:
+    from aoi3d.experiment import EpisodeConfig
+    from aoi3d.rl.train import TrainProgress
+
+PPO_PRESET_NAMES = ("quick", "paper")
+"""The names of :data:`aoi3d.rl.presets.PPO_PRESETS`, for ``--help`` without importing torch
+(a test keeps them equal)."""
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
@@ -57,10 +51,10 @@ def ppo() -> None:
 
 
 PresetOpt = Annotated[str, typer.Option(
-    help=f"PPO budget preset: {', '.join(PPO_PRESETS)} (`aoi3d ppo presets` shows them).")]
+    help=f"PPO budget preset: {', '.join(PPO_PRESET_NAMES)} (`aoi3d ppo presets` shows them).")]
 DatasetOpt = Annotated[Path | None, typer.Option(
     help="Scene dataset (default: the preset's, the experiments' scene at "
-         f"{EXPERIMENT_DATASET}, generated if missing).")]
+         f"{FRAMING_DATASETS['rotor']}, generated if missing).")]
 StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Radiance-field training steps per episode (default: the preset's).")]
 CacheOpt = Annotated[Path | None, typer.Option(
@@ -78,6 +72,8 @@ SetOpt = Annotated[list[str] | None, typer.Option(
 
 def _episode_config(base: EpisodeConfig, dataset: Path | None, steps: int | None,
                     device: str | None, lpips: bool, sets: list[str] | None) -> EpisodeConfig:
+    from aoi3d.experiment import EpisodeConfig
+
     changes: dict[str, Any] = {"lpips": lpips}
     if dataset is not None:
         changes["dataset"] = str(dataset)
@@ -120,6 +116,8 @@ def _fmt(mean: float | None, half: float | None = None, digits: int = 3) -> str:
 @app.command()
 def presets() -> None:
     """List the PPO presets."""
+    from aoi3d.rl.presets import PPO_PRESETS
+
     table = Table(title="PPO presets")
     for name in ("preset", "episodes", "batch", "steps/episode", "delay", "eval seeds", "note"):
         table.add_column(name)
@@ -161,6 +159,13 @@ def train_cmd(
     set_: SetOpt = None,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
+    from rich.progress import Progress
+
+    from aoi3d.experiment import default_workers
+    from aoi3d.policy.ppo import PPOConfig
+    from aoi3d.rl.presets import TrainConfig, get_ppo_preset
+    from aoi3d.rl.train import train
+
     try:
         chosen = get_ppo_preset(preset)
     except ValueError as err:
@@ -244,6 +249,15 @@ def eval_cmd(
 ) -> None:
     """Mean PSNR/SSIM/LPIPS/reward (95% CI) of the checkpoint's deterministic policy on
     held-out seeds; writes eval.csv, eval_summary.csv and eval.json."""
+    from rich.progress import Progress
+
+    from aoi3d.experiment import EpisodeConfig, default_workers
+    from aoi3d.experiment.report import code_version, machine, write_csv, write_json
+    from aoi3d.policy import PolicySpecError
+    from aoi3d.rl.agent import SingleStepPPO
+    from aoi3d.rl.evaluate import evaluate
+    from aoi3d.rl.presets import EVAL_SEED_BASE, PPO_PRESETS, eval_seeds, get_ppo_preset
+
     started = time.time()
     try:
         agent, extra = SingleStepPPO.load_with_extra(checkpoint)

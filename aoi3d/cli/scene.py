@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 from typing import Annotated
@@ -19,19 +20,22 @@ from rich.progress import (
 )
 from rich.table import Table
 
+from aoi3d.cli.common import fail
 from aoi3d.scene import (
     EXPORT_FORMATS,
-    SceneConfig,
+    DatasetError,
     ensure_dataset,
     export_dataset,
     generate_dataset,
     open_dataset,
 )
+from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = Console()
 
-_D = SceneConfig()  # the defaults shown by --help
+_D = FRAMING_SCENES[DEFAULT_FRAMING]  # the defaults shown by --help
+_DEFAULT_DATASET = Path(FRAMING_DATASETS[DEFAULT_FRAMING])
 
 
 @app.callback()
@@ -41,16 +45,19 @@ def scene() -> None:
 
 @app.command()
 def generate(
-    out: Annotated[Path, typer.Option(help="Dataset folder to write.")] = Path("data/turbine"),
+    out: Annotated[Path | None, typer.Option(help=(
+        "Dataset folder to write. Default: the framing's, "
+        + ", ".join(f"{v} ({k})" for k, v in FRAMING_DATASETS.items()) + "."))] = None,
     width: Annotated[int, typer.Option(help="Image width in pixels.")] = _D.width,
     height: Annotated[int, typer.Option(help="Image height in pixels.")] = _D.height,
     fps: Annotated[int, typer.Option(help="Frames per second of every camera.")] = _D.fps,
     duration_s: Annotated[
         float, typer.Option(help="Length of the looped sequence, in seconds.")
     ] = _D.duration_s,
-    rotor_rpm: Annotated[float, typer.Option(help="Rotor speed, revolutions/min.")] = (
-        _D.rotor_rpm
-    ),
+    rotor_rpm: Annotated[float | None, typer.Option(help=(
+        "Rotor speed, revolutions/min. Default: the framing's, "
+        + ", ".join(f"{c.rotor_rpm:g} ({k})" for k, c in FRAMING_SCENES.items()) + "."))]
+    = None,
     spp: Annotated[int, typer.Option(help="Samples per pixel per axis (spp² per pixel).")] = (
         _D.spp
     ),
@@ -59,28 +66,33 @@ def generate(
         _D.n_train
     ),
     framing: Annotated[str, typer.Option(
-        help="site: the whole turbine from a 170° arc; rotor: a close-up of the rotor from a "
-             "60° arc (the experiments' scene, with --rotor-rpm 6).")] = _D.framing,
+        help="rotor: a close-up of the rotor from a 60° arc (the experiments' and the live "
+             "pipeline's scene); site: the whole turbine from a 170° arc.")] = _D.framing,
     workers: Annotated[int, typer.Option(help="Rendering processes.")] = 1,
     force: Annotated[
         bool, typer.Option(help="Regenerate even when a dataset of this config is there.")
     ] = False,
 ) -> None:
     """Render every camera's frames and the transforms (cached by config hash)."""
+    if framing not in FRAMING_SCENES:
+        raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
+                                 f"{framing!r}", param_hint="'--framing'")
+    base = FRAMING_SCENES[framing]
     try:
-        cfg = SceneConfig(
+        cfg = dataclasses.replace(
+            base,
             width=width,
             height=height,
             fps=fps,
             duration_s=duration_s,
             n_train=n_train,
-            rotor_rpm=rotor_rpm,
+            rotor_rpm=base.rotor_rpm if rotor_rpm is None else rotor_rpm,
             spp=spp,
             seed=seed,
-            framing=framing,
         )
     except ValueError as exc:
         raise typer.BadParameter(str(exc)) from exc
+    out = out if out is not None else Path(FRAMING_DATASETS[framing])
     if workers < 1:
         raise typer.BadParameter(f"--workers must be ≥ 1, got {workers}")
     started = time.perf_counter()
@@ -108,8 +120,7 @@ def generate(
             else:
                 ds = ensure_dataset(out, cfg, report, workers=workers)
         except (FileExistsError, OSError) as exc:
-            console.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(1) from exc
+            fail(exc)
     elapsed_s = time.perf_counter() - started
     n = len(ds.cameras) * ds.n_frames
     what = f"{len(ds.cameras)} cameras × {ds.n_frames} frames, {ds.width}×{ds.height}"
@@ -125,7 +136,7 @@ def generate(
 @app.command()
 def info(
     path: Annotated[Path, typer.Argument(help="Dataset folder (aoi3d, D-NeRF or DyNeRF).")] = (
-        Path("data/turbine")
+        _DEFAULT_DATASET
     ),
     downscale: Annotated[
         float | None, typer.Option(help="D-NeRF/DyNeRF: read frames this many times smaller.")
@@ -134,12 +145,13 @@ def info(
         int | None, typer.Option(help="D-NeRF/DyNeRF: read frames at this width (pixels).")
     ] = None,
 ) -> None:
-    """Print a dataset's layout, cameras, frames and box (videos are not decoded)."""
+    """Print a dataset's layout, cameras, frames and box; check every frame file (present, not
+    empty, a whole PNG) and decode one (videos are not decoded). Exits 1, naming the files,
+    when any is missing or damaged."""
     try:
         ds = open_dataset(path, downscale=downscale, width=width)
     except (FileNotFoundError, ValueError, ImportError) as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(1) from exc
+        fail(exc)
     aabb = np.asarray(ds.aabb)
     config = f"config {ds.config_hash}" if ds.config_hash else "not generated by aoi3d"
     console.print(f"[bold]{ds.root}[/]")
@@ -152,9 +164,6 @@ def info(
     console.print(f"aabb min {aabb[0].round(3).tolist()}  max {aabb[1].round(3).tolist()}")
     if ds.config:
         console.print(f"config {ds.config}")
-    missing = ds.missing_frames()
-    if missing:
-        console.print(f"[yellow]{missing} frames are missing on disk[/]")
     table = Table(title="cameras (poses are OpenGL camera-to-world)")
     for col in ("id", "name", "role", "x", "y", "z", "distance", "fx", "look dir"):
         table.add_column(col, justify="right")
@@ -175,6 +184,12 @@ def info(
             "(" + ", ".join(f"{v:+.2f}" for v in look) + ")",
         )
     console.print(table)
+    try:
+        ds.require_frames()
+    except DatasetError as err:
+        fail(err)
+    files = {ds.frame_relpath(c, k) for c in range(len(ds.cameras)) for k in range(ds.n_frames)}
+    console.print(f"frames: all {len(files)} file(s) present and whole, one decoded")
 
 
 @app.command()
@@ -185,7 +200,7 @@ def export(
     out: Annotated[Path, typer.Option(help="Folder to write (must be new or empty).")],
     dataset: Annotated[
         Path, typer.Option(help="Dataset to export, in any layout.")
-    ] = Path("data/turbine"),
+    ] = _DEFAULT_DATASET,
     overwrite: Annotated[
         bool, typer.Option(help="Replace a dataset already at --out.")
     ] = False,
@@ -207,8 +222,7 @@ def export(
     try:
         ds = open_dataset(dataset, downscale=downscale, width=width)
     except (FileNotFoundError, ValueError, ImportError) as exc:
-        console.print(f"[red]error:[/] {exc}")
-        raise typer.Exit(1) from exc
+        fail(exc)
     options: dict[str, object] = {"overwrite": overwrite}
     if fmt == "dynerf":
         options["crf"] = crf
@@ -227,8 +241,7 @@ def export(
         try:
             written = export_dataset(ds, out, fmt, **options)
         except (FileExistsError, OSError, ValueError, ImportError) as exc:
-            console.print(f"[red]error:[/] {exc}")
-            raise typer.Exit(1) from exc
+            fail(exc)
     console.print(
         f"wrote {fmt} ({len(ds.cameras)} cameras × {ds.n_frames} frames, "
         f"{ds.width}×{ds.height}) to {written} in {time.perf_counter() - started:.1f} s"

@@ -98,12 +98,19 @@ class DatasetNotFound(DatasetError, FileNotFoundError):
 
 def generate_command(root: str | Path, config: dict[str, Any] | None = None) -> str:
     """The ``aoi3d scene generate`` command that writes the scene of ``config`` (a
-    :class:`SceneConfig` as a dict; default: the default scene) to ``root``: only the
-    options that differ from the defaults."""
+    :class:`SceneConfig` as a dict; default: the default framing's scene) to ``root``: only
+    the options that differ from the command's defaults (those of the framing's scene,
+    :data:`aoi3d.scene.framings.FRAMING_SCENES`)."""
+    from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_SCENES
+
+    config = dict(config or {})
+    framing = config.get("framing", DEFAULT_FRAMING)
     parts = ["aoi3d scene generate", "--out", str(root)]
-    default = SceneConfig().to_dict()
-    for key, value in (config or {}).items():
-        if key in default and value != default[key]:
+    if framing != DEFAULT_FRAMING:
+        parts += ["--framing", str(framing)]
+    default = (FRAMING_SCENES.get(framing) or SceneConfig(framing=framing)).to_dict()
+    for key, value in config.items():
+        if key != "framing" and key in default and value != default[key]:
             text = f"{value:g}" if isinstance(value, float) else str(value)
             parts += [f"--{key.replace('_', '-')}", text]
     return " ".join(parts)
