@@ -52,7 +52,7 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 25 min)
 	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
-	    --sim-seeds 4 --out bench/results/live-sweep
+	    --sim-seeds 16 --out bench/results/live-sweep
 
 figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
 	rm -rf runs/experiments/figures-cache runs/ppo/figures
