@@ -1,11 +1,24 @@
-"""Run the whole pipeline locally: a Zenoh router plus the five services as supervised processes.
+"""Run the whole pipeline locally: a Zenoh router plus the services as supervised processes.
 
-Used by ``aoi3d up`` (and so ``make up``). Each child runs in its own process group with
-the run's shared environment (run id, clock epoch and scale, endpoints, ports). A child that
-exits unexpectedly is restarted with a back-off and the restart is logged. On SIGINT/SIGTERM
-(or after ``duration_s``) every child gets SIGTERM, then SIGKILL after a grace period, so no
-process is left behind. Child output goes to ``<log_dir>/<name>.log`` and, prefixed, to the
-console.
+Used by ``aoi3d up`` (and so ``make up``). :data:`SERVICES` and :data:`DEFAULT_PORTS` are the
+one list of services: the ports checked before start, the processes started, the table shown.
+
+Before anything starts, :func:`taken_ports` finds the REST and Zenoh ports already in use
+(``aoi3d up`` then stops with one line naming the port and the option that moves it). Each
+run writes its logs to a folder of its own, ``<log_dir>/<run id>-<UTC start time>/``
+(``<name>.log`` per process and ``up.json``), and points ``<log_dir>/latest`` at it, so no run
+overwrites another's logs. Each child runs in its own process group with the run's shared
+environment (run id, clock epoch and scale, endpoints, ports); child output goes to its log
+and, prefixed, to the console.
+
+Start-up: the router must accept TCP connections, then every service must answer
+``/healthz`` *from its own process* (the answer carries the pid, so another pipeline on the
+same ports never passes for this one) within ``ready_timeout_s``. A service that exits before
+it is healthy is restarted once; a second exit, or the timeout, ends the start-up with one
+error naming the service and the last line of its log, and :meth:`Supervisor.run` returns 1.
+After start-up, a child that exits unexpectedly is restarted with a back-off and the restart
+is logged. On SIGINT/SIGTERM (or after ``duration_s``) every child gets SIGTERM, then SIGKILL
+after a grace period, so no process is left behind.
 """
 
 from __future__ import annotations
@@ -14,6 +27,7 @@ import contextlib
 import json
 import logging
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -23,32 +37,101 @@ import time
 import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from pathlib import Path
 
 log = logging.getLogger("aoi3d.up")
 
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
+"""The services ``aoi3d up`` runs, in start order (``python -m services.<name>``)."""
 DEFAULT_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
                  "metrics": 8105}
+"""Each service's REST port before ``--port-offset``."""
+assert set(DEFAULT_PORTS) == set(SERVICES)
+LATEST = "latest"
+"""The link in ``log_dir`` to the newest run's log folder."""
+STARTUP_RESTARTS = 1
+"""How often a service that exits before it is healthy is restarted before start-up fails."""
 
 
 @dataclass
 class UpConfig:
-    dataset: Path = Path("data/turbine")
+    dataset: Path = Path("data/turbine-rotor")
     run_id: str = "default"
     time_scale: float = 0.1
     cameras: int = 18
     zenoh_port: int = 7447
     port_offset: int = 0
     log_dir: Path = Path("runs/logs")
+    """The parent of the runs' log folders (each run writes to a folder of its own)."""
     duration_s: float | None = None
-    ready_timeout_s: float = 60.0
+    ready_timeout_s: float = 120.0
     grace_s: float = 10.0
     echo: bool = True
     extra_env: dict[str, str] = field(default_factory=dict)
+    commands: dict[str, list[str]] = field(default_factory=dict)
+    """argv of a child by name (``router`` or a service) instead of ``python -m services.<name>``
+    (tests run stand-ins)."""
 
     def port(self, service: str) -> int:
         return DEFAULT_PORTS[service] + self.port_offset
+
+    def ports(self) -> dict[str, int]:
+        """Every port the run listens on: ``router`` (Zenoh) and each service's REST port."""
+        return {"router": self.zenoh_port, **{name: self.port(name) for name in SERVICES}}
+
+
+def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
+    """Whether a server could not listen on ``host:port`` now. Binds with ``SO_REUSEADDR``, as
+    uvicorn and Zenoh do, so a port held only by connections closing (TIME_WAIT) is free."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            sock.bind((host, port))
+        except OSError:
+            return True
+    return False
+
+
+def taken_ports(cfg: UpConfig) -> list[tuple[str, int]]:
+    """``(name, port)`` of each port of the run (:meth:`UpConfig.ports`) already in use."""
+    return [(name, port) for name, port in cfg.ports().items() if port_in_use(port)]
+
+
+def run_log_dir(log_dir: Path, run_id: str, started: datetime) -> Path:
+    """A new folder ``<log_dir>/<run id>-<YYYYmmddTHHMMSSZ>`` (``-2``, ``-3``… appended if a
+    run of the same id started in the same second), and ``<log_dir>/latest`` pointing at it."""
+    safe = re.sub(r"[^A-Za-z0-9._-]+", "_", run_id) or "run"
+    stem = f"{safe}-{started.astimezone(UTC):%Y%m%dT%H%M%SZ}"
+    log_dir.mkdir(parents=True, exist_ok=True)
+    for n in range(1, 1000):
+        folder = log_dir / (stem if n == 1 else f"{stem}-{n}")
+        try:
+            folder.mkdir()
+            break
+        except FileExistsError:
+            continue
+    else:
+        raise FileExistsError(f"no free log folder name for {stem} in {log_dir}")
+    link = log_dir / LATEST
+    tmp = log_dir / f".{LATEST}-{os.getpid()}"
+    with contextlib.suppress(FileNotFoundError):
+        tmp.unlink()
+    os.symlink(folder.name, tmp)  # relative: the logs folder can move
+    os.replace(tmp, link)
+    return folder
+
+
+def last_line(path: Path, limit: int = 4096) -> str:
+    """The last non-empty line of a log file (read from its last ``limit`` bytes)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(0, os.SEEK_END)
+            f.seek(max(0, f.tell() - limit))
+            lines = f.read().decode("utf-8", "replace").splitlines()
+    except OSError:
+        return ""
+    return next((line.strip() for line in reversed(lines) if line.strip()), "")
 
 
 @dataclass
@@ -60,6 +143,8 @@ class Child:
     proc: subprocess.Popen | None = None
     restarts: int = 0
     next_start: float = 0.0
+    exits: list[int | None] = field(default_factory=list)
+    """Exit codes of this child so far (the supervisor records each exit it sees)."""
     _pump: threading.Thread | None = None
 
     def start(self, echo: bool) -> None:
@@ -95,6 +180,11 @@ class Supervisor:
         self.cfg = cfg
         self.on_ready = on_ready
         self.stopping = threading.Event()
+        self.started = datetime.now(UTC)
+        self.log_dir: Path | None = None
+        """This run's own log folder (made when :meth:`run` starts)."""
+        self.failure: str | None = None
+        """Why the start-up failed (one line), else None."""
         self.children = self._plan()
 
     def _plan(self) -> list[Child]:
@@ -117,26 +207,30 @@ class Supervisor:
             base[f"AOI3D_{name.upper()}_HOST"] = "127.0.0.1"
         base.update(cfg.extra_env)
         names = ("router", *SERVICES)
-        return [Child(name, [sys.executable, "-m", f"services.{name}"], base,
-                      cfg.log_dir / f"{name}.log") for name in names]
+        return [Child(name, cfg.commands.get(name, [sys.executable, "-m", f"services.{name}"]),
+                      base, Path(f"{name}.log")) for name in names]
 
     # ------------------------------------------------------------ lifecycle
     def run(self) -> int:
-        """Start everything, supervise until stopped; returns the exit code."""
+        """Start everything, supervise until stopped; returns the exit code (1: the start-up
+        failed, :attr:`failure` says why)."""
         previous = {sig: signal.signal(sig, self._on_signal)
                     for sig in (signal.SIGINT, signal.SIGTERM)}
         try:
+            self.log_dir = run_log_dir(self.cfg.log_dir, self.cfg.run_id, self.started)
+            for child in self.children:
+                child.log_path = self.log_dir / child.log_path.name
+            log.info("logs of this run: %s", self.log_dir)
             self._write_state()
             router, services = self.children[0], self.children[1:]
             router.start(self.cfg.echo)
             if not self._wait_tcp(self.cfg.zenoh_port, router):
-                log.error("the Zenoh router did not come up; see %s", router.log_path)
-                return 1
+                return 0 if self.stopping.is_set() else 1
             for child in services:
                 child.start(self.cfg.echo)
             self._write_state()
             if not self._wait_ready():
-                return 1
+                return 0 if self.stopping.is_set() else 1
             if self.on_ready:
                 self.on_ready(self)
             deadline = (time.monotonic() + self.cfg.duration_s
@@ -157,6 +251,20 @@ class Supervisor:
         log.info("received %s; stopping the pipeline", signal.Signals(signum).name)
         self.stopping.set()
 
+    def _fail(self, child: Child, what: str) -> None:
+        """Record and log why the start-up failed: one line with the child's last log line."""
+        self._settle_output(child)
+        said = last_line(child.log_path)
+        self.failure = (f"{what}" + (f"; its last log line: {said}" if said else "")
+                        + f" (log: {child.log_path})")
+        log.error("%s", self.failure)
+
+    @staticmethod
+    def _settle_output(child: Child) -> None:
+        """Let the log pump copy what an exited child wrote."""
+        if child._pump is not None and not child.alive():
+            child._pump.join(timeout=2)
+
     def _restart_dead(self) -> None:
         now = time.monotonic()
         for child in self.children:
@@ -164,6 +272,7 @@ class Supervisor:
                 continue
             if child.next_start == 0.0:
                 code = child.proc.returncode if child.proc else None
+                child.exits.append(code)
                 backoff = min(30.0, 1.0 * 2 ** min(child.restarts, 5))
                 child.next_start = now + backoff
                 log.warning("service %s exited with code %s; restarting in %.0f s "
@@ -205,40 +314,73 @@ class Supervisor:
 
     # ------------------------------------------------------------ readiness
     def _wait_tcp(self, port: int, child: Child) -> bool:
+        """Wait until ``child`` (the router) accepts TCP connections on ``port``; False (and
+        :attr:`failure` set, unless stopping) if it exits or the start-up timeout passes."""
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while time.monotonic() < deadline and not self.stopping.is_set():
             if not child.alive():
+                self._fail(child, f"the Zenoh router exited with code {child.proc.returncode} "
+                           f"before it accepted connections on port {port}")
                 return False
             with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port),
                                                                         timeout=0.5):
                 return True
             time.sleep(0.1)
+        if not self.stopping.is_set():
+            self._fail(child, f"the Zenoh router did not accept connections on port {port} "
+                       f"within {self.cfg.ready_timeout_s:g} s")
         return False
 
+    def _healthy(self, child: Child) -> bool:
+        """Whether ``child`` itself answers ``/healthz`` (the body's pid is the child's)."""
+        if not child.alive():
+            return False
+        url = f"http://127.0.0.1:{self.cfg.port(child.name)}/healthz"
+        try:
+            with urllib.request.urlopen(url, timeout=1) as resp:
+                body = json.loads(resp.read() or b"{}")
+                return resp.status == 200 and body.get("pid") == child.proc.pid
+        except (OSError, ValueError, AttributeError):
+            return False
+
     def _wait_ready(self) -> bool:
-        """Wait until every service answers /healthz."""
-        pending = {c.name for c in self.children[1:]}
+        """Wait until every service answers /healthz from its own process; False (and
+        :attr:`failure` set, unless stopping) when one exits more than
+        :data:`STARTUP_RESTARTS` times first, or the start-up timeout passes."""
+        pending = {c.name: c for c in self.children[1:]}
+        router = self.children[0]
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while pending and time.monotonic() < deadline and not self.stopping.is_set():
-            for name in sorted(pending):
-                with contextlib.suppress(OSError):
-                    url = f"http://127.0.0.1:{self.cfg.port(name)}/healthz"
-                    with urllib.request.urlopen(url, timeout=1) as resp:
-                        if resp.status == 200:
-                            pending.discard(name)
+            for name, child in sorted(pending.items()):
+                if self._healthy(child):
+                    del pending[name]
+                    log.info("%s is up (pid %d)", name, child.proc.pid)
             self._restart_dead()
-            time.sleep(0.2)
+            for child in (router, *pending.values()):
+                if len(child.exits) > (0 if child is router else STARTUP_RESTARTS):
+                    codes = ", ".join(str(c) for c in child.exits)
+                    self._fail(child, f"{child.name} exited (code {codes}) before it was "
+                               "healthy")
+                    return False
+            if pending:
+                self.stopping.wait(0.2)
         if pending and not self.stopping.is_set():
-            log.error("services not healthy after %.0f s: %s (logs in %s)",
-                      self.cfg.ready_timeout_s, ", ".join(sorted(pending)), self.cfg.log_dir)
+            names = ", ".join(sorted(pending))
+            self._fail(next(iter(sorted(pending.items())))[1],
+                       f"not healthy after {self.cfg.ready_timeout_s:g} s: {names}")
             return False
         return not self.stopping.is_set()
 
     def _write_state(self, stopped: bool = False) -> None:
-        """``<log_dir>/up.json``: the pids and ports of this run (for operators and tests)."""
+        """``<run log folder>/up.json``: the pids and ports of this run (for operators and
+        tests)."""
+        if self.log_dir is None:
+            return
         state = {
             "run_id": self.cfg.run_id,
+            "started_utc": self.started.isoformat(),
             "stopped": stopped,
+            "failure": self.failure,
             "children": {c.name: {"pid": c.proc.pid if c.proc else None,
                                   "restarts": c.restarts,
                                   "port": (self.cfg.zenoh_port if c.name == "router"
@@ -246,7 +388,6 @@ class Supervisor:
                                   "log": str(c.log_path)}
                          for c in self.children},
         }
-        self.cfg.log_dir.mkdir(parents=True, exist_ok=True)
-        tmp = self.cfg.log_dir / "up.json.tmp"
+        tmp = self.log_dir / "up.json.tmp"
         tmp.write_text(json.dumps(state, indent=2))
-        tmp.replace(self.cfg.log_dir / "up.json")
+        tmp.replace(self.log_dir / "up.json")

@@ -1,4 +1,11 @@
-"""``aoi3d up``: the whole live pipeline on this machine."""
+"""``aoi3d up``: the whole live pipeline on this machine.
+
+Before anything starts: every port of the run (each service's REST port and the Zenoh port,
+from :data:`services.supervisor.SERVICES`) must be free — a taken one is one line naming it and
+the option that moves it — and the dataset must be readable, every frame file present and
+whole. The scene is generated only into the framing's own folder (``data/turbine-rotor``,
+``data/turbine``) or with ``--generate``; any other folder must hold a dataset already.
+"""
 
 from __future__ import annotations
 
@@ -7,83 +14,135 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
-from rich.table import Table
 
-console = Console()
+from aoi3d.cli.common import fail
+from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
+from services.supervisor import DEFAULT_PORTS, SERVICES
+
+_FIRST, _LAST = min(DEFAULT_PORTS.values()), max(DEFAULT_PORTS.values())
+
+HINTS = {
+    "camera": "GET /config",
+    "network": "GET /channel",
+    "scheduler": "GET /aoi, PUT /policy",
+    "trainer": "GET /status, /render.png",
+    "metrics": "GET /quality?limit=5",
+}
+"""What to try first on each service (a service without a hint shows its /docs)."""
 
 
 def up(
-    dataset: Annotated[Path, typer.Option(help="Scene dataset folder (generated if missing).")]
-    = Path("data/turbine"),
+    framing: Annotated[str, typer.Option(
+        help="Which scene: rotor (the rotor close-up at 6 rpm, the experiments' scene) or site "
+             "(the whole turbine at 18 rpm). Sets the default --dataset folder and the scene "
+             "generated there.")] = DEFAULT_FRAMING,
+    dataset: Annotated[Path | None, typer.Option(
+        help=f"Scene dataset folder, any layout `aoi3d scene info` reads. Default: the "
+             f"framing's, {FRAMING_DATASETS['rotor']} (rotor) or {FRAMING_DATASETS['site']} "
+             "(site), where the scene is generated when missing or stale; any other folder "
+             "must hold a dataset (or give --generate).")] = None,
+    generate: Annotated[bool, typer.Option(
+        help="Generate the framing's scene at --dataset if it is missing or stale, whatever "
+             "the folder.")] = False,
     time_scale: Annotated[float, typer.Option(
         help="Simulation seconds per wall second; < 1 slows the world so the CPU trainer "
              "keeps pace.")] = 0.1,
     run_id: Annotated[str, typer.Option(help="Run id: the <run> in every key expression.")]
     = "default",
-    zenoh_port: Annotated[int, typer.Option(help="TCP port of the local Zenoh router.")] = 7447,
+    zenoh_port: Annotated[int, typer.Option(
+        min=1, max=65535, help="TCP port of the local Zenoh router.")] = 7447,
     port_offset: Annotated[int, typer.Option(
-        help="Added to the default REST ports 8101..8105.")] = 0,
-    log_dir: Annotated[Path, typer.Option(help="Where each process's log goes.")]
+        help=f"Added to the default REST ports {_FIRST}..{_LAST} (one per service).")] = 0,
+    log_dir: Annotated[Path, typer.Option(
+        help="Each run logs to a new folder <log-dir>/<run-id>-<UTC start time>/ (one log per "
+             "process and up.json); <log-dir>/latest points at the newest.")]
     = Path("runs/logs"),
+    ready_timeout_s: Annotated[float, typer.Option(
+        min=1, help="Start-up fails unless every service is healthy within this many "
+                    "seconds (a service that exits twice before fails it at once).")] = 120.0,
     duration_s: Annotated[float | None, typer.Option(
         help="Stop after this many seconds (default: run until Ctrl-C).")] = None,
     quiet: Annotated[bool, typer.Option(
         help="Do not echo the services' logs to the console.")] = False,
 ) -> None:
-    """Run the Zenoh router and the five services locally, supervised, until Ctrl-C."""
-    from services.supervisor import SERVICES, Supervisor, UpConfig
+    """Run the Zenoh router and the five services locally, supervised, until Ctrl-C. The
+    ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
+    service that does not become healthy is one line and exit status 1."""
+    from services.supervisor import Supervisor, UpConfig, taken_ports
 
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s: %(message)s")
-    _ensure_scene(dataset)
-    cfg = UpConfig(dataset=dataset, run_id=run_id, time_scale=time_scale,
+    if framing not in FRAMING_SCENES:
+        raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
+                                 f"{framing!r}", param_hint="'--framing'")
+    if not 0 < min(DEFAULT_PORTS.values()) + port_offset <= max(
+            DEFAULT_PORTS.values()) + port_offset < 65536:
+        raise typer.BadParameter(f"the REST ports {_FIRST + port_offset}.."
+                                 f"{_LAST + port_offset} are not valid ports",
+                                 param_hint="'--port-offset'")
+    folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
+    cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
-                   duration_s=duration_s, echo=not quiet)
+                   duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
+    taken = taken_ports(cfg)
+    if taken:
+        name, port = taken[0]
+        option = ("--zenoh-port" if name == "router"
+                  else f"--port-offset (REST ports {_FIRST}..{_LAST} + offset)")
+        what = "the Zenoh router" if name == "router" else f"the {name} service"
+        others = f" (also taken: {', '.join(str(p) for _, p in taken[1:])})" if taken[1:] else ""
+        fail(f"port {port} for {what} is in use{others} — is another pipeline running? "
+             f"Choose another with {option}.")
+    own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
+    _ensure_scene(folder, framing, generate=generate or own)
+
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()
 
     def show_where(sup: Supervisor) -> None:
         table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
         for col in ("service", "REST API (docs at /docs)", "try"):
             table.add_column(col, no_wrap=True)
-        hints = {
-            "camera": "GET /config",
-            "network": "GET /channel",
-            "scheduler": "GET /aoi, PUT /policy",
-            "trainer": "GET /status, /render.png",
-            "metrics": "GET /quality?limit=5",
-        }
         for name in SERVICES:
-            table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", hints[name])
+            table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
         console.print(table)
         sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
         console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
-                      """-d '{"kind":"mat","mat_ms":20}'""", soft_wrap=True)
-        console.print(f"Logs: {log_dir}/<service>.log · Prometheus metrics: <service>/metrics "
-                      "· stop with Ctrl-C", soft_wrap=True)
+                      """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)
+        console.print(f"Logs: {sup.log_dir}/<service>.log ({log_dir}/latest) · Prometheus "
+                      "metrics: <service>/metrics · stop with Ctrl-C", soft_wrap=True)
 
-    code = Supervisor(cfg, on_ready=show_where).run()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s: %(message)s")
+    sup = Supervisor(cfg, on_ready=show_where)
+    code = sup.run()
+    if code and sup.failure:
+        fail(f"the pipeline did not start: {sup.failure}", code)
     raise typer.Exit(code)
 
 
-def _ensure_scene(dataset: Path) -> None:
-    """Use the dataset at ``dataset`` if there is one (any layout ``open_dataset`` reads);
-    else generate the default synthetic scene there."""
+def _ensure_scene(dataset: Path, framing: str, *, generate: bool) -> None:
+    """Check the dataset at ``dataset`` (any layout; every frame file present and whole); with
+    ``generate``, first (re)generate the framing's scene there when it is missing, damaged or
+    of another config. A dataset that cannot be used ends the command with one line."""
     import time
 
+    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from aoi3d.scene import SceneConfig, detect_layout, ensure_dataset, open_dataset
+    from aoi3d.scene import DatasetError, detect_layout, ensure_dataset, open_dataset
 
-    try:
-        layout = detect_layout(dataset)
-    except FileNotFoundError:
-        layout = None
-    if layout is not None:
-        ds = open_dataset(dataset)
-        console.print(f"scene: {dataset} ({layout} layout, {len(ds.cameras)} cameras × "
+    console = Console()
+    if not generate:
+        try:
+            detect_layout(dataset)
+            ds = open_dataset(dataset, verify=True)
+        except DatasetError as err:
+            extra = "" if dataset.exists() else f" (or add --generate to make the {framing} scene)"
+            fail(f"{err}{extra}")
+        console.print(f"scene: {dataset} ({ds.layout} layout, {len(ds.cameras)} cameras × "
                       f"{ds.n_frames} frames, {ds.width}×{ds.height})")
         return
-
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.completed}/"
                   "{task.total}"), TimeRemainingColumn(), console=console,
                   transient=True) as progress:
@@ -92,11 +151,15 @@ def _ensure_scene(dataset: Path) -> None:
         def report(done: int, total: int) -> None:
             nonlocal task
             if task is None:
-                task = progress.add_task(f"generating the scene into {dataset}", total=total)
+                task = progress.add_task(f"generating the {framing} scene into {dataset}",
+                                         total=total)
             progress.update(task, completed=done)
 
         t0 = time.perf_counter()
-        ds = ensure_dataset(dataset, SceneConfig(), progress=report)
+        try:
+            ds = ensure_dataset(dataset, FRAMING_SCENES[framing], progress=report)
+        except (DatasetError, FileExistsError) as err:
+            fail(err)
     made = f", generated in {time.perf_counter() - t0:.1f} s" if task is not None else ""
-    console.print(f"scene: {dataset} ({len(ds.cameras)} cameras × {ds.n_frames} frames, "
-                  f"{ds.width}×{ds.height}{made})")
+    console.print(f"scene: {dataset} ({framing} framing, {len(ds.cameras)} cameras × "
+                  f"{ds.n_frames} frames, {ds.width}×{ds.height}{made})")

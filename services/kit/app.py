@@ -8,9 +8,10 @@ worker, and stops both on shutdown. Routes reach the worker through ``app.state.
 from __future__ import annotations
 
 import logging
+import os
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Protocol
+from typing import Literal, Protocol
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
@@ -68,9 +69,11 @@ def service_app(
     app.state.registry = registry
     app.state.settings = settings
 
-    @app.get("/healthz", tags=["ops"], summary="Liveness: the process serves requests.")
-    def healthz() -> dict[str, str]:
-        return {"status": "ok"}
+    @app.get("/healthz", tags=["ops"], summary="Liveness: the process serves requests.",
+             description="`pid` is the serving process's id: `aoi3d up` checks that its own "
+                         "child answers, not another pipeline on the same port.")
+    def healthz() -> dict[str, str | int]:
+        return {"status": "ok", "pid": os.getpid()}
 
     @app.get("/readyz", tags=["ops"], summary="Readiness: the worker is connected and working.",
              responses={503: {"description": "Not ready; the body says why."}})
@@ -97,13 +100,30 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
 
 
 def run_service(name: str, settings_cls: Callable[[], ServiceSettings],
-                create_app: Callable[[ServiceSettings], FastAPI],
-                prepare: Callable[[ServiceSettings], None] | None = None) -> None:
-    """``python -m services.<name>``: settings from the environment, logging, then serve."""
+                create_app: Callable[..., FastAPI],
+                prepare: Callable[[ServiceSettings], None] | None = None, *,
+                dataset: Literal["frames", "metadata"] | None = None) -> None:
+    """``python -m services.<name>``: settings from the environment, logging, then serve.
+
+    ``dataset``: the service reads the scene dataset (``AOI3D_DATASET``); it is opened here,
+    before serving, and passed as ``create_app(settings, dataset=…)``. ``"frames"`` also checks
+    every frame file (the camera streams them). A dataset that cannot be read is one error
+    line naming the file and what to do, and exit status 2 — no traceback, no server.
+    """
     from services.kit.observe import setup_logging
 
     settings = settings_cls()
     setup_logging(settings.common.log_level, name)
     if prepare is not None:
         prepare(settings)
-    serve(create_app(settings), settings)
+    extra = {}
+    if dataset is not None:
+        from aoi3d.scene import DatasetError, open_dataset
+
+        try:
+            extra["dataset"] = open_dataset(settings.common.dataset,
+                                            verify=dataset == "frames")
+        except DatasetError as err:
+            log.error("%s", err)
+            raise SystemExit(2) from None
+    serve(create_app(settings, **extra), settings)

@@ -257,10 +257,10 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
             assert not missing, f"{name} /metrics lacks {missing}"
 
         # a crashed service is restarted, and the restart is logged
-        state = json.loads((log_dir / "up.json").read_text())
+        state = json.loads((log_dir / "latest" / "up.json").read_text())
         os.kill(state["children"]["metrics"]["pid"], signal.SIGKILL)
         wait_for("metrics restarted", lambda: json.loads(
-            (log_dir / "up.json").read_text())["children"]["metrics"]["restarts"] == 1,
+            (log_dir / "latest" / "up.json").read_text())["children"]["metrics"]["restarts"] == 1,
                  timeout_s=30)
         wait_for("metrics healthy again",
                  lambda: HTTP.get(url("metrics", "/healthz")).status_code == 200)
