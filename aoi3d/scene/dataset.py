@@ -554,26 +554,29 @@ def ensure_dataset(
 # =============================================================================================
 # Reading
 # =============================================================================================
-def _regenerate(root: Path) -> str:
+def _regenerate(root: Path, config: Any = None) -> str:
+    if isinstance(config, dict):
+        return f"regenerate it: {generate_command(root, config)} --force"
     return f"regenerate it: {generate_command(root)} --force (with the scene's options)"
 
 
-def _read_json(path: Path) -> dict[str, Any]:
+def _read_json(path: Path, config: Any = None) -> dict[str, Any]:
+    """A transforms file's JSON; ``config``: the scene config, if known, for the hint."""
     if not path.is_file():
         raise DatasetNotFound(f"no scene dataset here: {path} is missing; generate one with "
                               f"`{generate_command(path.parent)}`", path=path)
     try:
         doc = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path} is not valid JSON ({exc}); {_regenerate(path.parent)}",
-                           path=path) from exc
+        raise DatasetError(f"{path} is not valid JSON ({exc}); "
+                           f"{_regenerate(path.parent, config)}", path=path) from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("aoi3d"), dict):
         raise DatasetError(f"{path} has no 'aoi3d' block; not an aoi3d scene dataset: "
-                           f"{_regenerate(path.parent)}", path=path)
+                           f"{_regenerate(path.parent, config)}", path=path)
     if doc["aoi3d"].get("format_version") != FORMAT_VERSION:
         raise DatasetError(
             f"{path}: format_version {doc['aoi3d'].get('format_version')!r}, "
-            f"expected {FORMAT_VERSION}; {_regenerate(path.parent)}", path=path
+            f"expected {FORMAT_VERSION}; {_regenerate(path.parent, config)}", path=path
         )
     return doc
 
@@ -610,12 +613,10 @@ def load_dataset(path: str | Path) -> SceneDataset:
     meta = train["aoi3d"]
 
     def bad(what: str) -> DatasetError:
-        config = meta.get("config")
-        fix = (f"regenerate it: {generate_command(root, config)} --force"
-               if isinstance(config, dict) else _regenerate(root))
-        return DatasetError(f"{root / TRAIN_JSON}: {what}; {fix}", path=root / TRAIN_JSON)
+        return DatasetError(f"{root / TRAIN_JSON}: {what}; {_regenerate(root, meta.get('config'))}",
+                            path=root / TRAIN_JSON)
 
-    test = _read_json(root / TEST_JSON)
+    test = _read_json(root / TEST_JSON, meta.get("config"))
     if test["aoi3d"].get("config_hash") != meta.get("config_hash"):
         raise bad("train and test transforms come from different configs")
     train_cams = _cameras_of(train, root / TRAIN_JSON)

@@ -5,4 +5,4 @@ from services.camera.settings import Settings
 from services.kit.app import run_service
 
 if __name__ == "__main__":
-    run_service("camera", Settings, create_app)
+    run_service("camera", Settings, create_app, dataset="frames")

@@ -19,7 +19,7 @@ from dataclasses import dataclass, replace
 from prometheus_client import CollectorRegistry, Counter
 
 from aoi3d.clock import SimClock
-from aoi3d.scene import SceneDataset
+from aoi3d.scene import DatasetError, SceneDataset
 from services.kit.bus import Bus
 from services.kit.codec import PNG, encode_frame
 from services.kit.keys import Keys
@@ -193,7 +193,10 @@ class CameraWorker:
                 payload = encode_frame(camera_id=n, sequence=k, generation_ms=t_ms,
                                        scene_time_ms=scene_ms, send_ms=t_ms, camera=camera,
                                        image=image)
-            except Exception:  # e.g. a missing file: skip this frame, keep the loop alive
+            except DatasetError as err:  # a missing or damaged file: skip it, one line
+                self._log_error("%s", err, trace=False)
+                continue
+            except Exception:  # anything else: skip this frame, keep the loop alive
                 self._log_error("frame %d of camera %d could not be read", index, n)
                 continue
             key = self._keys.truth if n == self.heldout_id else self._keys.cam_frame(n)
@@ -202,8 +205,8 @@ class CameraWorker:
         self._ticks += 1
         self._last_tick_ms = t_ms
 
-    def _log_error(self, msg: str, *args: object) -> None:
+    def _log_error(self, msg: str, *args: object, trace: bool = True) -> None:
         now = time.monotonic()
         if now - self._last_error_log_s >= _ERROR_LOG_INTERVAL_S:
             self._last_error_log_s = now
-            log.exception(msg, *args)
+            (log.exception if trace else log.error)(msg, *args)

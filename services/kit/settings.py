@@ -46,7 +46,9 @@ class CommonSettings(BaseSettings):
                               description="Simulation seconds per wall second (shared clock).")
     epoch_s: float = Field(0.0, ge=0,
                            description="Wall time (Unix s) at which simulation time is 0.")
-    dataset: Path = Field(Path("data/turbine"), description="Scene dataset folder.")
+    dataset: Path = Field(Path("data/turbine-rotor"), description=(
+        "Scene dataset folder (the rotor close-up, `aoi3d scene generate --framing rotor "
+        "--rotor-rpm 6`; any layout `aoi3d scene info` reads)."))
     log_level: str = Field("INFO", description="Python logging level.")
 
     _split = field_validator("zenoh_connect", "zenoh_listen", mode="before")(

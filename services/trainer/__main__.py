@@ -5,4 +5,4 @@ from services.trainer.app import create_app
 from services.trainer.settings import Settings
 
 if __name__ == "__main__":
-    run_service("trainer", Settings, create_app)
+    run_service("trainer", Settings, create_app, dataset="metadata")
