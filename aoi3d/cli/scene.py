@@ -24,6 +24,7 @@ from aoi3d.cli.common import fail
 from aoi3d.scene import (
     EXPORT_FORMATS,
     DatasetError,
+    SceneConfig,
     ensure_dataset,
     export_dataset,
     generate_dataset,
@@ -41,6 +42,20 @@ _DEFAULT_DATASET = Path(FRAMING_DATASETS[DEFAULT_FRAMING])
 @app.callback()
 def scene() -> None:
     """Generate and inspect the synthetic dynamic scene (a wind turbine)."""
+
+
+def scene_config(framing: str, **options: object) -> SceneConfig:
+    """The scene ``aoi3d scene generate`` renders: the framing's
+    (:data:`~aoi3d.scene.framings.FRAMING_SCENES`) with the given options (``None``: the
+    framing's value). Bad values raise ``typer.BadParameter``."""
+    if framing not in FRAMING_SCENES:
+        raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
+                                 f"{framing!r}", param_hint="'--framing'")
+    try:
+        return dataclasses.replace(FRAMING_SCENES[framing],
+                                   **{k: v for k, v in options.items() if v is not None})
+    except (TypeError, ValueError) as exc:
+        raise typer.BadParameter(str(exc)) from exc
 
 
 @app.command()
@@ -74,24 +89,8 @@ def generate(
     ] = False,
 ) -> None:
     """Render every camera's frames and the transforms (cached by config hash)."""
-    if framing not in FRAMING_SCENES:
-        raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
-                                 f"{framing!r}", param_hint="'--framing'")
-    base = FRAMING_SCENES[framing]
-    try:
-        cfg = dataclasses.replace(
-            base,
-            width=width,
-            height=height,
-            fps=fps,
-            duration_s=duration_s,
-            n_train=n_train,
-            rotor_rpm=base.rotor_rpm if rotor_rpm is None else rotor_rpm,
-            spp=spp,
-            seed=seed,
-        )
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc)) from exc
+    cfg = scene_config(framing, width=width, height=height, fps=fps, duration_s=duration_s,
+                       n_train=n_train, rotor_rpm=rotor_rpm, spp=spp, seed=seed)
     out = out if out is not None else Path(FRAMING_DATASETS[framing])
     if workers < 1:
         raise typer.BadParameter(f"--workers must be ≥ 1, got {workers}")

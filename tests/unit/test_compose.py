@@ -665,6 +665,26 @@ def test_dataset_job_runs_a_real_cli_command(compose):
     assert set(flags) <= options, f"{flags} not all in {sorted(options)}"
 
 
+def test_dataset_job_renders_the_rotor_scene_by_default(compose):
+    """The one-shot job's command, parsed by the CLI itself, renders the experiments' scene
+    (the rotor close-up at 6 rpm) where camera and trainer read it, as `aoi3d up` does."""
+    import typer
+
+    from aoi3d.cli import app
+    from aoi3d.cli.scene import scene_config
+    from aoi3d.experiment.config import EXPERIMENT_SCENE
+    from aoi3d.scene import SceneConfig
+    from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_SCENES
+
+    cmd = command(compose["services"]["dataset"])
+    generate = typer.main.get_command(app).commands["scene"].commands["generate"]
+    params = generate.make_context("generate", cmd[3:]).params
+    fields = {k: v for k, v in params.items() if k in SceneConfig.__dataclass_fields__}
+    assert scene_config(**fields) == FRAMING_SCENES[DEFAULT_FRAMING] == EXPERIMENT_SCENE
+    assert params["out"].name == "turbine-rotor"
+    assert environment(compose["services"]["camera"])["AOI3D_DATASET"] == str(params["out"])
+
+
 def test_dockerfile_copies_existing_files_and_runs_existing_commands(compose):
     assert dockerfile_problems(compose) == []
 
