@@ -12,14 +12,22 @@ help:  ## list the targets
 
 install: $(STAMP)  ## create the venv (if missing), install aoi3d editable with dev extras, fetch the LPIPS weights
 
+# One line per stage and pip's own per-package lines (not -q): a fresh install downloads
+# torch and friends for a few minutes. The stamp makes a second `make install` a no-op until
+# pyproject.toml changes.
 $(STAMP): pyproject.toml
+	@echo "==> [1/4] virtual environment $(VENV)"
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@echo "==> [2/4] pip"
 	$(PY) -m pip install -q --upgrade pip
-	$(PY) -m pip install -q -e '.[dev]'
+	@echo "==> [3/4] aoi3d and its dependencies (torch, zenoh, fastapi, ...; minutes on a fresh venv)"
+	$(PY) -m pip install --progress-bar on -e '.[dev]'
+	@echo "==> [4/4] LPIPS weights"
 	$(PY) -m aoi3d.lpips fetch
 	@touch $@
+	@echo "==> installed ($(VENV)); make up runs the pipeline, make test the tests"
 
-up: install  ## generate the default scene if missing, run router + five services until Ctrl-C
+up: install  ## run router + five services until Ctrl-C on the rotor scene (generated if missing; UP_ARGS='--framing site' for the whole turbine)
 	$(VENV)/bin/aoi3d up $(UP_ARGS)
 
 test: install  ## the whole test suite (unit, services, integration)
