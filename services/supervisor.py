@@ -34,7 +34,6 @@ import subprocess
 import sys
 import threading
 import time
-import urllib.request
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
@@ -333,6 +332,8 @@ class Supervisor:
 
     def _healthy(self, child: Child) -> bool:
         """Whether ``child`` itself answers ``/healthz`` (the body's pid is the child's)."""
+        import urllib.request  # here: `aoi3d --help` imports this module
+
         if not child.alive():
             return False
         url = f"http://127.0.0.1:{self.cfg.port(child.name)}/healthz"
