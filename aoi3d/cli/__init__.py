@@ -47,7 +47,7 @@ app.add_typer(experiment.app, name="experiment",
 app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO agent.")
 app.add_typer(live.app, name="live", help="Drive and measure the running pipeline.")
 app.command("up", help=inspect.getdoc(up.up),
-            short_help="Run the Zenoh router and the five services locally until Ctrl-C.")(up.up)
+            short_help="Run the Zenoh router and the services locally until Ctrl-C.")(up.up)
 
 
 def main() -> None:

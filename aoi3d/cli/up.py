@@ -65,7 +65,7 @@ def up(
     quiet: Annotated[bool, typer.Option(
         help="Do not echo the services' logs to the console.")] = False,
 ) -> None:
-    """Run the Zenoh router and the five services locally, supervised, until Ctrl-C. The
+    """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C. The
     ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
     service that does not become healthy is one line and exit status 1."""
     from services.supervisor import Supervisor, UpConfig, taken_ports
