@@ -21,8 +21,9 @@ def test_interior_maximum_needs_the_difference_to_both_ends_significant() -> Non
                                      ("all", 24.0, 0.3)), "psnr_db")
     assert clear["best"] == "mat:70" and clear["interior"] and clear["beyond_ci"]
     assert clear["best_minus_end"]["all"]["difference"] == pytest.approx(2.0)
-    # Welch: sqrt(0.5² + 0.3²) with n = 10 each (the t quantiles nearly cancel)
-    assert clear["best_minus_end"]["all"]["ci95"] == pytest.approx(0.583, abs=0.01)
+    # Welch by hand: standard errors 0.5/t(.975, 9) = 0.2210 and 0.3/t(.975, 9) = 0.1326,
+    # Welch–Satterthwaite dof 14.7, t(.975, 14.7) = 2.135: 2.135 · √(0.2210² + 0.1326²)
+    assert clear["best_minus_end"]["all"]["ci95"] == pytest.approx(0.550, abs=0.002)
     close = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.8),
                                      ("all", 25.5, 0.3)), "psnr_db")
     assert close["interior"] and not close["beyond_ci"]
