@@ -44,7 +44,7 @@ from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
 from aoi3d.policy import Policy, Selection, decide, parse_policy, wait_ms_of
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
-from aoi3d.scene import SceneDataset
+from aoi3d.scene import SceneDataset, to_uint8
 
 __all__ = [
     "ENGINE_VERSION",
@@ -495,7 +495,7 @@ def _png(image: np.ndarray | None) -> bytes:
     if image is None:
         return b""
     buf = io.BytesIO()
-    Image.fromarray((np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)).save(buf, "PNG")
+    Image.fromarray(to_uint8(image)).save(buf, "PNG")
     return buf.getvalue()
 
 

@@ -58,7 +58,7 @@ from aoi3d.policy import AllPolicy, Policy, Selection, check_fits, decide, wait_
 from aoi3d.policy.decide import Act
 from aoi3d.policy.obs import encode_aoi, obs_size
 from aoi3d.quality import LpipsFn
-from aoi3d.scene import SceneDataset, open_dataset
+from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 
 __all__ = ["FrameSelectionEnv", "StepOutcome"]
 
@@ -194,8 +194,7 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
             self.last_outcome = StepOutcome(result, cached=False, wall_s=result.wall_s)
         if images:
             image = images[-1]
-            self._last_image = (image if image.dtype == np.uint8 else
-                                (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+            self._last_image = to_uint8(image)
         score = result.epochs[0]
         selected = plan.decisions[0].cameras
         info = {

@@ -206,8 +206,14 @@ class SceneConfig:
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:
-    """Float image in [0, 1] → uint8 (clipped, rounded to nearest)."""
-    return np.floor(np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    """Float image in [0, 1] → uint8 (clipped, rounded to nearest); uint8 passes through.
+
+    The one float → 8-bit conversion of the project (scene frames, renders on the bus,
+    experiment and env renders)."""
+    arr = np.asarray(image)
+    if arr.dtype == np.uint8:
+        return arr
+    return np.floor(np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
 
 # =============================================================================================

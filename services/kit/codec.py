@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from google.protobuf.message import DecodeError
 
+from aoi3d.scene import to_uint8
 from aoi3d.scene.camera import Camera
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
@@ -110,9 +111,7 @@ def decode_image(img: pb.Image) -> np.ndarray:
 def encode_png(image: np.ndarray) -> pb.Image:
     from PIL import Image as PILImage
 
-    arr = np.asarray(image)
-    if arr.dtype != np.uint8:
-        arr = (np.clip(arr, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    arr = to_uint8(image)
     buf = io.BytesIO()
     PILImage.fromarray(arr, "RGB").save(buf, format="PNG", compress_level=1)
     return pb.Image(encoding=PNG, width=arr.shape[1], height=arr.shape[0], data=buf.getvalue())
