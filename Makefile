@@ -42,7 +42,7 @@ proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 lint: install  ## ruff
 	$(VENV)/bin/ruff check .
 
-bench: install bench-ray  ## benchmarks (results under bench/results/; about 25 minutes)
+bench: install bench-ray  ## benchmarks (results under bench/results/; about 28 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
 	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.1 --window-s 60
@@ -57,7 +57,7 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
 
-bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 25 min)
+bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 26 min)
 	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
 	    --sim-seeds 16 --out bench/results/live-sweep

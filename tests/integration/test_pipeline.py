@@ -238,6 +238,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
             [sys.executable, "-m", "aoi3d", "live", "sweep", "--policies", "mat:70,all",
              "--settle-s", "1", "--measure-s", str(10 * scale), "--port-offset",
              str(PORT_OFFSET), "--no-sim", "--json", "--out", str(tmp_path / "sweep"),
+             "--dataset", str(small_dataset),
              "--timeout-s", str(30 * scale)],
             capture_output=True, text=True, timeout=300 * scale)
         assert sweep.returncode == 0, sweep.stderr[-3000:]
