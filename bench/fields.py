@@ -160,10 +160,11 @@ def run_one(spec: RunSpec, report: Report | None = None) -> dict[str, Any]:
     """Train ``spec.backend`` on the case, scoring the novel view at every probe (PSNR) and
     budget (PSNR, SSIM, LPIPS). ``report`` gets a dict after each probe."""
     from aoi3d.field import FieldTrainer, TrainView, field_config
+    from aoi3d.field.process import configure_process
     from aoi3d.quality import psnr, ssim
     from aoi3d.scene import load_dataset
 
-    torch.set_num_threads(spec.threads)
+    configure_process(spec.threads)  # threads and allocator, as the training programs do
     device = torch.device(spec.device)
     ds = load_dataset(spec.dataset)
     views = [TrainView(ds.cameras[c], ds.frame(c, spec.frame)) for c in spec.cameras]

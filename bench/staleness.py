@@ -25,9 +25,9 @@ import time
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.field.process import configure_process
 from aoi3d.lpips import load_lpips_fn, weights_path
 from aoi3d.quality import RewardWeights, score
 from aoi3d.scene import open_dataset
@@ -54,7 +54,7 @@ def main() -> None:
     parser.add_argument("--backend", default="grid")
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+    configure_process(args.threads)
     ds = open_dataset(args.dataset)
     lpips_fn = load_lpips_fn() if weights_path("alex").exists() else None
     ids = list(ds.train_ids)

@@ -162,6 +162,9 @@ def train(
     camera = ds.cameras[ds.heldout_id]
     truth = ds.frame(ds.heldout_id, frame)
     cfg = field_config(backend) if threads is None else field_config(backend, num_threads=threads)
+    from aoi3d.field.process import configure_process
+
+    configure_process(cfg.num_threads, malloc=cfg.tune_malloc)
     trainer = FieldTrainer(cfg, ds.aabb, device=None if device == "auto" else device, seed=seed)
     trainer.set_views(views)
     console.print(f"[bold]{backend}[/] on {trainer.device}: {len(ids)} cameras {ids} at frame "

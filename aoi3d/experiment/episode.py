@@ -35,13 +35,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-import torch
 from PIL import Image
 
 from aoi3d.channel import ChannelRun, simulate
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
+from aoi3d.field.process import configure_process
 from aoi3d.policy import Policy, Selection, decide, parse_policy, wait_ms_of
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
 from aoi3d.scene import SceneDataset, to_uint8
@@ -503,4 +503,4 @@ def set_torch_threads(threads: int) -> None:
     """Torch intra-op threads of this process (workers of a sweep use 1 each by default)."""
     if threads < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    torch.set_num_threads(threads)
+    configure_process(threads)

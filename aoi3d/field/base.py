@@ -90,9 +90,10 @@ class FieldConfig:
     the cleared sky lets empty-space skipping work; about even with 6 views).
     ``explore_empty``: fraction of the samples in
     skipped (empty) space still trained on, so that density can return where frames need it.
-    ``num_threads`` sets ``torch.set_num_threads`` when the trainer is built on the CPU
-    (process-wide; None leaves torch's default). ``tune_malloc`` raises glibc's mmap/trim
-    thresholds on Linux CPU so that per-step tensors reuse heap memory instead of fresh pages.
+    ``num_threads`` (None: torch's default) and ``tune_malloc`` (raise glibc's mmap/trim
+    thresholds so that per-step tensors reuse heap memory instead of fresh pages) are the
+    process-wide settings a program that trains this field makes once, with
+    :func:`aoi3d.field.process.configure_process`; the trainer's constructor makes none.
     ``appearance_slots``: rows of the per-image appearance table of fields that have one (the
     trainer maps each view's ``appearance_id`` — or its camera — to a row and recycles the
     least recently used row when more ids come; fields without embeddings ignore it).

@@ -22,10 +22,7 @@ views are rendered with ``appearance=None``: the field's neutral embedding.
 from __future__ import annotations
 
 import copy
-import ctypes
-import ctypes.util
 import math
-import sys
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
@@ -111,25 +108,6 @@ def _appearance_key(view: TrainView) -> Hashable:
 
 
 _RENDER_CACHE_SIZE = 8
-_MALLOC_TUNED = False
-
-
-def _tune_malloc() -> None:
-    """Keep freed blocks in glibc's heap (no mmap/munmap and page faults on every step)."""
-    global _MALLOC_TUNED
-    if _MALLOC_TUNED or not sys.platform.startswith("linux"):
-        return
-    _MALLOC_TUNED = True
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return
-    try:
-        libc = ctypes.CDLL(name)
-        m_trim_threshold, m_mmap_threshold = -1, -3
-        libc.mallopt(m_mmap_threshold, 1 << 30)
-        libc.mallopt(m_trim_threshold, 1 << 30)
-    except (OSError, AttributeError):  # not glibc
-        return
 
 
 class FieldTrainer:
@@ -147,11 +125,6 @@ class FieldTrainer:
         self._device = torch.device(
             device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
         )
-        if self._device.type == "cpu":
-            if cfg.num_threads is not None:
-                torch.set_num_threads(cfg.num_threads)
-            if cfg.tune_malloc:
-                _tune_malloc()
         self.seed = seed
         self._aabb_t = torch.as_tensor(self.aabb, dtype=torch.float32, device=self._device)
         self._ray_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # training cameras

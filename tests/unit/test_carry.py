@@ -131,3 +131,22 @@ def test_episode_fork_trains_every_decision_and_each_scored_copy(
         cfg.with_(carry="fresh", render_steps=3)
     with pytest.raises(ValueError, match="render_steps"):
         cfg.with_(render_steps=0)
+
+
+def test_building_a_trainer_changes_no_process_wide_setting(dataset: SceneDataset) -> None:
+    from dataclasses import replace
+
+    before = torch.get_num_threads()
+    other = 1 if before != 1 else 2
+    FieldTrainer(replace(TINY, num_threads=other, tune_malloc=True), dataset.aabb,
+                 device="cpu", seed=0)
+    assert torch.get_num_threads() == before  # the entry points call configure_process
+    from aoi3d.field.process import configure_process
+
+    try:
+        configure_process(other)
+        assert torch.get_num_threads() == other
+        with pytest.raises(ValueError, match="num_threads"):
+            configure_process(0)
+    finally:
+        torch.set_num_threads(before)
