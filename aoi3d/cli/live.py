@@ -481,7 +481,8 @@ def sweep(
         min=0, help="First virtual-clock seed (default: away from the seeds 0..9 the "
                     "experiments were developed on).")] = 1000,
     dataset: Annotated[Path, typer.Option(
-        help="The pipeline's scene dataset (for the virtual clock).")]
+        help="The pipeline's scene dataset (for the virtual clock and the truth beside the "
+             "renders; with --up, the pipeline's).")]
     = Path("data/turbine-rotor"),
     cache: Annotated[Path, typer.Option(help="Episode cache of the virtual clock.")]
     = Path("runs/experiments/cache"),
@@ -489,7 +490,11 @@ def sweep(
         min=1, help="Timeout of each REST call and of each wait for the pipeline.")] = 30.0,
 ) -> None:
     """Measure each policy on the running pipeline; write CSV, JSON and a PNG with the
-    virtual clock's curve beside the live one."""
+    virtual clock's curve beside the live one.
+
+    Reports, per metric, whether the best policy is an interior maximum beyond its 95%
+    confidence interval: neither end of --policies, and the Welch 95% CI of best − each end
+    above zero."""
     specs = [s.strip() for s in policies.split(",") if s.strip()]
     if len(specs) < 2:
         raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
