@@ -569,8 +569,7 @@ def sweep(
                      "backend": status1.get("backend")},
         "sim": sim_doc,
         "wall_s": {"live": live_wall_s, "total": time.monotonic() - started},
-        "measurements": [{k: v for k, v in vars(m).items() if k != "render_png"}
-                         for m in measurements],
+        "measurements": [_measurement_doc(m) for m in measurements],
     }
     from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 
@@ -602,6 +601,18 @@ def sweep(
                 Console().print(f"{metric}: best {info['best']} ({info['best_mean']:.3f}): "
                                 f"{verdict}")
         Console().print(f"results in {out}")
+
+
+def _measurement_doc(m: Measurement) -> dict[str, Any]:
+    """A window for results.json: its renders' Quality, and of the decisions sampled in it
+    only what the summary uses (cameras used, mean AoI of the used frames)."""
+    doc = {k: v for k, v in vars(m).items() if k not in ("render_png", "decisions")}
+    doc["decisions_sampled"] = [
+        {"decision_id": d["decision_id"], "cameras_used": len(d["selected"]),
+         "aoi_used_ms": (sum(r["aoi_ms"] for r in d["selected"]) / len(d["selected"])
+                         if d["selected"] else None)}
+        for d in m.decisions]
+    return doc
 
 
 def _steps_per_decision(s0: dict[str, Any], s1: dict[str, Any],
