@@ -106,14 +106,7 @@ def main() -> None:
     k = max(1, min(5, len(psnr) // 4))
     window = [q for q in history if id0 <= q["decision_id"] <= id1]
 
-    def stat(values: list[float]) -> dict:
-        values = [v for v in values if v is not None]
-        if len(values) < 2:
-            return {"mean": values[0] if values else None, "ci95": None, "n": len(values)}
-        from scipy import stats
-
-        half = stats.t.ppf(0.975, len(values) - 1) * statistics.stdev(values) / len(values) ** 0.5
-        return {"mean": statistics.fmean(values), "ci95": float(half), "n": len(values)}
+    from aoi3d.cli.live import mean_ci95 as stat  # {"mean", "ci95", "n"}; None-safe
 
     result = {
         "policy": args.policy, "time_scale": args.time_scale, "window_s": round(dt, 1),

@@ -29,12 +29,12 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
+from services.supervisor import DEFAULT_PORTS as SERVICE_PORTS  # stdlib-only module
+
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
 console = Console(stderr=True)
 
-SERVICE_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-                 "metrics": 8105}
 METRICS = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward")
 """Per-render quality fields summarised per policy (absent ones are reported as null)."""
 _SIGNS = {"psnr_db": 1.0, "psnr_dynamic_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}

@@ -11,21 +11,22 @@ Model carry-over (``carry``):
 
 - ``fresh`` (the presets' choice) — a new model at every scored decision, trained
   ``steps_per_epoch`` steps on that decision's selection only: the paper's per-time
-  reconstruction. Each scored render reflects exactly the frames the policy chose, scored
-  decisions are independent samples, and unscored decisions cost nothing.
+  reconstruction, and the live trainer's default. Each scored render reflects exactly the
+  frames the policy chose, scored decisions are independent samples, and unscored decisions
+  cost nothing.
 - ``warm`` — one model for the whole episode, trained ``steps_per_epoch`` steps on the
-  selection of every decision (the live trainer: the training set is swapped, the model
-  kept). Measured on the turbine scene (18 cameras, E[Y] = 60 ms, 30 steps per 30 ms
+  selection of every decision (the live trainer's former design: the training set is
+  swapped, the model kept). Measured on the turbine scene (18 cameras, E[Y] = 60 ms, 30 steps per 30 ms
   decision): the model was still improving through the scored span after a 0.9 s warm-up,
   and its update rate (≈ a quarter of the pixels touched per decision) makes the model lag
   its frames by several decisions, so the freshness of the frames is blurred by the model's
-  own lag. Use it to study the live setting; it needs long warm-ups to be comparable.
-
+  own lag; it needs long warm-ups to be comparable.
 - ``fork`` — the warm model, trained ``steps_per_epoch`` steps at every decision, is the start
   of each scored decision's reconstruction: a copy of it trains ``render_steps`` more steps on
-  exactly that decision's frames and renders the held-out view (the live trainer's default;
-  :mod:`aoi3d.field.carry` is the one implementation of all three modes, used here and by
-  the trainer service).
+  exactly that decision's frames and renders the held-out view. Measured on the rotor scene
+  it loses the tradeoff, as ``warm`` does; the live trainer renders with ``fresh``
+  (docs/experiments.md, "The live carry"). :mod:`aoi3d.field.carry` is the one
+  implementation of all three modes, used here and by the trainer service.
 
 Compute is fixed per decision, whatever the policy selects; an empty selection trains
 nothing (as in the live trainer) and the render shows the model as it is (fresh: untrained).

@@ -11,7 +11,9 @@ Carry modes:
 
 - ``fresh`` — the paper's per-time reconstruction: each rendered decision gets a new model
   trained ``render_steps`` steps on exactly that decision's frames. Nothing is trained in
-  the background (:meth:`train` is a no-op), so a scored render reflects only its decision.
+  the background (:meth:`train` is a no-op), so a scored render reflects only its decision
+  and its quality is the reward of that decision alone (exact credit for online learning).
+  The live trainer's default: the only mode that keeps the tradeoff on the rotor scene.
 - ``warm`` — one model trained continuously on the decision in force (the training set is
   swapped, the model kept) and rendered as it is. Cheap, but the model lags and averages
   its frames over many decisions: on the rotor close-up the blades blur away and the
@@ -19,14 +21,13 @@ Carry modes:
 - ``fork`` — the warm model, continuously trained on the decision in force, is the *start*
   of each rendered decision's reconstruction: a copy of it (:meth:`FieldTrainer.fork`:
   weights, optimizer state and random stream) trains ``render_steps`` more steps on exactly
-  that decision's frames, is rendered, and is dropped. The warm model holds what does not
-  move (tower, ground, sky); the copy's short run puts the moving parts where that
-  decision's frames show them. The quality of a render is then the reward of one decision
-  alone, which also gives online learning exact credit.
+  that decision's frames, is rendered, and is dropped. The idea: the warm model holds what
+  does not move, the copy's short run places the moving parts. Measured on the rotor scene
+  at 100 steps it renders worse than ``fresh`` and shows no tradeoff (docs/experiments.md,
+  "The live carry"); the render still carries the earlier decisions' influence.
 
-:class:`RenderedDecision` says what a render represents: the decision time, the steps it
-took, and the generation times of the frames it trained on (their age is what the
-pipeline exports as the render's age).
+:class:`RenderedDecision` is a render and what made it: the steps of its model, those spent
+on its decision's frames alone, the last loss and the number of views.
 """
 
 from __future__ import annotations
@@ -89,11 +90,6 @@ class Reconstruction:
         self._views: list[TrainView] = []
 
     @property
-    def views(self) -> list[TrainView]:
-        """The frames of the decision in force."""
-        return list(self._views)
-
-    @property
     def trains_in_background(self) -> bool:
         """Whether :meth:`train` does anything (``warm`` and ``fork``)."""
         return self.carry != "fresh"
@@ -136,6 +132,9 @@ class Reconstruction:
         return RenderedDecision(image, model.steps, self.render_steps if views else 0,
                                 float(loss), len(views))
 
-    def reset(self) -> None:
-        """A new model (the decision in force is kept)."""
-        self.trainer.reset()
+    def set_carry(self, carry: str, render_steps: int) -> None:
+        """Render with ``carry`` and ``render_steps`` from now on (model and views kept);
+        ``ValueError`` — nothing changed — for an unknown mode or budget."""
+        check_carry(carry, render_steps)
+        self.carry = carry
+        self.render_steps = int(render_steps)

@@ -173,7 +173,7 @@ class CarryRequest(BaseModel):
     responses={422: {"description": "Unknown carry mode or render budget."},
                503: {"description": "The training thread did not get to the change in time."}})
 def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
-    steps = body.render_steps if body.render_steps is not None else worker.carry.render_steps
+    steps = body.render_steps if body.render_steps is not None else worker.rec.render_steps
     try:
         done = worker.set_carry(body.carry, steps)
     except CarryError as err:

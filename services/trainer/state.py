@@ -14,7 +14,6 @@ from aoi3d.field import BACKENDS
 __all__ = [
     "BackendBuildError",
     "CarryError",
-    "CarrySetting",
     "DecisionInForce",
     "LatestRender",
     "TrainerStatus",
@@ -41,14 +40,6 @@ def check_backend(name: str) -> str:
 
 class CarryError(ValueError):
     """A carry mode or render budget the trainer cannot use; nothing was changed."""
-
-
-@dataclass(frozen=True)
-class CarrySetting:
-    """How renders are made: the carry mode and the steps on a rendered decision's frames."""
-
-    carry: str
-    render_steps: int
 
 
 @dataclass(frozen=True)

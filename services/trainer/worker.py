@@ -6,8 +6,8 @@ carry modes, the same code): between small chunks of ``steps_per_chunk`` backgro
 ingests the queued frames (kept per camera, still encoded), applies the newest decision
 (resolves its selected FrameRefs to frames, decodes them and swaps the training set, model
 kept), and ``render_period_s`` wall seconds after the previous render it renders the
-decision in force — with the default ``fork`` carry, a copy of the model trained
-``render_steps`` steps on exactly that decision's frames — and publishes a Render stamped
+decision in force — with the default ``fresh`` carry, a new model trained ``render_steps``
+steps on exactly that decision's frames — and publishes a Render stamped
 with that decision and the generation times of its frames. Control requests from the HTTP
 threads — reset the model, switch the backend or the carry — are queued and carried out by
 the training thread between two chunks, so no other thread ever touches the model.
@@ -47,7 +47,6 @@ from services.trainer.settings import Settings
 from services.trainer.state import (
     BackendBuildError,
     CarryError,
-    CarrySetting,
     DecisionInForce,
     LatestRender,
     TrainerStatus,
@@ -90,9 +89,7 @@ class TrainerWorker:
         self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
         self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
         self.trainer = self._build_trainer(self.backend)
-        check_carry(settings.carry, settings.render_steps)
-        self.carry = CarrySetting(settings.carry, settings.render_steps)
-        self.rec = Reconstruction(self.trainer, self.carry.carry, self.carry.render_steps)
+        self.rec = Reconstruction(self.trainer, settings.carry, settings.render_steps)
 
         self.rejections = Rejections(registry)
         self.m_steps = Counter("aoi3d_trainer_steps", "Training steps taken.",
@@ -235,8 +232,7 @@ class TrainerWorker:
             check_carry(carry, render_steps)
         except ValueError as err:
             raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
-        setting = CarrySetting(carry, int(render_steps))
-        return self._control.call(lambda: self._do_carry(setting),
+        return self._control.call(lambda: self._do_carry(carry, int(render_steps)),
                                   thread_alive=self._running(), timeout_s=timeout_s)
 
     def _running(self) -> bool:
@@ -256,8 +252,8 @@ class TrainerWorker:
                 else self.clock.now_ms() - decision.time_ms,
                 backend=self.backend,
                 device=self.device,
-                carry=self.carry.carry,
-                render_steps=self.carry.render_steps,
+                carry=self.rec.carry,
+                render_steps=self.rec.render_steps,
                 renders=self._renders,
                 frames_received=self._frames_received,
                 frames_buffered=self._frames_buffered,
@@ -409,7 +405,7 @@ class TrainerWorker:
         msg = pb.Render(decision_id=decision.decision_id, time_ms=decision.time_ms, pose=pose,
                         intrinsics=intrinsics, image=image, training_step=rendered.steps,
                         n_views=rendered.n_views, backend=self.backend,
-                        frame_generation_ms=list(gens), carry=self.carry.carry,
+                        frame_generation_ms=list(gens), carry=self.rec.carry,
                         render_steps=rendered.render_steps)
         self.bus.publish(self.keys.render, msg.SerializeToString())
         self.m_renders.inc()
@@ -422,7 +418,7 @@ class TrainerWorker:
             self._latest = LatestRender(png=image.data, decision_id=decision.decision_id,
                                         time_ms=decision.time_ms, training_step=rendered.steps,
                                         n_views=rendered.n_views, wall_s=wall,
-                                        carry=self.carry.carry,
+                                        carry=self.rec.carry,
                                         render_steps=rendered.render_steps,
                                         frames_age_ms=frames_age_ms, lag_ms=lag_ms, age_s=age_s)
 
@@ -440,15 +436,14 @@ class TrainerWorker:
         """Replace the model by a new one of ``request.name``, on the current views."""
         try:
             trainer = self._build_trainer(request.name)
-            trainer.set_views(self._views)
+            rec = Reconstruction(trainer, self.rec.carry, self.rec.render_steps)
+            rec.set_views(self._views)
         except Exception as err:  # the caller hears of it; the old model trains on
             request.error = (f"could not build backend {request.name!r} ({err!r}); still "
                              f"training {self.backend!r}")
             log.warning("%s", request.error)
         else:
             previous = self.backend
-            rec = Reconstruction(trainer, self.carry.carry, self.carry.render_steps)
-            rec.set_views(self._views)
             with self._state_lock:
                 self.trainer = trainer
                 self.rec = rec
@@ -459,15 +454,11 @@ class TrainerWorker:
             log.info("backend %s -> %s (%d views kept)", previous, request.name,
                      len(self._views))
 
-    def _do_carry(self, setting: CarrySetting) -> None:
-        """Render with ``setting`` from now on (model and decision in force kept)."""
-        rec = Reconstruction(self.trainer, setting.carry, setting.render_steps)
-        rec.set_views(self._views)
+    def _do_carry(self, carry: str, render_steps: int) -> None:
+        """Render with ``carry`` and ``render_steps`` from now on (model and views kept)."""
         with self._state_lock:
-            self.rec = rec
-            self.carry = setting
-        log.info("renders: carry %s, %d steps per rendered decision", setting.carry,
-                 setting.render_steps)
+            self.rec.set_carry(carry, render_steps)
+        log.info("renders: carry %s, %d steps per rendered decision", carry, render_steps)
 
     def _do_reset(self) -> None:
         self.trainer.reset()  # keeps the views

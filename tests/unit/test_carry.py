@@ -150,3 +150,13 @@ def test_building_a_trainer_changes_no_process_wide_setting(dataset: SceneDatase
             configure_process(0)
     finally:
         torch.set_num_threads(before)
+
+
+def test_set_carry_changes_the_mode_in_place_or_nothing(dataset: SceneDataset) -> None:
+    rec = Reconstruction(trainer(dataset), "fresh", render_steps=3)
+    rec.set_views(views(dataset, 0))
+    rec.set_carry("warm", 0)
+    assert (rec.carry, rec.render_steps, rec.trainer.n_views) == ("warm", 0, 4)
+    with pytest.raises(ValueError):
+        rec.set_carry("fork", 0)
+    assert (rec.carry, rec.render_steps) == ("warm", 0)
