@@ -16,8 +16,8 @@ Model carry-over (``carry``):
   cost nothing.
 - ``warm`` — one model for the whole episode, trained ``steps_per_epoch`` steps on the
   selection of every decision (the live trainer's former design: the training set is
-  swapped, the model kept). Measured on the turbine scene (18 cameras, E[Y] = 60 ms, 30 steps per 30 ms
-  decision): the model was still improving through the scored span after a 0.9 s warm-up,
+  swapped, the model kept). Measured on the turbine scene (18 cameras, E[Y] = 60 ms,
+  30 steps per 30 ms decision): the model was still improving through the scored span after a 0.9 s warm-up,
   and its update rate (≈ a quarter of the pixels touched per decision) makes the model lag
   its frames by several decisions, so the freshness of the frames is blurred by the model's
   own lag; it needs long warm-ups to be comparable.
