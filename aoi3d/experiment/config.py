@@ -17,10 +17,10 @@ Model carry-over (``carry``):
 - ``warm`` — one model for the whole episode, trained ``steps_per_epoch`` steps on the
   selection of every decision (the live trainer's former design: the training set is
   swapped, the model kept). Measured on the turbine scene (18 cameras, E[Y] = 60 ms,
-  30 steps per 30 ms decision): the model was still improving through the scored span after a 0.9 s warm-up,
-  and its update rate (≈ a quarter of the pixels touched per decision) makes the model lag
-  its frames by several decisions, so the freshness of the frames is blurred by the model's
-  own lag; it needs long warm-ups to be comparable.
+  30 steps per 30 ms decision): the model was still improving through the scored span
+  after a 0.9 s warm-up, and its update rate (≈ a quarter of the pixels touched per
+  decision) makes the model lag its frames by several decisions, so the freshness of the
+  frames is blurred by the model's own lag; it needs long warm-ups to be comparable.
 - ``fork`` — the warm model, trained ``steps_per_epoch`` steps at every decision, is the start
   of each scored decision's reconstruction: a copy of it trains ``render_steps`` more steps on
   exactly that decision's frames and renders the held-out view. Measured on the rotor scene
