@@ -22,10 +22,20 @@ from services.kit.pb import aoi3d_pb2 as pb
 PNG = pb.IMAGE_ENCODING_PNG
 RAW = pb.IMAGE_ENCODING_RAW_RGB8
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Largest bus message any decoder parses (bytes): an 800×800 raw RGB frame is 1.9 MB.
+MAX_MESSAGE_BYTES = 8 * 1024 * 1024
+#: Largest image (width × height) any decoder accepts: 4 Mpx, 12 MB once decoded.
+MAX_IMAGE_PIXELS = 2048 * 2048
+#: Largest encoded image a frame may carry beyond its raw size (PNG's worst case is a little
+#: over raw; this leaves room for headers and incompressible data).
+_IMAGE_SLACK_BYTES = 64 * 1024
 
 
 # ---------------------------------------------------------------- parsing
 def _parse(cls, payload: bytes):
+    if len(payload) > MAX_MESSAGE_BYTES:
+        raise Rejected("too_large", f"{cls.__name__} message of {len(payload)} bytes exceeds "
+                                    f"{MAX_MESSAGE_BYTES} bytes")
     msg = cls()
     try:
         msg.ParseFromString(payload)
@@ -77,7 +87,11 @@ def png_size(data: bytes) -> tuple[int, int]:
 
 
 def check_image(img: pb.Image) -> None:
-    """Cheap structural check: the encoded size matches the declared one."""
+    """Cheap structural check: the encoded size matches the declared one, which is at most
+    :data:`MAX_IMAGE_PIXELS` (before anything is decoded)."""
+    if img.width * img.height > MAX_IMAGE_PIXELS:
+        raise Rejected("too_large", f"a {img.width}x{img.height} image exceeds "
+                                    f"{MAX_IMAGE_PIXELS} pixels")
     if img.encoding == PNG:
         w, h = png_size(img.data)
     elif img.encoding == RAW:
@@ -144,15 +158,30 @@ def encode_frame(*, camera_id: int, sequence: int, generation_ms: float, scene_t
                     pose=pose, intrinsics=intr, image=image).SerializeToString()
 
 
-def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = None
-                 ) -> FrameData:
-    """Parse and validate a Frame; ``camera_ids`` restricts the accepted cameras."""
+def check_size(img: pb.Image, size: tuple[int, int]) -> None:
+    """The image is exactly ``size`` = (width, height) and its bytes are bounded by it: a
+    receiver that knows the scene's size checks it before decoding anything (a 4096×4096 PNG
+    in a small envelope would otherwise cost gigabytes once decoded)."""
+    w, h = size
+    if (img.width, img.height) != (w, h):
+        raise Rejected("image_size_mismatch",
+                       f"image is {img.width}x{img.height} but the scene's is {w}x{h}")
+    if len(img.data) > w * h * 3 + _IMAGE_SLACK_BYTES:
+        raise Rejected("too_large", f"a {w}x{h} image of {len(img.data)} bytes")
+
+
+def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = None,
+                 size: tuple[int, int] | None = None) -> FrameData:
+    """Parse and validate a Frame; ``camera_ids`` restricts the accepted cameras and ``size``
+    = (width, height), when given, is the only accepted image size (:func:`check_size`)."""
     msg = _parse(pb.Frame, payload)
     if camera_ids is not None and msg.camera_id not in camera_ids:
         raise Rejected("unknown_camera", f"camera id {msg.camera_id} is not part of this rig")
     _finite("frame time", msg.generation_ms, msg.scene_time_ms, msg.send_ms, msg.delivery_ms)
     if not msg.HasField("pose") or not msg.HasField("intrinsics") or not msg.HasField("image"):
         raise Rejected("malformed", "frame lacks pose, intrinsics or image")
+    if size is not None:
+        check_size(msg.image, size)
     camera = camera_from_pb(msg.pose, msg.intrinsics)
     check_image(msg.image)
     if (msg.image.width, msg.image.height) != (camera.width, camera.height):

@@ -50,6 +50,16 @@ class CommonSettings(BaseSettings):
         "Scene dataset folder (the rotor close-up, `aoi3d scene generate --framing rotor "
         "--rotor-rpm 6`; any layout `aoi3d scene info` reads)."))
     log_level: str = Field("INFO", description="Python logging level.")
+    max_skew_s: float = Field(
+        0.5, gt=0, le=60,
+        description="Clock disagreement tolerated between services (wall seconds): a bus "
+                    "message stamped further ahead of the receiver's clock than this (in sim "
+                    "time: this × time scale) is rejected and counted as clock_skew.")
+
+    @property
+    def skew_ms(self) -> float:
+        """:attr:`max_skew_s` in sim milliseconds."""
+        return self.max_skew_s * 1000.0 * self.time_scale
 
     _split = field_validator("zenoh_connect", "zenoh_listen", mode="before")(
         classmethod(lambda cls, v: _split_endpoints(v)))

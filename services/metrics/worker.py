@@ -32,7 +32,7 @@ from aoi3d.clock import SimClock
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
 from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.bus import Bus, Inbox
-from services.kit.codec import decode_frame, decode_image, decode_render
+from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import Keys
 from services.kit.observe import Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
@@ -135,13 +135,16 @@ class MetricsWorker:
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str, clock: SimClock,
                  truth_period_ms: float = 30.0, truth_frames: int = 512, history: int = 1000,
                  inbox_size: int = 256, weights: RewardWeights | None = None,
-                 lpips_fn: LpipsFn | None = None) -> None:
+                 lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
+                 image_size: tuple[int, int] | None = None) -> None:
         if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
             raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
         self._bus = bus
         self._keys = Keys(run_id)
         self._clock = clock
         self._period_ms = truth_period_ms
+        self._skew_ms = float(max_skew_ms)
+        self._size = image_size
         self._weights = weights or RewardWeights()
         self._lpips_fn = lpips_fn
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
@@ -271,15 +274,26 @@ class MetricsWorker:
                 log.exception("failed to handle a message on %s", key)
                 self.rejections.reject(Rejected("internal_error", repr(err)), key)
 
+    def _ahead(self, what: str, time_ms: float) -> None:
+        """Reject a message stamped ahead of this clock by more than the skew: 512 truth
+        frames from the future would otherwise push every real one out of the ring."""
+        now_ms = self._clock.now_ms()
+        if time_ms > now_ms + self._skew_ms:
+            raise Rejected("clock_skew", f"{what} at {time_ms:g} ms but this clock says "
+                                         f"{now_ms:g} ms")
+
     def _on_truth(self, payload: bytes) -> None:
-        frame = decode_frame(payload, camera_ids={HELDOUT_ID})
+        frame = decode_frame(payload, camera_ids={HELDOUT_ID}, size=self._size)
+        self._ahead("truth frame generated", frame.generation_ms)
         self._ring.add(TruthFrame(generation_ms=frame.generation_ms,
                                   scene_time_ms=frame.scene_time_ms, image=frame.image))
         self._m_truth.inc()
 
     def _on_render(self, payload: bytes) -> None:
         render, _camera = decode_render(payload)
+        self._ahead("render for", render.time_ms)
         truth = self._ring.pair(render.time_ms, self._period_ms)
+        check_size(render.image, (truth.image.width, truth.image.height))
         pred = decode_image(render.image)
         gt = decode_image(truth.image)
         if pred.shape != gt.shape:
@@ -293,7 +307,9 @@ class MetricsWorker:
             raise Rejected("unscorable", str(err)) from err
         dyn = q.dynamic
 
-        msg = pb.Quality(decision_id=render.decision_id, time_ms=render.time_ms,
+        msg = pb.Quality(decision_id=render.decision_id,
+                         decision_incarnation=render.decision_incarnation,
+                         time_ms=render.time_ms,
                          scene_time_ms=truth.scene_time_ms, psnr_db=q.psnr_db, ssim=q.ssim,
                          reward=q.reward, reward_terms=list(q.reward_terms),
                          training_step=render.training_step,

@@ -113,7 +113,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
         return NetworkWorker(
             bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id),
             n_cameras=common.cameras, delay=settings.delay, per_camera=settings.per_camera,
-            seed=settings.seed, max_skew_ms=settings.max_skew_ms,
+            seed=settings.seed, max_skew_ms=settings.common.skew_ms,
             inbox_size=settings.inbox_size)
 
     app = service_app(title="aoi3d network", description=DESCRIPTION, settings=settings,

@@ -22,10 +22,6 @@ class Settings(ServiceSettings):
         description='Per-camera delay overrides as a JSON object, e.g. {"3": "const:40"}.')
     seed: int = Field(1, ge=0, description="Seed of the links' random streams "
                                            "(one independent stream per camera).")
-    max_skew_ms: float = Field(
-        1000.0, gt=0,
-        description="Frames generated more than this many sim ms after the local clock's now "
-                    "are rejected (clock_skew): the services disagree on epoch or time scale.")
     inbox_size: int = Field(1024, ge=1, description="Offered frames buffered between the bus "
                                                     "and the link thread (oldest dropped).")
 

@@ -31,6 +31,7 @@ import heapq
 import itertools
 import logging
 import math
+import secrets
 import threading
 from dataclasses import dataclass
 
@@ -123,6 +124,9 @@ class SchedulerWorker:
         self._pending: list[tuple[float, int, int, int, float]] = []
         self._tie = itertools.count()
         self._decision_id = 0
+        # This process's decisions are (incarnation, decision_id): a restarted scheduler gets a
+        # new incarnation, so the trainer takes its decisions at once (proto Decision).
+        self.incarnation = secrets.randbits(63) | 1
 
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -355,7 +359,8 @@ class SchedulerWorker:
             for i, cam in zip(sel.indices, sel.cameras(self.camera_ids), strict=True)
         ]
         self._decision_id = decision_id
-        msg = pb.Decision(decision_id=decision_id, time_ms=sel.eval_ms,
+        msg = pb.Decision(decision_id=decision_id, incarnation=self.incarnation,
+                          time_ms=sel.eval_ms,
                           camera_ids=list(self.camera_ids), aoi_ms=[float(a) for a in sel.aoi_ms],
                           selected=selected, policy=sel.policy)
         self._bus.publish(self._keys.decision, msg.SerializeToString())
@@ -400,5 +405,7 @@ class SchedulerWorker:
         except Rejected as err:
             self.rejections.reject(err, key)
             return
+        if msg.decision_incarnation != self.incarnation:
+            return  # scores a decision of another scheduler process (before a restart)
         if learner is not None:
             learner.reward(int(msg.decision_id), msg.time_ms, msg.reward)

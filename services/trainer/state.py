@@ -49,6 +49,7 @@ class DecisionInForce:
     ``generation_ms``: generation times of the frames it selected that the trainer holds."""
 
     decision_id: int
+    incarnation: int
     time_ms: float
     policy: str
     n_selected: int

@@ -88,6 +88,10 @@ class TrainerWorker:
         self._aabb = dataset.aabb
         self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
         self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
+        # every frame must have the scene's image size (checked before anything is decoded)
+        sizes = {(c.width, c.height) for c in dataset.cameras}
+        self._size = sizes.pop() if len(sizes) == 1 else None
+        self._skew_ms = settings.common.skew_ms
         self.trainer = self._build_trainer(self.backend)
         self.rec = Reconstruction(self.trainer, settings.carry, settings.render_steps)
 
@@ -301,10 +305,7 @@ class TrainerWorker:
         for key, payload in decisions:
             try:
                 msg = decode_decision(payload)
-                current = newest.decision_id if newest is not None else self._current_id()
-                if current is not None and msg.decision_id <= current:
-                    raise Rejected("stale_decision",
-                                   f"decision {msg.decision_id} is not newer than {current}")
+                self._check_decision(msg, newest)
             except Rejected as err:
                 self.rejections.reject(err, key)
                 continue
@@ -313,13 +314,42 @@ class TrainerWorker:
             self._apply_decision(newest)
         self._control.run_pending()
 
-    def _current_id(self) -> int | None:
-        with self._state_lock:
-            return None if self._decision is None else self._decision.decision_id
+    def _check_decision(self, msg: pb.Decision, newest: pb.Decision | None) -> None:
+        """Raise :class:`Rejected` unless ``msg`` supersedes the decision in force (or the
+        newer ``newest`` of this batch).
+
+        Decisions are ordered by the sim time they are for, then by id, within one scheduler
+        incarnation; a decision of another incarnation (a restarted scheduler, which numbers
+        from 1 again) supersedes at once. Times further ahead of this clock than the skew
+        are rejected, so no message — not even one with id 2^64−1 — can hold the trainer for
+        longer than the skew.
+        """
+        now_ms = self.clock.now_ms()
+        if msg.time_ms > now_ms + self._skew_ms:
+            raise Rejected("clock_skew", f"decision for {msg.time_ms:g} ms but this clock says "
+                                         f"{now_ms:g} ms")
+        if newest is not None:
+            current = (newest.incarnation, newest.time_ms, newest.decision_id)
+        else:
+            with self._state_lock:
+                d = self._decision
+            if d is None:
+                return
+            current = (d.incarnation, d.time_ms, d.decision_id)
+        incarnation, time_ms, decision_id = current
+        if msg.incarnation != incarnation:
+            return
+        if (msg.time_ms, msg.decision_id) <= (time_ms, decision_id):
+            raise Rejected("stale_decision",
+                           f"decision {msg.decision_id} for {msg.time_ms:g} ms is not newer "
+                           f"than decision {decision_id} for {time_ms:g} ms")
 
     def _store_frame(self, key: str, payload: bytes) -> None:
         try:
-            frame = decode_frame(payload, self._camera_ids)
+            frame = decode_frame(payload, self._camera_ids, self._size)
+            if frame.generation_ms > self.clock.now_ms() + self._skew_ms:
+                raise Rejected("clock_skew", f"frame generated at {frame.generation_ms:g} ms, "
+                                             f"ahead of this clock")
         except Rejected as err:
             self.rejections.reject(err, key)
             return
@@ -359,7 +389,8 @@ class TrainerWorker:
             self._n_views = len(views)
             self._frames_missing += missing
             self._decision = DecisionInForce(
-                decision_id=decision.decision_id, time_ms=decision.time_ms,
+                decision_id=decision.decision_id, incarnation=decision.incarnation,
+                time_ms=decision.time_ms,
                 policy=decision.policy, n_selected=len(decision.selected), n_missing=missing,
                 applied_wall_s=time.time(), generation_ms=tuple(generation))
 
@@ -402,7 +433,9 @@ class TrainerWorker:
         lag_ms = self.clock.now_ms() - decision.time_ms
         wall = time.time()
         age_s = wall - decision.applied_wall_s
-        msg = pb.Render(decision_id=decision.decision_id, time_ms=decision.time_ms, pose=pose,
+        msg = pb.Render(decision_id=decision.decision_id,
+                        decision_incarnation=decision.incarnation,
+                        time_ms=decision.time_ms, pose=pose,
                         intrinsics=intrinsics, image=image, training_step=rendered.steps,
                         n_views=rendered.n_views, backend=self.backend,
                         frame_generation_ms=list(gens), carry=self.rec.carry,

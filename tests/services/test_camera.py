@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import itertools
+import os
 import time
 from pathlib import Path
 
@@ -60,8 +61,11 @@ def frames(bus: MemoryBus, since: int = 0) -> list[tuple[str, FrameData]]:
     return out
 
 
+TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+
+
 def wait_for(predicate, timeout_s: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
     while not predicate():
         assert time.monotonic() < deadline, "timed out"
         time.sleep(0.01)

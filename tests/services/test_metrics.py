@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 import math
 import os
 import time
@@ -10,6 +11,7 @@ from collections.abc import Callable, Iterator
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
+from PIL import Image
 
 import services.metrics.app as metrics_app
 from aoi3d.clock import SimClock
@@ -17,7 +19,14 @@ from aoi3d.lpips import LPIPS, load_lpips
 from aoi3d.quality import dynamic_mask, dynamic_score, psnr, ssim
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.bus import MemoryBus
-from services.kit.codec import camera_to_pb, decode_image, decode_quality, encode_frame, encode_png
+from services.kit.codec import (
+    PNG,
+    camera_to_pb,
+    decode_image,
+    decode_quality,
+    encode_frame,
+    encode_png,
+)
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
@@ -117,7 +126,8 @@ def make_harness() -> Iterator[Callable[..., Harness]]:
         settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN),
                             lpips=lpips)
         app = create_app(settings, bus=bus,
-                         clock=SimClock(epoch_s=time.time(), time_scale=1.0), **app_kw)
+                         clock=SimClock(epoch_s=time.time() - 60.0, time_scale=1.0),
+                         **app_kw)
         client = TestClient(app)
         client.__enter__()
         clients.append(client)
@@ -442,3 +452,31 @@ def test_decode_quality_rejects_a_dynamic_fraction_outside_0_1() -> None:
     for bad in (1.5, -0.1, float("nan")):
         with pytest.raises(Rejected, match="dynamic_fraction"):
             decode_quality(pb.Quality(time_ms=30.0, dynamic_fraction=bad).SerializeToString())
+
+
+# ---------------------------------------------------------------- hostile senders (issue 11)
+def test_truth_frames_from_the_future_cannot_stop_quality(make_harness) -> None:
+    """512 truth frames stamped far ahead used to fill the ring and push every real one out:
+    Quality stopped until a restart. Now they are rejected (clock_skew) and scoring goes on."""
+    h = make_harness()
+    for k in range(512):
+        h.bus.publish(KEYS.truth, truth(1e9 + 30.0 * k))
+    q = h.score(60.0, truth_image(60.0), decision_id=7)
+    assert q.truth_time_ms == 60.0 and q.psnr_db == 100.0
+    assert h.rejected("clock_skew") == 512
+    # a render stamped far ahead is refused too, never paired with a future truth
+    h.bus.publish(KEYS.render, render(1e9, truth_image(0.0)))
+    h.flush()
+    assert h.rejected("clock_skew") == 513
+
+
+def test_oversized_render_is_rejected_before_decoding(make_harness) -> None:
+    h = make_harness()
+    big = pb.Render.FromString(render(60.0, truth_image(60.0)))
+    buf = io.BytesIO()
+    Image.new("RGB", (3000, 3000)).save(buf, format="PNG")
+    big.image.CopyFrom(pb.Image(encoding=PNG, width=3000, height=3000, data=buf.getvalue()))
+    big.intrinsics.width, big.intrinsics.height = 3000, 3000
+    h.bus.publish(KEYS.render, big.SerializeToString())
+    h.flush()
+    assert h.rejected("too_large") == 1

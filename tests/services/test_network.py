@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 
@@ -33,6 +34,7 @@ def _camera() -> Camera:
 
 
 CAMERA = _camera()
+SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
 IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
 
 
@@ -72,7 +74,7 @@ class Arrivals:
 
     def wait(self, n: int, timeout_s: float = 3.0) -> list[tuple[float, str, pb.Frame]]:
         with self._cond:
-            assert self._cond.wait_for(lambda: len(self.items) >= n, timeout_s), (
+            assert self._cond.wait_for(lambda: len(self.items) >= n, timeout_s * SCALE), (
                 f"{len(self.items)} of {n} frames delivered")
             return list(self.items)
 
@@ -256,3 +258,21 @@ def test_stop_is_prompt_with_frames_in_flight() -> None:
         t0 = time.monotonic()
     assert time.monotonic() - t0 < 2.0
     assert bus.messages(KEYS.edge_frames) == []
+
+
+def test_a_frame_stamped_ahead_cannot_block_a_link() -> None:
+    """A frame stamped 999 ms ahead used to be accepted (skew 1000 sim ms) and hold the
+    camera's D/G/1/0 link busy until then: every real frame meanwhile was dropped, nothing
+    counted. The skew is now AOI3D_MAX_SKEW_S (0.5 wall s, × time scale in sim ms)."""
+    clock = SimClock(epoch_s=time.time(), time_scale=1.0)
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock)) as client:
+        g = float(math.ceil(clock.now_ms()) + 5)
+        bus.publish(KEYS.cam_frame(1), frame(1, g + 999.0, sequence=1))
+        bus.publish(KEYS.cam_frame(1), frame(1, g, sequence=2))
+        got = arrivals.wait(1)
+        assert got[0][2].sequence == 2  # the real frame went through
+        text = client.get("/metrics").text
+        assert metric(text, "aoi3d_messages_rejected_total", reason="clock_skew") == 1
+        assert metric(text, "aoi3d_frames_dropped_total", camera="1") == 0

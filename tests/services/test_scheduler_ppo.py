@@ -58,10 +58,11 @@ def make_subset_checkpoint(path: Path, *, n_cameras: int, subset: Sequence[int],
     return path
 
 
-def quality(decision_id: int, time_ms: float, reward: float) -> bytes:
-    """A Quality as the metrics service publishes it (only the fields the scheduler reads
-    matter; the others are plausible)."""
+def quality(h: Harness, decision_id: int, time_ms: float, reward: float) -> bytes:
+    """A Quality as the metrics service publishes it for a decision of ``h``'s scheduler
+    (only the fields the scheduler reads matter; the others are plausible)."""
     return pb.Quality(decision_id=decision_id, time_ms=time_ms, scene_time_ms=time_ms,
+                      decision_incarnation=h.client.app.state.worker.incarnation,
                       psnr_db=20.0, ssim=0.5, reward=reward, reward_terms=["psnr", "ssim"],
                       truth_time_ms=time_ms).SerializeToString()
 
@@ -259,10 +260,10 @@ def test_learning_from_quality_rewards_updates_the_agent_and_checkpoints_on_stop
     assert m["aoi3d_ppo_pending_rewards"] == 3
     assert 0 < m["aoi3d_ppo_policy_entropy"] < 0.1  # 4 confident bits
 
-    h.put(KEYS.quality, quality(ds[0].decision_id, ds[0].time_ms, 0.25))
+    h.put(KEYS.quality, quality(h, ds[0].decision_id, ds[0].time_ms, 0.25))
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_pending_rewards"] == 2)
     assert ppo_metrics(h)["aoi3d_ppo_updates_total"] == 0  # one short of a batch
-    h.put(KEYS.quality, quality(ds[2].decision_id, ds[2].time_ms, 0.75))  # ds[1]: unscored
+    h.put(KEYS.quality, quality(h, ds[2].decision_id, ds[2].time_ms, 0.75))  # ds[1]: unscored
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_updates_total"] == 1)
     m = ppo_metrics(h)
     assert m["aoi3d_ppo_episodes_learned_total"] == 2
@@ -299,7 +300,7 @@ def test_checkpoints_every_k_updates_and_when_the_policy_is_replaced(make_harnes
     assert put_ppo(h, ckpt, learn=True, save_to=str(target))["save_to"] == str(target)
     for i, t in enumerate((30.0, 60.0, 90.0), start=1):
         d = h.decide_at(t)
-        h.put(KEYS.quality, quality(d.decision_id, d.time_ms, 0.1 * i))
+        h.put(KEYS.quality, quality(h, d.decision_id, d.time_ms, 0.1 * i))
         wait_for(lambda i=i: ppo_metrics(h)["aoi3d_ppo_updates_total"] == i)
     m = ppo_metrics(h)
     assert m["aoi3d_ppo_checkpoints_total"] == 1  # after update 2
@@ -313,7 +314,7 @@ def test_checkpoints_every_k_updates_and_when_the_policy_is_replaced(make_harnes
     assert "online" not in h.client.get("/policy").json()
     # a reward arriving now is not learned from
     d = h.decide_at(120.0)
-    h.put(KEYS.quality, quality(d.decision_id, d.time_ms, 1.0))
+    h.put(KEYS.quality, quality(h, d.decision_id, d.time_ms, 1.0))
     h.decide_at(150.0)
     assert ppo_metrics(h)["aoi3d_ppo_updates_total"] == 3
 
@@ -322,7 +323,7 @@ def test_resuming_may_overwrite_the_source_only_when_asked(make_harness, ckpt: P
     h = make_harness("all", batch=1)
     put_ppo(h, ckpt, learn=True, save_to=str(ckpt))
     d = h.decide_at(30.0)
-    h.put(KEYS.quality, quality(d.decision_id, d.time_ms, 0.3))
+    h.put(KEYS.quality, quality(h, d.decision_id, d.time_ms, 0.3))
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_updates_total"] == 1)
     make_harness.stop(h)
     assert SingleStepPPO.load(ckpt).episodes == 1
@@ -333,12 +334,15 @@ def test_odd_rewards_are_ignored_and_counted(make_harness, ckpt: Path) -> None:
     h = make_harness("all", batch=8)
     put_ppo(h, ckpt, learn=True)
     d1, d2 = h.decide_at(30.0), h.decide_at(60.0)
-    h.put(KEYS.quality, quality(99, 2970.0, 0.5))  # never decided
-    h.put(KEYS.quality, quality(d2.decision_id, d2.time_ms + 30.0, 0.5))  # not d2's time
-    h.put(KEYS.quality, quality(d1.decision_id, d1.time_ms, 0.5))  # used
-    h.put(KEYS.quality, quality(d1.decision_id, d1.time_ms, 0.5))  # again
+    h.put(KEYS.quality, quality(h, 99, 2970.0, 0.5))  # never decided
+    h.put(KEYS.quality, quality(h, d2.decision_id, d2.time_ms + 30.0, 0.5))  # not d2's time
+    h.put(KEYS.quality, quality(h, d1.decision_id, d1.time_ms, 0.5))  # used
+    h.put(KEYS.quality, quality(h, d1.decision_id, d1.time_ms, 0.5))  # again
     h.put(KEYS.quality, b"\x08\xff\xff not a quality")
-    nan_reward = pb.Quality.FromString(quality(d2.decision_id, d2.time_ms, 0.0))
+    other = pb.Quality.FromString(quality(h, d2.decision_id, d2.time_ms, 0.5))
+    other.decision_incarnation += 1  # d2's id and time, but a decision of another scheduler
+    h.put(KEYS.quality, other.SerializeToString())
+    nan_reward = pb.Quality.FromString(quality(h, d2.decision_id, d2.time_ms, 0.0))
     nan_reward.reward = math.nan
     h.put(KEYS.quality, nan_reward.SerializeToString())
     wait_for(lambda: ppo_metrics(h)["rejected_non_finite"] == 1)
@@ -361,7 +365,7 @@ def test_rewards_that_never_come_expire(make_harness, ckpt: Path) -> None:
     h.decide_at(150.0)  # d1 is 120 ms old, d2 90 ms: only d1 expires
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_rewards_expired_total"] == 1)
     assert ppo_metrics(h)["aoi3d_ppo_pending_rewards"] == 2
-    h.put(KEYS.quality, quality(d1.decision_id, d1.time_ms, 0.5))  # too late
+    h.put(KEYS.quality, quality(h, d1.decision_id, d1.time_ms, 0.5))  # too late
     wait_for(lambda: ppo_metrics(h)["ignored_late"] == 1)
     h.wall.set_ms(1000.0)
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_rewards_expired_total"] >= 3)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import math
+import os
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -30,6 +31,7 @@ from services.trainer.state import BackendBuildError, UnknownBackendError
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
 KEYS = Keys("trainertest")
+TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
 SMALL_GRID = GridConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine_from_step=0,
                         grid_sizes=(12,), upsample_steps=(), background_size=(4, 8),
                         render_chunk_rays=4096, tune_malloc=False)
@@ -105,7 +107,7 @@ def decision_payload(decision_id: int, time_ms: float, refs: list[tuple[int, flo
 
 
 def wait_for(predicate: Callable[[], object], timeout_s: float = 10.0, what: str = "") -> object:
-    deadline = time.monotonic() + timeout_s
+    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
     while time.monotonic() < deadline:
         value = predicate()
         if value:

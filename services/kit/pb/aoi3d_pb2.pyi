@@ -85,23 +85,25 @@ class FrameRef(_message.Message):
     def __init__(self, camera_id: _Optional[int] = ..., sequence: _Optional[int] = ..., generation_ms: _Optional[float] = ..., aoi_ms: _Optional[float] = ...) -> None: ...
 
 class Decision(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy")
+    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy", "incarnation")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
     AOI_MS_FIELD_NUMBER: _ClassVar[int]
     SELECTED_FIELD_NUMBER: _ClassVar[int]
     POLICY_FIELD_NUMBER: _ClassVar[int]
+    INCARNATION_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     camera_ids: _containers.RepeatedScalarFieldContainer[int]
     aoi_ms: _containers.RepeatedScalarFieldContainer[float]
     selected: _containers.RepeatedCompositeFieldContainer[FrameRef]
     policy: str
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ...) -> None: ...
+    incarnation: int
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -113,6 +115,7 @@ class Render(_message.Message):
     FRAME_GENERATION_MS_FIELD_NUMBER: _ClassVar[int]
     CARRY_FIELD_NUMBER: _ClassVar[int]
     RENDER_STEPS_FIELD_NUMBER: _ClassVar[int]
+    DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -124,10 +127,11 @@ class Render(_message.Message):
     frame_generation_ms: _containers.RepeatedScalarFieldContainer[float]
     carry: str
     render_steps: int
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ...) -> None: ...
+    decision_incarnation: int
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -141,6 +145,7 @@ class Quality(_message.Message):
     PSNR_DYNAMIC_DB_FIELD_NUMBER: _ClassVar[int]
     SSIM_DYNAMIC_FIELD_NUMBER: _ClassVar[int]
     DYNAMIC_FRACTION_FIELD_NUMBER: _ClassVar[int]
+    DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -154,4 +159,5 @@ class Quality(_message.Message):
     psnr_dynamic_db: float
     ssim_dynamic: float
     dynamic_fraction: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ...) -> None: ...
+    decision_incarnation: int
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ...) -> None: ...
