@@ -24,6 +24,8 @@ from pathlib import Path
 
 import httpx
 
+from aoi3d.cli.common import control_headers
+
 ROOT = Path(__file__).resolve().parents[1]
 OFFSET = 1000  # REST ports 9101..9105, so a running `make up` is not disturbed
 PORTS = {"camera": 9101, "network": 9102, "scheduler": 9103, "trainer": 9104, "metrics": 9105}
@@ -78,7 +80,7 @@ def main() -> None:
             time.sleep(0.5)
         t_ready = time.monotonic()
         r = httpx.put(f"http://127.0.0.1:{PORTS['scheduler']}/policy",
-                      json=policy_body(args.policy))
+                      json=policy_body(args.policy), headers=control_headers(), timeout=60)
         r.raise_for_status()
         time.sleep(args.warmup_s)
         first = {s: scrape(s) for s in PORTS}

@@ -32,6 +32,13 @@ ACCEPTED_FORMS: tuple[str, ...] = (
 _FORMS_NOTE = "values in ms; lognormal's MU and SIGMA are of ln Y"
 
 
+MAX_MEAN_DELAY_MS = 60_000.0
+"""The largest mean delay a spec may have (60 s of sim time)."""
+MAX_DELAY_MS = 60_000.0
+"""Sampled delays are capped here (:func:`delay_slots`): no frame holds a link longer, so no
+distribution — however heavy its tail — can block a link for good."""
+
+
 class DelaySpecError(ValueError):
     """A delay spec (or distribution parameter) is invalid; the message lists the accepted forms."""
 
@@ -56,16 +63,17 @@ def delay_slots(y_ms: float) -> int: ...
 @overload
 def delay_slots(y_ms: np.ndarray) -> np.ndarray: ...
 def delay_slots(y_ms: float | np.ndarray) -> int | np.ndarray:
-    """Slots a frame spends on the link: ``max(1, ceil(Y))`` (int, or an int64 array)."""
+    """Slots a frame spends on the link: ``min(MAX_DELAY_MS, max(1, ceil(Y)))`` (int, or an
+    int64 array)."""
     if np.ndim(y_ms) == 0:
         y = float(y_ms)  # type: ignore[arg-type]
         if not math.isfinite(y):
             raise ValueError(f"delay must be finite, got {y}")
-        return max(1, math.ceil(y))
+        return int(min(MAX_DELAY_MS, max(1, math.ceil(y))))
     y_arr = np.asarray(y_ms, dtype=np.float64)
     if not np.all(np.isfinite(y_arr)):
         raise ValueError("delays must be finite")
-    return np.maximum(np.ceil(y_arr), 1.0).astype(np.int64)
+    return np.clip(np.ceil(y_arr), 1.0, MAX_DELAY_MS).astype(np.int64)
 
 
 class DelayDistribution(ABC):
@@ -322,6 +330,14 @@ def parse_delay(spec: str | DelayDistribution) -> DelayDistribution:
             raise DelaySpecError(f"{kind} {name} must be finite, got {field!r}", spec)
         values.append(value)
     try:
-        return cls(*values)
+        dist = cls(*values)
     except DelaySpecError as err:
         raise DelaySpecError(err.problem, spec) from None
+    try:
+        mean = dist.mean_ms
+    except OverflowError:
+        mean = math.inf
+    if not mean <= MAX_MEAN_DELAY_MS:
+        raise DelaySpecError(f"mean delay {format_number(mean)} ms exceeds the maximum of "
+                             f"{format_number(MAX_MEAN_DELAY_MS)} ms", spec)
+    return dist

@@ -98,3 +98,14 @@ def short_label(spec: str) -> str:
         return spec
     path = Path(spec[len("ppo:"):])
     return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
+
+
+def control_headers() -> dict[str, str]:
+    """``Authorization: Bearer …`` when a control token is configured for this shell's
+    pipeline (``AOI3D_CONTROL_TOKEN_FILE`` or ``AOI3D_CONTROL_TOKEN``, as the services read
+    it), else nothing: the CLI's REST calls then pass the services' guard."""
+    import os
+
+    path = os.environ.get("AOI3D_CONTROL_TOKEN_FILE")
+    token = Path(path).read_text().strip() if path else os.environ.get("AOI3D_CONTROL_TOKEN")
+    return {"Authorization": f"Bearer {token}"} if token else {}

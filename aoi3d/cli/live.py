@@ -113,7 +113,9 @@ class Pipeline:
     def __post_init__(self) -> None:
         import httpx
 
-        self.client = httpx.Client(timeout=self.timeout_s)
+        from aoi3d.cli.common import control_headers
+
+        self.client = httpx.Client(timeout=self.timeout_s, headers=control_headers())
 
     def url(self, service: str, path: str) -> str:
         return f"{self.url_base.rstrip('/')}:{SERVICE_PORTS[service] + self.port_offset}{path}"

@@ -11,7 +11,13 @@ from pydantic import BaseModel, ConfigDict, Field
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset, open_dataset
 from services.camera.settings import Settings
-from services.camera.worker import MAX_PERIOD_MS, CameraConfig, CameraConfigError, CameraWorker
+from services.camera.worker import (
+    MAX_PERIOD_MS,
+    MIN_PERIOD_MS,
+    CameraConfig,
+    CameraConfigError,
+    CameraWorker,
+)
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
 from services.kit.keys import Keys
@@ -48,8 +54,9 @@ class CameraConfigUpdate(BaseModel):
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"period_ms": 30}, {"paused": True}, {"cameras": [1, 2, 3]}]})
 
-    period_ms: float | None = Field(None, gt=0, le=MAX_PERIOD_MS,
-                                    description="New generation period C in sim ms (> 0).",
+    period_ms: float | None = Field(None, ge=MIN_PERIOD_MS, le=MAX_PERIOD_MS,
+                                    description="New generation period C in sim ms (one slot, "
+                                                "1 ms, to 60 s).",
                                     examples=[30.0])
     paused: bool | None = Field(None, description="Pause (true) or resume (false).",
                                 examples=[True])

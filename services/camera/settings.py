@@ -29,7 +29,7 @@ class Settings(ServiceSettings):
     model_config = SettingsConfigDict(env_prefix="AOI3D_CAMERA_", extra="ignore")
 
     port: int = Field(8101, ge=0, le=65535, description="REST API port.")
-    period_ms: float = Field(30.0, gt=0, le=60_000,
+    period_ms: float = Field(30.0, ge=1.0, le=60_000,
                              description="Generation period C in sim ms: frames at t = k·C.")
     paused: bool = Field(False, description="Start with frame generation paused.")
     active_cameras: CameraIds = Field(

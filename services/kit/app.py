@@ -18,9 +18,12 @@ from fastapi.responses import JSONResponse, Response
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from services.kit.bus import Bus, ZenohBus
+from services.kit.guard import guard_app
 from services.kit.settings import ServiceSettings, zenoh_config
 
 log = logging.getLogger(__name__)
+
+LOOPBACK = frozenset({"127.0.0.1", "localhost", "::1"})
 
 
 class Worker(Protocol):
@@ -68,6 +71,9 @@ def service_app(
     app = FastAPI(title=title, description=description, version="0.1.0", lifespan=lifespan)
     app.state.registry = registry
     app.state.settings = settings
+    common = settings.common
+    guard_app(app, allowed_hosts=common.allowed_hosts, token=common.token(),
+              max_body_bytes=common.max_body_bytes)
 
     @app.get("/healthz", tags=["ops"], summary="Liveness: the process serves requests.",
              description="`pid` is the serving process's id: `aoi3d up` checks that its own "
@@ -94,6 +100,11 @@ def service_app(
 def serve(app: FastAPI, settings: ServiceSettings) -> None:
     """Run the app with uvicorn until SIGINT/SIGTERM (uvicorn then runs the lifespan exit)."""
     import uvicorn
+
+    if settings.host not in LOOPBACK and settings.common.token() is None:
+        log.warning("the REST API listens on %s without a control token: anyone who can reach "
+                    "it can change the pipeline; set AOI3D_CONTROL_TOKEN (README, Security)",
+                    settings.host)
 
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning",
                 access_log=False)

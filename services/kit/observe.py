@@ -80,3 +80,22 @@ class RateMeter:
     def idle(self, now_s: float, total: int) -> float:
         """Record a moment without progress (the rate decays to 0 over the window)."""
         return self.add(now_s, total)
+
+
+class Heartbeat:
+    """When a worker last did its job (monotonic clock), for a readiness that tells the
+    truth: alive but idle for longer than ``stall_s`` is not ready. Counts from creation, so
+    a worker that never did its job turns not ready ``stall_s`` after it started."""
+
+    def __init__(self, stall_s: float) -> None:
+        self.stall_s = float(stall_s)
+        self._last = time.monotonic()
+
+    def beat(self) -> None:
+        self._last = time.monotonic()
+
+    def idle_s(self) -> float:
+        return time.monotonic() - self._last
+
+    def stalled(self) -> bool:
+        return self.idle_s() > self.stall_s

@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 Endpoints = Annotated[list[str], NoDecode]
@@ -56,12 +56,49 @@ class CommonSettings(BaseSettings):
                     "message stamped further ahead of the receiver's clock than this (in sim "
                     "time: this × time scale) is rejected and counted as clock_skew.")
 
+    stall_s: float = Field(
+        30.0, gt=0, le=3600,
+        description="Readiness that tells the truth: a service alive but not doing its job for "
+                    "this many wall seconds answers /readyz with 503 and the reason (scheduler: "
+                    "no frame delivered; trainer: decisions arrive but no training step; "
+                    "metrics: no Quality).")
+    control_token: SecretStr | None = Field(
+        None, description="Bearer token every state-changing REST request (PUT/POST/PATCH/"
+                          "DELETE) must carry as `Authorization: Bearer <token>` (401 without "
+                          "it); GETs stay open. Unset: control is open (loopback only, as by "
+                          "default).")
+    control_token_file: Path | None = Field(
+        None, description="A file holding the control token (compose secrets); wins over "
+                          "AOI3D_CONTROL_TOKEN.")
+    allowed_hosts: Endpoints = Field(
+        default_factory=lambda: ["127.0.0.1", "localhost", "::1"],
+        description="Host names the REST APIs answer to (the Host header, and the Origin of "
+                    "state-changing requests): others get 400/403, which stops DNS rebinding "
+                    "and cross-site requests. Comma-separated; `*` allows any.")
+    max_body_bytes: int = Field(
+        64 * 1024, ge=1024, le=64 * 1024 * 1024,
+        description="Largest REST request body accepted (413 beyond).")
+    files_roots: Endpoints = Field(
+        default_factory=lambda: ["runs", "models"],
+        description="Folders (relative to the working directory, or absolute) that file paths "
+                    "in REST requests (a PPO checkpoint, save_to) must lie in; others are 422.")
+
+    def token(self) -> str | None:
+        """The control token in force (from the file when one is named), None when open."""
+        if self.control_token_file is not None:
+            text = self.control_token_file.read_text().strip()
+            return text or None
+        if self.control_token is not None:
+            return self.control_token.get_secret_value() or None
+        return None
+
     @property
     def skew_ms(self) -> float:
         """:attr:`max_skew_s` in sim milliseconds."""
         return self.max_skew_s * 1000.0 * self.time_scale
 
-    _split = field_validator("zenoh_connect", "zenoh_listen", mode="before")(
+    _split = field_validator("zenoh_connect", "zenoh_listen", "allowed_hosts", "files_roots",
+                             mode="before")(
         classmethod(lambda cls, v: _split_endpoints(v)))
 
 

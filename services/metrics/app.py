@@ -200,7 +200,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
             history=settings.history, inbox_size=settings.inbox_size,
             weights=settings.reward_weights(), lpips_fn=resolve_lpips_fn(settings, lpips_fn),
-            max_skew_ms=common.skew_ms)
+            max_skew_ms=common.skew_ms, stall_s=common.stall_s)
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus)

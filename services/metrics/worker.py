@@ -34,7 +34,7 @@ from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera o
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import Keys
-from services.kit.observe import Rejected, Rejections
+from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 
 log = logging.getLogger(__name__)
@@ -136,7 +136,7 @@ class MetricsWorker:
                  truth_period_ms: float = 30.0, truth_frames: int = 512, history: int = 1000,
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
-                 image_size: tuple[int, int] | None = None) -> None:
+                 image_size: tuple[int, int] | None = None, stall_s: float = 30.0) -> None:
         if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
             raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
         self._bus = bus
@@ -144,6 +144,7 @@ class MetricsWorker:
         self._clock = clock
         self._period_ms = truth_period_ms
         self._skew_ms = float(max_skew_ms)
+        self._quality_beat = Heartbeat(stall_s)  # a Quality published
         self._size = image_size
         self._weights = weights or RewardWeights()
         self._lpips_fn = lpips_fn
@@ -222,6 +223,9 @@ class MetricsWorker:
             return False, "scoring thread not running"
         with self._lock:
             scored = self._scored
+        if self._quality_beat.stalled():
+            return False, (f"no Quality for {self._quality_beat.idle_s():.0f} s (no renders, "
+                           f"or none with a truth frame of their time)")
         return True, f"{scored} render(s) scored" if scored else "waiting for renders"
 
     # ------------------------------------------------------------------ queries
@@ -342,6 +346,7 @@ class MetricsWorker:
             if missing is not None:
                 self._dyn_missing[missing] += 1
         self._m_quality.inc()
+        self._quality_beat.beat()
         self._m_psnr.set(q.psnr_db)
         self._m_ssim.set(q.ssim)
         self._m_reward.set(q.reward)

@@ -6,7 +6,7 @@ import dataclasses
 import math
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
+from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Request
 from pydantic import BaseModel, ConfigDict, Field, StrictBool
 
 from aoi3d.clock import SimClock
@@ -22,6 +22,7 @@ from aoi3d.policy import (
 from aoi3d.rl.online import LearnerStatus
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
+from services.kit.guard import OutsideRoots, confined_path, files_in_roots
 from services.scheduler.settings import Settings
 from services.scheduler.worker import SchedulerWorker
 
@@ -197,15 +198,38 @@ def get_policy(worker: Scheduler) -> PolicyResponse:
                                     "accepted forms."}})
 def put_policy(
     worker: Scheduler,
+    request: Request,
     body: Annotated[PolicyRequest, Body(openapi_examples=_POLICY_EXAMPLES)],
 ) -> PolicyResponse:
     data: dict[str, Any] = body.model_dump(exclude_none=True, exclude=_READ_ONLY)
     save_to = data.pop("save_to", None)  # the scheduler's, not the policy's
+    roots = request.app.state.settings.common.files_roots
+    try:
+        for name, value in (("checkpoint", data.get("checkpoint")), ("save_to", save_to)):
+            if isinstance(value, str):
+                confined_path(value, roots, name)
+    except OutsideRoots as err:
+        raise HTTPException(status_code=422, detail=str(err)) from None
     try:
         worker.set_policy(policy_from_json(data), save_to=save_to)
     except PolicySpecError as err:
         raise HTTPException(status_code=422, detail=str(err)) from None
     return _policy_state(worker)
+
+
+class CheckpointList(BaseModel):
+    """PPO checkpoints a ``PUT /policy`` of kind ppo may load."""
+
+    checkpoints: list[str] = Field(
+        description="`*.pt` files under the folders requests may name (AOI3D_FILES_ROOTS), "
+                    "relative to the scheduler's working directory.",
+        examples=[["models/ppo/quick/final.pt"]])
+
+
+@policy_router.get("/checkpoints", summary="The PPO checkpoints a ppo policy can load.")
+def get_checkpoints(request: Request) -> CheckpointList:
+    roots = request.app.state.settings.common.files_roots
+    return CheckpointList(checkpoints=files_in_roots(roots, "*.pt"))
 
 
 # ---------------------------------------------------------------- /aoi
@@ -291,7 +315,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                                n_cameras=common.cameras, clock=clock, policy=policy,
                                decision_period_ms=settings.decision_period_ms,
                                inbox_size=settings.inbox_size,
-                               learn=settings.learn_config(), device=settings.device)
+                               learn=settings.learn_config(), device=settings.device,
+                               stall_s=common.stall_s)
 
     app = service_app(title="aoi3d scheduler", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus)

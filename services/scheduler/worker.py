@@ -54,7 +54,7 @@ from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import decode_frame, decode_quality
 from services.kit.keys import Keys
-from services.kit.observe import Rejected, Rejections
+from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 from services.scheduler.metrics import LearnerMetrics
 
@@ -96,7 +96,8 @@ class SchedulerWorker:
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str, n_cameras: int,
                  clock: SimClock, policy: Policy, decision_period_ms: float = 30.0,
                  inbox_size: int = 1024, learn: LearnConfig | None = None,
-                 device: str = "cpu", quality_inbox_size: int = 256) -> None:
+                 device: str = "cpu", quality_inbox_size: int = 256,
+                 stall_s: float = 30.0) -> None:
         if not (math.isfinite(decision_period_ms) and decision_period_ms > 0):
             raise ValueError(f"decision_period_ms must be > 0, got {decision_period_ms}")
         if n_cameras < 1:
@@ -127,6 +128,7 @@ class SchedulerWorker:
         # This process's decisions are (incarnation, decision_id): a restarted scheduler gets a
         # new incarnation, so the trainer takes its decisions at once (proto Decision).
         self.incarnation = secrets.randbits(63) | 1
+        self._frames_beat = Heartbeat(stall_s)  # a delivered frame accepted
 
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -188,6 +190,9 @@ class SchedulerWorker:
         with self._lock:
             known = len(self._newest)
             learning = self._learner is not None
+        if self._frames_beat.stalled():
+            return False, (f"no frame delivered for {self._frames_beat.idle_s():.0f} s "
+                           f"(camera paused, network or router down?)")
         why = f"deciding; {known} of {len(self.camera_ids)} camera(s) delivered a frame"
         return True, why + ("; learning online" if learning else "")
 
@@ -328,6 +333,7 @@ class SchedulerWorker:
             self.rejections.reject(Rejected("internal_error", repr(err)), key)
             return
         self._m_frames.labels(camera=str(frame.camera_id)).inc()
+        self._frames_beat.beat()
         heapq.heappush(self._pending, (delivery_ms, next(self._tie), frame.camera_id,
                                        frame.sequence, frame.generation_ms))
 

@@ -39,7 +39,7 @@ from services.kit.codec import (
     encode_png,
 )
 from services.kit.keys import Keys
-from services.kit.observe import RateMeter, Rejected, Rejections
+from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 from services.trainer.control import ControlQueue
 from services.trainer.frames import FrameBuffer
@@ -92,6 +92,8 @@ class TrainerWorker:
         sizes = {(c.width, c.height) for c in dataset.cameras}
         self._size = sizes.pop() if len(sizes) == 1 else None
         self._skew_ms = settings.common.skew_ms
+        self._decisions_beat = Heartbeat(settings.common.stall_s)  # a decision accepted
+        self._steps_beat = Heartbeat(settings.common.stall_s)  # a training step taken
         self.trainer = self._build_trainer(self.backend)
         self.rec = Reconstruction(self.trainer, settings.carry, settings.render_steps)
 
@@ -185,6 +187,9 @@ class TrainerWorker:
     def readiness(self) -> tuple[bool, str]:
         if self._thread is None or not self._thread.is_alive():
             return False, self._error or "training thread not running"
+        if not self._decisions_beat.stalled() and self._steps_beat.stalled():
+            return False, (f"decisions arrive but no training step for "
+                           f"{self._steps_beat.idle_s():.0f} s")
         with self._state_lock:
             if self._decision is None:
                 return True, "waiting for the first decision"
@@ -311,6 +316,7 @@ class TrainerWorker:
                 continue
             newest = msg
         if newest is not None:
+            self._decisions_beat.beat()
             self._apply_decision(newest)
         self._control.run_pending()
 
@@ -401,6 +407,7 @@ class TrainerWorker:
     def _count_steps(self, n: int, loss: float) -> None:
         """Account for ``n`` training steps (background or a render's own) ending at ``loss``."""
         now = time.monotonic()
+        self._steps_beat.beat()
         self.m_steps.inc(n)
         if math.isfinite(loss):
             self.m_loss.set(loss)

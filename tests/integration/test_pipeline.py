@@ -121,17 +121,18 @@ def processes_of_run(run_id: str) -> list[int]:
 class Tap:
     """A Zenoh client session that records the run's decisions and quality messages."""
 
-    def __init__(self, run_id: str) -> None:
+    def __init__(self, run_id: str, zenoh_port: int = ZENOH_PORT) -> None:
         import zenoh
 
         from services.kit.settings import CommonSettings, zenoh_config
 
         keys = Keys(run_id)
-        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"]))
+        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{zenoh_port}"]))
         self.session = zenoh.open(conf)
         self.lock = threading.Lock()
         self.decisions: list[tuple[float, pb.Decision]] = []
         self.qualities: list[pb.Quality] = []
+        self.quality_times: list[float] = []  # when each Quality arrived (monotonic)
         self.keys = keys
         self.subs = [
             self.session.declare_subscriber(keys.decision, self._on_decision),
@@ -147,6 +148,7 @@ class Tap:
         msg = pb.Quality.FromString(sample.payload.to_bytes())
         with self.lock:
             self.qualities.append(msg)
+            self.quality_times.append(time.monotonic())
 
     def decisions_after(self, t: float) -> list[pb.Decision]:
         with self.lock:

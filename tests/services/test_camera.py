@@ -120,7 +120,7 @@ def test_config_rest_api(dataset_path: Path) -> None:
                         "rig": [1, 2, 3], "heldout_id": 0}
 
         for bad, needle in (({"cameras": [2, 4]}, "1..3"), ({"cameras": [0]}, "held-out"),
-                            ({"period_ms": 0}, "greater than 0"),
+                            ({"period_ms": 0}, "greater than or equal to 1"),
                             ({"period_ms": "fast"}, "valid number"),
                             ({"period": 20}, "Extra inputs")):
             resp = client.put("/config", json=bad)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
@@ -105,7 +106,9 @@ def make_harness() -> Iterator[Callable[..., Harness]]:
         bus = MemoryBus()
         cfg = Settings(policy=policy, decision_period_ms=30.0, learn_batch_size=batch,
                        learn_reward_timeout_s=timeout_s, learn_checkpoint_every=every,
-                       common=CommonSettings(run_id=RUN, cameras=N))
+                       # the tests' checkpoints live in pytest's temporary folders
+                       common=CommonSettings(run_id=RUN, cameras=N,
+                                             files_roots=[tempfile.gettempdir()]))
         client = TestClient(create_app(cfg, bus=bus,
                                        clock=SimClock(epoch_s=0.0, time_scale=1.0, wall=wall)))
         client.__enter__()
@@ -211,8 +214,8 @@ def test_bad_startup_ppo_policy_fails_fast(tmp_path: Path) -> None:
 @pytest.mark.parametrize("device", ["auto", "cuda"])
 def test_ppo_agent_goes_to_the_configured_device(ckpt: Path, device: str) -> None:
     """auto takes CUDA when there is one; cuda without CUDA is a clear 422, not a crash."""
-    app = create_app(Settings(policy="all", device=device, common=CommonSettings(cameras=N)),
-                     bus=MemoryBus())
+    common = CommonSettings(cameras=N, files_roots=[tempfile.gettempdir()])
+    app = create_app(Settings(policy="all", device=device, common=common), bus=MemoryBus())
     with TestClient(app) as client:
         r = client.put("/policy", json={"kind": "ppo", "checkpoint": str(ckpt)})
         if torch.cuda.is_available():
@@ -399,3 +402,35 @@ def test_decisions_carry_the_ppo_spec_while_learning(make_harness, ckpt: Path) -
     assert [m.policy for m in decisions(h.bus)][-1] == f"ppo:{ckpt}"
     ready = h.client.get("/readyz").json()
     assert "learning online" in ready["reason"]
+
+
+def test_request_paths_must_lie_in_the_files_roots(tmp_path: Path, ckpt: Path) -> None:
+    """A ppo policy's checkpoint and save_to from a request resolve inside AOI3D_FILES_ROOTS
+    (symlinks followed); anything else is 422 with the same message whether or not the file
+    exists, and nothing is written or changed."""
+    root = tmp_path / "runs"
+    root.mkdir()
+    inside = root / "agent.pt"
+    inside.write_bytes(ckpt.read_bytes())
+    (root / "escape.pt").symlink_to(ckpt)  # points outside the root
+    victim = tmp_path / "victim.txt"
+    victim.write_text("keep me")
+    common = CommonSettings(cameras=N, files_roots=[str(root)])
+    app = create_app(Settings(policy="all", common=common), bus=MemoryBus())
+    with TestClient(app) as client:
+        answers = []
+        for body in ({"kind": "ppo", "checkpoint": str(ckpt)},            # exists, outside
+                     {"kind": "ppo", "checkpoint": str(tmp_path / "no.pt")},  # missing, outside
+                     {"kind": "ppo", "checkpoint": str(root / "escape.pt")},  # symlink out
+                     {"kind": "ppo", "checkpoint": str(inside), "learn": True,
+                      "save_to": str(victim)}):
+            r = client.put("/policy", json=body)
+            assert r.status_code == 422, r.text
+            answers.append(r.json()["detail"].split(" must ")[1])
+        assert len(set(answers[:3])) == 1  # the same words whether the file exists or not
+        assert victim.read_text() == "keep me"
+        assert client.get("/policy").json()["kind"] == "all"
+        listed = client.get("/policy/checkpoints").json()["checkpoints"]
+        assert [Path(p).name for p in listed] == ["agent.pt"]  # the escaping link is not listed
+        r = client.put("/policy", json={"kind": "ppo", "checkpoint": str(inside)})
+        assert r.status_code == 200, r.text

@@ -29,6 +29,7 @@ from aoi3d.channel import (
     simulate,
     slot_delay_pmf,
 )
+from aoi3d.channel.delay import MAX_DELAY_MS
 
 ALL_KINDS = ["exp:60", "const:40", "uniform:20:100", "gamma:2:30", "lognormal:4:0.5"]
 
@@ -322,7 +323,7 @@ def test_theory_of_a_constant_delay_in_closed_form(d: float, c: int) -> None:
 
 def test_theory_rejects_a_tail_too_heavy_to_sum() -> None:
     with pytest.raises(ValueError, match="too heavy"):
-        channel_theory("lognormal:10:4", 30)
+        channel_theory("lognormal:2:4", 30)  # mean 22 s: under the 60 s cap, tail too heavy
 
 
 @pytest.mark.parametrize(("d", "c"), [(40, 30), (25, 30), (0, 30), (95, 10)])
@@ -411,3 +412,17 @@ def test_cli_simulate_table_and_bad_delay() -> None:
     text = text.replace("│", "").replace(" ", "")
     for form in ACCEPTED_FORMS:
         assert form.replace(" ", "") in text
+
+
+@pytest.mark.parametrize("spec", ["const:1e300", "lognormal:1000:1000", "exp:60001",
+                                  "gamma:1000:1000", "uniform:0:200000"])
+def test_specs_with_a_mean_over_a_minute_are_refused(spec: str) -> None:
+    """Live, ``const:1e300`` blocked 17 of 18 links until a restart and
+    ``lognormal:1000:1000`` overflowed to a 500 (issue 11): the parser refuses both."""
+    with pytest.raises(DelaySpecError, match="exceeds the maximum of 60000 ms"):
+        parse_delay(spec)
+
+
+def test_sampled_delays_are_capped_at_a_minute() -> None:
+    assert delay_slots(1e12) == MAX_DELAY_MS == 60_000
+    assert list(delay_slots(np.array([0.2, 59_999.5, 1e9]))) == [1, 60_000, 60_000]
