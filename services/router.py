@@ -10,12 +10,14 @@ from __future__ import annotations
 import json
 import logging
 import signal
+import tempfile
 import threading
+from pathlib import Path
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from services.kit.settings import Endpoints, _split_endpoints
+from services.kit.settings import CommonSettings, Endpoints, _split_endpoints
 
 log = logging.getLogger("aoi3d.router")
 
@@ -31,13 +33,28 @@ class RouterSettings(BaseSettings):
         classmethod(lambda cls, v: _split_endpoints(v)))
 
 
-def router_config(settings: RouterSettings):
+def router_config(settings: RouterSettings, common: CommonSettings | None = None,
+                  secrets_dir: Path | None = None):
+    """The router's Zenoh config. With Zenoh credentials configured (``AOI3D_ZENOH_USER`` and
+    a password, as the services read them) it accepts only sessions that present them: the
+    usrpwd dictionary is written, readable by this user only, to ``secrets_dir`` (a fresh
+    temporary folder by default)."""
     import zenoh
 
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    credentials = (common or CommonSettings()).zenoh_credentials()
+    if credentials is not None:
+        user, password = credentials
+        folder = secrets_dir or Path(tempfile.mkdtemp(prefix="aoi3d-router-"))
+        dictionary = folder / "zenoh-users"
+        dictionary.touch(mode=0o600)
+        dictionary.write_text(f"{user}:{password}\n")
+        conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary)))
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
     return conf
 
 
@@ -51,7 +68,9 @@ def main() -> None:
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
     with zenoh.open(router_config(settings)) as session:
-        log.info("Zenoh router %s listening on %s", session.zid(), ", ".join(settings.listen))
+        log.info("Zenoh router %s listening on %s%s", session.zid(), ", ".join(settings.listen),
+                 " (user/password authentication)"
+                 if CommonSettings().zenoh_credentials() else "")
         stop.wait()
         log.info("router stopping")
 

@@ -26,7 +26,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -190,6 +190,24 @@ class FieldTrainer:
         twin._colour_cache = dict(self._colour_cache)
         twin._appearance_rows = OrderedDict(self._appearance_rows)
         return twin
+
+    def checkpoint(self) -> dict[str, Any]:
+        """What :meth:`restore` needs to go on training this model: the field (as a module,
+        so a structure grown since step 0 — an upsampled grid — is kept), the optimizer's
+        state, the step count, the random stream and the appearance rows. Views are not part
+        of it (they come with the next decision). For ``torch.save``."""
+        return {"field": self._field, "optimizer": self._optimizer.state_dict(),
+                "steps": self._steps, "generator": self._generator.get_state(),
+                "appearance_rows": list(self._appearance_rows.items())}
+
+    def restore(self, doc: dict[str, Any]) -> None:
+        """Go on from a :meth:`checkpoint` of a trainer of the same config (views kept)."""
+        self._field = doc["field"].to(self._device)
+        self._optimizer = self._make_optimizer()
+        self._optimizer.load_state_dict(doc["optimizer"])
+        self._steps = int(doc["steps"])
+        self._generator.set_state(doc["generator"])
+        self._appearance_rows = OrderedDict(doc["appearance_rows"])
 
     def _make_optimizer(self) -> LazyAdam:
         return LazyAdam(self._field.param_groups(), betas=(0.9, 0.99), eps=self.cfg.adam_eps)

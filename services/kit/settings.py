@@ -56,6 +56,15 @@ class CommonSettings(BaseSettings):
                     "message stamped further ahead of the receiver's clock than this (in sim "
                     "time: this × time scale) is rejected and counted as clock_skew.")
 
+    zenoh_user: str | None = Field(
+        None, description="Zenoh user name: with a password, every session authenticates to "
+                          "the router (usrpwd), and a router given them accepts only sessions "
+                          "that present them. Unset: no authentication.")
+    zenoh_password: SecretStr | None = Field(None, description="Zenoh password (with "
+                                                               "AOI3D_ZENOH_USER).")
+    zenoh_password_file: Path | None = Field(
+        None, description="A file holding the Zenoh password (compose secrets); wins over "
+                          "AOI3D_ZENOH_PASSWORD.")
     stall_s: float = Field(
         30.0, gt=0, le=3600,
         description="Readiness that tells the truth: a service alive but not doing its job for "
@@ -82,6 +91,20 @@ class CommonSettings(BaseSettings):
         default_factory=lambda: ["runs", "models"],
         description="Folders (relative to the working directory, or absolute) that file paths "
                     "in REST requests (a PPO checkpoint, save_to) must lie in; others are 422.")
+
+    def zenoh_credentials(self) -> tuple[str, str] | None:
+        """(user, password) when Zenoh authentication is configured, else None."""
+        if self.zenoh_password_file is not None:
+            password: str | None = self.zenoh_password_file.read_text().strip()
+        else:
+            password = (self.zenoh_password.get_secret_value()
+                        if self.zenoh_password is not None else None)
+        if not self.zenoh_user and not password:
+            return None
+        if not (self.zenoh_user and password):
+            raise ValueError("Zenoh authentication needs both AOI3D_ZENOH_USER and a password "
+                             "(AOI3D_ZENOH_PASSWORD or AOI3D_ZENOH_PASSWORD_FILE)")
+        return self.zenoh_user, password
 
     def token(self) -> str | None:
         """The control token in force (from the file when one is named), None when open."""
@@ -126,6 +149,10 @@ def zenoh_config(common: CommonSettings, *, mode: str | None = None,
         conf.insert_json5("connect/endpoints", json.dumps(conn))
     if lst:
         conf.insert_json5("listen/endpoints", json.dumps(lst))
+    credentials = common.zenoh_credentials()
+    if credentials is not None:
+        conf.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials[0]))
+        conf.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials[1]))
     return conf
 
 

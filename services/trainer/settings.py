@@ -6,6 +6,7 @@ that maps a backend name to its config; ``PUT /backend`` switches it at run time
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -53,6 +54,15 @@ class Settings(ServiceSettings):
         description="Torch CPU threads of this process (the field config's num_threads); "
                     "0 keeps torch's default.")
     seed: int = Field(0, ge=0, description="Seed of the field's initialisation and ray sampling.")
+    checkpoint_dir: Path = Field(
+        Path("runs/checkpoints"),
+        description="Folder of the model checkpoint, <run id>.trainer.pt, written atomically "
+                    "every checkpoint_period_s while the model trains; a restarted trainer "
+                    "resumes from it when backend and scene match. POST /reset and PUT "
+                    "/backend delete it (they start fresh).")
+    checkpoint_period_s: float = Field(
+        30.0, ge=0, le=86_400,
+        description="Wall seconds between two checkpoint writes (0: no checkpoints).")
     frames_per_camera: int = Field(
         8, ge=1, le=1024,
         description="Delivered frames kept per camera (encoded) to resolve a decision's "

@@ -92,6 +92,10 @@ class TrainerWorker:
         sizes = {(c.width, c.height) for c in dataset.cameras}
         self._size = sizes.pop() if len(sizes) == 1 else None
         self._skew_ms = settings.common.skew_ms
+        self._scene_key = f"{dataset.root.resolve()}|{np.asarray(dataset.aabb).tolist()}"
+        self._ckpt_path = settings.checkpoint_dir / f"{settings.common.run_id}.trainer.pt"
+        self._ckpt_saved_steps: int | None = 0  # nothing trained: nothing to save
+        self.resumed_steps = 0
         self._decisions_beat = Heartbeat(settings.common.stall_s)  # a decision accepted
         self._steps_beat = Heartbeat(settings.common.stall_s)  # a training step taken
         self.trainer = self._build_trainer(self.backend)
@@ -138,6 +142,8 @@ class TrainerWorker:
             "aoi3d_trainer_inbox_overflow",
             "Frames and decisions dropped unread because the training thread fell behind.",
             registry=registry)
+        self.m_checkpoints = Counter("aoi3d_trainer_checkpoints", "Model checkpoints written.",
+                                     registry=registry)
         self.m_loss.set(math.nan)
         for gauge in (self.m_render_age, self.m_render_lag, self.m_frames_age):
             gauge.set(math.nan)
@@ -171,6 +177,7 @@ class TrainerWorker:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
+        self._resume()
         self.bus.subscribe(self.keys.edge_frames, self._on_frame)
         self.bus.subscribe(self.keys.decision, self._on_decision)
         self._thread = threading.Thread(target=self._run, name="trainer", daemon=True)
@@ -276,8 +283,51 @@ class TrainerWorker:
             return self._latest
 
     # ------------------------------------------------------------------ training thread
+    # ------------------------------------------------------------------ checkpoints
+    def _resume(self) -> None:
+        """Go on from this run's checkpoint when it is of the same backend and scene."""
+        if not self.settings.checkpoint_period_s or not self._ckpt_path.is_file():
+            return
+        import torch
+
+        try:
+            doc = torch.load(self._ckpt_path, map_location=self.device, weights_only=False)
+            if (doc.get("backend"), doc.get("scene")) != (self.backend, self._scene_key):
+                log.info("checkpoint %s is of backend %s on another scene or backend: starting "
+                         "fresh", self._ckpt_path, doc.get("backend"))
+                return
+            self.trainer.restore(doc["state"])
+        except Exception as err:  # a torn or foreign file must not stop the trainer
+            log.warning("could not resume from %s (%r): starting fresh", self._ckpt_path, err)
+            self.trainer = self._build_trainer(self.backend)
+            self.rec = Reconstruction(self.trainer, self.rec.carry, self.rec.render_steps)
+            return
+        self.resumed_steps = self._ckpt_saved_steps = self.trainer.steps
+        log.info("resumed from %s at step %d", self._ckpt_path, self.trainer.steps)
+
+    def _save_checkpoint(self) -> None:
+        """Write the model atomically (a temporary file, then rename) if it trained since."""
+        if self.trainer.steps == self._ckpt_saved_steps:
+            return
+        import torch
+
+        self._ckpt_path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self._ckpt_path.with_suffix(".tmp")
+        torch.save({"backend": self.backend, "scene": self._scene_key,
+                    "saved_unix_s": time.time(), "state": self.trainer.checkpoint()}, tmp)
+        tmp.replace(self._ckpt_path)
+        self._ckpt_saved_steps = self.trainer.steps
+        self.m_checkpoints.inc()
+
+    def _drop_checkpoint(self) -> None:
+        """A reset or a new backend starts fresh, also after a restart."""
+        self._ckpt_path.unlink(missing_ok=True)
+        self._ckpt_saved_steps = None
+
     def _run(self) -> None:
         next_render_s = time.monotonic() + self.settings.render_period_s
+        period_s = self.settings.checkpoint_period_s
+        next_ckpt_s = time.monotonic() + period_s
         try:
             while not self._stop.is_set():
                 self._wake.clear()
@@ -295,6 +345,12 @@ class TrainerWorker:
                     # background training gets render_period_s between two renders, however
                     # long a render (with its own training) took
                     next_render_s = time.monotonic() + self.settings.render_period_s
+                if period_s and now >= next_ckpt_s:
+                    try:
+                        self._save_checkpoint()
+                    except OSError as err:
+                        log.warning("could not write checkpoint %s: %r", self._ckpt_path, err)
+                    next_ckpt_s = time.monotonic() + period_s
                 if not training:
                     self._wake.wait(min(_IDLE_WAIT_S, max(0.0, next_render_s - now)))
         except Exception as err:  # keep the service up to report it on /readyz
@@ -484,6 +540,7 @@ class TrainerWorker:
             log.warning("%s", request.error)
         else:
             previous = self.backend
+            self._drop_checkpoint()
             with self._state_lock:
                 self.trainer = trainer
                 self.rec = rec
@@ -502,6 +559,7 @@ class TrainerWorker:
 
     def _do_reset(self) -> None:
         self.trainer.reset()  # keeps the views
+        self._drop_checkpoint()
         with self._state_lock:
             self._resets += 1
             self._loss = None

@@ -38,6 +38,9 @@ from tests.integration.test_pipeline import (
 )
 from tests.services.test_scheduler_ppo import make_subset_checkpoint
 
+TOKEN = "ppo-live-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 N_CAMERAS = 18  # aoi3d up's rig
@@ -53,8 +56,10 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1"]
+    # control locked with a token, checkpoints in the test's folder (README, Security)
     env = dict(os.environ, AOI3D_SCHEDULER_POLICY="all", AOI3D_SCHEDULER_LEARN_BATCH_SIZE="2",
-               AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20")
+               AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
+               AOI3D_CONTROL_TOKEN=TOKEN, AOI3D_FILES_ROOTS=str(tmp_path))
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
@@ -75,6 +80,10 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
 
         # switch to the checkpoint: from now on, the known odd cameras and nothing else
         r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": False})
+        assert r.status_code == 401, r.text  # no token: refused, nothing changed
+        assert HTTP.get(sched).json()["spec"] == "all"
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": False},
+                     headers=AUTH)
         assert r.status_code == 200, r.text
         assert r.json()["spec"] == f"ppo:{ckpt}" and r.json()["learn"] is False
         t1 = time.monotonic()
@@ -86,12 +95,14 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
             assert [s.camera_id for s in d.selected] == known_odd
             assert known_odd  # frames flow: it really selects something
         # bad checkpoints are refused, and the policy stays
-        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(tmp_path / "none.pt")})
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(tmp_path / "none.pt")},
+                     headers=AUTH)
         assert r.status_code == 422 and "no PPO checkpoint" in r.text
         assert HTTP.get(sched).json()["spec"] == f"ppo:{ckpt}"
 
         # learn online: the metrics service's Quality of each rendered decision is its reward
-        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": True})
+        r = HTTP.put(sched, json={"kind": "ppo", "checkpoint": str(ckpt), "learn": True},
+                     headers=AUTH)
         assert r.status_code == 200, r.text
         assert r.json()["learn"] is True and r.json()["save_to"] == str(online)
         wait_for("episodes learned online",
@@ -105,7 +116,7 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
         assert math.isfinite(metric("scheduler", "aoi3d_ppo_policy_entropy"))
 
         # back to a rule: learning stops and the online checkpoint is written
-        r = HTTP.put(sched, json={"kind": "all"})
+        r = HTTP.put(sched, json={"kind": "all"}, headers=AUTH)
         assert r.status_code == 200, r.text
         assert metric("scheduler", "aoi3d_ppo_learning") == 0
         learned = SingleStepPPO.load(online)

@@ -61,7 +61,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
 def make_settings(**overrides) -> Settings:
     common = CommonSettings(run_id=KEYS.run_id, cameras=N_TRAIN, time_scale=10.0,
                             epoch_s=time.time())
-    values = {"render_period_s": 0.15, "steps_per_chunk": 2, "device": "cpu", "common": common}
+    values = {"render_period_s": 0.15, "steps_per_chunk": 2, "device": "cpu", "common": common,
+              "checkpoint_period_s": 0}  # the checkpoint tests turn them on
     values.update(overrides)
     return Settings(**values)
 
