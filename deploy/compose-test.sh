@@ -22,5 +22,5 @@ export AOI3D_PROMETHEUS_IMAGE=${AOI3D_PROMETHEUS_IMAGE:-aoi3d-prometheus:debian}
 t=$(date +%s)
 deploy/build-images.sh
 echo "compose-test: images built in $(( $(date +%s) - t ))s" >&2
-AOI3D_COMPOSE_TEST=1 "$PY" -m pytest -p no:cacheprovider -v -m containers tests/containers "$@"
+AOI3D_COMPOSE_TEST=1 "$PY" -m pytest -p no:cacheprovider -v -s -m containers tests/containers "$@"
 echo "compose-test: passed in $(( $(date +%s) - start ))s (engine, images, stack)" >&2

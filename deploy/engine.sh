@@ -144,6 +144,9 @@ stop() {
         if [ "$waited" -ge 60 ]; then say "dockerd ignored TERM for 60s: KILL"; kill -KILL "$pid"; fi
         sleep 1; waited=$((waited + 1))
     done
+    # dockerd leaves its default network namespace mounted under the exec root
+    awk -v d="$ENGINE_DIR/exec/" 'index($2, d) == 1 {print $2}' /proc/mounts | sort -r |
+        while read -r m; do umount "$m" 2>/dev/null || true; done
     rm -f "$PIDFILE" "$SOCK"
 }
 
