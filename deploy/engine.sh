@@ -27,8 +27,8 @@ WAIT_S=${AOI3D_ENGINE_WAIT_S:-120}
 
 say() { echo "engine: $*" >&2; }
 
-# A newer CLI than the engine (e.g. the CLI 28.x with Debian's engine 20.10, API 1.41) must
-# speak the engine's API version: ask the engine, unless the caller pinned one.
+# The engine's API version (Debian's engine 20.10: 1.41). The CLI 28.x negotiates down to it
+# by itself; DOCKER_API_VERSION is exported for clients that do not negotiate.
 api_version() {
     DOCKER_API_VERSION='' docker -H "$1" version --format '{{.Server.APIVersion}}' 2>/dev/null \
         || curl -s --unix-socket "${1#unix://}" http://engine/version 2>/dev/null \
