@@ -17,6 +17,7 @@ on this project's machines pip finds the same file on disk (its find-links).
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import tempfile
@@ -27,6 +28,8 @@ ROOT = Path(__file__).resolve().parents[1]
 LOCK = ROOT / "deploy" / "requirements.lock"
 EXTRA = ["setuptools>=77"]  # the build backend: the image builds the project offline
 """Requirements beyond [project] dependencies that the image needs."""
+TORCH_INDEX = "https://download.pytorch.org/whl/cpu"
+"""Where torch's CPU build is (pip also finds it in its configured find-links, if any)."""
 
 
 def requirements() -> list[str]:
@@ -38,11 +41,14 @@ def resolve(reqs: list[str]) -> list[tuple[str, str, str]]:
     """``(name, version, sha256)`` of every distribution pip would install, sorted by name."""
     with tempfile.TemporaryDirectory() as tmp:
         req_file = Path(tmp) / "requirements.in"
-        req_file.write_text("\n".join(reqs) + "\n", encoding="utf-8")
+        # torch==X as the CPU build X+cpu: PyPI's X for Linux is the CUDA build
+        cpu = [f"{r}+cpu" if re.fullmatch(r"torch==[\d.]+", r) else r for r in reqs]
+        req_file.write_text("\n".join(cpu) + "\n", encoding="utf-8")
         report = Path(tmp) / "report.json"
         subprocess.run(
             [sys.executable, "-m", "pip", "install", "--quiet", "--dry-run",
              "--ignore-installed", "--only-binary=:all:", "--report", str(report),
+             "--retries", "1", "--extra-index-url", TORCH_INDEX,
              "-r", str(req_file)],
             check=True)
         data = json.loads(report.read_text(encoding="utf-8"))
