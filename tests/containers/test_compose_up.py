@@ -143,10 +143,14 @@ def test_every_healthcheck_passes(stack: Stack) -> None:
         else:
             assert state["Health"]["Status"] == "healthy", (service, state["Health"])
     # limits reach the engine, and the trainer's torch threads follow its CPU limit
+    cpus = int(stack.env.get("AOI3D_TRAINER_CPUS", "2"))
     host = stack.inspect("trainer")["HostConfig"]
-    assert host["NanoCpus"] == 2 * 10**9 and host["Memory"] == 4 * 2**30, host
+    assert host["NanoCpus"] == cpus * 10**9 and host["Memory"] > 0, host
     env = dict(e.split("=", 1) for e in stack.inspect("trainer")["Config"]["Env"])
-    assert env["AOI3D_TRAINER_TORCH_THREADS"] == "2"
+    assert env["AOI3D_TRAINER_TORCH_THREADS"] == str(cpus)
+    for service in SERVICES:
+        limits = stack.inspect(service)["HostConfig"]
+        assert limits["NanoCpus"] > 0 and limits["Memory"] > 0, (service, limits)
     mounts = {m["Destination"]: m for m in stack.inspect("trainer")["Mounts"]}
     assert mounts["/app/runs"]["Type"] == "volume" and mounts["/data"]["Type"] == "volume"
 
