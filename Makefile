@@ -43,7 +43,7 @@ proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 lint: install  ## ruff
 	$(VENV)/bin/ruff check .
 
-bench: install bench-ray  ## benchmarks (results under bench/results/; about 28 minutes)
+bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
 	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.1 --window-s 60
@@ -53,6 +53,8 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 28 
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine
+	$(PY) bench/trainer_restart.py
+	$(PY) bench/soak.py --minutes 30
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'

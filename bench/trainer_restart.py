@@ -29,7 +29,9 @@ METRICS = f"http://127.0.0.1:{8105 + OFFSET}"
 
 
 def history() -> list[dict]:
-    return httpx.get(f"{METRICS}/quality", timeout=30).json()["history"]
+    """Every scored render so far (the metrics service keeps the last 1000)."""
+    return httpx.get(f"{METRICS}/quality", params={"limit": 100_000},
+                     timeout=30).json()["history"]
 
 
 def run(period_s: float, args: argparse.Namespace, log_dir: Path) -> dict:

@@ -15,6 +15,7 @@ from typing import Literal, Protocol
 
 from fastapi import FastAPI, Request
 from fastapi.responses import JSONResponse, Response
+from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
 
 from services.kit.bus import Bus, ZenohBus
@@ -68,7 +69,10 @@ def service_app(
                 the_bus.close()
             log.info("%s stopped", title)
 
-    app = FastAPI(title=title, description=description, version="0.1.0", lifespan=lifespan)
+    # /docs and /redoc from the Swagger UI and ReDoc assets installed with fastapi-offline
+    # (served under /static-offline-docs): no CDN, so the API docs work on an offline machine
+    app = FastAPIOffline(title=title, description=description, version="0.1.0",
+                         lifespan=lifespan)
     app.state.registry = registry
     app.state.settings = settings
     common = settings.common

@@ -50,3 +50,22 @@ def test_readme_route_table_exists(openapi_paths: dict[str, dict]) -> None:
             for one in method.split("/"):
                 assert one.lower() in openapi_paths[m.group(1)].get(path, {}), (m.group(1),
                                                                                  one, path)
+
+
+def test_api_docs_load_nothing_from_outside() -> None:
+    """/docs and /redoc of every service (one service_app for all) reference only assets the
+    service serves itself, and those load: the pages work on a machine with no internet."""
+    from fastapi.testclient import TestClient
+
+    from services.network.app import create_app
+    from services.network.settings import Settings
+
+    with TestClient(create_app(Settings(), bus=MemoryBus())) as client:
+        for page in ("/docs", "/redoc"):
+            html = client.get(page).text
+            urls = re.findall(r'(?:src|href)\s*=\s*["\']([^"\']+)["\']', html)
+            urls += re.findall(r'url:\s*["\']([^"\']+)["\']', html)
+            assert urls, html[:500]
+            for u in urls:
+                assert u.startswith("/"), f"{page} loads {u} from outside the service"
+                assert client.get(u).status_code == 200, u

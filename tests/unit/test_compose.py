@@ -52,16 +52,11 @@ HTTP_SERVICES = (*SERVICES, "console")
 """Every service with a REST API in compose.yaml (the console calls the others by name)."""
 
 AWAITED = {
-    "services.console": "helper console (issue 10): services/console/",
-    "AOI3D_CONTROL_TOKEN_FILE": "helper rest (issue 11): CommonSettings.control_token",
-    "AOI3D_ALLOWED_HOSTS": "helper rest (issue 11): CommonSettings.allowed_hosts",
-    "AOI3D_ZENOH_USER": "helper rest: Zenoh credentials",
-    "AOI3D_ZENOH_PASSWORD_FILE": "helper rest: Zenoh credentials",
-    "AOI3D_TRAINER_CHECKPOINT_DIR": "helper faults (issue 11): trainer checkpoints",
+    "services.console": "the web console (issue 10): services/console/",
 }
-"""Names compose.yaml already uses for code being written beside it (the shared interfaces of
-this round). Each is checked like any other as soon as the code has it; until then its
-absence is tolerated, and only for these names (test_awaited_names_report lists them)."""
+"""Names compose.yaml already uses for code not in this tree yet. Each is checked like any
+other as soon as the code has it; until then its absence is tolerated, and only for these
+names (test_awaited_names_report lists them)."""
 
 SECRET_FIELDS = {"AOI3D_CONTROL_TOKEN", "AOI3D_ZENOH_PASSWORD"}
 """Settings whose value may come from a file: ``<NAME>_FILE`` holds its path (compose secrets)."""
@@ -160,7 +155,8 @@ def settings_classes(module: str) -> list[type[BaseSettings]]:
     """The ``BaseSettings`` classes a ``python -m module`` process reads its environment with.
 
     ``module.settings`` if it exists (the services), else ``module`` itself (the router); a
-    class derived from ``ServiceSettings`` also reads ``CommonSettings`` (prefix ``AOI3D_``).
+    class derived from ``ServiceSettings`` also reads ``CommonSettings`` (prefix ``AOI3D_``),
+    and so does the router for the Zenoh credentials (``router_config``).
     """
     name = f"{module}.settings" if (ROOT / Path(*module.split(".")) / "settings.py").is_file() \
         else module
@@ -168,7 +164,7 @@ def settings_classes(module: str) -> list[type[BaseSettings]]:
     found: list[type[BaseSettings]] = [
         obj for obj in vars(mod).values()
         if isinstance(obj, type) and issubclass(obj, BaseSettings) and obj.__module__ == name]
-    if any(issubclass(cls, ServiceSettings) for cls in found):
+    if any(issubclass(cls, ServiceSettings) for cls in found) or module == "services.router":
         found.append(CommonSettings)
     return found
 
