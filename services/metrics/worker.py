@@ -198,6 +198,25 @@ class MetricsWorker:
             self._m_lpips = Gauge("aoi3d_render_lpips", "LPIPS of the latest scored render.",
                                   registry=registry)
             self._m_lpips.set(math.nan)
+        # Every score also into a histogram: a scrape every 5 s sees one render in three with
+        # the last-value gauges, but rate(_sum)/rate(_count) averages every render since.
+        db = (10.0, 14.0, 18.0, 20.0, 22.0, 24.0, 26.0, 28.0, 30.0, 35.0, 40.0)
+        unit = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9, 0.95, 1.0)
+        every = " of every scored render (rate(_sum)/rate(_count): the mean over a window)."
+        self._h_psnr = Histogram("aoi3d_quality_psnr_db", "PSNR (dB)" + every, buckets=db,
+                                 registry=registry)
+        self._h_psnr_dyn = Histogram("aoi3d_quality_psnr_dynamic_db",
+                                     "Dynamic-region PSNR (dB)" + every, buckets=db,
+                                     registry=registry)
+        self._h_ssim = Histogram("aoi3d_quality_ssim", "SSIM" + every, buckets=unit,
+                                 registry=registry)
+        self._h_reward = Histogram("aoi3d_quality_reward", "Reward" + every,
+                                   buckets=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
+                                   registry=registry)
+        self._h_lpips = None
+        if lpips_fn is not None:
+            self._h_lpips = Histogram("aoi3d_quality_lpips", "LPIPS" + every, buckets=unit,
+                                      registry=registry)
         self._m_lag = Histogram(
             "aoi3d_render_lag_seconds",
             "Sim seconds between a render's decision time t and its scoring.",
@@ -357,6 +376,13 @@ class MetricsWorker:
             self._m_dyn_missing.labels(reason=missing).inc()
         if self._m_lpips is not None and q.lpips is not None:
             self._m_lpips.set(q.lpips)
+        self._h_psnr.observe(q.psnr_db)
+        self._h_ssim.observe(q.ssim)
+        self._h_reward.observe(q.reward)
+        if record.psnr_dynamic_db is not None:
+            self._h_psnr_dyn.observe(record.psnr_dynamic_db)
+        if self._h_lpips is not None and q.lpips is not None:
+            self._h_lpips.observe(q.lpips)
         if math.isfinite(lag_ms) and lag_ms >= 0:
             self._m_lag.observe(lag_ms / 1000.0)
 

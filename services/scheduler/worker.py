@@ -36,7 +36,7 @@ import threading
 from dataclasses import dataclass
 
 import numpy as np
-from prometheus_client import CollectorRegistry, Counter, Gauge
+from prometheus_client import CollectorRegistry, Counter, Gauge, Info, Summary
 
 from aoi3d.aoi import AoITracker
 from aoi3d.clock import SimClock
@@ -154,6 +154,15 @@ class SchedulerWorker:
         self._m_inbox_dropped = Counter(
             "aoi3d_inbox_dropped", "Frames dropped because the decision thread fell behind.",
             registry=registry)
+        self._m_aoi_summary = Summary(
+            "aoi3d_decision_aoi_seconds",
+            "AoI of each camera at every decision (sim s): rate(_sum)/rate(_count) is its "
+            "mean over a window, not a snapshot.", ["camera"], registry=registry)
+        self._m_policy = Info("aoi3d_policy", "The selection policy in force (kind and spec).",
+                              registry=registry)
+        self._m_mat = Gauge("aoi3d_policy_mat_seconds",
+                            "Γ of the MAT policy in force (sim s); NaN for other kinds.",
+                            registry=registry)
         self._m_learn = LearnerMetrics(registry)
         self._install(place_on(policy, device), save_to=None)
 
@@ -253,6 +262,10 @@ class SchedulerWorker:
             old, self._learner = self._learner, learner
             self._policy = policy
         self._m_learn.learning_changed(learner is not None)
+        doc = policy.to_json()
+        self._m_policy.info({"kind": str(doc.get("kind", "")), "spec": policy.spec})
+        mat_ms = doc.get("mat_ms") if doc.get("kind") == "mat" else None
+        self._m_mat.set(float(mat_ms) / 1000.0 if mat_ms is not None else math.nan)
         return old
 
     def _close_learner(self, learner: OnlineLearner) -> None:
@@ -377,6 +390,7 @@ class SchedulerWorker:
         for cam, a in zip(self.camera_ids, sel.aoi_ms, strict=True):
             if math.isfinite(a):
                 self._m_aoi.labels(camera=str(cam)).set(a / 1000.0)
+                self._m_aoi_summary.labels(camera=str(cam)).observe(a / 1000.0)
 
     # ------------------------------------------------------------------ the learning thread
     def _on_quality(self, key: str, payload: bytes) -> None:

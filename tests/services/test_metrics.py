@@ -480,3 +480,18 @@ def test_oversized_render_is_rejected_before_decoding(make_harness) -> None:
     h.bus.publish(KEYS.render, big.SerializeToString())
     h.flush()
     assert h.rejected("too_large") == 1
+
+
+def test_every_score_goes_into_histograms(make_harness) -> None:
+    """A scrape every 5 s sees one render in three through the last-value gauges; the
+    histograms count every one (issue 10: Prometheus loses nothing)."""
+    h = make_harness()
+    scores = [h.score(t, noisy(truth_image(t), seed=i), decision_id=i + 1)
+              for i, t in enumerate((0.0, 30.0, 60.0, 90.0))]
+    text = h.client.get("/metrics").text
+    assert metric(text, "aoi3d_quality_psnr_db_count") == 4
+    assert metric(text, "aoi3d_quality_psnr_db_sum") == pytest.approx(
+        sum(q.psnr_db for q in scores))
+    assert metric(text, "aoi3d_quality_ssim_count") == 4
+    assert metric(text, "aoi3d_quality_reward_sum") == pytest.approx(sum(q.reward for q in scores))
+    assert metric(text, "aoi3d_quality_lpips_count") is None  # no LPIPS here: no series
