@@ -41,10 +41,10 @@ from pathlib import Path
 
 log = logging.getLogger("aoi3d.up")
 
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
+SERVICES = ("camera", "network", "scheduler", "trainer", "metrics", "console")
 """The services ``aoi3d up`` runs, in start order (``python -m services.<name>``)."""
 DEFAULT_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-                 "metrics": 8105}
+                 "metrics": 8105, "console": 8106}
 """Each service's REST port before ``--port-offset``."""
 assert set(DEFAULT_PORTS) == set(SERVICES)
 LATEST = "latest"

@@ -27,6 +27,7 @@ HINTS = {
     "scheduler": "GET /aoi, PUT /policy",
     "trainer": "GET /status, /render.png",
     "metrics": "GET /quality?limit=5",
+    "console": "open / in a browser",
 }
 """What to try first on each service (a service without a hint shows its /docs)."""
 
@@ -107,6 +108,8 @@ def up(
             table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
         console.print(table)
+        console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
+                      "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
         sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
         console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
                       """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)

@@ -1,0 +1,239 @@
+// The aoi3d console page: state pushed by /events (Server-Sent Events), drawn with plain SVG;
+// controls call the services through the console's /api/<service>/<path>. No framework.
+"use strict";
+
+const $ = (id) => document.getElementById(id);
+const SVG = "http://www.w3.org/2000/svg";
+const SERIES = [  // timelines: [key, label, colour]
+  ["psnr_db", "PSNR (dB)", "#4fc3f7"], ["psnr_dynamic_db", "dynamic-region PSNR (dB)", "#81c784"],
+  ["ssim", "SSIM", "#fff176"], ["lpips", "LPIPS", "#ff8a65"], ["reward", "reward", "#ce93d8"],
+];
+let lastRender = null;
+let state = null;
+
+function el(tag, attrs, parent) {
+  const e = document.createElementNS(SVG, tag);
+  for (const [k, v] of Object.entries(attrs)) e.setAttribute(k, v);
+  if (parent) parent.appendChild(e);
+  return e;
+}
+
+function facts(dl, pairs) {
+  dl.replaceChildren();
+  for (const [k, v] of pairs) {
+    const dt = document.createElement("dt"); dt.textContent = k;
+    const dd = document.createElement("dd"); dd.textContent = v;
+    dl.append(dt, dd);
+  }
+}
+
+const fmt = (x, d = 1) => (x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(d));
+
+function headers() {
+  const h = { "content-type": "application/json" };
+  const token = localStorage.getItem("aoi3d-token");
+  if (token) h.authorization = `Bearer ${token}`;
+  return h;
+}
+
+async function call(method, service, path, body) {
+  const r = await fetch(`/api/${service}/${path}`, {
+    method, headers: headers(), body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  let doc = null;
+  try { doc = await r.json(); } catch (e) { doc = null; }
+  if (!r.ok) {
+    const detail = doc && doc.detail;
+    const text = typeof detail === "string" ? detail
+      : Array.isArray(detail) ? detail.map((d) => `${(d.loc || []).join(".")}: ${d.msg}`).join("; ")
+      : `HTTP ${r.status}`;
+    throw new Error(text);
+  }
+  return doc;
+}
+
+function say(id, text, ok) {
+  const m = $(id);
+  m.textContent = text;
+  m.className = `msg ${ok ? "ok" : "error"}`;
+}
+
+// ---------------------------------------------------------------- drawing
+function drawImages(s) {
+  const r = s.render;
+  if (!r) return;
+  $("render-time").textContent = `t = ${fmt(r.time_ms / 1000, 2)} s (decision ${r.decision_id}, ${r.n_views} views, ${r.carry})`;
+  $("truth-time").textContent = r.truth_time_ms === null ? "(none of that time yet)" : `t = ${fmt(r.truth_time_ms / 1000, 2)} s`;
+  if (r.decision_id !== lastRender) {
+    lastRender = r.decision_id;
+    const q = `?d=${r.decision_id}`;
+    $("render").src = `/render.png${q}`;
+    if (r.truth_time_ms !== null) { $("truth").src = `/truth.png${q}`; $("diff").src = `/diff.png${q}`; }
+  }
+}
+
+function currentMat(s) {
+  const p = s.policy;
+  return p && p.kind === "mat" ? p.mat_ms : null;
+}
+
+function drawAoI(s) {
+  const svg = $("aoi");
+  svg.replaceChildren();
+  const d = s.decision;
+  if (!d) return;
+  const W = 720, H = 180, pad = 28;
+  const mat = currentMat(s);
+  const finite = d.aoi_ms.filter((a) => a !== null);
+  const top = Math.max(100, mat || 0, ...finite) * 1.1;
+  const bw = (W - pad) / d.camera_ids.length;
+  const y = (v) => H - 18 - (v / top) * (H - 30);
+  const used = new Set(d.selected);
+  d.camera_ids.forEach((cam, i) => {
+    const a = d.aoi_ms[i];
+    const x = pad + i * bw + 2;
+    if (a === null) {
+      el("rect", { x, y: y(top * 0.9), width: bw - 4, height: H - 18 - y(top * 0.9), class: "bar-unknown" }, svg);
+    } else {
+      el("rect", { x, y: y(a), width: bw - 4, height: H - 18 - y(a),
+        class: used.has(cam) ? "bar-used" : "bar-unused", "data-camera": cam, "data-aoi": a,
+        "data-used": used.has(cam) ? "1" : "0" }, svg);
+    }
+    el("text", { x: x + bw / 2 - 6, y: H - 4 }, svg).textContent = cam;
+  });
+  for (const v of [0, top / 2]) el("text", { x: 0, y: y(v) + 4 }, svg).textContent = `${Math.round(v)}`;
+  if (mat !== null) {
+    el("line", { x1: pad, x2: W, y1: y(mat), y2: y(mat), class: "mat-line", id: "mat-line" }, svg);
+    el("text", { x: W - 90, y: y(mat) - 4 }, svg).textContent = `Γ = ${mat} ms`;
+  }
+}
+
+function drawChannel(s) {
+  const c = s.channel_summary;
+  const t = s.trainer || {};
+  facts($("channel"), c ? [
+    ["delay", c.delay],
+    ["delivered / s", fmt(c.delivered_per_s, 1)],
+    ["drop ratio", fmt(c.drop_ratio, 3)],
+    ["delay p50 / p90 / p99 (configured)", c.delay_quantiles_ms
+      ? ["0.5", "0.9", "0.99"].map((q) => fmt(c.delay_quantiles_ms[q], 0)).join(" / ") + " ms" : "–"],
+  ] : [["channel", (s.channel && s.channel.error) || "–"]]);
+  facts($("trainer"), [
+    ["backend", t.backend || "–"], ["training steps / s", fmt(t.steps_per_s, 1)],
+    ["views", t.n_views ?? "–"], ["render age", s.render ? `${fmt(s.render.age_s, 1)} s` : "–"],
+    ["renders", t.renders ?? "–"],
+  ]);
+  $("policy-now").textContent = s.decision ? `policy ${s.decision.policy}` : "";
+  $("delay-now").textContent = c ? `delay ${c.delay}` : "";
+}
+
+function drawCharts(s) {
+  const box = $("charts");
+  box.replaceChildren();
+  const qs = s.quality;
+  if (!qs.length) { box.textContent = "waiting for the first scored render…"; return; }
+  const W = 720, H = 70, t1 = s.wall_s, t0 = Math.min(qs[0].wall_s, t1 - 60);
+  const x = (t) => 40 + ((t - t0) / (t1 - t0)) * (W - 50);
+  for (const [key, label, colour] of SERIES) {
+    const pts = qs.filter((q) => q[key] !== null && q[key] !== undefined);
+    const svg = el("svg", { width: W, height: H, "data-series": key }, box);
+    el("text", { x: 40, y: 11 }, svg).textContent = `${label}: ${pts.length ? fmt(pts[pts.length - 1][key], 3) : "–"}`;
+    if (!pts.length) continue;
+    const vals = pts.map((q) => q[key]);
+    let lo = Math.min(...vals), hi = Math.max(...vals);
+    if (hi - lo < 1e-9) { lo -= 0.5; hi += 0.5; }
+    const y = (v) => H - 6 - ((v - lo) / (hi - lo)) * (H - 22);
+    el("text", { x: 0, y: y(hi) + 4 }, svg).textContent = fmt(hi, 2);
+    el("text", { x: 0, y: y(lo) + 4 }, svg).textContent = fmt(lo, 2);
+    el("polyline", { class: "series", stroke: colour,
+      points: pts.map((q) => `${x(q.wall_s).toFixed(1)},${y(q[key]).toFixed(1)}`).join(" ") }, svg);
+    for (const m of s.markers) {
+      el("line", { x1: x(m.wall_s), x2: x(m.wall_s), y1: 14, y2: H, class: "marker" }, svg);
+      el("title", {}, svg).textContent = m.text;
+    }
+  }
+}
+
+function draw(s) {
+  state = s;
+  drawImages(s);
+  drawAoI(s);
+  drawChannel(s);
+  drawCharts(s);
+}
+
+// ---------------------------------------------------------------- controls
+function showPolicyRows() {
+  const kind = $("kind").value;
+  $("mat-row").hidden = kind !== "mat";
+  $("k-row").hidden = kind !== "freshest";
+  $("wait-row").hidden = kind !== "wait";
+  $("ppo-row").hidden = kind !== "ppo";
+}
+
+function policyBody() {
+  const kind = $("kind").value;
+  if (kind === "mat") return { kind, mat_ms: Number($("mat").value) };
+  if (kind === "freshest") return { kind, k: Number($("k").value) };
+  if (kind === "wait") return { kind, wait_ms: Number($("wait").value) };
+  if (kind === "ppo") return { kind, checkpoint: $("checkpoint").value };
+  return { kind };
+}
+
+async function applyPolicy() {
+  try {
+    const p = await call("PUT", "scheduler", "policy", policyBody());
+    say("policy-msg", `policy ${p.spec}`, true);
+  } catch (e) { say("policy-msg", e.message, false); }
+}
+
+async function applyDelay(spec) {
+  try {
+    const c = await call("PUT", "network", "channel", { delay: spec });
+    say("delay-msg", `delay ${c.delay}`, true);
+  } catch (e) { say("delay-msg", e.message, false); }
+}
+
+async function setup() {
+  const cfg = await (await fetch("/config")).json();
+  $("token-row").hidden = !cfg.token_required;
+  $("token").value = localStorage.getItem("aoi3d-token") || "";
+  $("token").addEventListener("change", () => localStorage.setItem("aoi3d-token", $("token").value));
+  for (const b of cfg.backends) $("backend").add(new Option(b, b));
+  try {
+    const list = await call("GET", "scheduler", "policy/checkpoints");
+    for (const c of list.checkpoints) $("checkpoint").add(new Option(c, c));
+  } catch (e) { $("checkpoint").add(new Option("(none found)", "")); }
+  try {
+    const p = await call("GET", "scheduler", "policy");
+    $("kind").value = p.kind;
+    if (p.kind === "mat") { $("mat").value = p.mat_ms; $("mat-value").textContent = p.mat_ms; }
+    const t = await call("GET", "trainer", "status");
+    $("backend").value = t.backend;
+  } catch (e) { /* shown by the next event */ }
+  showPolicyRows();
+  $("kind").addEventListener("change", showPolicyRows);
+  $("mat").addEventListener("input", () => { $("mat-value").textContent = $("mat").value; });
+  $("mat").addEventListener("change", applyPolicy);  // a slider move applies at release
+  $("apply-policy").addEventListener("click", applyPolicy);
+  $("delay-mean").addEventListener("input", () => { $("delay-mean-value").textContent = $("delay-mean").value; });
+  $("delay-mean").addEventListener("change", () => applyDelay(`exp:${$("delay-mean").value}`));
+  $("apply-delay").addEventListener("click", () => applyDelay($("delay-spec").value || `exp:${$("delay-mean").value}`));
+  $("apply-backend").addEventListener("click", async () => {
+    try {
+      await call("PUT", "trainer", "backend", { backend: $("backend").value });
+      say("model-msg", `backend ${$("backend").value}`, true);
+    } catch (e) { say("model-msg", e.message, false); }
+  });
+  $("reset").addEventListener("click", async () => {
+    try { await call("POST", "trainer", "reset"); say("model-msg", "model reset", true); }
+    catch (e) { say("model-msg", e.message, false); }
+  });
+
+  const events = new EventSource("/events");
+  events.onopen = () => { $("conn").textContent = "live"; $("conn").className = "pill ok"; };
+  events.onerror = () => { $("conn").textContent = "reconnecting…"; $("conn").className = "pill bad"; };
+  events.onmessage = (ev) => draw(JSON.parse(ev.data));
+}
+
+setup();

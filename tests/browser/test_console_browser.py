@@ -1,0 +1,124 @@
+"""The console in a real browser (Debian's Chromium driven by Playwright) against a real
+pipeline on loopback (issue 10): the page loads with no failed request and none leaving
+127.0.0.1, the images update, the MAT slider changes the scheduler's policy and the AoI bars'
+used marks follow, a bad delay spec shows the API's message, and every service's /docs
+renders. Screenshots go to the test's folder (and to $AOI3D_CONSOLE_SCREENSHOT if set)."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import uuid
+from pathlib import Path
+from urllib.parse import urlsplit
+
+import pytest
+
+from tests.integration.test_pipeline import (
+    HTTP,
+    SCALE,
+    small_dataset,  # noqa: F401  (module fixture)
+    stop_pipeline,
+    wait_for,
+)
+
+CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
+pytestmark = [
+    pytest.mark.integration, pytest.mark.slow,
+    pytest.mark.skipif(not Path(CHROMIUM).is_file(),
+                       reason="Debian's chromium not installed (.ci/setup/20-chromium.sh)"),
+]
+sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
+
+PORT_OFFSET = 32_000 + (os.getpid() % 100) * 10
+ZENOH_PORT = 32_500 + os.getpid() % 400
+PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
+         "console": 8106}
+ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
+        "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic"]
+
+
+def url(service: str, path: str = "/") -> str:
+    return f"http://127.0.0.1:{PORTS[service] + PORT_OFFSET}{path}"
+
+
+def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+    run_id = f"web{uuid.uuid4().hex[:8]}"
+    up = subprocess.Popen(
+        [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset), "--run-id", run_id,
+         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+         str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1"],
+        env=dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
+                 AOI3D_SCHEDULER_POLICY="mat:70"),
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    failed: list[str] = []
+    outside: list[str] = []
+    timeout_ms = 30_000 * SCALE
+    try:
+        for name in PORTS:
+            wait_for(f"{name} /healthz",
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200,
+                     timeout_s=120)
+        with sync_api.sync_playwright() as pw:
+            browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
+            page = browser.new_page(viewport={"width": 1280, "height": 1100})
+            page.set_default_timeout(timeout_ms)
+            page.on("requestfailed", lambda r: failed.append(f"{r.url} {r.failure}"))
+            page.on("request", lambda r: outside.append(r.url)
+                    if urlsplit(r.url).hostname not in ("127.0.0.1", None)
+                    and not r.url.startswith("data:") else None)
+            page.goto(url("console"))
+
+            # the two images load, and update
+            page.wait_for_function("document.getElementById('render').naturalWidth > 0 && "
+                                   "document.getElementById('truth').naturalWidth > 0")
+            first = page.eval_on_selector("#render", "e => e.src")
+            page.wait_for_function(f"document.getElementById('render').src !== {first!r} && "
+                                   "document.getElementById('truth').naturalWidth > 0")
+
+            # the MAT slider changes the scheduler's policy; the used marks follow
+            page.select_option("#kind", "mat")
+            for mat in (200, 0):
+                page.eval_on_selector("#mat", f"e => {{ e.value = {mat}; "
+                                      "e.dispatchEvent(new Event('input')); "
+                                      "e.dispatchEvent(new Event('change')); }")
+                wait_for(f"GET /policy says mat {mat}", lambda m=mat: HTTP.get(
+                    url("scheduler", "/policy")).json().get("mat_ms") == m, timeout_s=30)
+                page.wait_for_function(
+                    "m => { const bars = [...document.querySelectorAll('#aoi rect[data-aoi]')];"
+                    " const now = document.getElementById('policy-now').textContent;"
+                    " return now === `policy mat:${m}` && bars.length > 0 && bars.every("
+                    " b => (b.dataset.used === '1') === (Number(b.dataset.aoi) < m)); }",
+                    arg=mat)
+                if mat == 200:  # some seconds of timeline by now: the README's screenshot
+                    page.screenshot(path=str(tmp_path / "console.png"), full_page=True)
+            page.screenshot(path=str(tmp_path / "console-mat0.png"), full_page=True)
+
+            # a bad delay spec: the API's message, inline; nothing changes
+            page.fill("#delay-spec", "weird:1")
+            page.click("#apply-delay")
+            page.wait_for_function("document.getElementById('delay-msg').textContent"
+                                   ".includes('Accepted forms')")
+            assert HTTP.get(url("network", "/channel")).json()["delay"] == "exp:60"
+
+            # leaving the page aborts its event stream: failures count until here
+            on_console = list(failed)
+
+            # /docs of every service renders (Swagger UI from the service itself)
+            for name in PORTS:
+                page.goto(url(name, "/docs"))
+                page.wait_for_selector(".opblock")
+                assert page.locator(".opblock").count() >= 3, name
+            browser.close()
+        assert not on_console, on_console
+        assert not [f for f in failed[len(on_console):] if "/events" not in f], failed
+        assert not outside, outside
+        target = os.environ.get("AOI3D_CONSOLE_SCREENSHOT")
+        if target:
+            shutil.copy(tmp_path / "console.png", target)
+    finally:
+        out = stop_pipeline(up)
+        if failed or outside:
+            print(out[-3000:])
