@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import io
 import json
-import time
 
 import numpy as np
 from fastapi.testclient import TestClient
@@ -20,7 +19,8 @@ from services.kit.codec import camera_to_pb, encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
-from tests.services.test_network import CAMERA, SCALE
+from tests.services.test_network import CAMERA
+from tests.services.test_trainer import wait_for
 
 KEYS = Keys("console")
 UPSTREAM = {n: "http://127.0.0.1:9" for n in ("camera", "network", "scheduler", "trainer",
@@ -40,16 +40,6 @@ def render(decision_id: int, t_ms: float, value: int) -> bytes:
     pose, intr = camera_to_pb(CAMERA)
     return pb.Render(decision_id=decision_id, time_ms=t_ms, pose=pose, intrinsics=intr,
                      image=encode_png(image(value)), n_views=3, carry="fresh").SerializeToString()
-
-
-def wait_for(check, timeout_s: float = 5.0):
-    deadline = time.monotonic() + timeout_s * SCALE
-    while time.monotonic() < deadline:
-        value = check()
-        if value:
-            return value
-        time.sleep(0.02)
-    raise AssertionError("timed out")
 
 
 def test_the_console_pairs_renders_with_the_truth_of_their_time() -> None:
