@@ -29,6 +29,7 @@ class Settings(ServiceSettings):
     port: int = Field(8106, ge=0, le=65535, description="REST API and web page port.")
     upstream: dict[str, str] = Field(
         default_factory=_default_upstream,
+        json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_<NAME>_PORT>` each"},
         description="Base URL of each service the console calls (JSON object); default: "
                     "127.0.0.1 at the ports `aoi3d up` gave them (AOI3D_<NAME>_PORT).")
     push_period_s: float = Field(0.5, gt=0.05, le=10,

@@ -27,12 +27,17 @@ def settings_classes() -> list[tuple[str, type[BaseSettings]]]:
 
     out: list[tuple[str, type[BaseSettings]]] = [("all services", CommonSettings),
                                                  ("router", RouterSettings)]
-    for name in ("camera", "network", "scheduler", "trainer", "metrics"):
+    from services.supervisor import SERVICES
+
+    for name in SERVICES:
         out.append((name, importlib.import_module(f"services.{name}.settings").Settings))
     return out
 
 
 def _default(field) -> str:
+    extra = field.json_schema_extra if isinstance(field.json_schema_extra, dict) else {}
+    if "doc_default" in extra:  # a default computed from the environment: described instead
+        return str(extra["doc_default"])
     value = field.default_factory() if field.default_factory is not None else field.default
     if isinstance(value, Path):
         value = str(value)
