@@ -107,7 +107,8 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
 
     if settings.host not in LOOPBACK and settings.common.token() is None:
         log.warning("the REST API listens on %s without a control token: anyone who can reach "
-                    "it can change the pipeline; set AOI3D_CONTROL_TOKEN (README, Security)",
+                    "it can change the pipeline; set AOI3D_CONTROL_TOKEN (README, 'Reliability "
+                    "and security')",
                     settings.host)
 
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning",

@@ -55,7 +55,6 @@ class CommonSettings(BaseSettings):
         description="Clock disagreement tolerated between services (wall seconds): a bus "
                     "message stamped further ahead of the receiver's clock than this (in sim "
                     "time: this × time scale) is rejected and counted as clock_skew.")
-
     zenoh_user: str | None = Field(
         None, description="Zenoh user name: with a password, every session authenticates to "
                           "the router (usrpwd), and a router given them accepts only sessions "

@@ -136,7 +136,7 @@ class MetricsWorker:
                  truth_period_ms: float = 30.0, truth_frames: int = 512, history: int = 1000,
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
-                 image_size: tuple[int, int] | None = None, stall_s: float = 30.0) -> None:
+                 stall_s: float = 30.0) -> None:
         if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
             raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
         self._bus = bus
@@ -145,7 +145,6 @@ class MetricsWorker:
         self._period_ms = truth_period_ms
         self._skew_ms = float(max_skew_ms)
         self._quality_beat = Heartbeat(stall_s)  # a Quality published
-        self._size = image_size
         self._weights = weights or RewardWeights()
         self._lpips_fn = lpips_fn
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
@@ -306,7 +305,7 @@ class MetricsWorker:
                                          f"{now_ms:g} ms")
 
     def _on_truth(self, payload: bytes) -> None:
-        frame = decode_frame(payload, camera_ids={HELDOUT_ID}, size=self._size)
+        frame = decode_frame(payload, camera_ids={HELDOUT_ID})
         self._ahead("truth frame generated", frame.generation_ms)
         self._ring.add(TruthFrame(generation_ms=frame.generation_ms,
                                   scene_time_ms=frame.scene_time_ms, image=frame.image))

@@ -282,7 +282,6 @@ class TrainerWorker:
         with self._state_lock:
             return self._latest
 
-    # ------------------------------------------------------------------ training thread
     # ------------------------------------------------------------------ checkpoints
     def _resume(self) -> None:
         """Go on from this run's checkpoint when it is of the same backend and scene."""
@@ -324,6 +323,7 @@ class TrainerWorker:
         self._ckpt_path.unlink(missing_ok=True)
         self._ckpt_saved_steps = None
 
+    # ------------------------------------------------------------------ training thread
     def _run(self) -> None:
         next_render_s = time.monotonic() + self.settings.render_period_s
         period_s = self.settings.checkpoint_period_s
