@@ -216,9 +216,11 @@ def test_a_killed_trainer_is_restarted(stack: Stack) -> None:
                   "    cmd = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')\n"
                   "    if cmd[:3] == [b'python', b'-m', b'services.trainer']:\n"
                   "        os.kill(int(pid), signal.SIGKILL)\n")
-    after = wait_for("the trainer restarted", lambda: (
-        s := stack.inspect("trainer"))["RestartCount"] > before["RestartCount"] and s)
-    assert after["State"]["StartedAt"] != before["State"]["StartedAt"]
+    # the engine counts the restart when it schedules it, and sets StartedAt once the new
+    # process runs: wait for both
+    wait_for("the trainer restarted", lambda: (
+        s := stack.inspect("trainer"))["RestartCount"] > before["RestartCount"]
+        and s["State"]["StartedAt"] != before["State"]["StartedAt"])
     wait_for("the trainer healthy again",
              lambda: stack.inspect("trainer")["State"]["Health"]["Status"] == "healthy",
              timeout_s=240)
