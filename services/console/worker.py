@@ -26,10 +26,9 @@ from prometheus_client import CollectorRegistry, Counter
 
 from aoi3d.channel import parse_delay
 from services.kit.bus import Bus
-from services.kit.codec import check_image, decode_decision, decode_frame, decode_quality
+from services.kit.codec import decode_decision, decode_frame, decode_quality, decode_render
 from services.kit.keys import Keys
 from services.kit.observe import Rejected, Rejections
-from services.kit.pb import aoi3d_pb2 as pb
 
 log = logging.getLogger(__name__)
 
@@ -119,7 +118,6 @@ class ConsoleWorker:
 
     def _on_truth(self, payload: bytes) -> None:
         frame = decode_frame(payload, camera_ids={0})
-        check_image(frame.image)
         with self._lock:
             t = frame.generation_ms
             if t not in self._truth:
@@ -137,12 +135,7 @@ class ConsoleWorker:
         return (t, self._truth[t]) if t_ms - t <= self._period_ms + 1e-6 else None
 
     def _on_render(self, payload: bytes) -> None:
-        msg = pb.Render()
-        try:
-            msg.ParseFromString(payload)
-        except Exception as err:
-            raise Rejected("malformed", f"not a Render ({err})") from err
-        check_image(msg.image)
+        msg, _camera = decode_render(payload)
         with self._lock:
             truth = self._truth_at(msg.time_ms)
             self._pair = Pair(render_png=msg.image.data,
