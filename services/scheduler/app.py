@@ -192,7 +192,8 @@ def get_policy(worker: Scheduler) -> PolicyResponse:
 @policy_router.put(
     "", summary="Replace the selection policy (used from the next decision on).",
     response_model_exclude_none=True,
-    responses={422: {"description": "Invalid policy (for ppo also: checkpoint missing or "
+    responses={422: {"description": "Invalid policy (for ppo also: checkpoint or save_to "
+                                    "outside AOI3D_FILES_ROOTS, checkpoint missing or "
                                     "unreadable, trained for another N, online checkpoint not "
                                     "writable); the detail says what is wrong and lists the "
                                     "accepted forms."}})
