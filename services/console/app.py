@@ -12,7 +12,6 @@ from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 
-from aoi3d.field import BACKENDS
 from services.console.settings import UPSTREAMS, Settings
 from services.console.worker import ConsoleWorker
 from services.kit.app import get_worker, service_app
@@ -44,10 +43,10 @@ def state(worker: Worker) -> JSONResponse:
     return JSONResponse(worker.snapshot())
 
 
-@router.get("/config", summary="Static facts the page needs (backends, services).")
+@router.get("/config", summary="Static facts the page needs (services, push period, token).")
 def config(request: Request) -> dict[str, Any]:
     settings: Settings = request.app.state.settings
-    return {"backends": sorted(BACKENDS), "services": sorted(UPSTREAMS),
+    return {"services": sorted(UPSTREAMS),
             "push_period_s": settings.push_period_s,
             "token_required": settings.common.token() is not None}
 

@@ -78,6 +78,11 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None: 
             page.wait_for_function(f"document.getElementById('render').src !== {first!r} && "
                                    "document.getElementById('truth').naturalWidth > 0")
 
+            # the controls know the trainer's backends and the scheduler's checkpoints
+            page.wait_for_function("document.getElementById('backend').options.length > 0")
+            backends = page.eval_on_selector_all("#backend option", "os => os.map(o => o.value)")
+            assert "grid" in backends and page.input_value("#backend") == "grid", backends
+
             # the MAT slider changes the scheduler's policy; the used marks follow
             page.select_option("#kind", "mat")
             for mat in (200, 0):

@@ -199,7 +199,6 @@ async function setup() {
   $("token-row").hidden = !cfg.token_required;
   $("token").value = localStorage.getItem("aoi3d-token") || "";
   $("token").addEventListener("change", () => localStorage.setItem("aoi3d-token", $("token").value));
-  for (const b of cfg.backends) $("backend").add(new Option(b, b));
   try {
     const list = await call("GET", "scheduler", "policy/checkpoints");
     for (const c of list.checkpoints) $("checkpoint").add(new Option(c, c));
@@ -208,7 +207,8 @@ async function setup() {
     const p = await call("GET", "scheduler", "policy");
     $("kind").value = p.kind;
     if (p.kind === "mat") { $("mat").value = p.mat_ms; $("mat-value").textContent = p.mat_ms; }
-    const t = await call("GET", "trainer", "status");
+    const t = await call("GET", "trainer", "status");  // its backends: the choices
+    for (const b of t.backends) $("backend").add(new Option(b, b));
     $("backend").value = t.backend;
   } catch (e) { /* shown by the next event */ }
   showPolicyRows();
