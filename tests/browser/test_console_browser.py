@@ -118,7 +118,12 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None: 
                 assert page.locator(".opblock").count() >= 3, name
             browser.close()
         assert not on_console, on_console
-        assert not [f for f in failed[len(on_console):] if "/events" not in f], failed
+        # leaving the console aborts what it still had in flight (its event stream, an image
+        # being fetched): that is the navigation, not a failure; anything else after is
+        left = ("/events", "/render.png", "/truth.png", "/diff.png", "/state", "/api/")
+        after = [f for f in failed[len(on_console):]
+                 if not ("net::ERR_ABORTED" in f and any(p in f for p in left))]
+        assert not after, failed
         assert not outside, outside
         target = os.environ.get("AOI3D_CONSOLE_SCREENSHOT")
         if target:
