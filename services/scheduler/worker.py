@@ -145,6 +145,11 @@ class SchedulerWorker:
                                  "Cameras selected at the latest decision.", registry=registry)
         self._m_decisions = Counter("aoi3d_decisions", "Decisions published.",
                                     registry=registry)
+        self._m_selections = Counter(
+            "aoi3d_camera_selections",
+            "Cameras selected, summed over every decision: rate(...) / "
+            "rate(aoi3d_decisions_total) is the mean selected per decision, none missed.",
+            registry=registry)
         self._m_skipped = Counter(
             "aoi3d_decisions_skipped",
             "Decision epochs skipped because the decision thread fell behind the clock.",
@@ -387,6 +392,7 @@ class SchedulerWorker:
             self._last_decision = msg
         self._m_decisions.inc()
         self._m_selected.set(len(selected))
+        self._m_selections.inc(len(selected))
         for cam, a in zip(self.camera_ids, sel.aoi_ms, strict=True):
             if math.isfinite(a):
                 self._m_aoi.labels(camera=str(cam)).set(a / 1000.0)

@@ -1,6 +1,7 @@
 """A real Prometheus (Debian's `prometheus`) scraping a real pipeline (`aoi3d up` on
 loopback): every expression of the Grafana dashboard returns data through Prometheus's HTTP
-API, the alert rules load, and the service-down alert fires when a service stops answering.
+API, every series name the dashboard and the rules use is one the running services export,
+the alert rules load, and the service-down alert fires when a service stops answering.
 
 Prometheus runs with the project's own rules (deploy/prometheus/rules/), with one change: the
 service-down rule's `for:` is shortened so the test need not wait 30 s (scrapes every second).
@@ -10,6 +11,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -72,6 +74,11 @@ def dashboard_queries() -> list[tuple[str, str]]:
             expr = target["expr"].replace("$__rate_interval", WINDOW)
             out.append((panel["title"], expr.replace("$camera", ".*")))
     return out
+
+
+def rule_exprs() -> list[str]:
+    return [r["expr"] for f in sorted((ROOT / "deploy/prometheus/rules").glob("*.yml"))
+            for g in yaml.safe_load(f.read_text())["groups"] for r in g["rules"]]
 
 
 def has_number(result: list[dict]) -> bool:
@@ -140,6 +147,15 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
                      if any(name in e[1] for name in NEEDS_PPO_LEARNING)]
         others = [e for e in empty if e not in needs_ppo]
         assert not others, f"dashboard expressions without data: {others}"
+
+        # every series name the dashboard and the alert rules use is one the services'
+        # registries export (scraped from the live /metrics, not parsed from the source)
+        scraped = set(prom("/api/v1/label/__name__/values"))
+        used = {n for expr in [e for _, e in dashboard_queries()] + rule_exprs()
+                for n in re.findall(r"(?<![\w:])aoi3d_[A-Za-z0-9_]+", expr)}
+        assert used, "no aoi3d series named by the dashboard or the rules"
+        unknown = used - scraped - NEEDS_PPO_LEARNING
+        assert not unknown, f"named by the dashboard or rules, exported by no service: {unknown}"
 
         groups = prom("/api/v1/rules")["groups"]
         loaded = {r["name"] for g in groups for r in g["rules"]}

@@ -345,6 +345,7 @@ def test_metrics_export_aoi_selection_and_decision_count(make_harness) -> None:
     assert metric(text, 'aoi3d_aoi_seconds{camera="2"}') == pytest.approx(0.03)
     assert metric(text, 'aoi3d_aoi_seconds{camera="3"}') is None  # unknown: no series
     assert metric(text, "aoi3d_cameras_selected") == 1
+    assert metric(text, "aoi3d_camera_selections_total") == 1  # none at 30 ms, one at 60 ms
     assert metric(text, "aoi3d_decisions_total") == 2
     assert metric(text, 'aoi3d_frames_received_total{camera="2"}') == 1
     ready = h.client.get("/readyz")
