@@ -82,6 +82,10 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None: 
             page.wait_for_function("document.getElementById('backend').options.length > 0")
             backends = page.eval_on_selector_all("#backend option", "os => os.map(o => o.value)")
             assert "grid" in backends and page.input_value("#backend") == "grid", backends
+            found = HTTP.get(url("scheduler", "/policy/checkpoints")).json()["checkpoints"]
+            offered = page.eval_on_selector_all("#checkpoint option",
+                                                "os => os.map(o => o.value)")
+            assert offered == (found or [""]), (offered, found)
 
             # the MAT slider changes the scheduler's policy; the used marks follow
             page.select_option("#kind", "mat")
