@@ -47,6 +47,7 @@ if TYPE_CHECKING:
         ResultCache,
         SweepOutcome,
     )
+    from aoi3d.experiment.optimum import Optimum
     from aoi3d.scene import SceneDataset
 
 PRESET_NAMES = ("quick", "paper")
@@ -76,6 +77,10 @@ CacheOpt = Annotated[Path, typer.Option(
     help="Episode cache shared by all commands (delete it to recompute everything).")]
 SeedsOpt = Annotated[int | None, typer.Option(
     min=1, help="Independent simulations per point (default: the preset's).")]
+SeedOffsetOpt = Annotated[int, typer.Option(
+    min=0, help="First seed: the simulations use seeds OFFSET … OFFSET+S−1 (the same for "
+                "every point, so differences are paired). Seeds 0–20 and 1000–1015 were used "
+                "while developing; pick another block to check a result on unseen seeds.")]
 StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Training steps per decision (default: the preset's).")]
 CarryOpt = Annotated[str | None, typer.Option(
@@ -107,6 +112,12 @@ class _Setup:
     threads: int
     ray_address: str | None
     started: float
+    seed_offset: int = 0
+
+    @property
+    def seed_list(self) -> list[int]:
+        """The seeds of every point: ``seed_offset … seed_offset + seeds − 1``."""
+        return list(range(self.seed_offset, self.seed_offset + self.seeds))
 
 
 def _int_list(text: str | None, name: str) -> tuple[int, ...] | None:
@@ -136,6 +147,7 @@ def _shared_options(
     out: OutOpt = None,
     cache: CacheOpt = Path("runs/experiments/cache"),
     seeds: SeedsOpt = None,
+    seed_offset: SeedOffsetOpt = 0,
     steps_per_epoch: StepsOpt = None,
     carry: CarryOpt = None,
     backend: BackendOpt = None,
@@ -166,6 +178,7 @@ class _Shared:
     lpips: bool
     device: str | None
     set_: list[str] | None
+    seed_offset: int = 0
     seeds: int | None = None
 
     def setup(self, command: str, preset: str, *, seeds: int | None = None) -> _Setup:
@@ -209,6 +222,7 @@ class _Shared:
             cache=ResultCache(self.cache), seeds=count if count is not None else chosen.seeds,
             workers=self.workers if self.workers is not None else default_workers(),
             threads=self.threads, ray_address=self.ray_address, started=time.time(),
+            seed_offset=self.seed_offset,
         )
 
 
@@ -306,6 +320,8 @@ def _meta(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
         "episode_config": setup.cfg.to_dict(),
         "lpips": lpips_available(setup.cfg),
         "seeds": setup.seeds,
+        "seed_offset": setup.seed_offset,
+        "seed_list": setup.seed_list,
         "workers": setup.workers if setup.ray_address is None else None,
         "threads_per_worker": setup.threads,
         "ray_address": setup.ray_address,
@@ -316,6 +332,11 @@ def _meta(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
         "episodes_cached": sum(o.cached for o in outcomes),
         "episode_wall_s_mean": float(np.mean(episode_s)) if episode_s else None,
     }
+
+
+def _seed_span(setup: _Setup) -> str:
+    first, last = setup.seed_list[0], setup.seed_list[-1]
+    return f"{first}" if first == last else f"{first}–{last}"
 
 
 def _fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
@@ -375,23 +396,53 @@ def _best_gamma(points: Sequence[dict[str, Any]], metric: str = "psnr_db") -> fl
     return float(points[int(np.nanargmax(values))]["gamma_ms"])
 
 
-def _shape(points: Sequence[dict[str, Any]], reference: dict[str, Any] | None
-           ) -> dict[str, Any]:
-    """Per metric: the best swept Γ and whether it is an interior maximum — strictly better
-    than both ends of the sweep and than the reference policy (``all``)."""
-    out: dict[str, Any] = {}
+def _candidate(policy: str) -> Any:
+    """A tradeoff candidate: Γ in ms for ``mat:<Γ>``, else the policy spec (``all``)."""
+    gamma = _gamma_of(policy)
+    return policy if gamma is None else gamma
+
+
+def _optima(results: Sequence[EpisodeResult], *, ordered: bool = True,
+            label: Callable[[str], Any] = _candidate) -> dict[str, Optimum]:
+    """Per metric of :data:`_SIGNS`, the criterion of :mod:`aoi3d.experiment.optimum` over
+    the policies of ``results`` (one delay), paired by seed; ``label``: a policy's candidate
+    name (Γ for MAT). Metrics with no finite value are left out."""
+    from aoi3d.experiment.optimum import optimum
+
+    selects: dict[Any, list[float]] = {}
+    for r in results:
+        selects.setdefault(label(r.policy), []).append(float(r.n_selected))
+    out: dict[str, Optimum] = {}
     for metric, sign in _SIGNS.items():
-        values = np.array([np.nan if p[metric] is None else sign * p[metric] for p in points])
-        if len(points) < 3 or not np.isfinite(values).all():
+        values: dict[Any, dict[int, float]] = {}
+        for r in results:
+            v = getattr(r, metric)
+            values.setdefault(label(r.policy), {})[r.seed] = (
+                math.nan if v is None else float(v))
+        try:
+            out[metric] = optimum(values, metric=metric, lower_is_better=sign < 0,
+                                  selects={c: float(np.mean(v)) for c, v in selects.items()},
+                                  ordered=ordered)
+        except ValueError:
             continue
-        best = int(np.argmax(values))
-        rivals = [values[0], values[-1]]
-        if reference is not None and reference.get(metric) is not None:
-            rivals.append(sign * reference[metric])
-        out[metric] = {"best_gamma_ms": points[best]["gamma_ms"],
-                       "best": points[best][metric],
-                       "interior_maximum": bool(values[best] > max(rivals))}
     return out
+
+
+def _fmt_candidates(members: Sequence[Any]) -> str:
+    return ", ".join(f"{m:g}" if isinstance(m, float) else str(m) for m in members)
+
+
+def _print_optima(optima: dict[str, Optimum], unit: str = "Γ") -> None:
+    for metric, opt in optima.items():
+        if opt.ends:
+            verdict = ("[green]interior[/]" if opt.interior else
+                       f"[yellow]not interior[/] (an end of the sweep, "
+                       f"{_fmt_candidates(opt.ends)}, is not significantly worse)")
+        else:
+            verdict = ""
+        console.print(f"{metric}: best {unit} = {_fmt_candidates([opt.best])}; optimum set "
+                      f"(not significantly worse, paired over {len(opt.seeds)} seeds): "
+                      f"{{{_fmt_candidates(opt.members)}}} {verdict}")
 
 
 _SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0, "psnr_dynamic_db": 1.0,
@@ -400,11 +451,11 @@ _SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0, "psnr_dynam
 ``*_dynamic*``: over the dynamic region (:mod:`aoi3d.quality`)."""
 
 
-def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: int) -> list[Job]:
+def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: Sequence[int]) -> list[Job]:
     from aoi3d.experiment import Job
 
     policies = [f"mat:{g}" for g in gammas] + ["all"]
-    return [Job(p, delay, s) for s in range(seeds) for p in policies]
+    return [Job(p, delay, s) for s in seeds for p in policies]
 
 
 # --- commands --------------------------------------------------------------------------------
@@ -425,25 +476,23 @@ def tradeoff(
     setup = shared.setup("tradeoff", preset)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.gammas_ms
     delay = _delay(delay)
-    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seeds), "tradeoff")
+    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seed_list), "tradeoff")
     points, reference = _tradeoff_rows(outcome.results)
     best = _best_gamma(points)
-    shape = _shape(points, reference)
+    optima = _optima(outcome.results)
     _write(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay}, outcome.results,
            {"points.csv": points + ([reference] if reference else [])},
-           best_gamma_ms=best, shape=shape, points=points, reference=reference)
+           best_gamma_ms=best, optimum={m: o.to_dict() for m, o in optima.items()},
+           points=points, reference=reference)
     mean_y = parse_delay(delay).mean_ms
     plot_tradeoff(points, setup.out / "tradeoff.png", reference=reference, title=(
         f"Quality of the novel view vs MAT Γ — E[Y] = {mean_y:g} ms, "
         f"C = {setup.cfg.period_ms} ms, N = {setup.cfg.n_cameras or len(setup.dataset.train_ids)}, "
-        f"S = {setup.seeds}, {setup.cfg.carry} model, {setup.cfg.steps_per_epoch} steps/decision"))
+        f"S = {setup.seeds} (seeds {_seed_span(setup)}), {setup.cfg.carry} model, "
+        f"{setup.cfg.steps_per_epoch} steps/decision"))
     _table(points + ([{"gamma_ms": "all", **reference}] if reference else []), "gamma_ms",
-           f"tradeoff at {delay} (mean ± 95% CI over {setup.seeds} seeds)")
-    for metric, info in shape.items():
-        verdict = ("an interior maximum" if info["interior_maximum"] else
-                   "not an interior maximum (an end of the sweep or `all` is as good)")
-        console.print(f"{metric}: best at Γ = {info['best_gamma_ms']:g} ms "
-                      f"({info['best']:.3f}): {verdict}")
+           f"tradeoff at {delay} (mean ± 95% CI over seeds {_seed_span(setup)})")
+    _print_optima(optima)
     console.print(f"results in {setup.out}")
 
 
@@ -466,13 +515,13 @@ def views(
     setup = shared.setup("views", preset, seeds=rows)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.view_gammas_ms
     delay = _delay(delay)
-    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, rows), "views")
+    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seed_list), "views")
     ds = setup.dataset
     grid: list[list[tuple[str, np.ndarray]]] = []
     saved = []
     for old in setup.out.glob("view_seed*.png"):  # renders of an earlier run of this folder
         old.unlink()
-    for seed in range(rows):
+    for seed in setup.seed_list:
         members = [(r, p, k) for r, p, k in zip(outcome.results, outcome.plans, outcome.keys,
                                                 strict=True) if r.seed == seed]
         plan = members[0][1]
@@ -524,7 +573,7 @@ def delay_cmd(
     delay_list = ([_delay(d.strip(), "'--delays'") for d in delays.split(",") if d.strip()]
                   if delays else list(setup.preset.delays))
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.delay_gammas_ms
-    jobs = [Job(f"mat:{g}", d, s) for s in range(setup.seeds) for d in delay_list
+    jobs = [Job(f"mat:{g}", d, s) for s in setup.seed_list for d in delay_list
             for g in gamma_list]
     outcome = _run(setup, jobs, "delay")
     curves = []
@@ -534,34 +583,35 @@ def delay_cmd(
         curves.extend(points)
         row: dict[str, Any] = {"delay": d, "mean_delay_ms": parse_delay(d).mean_ms,
                                "metric": metric}
-        for name, sign in _SIGNS.items():
-            values = np.array([np.nan if p[name] is None else sign * p[name] for p in points])
-            if not np.isfinite(values).any():
-                continue
-            best = points[int(np.nanargmax(values))]
-            half = best[f"{name}_ci95"]
-            floor = sign * best[name] - (half if math.isfinite(half) else 0.0)
-            near = [p["gamma_ms"] for p, v in zip(points, values, strict=True) if v >= floor]
+        for name, opt in _optima([r for r in outcome.results if r.delay == d]).items():
+            by_gamma = {p["gamma_ms"]: p for p in points}
+            span = opt.range_of() or (math.nan, math.nan)
             suffix = "" if name == metric else f"_{name}"
-            row.update({f"best_gamma_ms{suffix}": best["gamma_ms"],
-                        f"best{suffix or '_value'}": best[name],
-                        f"best_ci95{suffix}": half,
-                        f"near_best_min_ms{suffix}": min(near),
-                        f"near_best_max_ms{suffix}": max(near)})
+            row.update({f"best_gamma_ms{suffix}": opt.best,
+                        f"best{suffix or '_value'}": by_gamma[opt.best][name],
+                        f"best_ci95{suffix}": by_gamma[opt.best][f"{name}_ci95"],
+                        f"optimum_min_ms{suffix}": span[0],
+                        f"optimum_max_ms{suffix}": span[1],
+                        f"interior{suffix}": opt.interior})
+            if name == metric:
+                row["optimum"] = opt.to_dict()
         optima.append(row)
     _write(setup, [outcome], {"delays": delay_list, "gammas_ms": list(gamma_list)},
-           outcome.results, {"optima.csv": optima, "curves.csv": curves},
+           outcome.results, {"optima.csv": [{k: v for k, v in o.items() if k != "optimum"}
+                                             for o in optima], "curves.csv": curves},
            optima=optima, curves=curves)
     plot_delay(optima, curves, setup.out / "delay.png", metric=metric, title=(
-        f"Optimal MAT Γ vs mean delay — C = {setup.cfg.period_ms} ms, S = {setup.seeds}, "
-        f"{setup.cfg.carry} model"))
-    table = Table(title=f"optimal Γ per delay (best mean {metric})")
-    for name in ("delay", "E[Y] (ms)", "best Γ (ms)", metric, "Γ within the CI"):
+        f"Optimal MAT Γ vs mean delay — C = {setup.cfg.period_ms} ms, S = {setup.seeds} "
+        f"(seeds {_seed_span(setup)}), {setup.cfg.carry} model; bars: the optimum set"))
+    table = Table(title=f"optimal Γ per delay (best mean {metric}; seeds {_seed_span(setup)})")
+    for name in ("delay", "E[Y] (ms)", "best Γ (ms)", metric,
+                 "optimum set: Γ not significantly worse (paired)", "interior"):
         table.add_column(name, justify="right")
     for o in optima:
         table.add_row(o["delay"], f"{o['mean_delay_ms']:g}", f"{o['best_gamma_ms']:g}",
                       _fmt(o["best_value"], o["best_ci95"], 3),
-                      f"{o['near_best_min_ms']:g}–{o['near_best_max_ms']:g}")
+                      f"{o['optimum_min_ms']:g}–{o['optimum_max_ms']:g}",
+                      "yes" if o["interior"] else "no")
     console.print(table)
     console.print(f"results in {setup.out}")
 
@@ -608,7 +658,7 @@ def compare(
                                      f"comparison has {n_cameras}", param_hint="'--policy'")
     outcomes = []
     if "mat:best" in specs and mat_ms is None:
-        sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seeds),
+        sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seed_list),
                      "tradeoff (for mat:best)")
         outcomes.append(sweep)
         mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0], best_metric)
@@ -616,15 +666,19 @@ def compare(
         text = f"mat:{mat_ms:g}" if spec == "mat:best" else spec
         resolved.append(parse_policy(text).spec)
     resolved = list(dict.fromkeys(resolved))
-    outcome = _run(setup, [Job(p, delay, s) for s in range(setup.seeds) for p in resolved],
+    outcome = _run(setup, [Job(p, delay, s) for s in setup.seed_list for p in resolved],
                    "compare")
     outcomes.append(outcome)
     rows = aggregate(outcome.results)
+    optima = _optima(outcome.results, ordered=False, label=str)
     _write(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms,
                              "best_metric": best_metric},
-           outcome.results, {"compare.csv": rows}, policies=rows)
+           outcome.results, {"compare.csv": rows}, policies=rows,
+           optimum={m: o.to_dict() for m, o in optima.items()})
     plot_compare([{**r, "policy": short_label(r["policy"])} for r in rows],
                  setup.out / "compare.png", title=(
-        f"Policies at {delay}, S = {setup.seeds} (same seeds), {setup.cfg.carry} model"))
-    _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over {setup.seeds} seeds)")
+        f"Policies at {delay}, S = {setup.seeds} (the same seeds, {_seed_span(setup)}), "
+        f"{setup.cfg.carry} model"))
+    _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over seeds {_seed_span(setup)})")
+    _print_optima(optima, unit="policy")
     console.print(f"results in {setup.out}")

@@ -127,6 +127,26 @@ def presets() -> None:
     console.print(table)
 
 
+def _optima(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """The optimum criterion of :mod:`aoi3d.experiment.optimum` over the evaluated policies
+    (paired by seed), for the reward and each score."""
+    from aoi3d.experiment.optimum import optimum
+
+    out = {}
+    for metric, lower in (("reward", False), ("psnr", False), ("ssim", False),
+                          ("lpips", True)):
+        values: dict[str, dict[int, float]] = {}
+        for r in rows:
+            v = r.get(metric)
+            values.setdefault(r["policy"], {})[int(r["seed"])] = (
+                math.nan if v is None else float(v))
+        try:
+            out[metric] = optimum(values, metric=metric, lower_is_better=lower, ordered=False)
+        except ValueError:
+            continue
+    return out
+
+
 @app.command("train")
 def train_cmd(
     preset: PresetOpt = "quick",
@@ -143,6 +163,9 @@ def train_cmd(
     clip_eps: Annotated[float | None, typer.Option(help="PPO clip ε.")] = None,
     seed: Annotated[int | None, typer.Option(
         min=0, help="Agent seed (weights, sampled actions, minibatches).")] = None,
+    seed_offset: Annotated[int, typer.Option(
+        min=0, help="Training episode i uses channel seed 100,000 + OFFSET + i (another "
+                    "training set of episodes; always below the held-out seeds).")] = 0,
     ppo_set: Annotated[list[str] | None, typer.Option(
         "--ppo-set", help="Override a PPOConfig field, KEY=VALUE (e.g. ent_coef=0.0).")]
     = None,
@@ -182,7 +205,8 @@ def train_cmd(
         cfg = TrainConfig(episode=episode, ppo=ppo_cfg,
                           episodes=episodes if episodes is not None else chosen.episodes,
                           batch_size=batch_size if batch_size is not None else chosen.batch_size,
-                          checkpoint_every=checkpoint_every, preset=chosen.name)
+                          checkpoint_every=checkpoint_every, preset=chosen.name,
+                          seed_offset=seed_offset)
     except (TypeError, ValueError) as err:
         raise typer.BadParameter(str(err)) from None
     folder = out if out is not None else Path("runs/ppo") / chosen.name
@@ -228,7 +252,8 @@ def eval_cmd(
         min=1, help="Held-out episodes (seeds from 1,000,000 on; never a training seed). "
                     "Default: the preset's.")] = None,
     seed_offset: Annotated[int, typer.Option(
-        min=0, help="Skip this many held-out seeds (another held-out set).")] = 0,
+        min=0, help="Skip this many held-out seeds: seeds 1,000,000 + OFFSET + k (another "
+                    "held-out set; 0–39 were used while developing).")] = 0,
     compare: Annotated[list[str] | None, typer.Option(
         "--compare", help="Also score this policy on the same episodes (repeat), e.g. "
                           "all, mat:100, freshest:9.")] = None,
@@ -297,14 +322,19 @@ def eval_cmd(
         raise typer.BadParameter(str(err), param_hint="'--compare'") from None
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
+    trained = (extra.get("episode_config") or {}).get("steps_per_epoch")
+    optima = _optima(outcome.rows)
     meta = {"command": "aoi3d ppo eval", "checkpoint": str(checkpoint),
             "policies": specs, "seeds": seed_list, "eval_seed_base": EVAL_SEED_BASE,
+            "seed_offset": seed_offset, "trained_steps_per_epoch": trained,
+            "equal_budget": trained == episode.steps_per_epoch,
             "episode_config": episode.to_dict(), "train_config": extra.get("train_config"),
             "code_version": code_version(), "machine": machine(),
             "wall_s": time.time() - started}
     write_csv(folder / "eval.csv", outcome.rows)
     write_csv(folder / "eval_summary.csv", outcome.summary)
     write_json(folder / "eval.json", {"meta": meta, "summary": outcome.summary,
+                                      "optimum": {m: o.to_dict() for m, o in optima.items()},
                                       "episodes": outcome.rows})
     table = Table(title=f"held-out seeds: mean ± 95% CI over {count} episodes")
     for name in ("policy", "reward", "PSNR (dB)", "SSIM", "LPIPS", "cameras",
@@ -317,4 +347,12 @@ def eval_cmd(
                       _fmt(r.get("first_minus_this_reward"),
                            r.get("first_minus_this_reward_ci95"), 4))
     console.print(table)
+    for metric, opt in optima.items():
+        console.print(f"{metric}: best {short_label(opt.best)}; not significantly worse "
+                      f"(paired, {len(opt.seeds)} seeds): "
+                      f"{', '.join(short_label(m) for m in opt.members)}")
+    if trained is not None and trained != episode.steps_per_epoch:
+        console.print(f"[yellow]note[/]: the agent was trained at {trained} field steps per "
+                      f"episode and is scored at {episode.steps_per_epoch}; compare policies "
+                      "at the budget the agent was trained for")
     console.print(f"results in {folder}")

@@ -109,14 +109,14 @@ def plot_views(images: Sequence[Sequence[tuple[str, np.ndarray]]], path: Path, *
 
 def plot_delay(optima: Sequence[dict[str, Any]], curves: Sequence[dict[str, Any]], path: Path,
                *, title: str, metric: str = "psnr_db") -> Path:
-    """Fig. 6: the optimal Γ against the mean delay E[Y] (left; the bar spans the Γ whose
-    ``metric`` is within the 95% interval of the best), and ``metric`` against Γ for each
-    delay (right)."""
+    """Fig. 6: the optimal Γ against the mean delay E[Y] (left; the bar spans the optimum
+        set, the Γ not significantly worse than the best by :mod:`aoi3d.experiment.optimum`),
+    and ``metric`` against Γ for each delay (right)."""
     fig, (left, right) = plt.subplots(1, 2, figsize=(12, 4.5), constrained_layout=True)
     ey = np.array([o["mean_delay_ms"] for o in optima], float)
     best = np.array([o["best_gamma_ms"] for o in optima], float)
-    lo = np.array([o["near_best_min_ms"] for o in optima], float)
-    hi = np.array([o["near_best_max_ms"] for o in optima], float)
+    lo = np.array([o["optimum_min_ms"] for o in optima], float)
+    hi = np.array([o["optimum_max_ms"] for o in optima], float)
     left.errorbar(ey, best, yerr=[best - lo, hi - best], marker="o", capsize=3)
     left.set_xlabel("mean delay E[Y] (ms)")
     left.set_ylabel(f"optimal MAT Γ (ms), by {dict(_PANELS)[metric]}")

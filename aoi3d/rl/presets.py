@@ -35,12 +35,13 @@ EVAL_SEED_BASE = 1_000_000
 MAX_TRAIN_EPISODES = EVAL_SEED_BASE - TRAIN_SEED_BASE
 
 
-def train_seed(episode: int) -> int:
-    """The channel seed of training episode ``episode`` (0-based)."""
-    if not 0 <= episode < MAX_TRAIN_EPISODES:
-        raise ValueError(f"training episode index must be in [0, {MAX_TRAIN_EPISODES}), "
-                         f"got {episode}")
-    return TRAIN_SEED_BASE + episode
+def train_seed(episode: int, offset: int = 0) -> int:
+    """The channel seed of training episode ``episode`` (0-based) of a run whose seeds start
+    ``offset`` after :data:`TRAIN_SEED_BASE`."""
+    if not 0 <= offset + episode < MAX_TRAIN_EPISODES or offset < 0 or episode < 0:
+        raise ValueError(f"training seed offset + episode index must be in [0, "
+                         f"{MAX_TRAIN_EPISODES}), got {offset} + {episode}")
+    return TRAIN_SEED_BASE + offset + episode
 
 
 def eval_seeds(count: int, offset: int = 0) -> list[int]:
@@ -110,6 +111,7 @@ class TrainConfig:
     """Everything a training run depends on (written to ``config.json`` and the checkpoint).
 
     ``checkpoint_every``: updates between two checkpoints (and CSV/plot refreshes).
+    ``seed_offset``: training episode i uses channel seed ``TRAIN_SEED_BASE + seed_offset + i``.
     """
 
     episode: EpisodeConfig
@@ -118,16 +120,19 @@ class TrainConfig:
     batch_size: int
     checkpoint_every: int = 5
     preset: str = "custom"
+    seed_offset: int = 0
 
     def __post_init__(self) -> None:
         for name, value, low in (("episodes", self.episodes, 1),
                                  ("batch_size", self.batch_size, 1),
+                                 ("seed_offset", self.seed_offset, 0),
                                  ("checkpoint_every", self.checkpoint_every, 1)):
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name} must be an int >= {low}, got {value!r}")
-        if self.episodes > MAX_TRAIN_EPISODES:
-            raise ValueError(f"episodes must be <= {MAX_TRAIN_EPISODES} (training seeds stay "
-                             f"below the held-out ones), got {self.episodes}")
+        if self.seed_offset + self.episodes > MAX_TRAIN_EPISODES:
+            raise ValueError(f"seed_offset + episodes must be <= {MAX_TRAIN_EPISODES} "
+                             f"(training seeds stay below the held-out ones), got "
+                             f"{self.seed_offset} + {self.episodes}")
 
     @classmethod
     def from_preset(cls, preset: PPOPreset, n_cameras: int, **changes: Any) -> TrainConfig:
@@ -140,7 +145,8 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         return {"episode": self.episode.to_dict(), "ppo": self.ppo.to_dict(),
                 "episodes": self.episodes, "batch_size": self.batch_size,
-                "checkpoint_every": self.checkpoint_every, "preset": self.preset}
+                "checkpoint_every": self.checkpoint_every, "preset": self.preset,
+                "seed_offset": self.seed_offset}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:

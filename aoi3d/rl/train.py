@@ -114,7 +114,8 @@ def train(
         start = 0
     meta = {
         "command": "aoi3d ppo train", "train_config": cfg.to_dict(),
-        "seeds": {"train": f"{TRAIN_SEED_BASE} + episode", "eval_base": EVAL_SEED_BASE},
+        "seeds": {"train": f"{TRAIN_SEED_BASE + cfg.seed_offset} + episode",
+                  "eval_base": EVAL_SEED_BASE},
         "dataset": dataset_fingerprint(ds), "lpips": env.lpips, "workers": workers,
         "threads_per_worker": threads, "cache": None if cache is None else str(cache),
         "resumed_at_episode": start if resume else None, "code_version": code_version(),
@@ -152,11 +153,11 @@ def train(
             batch = list(range(first, min(first + cfg.batch_size, total)))
             obs, acts = [], []
             for e in batch:
-                o, _ = env.reset(seed=train_seed(e))
+                o, _ = env.reset(seed=train_seed(e, cfg.seed_offset))
                 obs.append(o)
                 acts.append(agent.act(o))
             results: dict[int, dict[str, Any]] = {}
-            for i, outcome in pool.run([(train_seed(e), a.action)
+            for i, outcome in pool.run([(train_seed(e, cfg.seed_offset), a.action)
                                         for e, a in zip(batch, acts, strict=True)]):
                 results[i] = outcome
                 computed += not outcome["cached"]

@@ -294,7 +294,13 @@ def test_cli_tradeoff_end_to_end(dataset: SceneDataset, tmp_path) -> None:
                    "dynamic_fraction"):
         assert column in points[0], column
     assert all(math.isfinite(float(p["psnr_dynamic_db"])) for p in points)
-    assert "psnr_dynamic_db" in doc["shape"]
+    assert "psnr_dynamic_db" in doc["optimum"]
+    # Γ = 0 selects nothing: the criterion leaves it out, and judges 40, 70 and all paired
+    # over the two seeds.
+    opt = doc["optimum"]["psnr_db"]
+    assert opt["excluded"] == [0.0] and opt["seeds"] == [0, 1]
+    assert set(opt["best_minus"]) == {"40.0", "70.0", "all"}
+    assert doc["meta"]["seed_list"] == [0, 1] and doc["meta"]["seed_offset"] == 0
     # A re-run computes nothing; the other commands reuse the cached episodes.
     res = _cli(["tradeoff", "--gammas", "0,40,70", "--seeds", "2",
                 *_common(dataset, tmp_path, "t")])
@@ -315,12 +321,21 @@ def test_cli_tradeoff_end_to_end(dataset: SceneDataset, tmp_path) -> None:
 
 
 def test_cli_delay_and_bad_input(dataset: SceneDataset, tmp_path) -> None:
-    res = _cli(["delay", "--delays", "exp:30,exp:90", "--gammas", "40,70", "--seeds", "1",
-                *_common(dataset, tmp_path, "d")])
+    res = _cli(["delay", "--delays", "exp:30,exp:90", "--gammas", "40,70,100", "--seeds", "2",
+                "--seed-offset", "7", *_common(dataset, tmp_path, "d")])
     assert res.exit_code == 0, res.output
-    optima = json.loads((tmp_path / "d" / "results.json").read_text())["optima"]
+    doc = json.loads((tmp_path / "d" / "results.json").read_text())
+    optima = doc["optima"]
     assert [o["mean_delay_ms"] for o in optima] == [30, 90]
-    assert all(o["best_gamma_ms"] in (40, 70) for o in optima)
+    # The seeds asked for, and only those, are run, and the optimum is paired over them.
+    assert doc["meta"]["seed_list"] == [7, 8]
+    assert sorted({e["seed"] for e in doc["episodes"]}) == [7, 8]
+    for o in optima:
+        curve = {c["gamma_ms"]: c["psnr_db"] for c in doc["curves"] if c["delay"] == o["delay"]}
+        assert o["best_gamma_ms"] == max(curve, key=lambda g: curve[g])  # the best mean
+        assert o["optimum"]["seeds"] == [7, 8]
+        assert o["optimum_min_ms"] <= o["best_gamma_ms"] <= o["optimum_max_ms"]
+        assert o["interior"] == (o["optimum"]["members"] == [70.0])
     assert (tmp_path / "d" / "delay.png").is_file()
     from aoi3d.cli.experiment import app
 
@@ -341,8 +356,8 @@ def test_cli_commands_take_their_own_options_then_the_shared_ones() -> None:
 
     from aoi3d.cli.experiment import app
 
-    shared = ["dataset", "out", "cache", "seeds", "steps_per_epoch", "carry", "backend",
-              "workers", "threads", "ray_address", "lpips", "device", "set_"]
+    shared = ["dataset", "out", "cache", "seeds", "seed_offset", "steps_per_epoch", "carry",
+              "backend", "workers", "threads", "ray_address", "lpips", "device", "set_"]
     own = {"tradeoff": ["preset", "gammas", "delay"],
            "views": ["preset", "gammas", "rows", "delay"],
            "delay": ["preset", "delays", "gammas", "metric"],

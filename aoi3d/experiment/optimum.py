@@ -1,0 +1,165 @@
+"""Where the optimum lies: one criterion, stated before measuring, for every command.
+
+The experiments run every policy on the same seeds (the same channel draws, scene phase and
+model seed), so two policies are compared by their **paired** per-seed differences, not by
+overlapping bands. The criterion (:func:`optimum`):
+
+1. Only *eligible* candidates take part: for a MAT sweep, the thresholds that select at
+   least one frame on average (Γ ≤ C selects nothing with synchronised cameras, so it says
+   nothing about the tradeoff), plus the reference `all` (Γ = ∞) when it was run.
+2. Only seeds that every eligible candidate has are used (the differences stay paired).
+3. The *best* candidate has the highest mean (lowest, for LPIPS).
+4. A candidate is *significantly worse* than the best when the 95% confidence interval
+   (Student t, n − 1 degrees of freedom) of the mean per-seed difference best − candidate
+   lies above zero.
+5. The **optimum set** is every eligible candidate that is not significantly worse than the
+   best; it is reported as a range of Γ. No correction for multiple comparisons is made: the
+   set is, if anything, too narrow by chance, never wider.
+6. The optimum is **interior** when the optimum set holds neither end of the eligible range:
+   the smallest eligible Γ and the largest end — `all` (Γ = ∞) when it was run, else the
+   largest swept Γ.
+
+With fewer than two paired seeds no interval exists; nothing is then significantly worse,
+the set is every candidate and the optimum is never interior.
+
+Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare`` and the
+science check (``bench/science.py``) alike.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy import stats
+
+__all__ = [
+    "LEVEL",
+    "Optimum",
+    "PairedDifference",
+    "optimum",
+    "paired_difference",
+]
+
+LEVEL = 0.95
+"""Confidence level of every interval of the criterion."""
+
+
+@dataclass(frozen=True)
+class PairedDifference:
+    """Mean of ``a − b`` over the seeds both have, the half-width of its confidence interval
+    (NaN below two seeds) and the count of seeds."""
+
+    mean: float
+    half: float
+    n: int
+
+    @property
+    def significant(self) -> bool:
+        """Whether the interval excludes zero."""
+        return math.isfinite(self.half) and abs(self.mean) > self.half
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"mean": self.mean, "ci95": self.half, "n": self.n}
+
+
+def paired_difference(a: Mapping[int, float], b: Mapping[int, float],
+                      level: float = LEVEL) -> PairedDifference:
+    """``a − b`` paired by seed (the keys), over the seeds where both are finite."""
+    seeds = sorted(s for s in a.keys() & b.keys()
+                   if math.isfinite(a[s]) and math.isfinite(b[s]))
+    d = np.array([a[s] - b[s] for s in seeds], dtype=np.float64)
+    n = int(d.size)
+    if n == 0:
+        return PairedDifference(math.nan, math.nan, 0)
+    if n < 2:
+        return PairedDifference(float(d[0]), math.nan, 1)
+    half = float(stats.t.ppf(0.5 + level / 2, n - 1) * d.std(ddof=1) / math.sqrt(n))
+    return PairedDifference(float(d.mean()), half, n)
+
+
+@dataclass(frozen=True)
+class Optimum:
+    """The outcome of :func:`optimum` for one metric.
+
+    ``best``: the candidate with the best mean; ``members``: the optimum set, in candidate
+    order; ``to_best[c]``: the paired difference best − c in the metric's *better* direction
+    (positive: c is worse), for every eligible candidate; ``excluded``: candidates left out
+    (selecting nothing); ``seeds``: the paired seeds used; ``interior``: see the module."""
+
+    metric: str
+    best: Any
+    members: tuple[Any, ...]
+    to_best: dict[Any, PairedDifference]
+    excluded: tuple[Any, ...]
+    seeds: tuple[int, ...]
+    ends: tuple[Any, ...] = field(default=())
+    interior: bool = False
+
+    def range_of(self, numeric: Sequence[Any] | None = None) -> tuple[float, float] | None:
+        """The smallest and largest numeric member (Γ in ms; ``all`` counts as ∞), or None
+        when no member is numeric."""
+        values = [_as_gamma(m) for m in (numeric if numeric is not None else self.members)]
+        finite = [v for v in values if v is not None]
+        return (min(finite), max(finite)) if finite else None
+
+    def to_dict(self) -> dict[str, Any]:
+        span = self.range_of()
+        return {
+            "metric": self.metric, "best": self.best, "members": list(self.members),
+            "range": list(span) if span else None, "interior": self.interior,
+            "ends": list(self.ends), "excluded": list(self.excluded), "seeds": list(self.seeds),
+            "best_minus": {str(k): v.to_dict() for k, v in self.to_best.items()},
+        }
+
+
+def _as_gamma(candidate: Any) -> float | None:
+    if candidate == "all":
+        return math.inf
+    try:
+        return float(candidate)
+    except (TypeError, ValueError):
+        return None
+
+
+def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db",
+            lower_is_better: bool = False, selects: Mapping[Any, float] | None = None,
+            ordered: bool = True, level: float = LEVEL) -> Optimum:
+    """Apply the criterion of this module.
+
+    ``values[c][seed]``: the per-seed (episode mean) metric of candidate ``c`` — a Γ in ms,
+    ``"all"`` or any policy label —; ``selects[c]``: its mean count of selected cameras
+    (candidates with 0 are excluded; None: all eligible); ``ordered``: the candidates are
+    points of a sweep in Γ (their order defines the ends, so ``interior`` is judged), else
+    policies without an order (``interior`` is False, ``ends`` empty)."""
+    if not values:
+        raise ValueError("no candidates")
+    excluded = tuple(c for c in values
+                     if selects is not None and not (selects.get(c, 0.0) > 0.0))
+    eligible = [c for c in values if c not in excluded]
+    if not eligible:
+        raise ValueError(f"no candidate selects a frame ({list(values)})")
+    sign = -1.0 if lower_is_better else 1.0
+    common = set.intersection(*({s for s, v in values[c].items() if math.isfinite(v)}
+                                for c in eligible))
+    seeds = tuple(sorted(common))
+    if not seeds:
+        raise ValueError(f"no seed has a finite {metric} for every candidate")
+    signed = {c: {s: sign * float(values[c][s]) for s in seeds} for c in eligible}
+    means = {c: float(np.mean(list(signed[c].values()))) for c in eligible}
+    best = max(eligible, key=lambda c: means[c])  # first of equal means
+    to_best = {c: paired_difference(signed[best], signed[c], level) for c in eligible}
+    members = tuple(c for c in eligible
+                    if c == best or not (to_best[c].significant and to_best[c].mean > 0))
+    ends: tuple[Any, ...] = ()
+    interior = False
+    if ordered and len(eligible) >= 3:
+        order = sorted(eligible, key=lambda c: _as_gamma(c) if _as_gamma(c) is not None
+                       else math.inf)
+        ends = (order[0], order[-1])
+        interior = not any(e in members for e in ends)
+    return Optimum(metric=metric, best=best, members=members, to_best=to_best,
+                   excluded=excluded, seeds=seeds, ends=ends, interior=interior)
