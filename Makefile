@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures clean help \
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures science clean help \
         lock wheelhouse secrets images compose-test
 
 help:  ## list the targets
@@ -64,6 +64,9 @@ bench-live: install  ## the live sweep on a pipeline of its own, with the virtua
 	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
 	    --sim-seeds 16 --out bench/results/live-sweep
+
+science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 25 min; SCIENCE_ARGS="--seed-offset 30000" for another block)
+	$(PY) bench/science.py $(SCIENCE_ARGS)
 
 figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
 	rm -rf runs/experiments/figures-cache runs/ppo/figures

@@ -435,9 +435,10 @@ def _fmt_candidates(members: Sequence[Any]) -> str:
 def _print_optima(optima: dict[str, Optimum], unit: str = "Γ") -> None:
     for metric, opt in optima.items():
         if opt.ends:
+            inside = [e for e in opt.ends if e in opt.members]
             verdict = ("[green]interior[/]" if opt.interior else
-                       f"[yellow]not interior[/] (an end of the sweep, "
-                       f"{_fmt_candidates(opt.ends)}, is not significantly worse)")
+                       f"[yellow]not interior[/] ({_fmt_candidates(inside)}, an end of the "
+                       f"sweep, is not significantly worse)")
         else:
             verdict = ""
         console.print(f"{metric}: best {unit} = {_fmt_candidates([opt.best])}; optimum set "

@@ -1,0 +1,205 @@
+"""The README's scientific claims, each a test on the results of the experiment commands.
+
+Every claim is stated here, before any run, as a function of the ``results.json`` (or
+``eval.json``) the commands write; every one uses the optimum criterion of
+:mod:`aoi3d.experiment.optimum` (paired by seed). ``bench/science.py`` (``make science``)
+runs the commands on seeds disjoint from those used while developing, applies these
+functions and writes the verdicts. Pure: no I/O.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from aoi3d.experiment.optimum import PairedDifference, paired_difference
+
+__all__ = [
+    "Verdict",
+    "compare_selective_beats_all",
+    "optimal_gamma_grows_with_delay",
+    "ppo_beats_all",
+    "ppo_reaches_best_mat",
+    "scores_agree_on_the_optimum",
+    "tradeoff_interior_optimum",
+]
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """One claim: its id, its statement, whether it held, and the numbers behind it."""
+
+    claim: str
+    statement: str
+    holds: bool
+    evidence: str
+    numbers: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+def _g(value: Any) -> str:
+    if value == "all" or (isinstance(value, float) and math.isinf(value)):
+        return "all"
+    try:
+        return f"{float(value):g}"
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def _set(members: Sequence[Any]) -> str:
+    return "{" + ", ".join(_g(m) for m in members) + "}"
+
+
+def _diff(d: Mapping[str, Any], digits: int = 2) -> str:
+    half = d.get("ci95")
+    text = f"{d['mean']:+.{digits}f}"
+    if half is not None and math.isfinite(half):
+        text += f" ± {half:.{digits}f}"
+    return text
+
+
+def _seeds(seeds: Sequence[int]) -> str:
+    return f"{seeds[0]}–{seeds[-1]}" if len(seeds) > 1 else str(seeds[0])
+
+
+def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_db"
+                              ) -> Verdict:
+    """At the tradeoff's delay, ``metric`` has an interior optimum: the optimum set holds
+    neither the smallest Γ that selects frames nor `all` (Γ = ∞)."""
+    opt = tradeoff["optimum"][metric]
+    delay = tradeoff["meta"]["args"]["delay"]
+    minus = opt["best_minus"]
+    ends = opt["ends"]
+    gaps = "; ".join(f"best − {_g(e)}: {_diff(minus[str(e)])}" for e in ends if str(e) in minus)
+    return Verdict(
+        claim=f"interior-{metric}",
+        statement=(f"At {delay}, {metric} has an interior optimum in Γ: neither the smallest "
+                   "Γ that selects frames nor `all` is in the optimum set"),
+        holds=bool(opt["interior"]),
+        evidence=(f"best Γ = {_g(opt['best'])}; optimum set {_set(opt['members'])}; {gaps} "
+                  f"(paired, seeds {_seeds(opt['seeds'])}); left out (select nothing): "
+                  f"{_set(opt['excluded'])}"),
+        numbers={"optimum": opt})
+
+
+def scores_agree_on_the_optimum(tradeoff: Mapping[str, Any],
+                                metrics: Sequence[str] = ("ssim", "lpips", "reward")
+                                ) -> Verdict:
+    """SSIM, LPIPS and the reward each have an interior optimum, and each one's best Γ lies
+    in the PSNR optimum set."""
+    psnr = tradeoff["optimum"]["psnr_db"]
+    parts = []
+    holds = True
+    for m in metrics:
+        opt = tradeoff["optimum"].get(m)
+        if opt is None:
+            holds = False
+            parts.append(f"{m}: not measured")
+            continue
+        inside = opt["best"] in psnr["members"]
+        holds = holds and bool(opt["interior"]) and inside
+        parts.append(f"{m}: best {_g(opt['best'])}, set {_set(opt['members'])}, "
+                     f"{'interior' if opt['interior'] else 'not interior'}")
+    return Verdict(
+        claim="scores-agree",
+        statement=("SSIM, LPIPS and the reward have interior optima too, at a Γ inside the "
+                   "PSNR optimum set"),
+        holds=holds, evidence=f"PSNR set {_set(psnr['members'])}; " + "; ".join(parts),
+        numbers={m: tradeoff["optimum"].get(m) for m in metrics})
+
+
+def optimal_gamma_grows_with_delay(delay: Mapping[str, Any]) -> Verdict:
+    """Between the smallest and the largest mean delay swept, the best Γ grows, and each
+    delay's best Γ is significantly worse at the other delay (outside its optimum set)."""
+    rows = sorted(delay["optima"], key=lambda o: o["mean_delay_ms"])
+    lo, hi = rows[0]["optimum"], rows[-1]["optimum"]
+    grows = float(hi["best"]) > float(lo["best"])
+    apart = lo["best"] not in hi["members"] and hi["best"] not in lo["members"]
+    sets = "; ".join(f"E[Y] = {o['mean_delay_ms']:g} ms: best {_g(o['optimum']['best'])}, "
+                     f"set {_set(o['optimum']['members'])}" for o in rows)
+    at_lo = lo["best_minus"].get(str(hi["best"]))
+    at_hi = hi["best_minus"].get(str(lo["best"]))
+    gaps = (f"at {rows[0]['mean_delay_ms']:g} ms Γ {_g(lo['best'])} − Γ {_g(hi['best'])}: "
+            f"{_diff(at_lo) if at_lo else '—'}; at {rows[-1]['mean_delay_ms']:g} ms "
+            f"Γ {_g(hi['best'])} − Γ {_g(lo['best'])}: {_diff(at_hi) if at_hi else '—'}")
+    return Verdict(
+        claim="gamma-grows-with-delay",
+        statement=(f"The optimal Γ grows with the mean delay: the best Γ at E[Y] = "
+                   f"{rows[-1]['mean_delay_ms']:g} ms is larger than at "
+                   f"{rows[0]['mean_delay_ms']:g} ms, and each is significantly worse at the "
+                   "other delay"),
+        holds=grows and apart,
+        evidence=f"{sets}; {gaps} (dB, paired, seeds {_seeds(lo['seeds'])})",
+        numbers={"optima": [o["optimum"] for o in rows]})
+
+
+def compare_selective_beats_all(compare: Mapping[str, Any], metric: str = "psnr_db"
+                                ) -> Verdict:
+    """Among the compared policies, `all` is significantly worse than the best."""
+    opt = compare["optimum"][metric]
+    d = opt["best_minus"].get("all")
+    return Verdict(
+        claim="selective-beats-all",
+        statement=(f"Selecting frames beats training on every frame: `all` is significantly "
+                   f"worse in {metric} than the best of the compared policies"),
+        holds=d is not None and "all" not in opt["members"],
+        evidence=(f"best {opt['best']}; not significantly worse: {_set(opt['members'])}; "
+                  f"best − all: {_diff(d) if d else '—'} (paired, seeds "
+                  f"{_seeds(opt['seeds'])})"),
+        numbers={"optimum": opt})
+
+
+def _per_seed(episodes: Sequence[Mapping[str, Any]], policy: str, metric: str
+              ) -> dict[int, float]:
+    return {int(r["seed"]): float(r[metric]) for r in episodes if r["policy"] == policy}
+
+
+def _ppo_spec(evaluation: Mapping[str, Any]) -> str:
+    return next(p for p in evaluation["meta"]["policies"] if p.startswith("ppo:"))
+
+
+def ppo_reaches_best_mat(evaluation: Mapping[str, Any], metric: str = "reward") -> Verdict:
+    """At the budget the agent was trained for, PPO is not significantly worse than the best
+    MAT threshold evaluated beside it (it is in the optimum set of the evaluated policies or
+    within the best MAT's)."""
+    episodes = evaluation["episodes"]
+    ppo = _ppo_spec(evaluation)
+    mats = [p for p in evaluation["meta"]["policies"] if p.startswith("mat:")]
+    means = {p: sum(v := list(_per_seed(episodes, p, metric).values())) / len(v)
+             for p in mats}
+    best = max(mats, key=lambda p: means[p])
+    d: PairedDifference = paired_difference(_per_seed(episodes, ppo, metric),
+                                            _per_seed(episodes, best, metric))
+    equal = bool(evaluation["meta"].get("equal_budget"))
+    not_worse = not (d.significant and d.mean < 0)
+    steps = evaluation["meta"]["episode_config"]["steps_per_epoch"]
+    verdict = ("significantly better" if d.significant and d.mean > 0 else
+               "tied (not significantly different)" if not_worse else "significantly worse")
+    return Verdict(
+        claim="ppo-reaches-best-mat",
+        statement=("At the budget it was trained for, the PPO agent is not significantly "
+                   f"worse in {metric} than the best MAT threshold"),
+        holds=equal and not_worse,
+        evidence=(f"{steps} field steps (trained at "
+                  f"{evaluation['meta'].get('trained_steps_per_epoch')}); best MAT {best}; "
+                  f"PPO − {best}: {d.mean:+.4f} ± {d.half:.4f} over {d.n} seeds "
+                  f"{_seeds(evaluation['meta']['seeds'])}: {verdict}"),
+        numbers={"best_mat": best, "ppo_minus_best_mat": d.to_dict(), "equal_budget": equal})
+
+
+def ppo_beats_all(evaluation: Mapping[str, Any], metric: str = "reward") -> Verdict:
+    """PPO is significantly better than `all` (every frame) at its training budget."""
+    episodes = evaluation["episodes"]
+    ppo = _ppo_spec(evaluation)
+    d = paired_difference(_per_seed(episodes, ppo, metric), _per_seed(episodes, "all", metric))
+    return Verdict(
+        claim="ppo-beats-all",
+        statement=f"The PPO agent is significantly better in {metric} than `all`",
+        holds=bool(evaluation["meta"].get("equal_budget")) and d.significant and d.mean > 0,
+        evidence=(f"PPO − all: {d.mean:+.4f} ± {d.half:.4f} over {d.n} seeds "
+                  f"{_seeds(evaluation['meta']['seeds'])}"),
+        numbers={"ppo_minus_all": d.to_dict()})
