@@ -1,0 +1,108 @@
+"""The README's claims (aoi3d.experiment.claims) hold on data built to satisfy them and fail
+on data built to break them."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from aoi3d.experiment import claims
+from aoi3d.experiment.optimum import optimum
+
+SEEDS = range(20000, 20008)
+
+
+def per_seed(curve: dict, rng_seed: int = 0, noise: float = 0.2) -> dict:
+    rng = np.random.default_rng(rng_seed)
+    shared = {s: rng.normal(0, 3.0) for s in SEEDS}
+    return {g: {s: v + shared[s] + rng.normal(0, noise) for s in SEEDS} for g, v in curve.items()}
+
+
+def tradeoff_doc(curves: dict[str, tuple[dict, float]]) -> dict:
+    """A results.json of `experiment tradeoff` as far as the claims read it (JSON round trip,
+    as bench/science.py reads it)."""
+    selects = {g: (0.0 if g == 0.0 else 5.0) for g in PEAK}
+    opt = {}
+    for i, (m, (curve, k)) in enumerate(curves.items()):
+        values = {g: {s: k * v for s, v in per.items()} for g, per in per_seed(curve, i).items()}
+        opt[m] = optimum(values, metric=m, lower_is_better=m == "lpips",
+                         selects=selects).to_dict()
+    return json.loads(json.dumps({"meta": {"args": {"delay": "exp:60"}}, "optimum": opt}))
+
+
+PEAK = {0.0: 12.0, 40.0: 22.0, 70.0: 26.0, 100.0: 27.0, 130.0: 26.0, 160.0: 25.0, "all": 24.0}
+RISING = {0.0: 12.0, 40.0: 22.0, 70.0: 23.0, 100.0: 24.0, 130.0: 25.0, 160.0: 26.0, "all": 27.0}
+
+
+def test_interior_and_agreement_hold_on_a_peak_and_fail_on_a_rise() -> None:
+    good = tradeoff_doc({"psnr_db": (PEAK, 1.0), "ssim": (PEAK, 0.03),
+                         "lpips": (PEAK, -0.01), "reward": (PEAK, 0.03)})
+    assert claims.tradeoff_interior_optimum(good).holds
+    assert claims.scores_agree_on_the_optimum(good).holds
+    bad = tradeoff_doc({"psnr_db": (RISING, 1.0), "ssim": (PEAK, 0.03),
+                        "lpips": (RISING, -0.01), "reward": (PEAK, 0.03)})
+    verdict = claims.tradeoff_interior_optimum(bad)
+    assert not verdict.holds and "best Γ = all" in verdict.evidence
+    assert not claims.scores_agree_on_the_optimum(bad).holds  # LPIPS best at `all`
+    # Γ = 0 (selects nothing) cannot make a rising curve look interior.
+    assert claims.tradeoff_interior_optimum(bad).numbers["optimum"]["excluded"] == [0.0]
+
+
+def delay_doc(peaks: dict[float, float]) -> dict:
+    optima = []
+    for i, (mean_delay, peak) in enumerate(peaks.items()):
+        curve = {g: 27.0 - abs(g - peak) / 15.0 for g in (40.0, 70.0, 100.0, 130.0, 160.0)}
+        opt = optimum(per_seed(curve, i, noise=0.3), ordered=True).to_dict()
+        optima.append({"mean_delay_ms": mean_delay, "optimum": opt})
+    return json.loads(json.dumps({"optima": optima}))
+
+
+def test_growth_holds_when_the_peak_moves_up_and_fails_when_it_does_not() -> None:
+    assert claims.optimal_gamma_grows_with_delay(delay_doc({20: 40, 60: 70, 100: 130})).holds
+    assert not claims.optimal_gamma_grows_with_delay(delay_doc({20: 100, 100: 100})).holds
+    assert not claims.optimal_gamma_grows_with_delay(delay_doc({20: 130, 100: 40})).holds
+    # A best Γ that grows, but stays inside the other delay's optimum set, is not enough.
+    close = delay_doc({20: 40, 100: 130})
+    close["optima"][1]["optimum"]["members"].append(40.0)
+    assert not claims.optimal_gamma_grows_with_delay(close).holds
+
+
+def eval_doc(ppo_gain: float, *, equal: bool = True) -> dict:
+    rng = np.random.default_rng(1)
+    base = {"mat:70": 0.90, "mat:100": 0.91, "freshest:6": 0.88, "all": 0.84}
+    episodes = []
+    for s in range(1005000, 1005040):
+        shared = rng.normal(0, 0.05)
+        for p, v in base.items():
+            episodes.append({"policy": p, "seed": s, "reward": v + shared + rng.normal(0, 0.005)})
+        episodes.append({"policy": "ppo:x.pt", "seed": s,
+                         "reward": 0.91 + ppo_gain + shared + rng.normal(0, 0.005)})
+    return {"meta": {"policies": ["ppo:x.pt", *base], "equal_budget": equal,
+                     "trained_steps_per_epoch": 100 if equal else 300,
+                     "episode_config": {"steps_per_epoch": 100},
+                     "seeds": list(range(1005000, 1005040))},
+            "episodes": episodes}
+
+
+def test_ppo_claims() -> None:
+    tied = claims.ppo_reaches_best_mat(eval_doc(0.0))
+    assert tied.holds and tied.numbers["best_mat"] == "mat:100"
+    assert claims.ppo_reaches_best_mat(eval_doc(0.02)).holds
+    worse = claims.ppo_reaches_best_mat(eval_doc(-0.02))
+    assert not worse.holds and "significantly worse" in worse.evidence
+    # Scored at another budget than it was trained for: the claim is not tested there.
+    assert not claims.ppo_reaches_best_mat(eval_doc(0.02, equal=False)).holds
+    assert claims.ppo_beats_all(eval_doc(0.0)).holds
+    assert not claims.ppo_beats_all(eval_doc(-0.07)).holds
+
+
+def test_selective_beats_all() -> None:
+    values = per_seed({"all": 24.0, "mat:70": 26.0, "freshest:6": 25.8})
+    doc = json.loads(json.dumps({"optimum": {"psnr_db": optimum(values, ordered=False)
+                                             .to_dict()}}))
+    assert claims.compare_selective_beats_all(doc).holds
+    values = per_seed({"all": 26.5, "mat:70": 26.0, "freshest:6": 25.8})
+    doc = json.loads(json.dumps({"optimum": {"psnr_db": optimum(values, ordered=False)
+                                             .to_dict()}}))
+    assert not claims.compare_selective_beats_all(doc).holds
