@@ -219,7 +219,8 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
     lines += ["", "## Policies side by side "
               f"({compare['meta']['episode_config']['steps_per_epoch']} field steps per "
               "decision)", "",
-              "| policy | PSNR (dB) | SSIM | LPIPS | reward | cameras |", "|---|---|---|---|---|---|"]
+              "| policy | PSNR (dB) | SSIM | LPIPS | reward | cameras |",
+              "|---|---|---|---|---|---|"]
     for r in compare["policies"]:
         lines.append(f"| `{r['policy']}` | {_num(r['psnr_db'])} ± {_num(r['psnr_db_ci95'])} | "
                      f"{_num(r['ssim'], 3)} | {_num(r['lpips'], 3)} | {_num(r['reward'], 3)} | "
