@@ -68,21 +68,12 @@ bench-live: install  ## the live sweep on a pipeline of its own, with the virtua
 science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 25 min; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) bench/science.py $(SCIENCE_ARGS)
 
-figures: install  ## the quick-preset experiment and PPO figures from scratch, copied to docs/figures/ (about 25 min)
-	rm -rf runs/experiments/figures-cache runs/ppo/figures
-	$(VENV)/bin/aoi3d experiment tradeoff --preset quick --cache runs/experiments/figures-cache
-	$(VENV)/bin/aoi3d experiment delay --preset quick --cache runs/experiments/figures-cache
-	$(VENV)/bin/aoi3d experiment views --preset quick --cache runs/experiments/figures-cache
+figures: install  ## the PPO training figure from scratch, then `make science` (the experiment figures on unseen seeds) into docs/figures/ (about 28 min)
+	rm -rf runs/ppo/figures
 	$(VENV)/bin/aoi3d ppo train --preset quick --out runs/ppo/figures
-	$(VENV)/bin/aoi3d ppo eval --checkpoint runs/ppo/figures/final.pt --seeds 40 \
-	    --compare all --compare mat:70 --compare mat:100 --compare mat:130 --compare freshest:6
-	$(VENV)/bin/aoi3d experiment compare --preset quick --cache runs/experiments/figures-cache \
-	    --policy all --policy mat:best --policy freshest:6 --policy wait:40 \
-	    --policy ppo:runs/ppo/figures/final.pt
 	mkdir -p docs/figures
-	cp runs/experiments/tradeoff-quick/tradeoff.png runs/experiments/delay-quick/delay.png \
-	   runs/experiments/views-quick/views.png runs/experiments/compare-quick/compare.png docs/figures/
 	cp runs/ppo/figures/reward.png docs/figures/ppo_reward.png
+	$(PY) bench/science.py $(SCIENCE_ARGS)
 
 lock:  ## regenerate deploy/requirements.lock (the image's dependencies, with hashes) from pyproject.toml
 	$(PY) deploy/lock.py
