@@ -62,6 +62,14 @@ def _diff(d: Mapping[str, Any], digits: int = 2) -> str:
     return text
 
 
+_NAMES = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR", "ssim": "SSIM",
+          "ssim_dynamic": "dynamic-region SSIM", "lpips": "LPIPS", "reward": "the reward"}
+
+
+def _name(metric: str) -> str:
+    return _NAMES.get(metric, metric)
+
+
 def _seeds(seeds: Sequence[int]) -> str:
     return f"{seeds[0]}–{seeds[-1]}" if len(seeds) > 1 else str(seeds[0])
 
@@ -69,7 +77,9 @@ def _seeds(seeds: Sequence[int]) -> str:
 def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_db"
                               ) -> Verdict:
     """At the tradeoff's delay, ``metric`` has an interior optimum: the optimum set holds
-    neither the smallest Γ that selects frames nor `all` (Γ = ∞)."""
+    neither the smallest Γ that selects frames nor `all` (Γ = ∞). With
+    ``metric="psnr_dynamic_db"`` it is the claim that staleness costs most where the scene
+    moves: on the blades too, neither the freshest frames alone nor every frame is best."""
     opt = tradeoff["optimum"][metric]
     delay = tradeoff["meta"]["args"]["delay"]
     minus = opt["best_minus"]
@@ -77,7 +87,8 @@ def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_d
     gaps = "; ".join(f"best − {_g(e)}: {_diff(minus[str(e)])}" for e in ends if str(e) in minus)
     return Verdict(
         claim=f"interior-{metric}",
-        statement=(f"At {delay}, {metric} has an interior optimum in Γ: neither the smallest "
+        statement=(f"At {delay}, {_name(metric)} has an interior optimum in Γ: neither the "
+                   "smallest "
                    "Γ that selects frames nor `all` is in the optimum set"),
         holds=bool(opt["interior"]),
         evidence=(f"best Γ = {_g(opt['best'])}; optimum set {_set(opt['members'])}; {gaps} "
@@ -145,7 +156,7 @@ def compare_selective_beats_all(compare: Mapping[str, Any], metric: str = "psnr_
     return Verdict(
         claim="selective-beats-all",
         statement=(f"Selecting frames beats training on every frame: `all` is significantly "
-                   f"worse in {metric} than the best of the compared policies"),
+                   f"worse in {_name(metric)} than the best of the compared policies"),
         holds=d is not None and "all" not in opt["members"],
         evidence=(f"best {opt['best']}; not significantly worse: {_set(opt['members'])}; "
                   f"best − all: {_diff(d) if d else '—'} (paired, seeds "

@@ -49,6 +49,18 @@ def test_interior_and_agreement_hold_on_a_peak_and_fail_on_a_rise() -> None:
     assert claims.tradeoff_interior_optimum(bad).numbers["optimum"]["excluded"] == [0.0]
 
 
+def test_the_dynamic_region_claim_reads_its_own_metric() -> None:
+    # Full-image PSNR peaks while the blades' PSNR rises to `all`: the dynamic claim fails
+    # on its own numbers, not on the full image's.
+    doc = tradeoff_doc({"psnr_db": (PEAK, 1.0), "psnr_dynamic_db": (RISING, 1.0)})
+    assert claims.tradeoff_interior_optimum(doc).holds
+    verdict = claims.tradeoff_interior_optimum(doc, metric="psnr_dynamic_db")
+    assert verdict.claim == "interior-psnr_dynamic_db" and not verdict.holds
+    assert "dynamic-region PSNR" in verdict.statement
+    flipped = tradeoff_doc({"psnr_db": (RISING, 1.0), "psnr_dynamic_db": (PEAK, 1.0)})
+    assert claims.tradeoff_interior_optimum(flipped, metric="psnr_dynamic_db").holds
+
+
 def delay_doc(peaks: dict[float, float]) -> dict:
     optima = []
     for i, (mean_delay, peak) in enumerate(peaks.items()):

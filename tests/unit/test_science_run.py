@@ -39,7 +39,8 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     assert res.returncode == 1, res.stdout[-3000:] + res.stderr[-3000:]
     doc = json.loads((tmp_path / "out/claims.json").read_text())
     assert [c["claim"] for c in doc["claims"]] == [
-        "interior-psnr_db", "scores-agree", "gamma-grows-with-delay", "selective-beats-all",
+        "interior-psnr_db", "scores-agree", "interior-psnr_dynamic_db",
+        "gamma-grows-with-delay", "selective-beats-all",
         "ppo-reaches-best-mat", "ppo-beats-all"]
     assert not all(c["holds"] for c in doc["claims"])
     for c in doc["claims"]:
