@@ -65,7 +65,7 @@ bench-live: install  ## the live sweep on a pipeline of its own, with the virtua
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
 	    --sim-seeds 16 --out bench/results/live-sweep
 
-science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 25 min; SCIENCE_ARGS="--seed-offset 30000" for another block)
+science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (17–21 min on 2 cores; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) bench/science.py $(SCIENCE_ARGS)
 
 figures: install  ## the PPO training figure from scratch, then `make science` (the experiment figures on unseen seeds) into docs/figures/ (about 28 min)
