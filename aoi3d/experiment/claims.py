@@ -88,8 +88,7 @@ def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_d
     return Verdict(
         claim=f"interior-{metric}",
         statement=(f"At {delay}, {_name(metric)} has an interior optimum in Γ: neither the "
-                   "smallest "
-                   "Γ that selects frames nor `all` is in the optimum set"),
+                   "smallest Γ that selects frames nor `all` is in the optimum set"),
         holds=bool(opt["interior"]),
         evidence=(f"best Γ = {_g(opt['best'])}; optimum set {_set(opt['members'])}; {gaps} "
                   f"(paired, seeds {_seeds(opt['seeds'])}); left out (select nothing): "
