@@ -153,13 +153,6 @@ def main() -> int:
     return 0 if all(v.holds for v in verdicts) else 1
 
 
-def _gamma(v: Any) -> str:
-    try:
-        return f"{float(v):g}"
-    except (TypeError, ValueError):
-        return str(v)
-
-
 def _num(v: Any, digits: int = 2) -> str:
     try:
         return f"{float(v):.{digits}f}"
@@ -218,12 +211,13 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
             f"{'yes' if g in members else ('selects nothing' if p['n_selected'] == 0 else '')}"
             " |")
     lines += [""]
-    for metric, name in (("psnr_db", "PSNR"), ("psnr_dynamic_db", "dynamic-region PSNR")):
+    for metric in ("psnr_db", "psnr_dynamic_db"):
         opt = tradeoff["optimum"].get(metric)
         if opt is None:
             continue
-        lines += [f"Paired differences best − Γ ({name}, dB; best {_gamma(opt['best'])}): "
-                  + ", ".join(f"{_gamma(k)}: {_num(v['mean'])} ± {_num(v['ci95'])}"
+        lines += [f"Paired differences best − Γ ({claims.metric_name(metric)}, dB; best "
+                  f"{claims.gamma_label(opt['best'])}): "
+                  + ", ".join(f"{claims.gamma_label(k)}: {_num(v['mean'])} ± {_num(v['ci95'])}"
                               for k, v in opt["best_minus"].items()) + ".", ""]
     lines += [
         "## Optimal Γ against the mean delay", "",

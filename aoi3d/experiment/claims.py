@@ -19,6 +19,8 @@ from aoi3d.experiment.optimum import PairedDifference, paired_difference
 __all__ = [
     "Verdict",
     "compare_selective_beats_all",
+    "gamma_label",
+    "metric_name",
     "optimal_gamma_grows_with_delay",
     "ppo_beats_all",
     "ppo_reaches_best_mat",
@@ -41,13 +43,18 @@ class Verdict:
         return asdict(self)
 
 
-def _g(value: Any) -> str:
+def gamma_label(value: Any) -> str:
+    """A candidate as the reports write it: Γ in ms (``40``), ``all`` for `all` or Γ = ∞, else
+    the policy spec."""
     if value == "all" or (isinstance(value, float) and math.isinf(value)):
         return "all"
     try:
         return f"{float(value):g}"
     except (TypeError, ValueError):
         return str(value)
+
+
+_g = gamma_label  # the short form the f-strings below use
 
 
 def _set(members: Sequence[Any]) -> str:
@@ -66,7 +73,8 @@ _NAMES = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR", "ssim": "
           "ssim_dynamic": "dynamic-region SSIM", "lpips": "LPIPS", "reward": "the reward"}
 
 
-def _name(metric: str) -> str:
+def metric_name(metric: str) -> str:
+    """A metric's name in words (``psnr_dynamic_db`` → ``dynamic-region PSNR``)."""
     return _NAMES.get(metric, metric)
 
 
@@ -87,7 +95,7 @@ def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_d
     gaps = "; ".join(f"best − {_g(e)}: {_diff(minus[str(e)])}" for e in ends if str(e) in minus)
     return Verdict(
         claim=f"interior-{metric}",
-        statement=(f"At {delay}, {_name(metric)} has an interior optimum in Γ: neither the "
+        statement=(f"At {delay}, {metric_name(metric)} has an interior optimum in Γ: neither the "
                    "smallest Γ that selects frames nor `all` is in the optimum set"),
         holds=bool(opt["interior"]),
         evidence=(f"best Γ = {_g(opt['best'])}; optimum set {_set(opt['members'])}; {gaps} "
@@ -155,7 +163,7 @@ def compare_selective_beats_all(compare: Mapping[str, Any], metric: str = "psnr_
     return Verdict(
         claim="selective-beats-all",
         statement=(f"Selecting frames beats training on every frame: `all` is significantly "
-                   f"worse in {_name(metric)} than the best of the compared policies"),
+                   f"worse in {metric_name(metric)} than the best of the compared policies"),
         holds=d is not None and "all" not in opt["members"],
         evidence=(f"best {opt['best']}; not significantly worse: {_set(opt['members'])}; "
                   f"best − all: {_diff(d) if d else '—'} (paired, seeds "
