@@ -1,7 +1,8 @@
 """Run the whole pipeline locally: a Zenoh router plus the services as supervised processes.
 
 Used by ``aoi3d up`` (and so ``make up``). :data:`SERVICES` and :data:`DEFAULT_PORTS` are the
-one list of services: the ports checked before start, the processes started, the table shown.
+one list of services: the ports checked before start, the processes started, the table shown;
+after them, ``workers`` reconstruction workers (:data:`WORKER`), which have no port.
 
 Before anything starts, :func:`taken_ports` finds the REST and Zenoh ports already in use
 (``aoi3d up`` then stops with one line naming the port and the option that moves it). Each
@@ -47,6 +48,10 @@ DEFAULT_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 
                  "metrics": 8105, "console": 8106}
 """Each service's REST port before ``--port-offset``."""
 assert set(DEFAULT_PORTS) == set(SERVICES)
+WORKER = "recon"
+"""The reconstruction workers (``python -m services.recon``): ``--workers`` of them, named
+``recon-1`` … in the logs; no REST port each — a worker is ready when the trainer's ``GET
+/workers`` lists its pid (it joined the pool by its Zenoh liveliness token)."""
 LATEST = "latest"
 """The link in ``log_dir`` to the newest run's log folder."""
 STARTUP_RESTARTS = 1
@@ -59,6 +64,9 @@ class UpConfig:
     run_id: str = "default"
     time_scale: float = 0.1
     cameras: int = 18
+    workers: int = 1
+    """Reconstruction workers of the pool (``python -m services.recon``, 1 torch thread each
+    unless ``AOI3D_RECON_TORCH_THREADS`` says otherwise)."""
     zenoh_port: int = 7447
     port_offset: int = 0
     log_dir: Path = Path("runs/logs")
@@ -206,8 +214,13 @@ class Supervisor:
             base[f"AOI3D_{name.upper()}_HOST"] = "127.0.0.1"
         base.update(cfg.extra_env)
         names = ("router", *SERVICES)
-        return [Child(name, cfg.commands.get(name, [sys.executable, "-m", f"services.{name}"]),
-                      base, Path(f"{name}.log")) for name in names]
+        children = [Child(name, cfg.commands.get(name, [sys.executable, "-m",
+                                                        f"services.{name}"]),
+                          base, Path(f"{name}.log")) for name in names]
+        argv = cfg.commands.get(WORKER, [sys.executable, "-m", f"services.{WORKER}"])
+        children += [Child(f"{WORKER}-{i}", argv, base, Path(f"{WORKER}-{i}.log"))
+                     for i in range(1, cfg.workers + 1)]
+        return children
 
     # ------------------------------------------------------------ lifecycle
     def run(self) -> int:
@@ -331,15 +344,21 @@ class Supervisor:
         return False
 
     def _healthy(self, child: Child) -> bool:
-        """Whether ``child`` itself answers ``/healthz`` (the body's pid is the child's)."""
+        """Whether ``child`` itself answers ``/healthz`` (the body's pid is the child's); a
+        reconstruction worker: whether the trainer's ``GET /workers`` lists its pid."""
         import urllib.request  # here: `aoi3d --help` imports this module
 
         if not child.alive():
             return False
-        url = f"http://127.0.0.1:{self.cfg.port(child.name)}/healthz"
+        worker = child.name not in DEFAULT_PORTS
+        port = self.cfg.port("trainer" if worker else child.name)
+        url = f"http://127.0.0.1:{port}/{'workers' if worker else 'healthz'}"
         try:
             with urllib.request.urlopen(url, timeout=1) as resp:
                 body = json.loads(resp.read() or b"{}")
+                if worker:
+                    pids = {w.get("pid") for w in body.get("workers", [])}
+                    return resp.status == 200 and child.proc.pid in pids
                 return resp.status == 200 and body.get("pid") == child.proc.pid
         except (OSError, ValueError, AttributeError):
             return False
@@ -385,7 +404,8 @@ class Supervisor:
             "children": {c.name: {"pid": c.proc.pid if c.proc else None,
                                   "restarts": c.restarts,
                                   "port": (self.cfg.zenoh_port if c.name == "router"
-                                           else self.cfg.port(c.name)),
+                                           else self.cfg.port(c.name)
+                                           if c.name in DEFAULT_PORTS else None),
                                   "log": str(c.log_path)}
                          for c in self.children},
         }

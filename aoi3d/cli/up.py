@@ -50,6 +50,11 @@ def up(
              "keeps pace.")] = 0.1,
     run_id: Annotated[str, typer.Option(help="Run id: the <run> in every key expression.")]
     = "default",
+    workers: Annotated[int, typer.Option(
+        min=0, max=64,
+        help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
+             "each): each renders the newest decision no other worker took. More can join "
+             "from anywhere that reaches the router (see GET /workers on the trainer).")] = 1,
     zenoh_port: Annotated[int, typer.Option(
         min=1, max=65535, help="TCP port of the local Zenoh router.")] = 7447,
     port_offset: Annotated[int, typer.Option(
@@ -80,7 +85,7 @@ def up(
                                  f"{_LAST + port_offset} are not valid ports",
                                  param_hint="'--port-offset'")
     folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
-    cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale,
+    cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale, workers=workers,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
                    duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
     taken = taken_ports(cfg)
@@ -107,6 +112,8 @@ def up(
         for name in SERVICES:
             table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
+        table.add_row(f"recon × {workers}", "no REST API (pull work over Zenoh)",
+                      f"http://127.0.0.1:{cfg.port('trainer')}/workers")
         console.print(table)
         console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
                       "(the novel view, AoI, quality over time, controls)", soft_wrap=True)

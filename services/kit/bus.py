@@ -2,6 +2,13 @@
 
 Handlers run on the bus's delivery thread (Zenoh: its callback threads, concurrently for
 different subscriptions) and must return quickly: hand work to an :class:`Inbox`.
+
+Besides pub/sub, the worker pool uses two more of Zenoh's primitives through this protocol:
+queries (:meth:`Bus.query` asks, :meth:`Bus.declare_queryable` answers, possibly later: a
+:class:`Query` may be kept and replied to from another thread) and liveliness
+(:meth:`Bus.declare_token` says "I am here" for as long as the session lives;
+:meth:`Bus.watch_liveliness` hears tokens appear and vanish — a killed process's token
+vanishes when the router loses its session).
 """
 
 from __future__ import annotations
@@ -9,6 +16,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
+import time
 from collections import deque
 from collections.abc import Callable
 from typing import Protocol
@@ -16,12 +24,46 @@ from typing import Protocol
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
+LivelinessHandler = Callable[[str, bool], None]
+"""``(key, alive)``: a token appeared (True) or vanished (False)."""
+
+
+class Query(Protocol):
+    """A question to a queryable: answer it once with :meth:`reply`, or :meth:`close` it
+    unanswered (the asker then gets nothing); either may happen on any thread, later."""
+
+    key: str
+    payload: bytes
+
+    def reply(self, payload: bytes) -> None: ...
+
+    def close(self) -> None: ...
+
+
+QueryHandler = Callable[[Query], None]
+
+
+class Token(Protocol):
+    def undeclare(self) -> None: ...
 
 
 class Bus(Protocol):
     def publish(self, key: str, payload: bytes) -> None: ...
 
     def subscribe(self, key: str, handler: Handler) -> None: ...
+
+    def declare_queryable(self, key: str, handler: QueryHandler) -> None: ...
+
+    def query(self, key: str, payload: bytes, timeout_s: float) -> bytes | None:
+        """The first answer to a query on ``key``; None when none came within ``timeout_s``."""
+        ...
+
+    def declare_token(self, key: str) -> Token: ...
+
+    def watch_liveliness(self, key: str, handler: LivelinessHandler) -> None:
+        """Call ``handler`` for every token matching ``key``: those alive now, then each
+        that appears or vanishes."""
+        ...
 
     def close(self) -> None: ...
 
@@ -60,6 +102,38 @@ class ZenohBus:
         with self._lock:
             self._subscribers.append(self._session.declare_subscriber(key, on_sample))
 
+    def declare_queryable(self, key: str, handler: QueryHandler) -> None:
+        def on_query(query) -> None:
+            try:
+                handler(_ZenohQuery(query))
+            except Exception:  # a handler bug must not kill Zenoh's thread
+                log.exception("queryable handler for %s failed", key)
+
+        with self._lock:
+            self._subscribers.append(self._session.declare_queryable(key, on_query))
+
+    def query(self, key: str, payload: bytes, timeout_s: float) -> bytes | None:
+        for reply in self._session.get(key, payload=payload, timeout=timeout_s):
+            if reply.ok is not None:
+                return reply.ok.payload.to_bytes()
+        return None
+
+    def declare_token(self, key: str) -> Token:
+        return self._session.liveliness().declare_token(key)
+
+    def watch_liveliness(self, key: str, handler: LivelinessHandler) -> None:
+        put = self._zenoh.SampleKind.PUT
+
+        def on_sample(sample) -> None:
+            try:
+                handler(str(sample.key_expr), sample.kind == put)
+            except Exception:
+                log.exception("liveliness handler for %s failed", key)
+
+        with self._lock:
+            self._subscribers.append(
+                self._session.liveliness().declare_subscriber(key, on_sample, history=True))
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -71,6 +145,37 @@ class ZenohBus:
             with contextlib.suppress(Exception):  # already gone with the session
                 ent.undeclare()
         self._session.close()
+
+
+class _ZenohQuery:
+    """A zenoh Query behind the :class:`Query` protocol (replied at most once, then dropped,
+    so the asker is never left waiting for its timeout)."""
+
+    def __init__(self, query) -> None:
+        self._query = query
+        self.key = str(query.key_expr)
+        self.payload = query.payload.to_bytes() if query.payload is not None else b""
+        self._done = False
+        self._lock = threading.Lock()
+
+    def reply(self, payload: bytes) -> None:
+        with self._lock:
+            if self._done:
+                return
+            self._done = True
+        try:
+            self._query.reply(self._query.key_expr, payload)
+        finally:
+            with contextlib.suppress(Exception):
+                self._query.drop()
+
+    def close(self) -> None:
+        with self._lock:
+            if self._done:
+                return
+            self._done = True
+        with contextlib.suppress(Exception):
+            self._query.drop()
 
 
 def key_matches(pattern: str, key: str) -> bool:
@@ -94,6 +199,9 @@ class MemoryBus:
 
     def __init__(self) -> None:
         self._subs: list[tuple[str, Handler]] = []
+        self._queryables: list[tuple[str, QueryHandler]] = []
+        self._tokens: set[str] = set()
+        self._watchers: list[tuple[str, LivelinessHandler]] = []
         self.published: list[tuple[str, bytes]] = []
         self._lock = threading.Lock()
         self.closed = False
@@ -110,12 +218,84 @@ class MemoryBus:
         with self._lock:
             self._subs.append((key, handler))
 
+    def declare_queryable(self, key: str, handler: QueryHandler) -> None:
+        with self._lock:
+            self._queryables.append((key, handler))
+
+    def query(self, key: str, payload: bytes, timeout_s: float) -> bytes | None:
+        with self._lock:
+            handlers = [h for pattern, h in self._queryables if key_matches(pattern, key)]
+        queries = [MemoryQuery(key, payload) for _ in handlers]
+        for handler, query in zip(handlers, queries, strict=True):
+            handler(query)
+        deadline = time.monotonic() + timeout_s
+        for query in queries:
+            if query.wait(max(0.0, deadline - time.monotonic())) and query.answer is not None:
+                return query.answer
+        return None
+
+    def declare_token(self, key: str) -> Token:
+        with self._lock:
+            self._tokens.add(key)
+        self._notify(key, True)
+        return _MemoryToken(self, key)
+
+    def _drop_token(self, key: str) -> None:
+        with self._lock:
+            if key not in self._tokens:
+                return
+            self._tokens.discard(key)
+        self._notify(key, False)
+
+    def _notify(self, key: str, alive: bool) -> None:
+        with self._lock:
+            watchers = [h for pattern, h in self._watchers if key_matches(pattern, key)]
+        for handler in watchers:
+            handler(key, alive)
+
+    def watch_liveliness(self, key: str, handler: LivelinessHandler) -> None:
+        with self._lock:
+            self._watchers.append((key, handler))
+            alive = sorted(t for t in self._tokens if key_matches(key, t))
+        for token in alive:
+            handler(token, True)
+
     def close(self) -> None:
         self.closed = True
 
     def messages(self, pattern: str) -> list[bytes]:
         with self._lock:
             return [p for k, p in self.published if key_matches(pattern, k)]
+
+
+class MemoryQuery:
+    """A query on the :class:`MemoryBus`: answered (or closed) once, from any thread."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key = key
+        self.payload = payload
+        self.answer: bytes | None = None
+        self._done = threading.Event()
+
+    def reply(self, payload: bytes) -> None:
+        if not self._done.is_set():
+            self.answer = payload
+            self._done.set()
+
+    def close(self) -> None:
+        self._done.set()
+
+    def wait(self, timeout_s: float) -> bool:
+        return self._done.wait(timeout_s)
+
+
+class _MemoryToken:
+    def __init__(self, bus: MemoryBus, key: str) -> None:
+        self._bus = bus
+        self.key = key
+
+    def undeclare(self) -> None:
+        self._bus._drop_token(self.key)
 
 
 class Inbox:

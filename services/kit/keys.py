@@ -45,3 +45,16 @@ class Keys:
     @property
     def quality(self) -> str:
         return f"{self.root}/quality"
+
+    @property
+    def work(self) -> str:
+        """The pool's dispatcher answers queries for work here (reconstruction workers ask)."""
+        return f"{self.root}/pool/work"
+
+    def pool_worker(self, worker_id: str) -> str:
+        """A reconstruction worker's liveliness token: the pool's membership."""
+        return f"{self.root}/pool/worker/{worker_id}"
+
+    @property
+    def pool_workers(self) -> str:
+        return f"{self.root}/pool/worker/*"

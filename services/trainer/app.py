@@ -3,6 +3,7 @@ render."""
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Annotated, Literal
 
@@ -11,13 +12,13 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
-from aoi3d.field import BACKENDS, FieldConfig
+from aoi3d.field import BACKENDS
 from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus
+from services.trainer.pool import PoolStatus
 from services.trainer.settings import Settings
 from services.trainer.state import (
-    BackendBuildError,
     CarryError,
     TrainerStatus,
     UnknownBackendError,
@@ -36,6 +37,74 @@ class DecisionInfo(BaseModel):
     n_missing: int = Field(description="Selected frames the trainer never received (skipped).",
                            examples=[0])
     age_ms: float = Field(description="Sim ms since the decision epoch.", examples=[35.0])
+
+
+class WorkerInfo(BaseModel):
+    worker_id: str = Field(description="The worker's id (its Zenoh liveliness token's last "
+                                       "chunk).", examples=["edge-1-4242-a1b2"])
+    pid: int = Field(description="Its process id (0 before its first request).", examples=[4242])
+    host: str = Field(description="Its host name.", examples=["edge-1"])
+    device: str = Field(description="Its torch device.", examples=["cpu"])
+    rendered: int = Field(description="Decisions it rendered since it joined.", examples=[12])
+    lost: int = Field(description="Decisions it held that ended without a render.",
+                      examples=[0])
+    holding: int | None = Field(description="The decision it is reconstructing now; null: idle.",
+                                examples=[42])
+    busy_fraction: float | None = Field(description="Share of the window's wall time it spent "
+                                                    "reconstructing; null until it reported "
+                                                    "twice.", examples=[0.93])
+
+
+class PoolInfo(BaseModel):
+    workers: list[WorkerInfo] = Field(description="Live workers (membership: Zenoh liveliness).")
+    decisions: int = Field(description="Decisions offered to the pool since start.",
+                           examples=[300])
+    assigned: int = Field(description="Decisions handed to a worker (each to exactly one).",
+                          examples=[120])
+    rendered: int = Field(description="Decisions whose render its worker reported published.",
+                          examples=[118])
+    superseded: int = Field(description="Decisions skipped by choice: a newer one came before a "
+                                        "worker was free.", examples=[180])
+    lost: dict[str, int] = Field(description="Decisions handed out that ended without a render, "
+                                             "by reason: worker_died, timeout, not_delivered, "
+                                             "failed:<why>.", examples=[{"worker_died": 1}])
+    pending: int | None = Field(description="The decision waiting for a free worker.",
+                                examples=[301])
+    in_flight: int = Field(description="Decisions being reconstructed now.", examples=[2])
+    renders_per_s: float = Field(description="Renders per wall second over the window.",
+                                 examples=[1.4])
+    decisions_per_s: float = Field(description="Decisions per wall second over the window.",
+                                   examples=[3.3])
+    rendered_fraction: float | None = Field(description="Decisions rendered / taken over the "
+                                                        "window (null before any).",
+                                            examples=[0.42])
+    wait_s_mean: float | None = Field(description="Mean wall s from a decision's arrival to its "
+                                                  "hand-out over the window.", examples=[0.08])
+    render_age_s_mean: float | None = Field(description="Mean wall s from a decision's arrival "
+                                                        "to its render over the window.",
+                                            examples=[1.5])
+    late_reports: int = Field(description="Worker reports of decisions already counted lost.",
+                              examples=[0])
+    window_s: float = Field(description="The window of the rates (AOI3D_TRAINER_WINDOW_S).",
+                            examples=[30.0])
+
+
+def _num(x: float) -> float | None:
+    return None if not math.isfinite(x) else round(x, 4)
+
+
+def pool_body(pool: PoolStatus) -> PoolInfo:
+    return PoolInfo(
+        workers=[WorkerInfo(worker_id=w.worker_id, pid=w.pid, host=w.host, device=w.device,
+                            rendered=w.rendered, lost=w.lost, holding=w.holding,
+                            busy_fraction=_num(w.busy_fraction)) for w in pool.workers],
+        decisions=pool.decisions, assigned=pool.assigned, rendered=pool.rendered,
+        superseded=pool.superseded, lost=pool.lost, pending=pool.pending,
+        in_flight=pool.in_flight, renders_per_s=round(pool.renders_per_s, 4),
+        decisions_per_s=round(pool.decisions_per_s, 4),
+        rendered_fraction=_num(pool.rendered_fraction), wait_s_mean=_num(pool.wait_s_mean),
+        render_age_s_mean=_num(pool.render_age_s_mean), late_reports=pool.late_reports,
+        window_s=pool.window_s)
 
 
 class StatusResponse(BaseModel):
@@ -69,7 +138,9 @@ class StatusResponse(BaseModel):
                                             "never arrived.", examples=[0])
     resets: int = Field(description="Model resets since start (backend switches included).",
                         examples=[0])
-    running: bool = Field(description="Whether the training thread is alive.", examples=[True])
+    running: bool = Field(description="Whether the pool's thread is alive.", examples=[True])
+    pool: PoolInfo = Field(description="The reconstruction workers and what they did "
+                                       "(GET /workers has the same).")
 
 
 def _status_body(status: TrainerStatus) -> StatusResponse:
@@ -85,27 +156,36 @@ def _status_body(status: TrainerStatus) -> StatusResponse:
         carry=status.carry, render_steps=status.render_steps,
         renders=status.renders, frames_received=status.frames_received,
         frames_buffered=status.frames_buffered,
-        frames_missing=status.frames_missing, resets=status.resets, running=status.running)
+        frames_missing=status.frames_missing, resets=status.resets, running=status.running,
+        pool=pool_body(status.pool))
 
 
 status_router = APIRouter(tags=["status"])
 
 
-@status_router.get("/status", summary="Training progress and the decision in force.")
+@status_router.get("/status", summary="Renders, the decision in force and the pool.")
 def get_status(worker: Worker) -> StatusResponse:
     return _status_body(worker.status())
+
+
+@status_router.get("/workers", summary="The reconstruction workers of the pool.",
+                   description="Membership is Zenoh liveliness: a worker is listed from its "
+                               "token's appearance to its vanishing (a killed worker's token "
+                               "vanishes when the router loses its session). Rates, fraction, "
+                               "waits and busy fractions are over the last `window_s`.")
+def get_workers(worker: Worker) -> PoolInfo:
+    return pool_body(worker.pool_status())
 
 
 model_router = APIRouter(tags=["model"])
 
 
 @model_router.post(
-    "/reset", summary="Re-initialise the radiance field (training set and frames kept).",
-    responses={503: {"description": "The training thread did not get to the reset in time."}})
+    "/reset", summary="Start new models (warm and fork carry one per worker; fresh always does).",
+    description="Moves the model epoch on: each worker starts a new model at its next job. "
+                "Counts in `resets`.")
 def post_reset(worker: Worker) -> StatusResponse:
-    if not worker.reset():
-        raise HTTPException(503, "the training thread did not perform the reset within 10 s; "
-                                 "check GET /status and /readyz")
+    worker.reset()
     return _status_body(worker.status())
 
 
@@ -124,29 +204,20 @@ _BACKEND_EXAMPLES = {
 
 
 @model_router.put(
-    "/backend", summary="Switch the radiance-field backend (a new model; views and frames kept).",
-    description="Replaces the model by a fresh one of the named backend, built with its "
-                "default config on the same device and seed. The training set (the decision "
-                "in force) and the buffered frames are kept, and training resumes at once; "
-                "like POST /reset it restarts `steps` at 0 and counts in `resets`. Renders "
-                "from then on carry the new backend's name. The switch is done by the "
-                "training thread between two chunks of steps.",
-    responses={422: {"description": "Unknown backend; the detail lists the available ones."},
-               500: {"description": "The backend's model could not be built; the previous "
-                                    "backend keeps training."},
-               503: {"description": "The training thread did not get to the switch in time."}})
+    "/backend", summary="Switch the radiance-field backend of the jobs from now on.",
+    description="Every job handed out from now on names this backend; each worker builds its "
+                "model with the backend's default config on its own device, with the same "
+                "seed. Like POST /reset it moves the model epoch on (warm and fork models "
+                "restart) and counts in `resets`. Renders from then on carry the new "
+                "backend's name.",
+    responses={422: {"description": "Unknown backend; the detail lists the available ones."}})
 def put_backend(worker: Worker,
                 body: Annotated[BackendRequest, Body(openapi_examples=_BACKEND_EXAMPLES)]
                 ) -> StatusResponse:
     try:
-        switched = worker.set_backend(body.backend)
+        worker.set_backend(body.backend)
     except UnknownBackendError as err:
         raise HTTPException(422, str(err)) from None
-    except BackendBuildError as err:
-        raise HTTPException(500, str(err)) from None
-    if not switched:
-        raise HTTPException(503, "the training thread did not switch the backend within 30 s; "
-                                 "check GET /status and /readyz")
     return _status_body(worker.status())
 
 
@@ -168,19 +239,16 @@ class CarryRequest(BaseModel):
 @model_router.put(
     "/carry", summary="Change how renders are made (fresh, fork or warm).",
     description="The experiments' carry modes (`aoi3d experiment ... --carry`), the same code "
-                "(aoi3d.field.carry). Takes effect at the next render; the continuously "
-                "trained model (fork, warm) and the decision in force are kept.",
-    responses={422: {"description": "Unknown carry mode or render budget."},
-               503: {"description": "The training thread did not get to the change in time."}})
+                "(aoi3d.field.carry). Jobs handed out from now on carry it; warm and fork "
+                "models (one per worker) are kept.",
+    responses={422: {"description": "Unknown carry mode or render budget."}})
 def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
-    steps = body.render_steps if body.render_steps is not None else worker.rec.render_steps
+    steps = (body.render_steps if body.render_steps is not None
+             else worker.render_settings.render_steps)
     try:
-        done = worker.set_carry(body.carry, steps)
+        worker.set_carry(body.carry, steps)
     except CarryError as err:
         raise HTTPException(422, str(err)) from None
-    if not done:
-        raise HTTPException(503, "the training thread did not change the carry within 10 s; "
-                                 "check GET /status and /readyz")
     return _status_body(worker.status())
 
 
@@ -201,39 +269,40 @@ def get_render(worker: Worker) -> Response:
     latest = worker.latest_render()
     if latest is None:
         raise HTTPException(
-            404, f"no render yet: the trainer renders the held-out camera "
-                 f"{worker.settings.render_period_s:g} s after each previous render once a "
-                 f"decision has arrived")
+            404, "no render yet: renders come once a decision has arrived and a "
+                 "reconstruction worker has rendered it (GET /workers lists the pool)")
     headers = {"X-Decision-Id": str(latest.decision_id), "X-Time-Ms": f"{latest.time_ms:g}",
                "X-Training-Step": str(latest.training_step), "X-Views": str(latest.n_views),
                "X-Carry": latest.carry, "X-Render-Steps": str(latest.render_steps),
                "X-Frames-Age-Ms": f"{latest.frames_age_ms:g}",
                "X-Render-Age-S": f"{time.time() - latest.wall_s:.3f}",
+               "X-Worker": latest.worker_id,
                "Cache-Control": "no-store"}
     return Response(content=latest.png, media_type="image/png", headers=headers)
 
 
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
-               clock: SimClock | None = None, dataset: SceneDataset | None = None,
-               field_config: FieldConfig | None = None) -> FastAPI:
+               clock: SimClock | None = None, dataset: SceneDataset | None = None) -> FastAPI:
     """The trainer's app. ``dataset`` defaults to ``open_dataset(settings.common.dataset)``
-    (read when the app starts); ``field_config`` overrides the backend's default config."""
+    (read when the app starts: the held-out camera, the scene box and the image size)."""
     settings = settings or Settings()
     clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
 
     def build_worker(the_bus: Bus, registry) -> TrainerWorker:
         data = dataset if dataset is not None else open_dataset(settings.common.dataset)
-        return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock,
-                             field_config=field_config)
+        return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock)
 
     app = service_app(
         title="aoi3d trainer",
-        description="Trains a radiance field on the frames each scheduler decision selects "
-                    "and publishes renders of the held-out novel view. The backend (grid, "
-                    "ngp, tensorf, nerfacto, … whatever aoi3d.field.BACKENDS registers) is "
-                    "chosen at start (AOI3D_TRAINER_BACKEND) and can be switched at run time "
-                    "with `PUT /backend {\"backend\": \"ngp\"}`: the model restarts, views "
-                    "and buffered frames are kept.",
+        description="The pool's dispatcher: takes each scheduler decision and hands it, with "
+                    "the frames it selected, to exactly one reconstruction worker (`python -m "
+                    "services.recon`, any number, joining and leaving at run time: GET "
+                    "/workers), which trains a radiance field on them and publishes the render "
+                    "of the held-out novel view. When the pool cannot keep up the newest "
+                    "decision wins. The backend (grid, ngp, tensorf, nerfacto, … whatever "
+                    "aoi3d.field.BACKENDS registers) is chosen at start "
+                    "(AOI3D_TRAINER_BACKEND) and switched at run time with `PUT /backend "
+                    "{\"backend\": \"ngp\"}`.",
         settings=settings, build_worker=build_worker, bus=bus)
     app.include_router(status_router)
     app.include_router(model_router)

@@ -4,8 +4,14 @@ FrameRefs of a decision (a selection names a camera's frame by its generation ti
 from __future__ import annotations
 
 from collections import deque
+from typing import Protocol
 
-from services.kit.codec import FrameData
+
+class FrameData(Protocol):
+    """What the buffer needs of a frame: its camera and generation time."""
+
+    camera_id: int
+    generation_ms: float
 
 
 class FrameBuffer:

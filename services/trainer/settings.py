@@ -6,7 +6,6 @@ that maps a backend name to its config; ``PUT /backend`` switches it at run time
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, field_validator
@@ -17,7 +16,9 @@ from services.kit.settings import ServiceSettings
 
 
 class Settings(ServiceSettings):
-    """The trainer: trains a radiance field on the decided frames and renders the novel view."""
+    """The trainer: the pool's dispatcher. It takes the scheduler's decisions and hands each to
+    one reconstruction worker (`python -m services.recon`) with the frames it selected; the
+    worker trains a radiance field on them and renders the novel view."""
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_TRAINER_", extra="ignore")
 
@@ -27,42 +28,27 @@ class Settings(ServiceSettings):
                                              "lists them); `PUT /backend` switches it at run "
                                              "time.",
                          examples=["grid"])
-    steps_per_chunk: int = Field(
-        1, ge=1, le=10_000,
-        description="Training steps between two checks for a new decision. Small keeps the "
-                    "trainer responsive (decisions come every 0.3 wall s at time_scale 0.1; a "
-                    "default grid step on 2 CPU cores takes ~30 ms); the per-chunk overhead is "
-                    "microseconds.")
-    render_period_s: float = Field(
-        0.5, gt=0, le=3600,
-        description="Wall seconds of background training between the end of one render of "
-                    "the held-out camera and the start of the next.")
     carry: Literal["fork", "fresh", "warm"] = Field(
         "fresh",
         description="How a render is made (aoi3d.field.carry, the experiments' carry modes): "
                     "fresh = the paper's per-time reconstruction, a new model trains "
                     "render_steps steps on the rendered decision's frames alone; fork = a copy "
-                    "of the continuously trained model does; warm = the continuously trained "
-                    "model renders as it is. `PUT /carry` changes it at run time.")
+                    "of the worker's continuously trained model does; warm = that model renders "
+                    "as it is (fork and warm: one model per worker, carried from job to job). "
+                    "`PUT /carry` changes it at run time.")
     render_steps: int = Field(
         100, ge=1, le=100_000,
         description="Training steps spent on a rendered decision's own frames (fork, fresh).")
-    device: Literal["auto", "cpu", "cuda"] = Field(
-        "auto", description="Torch device: auto (CUDA when available, else CPU), cpu or cuda.")
-    torch_threads: int = Field(
-        0, ge=0, le=256,
-        description="Torch CPU threads of this process (the field config's num_threads); "
-                    "0 keeps torch's default.")
-    seed: int = Field(0, ge=0, description="Seed of the field's initialisation and ray sampling.")
-    checkpoint_dir: Path = Field(
-        Path("runs/checkpoints"),
-        description="Folder of the model checkpoint, <run id>.trainer.pt, written atomically "
-                    "every checkpoint_period_s while the model trains; a restarted trainer "
-                    "resumes from it when backend and scene match. POST /reset and PUT "
-                    "/backend delete it (they start fresh).")
-    checkpoint_period_s: float = Field(
-        30.0, ge=0, le=86_400,
-        description="Wall seconds between two checkpoint writes (0: no checkpoints).")
+    seed: int = Field(0, ge=0, description="Seed of the field's initialisation and ray sampling "
+                                           "(carried by every job).")
+    job_timeout_s: float = Field(
+        120.0, gt=0, le=86_400,
+        description="Wall seconds a worker may hold a decision before it is counted lost "
+                    "(timeout): a stopped or cut-off worker never leaves a decision open.")
+    window_s: float = Field(
+        30.0, gt=0, le=3600,
+        description="Wall seconds over which the pool's rates, rendered fraction, waits and "
+                    "busy fractions are measured (GET /workers, /metrics).")
     frames_per_camera: int = Field(
         8, ge=1, le=1024,
         description="Delivered frames kept per camera (encoded) to resolve a decision's "

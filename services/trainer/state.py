@@ -10,6 +10,7 @@ import math
 from dataclasses import dataclass
 
 from aoi3d.field import BACKENDS
+from services.trainer.pool import PoolStatus
 
 __all__ = [
     "BackendBuildError",
@@ -77,6 +78,7 @@ class LatestRender:
     frames_age_ms: float = math.nan
     lag_ms: float = math.nan
     age_s: float = math.nan
+    worker_id: str = ""
 
 
 @dataclass(frozen=True)
@@ -100,3 +102,4 @@ class TrainerStatus:
     frames_missing: int
     resets: int
     running: bool
+    pool: PoolStatus | None = None

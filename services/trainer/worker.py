@@ -1,16 +1,19 @@
-"""The trainer worker: delivered frames + decisions in, renders of the novel view out.
+"""The trainer service's runtime: the bus, one lock, a housekeeping thread, the metrics.
 
-Bus callbacks only put raw payloads into :class:`Inbox` queues. One training thread owns
-the radiance field, driven by an :class:`aoi3d.field.carry.Reconstruction` (the experiments'
-carry modes, the same code): between small chunks of ``steps_per_chunk`` background steps it
-ingests the queued frames (kept per camera, still encoded), applies the newest decision
-(resolves its selected FrameRefs to frames, decodes them and swaps the training set, model
-kept), and ``render_period_s`` wall seconds after the previous render it renders the
-decision in force — with the default ``fresh`` carry, a new model trained ``render_steps``
-steps on exactly that decision's frames — and publishes a Render stamped
-with that decision and the generation times of its frames. Control requests from the HTTP
-threads — reset the model, switch the backend or the carry — are queued and carried out by
-the training thread between two chunks, so no other thread ever touches the model.
+The logic is :class:`services.trainer.core.TrainerCore` (and its pool's
+:class:`services.trainer.pool.Dispatcher`); this module only wires it to the bus:
+
+- delivered frames, decisions and renders (subscriptions) go to the core under one lock —
+  each call is a protobuf parse and a few dictionary operations, never an image decode or a
+  model step, so the callbacks return at once;
+- work requests (the queryable ``aoi3d/<run>/pool/work``) are answered with a job when a
+  decision is pending, else held (a long poll) until a decision comes or the worker's
+  ``max_wait_s`` runs out;
+- worker liveliness tokens ``aoi3d/<run>/pool/worker/*`` are the pool's membership;
+- a housekeeping thread answers held requests whose wait ran out and expires jobs held past
+  ``job_timeout_s``;
+- the metrics are read from the core at scrape time (:class:`PoolCollector`), so no state is
+  kept twice.
 """
 
 from __future__ import annotations
@@ -19,549 +22,339 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, replace
 
 import numpy as np
-from prometheus_client import CollectorRegistry, Counter, Gauge
+from prometheus_client import CollectorRegistry
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 
 from aoi3d.clock import SimClock
-from aoi3d.device import resolve_device
-from aoi3d.field import FieldConfig, FieldTrainer, TrainView
-from aoi3d.field import field_config as make_field_config
-from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
 from aoi3d.scene import SceneDataset
-from aoi3d.scene.camera import Camera
-from services.kit.bus import Bus, Inbox
-from services.kit.codec import (
-    camera_to_pb,
-    decode_decision,
-    decode_frame,
-    encode_png,
-)
+from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
-from services.kit.pb import aoi3d_pb2 as pb
-from services.trainer.control import ControlQueue
-from services.trainer.frames import FrameBuffer
+from services.trainer.core import RenderSettings, TrainerCore
+from services.trainer.pool import Assignment, Dispatcher, PoolStatus
 from services.trainer.settings import Settings
-from services.trainer.state import (
-    BackendBuildError,
-    CarryError,
-    DecisionInForce,
-    LatestRender,
-    TrainerStatus,
-    check_backend,
-)
+from services.trainer.state import CarryError, LatestRender, TrainerStatus
 
 log = logging.getLogger(__name__)
 
-RATE_WINDOW_S = 5.0
-"""Wall seconds over which ``steps_per_s`` is measured."""
-
-_IDLE_WAIT_S = 0.05
+_TICK_S = 0.1
 _STOP_JOIN_S = 2.0
-
-
-@dataclass
-class _BackendRequest:
-    """A request to switch the backend; the training thread fills ``error`` if it fails."""
-
-    name: str
-    error: str | None = None
+RATE_WINDOW_S = 5.0
 
 
 class TrainerWorker:
-    """Owns the radiance field and its training thread; see the module docstring."""
+    """See the module docstring."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,
-                 dataset: SceneDataset, clock: SimClock,
-                 field_config: FieldConfig | None = None) -> None:
+                 dataset: SceneDataset, clock: SimClock) -> None:
         self.settings = settings
         self.bus = bus
         self.clock = clock
         self.keys = Keys(settings.common.run_id)
-        self.backend = check_backend(settings.backend)
-        self.device = resolve_device(settings.device)
-        # Configs given here are used whenever their backend is (re)built; others: defaults.
-        self._configs: dict[str, FieldConfig] = (
-            {} if field_config is None else {settings.backend: field_config})
-        self._aabb = dataset.aabb
-        self.heldout_camera: Camera = dataset.cameras[dataset.heldout_id]
-        self._camera_ids = frozenset(range(1, settings.common.cameras + 1))
-        # every frame must have the scene's image size (checked before anything is decoded)
         sizes = {(c.width, c.height) for c in dataset.cameras}
-        self._size = sizes.pop() if len(sizes) == 1 else None
-        self._skew_ms = settings.common.skew_ms
-        self._scene_key = f"{dataset.root.resolve()}|{np.asarray(dataset.aabb).tolist()}"
-        self._ckpt_path = settings.checkpoint_dir / f"{settings.common.run_id}.trainer.pt"
-        self._ckpt_saved_steps: int | None = 0  # nothing trained: nothing to save
-        self.resumed_steps = 0
-        self._decisions_beat = Heartbeat(settings.common.stall_s)  # a decision accepted
-        self._steps_beat = Heartbeat(settings.common.stall_s)  # a training step taken
-        self.trainer = self._build_trainer(self.backend)
-        self.rec = Reconstruction(self.trainer, settings.carry, settings.render_steps)
-
+        self.core = TrainerCore(
+            camera_ids=frozenset(range(1, settings.common.cameras + 1)),
+            size=sizes.pop() if len(sizes) == 1 else None,
+            skew_ms=settings.common.skew_ms, heldout=dataset.cameras[dataset.heldout_id],
+            aabb=np.asarray(dataset.aabb), frames_per_camera=settings.frames_per_camera,
+            render=RenderSettings(settings.backend, settings.carry, settings.render_steps,
+                                  settings.seed),
+            dispatcher=Dispatcher(window_s=settings.window_s,
+                                  job_timeout_s=settings.job_timeout_s))
         self.rejections = Rejections(registry)
-        self.m_steps = Counter("aoi3d_trainer_steps", "Training steps taken.",
-                               registry=registry)
-        self.m_rate = Gauge("aoi3d_trainer_steps_per_second",
-                            f"Training steps per wall second over the last {RATE_WINDOW_S:g} s.",
-                            registry=registry)
-        self.m_loss = Gauge("aoi3d_trainer_loss", "Photometric loss of the last training step.",
-                            registry=registry)
-        self.m_views = Gauge("aoi3d_trainer_views", "Frames in the training set.",
-                             registry=registry)
-        self.m_renders = Counter("aoi3d_renders", "Novel-view renders published.",
-                                 registry=registry)
-        self.m_decisions = Counter("aoi3d_trainer_decisions", "Decisions applied.",
-                                   registry=registry)
-        self.m_received = Counter("aoi3d_trainer_frames_received",
-                                  "Delivered frames accepted into the per-camera buffers.",
-                                  registry=registry)
-        self.m_missing = Counter(
-            "aoi3d_trainer_frames_missing",
-            "Selected frames skipped because the trainer never received them.",
-            registry=registry)
-        self.m_render_age = Gauge(
-            "aoi3d_render_age_seconds",
-            "Wall seconds from the rendered decision taking effect at the trainer to the "
-            "render's publication (the compute lag a viewer sees).", registry=registry)
-        self.m_render_lag = Gauge(
-            "aoi3d_render_lag_sim_seconds",
-            "Sim seconds from the time the latest render represents to its publication.",
-            registry=registry)
-        self.m_frames_age = Gauge(
-            "aoi3d_render_frames_age_seconds",
-            "Mean age (sim s) at the represented time of the frames the latest render's "
-            "decision selected: how stale what it shows is.", registry=registry)
-        self.m_render_steps = Gauge(
-            "aoi3d_render_steps",
-            "Training steps spent on the latest rendered decision's own frames (carry fork or "
-            "fresh; 0 for warm).", registry=registry)
-        self.m_overflow = Counter(
-            "aoi3d_trainer_inbox_overflow",
-            "Frames and decisions dropped unread because the training thread fell behind.",
-            registry=registry)
-        self.m_checkpoints = Counter("aoi3d_trainer_checkpoints", "Model checkpoints written.",
-                                     registry=registry)
-        self.m_loss.set(math.nan)
-        for gauge in (self.m_render_age, self.m_render_lag, self.m_frames_age):
-            gauge.set(math.nan)
-
-        self._frames_in: Inbox = Inbox(maxsize=max(256, 4 * len(self._camera_ids)),
-                                       on_drop=self.m_overflow.inc)
-        self._decisions_in: Inbox = Inbox(maxsize=64, on_drop=self.m_overflow.inc)
-        self._frames = FrameBuffer(settings.frames_per_camera)
-        self._views: list[TrainView] = []
-
+        self._lock = threading.Lock()
+        self._held: dict[str, tuple[Query, float]] = {}
+        """A waiting worker's query and the monotonic time to answer it with no job."""
+        self._decisions_beat = Heartbeat(settings.common.stall_s)
+        self._renders_beat = Heartbeat(settings.common.stall_s)
+        self._steps_rate = RateMeter(RATE_WINDOW_S)
+        self.steps_per_s = 0.0
         self._stop = threading.Event()
-        self._wake = threading.Event()
-        self._control = ControlQueue(self._wake)
         self._thread: threading.Thread | None = None
-        self._rate = RateMeter(RATE_WINDOW_S)
-
-        # State shared with the HTTP threads, guarded by _state_lock.
-        self._state_lock = threading.Lock()
-        self._steps_total = 0
-        self._steps_per_s = 0.0
-        self._loss: float | None = None
-        self._n_views = 0
-        self._decision: DecisionInForce | None = None
-        self._renders = 0
-        self._latest: LatestRender | None = None
-        self._frames_received = 0
-        self._frames_buffered = 0
-        self._frames_missing = 0
-        self._resets = 0
-        self._error: str | None = None
+        self.resets = 0
+        registry.register(PoolCollector(self))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        self._resume()
+        self.bus.watch_liveliness(self.keys.pool_workers, self._on_token)
         self.bus.subscribe(self.keys.edge_frames, self._on_frame)
         self.bus.subscribe(self.keys.decision, self._on_decision)
-        self._thread = threading.Thread(target=self._run, name="trainer", daemon=True)
+        self.bus.subscribe(self.keys.render, self._on_render)
+        self.bus.declare_queryable(self.keys.work, self._on_request)
+        self._thread = threading.Thread(target=self._housekeeping, name="pool", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
         self._stop.set()
-        self._wake.set()
         if self._thread is not None:
             self._thread.join(timeout=_STOP_JOIN_S)
-            if self._thread.is_alive():
-                log.warning("training thread did not stop within %.1f s", _STOP_JOIN_S)
+        with self._lock:
+            held, self._held = list(self._held.values()), {}
+        for query, _ in held:
+            query.reply(self.core.no_job("the trainer is stopping"))
+
+    def running(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
 
     def readiness(self) -> tuple[bool, str]:
-        if self._thread is None or not self._thread.is_alive():
-            return False, self._error or "training thread not running"
-        if not self._decisions_beat.stalled() and self._steps_beat.stalled():
-            return False, (f"decisions arrive but no training step for "
-                           f"{self._steps_beat.idle_s():.0f} s")
-        with self._state_lock:
-            if self._decision is None:
-                return True, "waiting for the first decision"
-            return True, f"training on decision {self._decision.decision_id}"
+        if not self.running():
+            return False, "pool thread not running"
+        with self._lock:
+            n = len(self.core.pool.worker_ids)
+            decision = self.core.decision
+        if not self._decisions_beat.stalled() and self._renders_beat.stalled():
+            return False, (f"decisions arrive but no render for {self._renders_beat.idle_s():.0f}"
+                           f" s ({n} reconstruction worker(s) in the pool)")
+        if decision is None:
+            return True, f"waiting for the first decision ({n} worker(s) in the pool)"
+        return True, f"{n} worker(s) in the pool; decision {decision.decision_id} in force"
 
     # ------------------------------------------------------------------ bus callbacks
     def _on_frame(self, key: str, payload: bytes) -> None:
-        self._frames_in.put((key, payload))
-        self._wake.set()
+        try:
+            with self._lock:
+                self.core.on_frame(payload, self.clock.now_ms())
+        except Rejected as err:
+            self.rejections.reject(err, key)
 
     def _on_decision(self, key: str, payload: bytes) -> None:
-        self._decisions_in.put((key, payload))
-        self._wake.set()
-
-    # ------------------------------------------------------------------ control (any thread)
-    def reset(self, timeout_s: float = 10.0) -> bool:
-        """Re-initialise the model (training set and buffered frames kept).
-
-        Done by the training thread between two chunks; returns False if it did not happen
-        within ``timeout_s``.
-        """
-        return self._control.call(self._do_reset, thread_alive=self._running(),
-                                  timeout_s=timeout_s)
-
-    def set_backend(self, name: str, timeout_s: float = 30.0) -> bool:
-        """Train a new model of backend ``name`` from now on (training set and buffered frames
-        kept; counts as a reset).
-
-        Raises :class:`UnknownBackendError` for a name not in ``aoi3d.field.BACKENDS`` and
-        :class:`BackendBuildError` when its model cannot be built (the previous one is kept).
-        Done by the training thread between two chunks; returns False if it did not happen
-        within ``timeout_s``.
-        """
-        check_backend(name)
-        request = _BackendRequest(name)
-        if not self._control.call(lambda: self._do_backend(request),
-                                  thread_alive=self._running(), timeout_s=timeout_s):
-            return False
-        if request.error is not None:
-            raise BackendBuildError(request.error)
-        return True
-
-    def set_carry(self, carry: str, render_steps: int, timeout_s: float = 10.0) -> bool:
-        """Make renders with ``carry`` and ``render_steps`` from the next render on (the model
-        and the decision in force are kept). Raises :class:`CarryError` — nothing changed —
-        for an unknown mode or budget. Done by the training thread between two chunks;
-        returns False if it did not happen within ``timeout_s``."""
         try:
-            check_carry(carry, render_steps)
-        except ValueError as err:
-            raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
-        return self._control.call(lambda: self._do_carry(carry, int(render_steps)),
-                                  thread_alive=self._running(), timeout_s=timeout_s)
-
-    def _running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
-
-    def status(self) -> TrainerStatus:
-        with self._state_lock:
-            decision = self._decision
-            return TrainerStatus(
-                steps=int(self.trainer.steps),
-                steps_total=self._steps_total,
-                steps_per_s=self._steps_per_s,
-                loss=self._loss,
-                n_views=self._n_views,
-                decision=decision,
-                decision_age_ms=None if decision is None
-                else self.clock.now_ms() - decision.time_ms,
-                backend=self.backend,
-                device=self.device,
-                carry=self.rec.carry,
-                render_steps=self.rec.render_steps,
-                renders=self._renders,
-                frames_received=self._frames_received,
-                frames_buffered=self._frames_buffered,
-                frames_missing=self._frames_missing,
-                resets=self._resets,
-                running=self._thread is not None and self._thread.is_alive(),
-            )
-
-    def latest_render(self) -> LatestRender | None:
-        with self._state_lock:
-            return self._latest
-
-    # ------------------------------------------------------------------ checkpoints
-    def _resume(self) -> None:
-        """Go on from this run's checkpoint when it is of the same backend and scene."""
-        if not self.settings.checkpoint_period_s or not self._ckpt_path.is_file():
-            return
-        import torch
-
-        try:
-            doc = torch.load(self._ckpt_path, map_location=self.device, weights_only=False)
-            if (doc.get("backend"), doc.get("scene")) != (self.backend, self._scene_key):
-                log.info("checkpoint %s is of backend %s on another scene or backend: starting "
-                         "fresh", self._ckpt_path, doc.get("backend"))
-                return
-            self.trainer.restore(doc["state"])
-        except Exception as err:  # a torn or foreign file must not stop the trainer
-            log.warning("could not resume from %s (%r): starting fresh", self._ckpt_path, err)
-            self.trainer = self._build_trainer(self.backend)
-            self.rec = Reconstruction(self.trainer, self.rec.carry, self.rec.render_steps)
-            return
-        self.resumed_steps = self._ckpt_saved_steps = self.trainer.steps
-        log.info("resumed from %s at step %d", self._ckpt_path, self.trainer.steps)
-
-    def _save_checkpoint(self) -> None:
-        """Write the model atomically (a temporary file, then rename) if it trained since."""
-        if self.trainer.steps == self._ckpt_saved_steps:
-            return
-        import torch
-
-        self._ckpt_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self._ckpt_path.with_suffix(".tmp")
-        torch.save({"backend": self.backend, "scene": self._scene_key,
-                    "saved_unix_s": time.time(), "state": self.trainer.checkpoint()}, tmp)
-        tmp.replace(self._ckpt_path)
-        self._ckpt_saved_steps = self.trainer.steps
-        self.m_checkpoints.inc()
-
-    def _drop_checkpoint(self) -> None:
-        """A reset or a new backend starts fresh, also after a restart."""
-        self._ckpt_path.unlink(missing_ok=True)
-        self._ckpt_saved_steps = None
-
-    # ------------------------------------------------------------------ training thread
-    def _run(self) -> None:
-        next_render_s = time.monotonic() + self.settings.render_period_s
-        period_s = self.settings.checkpoint_period_s
-        next_ckpt_s = time.monotonic() + period_s
-        try:
-            while not self._stop.is_set():
-                self._wake.clear()
-                self._ingest()
-                if self._stop.is_set():
-                    break
-                training = bool(self._views) and self.rec.trains_in_background
-                if training:
-                    self._train_chunk()
-                else:
-                    self._record_idle()
-                now = time.monotonic()
-                if now >= next_render_s:
-                    self._render_and_publish()
-                    # background training gets render_period_s between two renders, however
-                    # long a render (with its own training) took
-                    next_render_s = time.monotonic() + self.settings.render_period_s
-                if period_s and now >= next_ckpt_s:
-                    try:
-                        self._save_checkpoint()
-                    except OSError as err:
-                        log.warning("could not write checkpoint %s: %r", self._ckpt_path, err)
-                    next_ckpt_s = time.monotonic() + period_s
-                if not training:
-                    self._wake.wait(min(_IDLE_WAIT_S, max(0.0, next_render_s - now)))
-        except Exception as err:  # keep the service up to report it on /readyz
-            self._error = f"training thread failed: {err!r}"
-            log.exception("training thread failed")
-
-    def _ingest(self) -> None:
-        # Decisions first, then frames: every frame sent before those decisions is then in.
-        decisions = self._decisions_in.drain()
-        for key, payload in self._frames_in.drain():
-            self._store_frame(key, payload)
-        newest: pb.Decision | None = None
-        for key, payload in decisions:
-            try:
-                msg = decode_decision(payload)
-                self._check_decision(msg, newest)
-            except Rejected as err:
-                self.rejections.reject(err, key)
-                continue
-            newest = msg
-        if newest is not None:
-            self._decisions_beat.beat()
-            self._apply_decision(newest)
-        self._control.run_pending()
-
-    def _check_decision(self, msg: pb.Decision, newest: pb.Decision | None) -> None:
-        """Raise :class:`Rejected` unless ``msg`` supersedes the decision in force (or the
-        newer ``newest`` of this batch).
-
-        Decisions are ordered by the sim time they are for, then by id, within one scheduler
-        incarnation; a decision of another incarnation (a restarted scheduler, which numbers
-        from 1 again) supersedes at once. Times further ahead of this clock than the skew
-        are rejected, so no message — not even one with id 2^64−1 — can hold the trainer for
-        longer than the skew.
-        """
-        now_ms = self.clock.now_ms()
-        if msg.time_ms > now_ms + self._skew_ms:
-            raise Rejected("clock_skew", f"decision for {msg.time_ms:g} ms but this clock says "
-                                         f"{now_ms:g} ms")
-        if newest is not None:
-            current = (newest.incarnation, newest.time_ms, newest.decision_id)
-        else:
-            with self._state_lock:
-                d = self._decision
-            if d is None:
-                return
-            current = (d.incarnation, d.time_ms, d.decision_id)
-        incarnation, time_ms, decision_id = current
-        if msg.incarnation != incarnation:
-            return
-        if (msg.time_ms, msg.decision_id) <= (time_ms, decision_id):
-            raise Rejected("stale_decision",
-                           f"decision {msg.decision_id} for {msg.time_ms:g} ms is not newer "
-                           f"than decision {decision_id} for {time_ms:g} ms")
-
-    def _store_frame(self, key: str, payload: bytes) -> None:
-        try:
-            frame = decode_frame(payload, self._camera_ids, self._size)
-            if frame.generation_ms > self.clock.now_ms() + self._skew_ms:
-                raise Rejected("clock_skew", f"frame generated at {frame.generation_ms:g} ms, "
-                                             f"ahead of this clock")
+            with self._lock:
+                assignment = self.core.on_decision(payload, self.clock.now_ms(), time.time())
+                answer = self._job_for(assignment)
         except Rejected as err:
             self.rejections.reject(err, key)
             return
-        self._frames.add(frame)
-        self.m_received.inc()
-        with self._state_lock:
-            self._frames_received += 1
-            self._frames_buffered = len(self._frames)
+        self._decisions_beat.beat()
+        if answer is not None:
+            answer[0].reply(answer[1])
 
-    def _apply_decision(self, decision: pb.Decision) -> None:
-        views: list[TrainView] = []
-        generation: list[float] = []
-        missing = 0
-        for ref in decision.selected:
-            frame = self._frames.find(ref.camera_id, ref.generation_ms)
-            if frame is None:
-                missing += 1
-                continue
-            try:
-                views.append(TrainView(camera=frame.camera, image=frame.rgb()))
-                generation.append(float(frame.generation_ms))
-            except Rejected as err:
-                self.rejections.reject(err, self.keys.edge_frame(ref.camera_id))
-        if missing:
-            self.m_missing.inc(missing)
-            log.debug("decision %d: %d selected frame(s) never received",
-                      decision.decision_id, missing)
+    def _job_for(self, assignment: Assignment | None) -> tuple[Query, bytes] | None:
+        """The held query of the worker that got ``assignment`` and its job (lock held)."""
+        if assignment is None:
+            return None
+        query, _ = self._held.pop(assignment.worker_id, (None, 0.0))
+        if query is None:  # cannot happen: a waiting worker has a held query
+            log.error("decision %d assigned to %s, which holds no request",
+                      assignment.decision.decision_id, assignment.worker_id)
+            return None
+        return query, self.core.job(assignment, time.time())
+
+    def _on_request(self, query: Query) -> None:
         try:
-            self.rec.set_views(views)
-        except ValueError as err:  # the field refuses the selection: keep the previous one
-            self.rejections.reject(Rejected("bad_selection", str(err)), self.keys.decision)
+            with self._lock:
+                report, assignment = self.core.on_request(query.payload, time.time())
+                previous = self._held.pop(report.worker_id, None)
+                if assignment is not None:
+                    answer: bytes | None = self.core.job(assignment, time.time())
+                elif report.max_wait_s > 0:
+                    self._held[report.worker_id] = (query, time.monotonic() + report.max_wait_s)
+                    answer = None
+                else:
+                    answer = self.core.no_job("no decision pending")
+        except Rejected as err:
+            self.rejections.reject(err, self.keys.work)
+            query.close()
             return
-        self._views = views
-        self.m_decisions.inc()
-        self.m_views.set(len(views))
-        with self._state_lock:
-            self._n_views = len(views)
-            self._frames_missing += missing
-            self._decision = DecisionInForce(
-                decision_id=decision.decision_id, incarnation=decision.incarnation,
-                time_ms=decision.time_ms,
-                policy=decision.policy, n_selected=len(decision.selected), n_missing=missing,
-                applied_wall_s=time.time(), generation_ms=tuple(generation))
+        if previous is not None:  # the worker asked again: its older request is void
+            previous[0].close()
+        if answer is not None:
+            query.reply(answer)
 
-    def _train_chunk(self) -> None:
-        n = self.settings.steps_per_chunk
-        self._count_steps(n, float(self.rec.train(n)))
-
-    def _count_steps(self, n: int, loss: float) -> None:
-        """Account for ``n`` training steps (background or a render's own) ending at ``loss``."""
-        now = time.monotonic()
-        self._steps_beat.beat()
-        self.m_steps.inc(n)
-        if math.isfinite(loss):
-            self.m_loss.set(loss)
-        with self._state_lock:
-            self._steps_total += n
-            self._steps_per_s = self._rate.add(now, self._steps_total)
-            self._loss = loss if math.isfinite(loss) else None
-            rate = self._steps_per_s
-        self.m_rate.set(rate)
-
-    def _record_idle(self) -> None:
-        with self._state_lock:
-            self._steps_per_s = self._rate.idle(time.monotonic(), self._steps_total)
-            rate = self._steps_per_s
-        self.m_rate.set(rate)
-
-    def _render_and_publish(self) -> None:
-        with self._state_lock:
-            decision = self._decision
-        if decision is None:  # nothing to represent yet: no render before the first decision
-            return
-        camera = self.heldout_camera
-        rendered = self.rec.render_decision(camera)
-        if rendered.render_steps:
-            self._count_steps(rendered.render_steps, rendered.loss)
-        image = encode_png(rendered.image)
-        pose, intrinsics = camera_to_pb(camera)
-        gens = decision.generation_ms
-        frames_age_ms = (decision.time_ms - float(np.mean(gens))) if gens else math.nan
-        lag_ms = self.clock.now_ms() - decision.time_ms
-        wall = time.time()
-        age_s = wall - decision.applied_wall_s
-        msg = pb.Render(decision_id=decision.decision_id,
-                        decision_incarnation=decision.incarnation,
-                        time_ms=decision.time_ms, pose=pose,
-                        intrinsics=intrinsics, image=image, training_step=rendered.steps,
-                        n_views=rendered.n_views, backend=self.backend,
-                        frame_generation_ms=list(gens), carry=self.rec.carry,
-                        render_steps=rendered.render_steps)
-        self.bus.publish(self.keys.render, msg.SerializeToString())
-        self.m_renders.inc()
-        self.m_render_age.set(age_s)
-        self.m_render_lag.set(lag_ms / 1000.0)
-        self.m_frames_age.set(frames_age_ms / 1000.0)
-        self.m_render_steps.set(rendered.render_steps)
-        with self._state_lock:
-            self._renders += 1
-            self._latest = LatestRender(png=image.data, decision_id=decision.decision_id,
-                                        time_ms=decision.time_ms, training_step=rendered.steps,
-                                        n_views=rendered.n_views, wall_s=wall,
-                                        carry=self.rec.carry,
-                                        render_steps=rendered.render_steps,
-                                        frames_age_ms=frames_age_ms, lag_ms=lag_ms, age_s=age_s)
-
-    def _config(self, name: str) -> FieldConfig:
-        cfg = self._configs.get(name) or make_field_config(name)
-        if self.settings.torch_threads:
-            cfg = replace(cfg, num_threads=self.settings.torch_threads)
-        return cfg
-
-    def _build_trainer(self, name: str) -> FieldTrainer:
-        return FieldTrainer(self._config(name), self._aabb, device=self.device,
-                            seed=self.settings.seed)
-
-    def _do_backend(self, request: _BackendRequest) -> None:
-        """Replace the model by a new one of ``request.name``, on the current views."""
+    def _on_render(self, key: str, payload: bytes) -> None:
         try:
-            trainer = self._build_trainer(request.name)
-            rec = Reconstruction(trainer, self.rec.carry, self.rec.render_steps)
-            rec.set_views(self._views)
-        except Exception as err:  # the caller hears of it; the old model trains on
-            request.error = (f"could not build backend {request.name!r} ({err!r}); still "
-                             f"training {self.backend!r}")
-            log.warning("%s", request.error)
+            with self._lock:
+                self.core.on_render(payload, time.time(), self.clock.now_ms())
+                steps = self.core.steps_total
+        except Rejected as err:
+            self.rejections.reject(err, key)
+            return
+        self._renders_beat.beat()
+        self.steps_per_s = self._steps_rate.add(time.monotonic(), steps)
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        worker_id = key.rsplit("/", 1)[-1]
+        with self._lock:
+            lost = self.core.on_worker(worker_id, alive, time.time())
+            held = None if alive else self._held.pop(worker_id, None)
+        if held is not None:
+            held[0].close()
+        if alive:
+            log.info("worker %s joined the pool", worker_id)
+        elif lost is not None:
+            log.warning("worker %s left the pool holding decision %d: lost", worker_id,
+                        lost.decision.decision_id)
         else:
-            previous = self.backend
-            self._drop_checkpoint()
-            with self._state_lock:
-                self.trainer = trainer
-                self.rec = rec
-                self.backend = request.name
-                self._resets += 1
-                self._loss = None
-            self.m_loss.set(math.nan)
-            log.info("backend %s -> %s (%d views kept)", previous, request.name,
-                     len(self._views))
+            log.info("worker %s left the pool", worker_id)
 
-    def _do_carry(self, carry: str, render_steps: int) -> None:
-        """Render with ``carry`` and ``render_steps`` from now on (model and views kept)."""
-        with self._state_lock:
-            self.rec.set_carry(carry, render_steps)
-        log.info("renders: carry %s, %d steps per rendered decision", carry, render_steps)
+    # ------------------------------------------------------------------ housekeeping thread
+    def _housekeeping(self) -> None:
+        while not self._stop.wait(_TICK_S):
+            now = time.monotonic()
+            with self._lock:
+                due = [w for w, (_, deadline) in self._held.items() if deadline <= now]
+                released = [self._held.pop(w)[0] for w in due]
+                for w in due:
+                    self.core.pool.give_up(w)
+                expired = self.core.expire(time.time())
+            for query in released:
+                query.reply(self.core.no_job("no decision pending"))
+            for a in expired:
+                log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
+                            a.worker_id, self.settings.job_timeout_s)
+            if self._renders_beat.idle_s() > RATE_WINDOW_S:
+                self.steps_per_s = self._steps_rate.idle(time.monotonic(),
+                                                         self.core.steps_total)
 
-    def _do_reset(self) -> None:
-        self.trainer.reset()  # keeps the views
-        self._drop_checkpoint()
-        with self._state_lock:
-            self._resets += 1
-            self._loss = None
-        self.m_loss.set(math.nan)
-        log.info("model reset (%d views kept)", len(self._views))
+    # ------------------------------------------------------------------ control (REST threads)
+    def set_backend(self, name: str) -> None:
+        """Jobs from now on name backend ``name`` (:class:`UnknownBackendError` otherwise)."""
+        with self._lock:
+            self.core.set_backend(name)
+            self.resets += 1
+
+    def set_carry(self, carry: str, render_steps: int) -> None:
+        """Jobs from now on carry ``carry`` and ``render_steps``; :class:`CarryError` — nothing
+        changed — for a mode or budget the reconstruction refuses."""
+        with self._lock:
+            self.core.set_carry(carry, render_steps)
+
+    def reset(self) -> None:
+        with self._lock:
+            self.core.reset()
+            self.resets += 1
+
+    @property
+    def render_settings(self) -> RenderSettings:
+        return self.core.render
+
+    def latest_render(self) -> LatestRender | None:
+        with self._lock:
+            return self.core.latest
+
+    def pool_status(self) -> PoolStatus:
+        with self._lock:
+            return self.core.pool_status(time.time())
+
+    def status(self) -> TrainerStatus:
+        with self._lock:
+            c = self.core
+            pool = c.pool_status(time.time())
+            devices = sorted({w.device for w in pool.workers if w.device})
+            return TrainerStatus(
+                steps=c.latest.training_step if c.latest is not None else 0,
+                steps_total=c.steps_total, steps_per_s=self.steps_per_s, loss=c.loss,
+                n_views=c.n_views, decision=c.decision,
+                decision_age_ms=None if c.decision is None
+                else self.clock.now_ms() - c.decision.time_ms,
+                backend=c.render.backend, device=",".join(devices) or "none",
+                carry=c.render.carry, render_steps=c.render.render_steps,
+                renders=c.renders_seen, frames_received=c.frames_received,
+                frames_buffered=c.frames_buffered, frames_missing=c.frames_missing,
+                resets=self.resets, running=self.running(), pool=pool)
+
+
+__all__ = ["CarryError", "PoolCollector", "TrainerWorker"]
+
+
+class PoolCollector:
+    """The trainer's Prometheus series, read from the core at scrape time."""
+
+    def __init__(self, worker: TrainerWorker) -> None:
+        self._worker = worker
+
+    def describe(self):
+        return []
+
+    def collect(self):
+        w = self._worker
+        with w._lock:
+            c = w.core
+            pool = c.pool_status(time.time())
+            latest = c.latest
+            values = dict(decisions=c.decisions_applied, received=c.frames_received,
+                          missing=c.frames_missing, renders=c.renders_seen,
+                          steps=c.steps_total, loss=c.loss, views=c.n_views,
+                          render_steps=c.last_render_steps, lag_ms=c.render_lag_ms,
+                          frames_age_ms=c.frames_age_ms,
+                          wait_sum=c.pool.wait_sum_s, age_sum=c.pool.age_sum_s)
+
+        def gauge(name, doc, value, labels=None, samples=()):
+            g = GaugeMetricFamily(name, doc, labels=labels)
+            if labels is None:
+                g.add_metric([], math.nan if value is None else value)
+            for lab, v in samples:
+                g.add_metric(lab, v)
+            return g
+
+        def counter(name, doc, value, labels=None, samples=()):
+            m = CounterMetricFamily(name, doc, labels=labels)
+            if labels is None:
+                m.add_metric([], value)
+            for lab, v in samples:
+                m.add_metric(lab, v)
+            return m
+
+        yield counter("aoi3d_trainer_decisions", "Decisions taken (each offered to the pool).",
+                      values["decisions"])
+        yield counter("aoi3d_trainer_frames_received",
+                      "Delivered frames accepted into the per-camera buffers.", values["received"])
+        yield counter("aoi3d_trainer_frames_missing",
+                      "Selected frames the trainer never received (left out of the job).",
+                      values["missing"])
+        yield counter("aoi3d_renders", "Novel-view renders published by the pool's workers.",
+                      values["renders"])
+        yield counter("aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
+                      values["steps"])
+        yield gauge("aoi3d_trainer_steps_per_second",
+                    f"Reconstruction steps per wall second over the last {RATE_WINDOW_S:g} s, "
+                    "the whole pool.", w.steps_per_s)
+        yield gauge("aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
+                    values["loss"])
+        yield gauge("aoi3d_trainer_views", "Frames the latest render trained on.",
+                    values["views"])
+        yield gauge("aoi3d_render_steps", "Training steps spent on the latest render's own "
+                    "decision (0 for warm).", values["render_steps"])
+        yield gauge("aoi3d_render_age_seconds",
+                    "Wall seconds from the latest render's decision reaching the trainer to the "
+                    "render's arrival (what a viewer waits).",
+                    latest.age_s if latest is not None else math.nan)
+        yield gauge("aoi3d_render_lag_sim_seconds",
+                    "Sim seconds from the time the latest render represents to its arrival.",
+                    values["lag_ms"] / 1000.0)
+        yield gauge("aoi3d_render_frames_age_seconds",
+                    "Mean age (sim s) at the represented time of the latest render's frames.",
+                    values["frames_age_ms"] / 1000.0)
+        yield gauge("aoi3d_pool_workers", "Reconstruction workers in the pool (live Zenoh "
+                    "liveliness tokens).", len(pool.workers))
+        yield gauge("aoi3d_pool_in_flight", "Decisions being reconstructed now.",
+                    pool.in_flight)
+        yield counter("aoi3d_pool_decisions", "Decisions by what the pool did with them: "
+                      "assigned to a worker, rendered, or superseded (a newer one came before a "
+                      "worker was free: skipped by choice).", None, labels=["outcome"],
+                      samples=[(["assigned"], pool.assigned), (["rendered"], pool.rendered),
+                               (["superseded"], pool.superseded)])
+        yield counter("aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended "
+                      "without a render, by reason (worker_died, timeout, not_delivered, "
+                      "failed:<why>).", None, labels=["reason"],
+                      samples=[([r], n) for r, n in sorted(pool.lost.items())])
+        yield gauge("aoi3d_pool_rendered_fraction", f"Decisions rendered / decisions taken over "
+                    f"the last {pool.window_s:g} s.", pool.rendered_fraction)
+        yield gauge("aoi3d_pool_renders_per_second", f"Renders per wall second over the last "
+                    f"{pool.window_s:g} s.", pool.renders_per_s)
+        s = SummaryMetricFamily("aoi3d_pool_wait_seconds", "Wall seconds from a decision "
+                                "reaching the trainer to its hand-out to a worker.",
+                                count_value=pool.assigned, sum_value=values["wait_sum"])
+        yield s
+        s = SummaryMetricFamily("aoi3d_pool_render_age_seconds", "Wall seconds from a decision "
+                                "reaching the trainer to its worker's report of the render.",
+                                count_value=pool.rendered, sum_value=values["age_sum"])
+        yield s
+        yield gauge("aoi3d_pool_worker_busy_ratio", f"Share of the last {pool.window_s:g} s a "
+                    "worker spent reconstructing.", None, labels=["worker"],
+                    samples=[([v.worker_id], v.busy_fraction) for v in pool.workers])
+        yield gauge("aoi3d_pool_worker_renders", "Renders of each live worker since it joined.",
+                    None, labels=["worker"],
+                    samples=[([v.worker_id], v.rendered) for v in pool.workers])

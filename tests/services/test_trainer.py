@@ -1,13 +1,14 @@
-"""The trainer service on a MemoryBus: real frames and decisions in, renders out."""
+"""The trainer service (the pool's dispatcher) and real reconstruction workers on one MemoryBus:
+real frames and decisions in, renders out, each decision to exactly one worker."""
 
 from __future__ import annotations
 
 import io
 import math
 import os
+import threading
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 
 import numpy as np
 import pytest
@@ -16,17 +17,18 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
-from aoi3d.device import resolve_device
-from aoi3d.field import FieldConfig, GridConfig
+from aoi3d.field import GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.bus import MemoryBus
 from services.kit.codec import PNG, decode_image, decode_render, encode_frame
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
+from services.recon.core import ReconCore
+from services.recon.settings import Settings as ReconSettings
+from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
 from services.trainer.settings import BACKENDS, Settings
-from services.trainer.state import BackendBuildError, UnknownBackendError
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
@@ -37,18 +39,11 @@ SMALL_GRID = GridConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine
                         render_chunk_rays=4096, tune_malloc=False)
 
 
-@dataclass(frozen=True)
-class TinyGrid(GridConfig):
-    """A second backend for the switch tests (its defaults are small)."""
-
-    batch_rays: int = 64
-    samples_coarse: int = 8
-    samples_fine: int = 8
-    fine_from_step: int = 0
-    grid_sizes: tuple[int, ...] = (6,)
-    upsample_steps: tuple[int, ...] = ()
-    background_size: tuple[int, int] = (4, 8)
-    tune_malloc: bool = False
+TINY_NGP = NgpConfig(batch_rays=64, samples_coarse=8, samples_fine=8, fine_from_step=0,
+                     n_levels=2, features=2, log2_table_size=8, base_resolution=4,
+                     max_resolution=16, hidden=8, geo_features=3, background_size=(4, 8),
+                     occupancy_size=8, tune_malloc=False)
+CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP}
 
 
 @pytest.fixture(scope="module")
@@ -61,8 +56,7 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
 def make_settings(**overrides) -> Settings:
     common = CommonSettings(run_id=KEYS.run_id, cameras=N_TRAIN, time_scale=10.0,
                             epoch_s=time.time())
-    values = {"render_period_s": 0.15, "steps_per_chunk": 2, "device": "cpu", "common": common,
-              "checkpoint_period_s": 0}  # the checkpoint tests turn them on
+    values = {"render_steps": 20, "common": common}
     values.update(overrides)
     return Settings(**values)
 
@@ -76,9 +70,41 @@ def bus() -> MemoryBus:
 def client(dataset: SceneDataset, bus: MemoryBus) -> Iterator[TestClient]:
     settings = make_settings()
     clock = SimClock(settings.common.epoch_s, settings.common.time_scale)
-    app = create_app(settings, bus=bus, clock=clock, dataset=dataset, field_config=SMALL_GRID)
+    app = create_app(settings, bus=bus, clock=clock, dataset=dataset)
     with TestClient(app) as c:
         yield c
+
+
+class Pool:
+    """Reconstruction workers (the real runtime and core) on threads of this process."""
+
+    def __init__(self, bus: MemoryBus) -> None:
+        self.bus = bus
+        self.workers: list[tuple[ReconWorker, threading.Event, threading.Thread]] = []
+
+    def add(self, worker_id: str) -> ReconWorker:
+        settings = ReconSettings(worker_id=worker_id, max_wait_s=0.3, query_margin_s=2.0,
+                                 common=CommonSettings(run_id=KEYS.run_id))
+        core = ReconCore(worker_id=worker_id, device="cpu", configs=CONFIGS)
+        worker = ReconWorker(settings, self.bus, core)
+        stop = threading.Event()
+        thread = threading.Thread(target=worker.run, args=(stop,), daemon=True)
+        thread.start()
+        self.workers.append((worker, stop, thread))
+        return worker
+
+    def stop(self) -> None:
+        for _, stop, _ in self.workers:
+            stop.set()
+        for _, _, thread in self.workers:
+            thread.join(timeout=10 * TIMEOUT_SCALE)
+
+
+@pytest.fixture
+def pool(bus: MemoryBus) -> Iterator[Pool]:
+    p = Pool(bus)
+    yield p
+    p.stop()
 
 
 # ------------------------------------------------------------------------ helpers
@@ -130,89 +156,130 @@ def metric(client: TestClient, name: str, labels: str = "",
 
 
 def renders(bus: MemoryBus) -> list[pb.Render]:
-    return [decode_render(p)[0] for p in bus.messages(KEYS.render)]
+    """The renders the workers published (not the test's own bad ones)."""
+    msgs = [pb.Render.FromString(p) for p in bus.messages(KEYS.render)]
+    return [m for m in msgs if m.worker_id]
 
 
 # ------------------------------------------------------------------------ tests
-def test_trains_on_the_decision_and_publishes_renders(client: TestClient, bus: MemoryBus,
-                                                       dataset: SceneDataset) -> None:
-    # the continuously trained model, rendered as it is (the fresh default: further below)
-    assert client.put("/carry", json={"carry": "warm"}).status_code == 200
+def test_a_decision_is_rendered_by_one_worker_from_its_own_frames(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    pool.add("w1")
+    wait_for(lambda: client.get("/workers").json()["workers"], what="the worker to join")
     publish_frames(bus, dataset, 0.0)
     publish_frames(bus, dataset, 100.0)
     # Cameras 1-3 at 100 ms are delivered; camera 4's frame at 900 ms never was.
     refs = [(1, 100.0), (2, 100.0), (3, 100.0), (4, 900.0)]
     bus.publish(KEYS.decision, decision_payload(7, 200.0, refs, policy="mat:51"))
 
-    status = wait_for(lambda: (s := client.get("/status").json())["steps"] >= 6 and s,
-                      what="training steps")
-    assert status["n_views"] == 3
-    assert status["frames_missing"] == 1
-    assert status["decision"]["decision_id"] == 7
-    assert status["decision"]["time_ms"] == 200.0
-    assert status["decision"]["policy"] == "mat:51"
-    assert status["decision"]["n_missing"] == 1
-    assert status["backend"] == "grid" and status["backends"] == sorted(BACKENDS)
-    assert status["device"] == "cpu"
-    assert status["frames_buffered"] == status["frames_received"] == 2 * N_TRAIN
-    assert math.isfinite(status["loss"]) and status["loss"] > 0
-    assert status["steps_per_s"] > 0
-
     wait_for(lambda: renders(bus), what="a render")
     render, camera = decode_render(bus.messages(KEYS.render)[-1])
-    assert (render.decision_id, render.time_ms) == (7, 200.0)
-    assert render.backend == "grid" and render.n_views == 3 and render.training_step > 0
+    assert (render.decision_id, render.time_ms, render.worker_id) == (7, 200.0, "w1")
+    assert render.backend == "grid" and render.n_views == 3 and render.carry == "fresh"
+    assert render.render_steps == render.training_step == 20
+    assert sorted(render.frame_generation_ms) == [100.0] * 3
+    assert math.isfinite(render.loss) and render.loss > 0
     assert camera == dataset.cameras[dataset.heldout_id]
     rgb = decode_image(render.image)
     assert rgb.shape == (dataset.height, dataset.width, 3) and rgb.dtype == np.uint8
 
-    assert metric(client, "aoi3d_trainer_steps_total") >= 6
+    status = wait_for(lambda: (s := client.get("/status").json())["pool"]["rendered"] == 1
+                      and s, what="the render reported")
+    assert status["n_views"] == 3 and status["frames_missing"] == 1
+    assert status["decision"]["decision_id"] == 7 and status["decision"]["n_missing"] == 1
+    assert status["decision"]["policy"] == "mat:51"
+    assert status["backend"] == "grid" and status["backends"] == sorted(BACKENDS)
+    assert status["device"] == "cpu" and status["renders"] == 1 and status["steps"] == 20
+    assert status["frames_buffered"] == status["frames_received"] == 2 * N_TRAIN
+    p = status["pool"]
+    assert (p["decisions"], p["assigned"], p["rendered"], p["superseded"]) == (1, 1, 1, 0)
+    assert p["lost"] == {} and p["in_flight"] == 0 and p["rendered_fraction"] == 1.0
+    (w,) = p["workers"]
+    assert w["worker_id"] == "w1" and w["rendered"] == 1 and w["pid"] == os.getpid()
+
+    assert metric(client, "aoi3d_renders_total") == 1
+    assert metric(client, "aoi3d_trainer_steps_total") == 20
     assert metric(client, "aoi3d_trainer_views") == 3
-    assert metric(client, "aoi3d_trainer_frames_received_total") == 2 * N_TRAIN
     assert metric(client, "aoi3d_trainer_frames_missing_total") == 1
-    assert metric(client, "aoi3d_renders_total") >= 1
+    assert metric(client, "aoi3d_pool_workers") == 1
+    assert metric(client, "aoi3d_pool_decisions_total", 'outcome="rendered"') == 1
+    assert metric(client, "aoi3d_pool_wait_seconds_count") == 1
     assert math.isfinite(metric(client, "aoi3d_trainer_loss"))
-    assert metric(client, "aoi3d_trainer_steps_per_second") > 0
+    assert metric(client, "aoi3d_pool_worker_renders", 'worker="w1"') == 1
 
-    # A newer decision takes over within a chunk; the model is kept (steps keep growing).
-    steps_before = client.get("/status").json()["steps"]
-    publish_frames(bus, dataset, 200.0)
-    bus.publish(KEYS.decision, decision_payload(8, 300.0, [(1, 200.0), (2, 200.0)]))
-    status = wait_for(lambda: (s := client.get("/status").json())["decision"]["decision_id"] == 8
-                      and s, what="decision 8")
-    assert status["n_views"] == 2 and status["steps"] >= steps_before
-    wait_for(lambda: any(r.decision_id == 8 and r.time_ms == 300.0 for r in renders(bus)),
-             what="a render of decision 8")
-
-    # An older or repeated decision is rejected, not applied.
-    bus.publish(KEYS.decision, decision_payload(8, 300.0, [(1, 200.0)]))
-    wait_for(lambda: metric(client, "aoi3d_messages_rejected_total", 'reason="stale_decision"',
-                            default=0.0), what="stale decision counted")
-    assert client.get("/status").json()["n_views"] == 2
+    # An older or repeated decision is rejected, not offered.
+    bus.publish(KEYS.decision, decision_payload(7, 200.0, [(1, 100.0)]))
+    assert metric(client, "aoi3d_messages_rejected_total", 'reason="stale_decision"') == 1
+    assert client.get("/status").json()["pool"]["decisions"] == 1
 
 
-def test_render_png_404_then_200(client: TestClient, bus: MemoryBus,
+def test_two_workers_share_the_decisions_and_none_is_rendered_twice(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    pool.add("w1")
+    pool.add("w2")
+    wait_for(lambda: len(client.get("/workers").json()["workers"]) == 2, what="two workers")
+    publish_frames(bus, dataset, 0.0)
+    for i in range(1, 13):
+        bus.publish(KEYS.decision, decision_payload(i, 100.0 * i, [(1, 0.0), (2, 0.0)]))
+        time.sleep(0.05)
+    p = wait_for(lambda: (p := client.get("/workers").json())["in_flight"] == 0
+                 and p["pending"] is None and p, what="the pool to drain")
+    ids = [r.decision_id for r in renders(bus)]
+    assert len(ids) == len(set(ids)) == p["rendered"]  # never twice
+    assert p["rendered"] + p["superseded"] + sum(p["lost"].values()) == 12
+    assert 12 in ids  # the newest is always done
+    assert {r.worker_id for r in renders(bus)} <= {"w1", "w2"}
+
+
+def test_a_worker_gone_mid_job_loses_only_its_decision(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    # a worker that takes a job and vanishes (its token undeclared, as when its session dies)
+    token = bus.declare_token(KEYS.pool_worker("doomed"))
+    answer = []
+    asker = threading.Thread(target=lambda: answer.append(bus.query(
+        KEYS.work, pb.WorkRequest(worker_id="doomed", max_wait_s=5.0).SerializeToString(),
+        timeout_s=10.0)))
+    asker.start()
+    wait_for(lambda: client.get("/workers").json()["workers"], what="the doomed worker")
+    publish_frames(bus, dataset, 0.0)
+    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0)]))
+    asker.join(timeout=10)
+    job = pb.WorkReply.FromString(answer[0]).job
+    assert job.decision.decision_id == 1 and len(job.frames) == 1 and job.render_steps == 20
+    token.undeclare()
+    p = client.get("/workers").json()
+    assert p["lost"] == {"worker_died": 1} and p["workers"] == []
+    assert metric(client, "aoi3d_pool_decisions_lost_total", 'reason="worker_died"') == 1
+    # the pool goes on with a new worker
+    pool.add("w2")
+    bus.publish(KEYS.decision, decision_payload(2, 200.0, [(1, 0.0)]))
+    wait_for(lambda: any(r.decision_id == 2 for r in renders(bus)), what="decision 2 rendered")
+    assert [r.decision_id for r in renders(bus)] == [2]
+
+
+def test_render_png_404_then_200(client: TestClient, bus: MemoryBus, pool: Pool,
                                  dataset: SceneDataset) -> None:
     resp = client.get("/render.png")
     assert resp.status_code == 404
     assert "no render yet" in resp.json()["detail"]
-
+    pool.add("w1")
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision_payload(1, 100.0, [(c, 0.0) for c in (1, 2)]))
     resp = wait_for(lambda: (r := client.get("/render.png")).status_code == 200 and r,
                     what="/render.png")
     assert resp.headers["content-type"] == "image/png"
-    assert resp.headers["x-decision-id"] == "1"
+    assert resp.headers["x-decision-id"] == "1" and resp.headers["x-worker"] == "w1"
     with Image.open(io.BytesIO(resp.content)) as img:
         assert img.size == (dataset.width, dataset.height)
 
 
-def test_no_render_and_no_training_before_a_decision(client: TestClient, bus: MemoryBus,
-                                                     dataset: SceneDataset) -> None:
+def test_no_render_before_a_decision(client: TestClient, bus: MemoryBus, pool: Pool,
+                                     dataset: SceneDataset) -> None:
+    pool.add("w1")
     publish_frames(bus, dataset, 0.0)
     wait_for(lambda: client.get("/status").json()["frames_buffered"] == N_TRAIN,
              what="frames buffered")
-    time.sleep(0.4)  # > 2 render periods
+    time.sleep(0.4)  # > one of the worker's waits
     status = client.get("/status").json()
     assert status["steps"] == 0 and status["decision"] is None and status["loss"] is None
     assert bus.messages(KEYS.render) == []
@@ -220,7 +287,7 @@ def test_no_render_and_no_training_before_a_decision(client: TestClient, bus: Me
     assert ready.status_code == 200 and "first decision" in ready.json()["reason"]
 
 
-def test_bad_messages_are_counted_and_dropped(client: TestClient, bus: MemoryBus,
+def test_bad_messages_are_counted_and_dropped(client: TestClient, bus: MemoryBus, pool: Pool,
                                               dataset: SceneDataset) -> None:
     bus.publish(KEYS.edge_frame(1), b"\x0a\xff\xff garbage")
     bus.publish(KEYS.decision, b"\xff\xff\xff")
@@ -234,243 +301,78 @@ def test_bad_messages_are_counted_and_dropped(client: TestClient, bus: MemoryBus
     bad_pose = pb.Frame.FromString(frame_payload(dataset, 3, 0.0))
     bad_pose.pose.c2w[0] = 2.0  # not a rotation any more
     bus.publish(KEYS.edge_frame(3), bad_pose.SerializeToString())
+    # work requests that are not WorkRequests, or name no worker, get no answer
+    assert bus.query(KEYS.work, b"\xff\xff", timeout_s=0.5) is None
+    assert bus.query(KEYS.work, pb.WorkRequest(max_wait_s=1).SerializeToString(),
+                     timeout_s=0.5) is None
+    bad_render = pb.Render(decision_id=1, time_ms=math.nan)
+    bus.publish(KEYS.render, bad_render.SerializeToString())
 
     def rejected(reason: str) -> float:
         return metric(client, "aoi3d_messages_rejected_total", f'reason="{reason}"', default=0.0)
 
-    wait_for(lambda: rejected("malformed") >= 3, what="malformed counted")
+    assert rejected("malformed") == 5  # frame, decision, truncated frame, two requests
+    assert rejected("non_finite") == 1
     assert rejected("unknown_camera") == 1
     assert rejected("image_size_mismatch") == 1
     assert rejected("bad_pose") == 1
     assert client.get("/status").json()["frames_received"] == 0
 
-    # The worker is still alive and trains on good input.
+    # the service is alive and the pool renders good input
+    pool.add("w1")
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0), (2, 0.0)]))
-    status = wait_for(lambda: (s := client.get("/status").json())["steps"] > 0 and s,
-                      what="training after bad input")
-    assert status["running"] and status["n_views"] == 2
+    wait_for(lambda: renders(bus), what="a render after bad input")
     assert client.get("/readyz").status_code == 200
 
 
-def test_reset_keeps_views_and_restarts_the_model(client: TestClient, bus: MemoryBus,
-                                                  dataset: SceneDataset) -> None:
-    publish_frames(bus, dataset, 0.0)
-    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(c, 0.0) for c in (1, 2, 3)]))
-    before = wait_for(lambda: (s := client.get("/status").json())["steps"] >= 40 and s,
-                      what="40 steps")
-    resp = client.post("/reset")
-    assert resp.status_code == 200
-    after = resp.json()
-    assert after["resets"] == 1 and after["n_views"] == 3
-    assert after["steps"] < before["steps"]
-    assert after["steps_total"] >= before["steps_total"]
-    assert after["frames_buffered"] == N_TRAIN
-    wait_for(lambda: client.get("/status").json()["steps"] > after["steps"],
-             what="training resumes after reset")
-    assert metric(client, "aoi3d_trainer_steps_total") >= before["steps_total"]
-
-
-def test_put_backend_switches_the_model_and_keeps_the_views(
-        client: TestClient, bus: MemoryBus, dataset: SceneDataset,
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "tiny", TinyGrid)
-    publish_frames(bus, dataset, 0.0)
-    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(c, 0.0) for c in (1, 2, 3)]))
-    before = wait_for(lambda: (s := client.get("/status").json())["steps"] >= 40 and s,
-                      what="40 steps")
-    assert before["backend"] == "grid" and "tiny" in before["backends"]
-
-    resp = client.put("/backend", json={"backend": "tiny"})
-    assert resp.status_code == 200, resp.text
-    after = resp.json()
-    assert after["backend"] == "tiny" and after["resets"] == 1
-    assert after["steps"] < before["steps"] and after["steps_total"] >= before["steps_total"]
-    assert after["n_views"] == 3 and after["frames_buffered"] == N_TRAIN
-    assert after["decision"]["decision_id"] == 1
-    worker = client.app.state.worker
-    assert type(worker.trainer.cfg) is TinyGrid and worker.trainer.n_views == 3
-    wait_for(lambda: client.get("/status").json()["steps"] > after["steps"],
-             what="training resumes on the new backend")
-    wait_for(lambda: any(r.backend == "tiny" for r in renders(bus)), what="a render by tiny")
-
-    # Back to grid: the config the app was built with is used again, not grid's defaults.
-    resp = client.put("/backend", json={"backend": "grid"})
-    assert resp.status_code == 200 and resp.json()["backend"] == "grid"
-    assert resp.json()["resets"] == 2 and worker.trainer.cfg == SMALL_GRID
-
-    # Unknown names and bad bodies are refused; the model is left alone.
-    resp = client.put("/backend", json={"backend": "instant-nerf"})
-    assert resp.status_code == 422
-    assert resp.json()["detail"] == ("unknown backend 'instant-nerf'; available: "
-                                     + ", ".join(sorted(BACKENDS)))
-    assert client.put("/backend", json={"name": "grid"}).status_code == 422
+def test_put_backend_and_carry_change_the_jobs_and_refuse_bad_values(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    resp = client.put("/backend", json={"backend": "nope"})
+    assert resp.status_code == 422 and "available" in resp.json()["detail"]
+    for body in ({"carry": "lukewarm"}, {"carry": "fresh", "render_steps": 0}):
+        assert client.put("/carry", json=body).status_code == 422
     status = client.get("/status").json()
-    assert status["backend"] == "grid" and status["resets"] == 2
+    assert (status["backend"], status["carry"], status["render_steps"]) == ("grid", "fresh", 20)
+    assert status["resets"] == 0
 
+    resp = client.put("/backend", json={"backend": "ngp"})
+    assert resp.status_code == 200 and resp.json()["backend"] == "ngp"
+    resp = client.put("/carry", json={"carry": "warm"})
+    assert resp.status_code == 200 and resp.json()["carry"] == "warm"
+    assert resp.json()["render_steps"] == 20 and resp.json()["resets"] == 1
+    assert client.post("/reset").json()["resets"] == 2
 
-def test_a_backend_that_cannot_be_built_keeps_the_old_one(
-        client: TestClient, bus: MemoryBus, dataset: SceneDataset,
-        monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setitem(BACKENDS, "broken", FieldConfig)  # FieldConfig builds no field
+    pool.add("w1")
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0), (2, 0.0)]))
-    wait_for(lambda: client.get("/status").json()["steps"] > 0, what="training")
-    resp = client.put("/backend", json={"backend": "broken"})
-    assert resp.status_code == 500
-    assert "could not build backend 'broken'" in resp.json()["detail"]
-    assert "still training 'grid'" in resp.json()["detail"]
-    steps = client.get("/status").json()["steps_total"]
-    status = wait_for(lambda: (s := client.get("/status").json())["steps_total"] > steps and s,
-                      what="grid trains on")
-    assert status["backend"] == "grid" and status["resets"] == 0 and status["running"]
-
-
-def test_set_backend_without_the_training_thread(dataset: SceneDataset,
-                                                 monkeypatch: pytest.MonkeyPatch) -> None:
-    from prometheus_client import CollectorRegistry
-
-    from services.trainer.worker import TrainerWorker
-
-    monkeypatch.setitem(BACKENDS, "tiny", TinyGrid)
-    monkeypatch.setitem(BACKENDS, "broken", FieldConfig)
-    settings = make_settings(torch_threads=1)
-    worker = TrainerWorker(settings, MemoryBus(), CollectorRegistry(), dataset=dataset,
-                           clock=SimClock(0.0, 1.0), field_config=SMALL_GRID)
-    listing = r"available: (.*, )?broken, (.*, )?grid, (.*, )?tiny"
-    with pytest.raises(UnknownBackendError, match=listing):
-        worker.set_backend("nope")
-    assert worker.set_backend("tiny") is True
-    assert worker.status().backend == "tiny"
-    assert worker.trainer.cfg == TinyGrid(num_threads=1)  # the service's threads apply
-    with pytest.raises(BackendBuildError, match="still training 'tiny'"):
-        worker.set_backend("broken")
-    assert worker.status().backend == "tiny" and worker.status().resets == 1
-
-
-def test_app_stops_promptly(dataset: SceneDataset) -> None:
-    bus = MemoryBus()
-    app = create_app(make_settings(), bus=bus, dataset=dataset, field_config=SMALL_GRID)
-    with TestClient(app) as c:
-        publish_frames(bus, dataset, 0.0)
-        bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0)]))
-        wait_for(lambda: c.get("/status").json()["steps"] > 0, what="training")
-        worker = app.state.worker
-        t0 = time.monotonic()
-    assert time.monotonic() - t0 < 2.0
-    assert not worker.status().running
-    assert not bus.closed  # an injected bus belongs to the caller
+    wait_for(lambda: renders(bus), what="a warm ngp render")
+    render = renders(bus)[-1]
+    assert (render.backend, render.carry, render.render_steps) == ("ngp", "warm", 0)
 
 
 def test_openapi_documents_the_routes(client: TestClient) -> None:
     paths = client.get("/openapi.json").json()["paths"]
-    assert {"/status", "/reset", "/backend", "/render.png", "/metrics", "/readyz"} <= set(paths)
-    assert "post" in paths["/reset"]
-    put = paths["/backend"]["put"]
-    assert {"200", "422", "500", "503"} <= set(put["responses"])
-    assert "views" in put["summary"] and "buffered frames are kept" in put["description"]
+    for path in ("/status", "/workers", "/reset", "/backend", "/carry", "/render.png",
+                 "/healthz", "/readyz", "/metrics"):
+        assert path in paths
 
 
-def test_settings_validate_backend_and_device(monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(ValidationError, match="available: " + ", ".join(sorted(BACKENDS))):
-        Settings(backend="no-such-backend")
-    assert Settings().backend == "grid" and "grid" in BACKENDS
+def test_settings_validate_backend(monkeypatch: pytest.MonkeyPatch) -> None:
+    with pytest.raises(ValidationError, match="unknown backend"):
+        Settings(backend="nope")
     with pytest.raises(ValidationError):
-        Settings(device="tpu")
-    with pytest.raises(ValidationError):
-        Settings(steps_per_chunk=0)
-    monkeypatch.setenv("AOI3D_TRAINER_STEPS_PER_CHUNK", "9")
-    monkeypatch.setenv("AOI3D_TRAINER_RENDER_PERIOD_S", "0.5")
+        Settings(job_timeout_s=0)
+    monkeypatch.setenv("AOI3D_TRAINER_JOB_TIMEOUT_S", "9")
     monkeypatch.setenv("AOI3D_CAMERAS", "5")
     s = Settings()
-    assert (s.steps_per_chunk, s.render_period_s, s.port, s.common.cameras) == (9, 0.5, 8104, 5)
-    assert resolve_device("cpu") == "cpu"
-    assert resolve_device("auto") in ("cpu", "cuda")
-    with pytest.raises(ValueError, match="accepted: auto, cpu, cuda"):
-        resolve_device("tpu")
+    assert (s.job_timeout_s, s.port, s.common.cameras) == (9.0, 8104, 5)
 
 
-def test_cuda_request_without_cuda_is_a_clear_error(monkeypatch: pytest.MonkeyPatch) -> None:
-    import torch
-
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    with pytest.raises(ValueError, match="CUDA is not available"):
-        resolve_device("cuda")
-    assert resolve_device("auto") == "cpu"
-
-
-def test_inbox_overflow_is_counted(dataset: SceneDataset) -> None:
-    from prometheus_client import CollectorRegistry
-
-    from services.trainer.worker import TrainerWorker
-
-    registry = CollectorRegistry()
-    settings = make_settings()
-    worker = TrainerWorker(settings, MemoryBus(), registry, dataset=dataset,
-                           clock=SimClock(settings.common.epoch_s, 1.0), field_config=SMALL_GRID)
-    payload = frame_payload(dataset, 1, 0.0)
-    for _ in range(300):  # the thread is not started: nothing drains the 256-frame inbox
-        worker._on_frame(KEYS.edge_frame(1), payload)
-    worker._ingest()
-    assert registry.get_sample_value("aoi3d_trainer_inbox_overflow_total") == 300 - 256
-    assert registry.get_sample_value("aoi3d_trainer_frames_received_total") == 256
-    assert worker.status().frames_buffered == settings.frames_per_camera
-
-
-def test_torch_threads_go_into_the_field_config(dataset: SceneDataset) -> None:
-    import torch
-    from prometheus_client import CollectorRegistry
-
-    from services.trainer.worker import TrainerWorker
-
-    before = torch.get_num_threads()
-    other = 1 if before != 1 else 2
-    try:
-        settings = make_settings(torch_threads=other)
-        worker = TrainerWorker(settings, MemoryBus(), CollectorRegistry(), dataset=dataset,
-                               clock=SimClock(0.0, 1.0), field_config=SMALL_GRID)
-        assert worker.trainer.cfg.num_threads == other
-        # the process-wide setting is the entry point's (services/trainer/__main__.py)
-        assert torch.get_num_threads() == before
-    finally:
-        torch.set_num_threads(before)
-
-
-def test_renders_carry_their_decision_frames_and_the_carry(client: TestClient, bus: MemoryBus,
-                                                           dataset: SceneDataset) -> None:
-    status = client.get("/status").json()
-    assert (status["carry"], status["render_steps"]) == ("fresh", 100)
-    resp = client.put("/carry", json={"carry": "fresh", "render_steps": 5})
-    assert resp.status_code == 200 and resp.json()["render_steps"] == 5
-    publish_frames(bus, dataset, 0.0)
-    publish_frames(bus, dataset, 100.0)
-    bus.publish(KEYS.decision, decision_payload(3, 160.0, [(1, 100.0), (2, 0.0)]))
-    render = wait_for(lambda: next((r for r in renders(bus) if r.decision_id == 3), None),
-                      what="a render of decision 3")
-    assert render.carry == "fresh" and render.render_steps == 5
-    assert render.training_step == 5 and render.n_views == 2  # a new model, its 5 steps
-    assert sorted(render.frame_generation_ms) == [0.0, 100.0]
-    assert metric(client, "aoi3d_render_frames_age_seconds") == pytest.approx(0.11)
-    assert metric(client, "aoi3d_render_steps") == 5
-    assert metric(client, "aoi3d_render_age_seconds") >= 0
-    png = client.get("/render.png")
-    assert png.headers["x-carry"] == "fresh" and png.headers["x-render-steps"] == "5"
-    assert float(png.headers["x-frames-age-ms"]) == pytest.approx(110.0)
-
-    # warm: the continuously trained model renders as it is; fork: a copy trains 4 steps
-    assert client.put("/carry", json={"carry": "warm"}).json()["carry"] == "warm"
-    wait_for(lambda: any(r.carry == "warm" and r.render_steps == 0 for r in renders(bus)),
-             what="a warm render")
-    assert client.put("/carry", json={"carry": "fork", "render_steps": 4}).status_code == 200
-    fork = wait_for(lambda: next((r for r in renders(bus) if r.carry == "fork"), None),
-                    what="a fork render")
-    assert fork.render_steps == 4 and fork.training_step >= 4
-
-
-def test_put_carry_refuses_bad_settings_and_changes_nothing(client: TestClient) -> None:
-    for body in ({"carry": "cold"}, {"carry": "fork", "render_steps": 0}, {},
-                 {"carry": "fresh", "render_steps": 1.5}):
-        resp = client.put("/carry", json=body)
-        assert resp.status_code == 422, body
-    status = client.get("/status").json()
-    assert (status["carry"], status["render_steps"]) == ("fresh", 100)
+def test_recon_settings_default_to_one_thread_and_check_the_worker_id(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    assert ReconSettings().torch_threads == 1
+    with pytest.raises(ValidationError):
+        ReconSettings(worker_id="a/b")
+    monkeypatch.setenv("AOI3D_RECON_DEVICE", "cuda")
+    assert ReconSettings().device == "cuda"

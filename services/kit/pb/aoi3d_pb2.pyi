@@ -103,7 +103,7 @@ class Decision(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -116,6 +116,8 @@ class Render(_message.Message):
     CARRY_FIELD_NUMBER: _ClassVar[int]
     RENDER_STEPS_FIELD_NUMBER: _ClassVar[int]
     DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    WORKER_ID_FIELD_NUMBER: _ClassVar[int]
+    LOSS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -128,7 +130,71 @@ class Render(_message.Message):
     carry: str
     render_steps: int
     decision_incarnation: int
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ...) -> None: ...
+    worker_id: str
+    loss: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ...) -> None: ...
+
+class Job(_message.Message):
+    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s")
+    DECISION_FIELD_NUMBER: _ClassVar[int]
+    FRAMES_FIELD_NUMBER: _ClassVar[int]
+    N_MISSING_FIELD_NUMBER: _ClassVar[int]
+    BACKEND_FIELD_NUMBER: _ClassVar[int]
+    CARRY_FIELD_NUMBER: _ClassVar[int]
+    RENDER_STEPS_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    MODEL_EPOCH_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    AABB_FIELD_NUMBER: _ClassVar[int]
+    ASSIGNED_UNIX_S_FIELD_NUMBER: _ClassVar[int]
+    decision: Decision
+    frames: _containers.RepeatedCompositeFieldContainer[Frame]
+    n_missing: int
+    backend: str
+    carry: str
+    render_steps: int
+    seed: int
+    model_epoch: int
+    pose: Pose
+    intrinsics: Intrinsics
+    aabb: _containers.RepeatedScalarFieldContainer[float]
+    assigned_unix_s: float
+    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ...) -> None: ...
+
+class WorkRequest(_message.Message):
+    __slots__ = ("worker_id", "done_decision_id", "done_incarnation", "done_rendered", "done_reason", "busy_s", "jobs", "max_wait_s", "device", "pid", "host")
+    WORKER_ID_FIELD_NUMBER: _ClassVar[int]
+    DONE_DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    DONE_INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    DONE_RENDERED_FIELD_NUMBER: _ClassVar[int]
+    DONE_REASON_FIELD_NUMBER: _ClassVar[int]
+    BUSY_S_FIELD_NUMBER: _ClassVar[int]
+    JOBS_FIELD_NUMBER: _ClassVar[int]
+    MAX_WAIT_S_FIELD_NUMBER: _ClassVar[int]
+    DEVICE_FIELD_NUMBER: _ClassVar[int]
+    PID_FIELD_NUMBER: _ClassVar[int]
+    HOST_FIELD_NUMBER: _ClassVar[int]
+    worker_id: str
+    done_decision_id: int
+    done_incarnation: int
+    done_rendered: bool
+    done_reason: str
+    busy_s: float
+    jobs: int
+    max_wait_s: float
+    device: str
+    pid: int
+    host: str
+    def __init__(self, worker_id: _Optional[str] = ..., done_decision_id: _Optional[int] = ..., done_incarnation: _Optional[int] = ..., done_rendered: _Optional[bool] = ..., done_reason: _Optional[str] = ..., busy_s: _Optional[float] = ..., jobs: _Optional[int] = ..., max_wait_s: _Optional[float] = ..., device: _Optional[str] = ..., pid: _Optional[int] = ..., host: _Optional[str] = ...) -> None: ...
+
+class WorkReply(_message.Message):
+    __slots__ = ("job", "reason")
+    JOB_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    job: Job
+    reason: str
+    def __init__(self, job: _Optional[_Union[Job, _Mapping]] = ..., reason: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
     __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation")

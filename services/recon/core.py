@@ -1,0 +1,135 @@
+"""The reconstruction worker's core: a :class:`pb.Job` in, a :class:`pb.Render` out.
+
+No bus and no threads. The job carries everything (the decision, its frames, backend, carry,
+steps, seed, the camera to render and the scene box), so one worker serves any scene and any
+site. The model is an :class:`aoi3d.field.carry.Reconstruction` — the experiments' code: with
+the default ``fresh`` carry each job is an independent reconstruction; ``warm`` and ``fork``
+carry this worker's own model from job to job (a new one when the job's backend, seed, scene
+box or model epoch changes).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from aoi3d.field import FieldConfig, FieldTrainer, TrainView
+from aoi3d.field import field_config as make_field_config
+from aoi3d.field.carry import Reconstruction, RenderedDecision
+from services.kit.codec import camera_from_pb, decode_frame, encode_png
+from services.kit.observe import Rejected
+from services.kit.pb import aoi3d_pb2 as pb
+
+__all__ = ["JobFailed", "Outcome", "ReconCore", "decode_reply"]
+
+MAX_FRAMES = 256
+"""Frames one job may carry (a rig of up to 256 cameras)."""
+
+
+class JobFailed(Exception):
+    """The job cannot be reconstructed; ``reason`` is its label in the pool's ledger."""
+
+    def __init__(self, reason: str, detail: str) -> None:
+        super().__init__(f"{reason}: {detail}")
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class Outcome:
+    render: pb.Render
+    rendered: RenderedDecision
+    rejected_frames: int
+
+
+def decode_reply(payload: bytes) -> pb.WorkReply:
+    try:
+        return pb.WorkReply.FromString(payload)
+    except Exception as err:
+        raise Rejected("malformed", f"not a WorkReply ({err.__class__.__name__})") from None
+
+
+class ReconCore:
+    """See the module docstring. ``configs``: field configs by backend name that replace the
+    defaults (tests use small ones); ``num_threads``: torch threads of each model (0: torch's
+    default)."""
+
+    def __init__(self, *, worker_id: str, device: str, num_threads: int = 0,
+                 configs: dict[str, FieldConfig] | None = None) -> None:
+        self.worker_id = worker_id
+        self.device = device
+        self.num_threads = num_threads
+        self._configs = dict(configs or {})
+        self._rec: Reconstruction | None = None
+        self._model_key: tuple | None = None
+        self.jobs = 0
+
+    def _config(self, name: str) -> FieldConfig:
+        cfg = self._configs.get(name) or make_field_config(name)
+        return replace(cfg, num_threads=self.num_threads) if self.num_threads else cfg
+
+    def _reconstruction(self, job: pb.Job, aabb: np.ndarray) -> Reconstruction:
+        key = (job.backend, int(job.seed), int(job.model_epoch), tuple(aabb.tolist()))
+        if self._rec is None or key != self._model_key:
+            try:
+                trainer = FieldTrainer(self._config(job.backend), aabb.reshape(2, 3),
+                                       device=self.device,
+                                       seed=int(job.seed))
+            except (KeyError, ValueError, TypeError) as err:
+                raise JobFailed("backend", f"cannot build backend {job.backend!r}: "
+                                           f"{err}") from None
+            self._rec = Reconstruction(trainer, job.carry, int(job.render_steps))
+            self._model_key = key
+        else:
+            try:
+                self._rec.set_carry(job.carry, int(job.render_steps))
+            except ValueError as err:
+                raise JobFailed("carry", str(err)) from None
+        return self._rec
+
+    def run(self, job: pb.Job) -> Outcome:
+        """Reconstruct the job's decision and render its camera; :class:`JobFailed` when it
+        cannot be done (bad scene box, camera, backend or selection)."""
+        aabb = np.asarray(job.aabb, dtype=np.float64)
+        if aabb.shape != (6,) or not np.all(np.isfinite(aabb)) or np.any(aabb[3:] <= aabb[:3]):
+            raise JobFailed("bad_job", "the scene box must be 6 finite values, min < max")
+        if len(job.frames) > MAX_FRAMES:
+            raise JobFailed("bad_job", f"{len(job.frames)} frames (at most {MAX_FRAMES})")
+        try:
+            camera = camera_from_pb(job.pose, job.intrinsics)
+        except Rejected as err:
+            raise JobFailed("bad_job", f"render camera: {err.detail}") from None
+        views, gens, rejected = [], [], 0
+        for frame in job.frames:
+            try:
+                data = decode_frame(frame.SerializeToString())
+                views.append(TrainView(camera=data.camera, image=data.rgb()))
+                gens.append(float(data.generation_ms))
+            except (Rejected, ValueError):
+                rejected += 1
+        rec = self._reconstruction(job, aabb)
+        try:
+            rec.set_views(views)
+        except ValueError as err:
+            raise JobFailed("bad_selection", str(err)) from None
+        rendered = rec.render_decision(camera)
+        self.jobs += 1
+        d = job.decision
+        render = pb.Render(
+            decision_id=d.decision_id, decision_incarnation=d.incarnation, time_ms=d.time_ms,
+            pose=job.pose, intrinsics=job.intrinsics, image=encode_png(rendered.image),
+            training_step=rendered.steps, n_views=rendered.n_views, backend=job.backend,
+            frame_generation_ms=gens, carry=rec.carry, render_steps=rendered.render_steps,
+            worker_id=self.worker_id,
+            loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
+        return Outcome(render, rendered, rejected)
+
+    def train_between_jobs(self, n: int) -> float:
+        """``n`` background steps of a warm or fork model on its last job's frames (no-op for
+        fresh, or before the first job)."""
+        return self._rec.train(n) if self._rec is not None else math.nan
+
+    @property
+    def trains_in_background(self) -> bool:
+        return self._rec is not None and self._rec.trains_in_background

@@ -1,0 +1,117 @@
+"""The reconstruction worker's runtime: its liveliness token, the request loop, the bus.
+
+It declares ``aoi3d/<run>/pool/worker/<id>`` (membership: the token lives as long as the
+session), then asks the trainer service for work — a query on ``aoi3d/<run>/pool/work``
+carrying a :class:`pb.WorkRequest` that reports how the previous job ended — reconstructs the
+job it is given with :class:`services.recon.core.ReconCore` and publishes the Render on
+``aoi3d/<run>/render``. One thread does all of it: the worker never does two jobs at once.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import secrets
+import socket
+import threading
+import time
+
+from services.kit.bus import Bus
+from services.kit.keys import Keys
+from services.kit.observe import Rejected
+from services.kit.pb import aoi3d_pb2 as pb
+from services.recon.core import JobFailed, ReconCore, decode_reply
+from services.recon.settings import Settings
+
+log = logging.getLogger(__name__)
+
+_NO_DISPATCHER_BACKOFF_S = 0.2
+
+
+def default_worker_id() -> str:
+    host = "".join(c if c.isalnum() or c in "-_." else "-" for c in socket.gethostname())
+    return f"{host[:40] or 'host'}-{os.getpid()}-{secrets.token_hex(2)}"
+
+
+class ReconWorker:
+    """See the module docstring. :meth:`run` blocks until ``stop`` is set."""
+
+    def __init__(self, settings: Settings, bus: Bus, core: ReconCore) -> None:
+        self.settings = settings
+        self.bus = bus
+        self.core = core
+        self.keys = Keys(settings.common.run_id)
+        self.busy_s = 0.0
+        self.failed = 0
+        self.rendered = 0
+        self._done: tuple[pb.Job, bool, str] | None = None
+
+    @property
+    def worker_id(self) -> str:
+        return self.core.worker_id
+
+    def _request(self, wait_s: float) -> bytes:
+        req = pb.WorkRequest(worker_id=self.worker_id, busy_s=self.busy_s,
+                             jobs=self.core.jobs + self.failed, max_wait_s=wait_s,
+                             device=self.core.device, pid=os.getpid(),
+                             host=socket.gethostname()[:64])
+        if self._done is not None:
+            job, rendered, reason = self._done
+            req.done_decision_id = job.decision.decision_id
+            req.done_incarnation = job.decision.incarnation
+            req.done_rendered = rendered
+            req.done_reason = reason
+        return req.SerializeToString()
+
+    def step(self) -> bool:
+        """One request and, if a job comes, its reconstruction; True when a job was done."""
+        background = self.core.trains_in_background
+        wait_s = 0.0 if background else self.settings.max_wait_s
+        answer = self.bus.query(self.keys.work, self._request(wait_s),
+                                timeout_s=wait_s + self.settings.query_margin_s)
+        if answer is None:  # no trainer reachable (yet): the report is sent again next time
+            if background:
+                self.core.train_between_jobs(self.settings.background_steps)
+            else:
+                time.sleep(_NO_DISPATCHER_BACKOFF_S)
+            return False
+        self._done = None
+        try:
+            reply = decode_reply(answer)
+        except Rejected as err:
+            log.warning("dropped a malformed reply from the trainer: %s", err)
+            return False
+        if not reply.HasField("job"):
+            if background:
+                self.core.train_between_jobs(self.settings.background_steps)
+            return False
+        job = reply.job
+        t0 = time.monotonic()
+        try:
+            outcome = self.core.run(job)
+            self.bus.publish(self.keys.render, outcome.render.SerializeToString())
+            self._done = (job, True, "")
+            self.rendered += 1
+        except JobFailed as err:
+            log.warning("job for decision %d failed: %s", job.decision.decision_id, err)
+            self._done = (job, False, err.reason)
+            self.failed += 1
+        except Exception as err:  # keep serving: the pool counts the decision lost
+            log.exception("job for decision %d failed", job.decision.decision_id)
+            self._done = (job, False, type(err).__name__[:32])
+            self.failed += 1
+        finally:
+            self.busy_s += time.monotonic() - t0
+        return True
+
+    def run(self, stop: threading.Event) -> None:
+        token = self.bus.declare_token(self.keys.pool_worker(self.worker_id))
+        log.info("worker %s joined the pool of run %s", self.worker_id,
+                 self.settings.common.run_id)
+        try:
+            while not stop.is_set():
+                self.step()
+        finally:
+            token.undeclare()
+            log.info("worker %s left the pool (%d rendered, %d failed)", self.worker_id,
+                     self.rendered, self.failed)

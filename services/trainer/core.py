@@ -1,0 +1,268 @@
+"""The trainer service's core: decoded messages and a time in, what to send out.
+
+No bus, no threads, no web framework, no metrics library: the runtime
+(:mod:`services.trainer.worker`) feeds it and sends what it returns; tests drive it directly.
+
+It holds the delivered frames (still encoded, per camera), takes the newest decision (in
+(sim time, id) order within a scheduler incarnation; a new incarnation at once), and hands
+each decision to one reconstruction worker through the pool's :class:`Dispatcher` as a
+:class:`pb.Job` carrying that decision's frames and the render settings in force (backend,
+carry, steps, seed, model epoch, the held-out camera and the scene box). Renders published by
+the workers are read back for the latest image and the status.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from aoi3d.field.carry import CARRY_MODES, check_carry
+from aoi3d.scene.camera import Camera
+from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
+from services.kit.observe import Rejected
+from services.kit.pb import aoi3d_pb2 as pb
+from services.trainer.frames import FrameBuffer
+from services.trainer.pool import Assignment, DecisionRef, Dispatcher, PoolStatus, Report
+from services.trainer.state import CarryError, DecisionInForce, LatestRender, check_backend
+
+__all__ = ["RenderSettings", "TrainerCore", "decode_request"]
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """What every job carries: how the worker reconstructs and renders."""
+
+    backend: str
+    carry: str
+    render_steps: int
+    seed: int
+    model_epoch: int = 0
+
+
+@dataclass(frozen=True)
+class HeldFrame:
+    """A delivered frame as received (validated), kept to put into jobs."""
+
+    camera_id: int
+    generation_ms: float
+    payload: bytes
+
+
+def decode_request(payload: bytes) -> Report:
+    try:
+        msg = pb.WorkRequest.FromString(payload)
+    except Exception as err:  # protobuf's DecodeError and friends
+        raise Rejected("malformed", f"not a WorkRequest ({err.__class__.__name__})") from None
+    if not msg.worker_id or len(msg.worker_id) > 128 or "/" in msg.worker_id:
+        raise Rejected("malformed", "a WorkRequest needs a worker_id of 1-128 characters "
+                                    "without '/'")
+    values = (msg.busy_s, msg.max_wait_s)
+    if not all(math.isfinite(v) and v >= 0 for v in values) or msg.max_wait_s > 3600:
+        raise Rejected("malformed", "busy_s and max_wait_s must be finite, >= 0 (wait <= 1 h)")
+    done = ((int(msg.done_incarnation), int(msg.done_decision_id))
+            if msg.done_decision_id else None)
+    return Report(worker_id=msg.worker_id, done=done, rendered=msg.done_rendered,
+                  reason=msg.done_reason[:64], busy_s=msg.busy_s, jobs=int(msg.jobs),
+                  max_wait_s=msg.max_wait_s, device=msg.device[:16], pid=int(msg.pid),
+                  host=msg.host[:64])
+
+
+class TrainerCore:
+    """See the module docstring. Not thread-safe: the runtime serialises calls."""
+
+    def __init__(self, *, camera_ids: frozenset[int], size: tuple[int, int] | None,
+                 skew_ms: float, heldout: Camera, aabb: np.ndarray, frames_per_camera: int,
+                 render: RenderSettings, dispatcher: Dispatcher) -> None:
+        self._camera_ids = camera_ids
+        self._size = size
+        self._skew_ms = skew_ms
+        self.heldout = heldout
+        self._aabb = [float(v) for v in np.asarray(aabb, dtype=np.float64).reshape(-1)]
+        self._frames = FrameBuffer(frames_per_camera)
+        check_backend(render.backend)
+        check_carry(render.carry, render.render_steps)
+        self.render = render
+        self.pool = dispatcher
+        self.decision: DecisionInForce | None = None
+        self._decisions: dict[tuple[int, int], pb.Decision] = {}
+        """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
+        self.latest: LatestRender | None = None
+        self._latest_incarnation = 0
+        self.frames_received = 0
+        self.frames_missing = 0
+        self.decisions_applied = 0
+        self.renders_seen = 0
+        self.steps_total = 0
+        self.loss: float | None = None
+        self.n_views = 0
+        self.last_render_steps = 0
+        self.render_lag_ms = math.nan
+        self.frames_age_ms = math.nan
+
+    # ------------------------------------------------------------------ frames, decisions
+    def on_frame(self, payload: bytes, now_ms: float) -> None:
+        """Keep a delivered frame; :class:`Rejected` when it is invalid or from the future."""
+        frame = decode_frame(payload, self._camera_ids, self._size)
+        if frame.generation_ms > now_ms + self._skew_ms:
+            raise Rejected("clock_skew", f"frame generated at {frame.generation_ms:g} ms, "
+                                         f"ahead of this clock")
+        self._frames.add(HeldFrame(frame.camera_id, frame.generation_ms, payload))
+        self.frames_received += 1
+
+    @property
+    def frames_buffered(self) -> int:
+        return len(self._frames)
+
+    def on_decision(self, payload: bytes, now_ms: float, now_s: float) -> Assignment | None:
+        """Take a decision if it supersedes the one in force (else :class:`Rejected`) and offer
+        it to the pool; the assignment when a waiting worker takes it at once."""
+        msg = decode_decision(payload)
+        self._check_order(msg, now_ms)
+        gens = []
+        missing = 0
+        for ref in msg.selected:
+            if self._frames.find(ref.camera_id, ref.generation_ms) is None:
+                missing += 1
+            else:
+                gens.append(float(ref.generation_ms))
+        self.frames_missing += missing
+        self.decisions_applied += 1
+        self.decision = DecisionInForce(
+            decision_id=msg.decision_id, incarnation=msg.incarnation, time_ms=msg.time_ms,
+            policy=msg.policy, n_selected=len(msg.selected), n_missing=missing,
+            applied_wall_s=now_s, generation_ms=tuple(gens))
+        ref = DecisionRef(msg.incarnation, msg.decision_id, msg.time_ms)
+        self._decisions[ref.key] = msg
+        assignment = self.pool.offer(ref, now_s)
+        self._forget()
+        return assignment
+
+    def _check_order(self, msg: pb.Decision, now_ms: float) -> None:
+        """Decisions are ordered by the sim time they are for, then by id, within one
+        scheduler incarnation; a decision of another incarnation (a restarted scheduler, which
+        numbers from 1 again) supersedes at once. Times further ahead of this clock than the
+        skew are rejected, so no message — not even one with id 2^64−1 — can hold the pool
+        for longer than the skew."""
+        if msg.time_ms > now_ms + self._skew_ms:
+            raise Rejected("clock_skew", f"decision for {msg.time_ms:g} ms but this clock says "
+                                         f"{now_ms:g} ms")
+        d = self.decision
+        if d is None or msg.incarnation != d.incarnation:
+            return
+        if (msg.time_ms, msg.decision_id) <= (d.time_ms, d.decision_id):
+            raise Rejected("stale_decision",
+                           f"decision {msg.decision_id} for {msg.time_ms:g} ms is not newer "
+                           f"than decision {d.decision_id} for {d.time_ms:g} ms")
+
+    def _forget(self) -> None:
+        """Keep only the decisions still pending or held (bounded by the pool's size + 1)."""
+        keep = {a.decision.key for a in self.pool.held()}
+        if self.pool.pending is not None:
+            keep.add(self.pool.pending.key)
+        self._decisions = {k: v for k, v in self._decisions.items() if k in keep}
+
+    # ------------------------------------------------------------------ workers
+    def on_request(self, payload: bytes, now_s: float) -> tuple[Report, Assignment | None]:
+        """A worker asks for work: (its report, its assignment or None: it waits)."""
+        report = decode_request(payload)
+        assignment = self.pool.request(report, now_s)
+        self._forget()
+        return report, assignment
+
+    def job(self, assignment: Assignment, now_s: float) -> bytes:
+        """The WorkReply carrying ``assignment``'s job (the decision's frames that are held)."""
+        msg = self._decisions[assignment.decision.key]
+        r = self.render
+        pose, intrinsics = camera_to_pb(self.heldout)
+        job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
+                     render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
+                     pose=pose, intrinsics=intrinsics, aabb=self._aabb,
+                     assigned_unix_s=now_s)
+        for ref in msg.selected:
+            held = self._frames.find(ref.camera_id, ref.generation_ms)
+            if held is None:
+                job.n_missing += 1
+            else:
+                job.frames.add().MergeFromString(held.payload)
+        return pb.WorkReply(job=job).SerializeToString()
+
+    @staticmethod
+    def no_job(reason: str) -> bytes:
+        return pb.WorkReply(reason=reason).SerializeToString()
+
+    def on_worker(self, worker_id: str, alive: bool, now_s: float) -> Assignment | None:
+        """A worker's liveliness token appeared or vanished; the decision a vanished worker
+        held (lost: ``worker_died``)."""
+        if alive:
+            self.pool.joined(worker_id, now_s)
+            return None
+        lost = self.pool.left(worker_id, now_s)
+        self._forget()
+        return lost
+
+    def expire(self, now_s: float) -> list[Assignment]:
+        lost = self.pool.expire(now_s)
+        if lost:
+            self._forget()
+        return lost
+
+    # ------------------------------------------------------------------ renders
+    def on_render(self, payload: bytes, now_s: float, now_ms: float) -> LatestRender:
+        """A worker's Render: the latest image and the render statistics."""
+        msg, _camera = decode_render(payload)
+        if msg.time_ms > now_ms + self._skew_ms:
+            raise Rejected("clock_skew", f"render for {msg.time_ms:g} ms, ahead of this clock")
+        if self.latest is not None and msg.time_ms < self.latest.time_ms \
+                and msg.decision_incarnation == self._latest_incarnation:
+            # an older decision finished after a newer one (several workers): counted, not shown
+            self._count_render(msg, now_ms)
+            return self.latest
+        gens = list(msg.frame_generation_ms)
+        frames_age_ms = (msg.time_ms - float(np.mean(gens))) if gens else math.nan
+        self._count_render(msg, now_ms)
+        self.frames_age_ms = frames_age_ms
+        self._latest_incarnation = msg.decision_incarnation
+        key = (msg.decision_incarnation, msg.decision_id)
+        arrived = next((a.arrived_s for a in self.pool.held() if a.decision.key == key),
+                       math.nan)
+        self.latest = LatestRender(
+            png=msg.image.data, decision_id=msg.decision_id, time_ms=msg.time_ms,
+            training_step=msg.training_step, n_views=msg.n_views, wall_s=now_s,
+            carry=msg.carry, render_steps=msg.render_steps, frames_age_ms=frames_age_ms,
+            lag_ms=now_ms - msg.time_ms, age_s=now_s - arrived if math.isfinite(arrived)
+            else math.nan, worker_id=msg.worker_id)
+        return self.latest
+
+    def _count_render(self, msg: pb.Render, now_ms: float) -> None:
+        self.renders_seen += 1
+        self.steps_total += int(msg.render_steps)
+        self.loss = float(msg.loss) if math.isfinite(msg.loss) and msg.render_steps else None
+        self.n_views = int(msg.n_views)
+        self.last_render_steps = int(msg.render_steps)
+        self.render_lag_ms = now_ms - msg.time_ms
+
+    # ------------------------------------------------------------------ settings
+    def set_backend(self, name: str) -> None:
+        """Jobs from now on carry backend ``name`` (a new model: the model epoch moves on)."""
+        check_backend(name)
+        r = self.render
+        self.render = RenderSettings(name, r.carry, r.render_steps, r.seed, r.model_epoch + 1)
+
+    def set_carry(self, carry: str, render_steps: int) -> None:
+        try:
+            check_carry(carry, render_steps)
+        except ValueError as err:
+            raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
+        r = self.render
+        self.render = RenderSettings(r.backend, carry, int(render_steps), r.seed, r.model_epoch)
+
+    def reset(self) -> None:
+        """Workers start new models (warm and fork carry a model from job to job)."""
+        r = self.render
+        self.render = RenderSettings(r.backend, r.carry, r.render_steps, r.seed,
+                                     r.model_epoch + 1)
+
+    def pool_status(self, now_s: float) -> PoolStatus:
+        return self.pool.status(now_s)

@@ -1,0 +1,315 @@
+"""Who reconstructs which decision: the pool's dispatcher, as pure logic (no bus, no threads).
+
+The trainer service runs one :class:`Dispatcher`; reconstruction workers (``python -m
+services.recon``) pull work from it. Design (docs/architecture.md, "The worker pool"):
+
+- **Membership** is Zenoh liveliness: each worker holds a token
+  ``aoi3d/<run>/pool/worker/<id>`` for as long as its session lives; the runtime calls
+  :meth:`Dispatcher.joined` / :meth:`Dispatcher.left` as tokens appear and vanish. No list is
+  kept by hand and no port is configured.
+- **Pull**: an idle worker asks (a Zenoh query, :meth:`Dispatcher.request`). The dispatcher
+  keeps at most one *pending* decision, the newest; a newer one replaces it (the older is
+  counted ``superseded``: skipped by choice). The pending decision goes to exactly one asker,
+  under the caller's lock; a worker that finds nothing pending waits (its query is held, up to
+  its ``max_wait_s``), and the next decision goes to the worker that has waited longest
+  (:meth:`Dispatcher.offer`). No queue grows and no render is older than one that could have
+  been done instead.
+- **Ledger**: a handed-out decision ends ``rendered`` (the worker reports its Render
+  published in its next request) or ``lost`` with a reason: ``worker_died`` (its token
+  vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
+  longer than ``job_timeout_s``), ``not_delivered`` (the worker asked again without reporting
+  it: the reply never reached it), or the worker's own reason (``failed:<why>``). A decision
+  is never handed out twice, so nothing is rendered twice; a worker that comes back after its
+  decision was counted lost has its late report ignored (``late_reports``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+__all__ = ["Assignment", "Dispatcher", "PoolStatus", "Report", "WorkerView"]
+
+
+@dataclass(frozen=True)
+class DecisionRef:
+    """A decision as the pool knows it: (incarnation, id) names it."""
+
+    incarnation: int
+    decision_id: int
+    time_ms: float
+
+    @property
+    def key(self) -> tuple[int, int]:
+        return self.incarnation, self.decision_id
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """A decision handed to one worker."""
+
+    decision: DecisionRef
+    worker_id: str
+    arrived_s: float
+    """Wall time the decision reached the dispatcher."""
+    assigned_s: float
+
+    @property
+    def wait_s(self) -> float:
+        """From the decision's arrival to the start of its reconstruction (its hand-out)."""
+        return self.assigned_s - self.arrived_s
+
+
+@dataclass(frozen=True)
+class Report:
+    """What a worker says when it asks for work (decoded from its WorkRequest)."""
+
+    worker_id: str
+    done: tuple[int, int] | None = None
+    """(incarnation, decision id) of the job finished since its last request."""
+    rendered: bool = False
+    reason: str = ""
+    busy_s: float = 0.0
+    jobs: int = 0
+    max_wait_s: float = 0.0
+    device: str = ""
+    pid: int = 0
+    host: str = ""
+
+
+@dataclass
+class _Worker:
+    worker_id: str
+    joined_s: float
+    pid: int = 0
+    host: str = ""
+    device: str = ""
+    rendered: int = 0
+    lost: int = 0
+    holding: Assignment | None = None
+    busy: deque[tuple[float, float]] = field(default_factory=deque)
+    """(wall s, reported busy s) samples over the window."""
+
+
+@dataclass(frozen=True)
+class WorkerView:
+    worker_id: str
+    pid: int
+    host: str
+    device: str
+    joined_s: float
+    rendered: int
+    lost: int
+    holding: int | None
+    """Decision id it is reconstructing now, None when idle."""
+    busy_fraction: float
+    """Share of the last window's wall time it spent reconstructing (NaN: too new to say)."""
+
+
+@dataclass(frozen=True)
+class PoolStatus:
+    workers: tuple[WorkerView, ...]
+    decisions: int
+    """Decisions offered to the pool since start."""
+    assigned: int
+    rendered: int
+    superseded: int
+    lost: dict[str, int]
+    pending: int | None
+    """Id of the decision waiting for a worker, None when none."""
+    in_flight: int
+    renders_per_s: float
+    decisions_per_s: float
+    rendered_fraction: float
+    """Decisions rendered / decisions offered over the window (NaN before any decision)."""
+    wait_s_mean: float
+    """Mean wait from a decision's arrival to its hand-out over the window (NaN: none)."""
+    render_age_s_mean: float
+    """Mean wall s from a decision's arrival to its render's report, over the window."""
+    late_reports: int
+    window_s: float
+
+
+class Dispatcher:
+    """The pool's assignment state; see the module docstring. Not thread-safe: the caller
+    serialises calls (the trainer's runtime holds one lock). Times are wall seconds."""
+
+    def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0) -> None:
+        self.window_s = float(window_s)
+        self.job_timeout_s = float(job_timeout_s)
+        self._workers: dict[str, _Worker] = {}
+        self._waiting: deque[str] = deque()
+        self._pending: tuple[DecisionRef, float] | None = None
+        self.decisions = 0
+        self.assigned = 0
+        self.rendered = 0
+        self.superseded = 0
+        self.lost: Counter[str] = Counter()
+        self.late_reports = 0
+        self.wait_sum_s = 0.0
+        self.age_sum_s = 0.0
+        self._events: deque[tuple[float, str, float]] = deque()
+        """(wall s, kind, value) over the window: kind decision | render | wait | age."""
+        self._first_s: float | None = None
+
+    # ------------------------------------------------------------------ membership
+    def joined(self, worker_id: str, now_s: float) -> None:
+        if worker_id not in self._workers:
+            self._workers[worker_id] = _Worker(worker_id, joined_s=now_s)
+
+    def left(self, worker_id: str, now_s: float) -> Assignment | None:
+        """The worker's token vanished: its decision (if any) is lost, ``worker_died``."""
+        worker = self._workers.pop(worker_id, None)
+        self._unwait(worker_id)
+        if worker is None or worker.holding is None:
+            return None
+        held = worker.holding
+        self.lost["worker_died"] += 1
+        return held
+
+    @property
+    def worker_ids(self) -> list[str]:
+        return sorted(self._workers)
+
+    @property
+    def pending(self) -> DecisionRef | None:
+        """The decision waiting for a worker (the newest not handed out), None when none."""
+        return None if self._pending is None else self._pending[0]
+
+    def held(self) -> list[Assignment]:
+        """The decisions being reconstructed now, one per busy worker."""
+        return [w.holding for w in self._workers.values() if w.holding is not None]
+
+    # ------------------------------------------------------------------ decisions
+    def offer(self, decision: DecisionRef, now_s: float) -> Assignment | None:
+        """A new decision (newer than every one before: the caller checks). Handed at once to
+        the worker that has waited longest, else pending (replacing, and counting
+        ``superseded``, an older pending one)."""
+        self.decisions += 1
+        self._event(now_s, "decision", 1.0)
+        while self._waiting:
+            worker = self._workers.get(self._waiting.popleft())
+            if worker is not None and worker.holding is None:
+                return self._assign(worker, decision, now_s, now_s)
+        if self._pending is not None:
+            self.superseded += 1
+        self._pending = (decision, now_s)
+        return None
+
+    def request(self, report: Report, now_s: float) -> Assignment | None:
+        """A worker asks for work (after reporting how its last job ended). Returns its
+        assignment, or None: then it waits (if its ``max_wait_s`` > 0) for :meth:`offer`."""
+        worker = self._workers.get(report.worker_id)
+        if worker is None:  # its query came before its token: it is alive, count it in
+            self.joined(report.worker_id, now_s)
+            worker = self._workers[report.worker_id]
+        worker.pid, worker.host, worker.device = report.pid, report.host, report.device
+        worker.busy.append((now_s, report.busy_s))
+        while len(worker.busy) > 2 and now_s - worker.busy[1][0] >= self.window_s:
+            worker.busy.popleft()
+        self._close(worker, report, now_s)
+        self._unwait(worker.worker_id)
+        if self._pending is not None:
+            decision, arrived_s = self._pending
+            self._pending = None
+            return self._assign(worker, decision, arrived_s, now_s)
+        if report.max_wait_s > 0:
+            self._waiting.append(worker.worker_id)
+        return None
+
+    def give_up(self, worker_id: str) -> None:
+        """The worker's held query was answered with no job (its wait ran out)."""
+        self._unwait(worker_id)
+
+    def expire(self, now_s: float) -> list[Assignment]:
+        """Decisions held longer than ``job_timeout_s``: lost (``timeout``)."""
+        out = []
+        for worker in self._workers.values():
+            held = worker.holding
+            if held is not None and now_s - held.assigned_s > self.job_timeout_s:
+                worker.holding = None
+                worker.lost += 1
+                self.lost["timeout"] += 1
+                out.append(held)
+        return out
+
+    # ------------------------------------------------------------------ internals
+    def _assign(self, worker: _Worker, decision: DecisionRef, arrived_s: float,
+                now_s: float) -> Assignment:
+        held = Assignment(decision, worker.worker_id, arrived_s, now_s)
+        worker.holding = held
+        self.assigned += 1
+        self.wait_sum_s += held.wait_s
+        self._event(now_s, "wait", held.wait_s)
+        return held
+
+    def _close(self, worker: _Worker, report: Report, now_s: float) -> None:
+        held = worker.holding
+        if report.done is not None and (held is None or held.decision.key != report.done):
+            self.late_reports += 1  # counted lost already (timeout), or not ours
+        if held is None:
+            return
+        worker.holding = None
+        if report.done != held.decision.key:
+            worker.lost += 1
+            self.lost["not_delivered"] += 1
+            return
+        if report.rendered:
+            worker.rendered += 1
+            self.rendered += 1
+            age = now_s - held.arrived_s
+            self.age_sum_s += age
+            self._event(now_s, "render", 1.0)
+            self._event(now_s, "age", age)
+        else:
+            worker.lost += 1
+            self.lost[f"failed:{report.reason or 'unknown'}"] += 1
+
+    def _unwait(self, worker_id: str) -> None:
+        if worker_id in self._waiting:
+            self._waiting = deque(w for w in self._waiting if w != worker_id)
+
+    def _event(self, now_s: float, kind: str, value: float) -> None:
+        if self._first_s is None:
+            self._first_s = now_s
+        self._events.append((now_s, kind, value))
+        while self._events and now_s - self._events[0][0] > self.window_s:
+            self._events.popleft()
+
+    # ------------------------------------------------------------------ status
+    def status(self, now_s: float) -> PoolStatus:
+        while self._events and now_s - self._events[0][0] > self.window_s:
+            self._events.popleft()
+        by_kind: dict[str, list[float]] = {"decision": [], "render": [], "wait": [], "age": []}
+        for _, kind, value in self._events:
+            by_kind[kind].append(value)
+        n_dec, n_ren = len(by_kind["decision"]), len(by_kind["render"])
+        # rates over the window, or over the time since the first event when that is shorter
+        span = self.window_s if self._first_s is None else min(
+            self.window_s, max(1e-9, now_s - self._first_s))
+
+        def mean(xs: list[float]) -> float:
+            return sum(xs) / len(xs) if xs else math.nan
+
+        workers = []
+        for w in sorted(self._workers.values(), key=lambda w: w.worker_id):
+            if len(w.busy) >= 2 and w.busy[-1][0] > w.busy[0][0]:
+                (t0, b0), (t1, b1) = w.busy[0], w.busy[-1]
+                busy = min(1.0, max(0.0, (b1 - b0) / (t1 - t0)))
+            else:
+                busy = math.nan
+            workers.append(WorkerView(
+                worker_id=w.worker_id, pid=w.pid, host=w.host, device=w.device,
+                joined_s=w.joined_s, rendered=w.rendered, lost=w.lost,
+                holding=None if w.holding is None else w.holding.decision.decision_id,
+                busy_fraction=busy))
+        return PoolStatus(
+            workers=tuple(workers), decisions=self.decisions, assigned=self.assigned,
+            rendered=self.rendered, superseded=self.superseded, lost=dict(self.lost),
+            pending=None if self._pending is None else self._pending[0].decision_id,
+            in_flight=sum(w.holding is not None for w in self._workers.values()),
+            renders_per_s=n_ren / span, decisions_per_s=n_dec / span,
+            rendered_fraction=n_ren / n_dec if n_dec else math.nan,
+            wait_s_mean=mean(by_kind["wait"]), render_age_s_mean=mean(by_kind["age"]),
+            late_reports=self.late_reports, window_s=self.window_s)

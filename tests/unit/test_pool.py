@@ -1,0 +1,170 @@
+"""The pool's dispatcher as pure logic: who gets which decision, and how each one ends."""
+
+from __future__ import annotations
+
+import math
+
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from services.trainer.pool import DecisionRef, Dispatcher, Report
+
+
+def d(i: int, inc: int = 7) -> DecisionRef:
+    return DecisionRef(inc, i, 100.0 * i)
+
+
+def ask(pool: Dispatcher, w: str, now: float, done: DecisionRef | None = None,
+        rendered: bool = True, reason: str = "", wait: float = 2.0, busy: float = 0.0):
+    return pool.request(Report(w, done=None if done is None else done.key, rendered=rendered,
+                               reason=reason, max_wait_s=wait, busy_s=busy), now)
+
+
+def test_the_newest_decision_wins_and_older_pending_ones_are_superseded() -> None:
+    pool = Dispatcher()
+    pool.joined("a", 0.0)
+    assert pool.offer(d(1), 0.0) is None
+    assert pool.offer(d(2), 0.1) is None
+    assert pool.offer(d(3), 0.2) is None
+    got = ask(pool, "a", 0.5)
+    assert got is not None and got.decision == d(3) and got.worker_id == "a"
+    assert math.isclose(got.wait_s, 0.3)
+    assert pool.superseded == 2 and pool.pending is None
+    # nothing pending: the worker waits, and the next decision goes to it at once
+    assert ask(pool, "a", 1.0, done=d(3)) is None
+    handed = pool.offer(d(4), 1.2)
+    assert handed is not None and handed.worker_id == "a" and handed.wait_s == 0.0
+    assert pool.rendered == 1 and pool.assigned == 2
+
+
+def test_each_decision_goes_to_exactly_one_worker_longest_waiting_first() -> None:
+    pool = Dispatcher()
+    for w in "abc":
+        pool.joined(w, 0.0)
+        assert ask(pool, w, 0.0) is None
+    first = pool.offer(d(1), 1.0)
+    second = pool.offer(d(2), 1.1)
+    third = pool.offer(d(3), 1.2)
+    assert [x.worker_id for x in (first, second, third)] == ["a", "b", "c"]
+    assert pool.offer(d(4), 1.3) is None  # all busy: pending
+    assert ask(pool, "b", 2.0, done=d(2)).decision == d(4)
+    assert ask(pool, "a", 2.1, done=d(1)) is None
+    s = pool.status(2.2)
+    assert (s.assigned, s.rendered, s.in_flight, s.superseded) == (4, 2, 2, 0)
+
+
+def test_a_worker_that_dies_loses_only_its_own_decision() -> None:
+    pool = Dispatcher()
+    for w in "ab":
+        pool.joined(w, 0.0)
+        ask(pool, w, 0.0)
+    pool.offer(d(1), 1.0)
+    pool.offer(d(2), 1.0)
+    lost = pool.left("a", 1.5)
+    assert lost is not None and lost.decision == d(1)
+    assert pool.lost == {"worker_died": 1}
+    assert pool.worker_ids == ["b"]
+    assert ask(pool, "b", 2.0, done=d(2)) is None
+    assert pool.rendered == 1
+    # an idle worker leaving loses nothing
+    assert pool.left("b", 3.0) is None and pool.lost == {"worker_died": 1}
+
+
+def test_timeouts_failures_and_undelivered_jobs_are_lost_with_their_reason() -> None:
+    pool = Dispatcher(job_timeout_s=10.0)
+    pool.joined("a", 0.0)
+    ask(pool, "a", 0.0)
+    pool.offer(d(1), 0.0)
+    assert pool.expire(5.0) == []
+    assert [x.decision for x in pool.expire(10.5)] == [d(1)]
+    # its late report is ignored (the decision was already counted lost)
+    assert ask(pool, "a", 11.0, done=d(1)) is None
+    assert pool.late_reports == 1 and pool.rendered == 0
+    pool.offer(d(2), 12.0)
+    ask(pool, "a", 13.0, done=d(2), rendered=False, reason="bad_selection")
+    pool.offer(d(3), 14.0)
+    ask(pool, "a", 15.0)  # asks again without reporting d(3): the reply never reached it
+    assert pool.lost == {"timeout": 1, "failed:bad_selection": 1, "not_delivered": 1}
+
+
+def test_a_worker_that_will_not_wait_is_not_queued() -> None:
+    pool = Dispatcher()
+    pool.joined("a", 0.0)
+    assert ask(pool, "a", 0.0, wait=0.0) is None
+    assert pool.offer(d(1), 0.1) is None and pool.pending == d(1)
+    pool.joined("b", 0.0)
+    assert ask(pool, "b", 0.2) is not None
+    assert ask(pool, "a", 0.3, wait=0.0) is None
+
+
+def test_give_up_takes_a_worker_out_of_the_queue() -> None:
+    pool = Dispatcher()
+    pool.joined("a", 0.0)
+    ask(pool, "a", 0.0)
+    pool.give_up("a")
+    assert pool.offer(d(1), 1.0) is None and pool.pending == d(1)
+
+
+def test_status_rates_fraction_wait_age_and_busy_over_the_window() -> None:
+    pool = Dispatcher(window_s=10.0)
+    pool.joined("a", 0.0)
+    ask(pool, "a", 0.0, busy=0.0)
+    t = 0.0
+    for i in range(1, 11):  # a decision every second; the worker renders every other one
+        t = float(i)
+        got = pool.offer(d(i), t)
+        if got is None:
+            continue
+        ask(pool, "a", t + 0.9, done=got.decision, busy=0.9 * (i + 1) / 2)
+    s = pool.status(t + 1.0)
+    assert s.decisions == 10
+    assert s.rendered == s.assigned
+    assert 0.3 <= s.rendered_fraction <= 1.0
+    assert s.renders_per_s > 0 and s.decisions_per_s > 0
+    assert s.render_age_s_mean >= s.wait_s_mean >= 0
+    (worker,) = s.workers
+    assert worker.worker_id == "a" and 0 < worker.busy_fraction <= 1
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.lists(st.tuples(st.sampled_from(["offer", "ask", "ask_done", "fail", "leave",
+                                           "join", "expire", "give_up"]),
+                          st.sampled_from(["a", "b", "c"])), max_size=60))
+def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) -> None:
+    pool = Dispatcher(job_timeout_s=5.0)
+    handed: list[tuple] = []
+    holding: dict[str, DecisionRef] = {}
+    next_id, now = 1, 0.0
+    for kind, w in events:
+        now += 1.0
+        if kind == "offer":
+            got = pool.offer(d(next_id), now)
+            next_id += 1
+        elif kind == "join":
+            pool.joined(w, now)
+            got = None
+        elif kind == "leave":
+            pool.left(w, now)
+            holding.pop(w, None)
+            got = None
+        elif kind == "expire":
+            for a in pool.expire(now):
+                holding.pop(a.worker_id, None)
+            got = None
+        elif kind == "give_up":
+            pool.give_up(w)
+            got = None
+        else:
+            done = holding.pop(w, None) if kind != "ask" else None
+            got = ask(pool, w, now, done=done, rendered=kind == "ask_done",
+                      reason="x" if kind == "fail" else "")
+            if kind == "ask":
+                holding.pop(w, None)
+        if got is not None:
+            handed.append(got.decision.key)
+            holding[got.worker_id] = got.decision
+    assert len(handed) == len(set(handed))  # never twice
+    s = pool.status(now)
+    assert s.assigned == len(handed)
+    assert s.rendered + sum(s.lost.values()) + s.in_flight == s.assigned
+    assert s.assigned + s.superseded + (s.pending is not None) == s.decisions
