@@ -31,6 +31,9 @@ def settings_classes() -> list[tuple[str, type[BaseSettings]]]:
 
     for name in SERVICES:
         out.append((name, importlib.import_module(f"services.{name}.settings").Settings))
+    from services.recon.settings import Settings as ReconSettings
+
+    out.append(("recon (each worker)", ReconSettings))
     return out
 
 

@@ -27,7 +27,6 @@ from services.scheduler.settings import Settings as SchedulerSettings
 from services.trainer.app import create_app as trainer_app
 from tests.services.test_trainer import (
     N_TRAIN,
-    SMALL_GRID,
     dataset,  # noqa: F401  (module fixture)
     make_settings,
 )
@@ -63,7 +62,7 @@ def build(service: str, ds: SceneDataset, **kw) -> FastAPI:
     if service == "metrics":
         return metrics_app(MetricsSettings(common=common(**kw)), bus=bus)
     settings = make_settings(common=common(time_scale=10.0, epoch_s=time.time(), **kw))
-    return trainer_app(settings, bus=bus, dataset=ds, field_config=SMALL_GRID)
+    return trainer_app(settings, bus=bus, dataset=ds)
 
 
 @pytest.fixture

@@ -21,7 +21,6 @@ from services.trainer.app import create_app as trainer_app
 from tests.services.test_trainer import (
     KEYS,
     N_TRAIN,
-    SMALL_GRID,
     dataset,  # noqa: F401  (module fixture)
     frame_payload,
     make_settings,
@@ -38,10 +37,10 @@ def trainer(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:  #
     bus = MemoryBus()
     # the clock is 10 s into the run (time scale 10: 100 s of sim time), so the decisions
     # below are in its past; the skew is 0.5 s × 10 = 5000 sim ms
-    settings = make_settings(render_period_s=0.05)
+    settings = make_settings()
     settings.common.epoch_s = time.time() - 10.0
     clock = SimClock(settings.common.epoch_s, settings.common.time_scale)
-    app = trainer_app(settings, bus=bus, clock=clock, dataset=dataset, field_config=SMALL_GRID)
+    app = trainer_app(settings, bus=bus, clock=clock, dataset=dataset)
     with TestClient(app) as c:
         yield c, bus
 

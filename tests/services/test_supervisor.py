@@ -74,7 +74,7 @@ def config(tmp_path: Path, **changes) -> UpConfig:
     base = {"dataset": tmp_path, "run_id": "sup", "zenoh_port": ZENOH_PORT,
             "port_offset": PORT_OFFSET, "log_dir": tmp_path / "logs", "duration_s": 0.5,
             "ready_timeout_s": 30 * SCALE, "grace_s": 5 * SCALE, "echo": False,
-            "commands": standins()}
+            "commands": standins(), "workers": 0}
     return UpConfig(**{**base, **changes})
 
 
