@@ -281,80 +281,85 @@ class PoolCollector:
                           frames_age_ms=c.frames_age_ms,
                           wait_sum=c.pool.wait_sum_s, age_sum=c.pool.age_sum_s)
 
-        def gauge(name, doc, value, labels=None, samples=()):
-            g = GaugeMetricFamily(name, doc, labels=labels)
-            if labels is None:
-                g.add_metric([], math.nan if value is None else value)
-            for lab, v in samples:
-                g.add_metric(lab, v)
-            return g
+        def one(family, value: float | None):
+            family.add_metric([], math.nan if value is None else value)
+            return family
 
-        def counter(name, doc, value, labels=None, samples=()):
-            m = CounterMetricFamily(name, doc, labels=labels)
-            if labels is None:
-                m.add_metric([], value)
-            for lab, v in samples:
-                m.add_metric(lab, v)
-            return m
+        def each(family, samples):
+            for labels, value in samples:
+                family.add_metric(labels, value)
+            return family
 
-        yield counter("aoi3d_trainer_decisions", "Decisions taken (each offered to the pool).",
-                      values["decisions"])
-        yield counter("aoi3d_trainer_frames_received",
-                      "Delivered frames accepted into the per-camera buffers.", values["received"])
-        yield counter("aoi3d_trainer_frames_missing",
-                      "Selected frames the trainer never received (left out of the job).",
-                      values["missing"])
-        yield counter("aoi3d_renders", "Novel-view renders published by the pool's workers.",
-                      values["renders"])
-        yield counter("aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
-                      values["steps"])
-        yield gauge("aoi3d_trainer_steps_per_second",
-                    f"Reconstruction steps per wall second over the last {RATE_WINDOW_S:g} s, "
-                    "the whole pool.", w.steps_per_s)
-        yield gauge("aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
-                    values["loss"])
-        yield gauge("aoi3d_trainer_views", "Frames the latest render trained on.",
-                    values["views"])
-        yield gauge("aoi3d_render_steps", "Training steps spent on the latest render's own "
-                    "decision (0 for warm).", values["render_steps"])
-        yield gauge("aoi3d_render_age_seconds",
-                    "Wall seconds from the latest render's decision reaching the trainer to the "
-                    "render's arrival (what a viewer waits).",
-                    latest.age_s if latest is not None else math.nan)
-        yield gauge("aoi3d_render_lag_sim_seconds",
-                    "Sim seconds from the time the latest render represents to its arrival.",
-                    values["lag_ms"] / 1000.0)
-        yield gauge("aoi3d_render_frames_age_seconds",
-                    "Mean age (sim s) at the represented time of the latest render's frames.",
-                    values["frames_age_ms"] / 1000.0)
-        yield gauge("aoi3d_pool_workers", "Reconstruction workers in the pool (live Zenoh "
-                    "liveliness tokens).", len(pool.workers))
-        yield gauge("aoi3d_pool_in_flight", "Decisions being reconstructed now.",
-                    pool.in_flight)
-        yield counter("aoi3d_pool_decisions", "Decisions by what the pool did with them: "
-                      "assigned to a worker, rendered, or superseded (a newer one came before a "
-                      "worker was free: skipped by choice).", None, labels=["outcome"],
-                      samples=[(["assigned"], pool.assigned), (["rendered"], pool.rendered),
-                               (["superseded"], pool.superseded)])
-        yield counter("aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended "
-                      "without a render, by reason (worker_died, timeout, not_delivered, "
-                      "failed:<why>).", None, labels=["reason"],
-                      samples=[([r], n) for r, n in sorted(pool.lost.items())])
-        yield gauge("aoi3d_pool_rendered_fraction", f"Decisions rendered / decisions taken over "
-                    f"the last {pool.window_s:g} s.", pool.rendered_fraction)
-        yield gauge("aoi3d_pool_renders_per_second", f"Renders per wall second over the last "
-                    f"{pool.window_s:g} s.", pool.renders_per_s)
-        s = SummaryMetricFamily("aoi3d_pool_wait_seconds", "Wall seconds from a decision "
-                                "reaching the trainer to its hand-out to a worker.",
-                                count_value=pool.assigned, sum_value=values["wait_sum"])
-        yield s
-        s = SummaryMetricFamily("aoi3d_pool_render_age_seconds", "Wall seconds from a decision "
-                                "reaching the trainer to its worker's report of the render.",
-                                count_value=pool.rendered, sum_value=values["age_sum"])
-        yield s
-        yield gauge("aoi3d_pool_worker_busy_ratio", f"Share of the last {pool.window_s:g} s a "
-                    "worker spent reconstructing.", None, labels=["worker"],
-                    samples=[([v.worker_id], v.busy_fraction) for v in pool.workers])
-        yield gauge("aoi3d_pool_worker_renders", "Renders of each live worker since it joined.",
-                    None, labels=["worker"],
-                    samples=[([v.worker_id], v.rendered) for v in pool.workers])
+        yield one(CounterMetricFamily("aoi3d_trainer_decisions",
+                                      "Decisions taken (each offered to the pool)."),
+                  values["decisions"])
+        yield one(CounterMetricFamily("aoi3d_trainer_frames_received",
+                                      "Delivered frames accepted into the per-camera buffers."),
+                  values["received"])
+        yield one(CounterMetricFamily("aoi3d_trainer_frames_missing",
+                                      "Selected frames the trainer never received (left out "
+                                      "of the job)."), values["missing"])
+        yield one(CounterMetricFamily("aoi3d_renders",
+                                      "Novel-view renders published by the pool's workers."),
+                  values["renders"])
+        yield one(CounterMetricFamily("aoi3d_trainer_steps",
+                                      "Training steps of the renders' reconstructions."),
+                  values["steps"])
+        yield one(GaugeMetricFamily("aoi3d_trainer_steps_per_second",
+                                    f"Reconstruction steps per wall second over the last "
+                                    f"{RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
+        yield one(GaugeMetricFamily("aoi3d_trainer_loss",
+                                    "Photometric loss of the latest render's last step."),
+                  values["loss"])
+        yield one(GaugeMetricFamily("aoi3d_trainer_views", "Frames the latest render trained "
+                                                           "on."), values["views"])
+        yield one(GaugeMetricFamily("aoi3d_render_steps", "Training steps spent on the latest "
+                                    "render's own decision (0 for warm)."),
+                  values["render_steps"])
+        yield one(GaugeMetricFamily("aoi3d_render_age_seconds",
+                                    "Wall seconds from the latest render's decision reaching "
+                                    "the trainer to the render's arrival (what a viewer "
+                                    "waits)."), latest.age_s if latest is not None else None)
+        yield one(GaugeMetricFamily("aoi3d_render_lag_sim_seconds",
+                                    "Sim seconds from the time the latest render represents "
+                                    "to its arrival."), values["lag_ms"] / 1000.0)
+        yield one(GaugeMetricFamily("aoi3d_render_frames_age_seconds",
+                                    "Mean age (sim s) at the represented time of the latest "
+                                    "render's frames."), values["frames_age_ms"] / 1000.0)
+        yield one(GaugeMetricFamily("aoi3d_pool_workers",
+                                    "Reconstruction workers in the pool (live Zenoh "
+                                    "liveliness tokens)."), len(pool.workers))
+        yield one(GaugeMetricFamily("aoi3d_pool_in_flight", "Decisions being reconstructed "
+                                                            "now."), pool.in_flight)
+        yield each(CounterMetricFamily(
+            "aoi3d_pool_decisions", "Decisions by what the pool did with them: assigned to a "
+            "worker, rendered, or superseded (a newer one came before a worker was free: "
+            "skipped by choice).", labels=["outcome"]),
+            [(["assigned"], pool.assigned), (["rendered"], pool.rendered),
+             (["superseded"], pool.superseded)])
+        yield each(CounterMetricFamily(
+            "aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended without a "
+            "render, by reason (worker_died, timeout, not_delivered, failed:<why>).",
+            labels=["reason"]), [([r], n) for r, n in sorted(pool.lost.items())])
+        yield one(GaugeMetricFamily("aoi3d_pool_rendered_fraction",
+                                    f"Decisions rendered / decisions taken over the last "
+                                    f"{pool.window_s:g} s."), pool.rendered_fraction)
+        yield one(GaugeMetricFamily("aoi3d_pool_renders_per_second",
+                                    f"Renders per wall second over the last "
+                                    f"{pool.window_s:g} s."), pool.renders_per_s)
+        yield SummaryMetricFamily("aoi3d_pool_wait_seconds",
+                                  "Wall seconds from a decision reaching the trainer to its "
+                                  "hand-out to a worker.", count_value=pool.assigned,
+                                  sum_value=values["wait_sum"])
+        yield SummaryMetricFamily("aoi3d_pool_render_age_seconds",
+                                  "Wall seconds from a decision reaching the trainer to its "
+                                  "worker's report of the render.", count_value=pool.rendered,
+                                  sum_value=values["age_sum"])
+        yield each(GaugeMetricFamily("aoi3d_pool_worker_busy_ratio",
+                                     f"Share of the last {pool.window_s:g} s a worker spent "
+                                     "reconstructing.", labels=["worker"]),
+                   [([v.worker_id], v.busy_fraction) for v in pool.workers])
+        yield each(GaugeMetricFamily("aoi3d_pool_worker_renders",
+                                     "Renders of each live worker since it joined.",
+                                     labels=["worker"]),
+                   [([v.worker_id], v.rendered) for v in pool.workers])

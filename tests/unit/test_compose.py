@@ -153,7 +153,8 @@ def settings_classes(module: str) -> list[type[BaseSettings]]:
     """The ``BaseSettings`` classes a ``python -m module`` process reads its environment with.
 
     ``module.settings`` if it exists (the services), else ``module`` itself (the router); a
-    class derived from ``ServiceSettings`` also reads ``CommonSettings`` (prefix ``AOI3D_``),
+    class derived from ``ServiceSettings`` (or holding a ``common`` field, as the
+    reconstruction worker's) also reads ``CommonSettings`` (prefix ``AOI3D_``),
     and so does the router for the Zenoh credentials (``router_config``).
     """
     name = f"{module}.settings" if (ROOT / Path(*module.split(".")) / "settings.py").is_file() \
@@ -162,7 +163,8 @@ def settings_classes(module: str) -> list[type[BaseSettings]]:
     found: list[type[BaseSettings]] = [
         obj for obj in vars(mod).values()
         if isinstance(obj, type) and issubclass(obj, BaseSettings) and obj.__module__ == name]
-    if any(issubclass(cls, ServiceSettings) for cls in found) or module == "services.router":
+    if any(issubclass(cls, ServiceSettings) or "common" in cls.model_fields for cls in found) \
+            or module == "services.router":
         found.append(CommonSettings)
     return found
 
@@ -374,9 +376,6 @@ def runs_volume_problems(doc: dict[str, Any]) -> list[str]:
         mounts = {str(v).split(":")[1]: str(v).split(":")[0] for v in service.get("volumes", [])}
         if mounts.get(runs) not in named:
             problems.append(f"{name}: {runs} is not a named volume (runs/ dies with the container)")
-    ckpt = environment(doc["services"].get("trainer", {})).get("AOI3D_TRAINER_CHECKPOINT_DIR")
-    if ckpt is not None and not (ckpt + "/").startswith(runs + "/"):
-        problems.append(f"trainer: checkpoints go to {ckpt}, outside the runs volume {runs}")
     return problems
 
 
@@ -385,7 +384,7 @@ def _cpus(value: object) -> float:
 
 
 def limits_problems(doc: dict[str, Any]) -> list[str]:
-    """Every container has a CPU and a memory limit; the trainer's torch threads = its CPUs."""
+    """Every container has a CPU and a memory limit; a worker's torch threads = its CPUs."""
     problems = []
     for name, service in doc["services"].items():
         if "cpus" not in service or "mem_limit" not in service:
@@ -396,16 +395,16 @@ def limits_problems(doc: dict[str, Any]) -> list[str]:
                             "2-core machine: the engine refuses more CPUs than it has)")
         if not re.fullmatch(r"\d+[kmg]", interpolate(service["mem_limit"])):
             problems.append(f"{name}: mem_limit {service['mem_limit']!r} is not like 512m")
-    trainer = doc["services"].get("trainer", {})
-    threads = environment(trainer).get("AOI3D_TRAINER_TORCH_THREADS")
-    if "cpus" in trainer and threads != interpolate(trainer["cpus"]):
-        problems.append(f"trainer: AOI3D_TRAINER_TORCH_THREADS={threads} but cpus="
-                        f"{interpolate(trainer['cpus'])}")
-    cpus_var = re.fullmatch(_INTERPOLATION, str(trainer.get("cpus", "")))
+    recon = doc["services"].get("recon", {})
+    threads = environment(recon).get("AOI3D_RECON_TORCH_THREADS")
+    if "cpus" in recon and threads != interpolate(recon["cpus"]):
+        problems.append(f"recon: AOI3D_RECON_TORCH_THREADS={threads} but cpus="
+                        f"{interpolate(recon['cpus'])}")
+    cpus_var = re.fullmatch(_INTERPOLATION, str(recon.get("cpus", "")))
     threads_var = re.fullmatch(_INTERPOLATION, str(
-        (trainer.get("environment") or {}).get("AOI3D_TRAINER_TORCH_THREADS", "")))
+        (recon.get("environment") or {}).get("AOI3D_RECON_TORCH_THREADS", "")))
     if not (cpus_var and threads_var and cpus_var["name"] == threads_var["name"]):
-        problems.append("trainer: cpus and AOI3D_TRAINER_TORCH_THREADS must come from one variable")
+        problems.append("recon: cpus and AOI3D_RECON_TORCH_THREADS must come from one variable")
     return problems
 
 
@@ -753,6 +752,8 @@ def defined_metrics(root: Path = ROOT / "services") -> dict[str, set[str]]:
             if not isinstance(node, ast.Call):
                 continue
             kind = getattr(node.func, "id", None) or getattr(node.func, "attr", None)
+            # a custom collector's families (CounterMetricFamily …) expose the same names
+            kind = kind.removesuffix("MetricFamily") if kind else kind
             if kind not in METRIC_TYPES:
                 continue
             kwargs = {k.arg: k.value for k in node.keywords}
@@ -760,7 +761,8 @@ def defined_metrics(root: Path = ROOT / "services") -> dict[str, set[str]]:
             if not (isinstance(name_node, ast.Constant) and isinstance(name_node.value, str)
                     and name_node.value.startswith("aoi3d_")):
                 continue
-            labels_node = node.args[2] if len(node.args) > 2 else kwargs.get("labelnames")
+            labels_node = node.args[2] if len(node.args) > 2 else (
+                kwargs.get("labelnames") or kwargs.get("labels"))
             labels = {e.value for e in getattr(labels_node, "elts", [])
                       if isinstance(e, ast.Constant)}
             base = name_node.value
@@ -1061,15 +1063,13 @@ def test_new_checks_catch_a_broken_deployment(compose):
     broken = copy.deepcopy(compose)
     s = broken["services"]
     s["scheduler"]["volumes"] = []
-    s["trainer"]["environment"]["AOI3D_TRAINER_CHECKPOINT_DIR"] = "/tmp/ckpt"
-    s["trainer"]["environment"]["AOI3D_TRAINER_TORCH_THREADS"] = 8
+    s["recon"]["environment"]["AOI3D_RECON_TORCH_THREADS"] = 8
     del s["metrics"]["mem_limit"]
     s["camera"]["environment"]["AOI3D_CONTROL_TOKEN_FILE"] = "/run/secrets/nope"
     s["grafana"]["environment"]["GF_SECURITY_ADMIN_PASSWORD"] = "admin"
     s["network"]["ports"] = ["8102:8102"]
     s["metrics"]["environment"]["AOI3D_ALLOWED_HOSTS"] = "127.0.0.1,localhost"
     assert any("scheduler: /app/runs" in p for p in runs_volume_problems(broken))
-    assert any("/tmp/ckpt" in p for p in runs_volume_problems(broken))
     assert any("TORCH_THREADS=8" in p for p in limits_problems(broken))
     assert any("metrics: no cpus/mem_limit" in p for p in limits_problems(broken))
     assert any("camera: reads /run/secrets/nope" in p for p in secrets_problems(broken))
