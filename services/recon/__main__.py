@@ -27,10 +27,15 @@ def main() -> None:
                      device=resolve_device(settings.device),
                      num_threads=settings.torch_threads)
     bus = ZenohBus(zenoh_config(settings.common))
-    try:
-        ReconWorker(settings, bus, core).run(stop)
-    finally:
-        bus.close()
+    worker = threading.Thread(target=ReconWorker(settings, bus, core).run, args=(stop,),
+                              name="recon", daemon=True)
+    worker.start()
+    while worker.is_alive() and not stop.wait(0.5):
+        pass
+    # closing the session ends a request in flight (and with it the liveliness token) at
+    # once, instead of after its wait; a job in progress is lost, as with any exit
+    bus.close()
+    worker.join(timeout=5.0)
 
 
 if __name__ == "__main__":

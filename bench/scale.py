@@ -1,0 +1,238 @@
+"""Benchmark: how the live pipeline scales with reconstruction workers (issue 22, part 4).
+
+For each pool size in ``--workers`` (default 1,2,3) it starts ``aoi3d up --workers K`` on its
+own ports with the default scene and policy, lets it settle ``--settle-s``, then measures
+``--measure-s`` wall seconds from the services' counters: renders per wall second, the
+fraction of decisions rendered, the mean wait from a decision to its hand-out and the mean
+render age (the trainer's pool summaries), each worker's busy fraction, the decisions lost,
+the PSNR of the window's renders (mean ± 95 % CI, from the metrics service), and the Zenoh
+bytes per second of the run (a subscriber on ``aoi3d/<run>/**`` counting payload bytes: the
+traffic one site puts through a router). It ends with the arithmetic for a larger farm from
+the measured per-worker throughput and per-site bytes.
+
+    python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
+    python bench/scale.py --workers 1,2 --measure-s 90
+
+The machine's other load is recorded (load average before and after each run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+OFFSET = 3000  # REST ports 11101..11106, so a running `make up` is not disturbed
+ZENOH_PORT = 7647
+HTTP = httpx.Client(timeout=30)
+
+
+def port(service: str) -> int:
+    return {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
+            "metrics": 8105, "console": 8106}[service] + OFFSET
+
+
+def scrape(service: str) -> dict[str, float]:
+    """Series of a service's /metrics, summed over labels, plus each labelled sample."""
+    out: dict[str, float] = {}
+    for line in HTTP.get(f"http://127.0.0.1:{port(service)}/metrics").text.splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        name, value = line.rsplit(" ", 1)
+        out[name] = float(value)
+        base = name.split("{")[0]
+        if base != name:
+            out[base] = out.get(base, 0.0) + float(value)
+    return out
+
+
+def mean_ci95(xs: list[float]) -> dict:
+    xs = [x for x in xs if x is not None and math.isfinite(x)]
+    if not xs:
+        return {"mean": None, "ci95": None, "n": 0}
+    if len(xs) == 1:
+        return {"mean": xs[0], "ci95": None, "n": 1}
+    from scipy import stats
+
+    sd = statistics.stdev(xs)
+    half = float(stats.t.ppf(0.975, len(xs) - 1)) * sd / math.sqrt(len(xs))
+    return {"mean": statistics.fmean(xs), "ci95": half, "n": len(xs)}
+
+
+class ByteTap:
+    """Counts the payload bytes of every message of the run (all keys)."""
+
+    def __init__(self, run_id: str) -> None:
+        import zenoh
+
+        from services.kit.settings import CommonSettings, zenoh_config
+
+        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"]))
+        self.session = zenoh.open(conf)
+        self.bytes = 0
+        self.messages = 0
+        self.lock = threading.Lock()
+        self.sub = self.session.declare_subscriber(f"aoi3d/{run_id}/**", self._on)
+
+    def _on(self, sample) -> None:
+        n = len(sample.payload)
+        with self.lock:
+            self.bytes += n
+            self.messages += 1
+
+    def read(self) -> tuple[int, int]:
+        with self.lock:
+            return self.bytes, self.messages
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+def run_one(workers: int, args: argparse.Namespace) -> dict:
+    run_id = f"scale{workers}"
+    log_dir = ROOT / "runs" / "bench-scale"
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", run_id,
+           "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET), "--log-dir",
+           str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
+           "--workers", str(workers)]
+    load_before = os.getloadavg()
+    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                          start_new_session=True)
+    tap = None
+    try:
+        deadline = time.monotonic() + args.ready_timeout_s
+        while True:
+            try:
+                ws = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()["workers"]
+                if len(ws) == workers and HTTP.get(
+                        f"http://127.0.0.1:{port('metrics')}/healthz").status_code == 200:
+                    break
+            except (httpx.HTTPError, KeyError, ValueError):
+                pass
+            if time.monotonic() > deadline or up.poll() is not None:
+                raise SystemExit(f"the pipeline with {workers} workers did not come up; see "
+                                 f"{log_dir}/latest/")
+            time.sleep(0.5)
+        tap = ByteTap(run_id)
+        time.sleep(args.settle_s)
+        first = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
+        bytes0, msgs0 = tap.read()
+        decision0 = HTTP.get(f"http://127.0.0.1:{port('scheduler')}/decision").json()
+        t0 = time.monotonic()
+        time.sleep(args.measure_s)
+        last = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
+        bytes1, msgs1 = tap.read()
+        decision1 = HTTP.get(f"http://127.0.0.1:{port('scheduler')}/decision").json()
+        dt = time.monotonic() - t0
+        pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
+        time.sleep(5.0)  # the window's last renders are scored a reconstruction later
+        history = HTTP.get(f"http://127.0.0.1:{port('metrics')}/quality",
+                           params={"limit": 100000}).json()["history"]
+    finally:
+        if tap is not None:
+            tap.close()
+        os.killpg(up.pid, signal.SIGTERM)
+        up.wait(timeout=90)
+
+    def delta(service: str, name: str) -> float:
+        return last[service].get(name, 0.0) - first[service].get(name, 0.0)
+
+    ids = (decision0["decision_id"], decision1["decision_id"])
+    window = [q for q in history if ids[0] < q["decision_id"] <= ids[1]]
+    rendered = delta("trainer", 'aoi3d_pool_decisions_total{outcome="rendered"}')
+    taken = delta("trainer", "aoi3d_trainer_decisions_total")
+    wait_n = delta("trainer", "aoi3d_pool_wait_seconds_count")
+    age_n = delta("trainer", "aoi3d_pool_render_age_seconds_count")
+    return {
+        "workers": workers, "window_s": round(dt, 1), "time_scale": args.time_scale,
+        "renders_per_s": rendered / dt,
+        "decisions_per_s": taken / dt,
+        "fraction_rendered": rendered / taken if taken else None,
+        "scored_per_s": delta("metrics", "aoi3d_quality_total") / dt,
+        "wait_s_mean": (delta("trainer", "aoi3d_pool_wait_seconds_sum") / wait_n
+                        if wait_n else None),
+        "render_age_s_mean": (delta("trainer", "aoi3d_pool_render_age_seconds_sum") / age_n
+                              if age_n else None),
+        "busy_fraction": {w["worker_id"]: w["busy_fraction"] for w in pool["workers"]},
+        "lost": pool["lost"],
+        "psnr_db": mean_ci95([q["psnr_db"] for q in window]),
+        "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]),
+        "views": mean_ci95([q["n_views"] for q in window]),
+        "zenoh_bytes_per_s": (bytes1 - bytes0) / dt,
+        "zenoh_messages_per_s": (msgs1 - msgs0) / dt,
+        "load_before": [round(x, 2) for x in load_before],
+        "load_after": [round(x, 2) for x in os.getloadavg()],
+    }
+
+
+def farm(rows: list[dict], sites: int, cameras: int, time_scale: float) -> dict:
+    """The arithmetic for ``sites`` sites from the measured rows: worker cores to render every
+    decision, and router bandwidth."""
+    one = next(r for r in rows if r["workers"] == 1)
+    per_worker = one["renders_per_s"]
+    decisions = one["decisions_per_s"] * sites
+    site_bytes = one["zenoh_bytes_per_s"] * cameras / 18
+    return {
+        "sites": sites, "cameras_per_site": cameras, "time_scale": time_scale,
+        "renders_per_s_per_worker": per_worker,
+        "decisions_per_s": decisions,
+        "workers_to_render_every_decision": math.ceil(decisions / per_worker)
+        if per_worker else None,
+        "router_bytes_per_s": site_bytes * sites,
+        "note": "one worker = one core at one torch thread (measured on this machine, beside "
+                "the rest of the pipeline); bytes scale with cameras and sites, renders with "
+                "decisions; at time scale 1 multiply decisions and bytes by 1/time_scale",
+    }
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--workers", default="1,2,3", help="pool sizes, comma-separated")
+    ap.add_argument("--time-scale", type=float, default=0.1)
+    ap.add_argument("--settle-s", type=float, default=20.0)
+    ap.add_argument("--measure-s", type=float, default=60.0)
+    ap.add_argument("--ready-timeout-s", type=float, default=180.0)
+    ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine-rotor"))
+    ap.add_argument("--json", action="store_true", help="print one JSON object")
+    args = ap.parse_args()
+    if not (Path(args.dataset) / "scene.json").is_file():
+        subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--framing",
+                        "rotor", "--rotor-rpm", "6", "--out", args.dataset], check=True)
+    sizes = [int(x) for x in args.workers.split(",")]
+    rows = []
+    for k in sizes:
+        row = run_one(k, args)
+        rows.append(row)
+        if not args.json:
+            print(f"workers {k}: {row['renders_per_s']:.3f} renders/s, "
+                  f"{row['fraction_rendered']:.2f} of decisions, age "
+                  f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "
+                  f"{row['psnr_db']['ci95'] or 0:.2f} dB, load {row['load_after'][0]}",
+                  flush=True)
+    base = next((r for r in rows if r["workers"] == 1), None)
+    doc = {"rows": rows,
+           "speedup": {str(r["workers"]): r["renders_per_s"] / base["renders_per_s"]
+                       for r in rows} if base and base["renders_per_s"] else None,
+           "farm": farm(rows, 10, 18, args.time_scale) if base else None,
+           "command": " ".join(["python", "bench/scale.py", *sys.argv[1:]]),
+           "cpus": os.cpu_count()}
+    out = ROOT / "bench" / "results" / "scale.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(doc, indent=2) + "\n")
+    print(json.dumps(doc, indent=2) if args.json else f"written: {out}")
+
+
+if __name__ == "__main__":
+    main()
