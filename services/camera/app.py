@@ -18,7 +18,7 @@ from services.camera.worker import (
     CameraConfigError,
     CameraWorker,
 )
-from services.kit.app import get_worker, service_app
+from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.keys import Keys
 
@@ -98,15 +98,22 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     common = settings.common
     clock = clock or SimClock(common.epoch_s, common.time_scale)
 
-    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> CameraWorker:
+    opened: list[SceneDataset] = [] if dataset is None else [dataset]
+
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> CameraWorker:
+        if not opened:
+            opened.append(open_dataset(common.dataset))
+        ds = opened[0]
+        # each site films the same scene at its own phase: the loop split evenly among them
+        loop_ms = 1000.0 * ds.n_frames / ds.fps
+        phase_ms = loop_ms * common.sites.index(site) / len(common.sites)
         return CameraWorker(
-            bus=the_bus, registry=the_registry,
-            dataset=dataset if dataset is not None else open_dataset(common.dataset),
-            clock=clock, keys=Keys(common.run_id), n_cameras=common.cameras,
+            bus=the_bus, registry=the_registry, dataset=ds, clock=clock,
+            keys=Keys(common.run_id, site), n_cameras=common.cameras,
             period_ms=settings.period_ms, paused=settings.paused,
-            cameras=settings.active_cameras or None)
+            cameras=settings.active_cameras or None, phase_ms=phase_ms)
 
     app = service_app(title="aoi3d camera", description=DESCRIPTION, settings=settings,
-                      build_worker=build_worker, bus=bus, registry=registry)
-    app.include_router(config_router)
+                      build_worker=build_worker, bus=bus, registry=registry, per_site=True)
+    include_site_routers(app, config_router)
     return app

@@ -52,8 +52,11 @@ class CameraWorker:
 
     def __init__(self, *, bus: Bus, registry: CollectorRegistry, dataset: SceneDataset,
                  clock: SimClock, keys: Keys, n_cameras: int, period_ms: float = 30.0,
-                 paused: bool = False, cameras: list[int] | None = None) -> None:
+                 paused: bool = False, cameras: list[int] | None = None,
+                 phase_ms: float = 0.0) -> None:
         self._bus = bus
+        self.phase_ms = float(phase_ms)
+        """Shown scene time = generation time + this (another site's view of the loop)."""
         self._dataset = dataset
         self._clock = clock
         self._keys = keys
@@ -184,8 +187,8 @@ class CameraWorker:
     def _tick(self, k: int, t_ms: float, cameras: tuple[int, ...]) -> None:
         ds = self._dataset
         try:
-            index = ds.frame_index(t_ms)
-            scene_ms = float(ds.scene_time_ms(t_ms))
+            index = ds.frame_index(t_ms + self.phase_ms)
+            scene_ms = float(ds.scene_time_ms(t_ms + self.phase_ms))
         except Exception:
             self._log_error("dataset time lookup failed at t=%.1f ms", t_ms)
             return

@@ -3,6 +3,12 @@
 ``service_app`` gives each service ``/healthz``, ``/readyz`` and ``/metrics`` and a lifespan
 that opens the bus (Zenoh unless a bus is injected, as tests do), builds and starts the
 worker, and stops both on shutdown. Routes reach the worker through ``app.state.worker``.
+
+A per-site service (camera, network, scheduler, metrics) builds one worker per site of the run
+(``CommonSettings.sites``), each with a registry of its own; ``/metrics`` shows them all with a
+``site`` label (:class:`SiteLabels`). :func:`include_site_routers` mounts the service's routers
+twice: at the root (the first site, today's paths) and under ``/sites/{site}``;
+:func:`get_worker` picks the worker the path names.
 """
 
 from __future__ import annotations
@@ -11,12 +17,14 @@ import logging
 import os
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Literal, Protocol
+from typing import Annotated, Literal, Protocol
 
-from fastapi import FastAPI, Request
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Path, Request
 from fastapi.responses import JSONResponse, Response
 from fastapi_offline import FastAPIOffline
 from prometheus_client import CONTENT_TYPE_LATEST, CollectorRegistry, generate_latest
+from prometheus_client.metrics_core import Metric
+from prometheus_client.samples import Sample
 
 from services.kit.bus import Bus, ZenohBus
 from services.kit.guard import guard_app
@@ -38,7 +46,53 @@ class Worker(Protocol):
 
 
 def get_worker(request: Request):
-    return request.app.state.worker
+    """The worker of the site the path names (``/sites/{site}/…``), else the first site's."""
+    site = request.path_params.get("site")
+    if site is None:
+        return request.app.state.worker
+    workers = request.app.state.workers
+    if site not in workers:
+        raise HTTPException(404, f"no site {site!r} in this run; its sites: "
+                                 f"{', '.join(workers)}")
+    return workers[site]
+
+
+def _site_param(site: Annotated[str, Path(
+        description="A site of the run (AOI3D_SITES; GET /sites lists them).",
+        examples=["site1"], max_length=32)]) -> str:
+    return site
+
+
+def include_site_routers(app: FastAPI, *routers: APIRouter) -> None:
+    """Each router at the root (the first site) and under ``/sites/{site}``."""
+    for router in routers:
+        app.include_router(router)
+    for router in routers:
+        app.include_router(router, prefix="/sites/{site}", dependencies=[Depends(_site_param)],
+                           responses={404: {"description": "No such site in this run."}})
+
+
+class SiteLabels:
+    """A collector showing the per-site registries as one, each sample labelled ``site``."""
+
+    def __init__(self, registries: dict[str, CollectorRegistry]) -> None:
+        self._registries = registries
+
+    def describe(self):
+        return []
+
+    def collect(self):
+        merged: dict[str, Metric] = {}
+        for site, registry in self._registries.items():
+            for family in registry.collect():
+                out = merged.get(family.name)
+                if out is None:
+                    out = merged[family.name] = Metric(family.name, family.documentation,
+                                                       family.type, family.unit)
+                out.samples.extend(
+                    Sample(s.name, {**s.labels, "site": site}, s.value, s.timestamp,
+                           s.exemplar) for s in family.samples)
+        yield from merged.values()
 
 
 def service_app(
@@ -46,25 +100,40 @@ def service_app(
     title: str,
     description: str,
     settings: ServiceSettings,
-    build_worker: Callable[[Bus, CollectorRegistry], Worker],
+    build_worker: Callable[..., Worker],
     bus: Bus | None = None,
     registry: CollectorRegistry | None = None,
+    per_site: bool = False,
 ) -> FastAPI:
+    """``build_worker(bus, registry)``, or with ``per_site`` ``build_worker(bus, registry,
+    site)`` once per site of the run."""
     registry = registry or CollectorRegistry()
+    sites = list(settings.common.sites)
+    site_registries = {site: CollectorRegistry() for site in sites} if per_site else {}
+    if per_site:
+        registry.register(SiteLabels(site_registries))
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         own_bus = bus is None
         the_bus = bus or ZenohBus(zenoh_config(settings.common))
-        worker = build_worker(the_bus, registry)
-        app.state.worker = worker
+        if per_site:
+            workers = {site: build_worker(the_bus, site_registries[site], site)
+                       for site in sites}
+        else:
+            workers = {sites[0]: build_worker(the_bus, registry)}
+        app.state.workers = workers
+        app.state.worker = next(iter(workers.values()))
         app.state.bus = the_bus
-        worker.start()
-        log.info("%s started (run %s)", title, settings.common.run_id)
+        for worker in workers.values():
+            worker.start()
+        log.info("%s started (run %s, sites %s)", title, settings.common.run_id,
+                 ", ".join(sites))
         try:
             yield
         finally:
-            worker.stop()
+            for worker in workers.values():
+                worker.stop()
             if own_bus:
                 the_bus.close()
             log.info("%s stopped", title)
@@ -88,11 +157,24 @@ def service_app(
     @app.get("/readyz", tags=["ops"], summary="Readiness: the worker is connected and working.",
              responses={503: {"description": "Not ready; the body says why."}})
     def readyz(request: Request):
-        worker = getattr(request.app.state, "worker", None)
-        if worker is None:
+        workers = getattr(request.app.state, "workers", None)
+        if workers is None:
             return JSONResponse({"ready": False, "reason": "starting"}, status_code=503)
-        ok, why = worker.readiness()
+        answers = {site: w.readiness() for site, w in workers.items()}
+        ok = all(a for a, _ in answers.values())
+        if len(answers) == 1:
+            why = next(iter(answers.values()))[1]
+        else:
+            why = "; ".join(f"{site}: {w}" for site, (_, w) in answers.items())
         return JSONResponse({"ready": ok, "reason": why}, status_code=200 if ok else 503)
+
+    if per_site:
+        @app.get("/sites", tags=["ops"], summary="The run's sites (AOI3D_SITES).",
+                 description="Each site has its own cameras, channel, policy and quality; "
+                             "`/sites/<site>/…` addresses one, the paths without it the "
+                             "first.")
+        def get_sites() -> dict[str, list[str]]:
+            return {"sites": sites}
 
     @app.get("/metrics", tags=["ops"], summary="Prometheus metrics of this service.")
     def metrics() -> Response:

@@ -1,17 +1,48 @@
-"""Zenoh key expressions of one run (see docs/architecture.md, "Data flow")."""
+"""Zenoh key expressions of one run (see docs/architecture.md, "Data flow").
+
+A run holds one or more *sites* (a turbine each: its own cameras, channel, policy and
+quality); every key of a site lives under ``aoi3d/<run>/<site>/``. The pool of
+reconstruction workers is the run's, shared by its sites: ``aoi3d/<run>/pool/``.
+``Keys(run, "*")`` gives the expressions that match every site (a subscriber of all sites).
+"""
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
+
+DEFAULT_SITE = "site1"
+"""The site of a one-site run, and the one today's REST paths address."""
+SITE_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"
+RESERVED = frozenset({"pool", "sites"})
+
+
+def check_site(name: str) -> str:
+    """``name`` if it can name a site (a key chunk, a URL segment, a label value)."""
+    if not re.fullmatch(SITE_PATTERN, name) or name in RESERVED:
+        raise ValueError(f"site name {name!r}: 1-32 of a-z 0-9 _ -, starting with a letter or "
+                         f"digit, not one of {', '.join(sorted(RESERVED))}")
+    return name
 
 
 @dataclass(frozen=True)
 class Keys:
     run_id: str
+    site: str = DEFAULT_SITE
 
     @property
     def root(self) -> str:
+        """The site's keys live under here."""
+        return f"aoi3d/{self.run_id}/{self.site}"
+
+    @property
+    def run_root(self) -> str:
         return f"aoi3d/{self.run_id}"
+
+    @staticmethod
+    def site_of(key: str) -> str:
+        """The site chunk of a site's key (``aoi3d/<run>/<site>/…``)."""
+        return key.split("/", 3)[2]
 
     def cam_frame(self, camera_id: int) -> str:
         """Offered frames of one camera (camera → network)."""
@@ -49,12 +80,12 @@ class Keys:
     @property
     def work(self) -> str:
         """The pool's dispatcher answers queries for work here (reconstruction workers ask)."""
-        return f"{self.root}/pool/work"
+        return f"{self.run_root}/pool/work"
 
     def pool_worker(self, worker_id: str) -> str:
         """A reconstruction worker's liveliness token: the pool's membership."""
-        return f"{self.root}/pool/worker/{worker_id}"
+        return f"{self.run_root}/pool/worker/{worker_id}"
 
     @property
     def pool_workers(self) -> str:
-        return f"{self.root}/pool/worker/*"
+        return f"{self.run_root}/pool/worker/*"

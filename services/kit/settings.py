@@ -40,6 +40,12 @@ class CommonSettings(BaseSettings):
         description="Zenoh endpoints to connect to (comma-separated or JSON list).")
     zenoh_listen: Endpoints = Field(default_factory=list,
                                     description="Zenoh endpoints to listen on (peer mode).")
+    sites: Endpoints = Field(
+        default_factory=lambda: ["site1"],
+        description="The run's sites (a turbine each: its own cameras, channel, policy and "
+                    "quality; one shared pool of reconstruction workers), comma-separated. Each "
+                    "service serves every site; its REST paths address the first one, "
+                    "/sites/<site>/… any of them.")
     cameras: int = Field(18, ge=1, le=256,
                          description="Training cameras N (ids 1..N; id 0 is the held-out view).")
     time_scale: float = Field(0.1, gt=0, le=10,
@@ -120,8 +126,21 @@ class CommonSettings(BaseSettings):
         return self.max_skew_s * 1000.0 * self.time_scale
 
     _split = field_validator("zenoh_connect", "zenoh_listen", "allowed_hosts", "files_roots",
-                             mode="before")(
+                             "sites", mode="before")(
         classmethod(lambda cls, v: _split_endpoints(v)))
+
+    @field_validator("sites")
+    @classmethod
+    def _check_sites(cls, value: list[str]) -> list[str]:
+        from services.kit.keys import check_site
+
+        if not value:
+            raise ValueError("at least one site")
+        if len(set(value)) != len(value):
+            raise ValueError(f"site names must differ: {value}")
+        if len(value) > 64:
+            raise ValueError(f"at most 64 sites, got {len(value)}")
+        return [check_site(v) for v in value]
 
 
 class ServiceSettings(BaseSettings):

@@ -11,7 +11,7 @@ from pydantic import BaseModel, Field
 from aoi3d.clock import SimClock
 from aoi3d.lpips import load_lpips_fn, weights_path
 from aoi3d.quality import LpipsFn
-from services.kit.app import get_worker, service_app
+from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.metrics.settings import Settings
 from services.metrics.worker import MetricsWorker, QualityRecord, mean_of_present, mean_or_none
@@ -194,15 +194,19 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
 
-    def build_worker(the_bus: Bus, registry) -> MetricsWorker:
+    lpips = []  # one network for every site, loaded once
+
+    def build_worker(the_bus: Bus, registry, site: str) -> MetricsWorker:
+        if not lpips:
+            lpips.append(resolve_lpips_fn(settings, lpips_fn))
         return MetricsWorker(
-            the_bus, registry, run_id=common.run_id, clock=clock,
+            the_bus, registry, run_id=common.run_id, site=site, clock=clock,
             truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
             history=settings.history, inbox_size=settings.inbox_size,
-            weights=settings.reward_weights(), lpips_fn=resolve_lpips_fn(settings, lpips_fn),
+            weights=settings.reward_weights(), lpips_fn=lpips[0],
             max_skew_ms=common.skew_ms, stall_s=common.stall_s)
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
-                      build_worker=build_worker, bus=bus)
-    app.include_router(quality_router)
+                      build_worker=build_worker, bus=bus, per_site=True)
+    include_site_routers(app, quality_router)
     return app

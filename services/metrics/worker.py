@@ -33,7 +33,7 @@ from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
 from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
-from services.kit.keys import Keys
+from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 
@@ -132,7 +132,8 @@ class QualityRecord:
 class MetricsWorker:
     """Subscribes ``truth/frame`` and ``render``; publishes ``quality``; keeps a history."""
 
-    def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str, clock: SimClock,
+    def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
+                 site: str = DEFAULT_SITE, clock: SimClock,
                  truth_period_ms: float = 30.0, truth_frames: int = 512, history: int = 1000,
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
@@ -140,7 +141,8 @@ class MetricsWorker:
         if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
             raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
         self._bus = bus
-        self._keys = Keys(run_id)
+        self._keys = Keys(run_id, site)
+        self.site = site
         self._clock = clock
         self._period_ms = truth_period_ms
         self._skew_ms = float(max_skew_ms)
@@ -335,7 +337,7 @@ class MetricsWorker:
                          scene_time_ms=truth.scene_time_ms, psnr_db=q.psnr_db, ssim=q.ssim,
                          reward=q.reward, reward_terms=list(q.reward_terms),
                          training_step=render.training_step,
-                         truth_time_ms=truth.generation_ms)
+                         truth_time_ms=truth.generation_ms, site=self.site)
         if q.lpips is not None:
             msg.lpips = q.lpips  # proto3 optional: left unset (absent) when unavailable
         if dyn is not None:

@@ -10,7 +10,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from aoi3d.channel import ACCEPTED_FORMS
 from aoi3d.clock import SimClock
-from services.kit.app import get_worker, service_app
+from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.keys import Keys
 from services.network.settings import Settings
@@ -109,14 +109,15 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     common = settings.common
     clock = clock or SimClock(common.epoch_s, common.time_scale)
 
-    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> NetworkWorker:
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> NetworkWorker:
+        # each site's links draw their own delays: the seed moves on by the site's index
         return NetworkWorker(
-            bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id),
+            bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id, site),
             n_cameras=common.cameras, delay=settings.delay, per_camera=settings.per_camera,
-            seed=settings.seed, max_skew_ms=settings.common.skew_ms,
+            seed=settings.seed + common.sites.index(site), max_skew_ms=settings.common.skew_ms,
             inbox_size=settings.inbox_size)
 
     app = service_app(title="aoi3d network", description=DESCRIPTION, settings=settings,
-                      build_worker=build_worker, bus=bus, registry=registry)
-    app.include_router(channel_router)
+                      build_worker=build_worker, bus=bus, registry=registry, per_site=True)
+    include_site_routers(app, channel_router)
     return app

@@ -17,7 +17,7 @@ import threading
 import time
 
 from services.kit.bus import Bus
-from services.kit.keys import Keys
+from services.kit.keys import DEFAULT_SITE, Keys, check_site
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed, ReconCore, decode_reply
@@ -61,6 +61,7 @@ class ReconWorker:
             req.done_incarnation = job.decision.incarnation
             req.done_rendered = rendered
             req.done_reason = reason
+            req.done_site = job.site
         return req.SerializeToString()
 
     def step(self) -> bool:
@@ -86,10 +87,18 @@ class ReconWorker:
                 self.core.train_between_jobs(self.settings.background_steps)
             return False
         job = reply.job
+        try:
+            check_site(job.site or DEFAULT_SITE)
+        except ValueError as err:  # a site name that cannot be a key chunk: not published
+            log.warning("job for decision %d refused: %s", job.decision.decision_id, err)
+            self._done = (job, False, "bad_site")
+            self.failed += 1
+            return True
         t0 = time.monotonic()
         try:
             outcome = self.core.run(job)
-            self.bus.publish(self.keys.render, outcome.render.SerializeToString())
+            self.bus.publish(Keys(self.keys.run_id, job.site or DEFAULT_SITE).render,
+                             outcome.render.SerializeToString())
             self._done = (job, True, "")
             self.rendered += 1
         except JobFailed as err:

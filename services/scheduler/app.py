@@ -20,7 +20,7 @@ from aoi3d.policy import (
     policy_from_json,
 )
 from aoi3d.rl.online import LearnerStatus
-from services.kit.app import get_worker, service_app
+from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.guard import OutsideRoots, confined_path, files_in_roots
 from services.scheduler.settings import Settings
@@ -311,8 +311,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     policy = place_on(parse_policy(settings.policy), settings.device)
     check_fits(policy, common.cameras)  # fail at start-up, not at the first decision
 
-    def build_worker(the_bus: Bus, registry) -> SchedulerWorker:
-        return SchedulerWorker(the_bus, registry, run_id=common.run_id,
+    def build_worker(the_bus: Bus, registry, site: str) -> SchedulerWorker:
+        return SchedulerWorker(the_bus, registry, run_id=common.run_id, site=site,
                                n_cameras=common.cameras, clock=clock, policy=policy,
                                decision_period_ms=settings.decision_period_ms,
                                inbox_size=settings.inbox_size,
@@ -320,7 +320,6 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                                stall_s=common.stall_s)
 
     app = service_app(title="aoi3d scheduler", description=DESCRIPTION, settings=settings,
-                      build_worker=build_worker, bus=bus)
-    for router in (policy_router, aoi_router, decision_router):
-        app.include_router(router)
+                      build_worker=build_worker, bus=bus, per_site=True)
+    include_site_routers(app, policy_router, aoi_router, decision_router)
     return app

@@ -53,7 +53,7 @@ from aoi3d.policy import (
 from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import decode_frame, decode_quality
-from services.kit.keys import Keys
+from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 from services.scheduler.metrics import LearnerMetrics
@@ -93,7 +93,8 @@ class SchedulerWorker:
     ``device``: torch device of a ``ppo`` policy's agent (``cpu``, ``cuda`` or ``auto``).
     """
 
-    def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str, n_cameras: int,
+    def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
+                 site: str = DEFAULT_SITE, n_cameras: int,
                  clock: SimClock, policy: Policy, decision_period_ms: float = 30.0,
                  inbox_size: int = 1024, learn: LearnConfig | None = None,
                  device: str = "cpu", quality_inbox_size: int = 256,
@@ -105,7 +106,8 @@ class SchedulerWorker:
         check_device(device)  # fail on a bad name now, not at the first policy with a model
         check_fits(policy, n_cameras)
         self._bus = bus
-        self._keys = Keys(run_id)
+        self._keys = Keys(run_id, site)
+        self.site = site
         self._clock = clock
         self._period_ms = float(decision_period_ms)
         self._learn_cfg = learn or LearnConfig()

@@ -7,14 +7,14 @@ import math
 import time
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException
+from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
 from aoi3d.field import BACKENDS
 from aoi3d.scene import SceneDataset, open_dataset
-from services.kit.app import get_worker, service_app
+from services.kit.app import include_site_routers, service_app
 from services.kit.bus import Bus
 from services.trainer.pool import PoolStatus
 from services.trainer.settings import Settings
@@ -25,7 +25,27 @@ from services.trainer.state import (
 )
 from services.trainer.worker import TrainerWorker
 
-Worker = Annotated[TrainerWorker, Depends(get_worker)]
+
+def _pool(request: Request) -> TrainerWorker:
+    """The trainer's one worker: the pool's, serving every site."""
+    return request.app.state.worker
+
+
+Worker = Annotated[TrainerWorker, Depends(_pool)]
+
+
+def _site(request: Request, worker: Worker) -> str:
+    """The site the path names (``/sites/{site}/…``; checked), else the run's first."""
+    site = request.path_params.get("site")
+    if site is None:
+        return worker.sites[0]
+    if site not in worker.sites:
+        raise HTTPException(404, f"no site {site!r} in this run; its sites: "
+                                 f"{', '.join(worker.sites)}")
+    return site
+
+
+Site = Annotated[str, Depends(_site)]
 
 
 class DecisionInfo(BaseModel):
@@ -50,6 +70,8 @@ class WorkerInfo(BaseModel):
                       examples=[0])
     holding: int | None = Field(description="The decision it is reconstructing now; null: idle.",
                                 examples=[42])
+    holding_site: str | None = Field(description="The site of that decision.",
+                                     examples=["site1"])
     busy_fraction: float | None = Field(description="Share of the window's wall time it spent "
                                                     "reconstructing; null until it reported "
                                                     "twice.", examples=[0.93])
@@ -68,8 +90,9 @@ class PoolInfo(BaseModel):
     lost: dict[str, int] = Field(description="Decisions handed out that ended without a render, "
                                              "by reason: worker_died, timeout, not_delivered, "
                                              "failed:<why>.", examples=[{"worker_died": 1}])
-    pending: int | None = Field(description="The decision waiting for a free worker.",
-                                examples=[301])
+    pending: dict[str, int] = Field(description="Site → its decision waiting for a free worker "
+                                                "(each site's newest not handed out).",
+                                    examples=[{"site1": 301}])
     in_flight: int = Field(description="Decisions being reconstructed now.", examples=[2])
     renders_per_s: float = Field(description="Renders per wall second over the window.",
                                  examples=[1.4])
@@ -87,6 +110,10 @@ class PoolInfo(BaseModel):
                               examples=[0])
     window_s: float = Field(description="The window of the rates (AOI3D_TRAINER_WINDOW_S).",
                             examples=[30.0])
+    by_site: dict[str, dict[str, int]] = Field(
+        description="Site → its counts since start: decisions, assigned, rendered, superseded, "
+                    "lost.", examples=[{"site1": {"decisions": 300, "assigned": 120,
+                                                  "rendered": 118, "superseded": 180}}])
 
 
 def _num(x: float) -> float | None:
@@ -97,6 +124,7 @@ def pool_body(pool: PoolStatus) -> PoolInfo:
     return PoolInfo(
         workers=[WorkerInfo(worker_id=w.worker_id, pid=w.pid, host=w.host, device=w.device,
                             rendered=w.rendered, lost=w.lost, holding=w.holding,
+                            holding_site=w.holding_site,
                             busy_fraction=_num(w.busy_fraction)) for w in pool.workers],
         decisions=pool.decisions, assigned=pool.assigned, rendered=pool.rendered,
         superseded=pool.superseded, lost=pool.lost, pending=pool.pending,
@@ -104,7 +132,7 @@ def pool_body(pool: PoolStatus) -> PoolInfo:
         decisions_per_s=round(pool.decisions_per_s, 4),
         rendered_fraction=_num(pool.rendered_fraction), wait_s_mean=_num(pool.wait_s_mean),
         render_age_s_mean=_num(pool.render_age_s_mean), late_reports=pool.late_reports,
-        window_s=pool.window_s)
+        window_s=pool.window_s, by_site=pool.by_site)
 
 
 class StatusResponse(BaseModel):
@@ -139,11 +167,14 @@ class StatusResponse(BaseModel):
     resets: int = Field(description="Model resets since start (backend switches included).",
                         examples=[0])
     running: bool = Field(description="Whether the pool's thread is alive.", examples=[True])
+    site: str = Field(description="The site this status is of (the decision, renders, frames "
+                                  "and views; the backend, carry and pool are the run's).",
+                      examples=["site1"])
     pool: PoolInfo = Field(description="The reconstruction workers and what they did "
                                        "(GET /workers has the same).")
 
 
-def _status_body(status: TrainerStatus) -> StatusResponse:
+def _status_body(status: TrainerStatus, site: str) -> StatusResponse:
     d = status.decision
     return StatusResponse(
         steps=status.steps, steps_total=status.steps_total,
@@ -157,18 +188,21 @@ def _status_body(status: TrainerStatus) -> StatusResponse:
         renders=status.renders, frames_received=status.frames_received,
         frames_buffered=status.frames_buffered,
         frames_missing=status.frames_missing, resets=status.resets, running=status.running,
-        pool=pool_body(status.pool))
+        pool=pool_body(status.pool), site=site)
 
 
 status_router = APIRouter(tags=["status"])
 
 
 @status_router.get("/status", summary="Renders, the decision in force and the pool.")
-def get_status(worker: Worker) -> StatusResponse:
-    return _status_body(worker.status())
+def get_status(worker: Worker, site: Site) -> StatusResponse:
+    return _status_body(worker.status(site), site)
 
 
-@status_router.get("/workers", summary="The reconstruction workers of the pool.",
+pool_router = APIRouter(tags=["pool"])
+
+
+@pool_router.get("/workers", summary="The reconstruction workers of the pool.",
                    description="Membership is Zenoh liveliness: a worker is listed from its "
                                "token's appearance to its vanishing (a killed worker's token "
                                "vanishes when the router loses its session). Rates, fraction, "
@@ -186,7 +220,7 @@ model_router = APIRouter(tags=["model"])
                 "Counts in `resets`.")
 def post_reset(worker: Worker) -> StatusResponse:
     worker.reset()
-    return _status_body(worker.status())
+    return _status_body(worker.status(), worker.sites[0])
 
 
 class BackendRequest(BaseModel):
@@ -218,7 +252,7 @@ def put_backend(worker: Worker,
         worker.set_backend(body.backend)
     except UnknownBackendError as err:
         raise HTTPException(422, str(err)) from None
-    return _status_body(worker.status())
+    return _status_body(worker.status(), worker.sites[0])
 
 
 class CarryRequest(BaseModel):
@@ -249,7 +283,7 @@ def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
         worker.set_carry(body.carry, steps)
     except CarryError as err:
         raise HTTPException(422, str(err)) from None
-    return _status_body(worker.status())
+    return _status_body(worker.status(), worker.sites[0])
 
 
 render_router = APIRouter(tags=["render"])
@@ -265,8 +299,8 @@ render_router = APIRouter(tags=["render"])
                                     "at X-Time-Ms), X-Render-Age-S (wall s since the "
                                     "publication)."},
                404: {"description": "No render published yet."}})
-def get_render(worker: Worker) -> Response:
-    latest = worker.latest_render()
+def get_render(worker: Worker, site: Site) -> Response:
+    latest = worker.latest_render(site)
     if latest is None:
         raise HTTPException(
             404, "no render yet: renders come once a decision has arrived and a "
@@ -304,7 +338,9 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                     "(AOI3D_TRAINER_BACKEND) and switched at run time with `PUT /backend "
                     "{\"backend\": \"ngp\"}`.",
         settings=settings, build_worker=build_worker, bus=bus)
-    app.include_router(status_router)
     app.include_router(model_router)
-    app.include_router(render_router)
+    app.include_router(pool_router)
+    # status and render are per site (/sites/<site>/status …); the pool and the settings the
+    # run's
+    include_site_routers(app, status_router, render_router)
     return app

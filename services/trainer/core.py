@@ -21,10 +21,11 @@ import numpy as np
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.scene.camera import Camera
 from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
+from services.kit.keys import DEFAULT_SITE
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 from services.trainer.frames import FrameBuffer
-from services.trainer.pool import Assignment, DecisionRef, Dispatcher, PoolStatus, Report
+from services.trainer.pool import Assignment, DecisionRef, Dispatcher, Report
 from services.trainer.state import CarryError, DecisionInForce, LatestRender, check_backend
 
 __all__ = ["RenderSettings", "TrainerCore", "decode_request"]
@@ -61,8 +62,8 @@ def decode_request(payload: bytes) -> Report:
     values = (msg.busy_s, msg.max_wait_s)
     if not all(math.isfinite(v) and v >= 0 for v in values) or msg.max_wait_s > 3600:
         raise Rejected("malformed", "busy_s and max_wait_s must be finite, >= 0 (wait <= 1 h)")
-    done = ((int(msg.done_incarnation), int(msg.done_decision_id))
-            if msg.done_decision_id else None)
+    done = ((msg.done_site or DEFAULT_SITE, int(msg.done_incarnation),
+             int(msg.done_decision_id)) if msg.done_decision_id else None)
     return Report(worker_id=msg.worker_id, done=done, rendered=msg.done_rendered,
                   reason=msg.done_reason[:64], busy_s=msg.busy_s, jobs=int(msg.jobs),
                   max_wait_s=msg.max_wait_s, device=msg.device[:16], pid=int(msg.pid),
@@ -74,7 +75,9 @@ class TrainerCore:
 
     def __init__(self, *, camera_ids: frozenset[int], size: tuple[int, int] | None,
                  skew_ms: float, heldout: Camera, aabb: np.ndarray, frames_per_camera: int,
-                 render: RenderSettings, dispatcher: Dispatcher) -> None:
+                 render: RenderSettings, dispatcher: Dispatcher,
+                 site: str = DEFAULT_SITE) -> None:
+        self.site = site
         self._camera_ids = camera_ids
         self._size = size
         self._skew_ms = skew_ms
@@ -133,10 +136,10 @@ class TrainerCore:
             decision_id=msg.decision_id, incarnation=msg.incarnation, time_ms=msg.time_ms,
             policy=msg.policy, n_selected=len(msg.selected), n_missing=missing,
             applied_wall_s=now_s, generation_ms=tuple(gens))
-        ref = DecisionRef(msg.incarnation, msg.decision_id, msg.time_ms)
+        ref = DecisionRef(msg.incarnation, msg.decision_id, msg.time_ms, self.site)
         self._decisions[ref.key] = msg
         assignment = self.pool.offer(ref, now_s)
-        self._forget()
+        self.forget()
         return assignment
 
     def _check_order(self, msg: pb.Decision, now_ms: float) -> None:
@@ -156,21 +159,15 @@ class TrainerCore:
                            f"decision {msg.decision_id} for {msg.time_ms:g} ms is not newer "
                            f"than decision {d.decision_id} for {d.time_ms:g} ms")
 
-    def _forget(self) -> None:
+    def forget(self) -> None:
         """Keep only the decisions still pending or held (bounded by the pool's size + 1)."""
         keep = {a.decision.key for a in self.pool.held()}
-        if self.pool.pending is not None:
-            keep.add(self.pool.pending.key)
+        pending = self.pool.pending(self.site)
+        if pending is not None:
+            keep.add(pending.key)
         self._decisions = {k: v for k, v in self._decisions.items() if k in keep}
 
     # ------------------------------------------------------------------ workers
-    def on_request(self, payload: bytes, now_s: float) -> tuple[Report, Assignment | None]:
-        """A worker asks for work: (its report, its assignment or None: it waits)."""
-        report = decode_request(payload)
-        assignment = self.pool.request(report, now_s)
-        self._forget()
-        return report, assignment
-
     def job(self, assignment: Assignment, now_s: float) -> bytes:
         """The WorkReply carrying ``assignment``'s job (the decision's frames that are held)."""
         msg = self._decisions[assignment.decision.key]
@@ -179,7 +176,7 @@ class TrainerCore:
         job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
                      render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
                      pose=pose, intrinsics=intrinsics, aabb=self._aabb,
-                     assigned_unix_s=now_s)
+                     assigned_unix_s=now_s, site=self.site)
         for ref in msg.selected:
             held = self._frames.find(ref.camera_id, ref.generation_ms)
             if held is None:
@@ -191,22 +188,6 @@ class TrainerCore:
     @staticmethod
     def no_job(reason: str) -> bytes:
         return pb.WorkReply(reason=reason).SerializeToString()
-
-    def on_worker(self, worker_id: str, alive: bool, now_s: float) -> Assignment | None:
-        """A worker's liveliness token appeared or vanished; the decision a vanished worker
-        held (lost: ``worker_died``)."""
-        if alive:
-            self.pool.joined(worker_id, now_s)
-            return None
-        lost = self.pool.left(worker_id, now_s)
-        self._forget()
-        return lost
-
-    def expire(self, now_s: float) -> list[Assignment]:
-        lost = self.pool.expire(now_s)
-        if lost:
-            self._forget()
-        return lost
 
     # ------------------------------------------------------------------ renders
     def on_render(self, payload: bytes, now_s: float, now_ms: float) -> LatestRender:
@@ -224,7 +205,7 @@ class TrainerCore:
         self._count_render(msg, now_ms)
         self.frames_age_ms = frames_age_ms
         self._latest_incarnation = msg.decision_incarnation
-        key = (msg.decision_incarnation, msg.decision_id)
+        key = (self.site, msg.decision_incarnation, msg.decision_id)
         arrived = next((a.arrived_s for a in self.pool.held() if a.decision.key == key),
                        math.nan)
         self.latest = LatestRender(
@@ -263,6 +244,3 @@ class TrainerCore:
         r = self.render
         self.render = RenderSettings(r.backend, r.carry, r.render_steps, r.seed,
                                      r.model_epoch + 1)
-
-    def pool_status(self, now_s: float) -> PoolStatus:
-        return self.pool.status(now_s)

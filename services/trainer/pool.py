@@ -8,12 +8,13 @@ services.recon``) pull work from it. Design (docs/architecture.md, "The worker p
   :meth:`Dispatcher.joined` / :meth:`Dispatcher.left` as tokens appear and vanish. No list is
   kept by hand and no port is configured.
 - **Pull**: an idle worker asks (a Zenoh query, :meth:`Dispatcher.request`). The dispatcher
-  keeps at most one *pending* decision, the newest; a newer one replaces it (the older is
-  counted ``superseded``: skipped by choice). The pending decision goes to exactly one asker,
-  under the caller's lock; a worker that finds nothing pending waits (its query is held, up to
-  its ``max_wait_s``), and the next decision goes to the worker that has waited longest
-  (:meth:`Dispatcher.offer`). No queue grows and no render is older than one that could have
-  been done instead.
+  keeps at most one *pending* decision per site, the site's newest; a newer one replaces it
+  (the older is counted ``superseded``: skipped by choice). A pending decision goes to exactly
+  one asker, under the caller's lock — of the sites with one pending, the site served longest
+  ago (round robin, so no site starves another); a worker that finds nothing pending waits
+  (its query is held, up to its ``max_wait_s``), and the next decision of any site goes to
+  the worker that has waited longest (:meth:`Dispatcher.offer`). No queue grows and no render
+  is older than one that could have been done instead.
 - **Ledger**: a handed-out decision ends ``rendered`` (the worker reports its Render
   published in its next request) or ``lost`` with a reason: ``worker_died`` (its token
   vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
@@ -29,20 +30,23 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
+from services.kit.keys import DEFAULT_SITE
+
 __all__ = ["Assignment", "Dispatcher", "PoolStatus", "Report", "WorkerView"]
 
 
 @dataclass(frozen=True)
 class DecisionRef:
-    """A decision as the pool knows it: (incarnation, id) names it."""
+    """A decision as the pool knows it: (site, incarnation, id) names it."""
 
     incarnation: int
     decision_id: int
     time_ms: float
+    site: str = DEFAULT_SITE
 
     @property
-    def key(self) -> tuple[int, int]:
-        return self.incarnation, self.decision_id
+    def key(self) -> tuple[str, int, int]:
+        return self.site, self.incarnation, self.decision_id
 
 
 @dataclass(frozen=True)
@@ -66,8 +70,8 @@ class Report:
     """What a worker says when it asks for work (decoded from its WorkRequest)."""
 
     worker_id: str
-    done: tuple[int, int] | None = None
-    """(incarnation, decision id) of the job finished since its last request."""
+    done: tuple[str, int, int] | None = None
+    """(site, incarnation, decision id) of the job finished since its last request."""
     rendered: bool = False
     reason: str = ""
     busy_s: float = 0.0
@@ -103,6 +107,7 @@ class WorkerView:
     lost: int
     holding: int | None
     """Decision id it is reconstructing now, None when idle."""
+    holding_site: str | None
     busy_fraction: float
     """Share of the last window's wall time it spent reconstructing (NaN: too new to say)."""
 
@@ -116,8 +121,8 @@ class PoolStatus:
     rendered: int
     superseded: int
     lost: dict[str, int]
-    pending: int | None
-    """Id of the decision waiting for a worker, None when none."""
+    pending: dict[str, int]
+    """Site → id of its decision waiting for a worker."""
     in_flight: int
     renders_per_s: float
     decisions_per_s: float
@@ -129,6 +134,8 @@ class PoolStatus:
     """Mean wall s from a decision's arrival to its render's report, over the window."""
     late_reports: int
     window_s: float
+    by_site: dict[str, dict[str, int]]
+    """Site → its counts: decisions, assigned, rendered, superseded, lost."""
 
 
 class Dispatcher:
@@ -140,7 +147,10 @@ class Dispatcher:
         self.job_timeout_s = float(job_timeout_s)
         self._workers: dict[str, _Worker] = {}
         self._waiting: deque[str] = deque()
-        self._pending: tuple[DecisionRef, float] | None = None
+        self._pending: dict[str, tuple[DecisionRef, float]] = {}
+        self._served_s: dict[str, float] = {}
+        """When each site last had a decision handed out (round robin between sites)."""
+        self.by_site: dict[str, Counter[str]] = {}
         self.decisions = 0
         self.assigned = 0
         self.rendered = 0
@@ -166,16 +176,17 @@ class Dispatcher:
             return None
         held = worker.holding
         self.lost["worker_died"] += 1
+        self._count(held.decision.site, "lost")
         return held
 
     @property
     def worker_ids(self) -> list[str]:
         return sorted(self._workers)
 
-    @property
-    def pending(self) -> DecisionRef | None:
-        """The decision waiting for a worker (the newest not handed out), None when none."""
-        return None if self._pending is None else self._pending[0]
+    def pending(self, site: str = DEFAULT_SITE) -> DecisionRef | None:
+        """The site's decision waiting for a worker (its newest not handed out), if any."""
+        entry = self._pending.get(site)
+        return None if entry is None else entry[0]
 
     def held(self) -> list[Assignment]:
         """The decisions being reconstructed now, one per busy worker."""
@@ -187,14 +198,16 @@ class Dispatcher:
         the worker that has waited longest, else pending (replacing, and counting
         ``superseded``, an older pending one)."""
         self.decisions += 1
+        self._count(decision.site, "decisions")
         self._event(now_s, "decision", 1.0)
         while self._waiting:
             worker = self._workers.get(self._waiting.popleft())
             if worker is not None and worker.holding is None:
                 return self._assign(worker, decision, now_s, now_s)
-        if self._pending is not None:
+        if decision.site in self._pending:
             self.superseded += 1
-        self._pending = (decision, now_s)
+            self._count(decision.site, "superseded")
+        self._pending[decision.site] = (decision, now_s)
         return None
 
     def request(self, report: Report, now_s: float) -> Assignment | None:
@@ -210,9 +223,10 @@ class Dispatcher:
             worker.busy.popleft()
         self._close(worker, report, now_s)
         self._unwait(worker.worker_id)
-        if self._pending is not None:
-            decision, arrived_s = self._pending
-            self._pending = None
+        if self._pending:
+            site = min(self._pending, key=lambda s: (self._served_s.get(s, -math.inf),
+                                                     self._pending[s][1]))
+            decision, arrived_s = self._pending.pop(site)
             return self._assign(worker, decision, arrived_s, now_s)
         if report.max_wait_s > 0:
             self._waiting.append(worker.worker_id)
@@ -231,6 +245,7 @@ class Dispatcher:
                 worker.holding = None
                 worker.lost += 1
                 self.lost["timeout"] += 1
+                self._count(held.decision.site, "lost")
                 out.append(held)
         return out
 
@@ -240,6 +255,8 @@ class Dispatcher:
         held = Assignment(decision, worker.worker_id, arrived_s, now_s)
         worker.holding = held
         self.assigned += 1
+        self._served_s[decision.site] = now_s
+        self._count(decision.site, "assigned")
         self.wait_sum_s += held.wait_s
         self._event(now_s, "wait", held.wait_s)
         return held
@@ -251,13 +268,16 @@ class Dispatcher:
         if held is None:
             return
         worker.holding = None
+        site = held.decision.site
         if report.done != held.decision.key:
             worker.lost += 1
             self.lost["not_delivered"] += 1
+            self._count(site, "lost")
             return
         if report.rendered:
             worker.rendered += 1
             self.rendered += 1
+            self._count(site, "rendered")
             age = now_s - held.arrived_s
             self.age_sum_s += age
             self._event(now_s, "render", 1.0)
@@ -265,6 +285,10 @@ class Dispatcher:
         else:
             worker.lost += 1
             self.lost[f"failed:{report.reason or 'unknown'}"] += 1
+            self._count(site, "lost")
+
+    def _count(self, site: str, what: str) -> None:
+        self.by_site.setdefault(site, Counter())[what] += 1
 
     def _unwait(self, worker_id: str) -> None:
         if worker_id in self._waiting:
@@ -303,13 +327,15 @@ class Dispatcher:
                 worker_id=w.worker_id, pid=w.pid, host=w.host, device=w.device,
                 joined_s=w.joined_s, rendered=w.rendered, lost=w.lost,
                 holding=None if w.holding is None else w.holding.decision.decision_id,
+                holding_site=None if w.holding is None else w.holding.decision.site,
                 busy_fraction=busy))
         return PoolStatus(
             workers=tuple(workers), decisions=self.decisions, assigned=self.assigned,
             rendered=self.rendered, superseded=self.superseded, lost=dict(self.lost),
-            pending=None if self._pending is None else self._pending[0].decision_id,
+            pending={site: d.decision_id for site, (d, _) in sorted(self._pending.items())},
             in_flight=sum(w.holding is not None for w in self._workers.values()),
             renders_per_s=n_ren / span, decisions_per_s=n_dec / span,
             rendered_fraction=n_ren / n_dec if n_dec else math.nan,
             wait_s_mean=mean(by_kind["wait"]), render_age_s_mean=mean(by_kind["age"]),
-            late_reports=self.late_reports, window_s=self.window_s)
+            late_reports=self.late_reports, window_s=self.window_s,
+            by_site={site: dict(c) for site, c in sorted(self.by_site.items())})

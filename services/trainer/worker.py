@@ -1,7 +1,8 @@
 """The trainer service's runtime: the bus, one lock, a housekeeping thread, the metrics.
 
-The logic is :class:`services.trainer.core.TrainerCore` (and its pool's
-:class:`services.trainer.pool.Dispatcher`); this module only wires it to the bus:
+The logic is :class:`services.trainer.core.TrainerCore` — one per site of the run — and the
+pool's :class:`services.trainer.pool.Dispatcher`, shared by the sites; this module only wires
+them to the bus (the site of a message is its key's ``<site>`` chunk):
 
 - delivered frames, decisions and renders (subscriptions) go to the core under one lock —
   each call is a protobuf parse and a few dictionary operations, never an image decode or a
@@ -32,7 +33,7 @@ from aoi3d.scene import SceneDataset
 from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
-from services.trainer.core import RenderSettings, TrainerCore
+from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.pool import Assignment, Dispatcher, PoolStatus
 from services.trainer.settings import Settings
 from services.trainer.state import CarryError, LatestRender, TrainerStatus
@@ -52,17 +53,20 @@ class TrainerWorker:
         self.settings = settings
         self.bus = bus
         self.clock = clock
-        self.keys = Keys(settings.common.run_id)
+        self.keys = Keys(settings.common.run_id, "*")  # every site's keys
         sizes = {(c.width, c.height) for c in dataset.cameras}
-        self.core = TrainerCore(
-            camera_ids=frozenset(range(1, settings.common.cameras + 1)),
-            size=sizes.pop() if len(sizes) == 1 else None,
+        size = sizes.pop() if len(sizes) == 1 else None
+        self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
+        render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
+                                settings.seed)
+        # the sites film the same scene (at their own phases): one camera and box for all
+        self.cores = {site: TrainerCore(
+            camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,
             skew_ms=settings.common.skew_ms, heldout=dataset.cameras[dataset.heldout_id],
             aabb=np.asarray(dataset.aabb), frames_per_camera=settings.frames_per_camera,
-            render=RenderSettings(settings.backend, settings.carry, settings.render_steps,
-                                  settings.seed),
-            dispatcher=Dispatcher(window_s=settings.window_s,
-                                  job_timeout_s=settings.job_timeout_s))
+            render=render, dispatcher=self.pool, site=site) for site in settings.common.sites}
+        self.sites = list(self.cores)
+        self.core = self.cores[self.sites[0]]
         self.rejections = Rejections(registry)
         self._lock = threading.Lock()
         self._held: dict[str, tuple[Query, float]] = {}
@@ -102,8 +106,8 @@ class TrainerWorker:
         if not self.running():
             return False, "pool thread not running"
         with self._lock:
-            n = len(self.core.pool.worker_ids)
-            decision = self.core.decision
+            n = len(self.pool.worker_ids)
+            decision = next((c.decision for c in self.cores.values() if c.decision), None)
         if not self._decisions_beat.stalled() and self._renders_beat.stalled():
             return False, (f"decisions arrive but no render for {self._renders_beat.idle_s():.0f}"
                            f" s ({n} reconstruction worker(s) in the pool)")
@@ -112,17 +116,25 @@ class TrainerWorker:
         return True, f"{n} worker(s) in the pool; decision {decision.decision_id} in force"
 
     # ------------------------------------------------------------------ bus callbacks
+    def _site(self, key: str) -> TrainerCore:
+        core = self.cores.get(Keys.site_of(key))
+        if core is None:
+            raise Rejected("unknown_site", f"{key}: not a site of this run "
+                                           f"({', '.join(self.sites)})")
+        return core
+
     def _on_frame(self, key: str, payload: bytes) -> None:
         try:
             with self._lock:
-                self.core.on_frame(payload, self.clock.now_ms())
+                self._site(key).on_frame(payload, self.clock.now_ms())
         except Rejected as err:
             self.rejections.reject(err, key)
 
     def _on_decision(self, key: str, payload: bytes) -> None:
         try:
             with self._lock:
-                assignment = self.core.on_decision(payload, self.clock.now_ms(), time.time())
+                assignment = self._site(key).on_decision(payload, self.clock.now_ms(),
+                                                         time.time())
                 answer = self._job_for(assignment)
         except Rejected as err:
             self.rejections.reject(err, key)
@@ -140,20 +152,24 @@ class TrainerWorker:
             log.error("decision %d assigned to %s, which holds no request",
                       assignment.decision.decision_id, assignment.worker_id)
             return None
-        return query, self.core.job(assignment, time.time())
+        return query, self.cores[assignment.decision.site].job(assignment, time.time())
 
     def _on_request(self, query: Query) -> None:
         try:
             with self._lock:
-                report, assignment = self.core.on_request(query.payload, time.time())
+                report = decode_request(query.payload)
+                assignment = self.pool.request(report, time.time())
+                for core in self.cores.values():
+                    core.forget()
                 previous = self._held.pop(report.worker_id, None)
                 if assignment is not None:
-                    answer: bytes | None = self.core.job(assignment, time.time())
+                    answer: bytes | None = self.cores[assignment.decision.site].job(
+                        assignment, time.time())
                 elif report.max_wait_s > 0:
                     self._held[report.worker_id] = (query, time.monotonic() + report.max_wait_s)
                     answer = None
                 else:
-                    answer = self.core.no_job("no decision pending")
+                    answer = TrainerCore.no_job("no decision pending")
         except Rejected as err:
             self.rejections.reject(err, self.keys.work)
             query.close()
@@ -166,8 +182,8 @@ class TrainerWorker:
     def _on_render(self, key: str, payload: bytes) -> None:
         try:
             with self._lock:
-                self.core.on_render(payload, time.time(), self.clock.now_ms())
-                steps = self.core.steps_total
+                self._site(key).on_render(payload, time.time(), self.clock.now_ms())
+                steps = sum(c.steps_total for c in self.cores.values())
         except Rejected as err:
             self.rejections.reject(err, key)
             return
@@ -177,7 +193,13 @@ class TrainerWorker:
     def _on_token(self, key: str, alive: bool) -> None:
         worker_id = key.rsplit("/", 1)[-1]
         with self._lock:
-            lost = self.core.on_worker(worker_id, alive, time.time())
+            if alive:
+                self.pool.joined(worker_id, time.time())
+                lost = None
+            else:
+                lost = self.pool.left(worker_id, time.time())
+                for core in self.cores.values():
+                    core.forget()
             held = None if alive else self._held.pop(worker_id, None)
         if held is not None:
             held[0].close()
@@ -197,51 +219,57 @@ class TrainerWorker:
                 due = [w for w, (_, deadline) in self._held.items() if deadline <= now]
                 released = [self._held.pop(w)[0] for w in due]
                 for w in due:
-                    self.core.pool.give_up(w)
-                expired = self.core.expire(time.time())
+                    self.pool.give_up(w)
+                expired = self.pool.expire(time.time())
+                if expired:
+                    for core in self.cores.values():
+                        core.forget()
             for query in released:
-                query.reply(self.core.no_job("no decision pending"))
+                query.reply(TrainerCore.no_job("no decision pending"))
             for a in expired:
                 log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
                             a.worker_id, self.settings.job_timeout_s)
             if self._renders_beat.idle_s() > RATE_WINDOW_S:
-                self.steps_per_s = self._steps_rate.idle(time.monotonic(),
-                                                         self.core.steps_total)
+                self.steps_per_s = self._steps_rate.idle(
+                    time.monotonic(), sum(c.steps_total for c in self.cores.values()))
 
     # ------------------------------------------------------------------ control (REST threads)
     def set_backend(self, name: str) -> None:
         """Jobs from now on name backend ``name`` (:class:`UnknownBackendError` otherwise)."""
         with self._lock:
-            self.core.set_backend(name)
+            for core in self.cores.values():
+                core.set_backend(name)
             self.resets += 1
 
     def set_carry(self, carry: str, render_steps: int) -> None:
         """Jobs from now on carry ``carry`` and ``render_steps``; :class:`CarryError` — nothing
         changed — for a mode or budget the reconstruction refuses."""
         with self._lock:
-            self.core.set_carry(carry, render_steps)
+            for core in self.cores.values():
+                core.set_carry(carry, render_steps)
 
     def reset(self) -> None:
         with self._lock:
-            self.core.reset()
+            for core in self.cores.values():
+                core.reset()
             self.resets += 1
 
     @property
     def render_settings(self) -> RenderSettings:
         return self.core.render
 
-    def latest_render(self) -> LatestRender | None:
+    def latest_render(self, site: str | None = None) -> LatestRender | None:
         with self._lock:
-            return self.core.latest
+            return self.cores[site or self.sites[0]].latest
 
     def pool_status(self) -> PoolStatus:
         with self._lock:
-            return self.core.pool_status(time.time())
+            return self.pool.status(time.time())
 
-    def status(self) -> TrainerStatus:
+    def status(self, site: str | None = None) -> TrainerStatus:
         with self._lock:
-            c = self.core
-            pool = c.pool_status(time.time())
+            c = self.cores[site or self.sites[0]]
+            pool = self.pool.status(time.time())
             devices = sorted({w.device for w in pool.workers if w.device})
             return TrainerStatus(
                 steps=c.latest.training_step if c.latest is not None else 0,
@@ -271,15 +299,17 @@ class PoolCollector:
     def collect(self):
         w = self._worker
         with w._lock:
-            c = w.core
-            pool = c.pool_status(time.time())
-            latest = c.latest
-            values = dict(decisions=c.decisions_applied, received=c.frames_received,
-                          missing=c.frames_missing, renders=c.renders_seen,
-                          steps=c.steps_total, loss=c.loss, views=c.n_views,
-                          render_steps=c.last_render_steps, lag_ms=c.render_lag_ms,
-                          frames_age_ms=c.frames_age_ms,
-                          wait_sum=c.pool.wait_sum_s, age_sum=c.pool.age_sum_s)
+            pool = w.pool.status(time.time())
+            sites = []
+            for site, c in w.cores.items():
+                latest = c.latest
+                sites.append((site, dict(
+                    decisions=c.decisions_applied, received=c.frames_received,
+                    missing=c.frames_missing, renders=c.renders_seen, steps=c.steps_total,
+                    loss=c.loss, views=c.n_views, render_steps=c.last_render_steps,
+                    lag_s=c.render_lag_ms / 1000.0, frames_age_s=c.frames_age_ms / 1000.0,
+                    age_s=latest.age_s if latest is not None else None)))
+            wait_sum, age_sum = w.pool.wait_sum_s, w.pool.age_sum_s
 
         def one(family, value: float | None):
             family.add_metric([], math.nan if value is None else value)
@@ -287,45 +317,42 @@ class PoolCollector:
 
         def each(family, samples):
             for labels, value in samples:
-                family.add_metric(labels, value)
+                family.add_metric(labels, math.nan if value is None else value)
             return family
 
-        yield one(CounterMetricFamily("aoi3d_trainer_decisions",
-                                      "Decisions taken (each offered to the pool)."),
-                  values["decisions"])
-        yield one(CounterMetricFamily("aoi3d_trainer_frames_received",
-                                      "Delivered frames accepted into the per-camera buffers."),
-                  values["received"])
-        yield one(CounterMetricFamily("aoi3d_trainer_frames_missing",
-                                      "Selected frames the trainer never received (left out "
-                                      "of the job)."), values["missing"])
-        yield one(CounterMetricFamily("aoi3d_renders",
-                                      "Novel-view renders published by the pool's workers."),
-                  values["renders"])
-        yield one(CounterMetricFamily("aoi3d_trainer_steps",
-                                      "Training steps of the renders' reconstructions."),
-                  values["steps"])
+        def per_site(cls, name: str, doc: str, field: str):
+            return each(cls(name, doc, labels=["site"]), [([s], v[field]) for s, v in sites])
+
+        yield per_site(CounterMetricFamily, "aoi3d_trainer_decisions",
+                       "Decisions taken (each offered to the pool).", "decisions")
+        yield per_site(CounterMetricFamily, "aoi3d_trainer_frames_received",
+                       "Delivered frames accepted into the per-camera buffers.", "received")
+        yield per_site(CounterMetricFamily, "aoi3d_trainer_frames_missing",
+                       "Selected frames the trainer never received (left out of the job).",
+                       "missing")
+        yield per_site(CounterMetricFamily, "aoi3d_renders",
+                       "Novel-view renders published by the pool's workers.", "renders")
+        yield per_site(CounterMetricFamily, "aoi3d_trainer_steps",
+                       "Training steps of the renders' reconstructions.", "steps")
         yield one(GaugeMetricFamily("aoi3d_trainer_steps_per_second",
                                     f"Reconstruction steps per wall second over the last "
                                     f"{RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
-        yield one(GaugeMetricFamily("aoi3d_trainer_loss",
-                                    "Photometric loss of the latest render's last step."),
-                  values["loss"])
-        yield one(GaugeMetricFamily("aoi3d_trainer_views", "Frames the latest render trained "
-                                                           "on."), values["views"])
-        yield one(GaugeMetricFamily("aoi3d_render_steps", "Training steps spent on the latest "
-                                    "render's own decision (0 for warm)."),
-                  values["render_steps"])
-        yield one(GaugeMetricFamily("aoi3d_render_age_seconds",
-                                    "Wall seconds from the latest render's decision reaching "
-                                    "the trainer to the render's arrival (what a viewer "
-                                    "waits)."), latest.age_s if latest is not None else None)
-        yield one(GaugeMetricFamily("aoi3d_render_lag_sim_seconds",
-                                    "Sim seconds from the time the latest render represents "
-                                    "to its arrival."), values["lag_ms"] / 1000.0)
-        yield one(GaugeMetricFamily("aoi3d_render_frames_age_seconds",
-                                    "Mean age (sim s) at the represented time of the latest "
-                                    "render's frames."), values["frames_age_ms"] / 1000.0)
+        yield per_site(GaugeMetricFamily, "aoi3d_trainer_loss",
+                       "Photometric loss of the latest render's last step.", "loss")
+        yield per_site(GaugeMetricFamily, "aoi3d_trainer_views",
+                       "Frames the latest render trained on.", "views")
+        yield per_site(GaugeMetricFamily, "aoi3d_render_steps",
+                       "Training steps spent on the latest render's own decision (0 for warm).",
+                       "render_steps")
+        yield per_site(GaugeMetricFamily, "aoi3d_render_age_seconds",
+                       "Wall seconds from the latest render's decision reaching the trainer to "
+                       "the render's arrival (what a viewer waits).", "age_s")
+        yield per_site(GaugeMetricFamily, "aoi3d_render_lag_sim_seconds",
+                       "Sim seconds from the time the latest render represents to its arrival.",
+                       "lag_s")
+        yield per_site(GaugeMetricFamily, "aoi3d_render_frames_age_seconds",
+                       "Mean age (sim s) at the represented time of the latest render's "
+                       "frames.", "frames_age_s")
         yield one(GaugeMetricFamily("aoi3d_pool_workers",
                                     "Reconstruction workers in the pool (live Zenoh "
                                     "liveliness tokens)."), len(pool.workers))
@@ -333,10 +360,10 @@ class PoolCollector:
                                                             "now."), pool.in_flight)
         yield each(CounterMetricFamily(
             "aoi3d_pool_decisions", "Decisions by what the pool did with them: assigned to a "
-            "worker, rendered, or superseded (a newer one came before a worker was free: "
-            "skipped by choice).", labels=["outcome"]),
-            [(["assigned"], pool.assigned), (["rendered"], pool.rendered),
-             (["superseded"], pool.superseded)])
+            "worker, rendered, superseded (a newer one of its site came before a worker was "
+            "free: skipped by choice) or lost.", labels=["site", "outcome"]),
+            [([site, outcome], counts.get(outcome, 0)) for site, counts in pool.by_site.items()
+             for outcome in ("assigned", "rendered", "superseded", "lost")])
         yield each(CounterMetricFamily(
             "aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended without a "
             "render, by reason (worker_died, timeout, not_delivered, failed:<why>).",
@@ -350,11 +377,11 @@ class PoolCollector:
         yield SummaryMetricFamily("aoi3d_pool_wait_seconds",
                                   "Wall seconds from a decision reaching the trainer to its "
                                   "hand-out to a worker.", count_value=pool.assigned,
-                                  sum_value=values["wait_sum"])
+                                  sum_value=wait_sum)
         yield SummaryMetricFamily("aoi3d_pool_render_age_seconds",
                                   "Wall seconds from a decision reaching the trainer to its "
                                   "worker's report of the render.", count_value=pool.rendered,
-                                  sum_value=values["age_sum"])
+                                  sum_value=age_sum)
         yield each(GaugeMetricFamily("aoi3d_pool_worker_busy_ratio",
                                      f"Share of the last {pool.window_s:g} s a worker spent "
                                      "reconstructing.", labels=["worker"]),

@@ -197,14 +197,14 @@ def test_a_decision_is_rendered_by_one_worker_from_its_own_frames(
     (w,) = p["workers"]
     assert w["worker_id"] == "w1" and w["rendered"] == 1 and w["pid"] == os.getpid()
 
-    assert metric(client, "aoi3d_renders_total") == 1
-    assert metric(client, "aoi3d_trainer_steps_total") == 20
-    assert metric(client, "aoi3d_trainer_views") == 3
-    assert metric(client, "aoi3d_trainer_frames_missing_total") == 1
+    assert metric(client, "aoi3d_renders_total", 'site="site1"') == 1
+    assert metric(client, "aoi3d_trainer_steps_total", 'site="site1"') == 20
+    assert metric(client, "aoi3d_trainer_views", 'site="site1"') == 3
+    assert metric(client, "aoi3d_trainer_frames_missing_total", 'site="site1"') == 1
     assert metric(client, "aoi3d_pool_workers") == 1
-    assert metric(client, "aoi3d_pool_decisions_total", 'outcome="rendered"') == 1
+    assert metric(client, "aoi3d_pool_decisions_total", 'outcome="rendered",site="site1"') == 1
     assert metric(client, "aoi3d_pool_wait_seconds_count") == 1
-    assert math.isfinite(metric(client, "aoi3d_trainer_loss"))
+    assert math.isfinite(metric(client, "aoi3d_trainer_loss", 'site="site1"'))
     assert metric(client, "aoi3d_pool_worker_renders", 'worker="w1"') == 1
 
     # An older or repeated decision is rejected, not offered.
@@ -223,7 +223,7 @@ def test_two_workers_share_the_decisions_and_none_is_rendered_twice(
         bus.publish(KEYS.decision, decision_payload(i, 100.0 * i, [(1, 0.0), (2, 0.0)]))
         time.sleep(0.05)
     p = wait_for(lambda: (p := client.get("/workers").json())["in_flight"] == 0
-                 and p["pending"] is None and p, what="the pool to drain")
+                 and not p["pending"] and p, what="the pool to drain")
     ids = [r.decision_id for r in renders(bus)]
     assert len(ids) == len(set(ids)) == p["rendered"]  # never twice
     assert p["rendered"] + p["superseded"] + sum(p["lost"].values()) == 12
@@ -376,3 +376,37 @@ def test_recon_settings_default_to_one_thread_and_check_the_worker_id(
         ReconSettings(worker_id="a/b")
     monkeypatch.setenv("AOI3D_RECON_DEVICE", "cuda")
     assert ReconSettings().device == "cuda"
+
+
+def test_one_pool_serves_every_site_and_each_render_goes_to_its_site(
+        dataset: SceneDataset, pool: Pool) -> None:
+    bus = pool.bus
+    settings = make_settings()
+    settings.common.sites = ["north", "south"]
+    clock = SimClock(settings.common.epoch_s, settings.common.time_scale)
+    north, south = Keys(KEYS.run_id, "north"), Keys(KEYS.run_id, "south")
+    with TestClient(create_app(settings, bus=bus, clock=clock, dataset=dataset)) as client:
+        pool.add("w1")
+        for keys in (north, south):
+            for cam in range(1, N_TRAIN + 1):
+                bus.publish(keys.edge_frame(cam), frame_payload(dataset, cam, 0.0))
+        bus.publish(north.decision, decision_payload(5, 100.0, [(1, 0.0), (2, 0.0)]))
+        bus.publish(south.decision, decision_payload(9, 100.0, [(3, 0.0)]))
+        # a site that is not the run's is refused, whatever it sends
+        bus.publish(Keys(KEYS.run_id, "east").decision, decision_payload(1, 100.0, []))
+        wait_for(lambda: bus.messages(north.render) and bus.messages(south.render),
+                 what="a render for each site")
+        (n,), (s,) = ([pb.Render.FromString(p) for p in bus.messages(k.render)]
+                      for k in (north, south))
+        assert (n.decision_id, n.site, n.n_views) == (5, "north", 2)
+        assert (s.decision_id, s.site, s.n_views) == (9, "south", 1)
+        status = client.get("/sites/south/status").json()
+        assert status["site"] == "south" and status["decision"]["decision_id"] == 9
+        assert client.get("/status").json()["decision"]["decision_id"] == 5  # the first site
+        assert client.get("/sites/south/render.png").headers["x-decision-id"] == "9"
+        resp = client.get("/sites/east/status")
+        assert resp.status_code == 404 and "north, south" in resp.json()["detail"]
+        by_site = client.get("/workers").json()["by_site"]
+        assert by_site["north"]["rendered"] == by_site["south"]["rendered"] == 1
+        assert metric(client, "aoi3d_messages_rejected_total", 'reason="unknown_site"') == 1
+        assert metric(client, "aoi3d_renders_total", 'site="south"') == 1

@@ -29,7 +29,7 @@ def test_the_newest_decision_wins_and_older_pending_ones_are_superseded() -> Non
     got = ask(pool, "a", 0.5)
     assert got is not None and got.decision == d(3) and got.worker_id == "a"
     assert math.isclose(got.wait_s, 0.3)
-    assert pool.superseded == 2 and pool.pending is None
+    assert pool.superseded == 2 and pool.pending() is None
     # nothing pending: the worker waits, and the next decision goes to it at once
     assert ask(pool, "a", 1.0, done=d(3)) is None
     handed = pool.offer(d(4), 1.2)
@@ -91,10 +91,35 @@ def test_a_worker_that_will_not_wait_is_not_queued() -> None:
     pool = Dispatcher()
     pool.joined("a", 0.0)
     assert ask(pool, "a", 0.0, wait=0.0) is None
-    assert pool.offer(d(1), 0.1) is None and pool.pending == d(1)
+    assert pool.offer(d(1), 0.1) is None and pool.pending() == d(1)
     pool.joined("b", 0.0)
     assert ask(pool, "b", 0.2) is not None
     assert ask(pool, "a", 0.3, wait=0.0) is None
+
+
+def test_sites_are_served_in_turn_each_with_its_newest_decision() -> None:
+    pool = Dispatcher()
+    pool.joined("a", 0.0)
+    def a(i: int) -> DecisionRef:
+        return DecisionRef(1, i, 10.0 * i, "north")
+
+    def b(i: int) -> DecisionRef:
+        return DecisionRef(1, i, 0.0, "south")
+
+    for i in (1, 2, 3):
+        pool.offer(a(i), 0.1 * i)
+    pool.offer(b(1), 0.5)
+    got = ask(pool, "a", 1.0)
+    assert got.decision == a(3)  # both pending: north arrived first, and each site's newest
+    got = ask(pool, "a", 2.0, done=got.decision)
+    assert got.decision == b(1)  # then south's turn, though north has a newer one by now
+    pool.offer(a(4), 2.1)
+    pool.offer(b(2), 2.2)
+    assert ask(pool, "a", 3.0, done=got.decision).decision == a(4)  # north served longest ago
+    s = pool.status(3.0)
+    assert s.by_site["north"] == {"decisions": 4, "superseded": 2, "assigned": 2, "rendered": 1}
+    assert s.by_site["south"] == {"decisions": 2, "assigned": 1, "rendered": 1}
+    assert s.pending == {"south": 2}
 
 
 def test_give_up_takes_a_worker_out_of_the_queue() -> None:
@@ -102,7 +127,7 @@ def test_give_up_takes_a_worker_out_of_the_queue() -> None:
     pool.joined("a", 0.0)
     ask(pool, "a", 0.0)
     pool.give_up("a")
-    assert pool.offer(d(1), 1.0) is None and pool.pending == d(1)
+    assert pool.offer(d(1), 1.0) is None and pool.pending() == d(1)
 
 
 def test_status_rates_fraction_wait_age_and_busy_over_the_window() -> None:
@@ -127,8 +152,8 @@ def test_status_rates_fraction_wait_age_and_busy_over_the_window() -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(st.lists(st.tuples(st.sampled_from(["offer", "ask", "ask_done", "fail", "leave",
-                                           "join", "expire", "give_up"]),
+@given(st.lists(st.tuples(st.sampled_from(["offer", "offer_b", "ask", "ask_done", "fail",
+                                           "leave", "join", "expire", "give_up"]),
                           st.sampled_from(["a", "b", "c"])), max_size=60))
 def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) -> None:
     pool = Dispatcher(job_timeout_s=5.0)
@@ -137,8 +162,9 @@ def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) ->
     next_id, now = 1, 0.0
     for kind, w in events:
         now += 1.0
-        if kind == "offer":
-            got = pool.offer(d(next_id), now)
+        if kind in ("offer", "offer_b"):
+            ref = d(next_id) if kind == "offer" else DecisionRef(7, next_id, 0.0, "other")
+            got = pool.offer(ref, now)
             next_id += 1
         elif kind == "join":
             pool.joined(w, now)
@@ -167,4 +193,6 @@ def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) ->
     s = pool.status(now)
     assert s.assigned == len(handed)
     assert s.rendered + sum(s.lost.values()) + s.in_flight == s.assigned
-    assert s.assigned + s.superseded + (s.pending is not None) == s.decisions
+    for counts in s.by_site.values():
+        assert counts.get("assigned", 0) + counts.get("superseded", 0) <= counts["decisions"]
+    assert s.assigned + s.superseded + len(s.pending) == s.decisions

@@ -118,10 +118,19 @@ function drawChannel(s) {
     ["delay p50 / p90 / p99 (configured)", c.delay_quantiles_ms
       ? ["0.5", "0.9", "0.99"].map((q) => fmt(c.delay_quantiles_ms[q], 0)).join(" / ") + " ms" : "–"],
   ] : [["channel", (s.channel && s.channel.error) || "–"]]);
+  const p = t.pool || {};
+  const busy = (p.workers || []).map((w) => w.busy_fraction === null ? "–" : fmt(w.busy_fraction, 2));
+  const lost = Object.values(p.lost || {}).reduce((a, b) => a + b, 0);
   facts($("trainer"), [
     ["backend", t.backend || "–"], ["training steps / s", fmt(t.steps_per_s, 1)],
     ["views", t.n_views ?? "–"], ["render age", s.render ? `${fmt(s.render.age_s, 1)} s` : "–"],
     ["renders", t.renders ?? "–"],
+    ["workers", p.workers ? `${p.workers.length}` + (busy.length ? ` (busy ${busy.join(" / ")})` : "") : "–"],
+    ["renders / s", fmt(p.renders_per_s, 2)],
+    ["decisions rendered", p.rendered_fraction === null || p.rendered_fraction === undefined
+      ? "–" : `${fmt(100 * p.rendered_fraction, 0)} %`],
+    ["wait to start", p.wait_s_mean === null || p.wait_s_mean === undefined ? "–" : `${fmt(p.wait_s_mean, 2)} s`],
+    ["decisions lost", p.lost ? `${lost}` : "–"],
   ]);
   $("policy-now").textContent = s.decision ? `policy ${s.decision.policy}` : "";
   $("delay-now").textContent = c ? `delay ${c.delay}` : "";

@@ -103,7 +103,7 @@ class Decision(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -118,6 +118,7 @@ class Render(_message.Message):
     DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     WORKER_ID_FIELD_NUMBER: _ClassVar[int]
     LOSS_FIELD_NUMBER: _ClassVar[int]
+    SITE_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -132,10 +133,11 @@ class Render(_message.Message):
     decision_incarnation: int
     worker_id: str
     loss: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ...) -> None: ...
+    site: str
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s")
+    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site")
     DECISION_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     N_MISSING_FIELD_NUMBER: _ClassVar[int]
@@ -148,6 +150,7 @@ class Job(_message.Message):
     INTRINSICS_FIELD_NUMBER: _ClassVar[int]
     AABB_FIELD_NUMBER: _ClassVar[int]
     ASSIGNED_UNIX_S_FIELD_NUMBER: _ClassVar[int]
+    SITE_FIELD_NUMBER: _ClassVar[int]
     decision: Decision
     frames: _containers.RepeatedCompositeFieldContainer[Frame]
     n_missing: int
@@ -160,10 +163,11 @@ class Job(_message.Message):
     intrinsics: Intrinsics
     aabb: _containers.RepeatedScalarFieldContainer[float]
     assigned_unix_s: float
-    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ...) -> None: ...
+    site: str
+    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ..., site: _Optional[str] = ...) -> None: ...
 
 class WorkRequest(_message.Message):
-    __slots__ = ("worker_id", "done_decision_id", "done_incarnation", "done_rendered", "done_reason", "busy_s", "jobs", "max_wait_s", "device", "pid", "host")
+    __slots__ = ("worker_id", "done_decision_id", "done_incarnation", "done_rendered", "done_reason", "busy_s", "jobs", "max_wait_s", "device", "pid", "host", "done_site")
     WORKER_ID_FIELD_NUMBER: _ClassVar[int]
     DONE_DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     DONE_INCARNATION_FIELD_NUMBER: _ClassVar[int]
@@ -175,6 +179,7 @@ class WorkRequest(_message.Message):
     DEVICE_FIELD_NUMBER: _ClassVar[int]
     PID_FIELD_NUMBER: _ClassVar[int]
     HOST_FIELD_NUMBER: _ClassVar[int]
+    DONE_SITE_FIELD_NUMBER: _ClassVar[int]
     worker_id: str
     done_decision_id: int
     done_incarnation: int
@@ -186,7 +191,8 @@ class WorkRequest(_message.Message):
     device: str
     pid: int
     host: str
-    def __init__(self, worker_id: _Optional[str] = ..., done_decision_id: _Optional[int] = ..., done_incarnation: _Optional[int] = ..., done_rendered: _Optional[bool] = ..., done_reason: _Optional[str] = ..., busy_s: _Optional[float] = ..., jobs: _Optional[int] = ..., max_wait_s: _Optional[float] = ..., device: _Optional[str] = ..., pid: _Optional[int] = ..., host: _Optional[str] = ...) -> None: ...
+    done_site: str
+    def __init__(self, worker_id: _Optional[str] = ..., done_decision_id: _Optional[int] = ..., done_incarnation: _Optional[int] = ..., done_rendered: _Optional[bool] = ..., done_reason: _Optional[str] = ..., busy_s: _Optional[float] = ..., jobs: _Optional[int] = ..., max_wait_s: _Optional[float] = ..., device: _Optional[str] = ..., pid: _Optional[int] = ..., host: _Optional[str] = ..., done_site: _Optional[str] = ...) -> None: ...
 
 class WorkReply(_message.Message):
     __slots__ = ("job", "reason")
@@ -197,7 +203,7 @@ class WorkReply(_message.Message):
     def __init__(self, job: _Optional[_Union[Job, _Mapping]] = ..., reason: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -212,6 +218,7 @@ class Quality(_message.Message):
     SSIM_DYNAMIC_FIELD_NUMBER: _ClassVar[int]
     DYNAMIC_FRACTION_FIELD_NUMBER: _ClassVar[int]
     DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    SITE_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -226,4 +233,5 @@ class Quality(_message.Message):
     ssim_dynamic: float
     dynamic_fraction: float
     decision_incarnation: int
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ...) -> None: ...
+    site: str
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ...) -> None: ...
