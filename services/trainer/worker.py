@@ -320,39 +320,48 @@ class PoolCollector:
                 family.add_metric(labels, math.nan if value is None else value)
             return family
 
-        def per_site(cls, name: str, doc: str, field: str):
-            return each(cls(name, doc, labels=["site"]), [([s], v[field]) for s, v in sites])
+        def by_site(field: str) -> list:
+            return [([site], v[field]) for site, v in sites]
 
-        yield per_site(CounterMetricFamily, "aoi3d_trainer_decisions",
-                       "Decisions taken (each offered to the pool).", "decisions")
-        yield per_site(CounterMetricFamily, "aoi3d_trainer_frames_received",
-                       "Delivered frames accepted into the per-camera buffers.", "received")
-        yield per_site(CounterMetricFamily, "aoi3d_trainer_frames_missing",
-                       "Selected frames the trainer never received (left out of the job).",
-                       "missing")
-        yield per_site(CounterMetricFamily, "aoi3d_renders",
-                       "Novel-view renders published by the pool's workers.", "renders")
-        yield per_site(CounterMetricFamily, "aoi3d_trainer_steps",
-                       "Training steps of the renders' reconstructions.", "steps")
-        yield one(GaugeMetricFamily("aoi3d_trainer_steps_per_second",
-                                    f"Reconstruction steps per wall second over the last "
-                                    f"{RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
-        yield per_site(GaugeMetricFamily, "aoi3d_trainer_loss",
-                       "Photometric loss of the latest render's last step.", "loss")
-        yield per_site(GaugeMetricFamily, "aoi3d_trainer_views",
-                       "Frames the latest render trained on.", "views")
-        yield per_site(GaugeMetricFamily, "aoi3d_render_steps",
-                       "Training steps spent on the latest render's own decision (0 for warm).",
-                       "render_steps")
-        yield per_site(GaugeMetricFamily, "aoi3d_render_age_seconds",
-                       "Wall seconds from the latest render's decision reaching the trainer to "
-                       "the render's arrival (what a viewer waits).", "age_s")
-        yield per_site(GaugeMetricFamily, "aoi3d_render_lag_sim_seconds",
-                       "Sim seconds from the time the latest render represents to its arrival.",
-                       "lag_s")
-        yield per_site(GaugeMetricFamily, "aoi3d_render_frames_age_seconds",
-                       "Mean age (sim s) at the represented time of the latest render's "
-                       "frames.", "frames_age_s")
+        yield each(CounterMetricFamily(
+            "aoi3d_trainer_decisions", "Decisions taken (each offered to the pool).",
+            labels=["site"]), by_site("decisions"))
+        yield each(CounterMetricFamily(
+            "aoi3d_trainer_frames_received",
+            "Delivered frames accepted into the per-camera buffers.", labels=["site"]),
+            by_site("received"))
+        yield each(CounterMetricFamily(
+            "aoi3d_trainer_frames_missing",
+            "Selected frames the trainer never received (left out of the job).",
+            labels=["site"]), by_site("missing"))
+        yield each(CounterMetricFamily(
+            "aoi3d_renders", "Novel-view renders published by the pool's workers.",
+            labels=["site"]), by_site("renders"))
+        yield each(CounterMetricFamily(
+            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
+            labels=["site"]), by_site("steps"))
+        yield one(GaugeMetricFamily(
+            "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
+            f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
+        yield each(GaugeMetricFamily(
+            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
+            labels=["site"]), by_site("loss"))
+        yield each(GaugeMetricFamily(
+            "aoi3d_trainer_views", "Frames the latest render trained on.", labels=["site"]),
+            by_site("views"))
+        yield each(GaugeMetricFamily(
+            "aoi3d_render_steps", "Training steps spent on the latest render's own decision "
+            "(0 for warm).", labels=["site"]), by_site("render_steps"))
+        yield each(GaugeMetricFamily(
+            "aoi3d_render_age_seconds", "Wall seconds from the latest render's decision "
+            "reaching the trainer to the render's arrival (what a viewer waits).",
+            labels=["site"]), by_site("age_s"))
+        yield each(GaugeMetricFamily(
+            "aoi3d_render_lag_sim_seconds", "Sim seconds from the time the latest render "
+            "represents to its arrival.", labels=["site"]), by_site("lag_s"))
+        yield each(GaugeMetricFamily(
+            "aoi3d_render_frames_age_seconds", "Mean age (sim s) at the represented time of "
+            "the latest render's frames.", labels=["site"]), by_site("frames_age_s"))
         yield one(GaugeMetricFamily("aoi3d_pool_workers",
                                     "Reconstruction workers in the pool (live Zenoh "
                                     "liveliness tokens)."), len(pool.workers))

@@ -52,7 +52,7 @@ def test_keys_and_memory_bus() -> None:
     bus.subscribe(keys.edge_frames, lambda k, p: got.append((k, p)))
     bus.publish(keys.edge_frame(4), b"x")
     bus.publish(keys.cam_frame(4), b"y")
-    assert got == [("aoi3d/run1/edge/4/frame", b"x")]
+    assert got == [("aoi3d/run1/site1/edge/4/frame", b"x")]
     assert bus.messages(keys.cam_frames) == [b"y"]
 
 

@@ -33,6 +33,7 @@ from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
 from services.metrics.settings import Settings
 from services.metrics.worker import TruthFrame, TruthRing
+from tests.services.series import without_site
 
 RUN = "test-metrics"
 KEYS = Keys(RUN)
@@ -87,7 +88,7 @@ def wait_for(cond: Callable[[], bool], timeout_s: float = 3.0) -> None:
 
 def metric(text: str, name: str) -> float | None:
     for line in text.splitlines():
-        if line.startswith(name + " "):
+        if without_site(line).startswith(name + " "):
             return float(line.split()[-1])
     return None
 

@@ -29,6 +29,7 @@ from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
 from services.trainer.settings import BACKENDS, Settings
+from tests.services.series import without_site
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
@@ -148,7 +149,7 @@ def metric(client: TestClient, name: str, labels: str = "",
     """A series' value from /metrics; ``default`` if it is not exported (else an error)."""
     series = f"{name}{{{labels}}}" if labels else name
     for line in client.get("/metrics").text.splitlines():
-        if line.startswith(series + " "):
+        if line.startswith(series + " ") or without_site(line).startswith(series + " "):
             return float(line.split()[-1])
     if default is not None:
         return default
