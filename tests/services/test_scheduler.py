@@ -356,10 +356,10 @@ def test_metrics_export_aoi_selection_and_decision_count(make_harness) -> None:
 def test_the_policy_in_force_is_a_series(make_harness) -> None:
     h = make_harness("mat:70")
     text = h.client.get("/metrics").text
-    assert 'aoi3d_policy_info{kind="mat",spec="mat:70",site="site1"} 1.0' in text
+    assert 'aoi3d_policy_info{kind="mat",site="site1",spec="mat:70"} 1.0' in text
     assert metric(text, "aoi3d_policy_mat_seconds") == pytest.approx(0.07)
     assert h.client.put("/policy", json={"kind": "freshest", "k": 2}).status_code == 200
     text = h.client.get("/metrics").text
-    assert 'aoi3d_policy_info{kind="freshest",spec="freshest:2",site="site1"} 1.0' in text
+    assert 'aoi3d_policy_info{kind="freshest",site="site1",spec="freshest:2"} 1.0' in text
     assert "mat:70" not in text.split("aoi3d_policy_info")[-1].splitlines()[0]
     assert math.isnan(metric(text, "aoi3d_policy_mat_seconds"))
