@@ -64,6 +64,9 @@ class UpConfig:
     run_id: str = "default"
     time_scale: float = 0.1
     cameras: int = 18
+    sites: int = 1
+    """Sites of the run: ``site1`` … ``site<S>``, each with its own cameras (the scene at its
+    own phase), channel, policy and quality; one shared pool of workers."""
     workers: int = 1
     """Reconstruction workers of the pool (``python -m services.recon``, 1 torch thread each
     unless ``AOI3D_RECON_TORCH_THREADS`` says otherwise)."""
@@ -86,6 +89,11 @@ class UpConfig:
     def ports(self) -> dict[str, int]:
         """Every port the run listens on: ``router`` (Zenoh) and each service's REST port."""
         return {"router": self.zenoh_port, **{name: self.port(name) for name in SERVICES}}
+
+
+def site_names(n: int) -> list[str]:
+    """The sites of an ``n``-site run: ``site1`` … ``site<n>``."""
+    return [f"site{i}" for i in range(1, n + 1)]
 
 
 def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
@@ -204,6 +212,7 @@ class Supervisor:
             "AOI3D_EPOCH_S": repr(time.time()),
             "AOI3D_TIME_SCALE": repr(cfg.time_scale),
             "AOI3D_CAMERAS": str(cfg.cameras),
+            "AOI3D_SITES": ",".join(site_names(cfg.sites)),
             "AOI3D_DATASET": str(Path(cfg.dataset).resolve()),
             "AOI3D_ZENOH_MODE": "client",
             "AOI3D_ZENOH_CONNECT": endpoint,

@@ -50,6 +50,11 @@ def up(
              "keeps pace.")] = 0.1,
     run_id: Annotated[str, typer.Option(help="Run id: the <run> in every key expression.")]
     = "default",
+    sites: Annotated[int, typer.Option(
+        min=1, max=16,
+        help="Sites (turbines) of the run: site1 … siteS, each with its own cameras (the scene "
+             "at its own phase), channel, policy and quality, sharing the worker pool. Each "
+             "service's REST paths address site1; /sites/<site>/… any site.")] = 1,
     workers: Annotated[int, typer.Option(
         min=0, max=64,
         help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
@@ -86,6 +91,7 @@ def up(
                                  param_hint="'--port-offset'")
     folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
     cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale, workers=workers,
+                   sites=sites,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
                    duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
     taken = taken_ports(cfg)
@@ -118,6 +124,10 @@ def up(
         console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
                       "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
         sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
+        if sites > 1:
+            console.print(f"Sites: {', '.join(f'site{i}' for i in range(1, sites + 1))} — "
+                          f"e.g. http://127.0.0.1:{cfg.port('scheduler')}/sites/site2/policy",
+                          soft_wrap=True)
         console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
                       """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)
         console.print(f"Logs: {sup.log_dir}/<service>.log ({log_dir}/latest) · Prometheus "

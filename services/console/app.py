@@ -14,7 +14,7 @@ from fastapi.staticfiles import StaticFiles
 
 from services.console.settings import UPSTREAMS, Settings
 from services.console.worker import ConsoleWorker
-from services.kit.app import get_worker, service_app
+from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 
 STATIC = Path(__file__).parent / "static"
@@ -31,6 +31,8 @@ the page loads is served here: no CDN.
 
 Worker = Annotated[ConsoleWorker, Depends(get_worker)]
 router = APIRouter(tags=["console"])
+site_router = APIRouter(tags=["console"])
+"""What the page shows of one site: at the root for the first, under /sites/{site}."""
 
 
 @router.get("/", include_in_schema=False)
@@ -38,7 +40,7 @@ def page() -> FileResponse:
     return FileResponse(STATIC / "index.html", media_type="text/html")
 
 
-@router.get("/state", summary="What the page shows, now (the payload of each event).")
+@site_router.get("/state", summary="What the page shows, now (the payload of each event).")
 def state(worker: Worker) -> JSONResponse:
     return JSONResponse(worker.snapshot())
 
@@ -47,11 +49,12 @@ def state(worker: Worker) -> JSONResponse:
 def config(request: Request) -> dict[str, Any]:
     settings: Settings = request.app.state.settings
     return {"services": sorted(UPSTREAMS),
+            "sites": list(settings.common.sites),
             "push_period_s": settings.push_period_s,
             "token_required": settings.common.token() is not None}
 
 
-@router.get("/events", summary="Server-Sent Events: the state every push period.",
+@site_router.get("/events", summary="Server-Sent Events: the state every push period.",
             response_class=StreamingResponse)
 async def events(request: Request, worker: Worker) -> StreamingResponse:
     period = request.app.state.settings.push_period_s
@@ -71,21 +74,21 @@ def _png(data: bytes | None, what: str) -> Response:
     return Response(data, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
-@router.get("/render.png", summary="The latest render of the novel view.",
+@site_router.get("/render.png", summary="The latest render of the novel view.",
             response_class=Response, responses={404: {"description": "No render yet."}})
 def render_png(worker: Worker) -> Response:
     pair = worker.pair()
     return _png(None if pair is None else pair.render_png, "render")
 
 
-@router.get("/truth.png", summary="The ground truth of the latest render's simulated time.",
+@site_router.get("/truth.png", summary="The ground truth of the latest render's simulated time.",
             response_class=Response, responses={404: {"description": "No truth of that time."}})
 def truth_png(worker: Worker) -> Response:
     pair = worker.pair()
     return _png(None if pair is None else pair.truth_png, "truth frame of the render's time")
 
 
-@router.get("/diff.png", summary="|render − truth| of the latest pair as a heat map.",
+@site_router.get("/diff.png", summary="|render − truth| of the latest pair as a heat map.",
             response_class=Response, responses={404: {"description": "No pair yet."}})
 def diff_png(worker: Worker) -> Response:
     return _png(worker.diff_png(), "render and truth pair")
@@ -122,15 +125,17 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None) -> F
     common = settings.common
     token = common.token()
 
-    def build_worker(the_bus: Bus, registry) -> ConsoleWorker:
-        return ConsoleWorker(the_bus, registry, run_id=common.run_id,
+    def build_worker(the_bus: Bus, registry, site: str) -> ConsoleWorker:
+        return ConsoleWorker(the_bus, registry, run_id=common.run_id, site=site,
+                             poll_prefix="" if site == common.sites[0] else f"/sites/{site}",
                              upstream=settings.upstream,
                              headers={"authorization": f"Bearer {token}"} if token else {},
                              poll_period_s=settings.poll_period_s,
                              history_s=settings.history_s)
 
     app = service_app(title="aoi3d console", description=DESCRIPTION, settings=settings,
-                      build_worker=build_worker, bus=bus)
+                      build_worker=build_worker, bus=bus, per_site=True)
     app.include_router(router)
+    include_site_routers(app, site_router)
     app.mount("/static", StaticFiles(directory=STATIC), name="static")
     return app

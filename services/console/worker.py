@@ -27,7 +27,7 @@ from prometheus_client import CollectorRegistry, Counter
 from aoi3d.channel import parse_delay
 from services.kit.bus import Bus
 from services.kit.codec import decode_decision, decode_frame, decode_quality, decode_render
-from services.kit.keys import Keys
+from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Rejected, Rejections
 
 log = logging.getLogger(__name__)
@@ -53,11 +53,15 @@ class Pair:
 
 class ConsoleWorker:
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
-                 upstream: dict[str, str], headers: dict[str, str], period_ms: float = 30.0,
+                 upstream: dict[str, str], headers: dict[str, str], site: str = DEFAULT_SITE,
+                 poll_prefix: str = "", period_ms: float = 30.0,
                  poll_period_s: float = 1.0, history_s: float = 300.0,
                  timeout_s: float = 10.0) -> None:
         self._bus = bus
-        self._keys = Keys(run_id)
+        self._keys = Keys(run_id, site)
+        self.site = site
+        self._prefix = poll_prefix
+        """Before each polled path: "" for the first site, /sites/<site> for the others."""
         self.upstream = upstream
         self._period_ms = period_ms
         self._poll_period_s = poll_period_s
@@ -178,7 +182,7 @@ class ConsoleWorker:
 
     # ------------------------------------------------------------------ the services
     def _get(self, service: str, path: str) -> Any:
-        r = self._http.get(self.upstream[service] + path)
+        r = self._http.get(self.upstream[service] + self._prefix + path)
         r.raise_for_status()
         return r.json()
 

@@ -29,6 +29,12 @@ function facts(dl, pairs) {
 
 const fmt = (x, d = 1) => (x === null || x === undefined || Number.isNaN(x) ? "–" : Number(x).toFixed(d));
 
+// The site shown: ?site=<name> (the run's first site when absent); its pages and the per-site
+// services' calls go under /sites/<site>/ (the first site's also at the root).
+const SITE = new URLSearchParams(location.search).get("site");
+const base = () => (SITE ? `/sites/${encodeURIComponent(SITE)}` : "");
+const sitePath = (path) => (SITE ? `sites/${encodeURIComponent(SITE)}/${path}` : path);
+
 function headers() {
   const h = { "content-type": "application/json" };
   const token = localStorage.getItem("aoi3d-token");
@@ -67,8 +73,8 @@ function drawImages(s) {
   if (r.decision_id !== lastRender) {
     lastRender = r.decision_id;
     const q = `?d=${r.decision_id}`;
-    $("render").src = `/render.png${q}`;
-    if (r.truth_time_ms !== null) { $("truth").src = `/truth.png${q}`; $("diff").src = `/diff.png${q}`; }
+    $("render").src = `${base()}/render.png${q}`;
+    if (r.truth_time_ms !== null) { $("truth").src = `${base()}/truth.png${q}`; $("diff").src = `${base()}/diff.png${q}`; }
   }
 }
 
@@ -191,20 +197,26 @@ function policyBody() {
 
 async function applyPolicy() {
   try {
-    const p = await call("PUT", "scheduler", "policy", policyBody());
+    const p = await call("PUT", "scheduler", sitePath("policy"), policyBody());
     say("policy-msg", `policy ${p.spec}`, true);
   } catch (e) { say("policy-msg", e.message, false); }
 }
 
 async function applyDelay(spec) {
   try {
-    const c = await call("PUT", "network", "channel", { delay: spec });
+    const c = await call("PUT", "network", sitePath("channel"), { delay: spec });
     say("delay-msg", `delay ${c.delay}`, true);
   } catch (e) { say("delay-msg", e.message, false); }
 }
 
 async function setup() {
   const cfg = await (await fetch("/config")).json();
+  for (const name of cfg.sites || []) $("site").add(new Option(name, name));
+  $("site").value = SITE || (cfg.sites || [""])[0];
+  $("site-row").hidden = (cfg.sites || []).length < 2;
+  $("site").addEventListener("change", () => {
+    location.search = `?site=${encodeURIComponent($("site").value)}`;
+  });
   $("token-row").hidden = !cfg.token_required;
   $("token").value = localStorage.getItem("aoi3d-token") || "";
   $("token").addEventListener("change", () => localStorage.setItem("aoi3d-token", $("token").value));
@@ -213,7 +225,7 @@ async function setup() {
     for (const c of list.checkpoints) $("checkpoint").add(new Option(c, c));
   } catch (e) { $("checkpoint").add(new Option("(none found)", "")); }
   try {
-    const p = await call("GET", "scheduler", "policy");
+    const p = await call("GET", "scheduler", sitePath("policy"));
     $("kind").value = p.kind;
     if (p.kind === "mat") { $("mat").value = p.mat_ms; $("mat-value").textContent = p.mat_ms; }
     const t = await call("GET", "trainer", "status");  // its backends: the choices
@@ -239,7 +251,7 @@ async function setup() {
     catch (e) { say("model-msg", e.message, false); }
   });
 
-  const events = new EventSource("/events");
+  const events = new EventSource(`${base()}/events`);
   events.onopen = () => { $("conn").textContent = "live"; $("conn").className = "pill ok"; };
   events.onerror = () => { $("conn").textContent = "reconnecting…"; $("conn").className = "pill bad"; };
   events.onmessage = (ev) => draw(JSON.parse(ev.data));

@@ -1,0 +1,130 @@
+"""Two sites, one pool (issue 22, part 2): `aoi3d up --sites 2 --workers 2` on real processes
+and real Zenoh on 127.0.0.1. Quality flows for both sites, each site's policy changes on its
+own, and the console shows both."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+
+import pytest
+
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+from tests.integration.test_pipeline import (
+    HTTP,
+    assert_clean_exit,
+    small_dataset,  # noqa: F401  (module fixture)
+    stop_pipeline,
+    wait_for,
+)
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+PORT_OFFSET = 42_000 + (os.getpid() % 100) * 10
+ZENOH_PORT = 43_000 + os.getpid() % 1000
+SITES = ("site1", "site2")
+
+
+def url(service: str, path: str) -> str:
+    port = {"network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
+            "console": 8106}[service] + PORT_OFFSET
+    return f"http://127.0.0.1:{port}{path}"
+
+
+class SiteTap:
+    """Decisions and Quality of every site, by site (a Zenoh client on the run's keys)."""
+
+    def __init__(self, run_id: str) -> None:
+        import zenoh
+
+        from services.kit.settings import CommonSettings, zenoh_config
+
+        self.session = zenoh.open(zenoh_config(CommonSettings(
+            zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"])))
+        self.lock = threading.Lock()
+        self.decisions: dict[str, list[pb.Decision]] = {s: [] for s in SITES}
+        self.quality: dict[str, list[pb.Quality]] = {s: [] for s in SITES}
+        every = Keys(run_id, "*")
+        self.subs = [self.session.declare_subscriber(every.decision, self._on_decision),
+                     self.session.declare_subscriber(every.quality, self._on_quality)]
+
+    def _on_decision(self, sample) -> None:
+        with self.lock:
+            self.decisions[Keys.site_of(str(sample.key_expr))].append(
+                pb.Decision.FromString(sample.payload.to_bytes()))
+
+    def _on_quality(self, sample) -> None:
+        with self.lock:
+            self.quality[Keys.site_of(str(sample.key_expr))].append(
+                pb.Quality.FromString(sample.payload.to_bytes()))
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
+
+
+def test_two_sites_share_the_pool_and_change_policy_on_their_own(
+        small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+    run_id = f"sites{uuid.uuid4().hex[:8]}"
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
+           str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
+           "--time-scale", "0.1", "--sites", "2", "--workers", "2"]
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True, start_new_session=True)
+    tap = None
+    try:
+        wait_for("two workers", lambda: len(
+            HTTP.get(url("trainer", "/workers")).json()["workers"]) == 2, timeout_s=120)
+        tap = SiteTap(run_id)
+        for site in SITES:
+            wait_for(f"Quality of {site}", lambda s=site: len(tap.quality[s]) >= 2,
+                     timeout_s=120)
+        with tap.lock:
+            assert all(q.site == site for site in SITES for q in tap.quality[site])
+        assert HTTP.get(url("scheduler", "/sites")).json() == {"sites": list(SITES)}
+
+        # site2 selects nothing from now on; site1 keeps its policy
+        r = HTTP.put(url("scheduler", "/sites/site2/policy"), json={"kind": "mat", "mat_ms": 0})
+        assert r.status_code == 200, r.text
+        spec2 = r.json()["spec"]
+        spec1 = HTTP.get(url("scheduler", "/policy")).json()["spec"]
+        assert spec1 != spec2
+        with tap.lock:
+            n1, n2 = len(tap.decisions["site1"]), len(tap.decisions["site2"])
+        wait_for("decisions of both after the change", lambda: len(
+            tap.decisions["site1"]) > n1 + 5 and len(tap.decisions["site2"]) > n2 + 5)
+        with tap.lock:
+            after1, after2 = tap.decisions["site1"][n1 + 1:], tap.decisions["site2"][n2 + 1:]
+        assert {d.policy for d in after2} == {spec2} and all(not d.selected for d in after2)
+        assert {d.policy for d in after1} == {spec1} and any(d.selected for d in after1)
+        assert HTTP.get(url("scheduler", "/sites/site1/policy")).json()["spec"] == spec1
+        assert HTTP.get(url("scheduler", "/sites/nowhere/policy")).status_code == 404
+
+        # per-site REST and series, one pool
+        for site in SITES:
+            assert HTTP.get(url("metrics", f"/sites/{site}/quality")).json()["history"]
+            assert HTTP.get(url("trainer", f"/sites/{site}/status")).json()["site"] == site
+        by_site = HTTP.get(url("trainer", "/workers")).json()["by_site"]
+        assert all(by_site[s].get("rendered", 0) >= 1 for s in SITES), by_site
+        text = HTTP.get(url("metrics", "/metrics")).text
+        assert all(f'site="{s}"' in text for s in SITES)
+
+        # the console shows both sites: the list, and each site's own state
+        assert HTTP.get(url("console", "/config")).json()["sites"] == list(SITES)
+        for site in SITES:
+            state = wait_for(f"the console's {site}", lambda s=site: (st := HTTP.get(
+                url("console", f"/sites/{s}/state")).json())["quality"] and st, timeout_s=60)
+            assert state["policy"]["spec"] == (spec1 if site == "site1" else spec2)
+    finally:
+        if tap is not None:
+            tap.close()
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)
