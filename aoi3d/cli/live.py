@@ -108,7 +108,13 @@ class Pipeline:
     url_base: str = "http://127.0.0.1"
     port_offset: int = 0
     timeout_s: float = 30.0
+    site: str | None = None
+    """The site measured (``/sites/<site>/…``); None: the run's first site (today's paths)."""
     client: Any = field(default=None, repr=False)
+
+    RUN_LEVEL = frozenset({("trainer", "/reset"), ("trainer", "/backend"),
+                           ("trainer", "/carry"), ("trainer", "/workers")})
+    """Paths that are the run's, not a site's (the pool and its settings)."""
 
     def __post_init__(self) -> None:
         import httpx
@@ -118,6 +124,8 @@ class Pipeline:
         self.client = httpx.Client(timeout=self.timeout_s, headers=control_headers())
 
     def url(self, service: str, path: str) -> str:
+        if self.site and (service, path) not in self.RUN_LEVEL and not path.startswith("/ready"):
+            path = f"/sites/{self.site}{path}"
         return f"{self.url_base.rstrip('/')}:{SERVICE_PORTS[service] + self.port_offset}{path}"
 
     def call(self, method: str, service: str, path: str, **kw: Any) -> Any:
@@ -464,6 +472,9 @@ def sweep(
     = "http://127.0.0.1",
     port_offset: Annotated[int, typer.Option(
         help="Added to the services' default ports 8101..8105.")] = 0,
+    site: Annotated[str | None, typer.Option(
+        help="The site to measure (its policy, decisions and quality, /sites/<site>/…) while "
+             "the run's other sites go on; default: the run's first site.")] = None,
     out: Annotated[Path, typer.Option(help="Output folder (CSV, JSON, PNG).")]
     = Path("runs/live/sweep"),
     json_: Annotated[bool, typer.Option(
@@ -505,7 +516,14 @@ def sweep(
 
     canon = {s: parse_policy(s).spec for s in specs}
     proc = None
-    pipe = Pipeline(url_base, port_offset, timeout_s)
+    if site is not None:
+        from services.kit.keys import check_site
+
+        try:
+            check_site(site)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--site'") from None
+    pipe = Pipeline(url_base, port_offset, timeout_s, site)
     started = time.monotonic()
     try:
         if up:
@@ -566,6 +584,7 @@ def sweep(
         "interior_maximum": shape,
         "settings": {"policies": order, "settle_s": settle_s, "measure_s": measure_s,
                      "repeats": repeats, "reset_each": reset_each, "port_offset": port_offset,
+                     "site": site,
                      "carry": carry, "render_steps": render_steps,
                      "trainer_steps_per_s": steps_per_s, "channel": channel,
                      "backend": status1.get("backend")},

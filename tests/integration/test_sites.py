@@ -4,6 +4,7 @@ own, and the console shows both."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -17,6 +18,7 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.integration.test_pipeline import (
     HTTP,
+    SCALE,
     assert_clean_exit,
     small_dataset,  # noqa: F401  (module fixture)
     stop_pipeline,
@@ -123,6 +125,21 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
             state = wait_for(f"the console's {site}", lambda s=site: (st := HTTP.get(
                 url("console", f"/sites/{s}/state")).json())["quality"] and st, timeout_s=60)
             assert state["policy"]["spec"] == (spec1 if site == "site1" else spec2)
+
+        # `aoi3d live sweep --site site2` measures site2 while site1 goes on
+        sweep = subprocess.run(
+            [sys.executable, "-m", "aoi3d", "live", "sweep", "--site", "site2", "--policies",
+             "mat:70,all", "--settle-s", "1", "--measure-s", str(8 * SCALE), "--repeats", "1",
+             "--port-offset", str(PORT_OFFSET), "--no-sim", "--json",
+             "--out", str(tmp_path / "sweep"), "--dataset", str(small_dataset),
+             "--timeout-s", str(30 * SCALE)],
+            capture_output=True, text=True, timeout=300 * SCALE)
+        assert sweep.returncode == 0, sweep.stderr[-3000:]
+        doc = json.loads(sweep.stdout)
+        assert doc["settings"]["site"] == "site2"
+        assert [r["policy"] for r in doc["results"]] == ["mat:70", "all"]
+        assert all(r["n"] >= 1 for r in doc["results"]), doc["results"]
+        assert HTTP.get(url("scheduler", "/policy")).json()["spec"] == spec1  # untouched
     finally:
         if tap is not None:
             tap.close()
