@@ -12,8 +12,8 @@
 # zenoh_tls_<name>_key, signed by the CA, valid for DNS:<name>, DNS:localhost, IP:127.0.0.1,
 # IP:::1 and any names in AOI3D_ZENOH_TLS_SANS (e.g. "DNS:host-a,IP:10.0.0.5" for routers
 # reached across hosts). For compose's default router: zenoh_tls_router_cert and
-# zenoh_tls_router_key. Also a client certificate (zenoh_tls_client_cert/_key, for mutual
-# TLS). Kept if present too; a certificate the CA in DIR did not sign is made again. To
+# zenoh_tls_router_key. Also a client certificate for mutual TLS (zenoh_tls_client_cert,
+# zenoh_tls_client_key). Kept if present too; a certificate the CA in DIR did not sign is made again. To
 # change the names of an existing certificate, delete it and run this again.
 set -euo pipefail
 dir=${1:-${AOI3D_SECRETS_DIR:-$(dirname "$0")/secrets}}
