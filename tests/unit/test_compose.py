@@ -462,7 +462,7 @@ def secrets_problems(doc: dict[str, Any]) -> list[str]:
         if secret not in script:
             problems.append(f"secret {secret}: deploy/secrets.sh does not write it")
     for name, service in doc["services"].items():
-        for var, value in environment(service).items():
+        for value in environment(service).values():
             if value.startswith("/run/secrets/"):
                 problems += secret_file_problems(doc, name, value)
     for name, service in aoi3d_services(doc).items():
