@@ -2,7 +2,8 @@
 
 No zenohd binary ships with PyPI or Debian; a Python session in router mode is a working
 router. Multicast scouting is off; it listens only on the configured endpoints
-(``AOI3D_ROUTER_LISTEN``, default ``tcp/127.0.0.1:7447``).
+(``AOI3D_ROUTER_LISTEN``, default ``tcp/127.0.0.1:7447``; ``tls/host:port`` with
+``AOI3D_ZENOH_TLS_CERT``/``_KEY``, as compose.yaml runs it).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from services.kit.settings import CommonSettings, Endpoints, _split_endpoints
+from services.kit.settings import CommonSettings, Endpoints, _split_endpoints, insert_tls
 
 log = logging.getLogger("aoi3d.router")
 
@@ -38,14 +39,17 @@ def router_config(settings: RouterSettings, common: CommonSettings | None = None
     """The router's Zenoh config. With Zenoh credentials configured (``AOI3D_ZENOH_USER`` and
     a password, as the services read them) it accepts only sessions that present them: the
     usrpwd dictionary is written, readable by this user only, to ``secrets_dir`` (a fresh
-    temporary folder by default)."""
+    temporary folder by default). On ``tls/`` endpoints it presents ``AOI3D_ZENOH_TLS_CERT``
+    (and with ``AOI3D_ZENOH_TLS_MTLS`` accepts only sessions whose certificate the root CA
+    signed)."""
     import zenoh
 
     conf = zenoh.Config()
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
-    credentials = (common or CommonSettings()).zenoh_credentials()
+    common = common or CommonSettings()
+    credentials = common.zenoh_credentials()
     if credentials is not None:
         user, password = credentials
         folder = secrets_dir or Path(tempfile.mkdtemp(prefix="aoi3d-router-"))
@@ -55,6 +59,7 @@ def router_config(settings: RouterSettings, common: CommonSettings | None = None
         conf.insert_json5("transport/auth/usrpwd/dictionary_file", json.dumps(str(dictionary)))
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(user))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(password))
+    insert_tls(conf, common.zenoh_tls(settings.listen))
     return conf
 
 
@@ -67,10 +72,13 @@ def main() -> None:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
-    with zenoh.open(router_config(settings)) as session:
+    common = CommonSettings()
+    with zenoh.open(router_config(settings, common)) as session:
+        guards = [*(["user/password authentication"] if common.zenoh_credentials() else []),
+                  *(["mutual TLS"] if common.zenoh_tls_mtls else
+                    ["TLS"] if any(e.startswith("tls/") for e in settings.listen) else [])]
         log.info("Zenoh router %s listening on %s%s", session.zid(), ", ".join(settings.listen),
-                 " (user/password authentication)"
-                 if CommonSettings().zenoh_credentials() else "")
+                 f" ({', '.join(guards)})" if guards else "")
         stop.wait()
         log.info("router stopping")
 

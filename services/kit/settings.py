@@ -70,6 +70,21 @@ class CommonSettings(BaseSettings):
     zenoh_password_file: Path | None = Field(
         None, description="A file holding the Zenoh password (compose secrets); wins over "
                           "AOI3D_ZENOH_PASSWORD.")
+    zenoh_tls_root_ca: Path | None = Field(
+        None, description="Zenoh TLS: the CA certificate (PEM) a session checks the router's "
+                          "certificate against on `tls/` endpoints (name or IP of the endpoint "
+                          "must be in its SANs); with mutual TLS the router checks the "
+                          "sessions' certificates against it too. Unset: plain `tcp/` only.")
+    zenoh_tls_cert: Path | None = Field(
+        None, description="Zenoh TLS: this process's certificate (PEM, signed by the CA): a "
+                          "`tls/` listener (the router) presents it; with mutual TLS a "
+                          "connecting session presents it too.")
+    zenoh_tls_key: Path | None = Field(
+        None, description="Zenoh TLS: the private key (PEM) of AOI3D_ZENOH_TLS_CERT.")
+    zenoh_tls_mtls: bool = Field(
+        False, description="Zenoh mutual TLS: the router accepts only sessions that present a "
+                           "certificate signed by AOI3D_ZENOH_TLS_ROOT_CA, and sessions "
+                           "present AOI3D_ZENOH_TLS_CERT.")
     stall_s: float = Field(
         30.0, gt=0, le=3600,
         description="Readiness that tells the truth: a service alive but not doing its job for "
@@ -110,6 +125,34 @@ class CommonSettings(BaseSettings):
             raise ValueError("Zenoh authentication needs both AOI3D_ZENOH_USER and a password "
                              "(AOI3D_ZENOH_PASSWORD or AOI3D_ZENOH_PASSWORD_FILE)")
         return self.zenoh_user, password
+
+    def zenoh_tls(self, listen: list[str]) -> dict[str, object]:
+        """The ``transport/link/tls`` keys of a Zenoh config listening on ``listen`` ({} when no
+        TLS setting is given). A clear error when a ``tls/`` listener lacks its certificate
+        and key, or mutual TLS lacks one of its three files."""
+        files = {"root_ca_certificate": self.zenoh_tls_root_ca,
+                 "listen_certificate": self.zenoh_tls_cert,
+                 "listen_private_key": self.zenoh_tls_key}
+        if self.zenoh_tls_mtls:
+            files |= {"connect_certificate": self.zenoh_tls_cert,
+                      "connect_private_key": self.zenoh_tls_key}
+        if self.zenoh_tls_mtls and None in files.values():
+            raise ValueError("Zenoh mutual TLS needs AOI3D_ZENOH_TLS_ROOT_CA, "
+                             "AOI3D_ZENOH_TLS_CERT and AOI3D_ZENOH_TLS_KEY")
+        if (any(e.startswith("tls/") for e in listen)
+                and (self.zenoh_tls_cert is None or self.zenoh_tls_key is None)):
+            raise ValueError("a Zenoh tls/ listener needs AOI3D_ZENOH_TLS_CERT and "
+                             "AOI3D_ZENOH_TLS_KEY")
+        if (self.zenoh_tls_cert is None) != (self.zenoh_tls_key is None):
+            raise ValueError("AOI3D_ZENOH_TLS_CERT and AOI3D_ZENOH_TLS_KEY go together")
+        out: dict[str, object] = {key: str(path) for key, path in files.items()
+                                  if path is not None}
+        for path in {p for p in files.values() if p is not None}:
+            if not path.is_file():
+                raise ValueError(f"Zenoh TLS: {path} is not a file")
+        if out:
+            out["enable_mtls"] = self.zenoh_tls_mtls
+        return out
 
     def token(self) -> str | None:
         """The control token in force (from the file when one is named), None when open."""
@@ -155,7 +198,8 @@ class ServiceSettings(BaseSettings):
 
 def zenoh_config(common: CommonSettings, *, mode: str | None = None,
                  listen: list[str] | None = None, connect: list[str] | None = None):
-    """Build a ``zenoh.Config``: explicit endpoints, multicast scouting off."""
+    """Build a ``zenoh.Config``: explicit endpoints, multicast scouting off, usrpwd and TLS
+    when configured (``tls/`` endpoints need :attr:`CommonSettings.zenoh_tls_root_ca`)."""
     import zenoh
 
     conf = zenoh.Config()
@@ -171,7 +215,15 @@ def zenoh_config(common: CommonSettings, *, mode: str | None = None,
     if credentials is not None:
         conf.insert_json5("transport/auth/usrpwd/user", json.dumps(credentials[0]))
         conf.insert_json5("transport/auth/usrpwd/password", json.dumps(credentials[1]))
+    insert_tls(conf, common.zenoh_tls(lst))
     return conf
+
+
+def insert_tls(conf, tls: dict[str, object]) -> None:
+    """Write :meth:`CommonSettings.zenoh_tls`'s keys under ``transport/link/tls`` (Zenoh's own
+    names: a misspelt key raises)."""
+    for key, value in tls.items():
+        conf.insert_json5(f"transport/link/tls/{key}", json.dumps(value))
 
 
 def repo_root() -> Path:

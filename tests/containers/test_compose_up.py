@@ -5,7 +5,9 @@ Real containers on a real Docker engine (``deploy/engine.sh``), from the images 
 The stack runs as its own compose project with its own published ports, run id and secrets,
 so it does not collide with a stack a developer has up. Everything is checked through the
 published ports, as a user would: every healthcheck passes, Quality flows, ``PUT /policy``
-changes the decisions, Prometheus scrapes every target, a trainer whose process is killed is
+changes the decisions, Prometheus scrapes every target, Zenoh is mutual TLS (a client with the
+CA and a client certificate joins and receives the run's samples; without the CA, without a
+certificate, with another CA or on plain TCP it cannot), a trainer whose process is killed is
 restarted, and ``docker compose down -v`` leaves no container, network or volume behind.
 
 Grafana is not run (no registry has its image on this project's machines); its provisioning is
@@ -82,6 +84,7 @@ class Stack:
                     "AOI3D_RUN_ID": PROJECT,
                     "COMPOSE_PROJECT_NAME": PROJECT}
         self.env.setdefault("AOI3D_PROMETHEUS_IMAGE", "aoi3d-prometheus:debian")
+        self.secrets_dir = secrets_dir
         self.token = (secrets_dir / "control_token").read_text(encoding="utf-8").strip()
 
     def compose(self, *args: str, timeout_s: float = 120.0,
@@ -203,6 +206,58 @@ def test_prometheus_scrapes_every_target(stack: Stack) -> None:
     rules = HTTP.get(url("prometheus", "/api/v1/rules")).json()["data"]["groups"]
     rule_files = sorted((ROOT / "deploy" / "prometheus").glob("rules/*.yml"))
     assert bool(rules) == bool(rule_files), (rules, rule_files)  # the mounted rules load
+
+
+def test_zenoh_is_mutual_tls_on_the_published_port(stack: Stack, tmp_path: Path) -> None:
+    """The router listens on tls/ only and checks client certificates: a host-side client with
+    `make secrets`' CA, client certificate and password receives the pipeline's samples; one
+    without the CA, without a certificate, with another CA's files or on tcp/ cannot open."""
+    import threading
+
+    import zenoh
+
+    from services.kit.settings import CommonSettings, zenoh_config
+
+    sec = stack.secrets_dir
+    other = tmp_path / "other-secrets"
+    subprocess.run([str(ROOT / "deploy" / "secrets.sh"), str(other)], check=True,
+                   capture_output=True)
+    endpoint = f"tls/127.0.0.1:{PORTS['ZENOH']}"
+
+    def session(endpoint: str = endpoint, folder: Path = sec, ca: bool = True,
+                cert: bool = True):
+        common = CommonSettings(
+            zenoh_connect=[endpoint], zenoh_mode="client",
+            zenoh_user=stack.env.get("AOI3D_ZENOH_USER", "aoi3d"),
+            zenoh_password_file=sec / "zenoh_password",
+            zenoh_tls_root_ca=folder / "zenoh_tls_ca" if ca else None,
+            zenoh_tls_cert=folder / "zenoh_tls_client_cert" if cert else None,
+            zenoh_tls_key=folder / "zenoh_tls_client_key" if cert else None,
+            zenoh_tls_mtls=ca and cert)
+        conf = zenoh_config(common)
+        conf.insert_json5("connect/timeout_ms", json.dumps(int(5000 * SCALE)))
+        return zenoh.open(conf)
+
+    arrived = threading.Event()
+    keys: list[str] = []
+    good = session()
+    try:
+        sub = good.declare_subscriber(f"aoi3d/{PROJECT}/**",
+                                      lambda s: (keys.append(str(s.key_expr)), arrived.set()))
+        assert arrived.wait(60 * SCALE), "no sample of the run within the wait"
+        sub.undeclare()
+    finally:
+        good.close()
+    assert keys[0].startswith(f"aoi3d/{PROJECT}/"), keys[:3]
+    refused = {"no CA": {"ca": False, "cert": False}, "no client certificate": {"cert": False},
+               "another CA's files": {"folder": other},
+               "plain tcp": {"endpoint": f"tcp/127.0.0.1:{PORTS['ZENOH']}"}}
+    for what, kwargs in refused.items():
+        with pytest.raises(zenoh.ZError):
+            session(**kwargs).close()
+            pytest.fail(f"a client with {what} joined the compose router")
+    logs = stack.compose("logs", "router").stdout
+    assert "tls/0.0.0.0:7447 (user/password authentication, mutual TLS)" in logs, logs[-2000:]
 
 
 def test_a_killed_trainer_is_restarted(stack: Stack) -> None:

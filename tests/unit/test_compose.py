@@ -297,7 +297,7 @@ def env_problems(doc: dict[str, Any], tolerate: frozenset[str] = frozenset()) ->
 
 
 def shared_env_problems(doc: dict[str, Any]) -> list[str]:
-    """The five services agree on the run (CommonSettings) and reach the router."""
+    """The five services agree on the run (CommonSettings) and reach the router over TLS."""
     problems = []
     common_vars = env_names(CommonSettings)
     envs = {n: environment(doc["services"][n]) for n in SERVICES if n in doc["services"]}
@@ -307,19 +307,45 @@ def shared_env_problems(doc: dict[str, Any]) -> list[str]:
             problems.append(f"{var} differs between services: {values}")
     router = doc["services"].get("router", {})
     listen = environment(router).get("AOI3D_ROUTER_LISTEN", "")
-    m = re.fullmatch(r"tcp/0\.0\.0\.0:(\d+)", listen)
+    m = re.fullmatch(r"tls/0\.0\.0\.0:(\d+)", listen)
     if m is None:
-        problems.append(f"router: AOI3D_ROUTER_LISTEN={listen!r}, want tcp/0.0.0.0:<port>")
+        problems.append(f"router: AOI3D_ROUTER_LISTEN={listen!r}, want tls/0.0.0.0:<port>")
         return problems
     zenoh_port = int(m[1])
     if f"('127.0.0.1', {zenoh_port})" not in healthcheck_code(router):
         problems.append(f"router: healthcheck does not connect to 127.0.0.1:{zenoh_port}")
     for n, env in envs.items():
-        if env.get("AOI3D_ZENOH_CONNECT") != f"tcp/router:{zenoh_port}":
+        if env.get("AOI3D_ZENOH_CONNECT") != f"tls/router:{zenoh_port}":
             problems.append(f"{n}: AOI3D_ZENOH_CONNECT={env.get('AOI3D_ZENOH_CONNECT')!r}, "
-                            f"want tcp/router:{zenoh_port}")
+                            f"want tls/router:{zenoh_port}")
         if env.get("AOI3D_ZENOH_MODE") != "client":
             problems.append(f"{n}: AOI3D_ZENOH_MODE must be client (the router is separate)")
+    return problems
+
+
+TLS_SECRETS = {"AOI3D_ZENOH_TLS_ROOT_CA": "zenoh_tls_ca",
+               "AOI3D_ZENOH_TLS_CERT": "zenoh_tls_{}_cert",
+               "AOI3D_ZENOH_TLS_KEY": "zenoh_tls_{}_key"}
+"""The TLS files of a Zenoh peer in compose (``{}``: ``router`` for the router, ``client``
+for the services), as deploy/secrets.sh names them."""
+
+
+def tls_problems(doc: dict[str, Any]) -> list[str]:
+    """Every Zenoh peer runs mutual TLS with the secrets `make secrets` writes: the router
+    its own certificate (its service name is in its SANs), the services the client one."""
+    problems = []
+    for name, service in aoi3d_services(doc).items():
+        env = environment(service)
+        who = "router" if name == "router" else "client"
+        for var, secret in TLS_SECRETS.items():
+            want = f"/run/secrets/{secret.format(who)}"
+            if env.get(var) != want:
+                problems.append(f"{name}: {var}={env.get(var)!r}, want {want}")
+        if env.get("AOI3D_ZENOH_TLS_MTLS") != "true":
+            problems.append(f"{name}: AOI3D_ZENOH_TLS_MTLS is not true")
+    script = SECRETS_SCRIPT.read_text(encoding="utf-8")
+    if "router" in doc["services"] and "${AOI3D_ZENOH_ROUTERS:-router}" not in script:
+        problems.append("deploy/secrets.sh does not make a certificate for the router service")
     return problems
 
 
@@ -435,8 +461,8 @@ def secrets_problems(doc: dict[str, Any]) -> list[str]:
         if secret not in script:
             problems.append(f"secret {secret}: deploy/secrets.sh does not write it")
     for name, service in doc["services"].items():
-        for var, value in environment(service).items():
-            if var.endswith("_FILE") and value.startswith("/run/secrets/"):
+        for value in environment(service).values():
+            if value.startswith("/run/secrets/"):
                 problems += secret_file_problems(doc, name, value)
     for name, service in aoi3d_services(doc).items():
         env = environment(service)
@@ -887,6 +913,21 @@ def test_compose_environment_is_accepted_by_the_settings(compose, monkeypatch, n
     assert settings.common.zenoh_connect == [env["AOI3D_ZENOH_CONNECT"]]
     assert settings.common.run_id == env["AOI3D_RUN_ID"]
     assert str(settings.common.dataset) == env["AOI3D_DATASET"]
+
+
+def test_zenoh_runs_over_mutual_tls(compose):
+    assert tls_problems(compose) == []
+    broken = copy.deepcopy(compose)
+    s = broken["services"]
+    s["router"]["environment"]["AOI3D_ROUTER_LISTEN"] = "tcp/0.0.0.0:7447"
+    s["camera"]["environment"] = {**s["camera"]["environment"],
+                                  "AOI3D_ZENOH_TLS_CERT": "/run/secrets/zenoh_tls_router_cert"}
+    s["metrics"]["environment"] = {**s["metrics"]["environment"], "AOI3D_ZENOH_TLS_MTLS": False}
+    s["trainer"]["secrets"] = ["control_token", "zenoh_password"]
+    assert any("want tls/0.0.0.0" in p for p in shared_env_problems(broken))
+    assert any("camera: AOI3D_ZENOH_TLS_CERT" in p for p in tls_problems(broken))
+    assert any("metrics: AOI3D_ZENOH_TLS_MTLS" in p for p in tls_problems(broken))
+    assert any("trainer: reads /run/secrets/zenoh_tls_ca" in p for p in secrets_problems(broken))
 
 
 def test_dataset_job_feeds_camera_and_trainer(compose):
