@@ -49,8 +49,8 @@ PORTS = {name: PORT_BASE + i for i, name in enumerate(TARGET_PORTS)}
 """Published ports of this run (compose.yaml's AOI3D_PORT_<NAME>)."""
 PROJECT = f"aoi3d-test-{os.getpid()}"
 HAS_CONSOLE = (ROOT / "services" / "console" / "__main__.py").is_file()
-SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "metrics",
-            "prometheus", *(["console"] if HAS_CONSOLE else [])]
+SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "recon",
+            "metrics", "prometheus", *(["console"] if HAS_CONSOLE else [])]
 """What `up` starts: everything but Grafana; the console once it exists in the code."""
 
 
@@ -145,12 +145,12 @@ def test_every_healthcheck_passes(stack: Stack) -> None:
             assert state["Status"] == "exited" and state["ExitCode"] == 0, state
         else:
             assert state["Health"]["Status"] == "healthy", (service, state["Health"])
-    # limits reach the engine, and the trainer's torch threads follow its CPU limit
-    cpus = int(stack.env.get("AOI3D_TRAINER_CPUS", "2"))
-    host = stack.inspect("trainer")["HostConfig"]
+    # limits reach the engine, and a worker's torch threads follow its CPU limit
+    cpus = int(stack.env.get("AOI3D_RECON_CPUS", "1"))
+    host = stack.inspect("recon")["HostConfig"]
     assert host["NanoCpus"] == cpus * 10**9 and host["Memory"] > 0, host
-    env = dict(e.split("=", 1) for e in stack.inspect("trainer")["Config"]["Env"])
-    assert env["AOI3D_TRAINER_TORCH_THREADS"] == str(cpus)
+    env = dict(e.split("=", 1) for e in stack.inspect("recon")["Config"]["Env"])
+    assert env["AOI3D_RECON_TORCH_THREADS"] == str(cpus)
     for service in SERVICES:
         limits = stack.inspect(service)["HostConfig"]
         assert limits["NanoCpus"] > 0 and limits["Memory"] > 0, (service, limits)
