@@ -7,8 +7,9 @@
 # (aoi3d, nobody, grafana) do not own them.
 #
 # Zenoh TLS (openssl): a private CA (zenoh_tls_ca, its key zenoh_tls_ca_key, which no
-# container gets) and, per router name in AOI3D_ZENOH_ROUTERS (default "router", the router
-# service's DNS name in compose.yaml), a certificate zenoh_tls_<name>_cert with its key
+# container gets) and, per router name in AOI3D_ZENOH_ROUTERS (default "router,router-edge,
+# router-a,router-b": the routers' DNS names in compose.yaml and compose.multihost.yaml), a
+# certificate zenoh_tls_<name>_cert with its key
 # zenoh_tls_<name>_key, signed by the CA, valid for DNS:<name>, DNS:localhost, IP:127.0.0.1,
 # IP:::1 and any names in AOI3D_ZENOH_TLS_SANS (e.g. "DNS:host-a,IP:10.0.0.5" for routers
 # reached across hosts). For compose's default router: zenoh_tls_router_cert and
@@ -69,7 +70,7 @@ leaf() {
     echo "secrets: wrote $cert and its key" >&2
 }
 
-routers=${AOI3D_ZENOH_ROUTERS:-router}
+routers=${AOI3D_ZENOH_ROUTERS:-router,router-edge,router-a,router-b}
 for router in ${routers//,/ }; do
     case $router in
         client|ca|ca_key) echo "secrets: '$router' cannot be a router name" >&2; exit 2 ;;

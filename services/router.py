@@ -28,9 +28,14 @@ class RouterSettings(BaseSettings):
 
     listen: Endpoints = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
                               description="Endpoints the router listens on.")
+    connect: Endpoints = Field(
+        default_factory=list,
+        description="Other routers this one connects to (comma-separated): a mesh of hosts, "
+                    "each with its own router (compose.multihost.yaml). Zenoh retries a "
+                    "lost link by itself.")
     log_level: str = Field("INFO", description="Python logging level.")
 
-    _split = field_validator("listen", mode="before")(
+    _split = field_validator("listen", "connect", mode="before")(
         classmethod(lambda cls, v: _split_endpoints(v)))
 
 
@@ -48,6 +53,8 @@ def router_config(settings: RouterSettings, common: CommonSettings | None = None
     conf.insert_json5("mode", '"router"')
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    if settings.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
     common = common or CommonSettings()
     credentials = common.zenoh_credentials()
     if credentials is not None:

@@ -175,9 +175,11 @@ def test_make_secrets_certificates(tmp_path: Path) -> None:
         assert san in text, text
     assert oct((folder / "zenoh_tls_ca_key").stat().st_mode & 0o777) == "0o600"
     before = {p.name: p.read_bytes() for p in folder.iterdir()}
-    make_secrets(folder)
+    make_secrets(folder, AOI3D_ZENOH_ROUTERS="router,router-b")
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
     other = make_secrets(tmp_path / "o")
+    for name in ("router", "router-edge", "router-a", "router-b"):  # both compose files'
+        assert (other / f"zenoh_tls_{name}_cert").is_file()
     foreign = (other / "zenoh_tls_router_cert").read_bytes()
     (folder / "zenoh_tls_router_cert").write_bytes(foreign)
     make_secrets(folder)

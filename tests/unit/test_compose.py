@@ -1128,3 +1128,54 @@ def test_new_checks_catch_a_broken_deployment(compose):
     assert any("make lock" in p for p in lock_problems(stale))
     unhashed = re.sub(r"(numpy==\S+) \\\n    --hash=sha256:[0-9a-f]{64}", r"\1", lock)
     assert any("have no sha256" in p for p in lock_problems(unhashed))
+
+
+# ---------------------------------------------------------------- compose.multihost.yaml
+MULTIHOST_FILE = ROOT / "compose.multihost.yaml"
+
+
+def multihost_problems(doc: dict[str, Any]) -> list[str]:
+    """Three hosts joined router to router only: every aoi3d process reaches its own host's
+    router, the workers run on worker hosts only, only routers are on the mesh, and every
+    router but the edge's connects to the edge router."""
+    problems = []
+    services = doc["services"]
+    hosts = {"edge": "router-edge", "host-a": "router-a", "host-b": "router-b"}
+    for name, service in services.items():
+        nets = set(service.get("networks") or [])
+        if name.startswith("router-"):
+            if "mesh" not in nets or len(nets) != 2:
+                problems.append(f"{name}: a router is on its host's network and the mesh only")
+            connect = environment(service).get("AOI3D_ROUTER_CONNECT")
+            if name != "router-edge" and connect != "tls/router-edge:7447":
+                problems.append(f"{name}: must connect to tls/router-edge:7447, not {connect}")
+            continue
+        if "mesh" in nets:
+            problems.append(f"{name}: only routers are on the mesh")
+        if len(nets) != 1:
+            problems.append(f"{name}: on one host's network, not {sorted(nets)}")
+            continue
+        (net,) = nets
+        if name == "dataset":
+            continue
+        connect = environment(service).get("AOI3D_ZENOH_CONNECT")
+        if connect != f"tls/{hosts[net]}:7447":
+            problems.append(f"{name}: on {net} but connects to {connect}")
+        if command(service)[2:3] == ["services.recon"] and net == "edge":
+            problems.append(f"{name}: a reconstruction worker on the edge host")
+    return problems
+
+
+def test_multihost_file_follows_the_specification_and_reads_real_settings(schema):
+    doc = _yaml(MULTIHOST_FILE)
+    assert schema_problems(doc, schema) == []
+    assert env_problems(doc) == []
+    assert multihost_problems(doc) == []
+    broken = copy.deepcopy(doc)
+    broken["services"]["recon-a"]["networks"] = ["edge"]
+    broken["services"]["camera"]["networks"] = ["edge", "mesh"]
+    broken["services"]["router-b"]["environment"]["AOI3D_ROUTER_CONNECT"] = "tls/router-a:7447"
+    found = multihost_problems(broken)
+    assert any("recon-a: on edge but connects to tls/router-a" in p for p in found), found
+    assert any("camera: only routers are on the mesh" in p for p in found), found
+    assert any("router-b: must connect" in p for p in found), found
