@@ -182,9 +182,11 @@ def test_workers_on_two_hosts_a_cut_and_a_router_restart(hosts: Hosts) -> None:
     lost_before = before["lost"].get("worker_died", 0)
     h.run("docker", "network", "disconnect", mesh, router_a)
     t_cut = h.now_ms()
-    gone = wait_for("worker-a gone from the pool", lambda: (
-        p := h.workers()) if "worker-a" not in {w["host"] for w in p["workers"]} else None,
-        timeout_s=LEASE_S + 60)
+    def without_a() -> dict[str, Any] | None:
+        pool = h.workers()
+        return pool if "worker-a" not in {w["host"] for w in pool["workers"]} else None
+
+    gone = wait_for("worker-a gone from the pool", without_a, timeout_s=LEASE_S + 60)
     lost = gone["lost"].get("worker_died", 0) - lost_before
     assert lost <= 1, gone["lost"]
     if held is not None:  # it held a decision at the cut: that one, and only it, is lost
