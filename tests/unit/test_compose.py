@@ -344,8 +344,12 @@ def tls_problems(doc: dict[str, Any]) -> list[str]:
         if env.get("AOI3D_ZENOH_TLS_MTLS") != "true":
             problems.append(f"{name}: AOI3D_ZENOH_TLS_MTLS is not true")
     script = SECRETS_SCRIPT.read_text(encoding="utf-8")
-    if "router" in doc["services"] and "${AOI3D_ZENOH_ROUTERS:-router}" not in script:
-        problems.append("deploy/secrets.sh does not make a certificate for the router service")
+    defaults = re.search(r"\$\{AOI3D_ZENOH_ROUTERS:-([^}]*)\}", script)
+    made = set(defaults[1].split(",")) if defaults else set()
+    for router in (n for n in doc["services"] if n == "router" or n.startswith("router-")):
+        if router not in made:
+            problems.append(f"deploy/secrets.sh does not make a certificate for the {router} "
+                            "service")
     return problems
 
 
