@@ -53,7 +53,7 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine
-	$(PY) bench/trainer_restart.py
+	$(PY) bench/scale.py
 	$(PY) bench/soak.py --minutes 30
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)

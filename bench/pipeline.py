@@ -121,7 +121,6 @@ def main() -> None:
         "camera_ticks_skipped_per_s": rate("camera", "aoi3d_camera_ticks_skipped_total"),
         "decisions_skipped_per_s": rate("scheduler", "aoi3d_decisions_skipped_total"),
         "trainer_decisions_applied_per_s": rate("trainer", "aoi3d_trainer_decisions_total"),
-        "trainer_inbox_overflow_per_s": rate("trainer", "aoi3d_trainer_inbox_overflow_total"),
         "trainer_steps_per_decision": (rate("trainer", "aoi3d_trainer_steps_total")
                                        / max(rate("scheduler", "aoi3d_decisions_total"), 1e-9)),
         "mean_cameras_selected_at_end": last["scheduler"].get("aoi3d_cameras_selected"),

@@ -20,13 +20,11 @@ them to the bus (the site of a message is its key's ``<site>`` chunk):
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 
 import numpy as np
 from prometheus_client import CollectorRegistry
-from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
@@ -34,6 +32,7 @@ from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
+from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
 from services.trainer.pool import Assignment, Dispatcher, PoolStatus
 from services.trainer.settings import Settings
 from services.trainer.state import CarryError, LatestRender, TrainerStatus
@@ -42,7 +41,6 @@ log = logging.getLogger(__name__)
 
 _TICK_S = 0.1
 _STOP_JOIN_S = 2.0
-RATE_WINDOW_S = 5.0
 
 
 class TrainerWorker:
@@ -284,118 +282,4 @@ class TrainerWorker:
                 resets=self.resets, running=self.running(), pool=pool)
 
 
-__all__ = ["CarryError", "PoolCollector", "TrainerWorker"]
-
-
-class PoolCollector:
-    """The trainer's Prometheus series, read from the core at scrape time."""
-
-    def __init__(self, worker: TrainerWorker) -> None:
-        self._worker = worker
-
-    def describe(self):
-        return []
-
-    def collect(self):
-        w = self._worker
-        with w._lock:
-            pool = w.pool.status(time.time())
-            sites = []
-            for site, c in w.cores.items():
-                latest = c.latest
-                sites.append((site, dict(
-                    decisions=c.decisions_applied, received=c.frames_received,
-                    missing=c.frames_missing, renders=c.renders_seen, steps=c.steps_total,
-                    loss=c.loss, views=c.n_views, render_steps=c.last_render_steps,
-                    lag_s=c.render_lag_ms / 1000.0, frames_age_s=c.frames_age_ms / 1000.0,
-                    age_s=latest.age_s if latest is not None else None)))
-            wait_sum, age_sum = w.pool.wait_sum_s, w.pool.age_sum_s
-
-        def one(family, value: float | None):
-            family.add_metric([], math.nan if value is None else value)
-            return family
-
-        def each(family, samples):
-            for labels, value in samples:
-                family.add_metric(labels, math.nan if value is None else value)
-            return family
-
-        def by_site(field: str) -> list:
-            return [([site], v[field]) for site, v in sites]
-
-        yield each(CounterMetricFamily(
-            "aoi3d_trainer_decisions", "Decisions taken (each offered to the pool).",
-            labels=["site"]), by_site("decisions"))
-        yield each(CounterMetricFamily(
-            "aoi3d_trainer_frames_received",
-            "Delivered frames accepted into the per-camera buffers.", labels=["site"]),
-            by_site("received"))
-        yield each(CounterMetricFamily(
-            "aoi3d_trainer_frames_missing",
-            "Selected frames the trainer never received (left out of the job).",
-            labels=["site"]), by_site("missing"))
-        yield each(CounterMetricFamily(
-            "aoi3d_renders", "Novel-view renders published by the pool's workers.",
-            labels=["site"]), by_site("renders"))
-        yield each(CounterMetricFamily(
-            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
-            labels=["site"]), by_site("steps"))
-        yield one(GaugeMetricFamily(
-            "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
-            f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
-        yield each(GaugeMetricFamily(
-            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
-            labels=["site"]), by_site("loss"))
-        yield each(GaugeMetricFamily(
-            "aoi3d_trainer_views", "Frames the latest render trained on.", labels=["site"]),
-            by_site("views"))
-        yield each(GaugeMetricFamily(
-            "aoi3d_render_steps", "Training steps spent on the latest render's own decision "
-            "(0 for warm).", labels=["site"]), by_site("render_steps"))
-        yield each(GaugeMetricFamily(
-            "aoi3d_render_age_seconds", "Wall seconds from the latest render's decision "
-            "reaching the trainer to the render's arrival (what a viewer waits).",
-            labels=["site"]), by_site("age_s"))
-        yield each(GaugeMetricFamily(
-            "aoi3d_render_lag_sim_seconds", "Sim seconds from the time the latest render "
-            "represents to its arrival.", labels=["site"]), by_site("lag_s"))
-        yield each(GaugeMetricFamily(
-            "aoi3d_render_frames_age_seconds", "Mean age (sim s) at the represented time of "
-            "the latest render's frames.", labels=["site"]), by_site("frames_age_s"))
-        yield one(GaugeMetricFamily("aoi3d_pool_workers",
-                                    "Reconstruction workers in the pool (live Zenoh "
-                                    "liveliness tokens)."), len(pool.workers))
-        yield one(GaugeMetricFamily("aoi3d_pool_in_flight", "Decisions being reconstructed "
-                                                            "now."), pool.in_flight)
-        yield each(CounterMetricFamily(
-            "aoi3d_pool_decisions", "Decisions by what the pool did with them: assigned to a "
-            "worker, rendered, superseded (a newer one of its site came before a worker was "
-            "free: skipped by choice) or lost.", labels=["site", "outcome"]),
-            [([site, outcome], counts.get(outcome, 0)) for site, counts in pool.by_site.items()
-             for outcome in ("assigned", "rendered", "superseded", "lost")])
-        yield each(CounterMetricFamily(
-            "aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended without a "
-            "render, by reason (worker_died, timeout, not_delivered, failed:<why>).",
-            labels=["reason"]), [([r], n) for r, n in sorted(pool.lost.items())])
-        yield one(GaugeMetricFamily("aoi3d_pool_rendered_fraction",
-                                    f"Decisions rendered / decisions taken over the last "
-                                    f"{pool.window_s:g} s."), pool.rendered_fraction)
-        yield one(GaugeMetricFamily("aoi3d_pool_renders_per_second",
-                                    f"Renders per wall second over the last "
-                                    f"{pool.window_s:g} s."), pool.renders_per_s)
-        yield SummaryMetricFamily("aoi3d_pool_wait_seconds",
-                                  "Wall seconds from a decision reaching the trainer to its "
-                                  "hand-out to a worker.", count_value=pool.assigned,
-                                  sum_value=wait_sum)
-        yield SummaryMetricFamily("aoi3d_pool_render_age_seconds",
-                                  "Wall seconds from a decision reaching the trainer to its "
-                                  "worker's report of the render.", count_value=pool.rendered,
-                                  sum_value=age_sum)
-        yield each(GaugeMetricFamily("aoi3d_pool_worker_busy_ratio",
-                                     f"Share of the last {pool.window_s:g} s a worker spent "
-                                     "reconstructing.", labels=["worker"]),
-                   [([v.worker_id], v.busy_fraction) for v in pool.workers])
-        yield each(GaugeMetricFamily("aoi3d_pool_worker_renders",
-                                     "Renders of each live worker since it joined.",
-                                     labels=["worker"]),
-                   [([v.worker_id], v.rendered) for v in pool.workers])
+__all__ = ["CarryError", "TrainerWorker"]
