@@ -279,13 +279,13 @@ def eval_cmd(
     from aoi3d.experiment import EpisodeConfig, default_workers
     from aoi3d.experiment.report import code_version, machine, write_csv, write_json
     from aoi3d.policy import PolicySpecError
-    from aoi3d.rl.agent import SingleStepPPO
+    from aoi3d.policy.ppo.actor import Actor
     from aoi3d.rl.evaluate import evaluate
     from aoi3d.rl.presets import EVAL_SEED_BASE, PPO_PRESETS, eval_seeds, get_ppo_preset
 
     started = time.time()
     try:
-        agent, extra = SingleStepPPO.load_with_extra(checkpoint)
+        agent, extra = Actor.load_with_extra(checkpoint)
     except (FileNotFoundError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="'--checkpoint'") from None
     chosen = None

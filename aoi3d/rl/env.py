@@ -7,7 +7,7 @@ An episode of this environment is a single step — the paper's single-step form
   :func:`~aoi3d.experiment.plan_episode`: the same channel, camera phases and scene offset as
   an experiment episode of seed s), past the warm-up, and picks one of the config's scored
   decision epochs t (uniformly, from a stream of s). The observation is the AoI vector Δ(t),
-  encoded by :func:`aoi3d.policy.obs.encode_aoi`.
+  encoded by :func:`aoi3d.policy.ppo.obs.encode_aoi`.
 - :meth:`FrameSelectionEnv.step` (a 0/1 mask over the N cameras) trains a *fresh* radiance
   field (``carry="fresh"``, model seed s) ``steps_per_epoch`` steps on the selected cameras'
   newest delivered frames (generated at U_n(t)), renders the held-out camera for time t and
@@ -56,7 +56,7 @@ from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decisi
 from aoi3d.experiment.sweep import lpips_available
 from aoi3d.policy import AllPolicy, Policy, Selection, check_fits, decide, wait_ms_of
 from aoi3d.policy.decide import Act
-from aoi3d.policy.obs import encode_aoi, obs_size
+from aoi3d.policy.ppo.obs import encode_aoi, obs_size
 from aoi3d.quality import LpipsFn
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 

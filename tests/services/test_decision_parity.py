@@ -101,9 +101,10 @@ def test_live_scheduler_decides_as_the_experiment(spec: str, seed: int, cfg: Epi
 def test_live_ppo_policy_decides_as_the_experiment(cfg: EpisodeConfig, dataset: SceneDataset,
                                                    live, tmp_path: Path) -> None:
     """A learned policy too: a fresh agent's deterministic action depends on the AoI."""
-    from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+    from aoi3d.policy.ppo import PPOConfig
+    from aoi3d.policy.ppo.learner import PPOLearner
 
-    SingleStepPPO(PPOConfig(n_cameras=N, seed=3)).save(tmp_path / "agent.pt")
+    PPOLearner(PPOConfig(n_cameras=N, seed=3)).save(tmp_path / "agent.pt")
     spec = f"ppo:{tmp_path / 'agent.pt'}"
     plan = plan_episode(cfg, dataset, spec, 5)
     h = live(spec)
