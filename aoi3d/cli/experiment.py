@@ -653,10 +653,10 @@ def compare(
             parsed = parse_policy(spec)
         except PolicySpecError as err:
             raise typer.BadParameter(str(err), param_hint="'--policy'") from None
-        trained_for = getattr(parsed, "n_cameras", n_cameras)  # a ppo checkpoint's N
-        if trained_for != n_cameras:
-            raise typer.BadParameter(f"{spec} was trained for {trained_for} cameras; this "
-                                     f"comparison has {n_cameras}", param_hint="'--policy'")
+        try:
+            parsed.check_fits(n_cameras)  # e.g. a ppo checkpoint trained for another N
+        except PolicySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
     outcomes = []
     if "mat:best" in specs and mat_ms is None:
         sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seed_list),

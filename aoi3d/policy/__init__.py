@@ -12,6 +12,7 @@ import contract in pyproject.toml checks it).
 from aoi3d.policy import ppo, rules, wait
 from aoi3d.policy.base import (
     ACCEPTED_FORMS,
+    BasePolicy,
     Policy,
     PolicyKind,
     PolicySpecError,
@@ -37,6 +38,7 @@ del _kind
 __all__ = [
     "ACCEPTED_FORMS",
     "AllPolicy",
+    "BasePolicy",
     "FreshestPolicy",
     "MatPolicy",
     "PPOPolicy",

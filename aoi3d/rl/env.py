@@ -54,7 +54,7 @@ from aoi3d.experiment import (
 )
 from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decision, train_ids
 from aoi3d.experiment.sweep import lpips_available
-from aoi3d.policy import AllPolicy, Policy, Selection, check_fits, decide, wait_ms_of
+from aoi3d.policy import AllPolicy, Policy, Selection, decide
 from aoi3d.policy.decide import Act
 from aoi3d.policy.ppo.obs import encode_aoi, obs_size
 from aoi3d.quality import LpipsFn
@@ -230,10 +230,10 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     def check_policy(self, policy: Policy) -> None:
         """``ValueError`` unless ``policy`` can act here: it must fit the N cameras and decide
         at the epoch (a waiting policy is scored by ``aoi3d experiment compare``)."""
-        if wait_ms_of(policy):
+        if policy.wait_ms:
             raise ValueError(f"{policy.spec}: the environment decides at the epoch; waiting "
                              "policies are scored by `aoi3d experiment compare`")
-        check_fits(policy, self.n_cameras)
+        policy.check_fits(self.n_cameras)
 
     def policy_action(self, policy: Policy) -> np.ndarray:
         """What ``policy`` selects at the current episode's decision epoch (bool per camera),

@@ -63,7 +63,6 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from aoi3d.policy.base import Policy
-from aoi3d.policy.ppo import PPOPolicy
 from aoi3d.policy.ppo.batch import Batch, Episode
 
 if TYPE_CHECKING:  # torch is imported only once an agent is loaded
@@ -243,13 +242,16 @@ class OnlineLearner:
     def for_policy(cls, policy: Policy, *, save_to: str | Path | None = None,
                    config: LearnConfig | None = None, hook: LearnerHook | None = None,
                    wall: Callable[[], float] = time.time) -> OnlineLearner:
-        """A learner for a ``ppo`` policy (any other kind is a ``ValueError``): its
-        checkpoint loaded as a learning agent (with the optimizer state and the generator's
-        position) on the policy's device; the online checkpoint goes to ``save_to``
-        (default: :func:`online_checkpoint_path`). Raises ``ValueError`` when the checkpoint
-        cannot be loaded or the online checkpoint could not be written."""
-        if not isinstance(policy, PPOPolicy):
-            raise ValueError(f"{policy.spec}: only a ppo policy can learn online")
+        """A learner for a policy that learns (:attr:`~aoi3d.policy.Policy.learns`; any other
+        is a ``ValueError``) — a ``ppo`` policy with ``learn``, whose ``checkpoint`` and
+        ``device`` name the agent: its checkpoint loaded as a learner (with the optimizer
+        state and the generator's position) on the policy's device; the online checkpoint
+        goes to ``save_to`` (default: :func:`online_checkpoint_path`). Raises ``ValueError``
+        when the checkpoint cannot be loaded or the online checkpoint could not be
+        written."""
+        if not policy.learns:
+            raise ValueError(f"{policy.spec}: this policy does not learn (a ppo policy learns "
+                             "online with learn: true)")
         from aoi3d.policy.ppo.learner import PPOLearner
 
         path = online_checkpoint_path(policy.checkpoint, save_to)

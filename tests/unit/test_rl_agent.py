@@ -241,22 +241,20 @@ def test_ppo_policy_errors(tmp_path) -> None:
 
 
 def test_ppo_policy_answers_its_questions(tmp_path) -> None:
-    from aoi3d.policy import check_fits, learns, place_on
-
     path = tmp_path / "agent.pt"
     _trained(5).save(path)
     pol = parse_policy(f"ppo:{path}")
-    check_fits(pol, 5)
+    pol.check_fits(5)
     with pytest.raises(PolicySpecError, match="trained for 5 cameras, but there are N = 4"):
-        check_fits(pol, 4)
-    assert not learns(pol)
-    assert learns(policy_from_json({"kind": "ppo", "checkpoint": str(path), "learn": True}))
-    assert place_on(pol, "cpu") is pol and pol.device == "cpu"
+        pol.check_fits(4)
+    assert not pol.learns and pol.wait_ms == 0 and pol.gamma_ms is None
+    assert policy_from_json({"kind": "ppo", "checkpoint": str(path), "learn": True}).learns
+    assert pol.on_device("cpu") is pol and pol.device == "cpu"
     if not torch.cuda.is_available():
         with pytest.raises(PolicySpecError, match="CUDA is not available"):
-            place_on(pol, "cuda")
+            pol.on_device("cuda")
     with pytest.raises(PolicySpecError, match="unknown device"):
-        place_on(pol, "tpu")
+        pol.on_device("tpu")
 
 
 # --- online learning -------------------------------------------------------------------------

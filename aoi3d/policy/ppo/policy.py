@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import numpy as np
 
 from aoi3d.device import resolve_device
-from aoi3d.policy.base import PolicyKind, PolicySpecError, as_aoi_vector
+from aoi3d.policy.base import BasePolicy, PolicyKind, PolicySpecError, as_aoi_vector
 
 if TYPE_CHECKING:
     from aoi3d.policy.ppo.actor import Actor
@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 __all__ = ["KIND", "PPOPolicy", "ppo_from_args", "ppo_from_json"]
 
 
-class PPOPolicy:
+class PPOPolicy(BasePolicy):
     """A trained single-step PPO agent's deterministic action over the AoI vector.
 
     ``actor``: the checkpoint's network (:class:`aoi3d.policy.ppo.actor.Actor`); ``checkpoint``:
@@ -116,9 +116,6 @@ class PPOPolicy:
 
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind, "checkpoint": self.checkpoint, "learn": self.learn}
-
-    def reset(self) -> None:
-        """Stateless between episodes (the network does not change while it acts)."""
 
     def __repr__(self) -> str:
         return (f"PPOPolicy(checkpoint={self.checkpoint!r}, learn={self.learn}, "
