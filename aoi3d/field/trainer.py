@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from aoi3d.device import resolve_device
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, as_aabb, camera_rays, ray_aabb
@@ -97,9 +98,7 @@ class FieldTrainer:
     ) -> None:
         self.cfg = cfg
         self.aabb = as_aabb(aabb)
-        self._device = torch.device(
-            device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
-        )
+        self._device = torch.device(device if device is not None else resolve_device("auto"))
         self.seed = seed
         self._aabb_t = torch.as_tensor(self.aabb, dtype=torch.float32, device=self._device)
         self._ray_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # training cameras

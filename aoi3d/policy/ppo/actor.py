@@ -21,6 +21,7 @@ from typing import Any, Self
 import numpy as np
 import torch
 
+from aoi3d.device import resolve_device
 from aoi3d.policy.ppo.checkpoint import Checkpoint
 from aoi3d.policy.ppo.config import AgentConfig, PPOConfig
 from aoi3d.policy.ppo.network import ActorCritic
@@ -41,9 +42,7 @@ class Actor:
         if not isinstance(config, AgentConfig):
             raise TypeError(f"config must be an AgentConfig, got {type(config).__name__}")
         self.config = config
-        self.device = torch.device(device)
-        if self.device.type == "cuda" and not torch.cuda.is_available():
-            raise ValueError("device cuda asked for, but CUDA is not available here")
+        self.device = torch.device(resolve_device(device))  # auto, cpu or cuda
         self.generator = torch.Generator(device="cpu").manual_seed(config.seed)
         self.net = ActorCritic(config, self.generator).to(self.device)
         self.episodes = 0
