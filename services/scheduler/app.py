@@ -74,7 +74,7 @@ class PolicyRequest(BaseModel):
                           "at t + ω and uses camera n iff its AoI then is <= ω (a frame "
                           "captured since t). 0 selects no camera.", examples=[40])
     checkpoint: str | None = Field(
-        None, description="kind ppo: path of a SingleStepPPO checkpoint, as the scheduler "
+        None, description="kind ppo: path of a PPO checkpoint (aoi3d ppo train), as the scheduler "
                           "process sees it; trained for N cameras.",
         examples=["runs/ppo/quick/final.pt"])
     learn: StrictBool | None = Field(
