@@ -40,8 +40,9 @@ test-fast: install  ## everything but the integration tests
 proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 	$(PY) -m grpc_tools.protoc -Iproto --python_out=$(PROTO_OUT) --pyi_out=$(PROTO_OUT) proto/aoi3d.proto
 
-lint: install  ## ruff
+lint: install  ## ruff and the import contracts of pyproject.toml (lint-imports; make test runs them too)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
 
 bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 minutes)
 	$(PY) bench/channel.py

@@ -6,10 +6,11 @@ reward is 0.92, minus 0.012 per selected camera whose frame is stale (AoI ≥ 10
 0.03 per fresh camera short of five, plus N(0, 0.04) noise (what the unobserved scene phase
 adds). The best policy is the MAT rule Γ = 100 ms (0.92 on average); `all` scores ≈ 0.86.
 
-Trains :class:`aoi3d.rl.SingleStepPPO` with each actor (``mlp``, ``shared``) for 38 updates of
-16 episodes (= ``aoi3d ppo train --preset quick``) on three seeds and reports the mean reward
-of the first and last three batches and of the trained deterministic policy on 300 fresh
-episodes. Writes ``bench/results/ppo_arch.json``. Run: ``python bench/ppo_arch.py`` (~1 min).
+Trains :class:`aoi3d.policy.ppo.learner.PPOLearner` with each actor (``mlp``, ``shared``)
+for 38 updates of 16 episodes (= ``aoi3d ppo train --preset quick``) on three seeds and
+reports the mean reward of the first and last three batches and of the trained deterministic
+policy on 300 fresh episodes. Writes ``bench/results/ppo_arch.json``. Run:
+``python bench/ppo_arch.py`` (~1 min).
 """
 
 from __future__ import annotations
@@ -22,7 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from aoi3d.rl import PPOConfig, SingleStepPPO
+from aoi3d.policy.ppo import Batch, PPOConfig
+from aoi3d.policy.ppo.learner import PPOLearner
 
 N, UPDATES, BATCH, SEEDS = 18, 38, 16, 3
 HYPER = {"lr": 1e-3, "minibatch_size": 8}
@@ -42,23 +44,22 @@ def reward(aoi: np.ndarray, mask: np.ndarray, rng: np.random.Generator | None) -
 
 def run(arch: str, seed: int) -> dict[str, float]:
     rng = np.random.default_rng(seed)
-    agent = SingleStepPPO(PPOConfig(n_cameras=N, seed=seed, arch=arch, **HYPER))
+    agent = PPOLearner(PPOConfig(n_cameras=N, seed=seed, arch=arch, **HYPER))
     batches = []
     for _ in range(UPDATES):
         obs, acts, logps, rewards = [], [], [], []
         for _ in range(BATCH):
             aoi = sample_aoi(rng)
             o = agent.observe(aoi)
-            act = agent.act(o)
+            act = agent.sample(o)
             rewards.append(reward(aoi, act.action.astype(bool), rng))
             obs.append(o)
             acts.append(act.action)
             logps.append(act.logp)
         batches.append(float(np.mean(rewards)))
-        agent.update(np.array(obs), np.array(acts), np.array(logps), np.array(rewards))
+        agent.update(Batch(np.array(obs), np.array(acts), np.array(logps), np.array(rewards)))
     test = [sample_aoi(rng) for _ in range(300)]
-    trained = [reward(a, agent.act(agent.observe(a), deterministic=True).action.astype(bool),
-                      None) for a in test]
+    trained = [reward(a, agent.select(a), None) for a in test]
     return {"first_batches": float(np.mean(batches[:3])),
             "last_batches": float(np.mean(batches[-3:])),
             "trained_policy": float(np.mean(trained)),

@@ -32,7 +32,8 @@ from prometheus_client import CollectorRegistry
 
 from aoi3d.clock import SimClock
 from aoi3d.policy import PPOPolicy
-from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+from aoi3d.policy.ppo import PPOConfig
+from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.online import LearnConfig
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.bus import MemoryBus
@@ -57,7 +58,7 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="aoi3d-bench-"))
     ckpt = tmp / "agent.pt"
-    SingleStepPPO(PPOConfig(n_cameras=N_CAMERAS, seed=0)).save(ckpt)
+    PPOLearner(PPOConfig(n_cameras=N_CAMERAS, seed=0)).save(ckpt)
     policy = PPOPolicy.from_checkpoint(ckpt, learn=True)  # as a PUT with learn: true
     bus = MemoryBus()
     clock = SimClock(epoch_s=time.time(), time_scale=1.0)

@@ -40,6 +40,8 @@ from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+from aoi3d.atomic import atomic_path, write_atomic  # stdlib only, as this module
+
 log = logging.getLogger("aoi3d.up")
 
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics", "console")
@@ -128,12 +130,8 @@ def run_log_dir(log_dir: Path, run_id: str, started: datetime) -> Path:
             continue
     else:
         raise FileExistsError(f"no free log folder name for {stem} in {log_dir}")
-    link = log_dir / LATEST
-    tmp = log_dir / f".{LATEST}-{os.getpid()}"
-    with contextlib.suppress(FileNotFoundError):
-        tmp.unlink()
-    os.symlink(folder.name, tmp)  # relative: the logs folder can move
-    os.replace(tmp, link)
+    with atomic_path(log_dir / LATEST) as tmp:
+        os.symlink(folder.name, tmp)  # relative: the logs folder can move
     return folder
 
 
@@ -418,6 +416,4 @@ class Supervisor:
                                   "log": str(c.log_path)}
                          for c in self.children},
         }
-        tmp = self.log_dir / "up.json.tmp"
-        tmp.write_text(json.dumps(state, indent=2))
-        tmp.replace(self.log_dir / "up.json")
+        write_atomic(self.log_dir / "up.json", json.dumps(state, indent=2))

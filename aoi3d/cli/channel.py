@@ -12,6 +12,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
+from aoi3d.cli.common import fmt, make_console
+
 if TYPE_CHECKING:
     from rich.console import Console
 
@@ -21,14 +23,6 @@ app = typer.Typer(no_args_is_help=True, add_completion=False)
 @app.callback()
 def channel() -> None:
     """Simulate the cameras' D/G/1/0 uplinks and their AoI."""
-
-
-def _fmt(value: Any, digits: int = 2) -> str:
-    if value is None:
-        return "—"
-    if isinstance(value, float):
-        return f"{value:.{digits}f}"
-    return str(value)
 
 
 def _table(result: dict[str, Any], console: Console) -> None:
@@ -49,14 +43,14 @@ def _table(result: dict[str, Any], console: Console) -> None:
     def row(label: str, s: dict[str, Any], style: str | None = None) -> None:
         table.add_row(
             label,
-            _fmt(s.get("mean_aoi_ms")),
-            _fmt(s.get("p50_aoi_ms"), 0),
-            _fmt(s.get("p99_aoi_ms"), 0),
-            _fmt(s.get("drop_ratio"), 4),
-            _fmt(s.get("delivered_per_s")),
-            _fmt(s.get("offered")),
-            _fmt(s.get("dropped")),
-            _fmt(s.get("delivered")),
+            fmt(s.get("mean_aoi_ms")),
+            fmt(s.get("p50_aoi_ms"), 0),
+            fmt(s.get("p99_aoi_ms"), 0),
+            fmt(s.get("drop_ratio"), 4),
+            fmt(s.get("delivered_per_s")),
+            fmt(s.get("offered")),
+            fmt(s.get("dropped")),
+            fmt(s.get("delivered")),
             style=style,
         )
 
@@ -83,7 +77,6 @@ def simulate_cmd(
     """Simulate the links and print AoI and drop statistics next to the exact theory.
 
     Cameras are numbered 1..N, as in the pipeline (``per_camera[i]["camera"]`` in the JSON)."""
-    from rich.console import Console
 
     from aoi3d.channel import (
         DelaySpecError,
@@ -122,7 +115,7 @@ def simulate_cmd(
     if as_json:
         typer.echo(json.dumps(result))
         return
-    console = Console()
+    console = make_console()
     _table(result, console)
     camera_slots = cameras * duration_ms
     console.print(

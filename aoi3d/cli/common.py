@@ -1,6 +1,9 @@
-"""What the command groups share: option types, ``KEY=VALUE`` overrides, the progress bar's
-columns, the experiments' dataset, the short label of a policy in tables and figures, and the
-one-line error exit.
+"""What the command groups share: option types and the one mechanism for a group's shared
+options (:func:`with_shared_options`), ``KEY=VALUE`` overrides, an episode config from a base
+and the options (:func:`episode_config`, with the device rule of :mod:`aoi3d.device`), the
+console (:func:`make_console`: no emoji codes in user text), the number formatter of tables
+(:func:`fmt`), the progress bar's columns, the experiments' dataset, the short label of a
+policy in tables and figures, and the one-line error exit.
 
 Light on purpose: every ``aoi3d`` command (``--help`` included) imports this module, so it
 imports neither torch nor the experiment engine (those load inside the commands).
@@ -8,8 +11,13 @@ imports neither torch nor the experiment engine (those load inside the commands)
 
 from __future__ import annotations
 
+import functools
+import inspect
 import json
-from collections.abc import Sequence
+import math
+import numbers
+import sys
+from collections.abc import Callable, Collection, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
@@ -19,17 +27,22 @@ if TYPE_CHECKING:
     from rich.console import Console
     from rich.progress import ProgressColumn
 
+    from aoi3d.experiment import EpisodeConfig
     from aoi3d.scene import SceneDataset
 
 __all__ = [
     "LpipsOpt",
     "ThreadsOpt",
     "WorkersOpt",
+    "episode_config",
     "fail",
+    "fmt",
+    "make_console",
     "open_experiment_dataset",
     "parse_sets",
     "progress_columns",
     "short_label",
+    "with_shared_options",
 ]
 
 WorkersOpt = Annotated[int | None, typer.Option(
@@ -52,6 +65,80 @@ def parse_sets(sets: Sequence[str] | None, option: str = "--set") -> dict[str, A
             value = text
         out[key.strip()] = value
     return out
+
+
+def with_shared_options(options: Callable[..., None], bundle: Callable[..., Any], *,
+                        omit: Collection[str] = ()
+                        ) -> Callable[[Callable[..., None]], Callable[..., None]]:
+    """Make a command from ``body(shared, <its own options>)``: the command's options are the
+    body's own followed by the parameters of ``options`` (a signature only; less ``omit``),
+    and the body receives those as one ``bundle(**values)`` (``omitted`` ones are not passed).
+    Register the result with ``app.command()``. The one way a command group shares options."""
+    shared = [p for p in inspect.signature(options, eval_str=True).parameters.values()
+              if p.name not in omit]
+    names = [p.name for p in shared]
+
+    def decorate(body: Callable[..., None]) -> Callable[..., None]:
+        own = list(inspect.signature(body, eval_str=True).parameters.values())[1:]
+
+        @functools.wraps(body)
+        def command(**kwargs: Any) -> None:
+            body(bundle(**{name: kwargs.pop(name) for name in names}), **kwargs)
+
+        params = own + shared
+        command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
+        command.__annotations__ = {p.name: p.annotation for p in params}
+        return command
+
+    return decorate
+
+
+def episode_config(base: EpisodeConfig, changes: dict[str, Any], sets: Sequence[str] | None,
+                   *, check_device: bool = True) -> EpisodeConfig:
+    """``base`` with ``changes`` (the options given) and then the ``--set KEY=VALUE`` items
+    applied; a bad value, an unknown backend or field key, or (``check_device``) a device
+    this machine does not have (:func:`aoi3d.device.resolve_device`) is a
+    ``typer.BadParameter``."""
+    from aoi3d.device import resolve_device
+    from aoi3d.experiment import EpisodeConfig
+    from aoi3d.field import field_config
+
+    try:
+        cfg = EpisodeConfig.from_dict({**base.to_dict(), **changes, **parse_sets(sets)})
+        field_config(cfg.backend, **cfg.field)  # unknown backend or field key: fail now
+    except (TypeError, ValueError) as err:
+        raise typer.BadParameter(str(err)) from None
+    if check_device:
+        try:
+            resolve_device(cfg.device)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--device'") from None
+    return cfg
+
+
+def make_console(*, stderr: bool = False, width: int | None = None) -> Console:
+    """A console for a command's output: tables unwrapped in logs (160 columns when stdout
+    is not a terminal, unless ``width``), and no emoji codes — policy specs and paths are
+    printed as they are (Rich would turn ``mat:100:`` into ``mat💯``)."""
+    from rich.console import Console
+
+    if width is None and not sys.stdout.isatty():
+        width = 160
+    return Console(stderr=stderr, width=width, emoji=False)
+
+
+def fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
+    """``mean ± half`` with ``digits`` decimals, ``mean`` alone without a finite ``half``, a
+    whole number (a count) as it is, and ``—`` for a missing or non-finite value: the cells of
+    every table."""
+    if isinstance(mean, numbers.Integral) and not isinstance(mean, bool):
+        return str(mean)
+    if mean is None or not math.isfinite(mean):
+        return "—"
+    text = f"{mean:.{digits}f}"
+    if half is not None and math.isfinite(half):
+        text += f" ± {half:.{digits}f}"
+    return text
 
 
 def fail(message: object, code: int = 1) -> NoReturn:

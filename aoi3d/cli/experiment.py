@@ -12,10 +12,7 @@ inside the commands, so that ``aoi3d --help`` and the other commands start witho
 
 from __future__ import annotations
 
-import functools
-import inspect
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -24,17 +21,19 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from aoi3d.cli.common import (
     LpipsOpt,
     ThreadsOpt,
     WorkersOpt,
+    episode_config,
+    fmt,
+    make_console,
     open_experiment_dataset,
-    parse_sets,
     progress_columns,
     short_label,
+    with_shared_options,
 )
 from aoi3d.scene.framings import FRAMING_DATASETS
 
@@ -55,7 +54,7 @@ PRESET_NAMES = ("quick", "paper")
 (a test keeps them equal)."""
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
+console = make_console()
 
 
 @app.callback()
@@ -162,6 +161,14 @@ def _shared_options(
     :func:`_experiment_command`)."""
 
 
+def _experiment_command(*, seeds: bool = True) -> Callable[[Callable[..., None]],
+                                                           Callable[..., None]]:
+    """An experiment command from ``body(shared: _Shared, <its own options>)``
+    (:func:`aoi3d.cli.common.with_shared_options`; without ``--seeds`` when ``seeds`` is
+    False)."""
+    return with_shared_options(_shared_options, _Shared, omit=() if seeds else ("seeds",))
+
+
 @dataclass(frozen=True)
 class _Shared:
     """The values of :func:`_shared_options` for one invocation."""
@@ -185,7 +192,7 @@ class _Shared:
         """Validate the options, open (or generate) the dataset and make the output folder;
         ``seeds``: the command's own seed count when it has no ``--seeds`` (default: the
         ``--seeds`` given, else the preset's)."""
-        from aoi3d.experiment import EpisodeConfig, ResultCache, default_workers, get_preset
+        from aoi3d.experiment import ResultCache, default_workers, get_preset
 
         try:
             chosen = get_preset(preset)
@@ -198,20 +205,9 @@ class _Shared:
                 changes[key] = value
         if self.dataset is not None:
             changes["dataset"] = str(self.dataset)
-        changes.update(parse_sets(self.set_))
-        try:
-            cfg = EpisodeConfig.from_dict({**chosen.episode.to_dict(), **changes})
-            from aoi3d.field import field_config
-
-            field_config(cfg.backend, **cfg.field)  # unknown backend or field key: fail now
-        except (TypeError, ValueError) as err:
-            raise typer.BadParameter(str(err)) from None
-        if cfg.device == "cuda" and self.ray_address is None:
-            import torch
-
-            if not torch.cuda.is_available():
-                raise typer.BadParameter("device cuda asked for, but CUDA is not available "
-                                         "here", param_hint="'--device'")
+        # the device is checked here unless a Ray cluster runs the episodes
+        cfg = episode_config(chosen.episode, changes, self.set_,
+                             check_device=self.ray_address is None)
         ds = open_experiment_dataset(Path(cfg.dataset), console)
         folder = (self.out if self.out is not None
                   else Path("runs/experiments") / f"{command}-{chosen.name}")
@@ -224,32 +220,6 @@ class _Shared:
             threads=self.threads, ray_address=self.ray_address, started=time.time(),
             seed_offset=self.seed_offset,
         )
-
-
-def _experiment_command(*, seeds: bool = True) -> Callable[[Callable[..., None]],
-                                                           Callable[..., None]]:
-    """Make an experiment command from ``body(shared: _Shared, <its own options>)``: the
-    command's options are the body's own followed by :func:`_shared_options` (without
-    ``--seeds`` when ``seeds`` is False), and the body receives the shared ones as one
-    :class:`_Shared`. Register the result with ``app.command()``."""
-    shared = [p for p in inspect.signature(_shared_options, eval_str=True).parameters.values()
-              if seeds or p.name != "seeds"]
-    names = [p.name for p in shared]
-
-    def decorate(body: Callable[..., None]) -> Callable[..., None]:
-        own = list(inspect.signature(body, eval_str=True).parameters.values())[1:]
-
-        @functools.wraps(body)
-        def command(**kwargs: Any) -> None:
-            common = _Shared(**{name: kwargs.pop(name) for name in names})
-            body(common, **kwargs)
-
-        params = own + shared
-        command.__signature__ = inspect.Signature(params)  # type: ignore[attr-defined]
-        command.__annotations__ = {p.name: p.annotation for p in params}
-        return command
-
-    return decorate
 
 
 def _run(setup: _Setup, jobs: list[Job], label: str) -> SweepOutcome:
@@ -302,8 +272,9 @@ def _write(setup: _Setup, outcomes: Sequence[SweepOutcome], args: dict[str, Any]
 
 
 def _check_metric(metric: str, hint: str) -> None:
-    if metric not in _SIGNS:
-        raise typer.BadParameter(f"unknown metric {metric!r}; accepted: {', '.join(_SIGNS)}",
+    if metric not in OPTIMUM_METRICS:
+        raise typer.BadParameter(f"unknown metric {metric!r}; accepted: "
+                                 f"{', '.join(OPTIMUM_METRICS)}",
                                  param_hint=hint)
 
 
@@ -339,26 +310,17 @@ def _seed_span(setup: _Setup) -> str:
     return f"{first}" if first == last else f"{first}–{last}"
 
 
-def _fmt(mean: float | None, half: float | None = None, digits: int = 2) -> str:
-    if mean is None or not math.isfinite(mean):
-        return "—"
-    text = f"{mean:.{digits}f}"
-    if half is not None and math.isfinite(half):
-        text += f" ± {half:.{digits}f}"
-    return text
-
-
 def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
     table = Table(title=title)
     for name in (first, "n", "PSNR (dB)", "dynamic PSNR (dB)", "SSIM", "LPIPS", "reward",
                  "cameras", "AoI used (ms)"):
         table.add_column(name, justify="right")
     for r in rows:
-        table.add_row(str(r[first]), str(r["n"]), _fmt(r["psnr_db"], r["psnr_db_ci95"]),
-                      _fmt(r["psnr_dynamic_db"], r["psnr_dynamic_db_ci95"]),
-                      _fmt(r["ssim"], r["ssim_ci95"], 3), _fmt(r["lpips"], r["lpips_ci95"], 3),
-                      _fmt(r["reward"], r["reward_ci95"], 3),
-                      _fmt(r["n_selected"], None, 1), _fmt(r["aoi_used_ms"], None, 0))
+        table.add_row(str(r[first]), str(r["n"]), fmt(r["psnr_db"], r["psnr_db_ci95"]),
+                      fmt(r["psnr_dynamic_db"], r["psnr_dynamic_db_ci95"]),
+                      fmt(r["ssim"], r["ssim_ci95"], 3), fmt(r["lpips"], r["lpips_ci95"], 3),
+                      fmt(r["reward"], r["reward_ci95"], 3),
+                      fmt(r["n_selected"], None, 1), fmt(r["aoi_used_ms"], None, 0))
     console.print(table)
 
 
@@ -387,8 +349,11 @@ def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any
 
 
 def _best_gamma(points: Sequence[dict[str, Any]], metric: str = "psnr_db") -> float:
-    """The swept Γ with the best mean ``metric`` (LPIPS: lowest)."""
-    sign = _SIGNS[metric]
+    """The swept Γ with the best mean ``metric`` (highest; lowest for a lower-is-better one,
+    LPIPS)."""
+    from aoi3d.experiment.optimum import sign_of
+
+    sign = sign_of(metric)
     values = np.array([np.nan if p[metric] is None else sign * p[metric] for p in points],
                       float)
     if not np.isfinite(values).any():
@@ -404,28 +369,18 @@ def _candidate(policy: str) -> Any:
 
 def _optima(results: Sequence[EpisodeResult], *, ordered: bool = True,
             label: Callable[[str], Any] = _candidate) -> dict[str, Optimum]:
-    """Per metric of :data:`_SIGNS`, the criterion of :mod:`aoi3d.experiment.optimum` over
-    the policies of ``results`` (one delay), paired by seed; ``label``: a policy's candidate
-    name (Γ for MAT). Metrics with no finite value are left out."""
-    from aoi3d.experiment.optimum import optimum
+    """Per metric of :data:`OPTIMUM_METRICS`, :func:`aoi3d.experiment.optimum.optima` over the
+    policies of ``results`` (one delay), paired by seed; ``label``: a policy's candidate name
+    (Γ for MAT)."""
+    from aoi3d.experiment.optimum import optima
 
     selects: dict[Any, list[float]] = {}
     for r in results:
         selects.setdefault(label(r.policy), []).append(float(r.n_selected))
-    out: dict[str, Optimum] = {}
-    for metric, sign in _SIGNS.items():
-        values: dict[Any, dict[int, float]] = {}
-        for r in results:
-            v = getattr(r, metric)
-            values.setdefault(label(r.policy), {})[r.seed] = (
-                math.nan if v is None else float(v))
-        try:
-            out[metric] = optimum(values, metric=metric, lower_is_better=sign < 0,
-                                  selects={c: float(np.mean(v)) for c, v in selects.items()},
-                                  ordered=ordered)
-        except ValueError:
-            continue
-    return out
+    rows = [{"candidate": label(r.policy), "seed": r.seed,
+             **{m: getattr(r, m) for m in OPTIMUM_METRICS}} for r in results]
+    return optima(rows, OPTIMUM_METRICS, candidate=lambda row: row["candidate"],
+                  selects={c: float(np.mean(v)) for c, v in selects.items()}, ordered=ordered)
 
 
 def _fmt_candidates(members: Sequence[Any]) -> str:
@@ -446,10 +401,10 @@ def _print_optima(optima: dict[str, Optimum], unit: str = "Γ") -> None:
                       f"{{{_fmt_candidates(opt.members)}}} {verdict}")
 
 
-_SIGNS = {"psnr_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0, "psnr_dynamic_db": 1.0,
-          "ssim_dynamic": 1.0}
-"""Metrics an optimum can be taken over, and their sign (LPIPS: lower is better);
-``*_dynamic*``: over the dynamic region (:mod:`aoi3d.quality`)."""
+OPTIMUM_METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
+"""Metrics an optimum can be taken over (their direction:
+:data:`aoi3d.experiment.optimum.LOWER_IS_BETTER`); ``*_dynamic*``: over the dynamic region
+(:mod:`aoi3d.quality`)."""
 
 
 def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: Sequence[int]) -> list[Job]:
@@ -610,7 +565,7 @@ def delay_cmd(
         table.add_column(name, justify="right")
     for o in optima:
         table.add_row(o["delay"], f"{o['mean_delay_ms']:g}", f"{o['best_gamma_ms']:g}",
-                      _fmt(o["best_value"], o["best_ci95"], 3),
+                      fmt(o["best_value"], o["best_ci95"], 3),
                       f"{o['optimum_min_ms']:g}–{o['optimum_max_ms']:g}",
                       "yes" if o["interior"] else "no")
     console.print(table)
@@ -653,10 +608,10 @@ def compare(
             parsed = parse_policy(spec)
         except PolicySpecError as err:
             raise typer.BadParameter(str(err), param_hint="'--policy'") from None
-        trained_for = getattr(parsed, "n_cameras", n_cameras)  # a ppo checkpoint's N
-        if trained_for != n_cameras:
-            raise typer.BadParameter(f"{spec} was trained for {trained_for} cameras; this "
-                                     f"comparison has {n_cameras}", param_hint="'--policy'")
+        try:
+            parsed.check_fits(n_cameras)  # e.g. a ppo checkpoint trained for another N
+        except PolicySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
     outcomes = []
     if "mat:best" in specs and mat_ms is None:
         sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seed_list),

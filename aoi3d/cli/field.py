@@ -14,11 +14,10 @@ from typing import TYPE_CHECKING, Annotated
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from aoi3d.cli.common import fail
+from aoi3d.cli.common import fail, make_console
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS
 
@@ -27,7 +26,7 @@ if TYPE_CHECKING:
     from aoi3d.quality import LpipsFn
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console()
+console = make_console()
 
 
 @app.callback()
@@ -125,8 +124,8 @@ def train(
     seed: Annotated[int, typer.Option(help="Seed of the initialisation and ray sampling.")] = 0,
 ) -> None:
     """Train a backend on one instant and score the held-out novel view as it goes."""
-    import torch
 
+    from aoi3d.device import resolve_device
     from aoi3d.field import BACKENDS, FieldTrainer, TrainView, field_config
     from aoi3d.lpips import load_lpips_fn
     from aoi3d.quality import psnr, ssim
@@ -140,11 +139,10 @@ def train(
         raise typer.BadParameter(f"must be > 0, got {every}", param_hint="--every")
     if threads is not None and threads < 1:
         raise typer.BadParameter(f"must be >= 1, got {threads}", param_hint="--threads")
-    if device not in ("auto", "cpu", "cuda"):
-        raise typer.BadParameter(f"must be auto, cpu or cuda, got {device!r}",
-                                 param_hint="--device")
-    if device == "cuda" and not torch.cuda.is_available():
-        raise typer.BadParameter("CUDA is not available here", param_hint="--device")
+    try:
+        torch_device = resolve_device(device)
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="--device") from None
     try:
         ds = open_dataset(dataset)
     except (FileNotFoundError, ValueError, ImportError) as exc:
@@ -165,7 +163,7 @@ def train(
     from aoi3d.field.process import configure_process
 
     configure_process(cfg.num_threads, malloc=cfg.tune_malloc)
-    trainer = FieldTrainer(cfg, ds.aabb, device=None if device == "auto" else device, seed=seed)
+    trainer = FieldTrainer(cfg, ds.aabb, device=torch_device, seed=seed)
     trainer.set_views(views)
     console.print(f"[bold]{backend}[/] on {trainer.device}: {len(ids)} cameras {ids} at frame "
                   f"{frame}, novel view = camera {ds.heldout_id}, {ds.width}×{ds.height}, "

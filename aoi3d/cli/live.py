@@ -26,18 +26,18 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import typer
-from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
+from aoi3d.cli.common import fmt, make_console
 from services.supervisor import DEFAULT_PORTS as SERVICE_PORTS  # stdlib-only module
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
-console = Console(stderr=True)
+console = make_console(stderr=True)  # progress; the results go to stdout
 
 METRICS = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward")
 """Per-render quality fields summarised per policy (absent ones are reported as null)."""
-_SIGNS = {"psnr_db": 1.0, "psnr_dynamic_db": 1.0, "ssim": 1.0, "lpips": -1.0, "reward": 1.0}
 
 
 class LiveError(RuntimeError):
@@ -55,9 +55,9 @@ def mean_ci95(values: Sequence[float | None]) -> dict[str, float | int | None]:
 
 
 def welch_ci95(a: dict[str, Any], b: dict[str, Any]) -> float | None:
-    """Half-width of the 95% CI of ``mean(a) − mean(b)`` for two independent samples given
-    as ``{"mean", "ci95", "n"}`` (Welch–Satterthwaite degrees of freedom); None when either
-    lacks a CI."""
+    """Half-width of the 95% CI of ``mean(a) − mean(b)`` for two *independent* (unpaired)
+    samples given as ``{"mean", "ci95", "n"}`` (Welch–Satterthwaite degrees of freedom); None
+    when either lacks a CI."""
     from scipy import stats
 
     if a.get("ci95") is None or b.get("ci95") is None or a["n"] < 2 or b["n"] < 2:
@@ -71,17 +71,24 @@ def welch_ci95(a: dict[str, Any], b: dict[str, Any]) -> float | None:
     return float(stats.t.ppf(0.975, dof) * math.sqrt(va + vb))
 
 
-def interior_maximum(results: Sequence[dict[str, Any]], metric: str) -> dict[str, Any] | None:
-    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty.
+def unpaired_interior_maximum(results: Sequence[dict[str, Any]], metric: str
+                              ) -> dict[str, Any] | None:
+    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty,
+    judged on *unpaired* samples.
 
-    The criterion, stated before measuring: the policies are taken in sweep order (fresh to
-    stale; the first and the last are the ends). The maximum is *interior* when the best
-    mean is neither end's, and *beyond its confidence interval* when, for both ends, the 95%
-    confidence interval of the difference best − end (Welch, renders as independent samples)
-    lies above zero (below, for LPIPS). None when the metric is missing or fewer than three
-    policies were measured.
+    Not :func:`aoi3d.experiment.optimum.optimum`'s question: that criterion pairs episodes by
+    seed (the same channel draws for every policy), which a live sweep cannot — its windows
+    are different renders of a running pipeline, so each policy's renders are an independent
+    sample. The criterion, stated before measuring: the policies are taken in sweep order
+    (fresh to stale; the first and the last are the ends). The maximum is *interior* when the
+    best mean is neither end's, and *beyond its confidence interval* when, for both ends, the
+    95% confidence interval of the difference best − end (:func:`welch_ci95`) lies on the
+    better side of zero (:data:`aoi3d.experiment.optimum.LOWER_IS_BETTER` says which). None
+    when the metric is missing or fewer than three policies were measured.
     """
-    sign = _SIGNS[metric]
+    from aoi3d.experiment.optimum import sign_of
+
+    sign = sign_of(metric)
     stats = [r.get(metric) or {} for r in results]
     if len(results) < 3 or any(s.get("mean") is None for s in stats):
         return None
@@ -355,21 +362,18 @@ def _table(results: Sequence[dict[str, Any]], sim: dict[str, Any] | None) -> Tab
     for c in cols:
         table.add_column(c, justify="right")
 
-    def fmt(stat: dict[str, Any], digits: int) -> str:
-        if stat.get("mean") is None:
-            return "–"
-        half = stat.get("ci95")
-        return f"{stat['mean']:.{digits}f}" + (f" ± {half:.{digits}f}" if half else "")
+    def cell(stat: dict[str, Any], digits: int) -> str:
+        return fmt(stat.get("mean"), stat.get("ci95"), digits)
 
     for r in results:
-        cells = [r["policy"], str(r["n"]), fmt(r["psnr_db"], 2), fmt(r["psnr_dynamic_db"], 2),
-                 fmt(r["ssim"], 3), fmt(r["lpips"], 3), fmt(r["reward"], 3),
-                 fmt(r["cameras_used"], 1), fmt(r["aoi_used_ms"], 0)]
+        cells = [escape(r["policy"]), str(r["n"]), cell(r["psnr_db"], 2),
+                 cell(r["psnr_dynamic_db"], 2), cell(r["ssim"], 3), cell(r["lpips"], 3),
+                 cell(r["reward"], 3), cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
         if sim is not None:
             s = sim.get(r["policy"], {}).get("psnr_db", {}).get("mean")
             live = r["psnr_db"]["mean"]
-            cells += ["–" if s is None else f"{s:.2f}",
-                      "–" if s is None or live is None else f"{live - s:+.2f}"]
+            cells += [fmt(s, None, 2),
+                      "—" if s is None or live is None else f"{live - s:+.2f}"]
         table.add_row(*cells)
     return table
 
@@ -401,7 +405,8 @@ def plot_views(measurements: Sequence[Measurement], dataset: Path, path: Path,
     try:
         ds = open_dataset(dataset)
     except (OSError, ValueError) as err:  # the truth is only for this figure: say so, go on
-        console.print(f"no views figure: cannot read the dataset for the truth ({err})")
+        console.print("no views figure: cannot read the dataset for the truth "
+                      f"({escape(str(err))})")
         return None
     fig, axes = plt.subplots(2, len(pairs), figsize=(3.2 * len(pairs), 5.2), squeeze=False,
                              constrained_layout=True)
@@ -426,7 +431,7 @@ def _start_pipeline(port_offset: int, zenoh_port: int, time_scale: float, run_id
     cmd = [sys.executable, "-c", "from aoi3d.cli import main; main()", "up", "--quiet",
            "--port-offset", str(port_offset), "--zenoh-port", str(zenoh_port),
            "--time-scale", str(time_scale), "--run-id", run_id, *extra]
-    console.print(f"starting the pipeline: aoi3d {' '.join(cmd[3:])}")
+    console.print(f"starting the pipeline: aoi3d {escape(' '.join(cmd[3:]))}")
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             start_new_session=True)
     return proc
@@ -506,8 +511,8 @@ def sweep(
     virtual clock's curve beside the live one.
 
     Reports, per metric, whether the best policy is an interior maximum beyond its 95%
-    confidence interval: neither end of --policies, and the Welch 95% CI of best − each end
-    above zero."""
+    confidence interval: neither end of --policies, and the Welch (unpaired: the windows are
+    different renders, not seeds) 95% CI of best − each end above zero."""
     specs = [s.strip() for s in policies.split(",") if s.strip()]
     if len(specs) < 2:
         raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
@@ -535,19 +540,19 @@ def sweep(
             status0 = pipe.call("GET", "trainer", "/status")
             channel = pipe.call("GET", "network", "/channel")
         except LiveError as err:
-            console.print(f"[red]error:[/] {err}")
+            console.print(f"[red]error:[/] {escape(str(err))}")
             raise typer.Exit(1) from None
         measurements: list[Measurement] = []
         total = repeats * len(specs)
         for rep in range(repeats):
             for i, spec in enumerate(specs):
-                console.print(f"[{rep * len(specs) + i + 1}/{total}] {canon[spec]}: settle "
-                              f"{settle_s:g} s, measure {measure_s:g} s")
+                console.print(f"\\[{rep * len(specs) + i + 1}/{total}] {escape(canon[spec])}: "
+                              f"settle {settle_s:g} s, measure {measure_s:g} s")
                 try:
                     m = measure_policy(pipe, bodies[spec], canon[spec], settle_s=settle_s,
                                        measure_s=measure_s, reset=reset_each, repeat=rep)
                 except LiveError as err:
-                    console.print(f"[red]error:[/] {err}")
+                    console.print(f"[red]error:[/] {escape(str(err))}")
                     raise typer.Exit(1) from None
                 measurements.append(m)
                 console.print(f"    {len(m.qualities)} renders scored, decisions "
@@ -577,11 +582,10 @@ def sweep(
             live = r["psnr_db"]["mean"]
             r["sim_psnr_db"] = sim_doc[r["policy"]]["psnr_db"]
             r["live_minus_sim_db"] = None if s is None or live is None else live - s
-    shape = {m: interior_maximum(results, m) for m in ("psnr_db", "psnr_dynamic_db", "ssim",
-                                                       "lpips", "reward")}
+    shape = {m: unpaired_interior_maximum(results, m) for m in METRICS}
     doc = {
         "results": results,
-        "interior_maximum": shape,
+        "unpaired_interior_maximum": shape,
         "settings": {"policies": order, "settle_s": settle_s, "measure_s": measure_s,
                      "repeats": repeats, "reset_each": reset_each, "port_offset": port_offset,
                      "site": site,
@@ -610,18 +614,20 @@ def sweep(
                "Live renders (top) and the truth of the same time (bottom), the last render "
                "of each policy")
     if json_:
-        print(json.dumps({k: doc[k] for k in ("results", "interior_maximum", "settings",
-                                               "wall_s")}, default=str))
+        print(json.dumps({k: doc[k] for k in ("results", "unpaired_interior_maximum",
+                                               "settings", "wall_s")}, default=str))
     else:
-        Console(width=160).print(_table(results, sim_doc))
+        stdout = make_console(width=160)
+        stdout.print(_table(results, sim_doc))
         for metric, info in shape.items():
             if info is not None:
-                verdict = ("an interior maximum beyond its 95% CI" if info["beyond_ci"] else
+                verdict = ("an interior maximum beyond its 95% CI (Welch, unpaired)"
+                           if info["beyond_ci"] else
                            "interior, but within the CIs of an end" if info["interior"] else
                            "not interior")
-                Console().print(f"{metric}: best {info['best']} ({info['best_mean']:.3f}): "
-                                f"{verdict}")
-        Console().print(f"results in {out}")
+                stdout.print(f"{metric}: best {escape(info['best'])} "
+                             f"({info['best_mean']:.3f}): {verdict}")
+        stdout.print(f"results in {escape(str(out))}")
 
 
 def _measurement_doc(m: Measurement) -> dict[str, Any]:

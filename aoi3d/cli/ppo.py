@@ -12,24 +12,26 @@ Torch, the agent and the experiment engine are imported inside the commands, so 
 
 from __future__ import annotations
 
-import math
-import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
-from rich.console import Console
 from rich.table import Table
 
 from aoi3d.cli.common import (
     LpipsOpt,
     ThreadsOpt,
     WorkersOpt,
+    episode_config,
+    fmt,
+    make_console,
     open_experiment_dataset,
     parse_sets,
     progress_columns,
     short_label,
+    with_shared_options,
 )
 from aoi3d.scene.framings import FRAMING_DATASETS
 
@@ -42,7 +44,7 @@ PPO_PRESET_NAMES = ("quick", "paper")
 (a test keeps them equal)."""
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console(width=None if sys.stdout.isatty() else 160)  # tables unwrapped in logs
+console = make_console()
 
 
 @app.callback()
@@ -70,47 +72,58 @@ SetOpt = Annotated[list[str] | None, typer.Option(
                   "e.g. --set delay=exp:40.")]
 
 
-def _episode_config(base: EpisodeConfig, dataset: Path | None, steps: int | None,
-                    device: str | None, lpips: bool, sets: list[str] | None) -> EpisodeConfig:
-    from aoi3d.experiment import EpisodeConfig
-
-    changes: dict[str, Any] = {"lpips": lpips}
-    if dataset is not None:
-        changes["dataset"] = str(dataset)
-    if steps is not None:
-        changes["steps_per_epoch"] = steps
-    if device is not None:
-        changes["device"] = device
-    changes.update(parse_sets(sets))
-    try:
-        cfg = EpisodeConfig.from_dict({**base.to_dict(), **changes})
-        from aoi3d.field import field_config
-
-        field_config(cfg.backend, **cfg.field)
-    except (TypeError, ValueError) as err:
-        raise typer.BadParameter(str(err)) from None
-    if cfg.device == "cuda":
-        import torch
-
-        if not torch.cuda.is_available():
-            raise typer.BadParameter("device cuda asked for, but CUDA is not available here",
-                                     param_hint="'--device'")
-    return cfg
+def _shared_options(
+    dataset: DatasetOpt = None,
+    steps_per_epoch: StepsOpt = None,
+    workers: WorkersOpt = None,
+    threads: ThreadsOpt = 1,
+    cache: CacheOpt = None,
+    no_cache: NoCacheOpt = False,
+    device: DeviceOpt = None,
+    lpips: LpipsOpt = True,
+    set_: SetOpt = None,
+) -> None:
+    """The options ``train`` and ``eval`` take after their own (a signature only:
+    :func:`aoi3d.cli.common.with_shared_options`)."""
 
 
-def _cache(cache: Path | None, no_cache: bool) -> Path | None:
-    if no_cache:
-        return None
-    return cache if cache is not None else Path("runs/ppo/cache")
+@dataclass(frozen=True)
+class _Shared:
+    """The values of :func:`_shared_options` for one invocation."""
 
+    dataset: Path | None
+    steps_per_epoch: int | None
+    workers: int | None
+    threads: int
+    cache: Path | None
+    no_cache: bool
+    device: str | None
+    lpips: bool
+    set_: list[str] | None
 
-def _fmt(mean: float | None, half: float | None = None, digits: int = 3) -> str:
-    if mean is None or not math.isfinite(mean):
-        return "—"
-    text = f"{mean:.{digits}f}"
-    if half is not None and math.isfinite(half):
-        text += f" ± {half:.{digits}f}"
-    return text
+    def episode_config(self, base: EpisodeConfig) -> EpisodeConfig:
+        """``base`` with these options applied (:func:`aoi3d.cli.common.episode_config`)."""
+        changes: dict[str, Any] = {"lpips": self.lpips}
+        if self.dataset is not None:
+            changes["dataset"] = str(self.dataset)
+        if self.steps_per_epoch is not None:
+            changes["steps_per_epoch"] = self.steps_per_epoch
+        if self.device is not None:
+            changes["device"] = self.device
+        return episode_config(base, changes, self.set_)
+
+    @property
+    def cache_dir(self) -> Path | None:
+        """The result cache: none with ``--no-cache``, else ``--cache`` or runs/ppo/cache."""
+        if self.no_cache:
+            return None
+        return self.cache if self.cache is not None else Path("runs/ppo/cache")
+
+    @property
+    def n_workers(self) -> int:
+        from aoi3d.experiment import default_workers
+
+        return self.workers if self.workers is not None else default_workers()
 
 
 @app.command()
@@ -127,28 +140,10 @@ def presets() -> None:
     console.print(table)
 
 
-def _optima(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """The optimum criterion of :mod:`aoi3d.experiment.optimum` over the evaluated policies
-    (paired by seed), for the reward and each score."""
-    from aoi3d.experiment.optimum import optimum
-
-    out = {}
-    for metric, lower in (("reward", False), ("psnr", False), ("ssim", False),
-                          ("lpips", True)):
-        values: dict[str, dict[int, float]] = {}
-        for r in rows:
-            v = r.get(metric)
-            values.setdefault(r["policy"], {})[int(r["seed"])] = (
-                math.nan if v is None else float(v))
-        try:
-            out[metric] = optimum(values, metric=metric, lower_is_better=lower, ordered=False)
-        except ValueError:
-            continue
-    return out
-
-
 @app.command("train")
+@with_shared_options(_shared_options, _Shared)
 def train_cmd(
+    shared: _Shared,
     preset: PresetOpt = "quick",
     episodes: Annotated[int | None, typer.Option(
         min=1, help="Training episodes (default: the preset's, 600).")] = None,
@@ -171,20 +166,10 @@ def train_cmd(
     = None,
     checkpoint_every: Annotated[int, typer.Option(
         min=1, help="PPO updates between two checkpoints.")] = 5,
-    dataset: DatasetOpt = None,
-    steps_per_epoch: StepsOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    cache: CacheOpt = None,
-    no_cache: NoCacheOpt = False,
-    device: DeviceOpt = None,
-    lpips: LpipsOpt = True,
-    set_: SetOpt = None,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
     from rich.progress import Progress
 
-    from aoi3d.experiment import default_workers
     from aoi3d.policy.ppo import PPOConfig
     from aoi3d.rl.presets import TrainConfig, get_ppo_preset
     from aoi3d.rl.train import train
@@ -193,7 +178,7 @@ def train_cmd(
         chosen = get_ppo_preset(preset)
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="'--preset'") from None
-    episode = _episode_config(chosen.episode, dataset, steps_per_epoch, device, lpips, set_)
+    episode = shared.episode_config(chosen.episode)
     ds = open_experiment_dataset(Path(episode.dataset), console)
     n = episode.n_cameras or len(ds.train_ids)
     hyper: dict[str, Any] = {**dict(chosen.ppo), **parse_sets(ppo_set, "--ppo-set")}
@@ -210,8 +195,7 @@ def train_cmd(
     except (TypeError, ValueError) as err:
         raise typer.BadParameter(str(err)) from None
     folder = out if out is not None else Path("runs/ppo") / chosen.name
-    n_workers = workers if workers is not None else default_workers()
-    cache_dir = _cache(cache, no_cache)
+    n_workers, threads, cache_dir = shared.n_workers, shared.threads, shared.cache_dir
     console.print(f"[bold]PPO training[/]: {cfg.episodes} episodes in batches of "
                   f"{cfg.batch_size}, {episode.steps_per_epoch} field steps each, on "
                   f"{n_workers} worker(s) × {threads} thread(s); out {folder}; cache "
@@ -246,7 +230,9 @@ def train_cmd(
 
 
 @app.command("eval")
+@with_shared_options(_shared_options, _Shared)
 def eval_cmd(
+    shared: _Shared,
     checkpoint: Annotated[Path, typer.Option(help="A checkpoint of `aoi3d ppo train`.")],
     seeds: Annotated[int | None, typer.Option(
         min=1, help="Held-out episodes (seeds from 1,000,000 on; never a training seed). "
@@ -262,30 +248,22 @@ def eval_cmd(
     = None,
     out: Annotated[Path | None, typer.Option(
         help="Output folder (default: <checkpoint folder>/eval).")] = None,
-    dataset: DatasetOpt = None,
-    steps_per_epoch: StepsOpt = None,
-    workers: WorkersOpt = None,
-    threads: ThreadsOpt = 1,
-    cache: CacheOpt = None,
-    no_cache: NoCacheOpt = False,
-    device: DeviceOpt = None,
-    lpips: LpipsOpt = True,
-    set_: SetOpt = None,
 ) -> None:
     """Mean PSNR/SSIM/LPIPS/reward (95% CI) of the checkpoint's deterministic policy on
     held-out seeds; writes eval.csv, eval_summary.csv and eval.json."""
     from rich.progress import Progress
 
-    from aoi3d.experiment import EpisodeConfig, default_workers
+    from aoi3d.experiment import EpisodeConfig
+    from aoi3d.experiment.optimum import optima as optima_of
     from aoi3d.experiment.report import code_version, machine, write_csv, write_json
     from aoi3d.policy import PolicySpecError
-    from aoi3d.rl.agent import SingleStepPPO
+    from aoi3d.policy.ppo.actor import Actor
     from aoi3d.rl.evaluate import evaluate
     from aoi3d.rl.presets import EVAL_SEED_BASE, PPO_PRESETS, eval_seeds, get_ppo_preset
 
     started = time.time()
     try:
-        agent, extra = SingleStepPPO.load_with_extra(checkpoint)
+        agent, extra = Actor.load_with_extra(checkpoint)
     except (FileNotFoundError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="'--checkpoint'") from None
     chosen = None
@@ -299,14 +277,14 @@ def eval_cmd(
         base = EpisodeConfig.from_dict(dict(extra["episode_config"]))
         name = extra.get("preset")
         chosen = PPO_PRESETS.get(name) if isinstance(name, str) else None
-    episode = _episode_config(base, dataset, steps_per_epoch, device, lpips, set_)
+    episode = shared.episode_config(base)
     count = seeds if seeds is not None else (chosen.eval_seeds if chosen else 40)
     seed_list = eval_seeds(count, seed_offset)
     ds = open_experiment_dataset(Path(episode.dataset), console)
     specs = [f"ppo:{checkpoint}", *(compare or [])]
     folder = out if out is not None else checkpoint.parent / "eval"
     folder.mkdir(parents=True, exist_ok=True)
-    n_workers = workers if workers is not None else default_workers()
+    n_workers = shared.n_workers
     console.print(f"[bold]PPO evaluation[/]: {len(specs)} policies × {count} held-out seeds "
                   f"({seed_list[0]}…{seed_list[-1]}), {episode.steps_per_epoch} field steps "
                   f"per episode, {n_workers} worker(s)")
@@ -314,8 +292,8 @@ def eval_cmd(
         with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task("episodes", total=len(specs) * count)
             outcome = evaluate(
-                specs, episode, seed_list, dataset=ds, workers=n_workers, threads=threads,
-                cache=_cache(cache, no_cache),
+                specs, episode, seed_list, dataset=ds, workers=n_workers,
+                threads=shared.threads, cache=shared.cache_dir,
                 aoi_scale_ms=agent.config.aoi_scale_ms,
                 progress=lambda done, total: bar.update(task, completed=done, total=total))
     except PolicySpecError as err:
@@ -323,7 +301,7 @@ def eval_cmd(
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
     trained = (extra.get("episode_config") or {}).get("steps_per_epoch")
-    optima = _optima(outcome.rows)
+    optima = optima_of(outcome.rows, ("reward", "psnr", "ssim", "lpips"), ordered=False)
     meta = {"command": "aoi3d ppo eval", "checkpoint": str(checkpoint),
             "policies": specs, "seeds": seed_list, "eval_seed_base": EVAL_SEED_BASE,
             "seed_offset": seed_offset, "trained_steps_per_epoch": trained,
@@ -341,11 +319,11 @@ def eval_cmd(
                  "Δ reward (PPO − this)"):
         table.add_column(name, justify="right")
     for r in outcome.summary:
-        table.add_row(short_label(r["policy"]), _fmt(r["reward"], r["reward_ci95"], 4),
-                      _fmt(r["psnr"], r["psnr_ci95"], 2), _fmt(r["ssim"], r["ssim_ci95"]),
-                      _fmt(r["lpips"], r["lpips_ci95"]), _fmt(r["n_selected"], None, 1),
-                      _fmt(r.get("first_minus_this_reward"),
-                           r.get("first_minus_this_reward_ci95"), 4))
+        table.add_row(short_label(r["policy"]), fmt(r["reward"], r["reward_ci95"], 4),
+                      fmt(r["psnr"], r["psnr_ci95"], 2), fmt(r["ssim"], r["ssim_ci95"], 3),
+                      fmt(r["lpips"], r["lpips_ci95"], 3), fmt(r["n_selected"], None, 1),
+                      fmt(r.get("first_minus_this_reward"),
+                          r.get("first_minus_this_reward_ci95"), 4))
     console.print(table)
     for metric, opt in optima.items():
         console.print(f"{metric}: best {short_label(opt.best)}; not significantly worse "

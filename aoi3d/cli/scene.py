@@ -9,7 +9,6 @@ from typing import Annotated
 
 import numpy as np
 import typer
-from rich.console import Console
 from rich.progress import (
     BarColumn,
     MofNCompleteColumn,
@@ -20,7 +19,7 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from aoi3d.cli.common import fail
+from aoi3d.cli.common import fail, make_console
 from aoi3d.scene import (
     EXPORT_FORMATS,
     DatasetError,
@@ -33,7 +32,7 @@ from aoi3d.scene import (
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
-console = Console()
+console = make_console()
 
 _D = FRAMING_SCENES[DEFAULT_FRAMING]  # the defaults shown by --help
 _DEFAULT_DATASET = Path(FRAMING_DATASETS[DEFAULT_FRAMING])

@@ -106,10 +106,11 @@ def up(
     own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
     _ensure_scene(folder, framing, generate=generate or own)
 
-    from rich.console import Console
     from rich.table import Table
 
-    console = Console()
+    from aoi3d.cli.common import make_console
+
+    console = make_console()
 
     def show_where(sup: Supervisor) -> None:
         table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
@@ -147,12 +148,12 @@ def _ensure_scene(dataset: Path, framing: str, *, generate: bool) -> None:
     of another config. A dataset that cannot be used ends the command with one line."""
     import time
 
-    from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from aoi3d.cli.common import make_console
     from aoi3d.scene import DatasetError, detect_layout, ensure_dataset, open_dataset
 
-    console = Console()
+    console = make_console()
     if not generate:
         try:
             detect_layout(dataset)

@@ -42,7 +42,7 @@ from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
 from aoi3d.field.process import configure_process
-from aoi3d.policy import Policy, Selection, decide, parse_policy, wait_ms_of
+from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
 from aoi3d.scene import SceneDataset, to_uint8
 
@@ -235,7 +235,7 @@ def plan_episode(
     config, dataset and seed, simulated far enough for the policy's wait)."""
     pol = parse_policy(policy)
     pol.reset()
-    wait = wait_ms_of(pol)
+    wait = pol.wait_ms
     if links is None:
         links = episode_links(cfg, dataset, seed, wait_ms=wait)
     elif links.seed != seed:

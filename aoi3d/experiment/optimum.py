@@ -22,14 +22,19 @@ overlapping bands. The criterion (:func:`optimum`):
 With fewer than two paired seeds no interval exists; nothing is then significantly worse,
 the set is every candidate and the optimum is never interior.
 
-Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare`` and the
-science check (``bench/science.py``) alike.
+Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare``, ``aoi3d ppo
+eval`` (all through :func:`optima`) and the science check (``bench/science.py``) alike.
+Which metrics are lower-is-better is stated here once: :data:`LOWER_IS_BETTER`.
+
+``aoi3d live sweep`` cannot use this criterion: its measurement windows are different renders
+of a running pipeline, not episodes paired by seed. It asks a different, unpaired question
+(:func:`aoi3d.cli.live.unpaired_interior_maximum`: Welch intervals of best − each end).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -38,14 +43,26 @@ from scipy import stats
 
 __all__ = [
     "LEVEL",
+    "LOWER_IS_BETTER",
     "Optimum",
     "PairedDifference",
+    "optima",
     "optimum",
     "paired_difference",
+    "sign_of",
 ]
 
 LEVEL = 0.95
 """Confidence level of every interval of the criterion."""
+
+LOWER_IS_BETTER = frozenset({"lpips"})
+"""The metrics whose better direction is down (LPIPS, a distance); every other metric — PSNR,
+SSIM, their dynamic-region forms, the reward — is higher-is-better."""
+
+
+def sign_of(metric: str) -> float:
+    """+1 for a higher-is-better metric, −1 for one of :data:`LOWER_IS_BETTER`."""
+    return -1.0 if metric in LOWER_IS_BETTER else 1.0
 
 
 @dataclass(frozen=True)
@@ -126,15 +143,18 @@ def _as_gamma(candidate: Any) -> float | None:
 
 
 def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db",
-            lower_is_better: bool = False, selects: Mapping[Any, float] | None = None,
+            lower_is_better: bool | None = None, selects: Mapping[Any, float] | None = None,
             ordered: bool = True, level: float = LEVEL) -> Optimum:
     """Apply the criterion of this module.
 
     ``values[c][seed]``: the per-seed (episode mean) metric of candidate ``c`` — a Γ in ms,
-    ``"all"`` or any policy label —; ``selects[c]``: its mean count of selected cameras
+    ``"all"`` or any policy label —; ``lower_is_better``: the metric's direction (default:
+    ``metric in LOWER_IS_BETTER``); ``selects[c]``: its mean count of selected cameras
     (candidates with 0 are excluded; None: all eligible); ``ordered``: the candidates are
     points of a sweep in Γ (their order defines the ends, so ``interior`` is judged), else
     policies without an order (``interior`` is False, ``ends`` empty)."""
+    if lower_is_better is None:
+        lower_is_better = metric in LOWER_IS_BETTER
     if not values:
         raise ValueError("no candidates")
     excluded = tuple(c for c in values
@@ -163,3 +183,26 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
         interior = not any(e in members for e in ends)
     return Optimum(metric=metric, best=best, members=members, to_best=to_best,
                    excluded=excluded, seeds=seeds, ends=ends, interior=interior)
+
+
+def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
+           candidate: Callable[[Mapping[str, Any]], Any] = lambda r: r["policy"],
+           selects: Mapping[Any, float] | None = None, ordered: bool = True
+           ) -> dict[str, Optimum]:
+    """:func:`optimum` for each of ``metrics`` over ``rows`` — one per episode, with its
+    ``seed``, the metrics' values (None: not measured) and whatever ``candidate`` reads its
+    candidate from (default: its ``policy``). Metrics the criterion cannot judge (no finite
+    value on a common seed, no eligible candidate) are left out."""
+    rows = list(rows)
+    out: dict[str, Optimum] = {}
+    for metric in metrics:
+        values: dict[Any, dict[int, float]] = {}
+        for r in rows:
+            v = r.get(metric)
+            values.setdefault(candidate(r), {})[int(r["seed"])] = (
+                math.nan if v is None else float(v))
+        try:
+            out[metric] = optimum(values, metric=metric, selects=selects, ordered=ordered)
+        except ValueError:
+            continue
+    return out

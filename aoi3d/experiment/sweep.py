@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from scipy import stats
 
+from aoi3d.atomic import write_atomic
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.experiment.episode import (
     EpisodePlan,
@@ -107,17 +108,11 @@ class ResultCache:
         """Store ``result`` (under ``result.key``) and its last render."""
         path = self._path(result.key, ".json")
         path.parent.mkdir(parents=True, exist_ok=True)
-        _atomic_write(path.with_suffix(".png"), png)
-        _atomic_write(path, json.dumps(result.to_dict()).encode())
+        write_atomic(path.with_suffix(".png"), png)
+        write_atomic(path, json.dumps(result.to_dict()).encode())
 
     def __contains__(self, key: str) -> bool:
         return self._path(key, ".json").is_file()
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
 
 
 @dataclass(frozen=True)

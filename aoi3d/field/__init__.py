@@ -19,7 +19,7 @@ from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, RaySamples, camera_rays, ray_aabb, sample_uniform
 from aoi3d.field.render import RenderOptions, RenderResult, render_uniform, volume_render
 from aoi3d.field.tensorf import TensorfConfig, TensorfField
-from aoi3d.field.trainer import FieldTrainer, TrainView, render_rays
+from aoi3d.field.trainer import FieldTrainer, TrainView
 
 __all__ = [
     "BACKENDS",
@@ -45,7 +45,6 @@ __all__ = [
     "camera_rays",
     "field_config",
     "ray_aabb",
-    "render_rays",
     "render_uniform",
     "sample_uniform",
     "volume_render",

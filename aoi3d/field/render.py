@@ -19,16 +19,25 @@ Fields that sample otherwise (e.g. ``nerfacto``'s proposal sampling) override
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import torch
 
 from aoi3d.field.rays import RayBundle, sample_uniform
 
-if TYPE_CHECKING:
-    from aoi3d.field.base import Field
+__all__ = ["RenderOptions", "RenderResult", "SampledField", "render_uniform", "volume_render"]
 
-__all__ = ["RenderOptions", "RenderResult", "render_uniform", "volume_render"]
+
+class SampledField(Protocol):
+    """What :func:`render_uniform` asks of a field (every ``aoi3d.field.base.Field`` has
+    it): which sample points are occupied, density and colour at points, the background."""
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor | None: ...
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]: ...
+
+    def background(self, dirs: torch.Tensor) -> torch.Tensor: ...
 
 
 @dataclass(frozen=True)
@@ -106,7 +115,8 @@ def volume_render(
     return RenderResult(color, transmittance, weights, rgb, ray_index, alpha)
 
 
-def render_uniform(field: Field, rays: RayBundle, options: RenderOptions) -> RenderResult:
+def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
+                   ) -> RenderResult:
     """The default renderer: sample the rays inside the box at ``options.ray_step``, skip
     empty space, query the field, composite over its background.
 

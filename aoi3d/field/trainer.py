@@ -31,15 +31,16 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from aoi3d.device import resolve_device
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, as_aabb, camera_rays, ray_aabb
-from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
+from aoi3d.field.render import RenderOptions
 
 if TYPE_CHECKING:
     from aoi3d.scene.camera import Camera
 
-__all__ = ["FieldTrainer", "TrainView", "render_rays"]
+__all__ = ["FieldTrainer", "TrainView"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,31 +57,6 @@ class TrainView:
         a = self.appearance_id
         if a is not None and (isinstance(a, bool) or not isinstance(a, int | np.integer)):
             raise TypeError(f"appearance_id must be an int or None, got {a!r}")
-
-
-def render_rays(
-    field: Field,
-    origins: torch.Tensor,
-    dirs: torch.Tensor,
-    t_near: torch.Tensor,
-    t_far: torch.Tensor,
-    step: float,
-    jitter: torch.Tensor | None = None,
-    explore: float = 0.0,
-    generator: torch.Generator | None = None,
-) -> RenderResult:
-    """The default renderer (:func:`aoi3d.field.render.render_uniform`): sample the rays
-    inside the box at ``step``, skip empty space, query the field, composite.
-
-    Samples the field marks empty are skipped; ``explore`` > 0 keeps that fraction of them
-    at random (drawn from ``generator``), so that density can grow again where new frames
-    need it. The trainer itself calls ``field.render_rays``, whose default this is.
-    """
-    return render_uniform(
-        field,
-        RayBundle(origins, dirs, t_near, t_far),
-        RenderOptions(step, jitter, explore, generator),
-    )
 
 
 def _image_tensor(image: np.ndarray, camera: Camera) -> torch.Tensor:
@@ -122,9 +98,7 @@ class FieldTrainer:
     ) -> None:
         self.cfg = cfg
         self.aabb = as_aabb(aabb)
-        self._device = torch.device(
-            device if device is not None else ("cuda" if torch.cuda.is_available() else "cpu")
-        )
+        self._device = torch.device(device if device is not None else resolve_device("auto"))
         self.seed = seed
         self._aabb_t = torch.as_tensor(self.aabb, dtype=torch.float32, device=self._device)
         self._ray_cache: dict[Camera, tuple[torch.Tensor, ...]] = {}  # training cameras

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from aoi3d.atomic import atomic_path
 from aoi3d.lpips.nets import LPIPS, net_spec
 
 __all__ = [
@@ -322,16 +323,9 @@ def download_sdist(dest: Path, *, python: str = sys.executable) -> Path:
 
 # ------------------------------------------------------------------ the cache files
 def _save_atomic(payload: dict, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp:
         torch.save(payload, tmp)
-        os.chmod(tmp, 0o644)  # mkstemp makes 0600; other users (a service account) read it too
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
+        os.chmod(tmp, 0o644)  # other users (a service account) read it too, whatever the umask
 
 
 def read_cached(path: Path, net: str) -> dict[str, torch.Tensor]:

@@ -2,15 +2,17 @@
 
 Importing this package registers every kind, in this order: ``all``, ``mat:<ms>``,
 ``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>`` (:mod:`~aoi3d.policy.wait`)
-and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`; torch loads only with a checkpoint, from
-:mod:`~aoi3d.policy.actor`). :func:`~aoi3d.policy.decide.decide` is the decision step every
-setting uses. This package imports nothing from :mod:`aoi3d.rl` or :mod:`aoi3d.experiment`:
-they build on it.
+and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`, the PPO agent's home: its acting side
+and its learning side; torch loads only with a checkpoint).
+:func:`~aoi3d.policy.decide.decide` is the decision step every setting uses. This package
+imports nothing from :mod:`aoi3d.rl` or :mod:`aoi3d.experiment`: they build on it (an
+import contract in pyproject.toml checks it).
 """
 
 from aoi3d.policy import ppo, rules, wait
 from aoi3d.policy.base import (
     ACCEPTED_FORMS,
+    BasePolicy,
     Policy,
     PolicyKind,
     PolicySpecError,
@@ -24,7 +26,7 @@ from aoi3d.policy.base import (
     wait_ms_of,
 )
 from aoi3d.policy.decide import Selection, decide
-from aoi3d.policy.ppo import PPOConfig, PPOPolicy
+from aoi3d.policy.ppo import PPOPolicy
 from aoi3d.policy.rules import AllPolicy, FreshestPolicy, MatPolicy
 from aoi3d.policy.wait import WaitPolicy
 
@@ -36,9 +38,9 @@ del _kind
 __all__ = [
     "ACCEPTED_FORMS",
     "AllPolicy",
+    "BasePolicy",
     "FreshestPolicy",
     "MatPolicy",
-    "PPOConfig",
     "PPOPolicy",
     "Policy",
     "PolicyKind",

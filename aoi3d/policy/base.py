@@ -6,22 +6,26 @@ cameras whose newest frames the trainer uses. Every policy has a canonical text 
 (``mat:51``) and a JSON form (``{"kind": "mat", "mat_ms": 51}``); both round-trip through
 ``parse_policy`` / ``policy_from_json``.
 
-A new kind plugs in by implementing ``Policy`` and calling ``register_policy(PolicyKind(...))``;
-nothing here changes. Stateful policies clear their per-episode state in ``reset()``.
+A new kind plugs in by implementing ``Policy`` (most simply by subclassing :class:`BasePolicy`,
+which answers the optional questions with the defaults of a policy that has none of these
+needs) and calling ``register_policy(PolicyKind(...))``; nothing here changes. Stateful
+policies clear their per-episode state in ``reset()``.
 
-Beyond ``Policy``, a kind may answer the questions its callers have by defining optional
-members; the functions below read them, with the default of a kind that does not:
+Besides selecting, a policy answers the questions its callers have:
 
-- ``wait_ms`` (int ≥ 0, default 0) — :func:`wait_ms_of`: how long after the decision epoch
-  t the policy selects (the AoI is taken, and the render scored, at t + ``wait_ms``);
-- ``check_fits(n_cameras)`` — :func:`check_fits`: raise ``PolicySpecError`` when the policy
-  cannot serve a rig of N cameras (default: it can);
-- ``on_device(device)`` — :func:`place_on`: the policy with its model on a torch device
-  (``auto``, ``cpu``, ``cuda``; default: the policy itself, it has no model);
-- ``learns`` (bool, default False) — :func:`learns`: whether the policy asks its caller to
-  keep learning from the rewards of its decisions.
+- ``wait_ms`` (int ≥ 0, default 0): how long after the decision epoch t the policy selects
+  (the AoI is taken, and the render scored, at t + ``wait_ms``);
+- ``check_fits(n_cameras)``: raise ``PolicySpecError`` when the policy cannot serve a rig of
+  N cameras (default: it can);
+- ``on_device(device)``: the policy with its model on a torch device (``auto``, ``cpu``,
+  ``cuda``; default: the policy itself, it has no model);
+- ``learns`` (bool, default False): whether the policy asks its caller to keep learning from
+  the rewards of its decisions (such a policy — ``ppo`` with ``learn`` — names its agent by
+  ``checkpoint`` and ``device``, which :class:`aoi3d.rl.online.OnlineLearner` loads);
+- ``gamma_ms`` (float or None, default None): Γ, the maximum acceptable AoI of the rule the
+  policy applies (``mat``'s), for a caller that reports it.
 
-So a service asks the policy, never switches on its kind.
+So a caller asks the policy, never switches on its kind: only the registry knows the kinds.
 """
 
 from __future__ import annotations
@@ -46,13 +50,29 @@ class PolicySpecError(ValueError):
 
 @runtime_checkable
 class Policy(Protocol):
-    """Selects cameras from the AoI vector. NaN (unknown) AoI is never selected."""
+    """Selects cameras from the AoI vector (NaN, unknown, AoI is never selected), and answers
+    its callers' questions (see the module docstring)."""
 
     @property
     def kind(self) -> str: ...
 
     @property
     def spec(self) -> str: ...
+
+    @property
+    def wait_ms(self) -> int:
+        """How long after the decision epoch the policy selects (ms, ≥ 0)."""
+        ...
+
+    @property
+    def learns(self) -> bool:
+        """Whether the caller should keep learning from the rewards of its decisions."""
+        ...
+
+    @property
+    def gamma_ms(self) -> float | None:
+        """Γ of the MAT rule the policy applies (ms); None for a policy without one."""
+        ...
 
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         """Boolean mask over the cameras of ``aoi_ms`` (same order)."""
@@ -65,6 +85,35 @@ class Policy(Protocol):
     def reset(self) -> None:
         """Start a new episode (no-op for stateless policies)."""
         ...
+
+    def check_fits(self, n_cameras: int) -> None:
+        """Raise ``PolicySpecError`` unless the policy can serve a rig of ``n_cameras``."""
+        ...
+
+    def on_device(self, device: str) -> Policy:
+        """The policy with its model on ``device`` (``auto``, ``cpu``, ``cuda``);
+        ``PolicySpecError`` when the device cannot be had."""
+        ...
+
+
+class BasePolicy:
+    """The answers of a policy without a wait, a model, learning or a Γ; a kind subclasses
+    it and overrides what differs (``kind``, ``spec``, ``select`` and ``to_json`` it must
+    define)."""
+
+    wait_ms: int = 0
+    learns: bool = False
+    gamma_ms: float | None = None
+
+    def reset(self) -> None:
+        """Stateless between episodes."""
+
+    def check_fits(self, n_cameras: int) -> None:
+        """Any rig."""
+
+    def on_device(self, device: str) -> Policy:
+        """No model to place: the policy itself."""
+        return self  # type: ignore[return-value]
 
 
 def as_aoi_vector(aoi_ms: np.ndarray | Sequence[float]) -> np.ndarray:
@@ -191,32 +240,25 @@ def integer(name: str, value: Any, *, minimum: int = 0) -> int:
     return int(x)
 
 
-# The questions a caller asks a policy (optional members; see the module docstring).
+# Kept for services/scheduler/worker.py until it asks the members itself (being rewritten
+# in parallel); nothing else calls these. Remove them with its last call.
 
 
 def wait_ms_of(policy: Policy) -> int:
-    """How long ``policy`` waits after a decision epoch before it selects (0: decides at once)."""
-    wait = getattr(policy, "wait_ms", 0)
-    if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
-        raise ValueError(f"policy {policy.spec!r} declares wait_ms={wait!r}; need an int >= 0")
-    return int(wait)
+    """``policy.wait_ms``."""
+    return policy.wait_ms
 
 
 def check_fits(policy: Policy, n_cameras: int) -> None:
-    """Raise ``PolicySpecError`` when ``policy`` cannot serve a rig of ``n_cameras`` cameras
-    (e.g. more cameras asked for than there are, a model trained for another N)."""
-    check = getattr(policy, "check_fits", None)
-    if check is not None:
-        check(n_cameras)
+    """``policy.check_fits(n_cameras)``."""
+    policy.check_fits(n_cameras)
 
 
 def place_on(policy: Policy, device: str) -> Policy:
-    """``policy`` with its model on ``device`` (``auto``, ``cpu`` or ``cuda``); a policy
-    without a model passes through. ``PolicySpecError`` when the device cannot be had."""
-    move = getattr(policy, "on_device", None)
-    return policy if move is None else move(device)
+    """``policy.on_device(device)``."""
+    return policy.on_device(device)
 
 
 def learns(policy: Policy) -> bool:
-    """Whether ``policy`` asks its caller to keep learning from its decisions' rewards."""
-    return bool(getattr(policy, "learns", False))
+    """``policy.learns``."""
+    return policy.learns

@@ -7,8 +7,8 @@ Every caller that selects frames goes through :func:`decide` — the experiment 
 (:class:`aoi3d.rl.online.OnlineLearner`, a sampled action) — so a policy means the same in
 all of them. A decision taken at epoch t:
 
-1. asks the policy when it selects: at s = t + ``wait_ms`` (:func:`wait_ms_of`; 0 for every
-   policy but ``wait:<ω>``, which selects at t + ω);
+1. asks the policy when it selects: at s = t + ``policy.wait_ms`` (0 for every policy but
+   ``wait:<ω>``, which selects at t + ω);
 2. reads U(s), the generation time of each camera's newest frame delivered by s (NaN: none
    yet), from the caller's ``newest_at`` — the only thing that differs between the settings;
 3. forms the AoI vector Δ(s) = s − U(s) (NaN = unknown);
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from aoi3d.policy.base import Policy, as_aoi_vector, wait_ms_of
+from aoi3d.policy.base import Policy, as_aoi_vector
 
 __all__ = ["Act", "NewestAt", "Selection", "decide"]
 
@@ -100,7 +100,10 @@ def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
     says when to select and names the decision). A selection of the wrong shape raises
     ``ValueError``.
     """
-    eval_ms = decision_ms + wait_ms_of(policy)
+    wait = policy.wait_ms
+    if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
+        raise ValueError(f"policy {policy.spec!r} declares wait_ms={wait!r}; need an int >= 0")
+    eval_ms = decision_ms + int(wait)
     newest = as_aoi_vector(newest_at(eval_ms))
     aoi = eval_ms - newest
     bits = policy.select(aoi) if act is None else act(aoi, eval_ms)

@@ -9,6 +9,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from aoi3d.policy.base import (
+    BasePolicy,
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
@@ -21,7 +22,7 @@ from aoi3d.policy.base import (
 
 
 @dataclass(frozen=True)
-class AllPolicy:
+class AllPolicy(BasePolicy):
     """Use every camera whose AoI is known."""
 
     kind: ClassVar[str] = "all"
@@ -36,12 +37,9 @@ class AllPolicy:
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind}
 
-    def reset(self) -> None:
-        """Stateless."""
-
 
 @dataclass(frozen=True)
-class MatPolicy:
+class MatPolicy(BasePolicy):
     """MAT: use camera n iff Δ_n(t) < Γ (``mat_ms``). Γ = 0 selects none."""
 
     mat_ms: float
@@ -55,6 +53,11 @@ class MatPolicy:
     def spec(self) -> str:
         return f"mat:{format_number(self.mat_ms)}"
 
+    @property
+    def gamma_ms(self) -> float:
+        """Γ: the rule's threshold."""
+        return self.mat_ms
+
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         return as_aoi_vector(aoi_ms) < self.mat_ms  # NaN compares False: never selected
 
@@ -62,12 +65,9 @@ class MatPolicy:
         value = int(self.mat_ms) if self.mat_ms.is_integer() else self.mat_ms
         return {"kind": self.kind, "mat_ms": value}
 
-    def reset(self) -> None:
-        """Stateless."""
-
 
 @dataclass(frozen=True)
-class FreshestPolicy:
+class FreshestPolicy(BasePolicy):
     """Use the k cameras with the smallest known AoIs (ties: lower position first)."""
 
     k: int
@@ -96,9 +96,6 @@ class FreshestPolicy:
         if not 0 <= self.k <= n_cameras:
             raise PolicySpecError(f"freshest k must be in 0..{n_cameras} (the training "
                                   f"cameras), got {self.k}", self.to_json())
-
-    def reset(self) -> None:
-        """Stateless."""
 
 
 def _all_from_args(fields: list[str]) -> AllPolicy:

@@ -13,40 +13,40 @@ latency). ω = 0 selects nothing (no frame arrives in the slot it is captured).
 A policy has no clock, so the time shift is declared, not performed: :attr:`WaitPolicy.wait_ms`
 tells the caller to evaluate the AoI vector — and render, and score — at t + ω, and
 :meth:`WaitPolicy.select` then applies ``Δ ≤ ω`` to that vector. The caller is always
-:func:`aoi3d.policy.decide.decide`, which reads the shift with
-:func:`aoi3d.policy.base.wait_ms_of` (0 for the policies that decide at once): the experiment
+:func:`aoi3d.policy.decide.decide`, which reads the shift from the policy's ``wait_ms`` (0,
+:class:`~aoi3d.policy.base.BasePolicy`'s, for the policies that decide at once): the experiment
 engine and the live scheduler alike decide at t + ω and stamp the decision with that time.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 
 from aoi3d.policy.base import (
+    BasePolicy,
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
     expect_fields,
     expect_keys,
     integer,
-    wait_ms_of,
 )
 
-__all__ = ["KIND", "WaitPolicy", "wait_ms_of"]
+__all__ = ["KIND", "WaitPolicy"]
 
 
 @dataclass(frozen=True)
-class WaitPolicy:
+class WaitPolicy(BasePolicy):
     """ω-wait: given the AoI vector at t + ω, use camera n iff Δ_n(t + ω) ≤ ω (``wait_ms``).
 
     ``wait_ms`` is a whole number of slots (ms) ≥ 0.
     """
 
-    wait_ms: int
+    wait_ms: int = field()  # required: not BasePolicy's default 0
     kind: ClassVar[str] = "wait"
 
     def __post_init__(self) -> None:
@@ -63,8 +63,6 @@ class WaitPolicy:
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind, "wait_ms": self.wait_ms}
 
-    def reset(self) -> None:
-        """Stateless."""
 
 
 def _wait_from_args(fields: list[str]) -> WaitPolicy:

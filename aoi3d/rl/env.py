@@ -7,7 +7,7 @@ An episode of this environment is a single step — the paper's single-step form
   :func:`~aoi3d.experiment.plan_episode`: the same channel, camera phases and scene offset as
   an experiment episode of seed s), past the warm-up, and picks one of the config's scored
   decision epochs t (uniformly, from a stream of s). The observation is the AoI vector Δ(t),
-  encoded by :func:`aoi3d.policy.obs.encode_aoi`.
+  encoded by :func:`aoi3d.policy.ppo.obs.encode_aoi`.
 - :meth:`FrameSelectionEnv.step` (a 0/1 mask over the N cameras) trains a *fresh* radiance
   field (``carry="fresh"``, model seed s) ``steps_per_epoch`` steps on the selected cameras'
   newest delivered frames (generated at U_n(t)), renders the held-out camera for time t and
@@ -54,9 +54,9 @@ from aoi3d.experiment import (
 )
 from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decision, train_ids
 from aoi3d.experiment.sweep import lpips_available
-from aoi3d.policy import AllPolicy, Policy, Selection, check_fits, decide, wait_ms_of
+from aoi3d.policy import AllPolicy, Policy, Selection, decide
 from aoi3d.policy.decide import Act
-from aoi3d.policy.obs import encode_aoi, obs_size
+from aoi3d.policy.ppo.obs import encode_aoi, obs_size
 from aoi3d.quality import LpipsFn
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 
@@ -230,10 +230,10 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     def check_policy(self, policy: Policy) -> None:
         """``ValueError`` unless ``policy`` can act here: it must fit the N cameras and decide
         at the epoch (a waiting policy is scored by ``aoi3d experiment compare``)."""
-        if wait_ms_of(policy):
+        if policy.wait_ms:
             raise ValueError(f"{policy.spec}: the environment decides at the epoch; waiting "
                              "policies are scored by `aoi3d experiment compare`")
-        check_fits(policy, self.n_cameras)
+        policy.check_fits(self.n_cameras)
 
     def policy_action(self, policy: Policy) -> np.ndarray:
         """What ``policy`` selects at the current episode's decision epoch (bool per camera),

@@ -6,10 +6,10 @@ step (:func:`aoi3d.policy.decide.decide`) takes its selection from :meth:`Online
 ``decision_id → (observation, action, log π(action))`` as a pending episode. The metrics
 service later publishes a ``Quality`` whose ``decision_id`` names the decision the scored
 render was trained under; its ``reward`` closes that episode (:meth:`OnlineLearner.reward`).
-Every ``batch_size`` closed episodes the learner runs one PPO update (:func:`aoi3d.rl.ppo.update`,
-the same as offline training), and it writes the agent (weights, optimizer state, generator)
-to its online checkpoint every ``checkpoint_every`` updates and when it is closed (policy
-replaced, service stopped).
+Every ``batch_size`` closed episodes the learner runs one PPO update
+(:meth:`~aoi3d.policy.ppo.learner.PPOLearner.update`, the same as offline training), and it
+writes the agent (weights, optimizer state, generator) to its online checkpoint every
+``checkpoint_every`` updates and when it is closed (policy replaced, service stopped).
 
 What can go wrong with the rewards, and what happens:
 
@@ -63,11 +63,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from aoi3d.policy.base import Policy
-from aoi3d.policy.ppo import PPOPolicy
-from aoi3d.rl.batch import Batch, Episode
+from aoi3d.policy.ppo.batch import Batch, Episode
 
 if TYPE_CHECKING:  # torch is imported only once an agent is loaded
-    from aoi3d.rl.agent import SingleStepPPO
+    from aoi3d.policy.ppo.learner import PPOLearner
 
 __all__ = ["LearnConfig", "LearnerHook", "LearnerStatus", "OnlineLearner", "Outcome",
            "online_checkpoint_path"]
@@ -216,7 +215,7 @@ class OnlineLearner:
     (expiry; injectable for tests).
     """
 
-    def __init__(self, agent: SingleStepPPO, *, source: str, save_to: str | Path,
+    def __init__(self, agent: PPOLearner, *, source: str, save_to: str | Path,
                  config: LearnConfig | None = None, hook: LearnerHook | None = None,
                  wall: Callable[[], float] = time.time) -> None:
         self.agent = agent
@@ -243,18 +242,21 @@ class OnlineLearner:
     def for_policy(cls, policy: Policy, *, save_to: str | Path | None = None,
                    config: LearnConfig | None = None, hook: LearnerHook | None = None,
                    wall: Callable[[], float] = time.time) -> OnlineLearner:
-        """A learner for a ``ppo`` policy (any other kind is a ``ValueError``): its
-        checkpoint loaded as a learning agent (with the optimizer state and the generator's
-        position) on the policy's device; the online checkpoint goes to ``save_to``
-        (default: :func:`online_checkpoint_path`). Raises ``ValueError`` when the checkpoint
-        cannot be loaded or the online checkpoint could not be written."""
-        if not isinstance(policy, PPOPolicy):
-            raise ValueError(f"{policy.spec}: only a ppo policy can learn online")
-        from aoi3d.rl.agent import SingleStepPPO
+        """A learner for a policy that learns (:attr:`~aoi3d.policy.Policy.learns`; any other
+        is a ``ValueError``) — a ``ppo`` policy with ``learn``, whose ``checkpoint`` and
+        ``device`` name the agent: its checkpoint loaded as a learner (with the optimizer
+        state and the generator's position) on the policy's device; the online checkpoint
+        goes to ``save_to`` (default: :func:`online_checkpoint_path`). Raises ``ValueError``
+        when the checkpoint cannot be loaded or the online checkpoint could not be
+        written."""
+        if not policy.learns:
+            raise ValueError(f"{policy.spec}: this policy does not learn (a ppo policy learns "
+                             "online with learn: true)")
+        from aoi3d.policy.ppo.learner import PPOLearner
 
         path = online_checkpoint_path(policy.checkpoint, save_to)
         try:
-            agent = SingleStepPPO.load(policy.checkpoint, device=policy.device)
+            agent = PPOLearner.load(policy.checkpoint, device=policy.device)
         except FileNotFoundError as err:
             raise ValueError(str(err)) from None
         return cls(agent, source=policy.checkpoint, save_to=path, config=config, hook=hook,
@@ -269,15 +271,15 @@ class OnlineLearner:
         aoi = np.asarray(aoi_ms, dtype=np.float64)
         obs = self.agent.observe(aoi)
         with self._act_lock:
-            act = self._acting.act(obs, deterministic=False)
-        action = np.asarray(act.action, dtype=np.int8)
+            sample = self._acting.sample(obs)
+        action = np.asarray(sample.action, dtype=np.int8)
         with self._lock:
             if not self._closed:
                 self._pending[decision_id] = _Pending(time_ms=float(time_ms), obs=obs,
-                                                      action=action, logp=float(act.logp),
+                                                      action=action, logp=float(sample.logp),
                                                       born_s=self._wall())
-                self._last_entropy = float(act.entropy)
-                self._hook.acted(float(act.entropy), len(self._pending))
+                self._last_entropy = float(sample.entropy)
+                self._hook.acted(float(sample.entropy), len(self._pending))
         return action.astype(bool)
 
     # ------------------------------------------------------------------ the learning thread
@@ -342,11 +344,9 @@ class OnlineLearner:
             if self._closed or len(self._batch) < b:
                 return None
             batch, self._batch = self._batch[:b], self._batch[b:]
-        from aoi3d.rl import ppo  # torch: loaded with the agent already
-
         t0 = time.perf_counter()
         with self._agent_lock:
-            stats = ppo.update(self.agent, Batch.of(batch))
+            stats = self.agent.update(Batch.of(batch))
             weights = {k: v.detach().clone() for k, v in self.agent.net.state_dict().items()}
             with self._lock:  # booked before the agent is free: close() sees this update
                 self._counts.episodes += b
@@ -403,7 +403,7 @@ class OnlineLearner:
         return self.save() if unsaved else None
 
     @property
-    def acting_agent(self) -> SingleStepPPO:
+    def acting_agent(self) -> PPOLearner:
         """The copy of the agent the decision thread samples from (weights of the latest
         update)."""
         return self._acting

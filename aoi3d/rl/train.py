@@ -4,9 +4,10 @@ Training (:func:`train`) runs batches of ``batch_size`` one-step episodes: the m
 resets a local :class:`~aoi3d.rl.env.FrameSelectionEnv` for each episode's seed (cheap: the
 channel simulation), samples the agent's action, and hands ``(seed, action)`` to an
 :class:`~aoi3d.rl.pool.EnvPool`, which trains and scores the radiance field. When the batch
-is back, the agent makes one PPO update (:func:`aoi3d.rl.ppo.update`, as online learning
-does). Every ``checkpoint_every`` updates it writes ``checkpoint.pt`` (agent, optimizer,
-generator, position), ``episodes.csv``, ``updates.csv`` and ``reward.png``
+is back, the agent makes one PPO update
+(:meth:`~aoi3d.policy.ppo.learner.PPOLearner.update`, as online learning does). Every
+``checkpoint_every`` updates it writes ``checkpoint.pt`` (agent, optimizer, generator,
+position), ``episodes.csv``, ``updates.csv`` and ``reward.png``
 (:mod:`aoi3d.rl.record`); at the end ``final.pt``. A run resumes from its checkpoint and,
 the generator's state being in it, draws the same actions again (the episodes after the
 checkpoint come back from the result cache). Budgets and seeds: :mod:`aoi3d.rl.presets`.
@@ -24,9 +25,8 @@ import numpy as np
 
 from aoi3d.experiment.episode import dataset_fingerprint
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
-from aoi3d.rl import ppo
-from aoi3d.rl.agent import SingleStepPPO
-from aoi3d.rl.batch import Batch, Episode
+from aoi3d.policy.ppo.batch import Batch, Episode
+from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.env import FrameSelectionEnv
 from aoi3d.rl.pool import EnvPool
 from aoi3d.rl.presets import EVAL_SEED_BASE, TRAIN_SEED_BASE, TrainConfig, train_seed
@@ -73,7 +73,7 @@ def train(
     resume: bool = False,
     progress: Callable[[TrainProgress], None] | None = None,
 ) -> TrainSummary:
-    """Train a :class:`SingleStepPPO` agent on ``aoi3d/FrameSelection-v0``; see the module
+    """Train a :class:`PPOLearner` agent on ``aoi3d/FrameSelection-v0``; see the module
     docstring for the files under ``out``. ``resume`` continues from ``out/checkpoint.pt``
     (the config must match, ``episodes`` may grow); without it an existing checkpoint is
     not overwritten (``FileExistsError``)."""
@@ -92,7 +92,7 @@ def train(
     if resume:
         if not ckpt.is_file():
             raise FileNotFoundError(f"nothing to resume: no {ckpt}")
-        agent, extra = SingleStepPPO.load_with_extra(ckpt)
+        agent, extra = PPOLearner.load_with_extra(ckpt)
         saved = TrainConfig.from_dict(extra["train_config"])
         if replace(saved, episodes=cfg.episodes) != cfg:
             raise ValueError(f"{ckpt} was trained with another config; resume with the same "
@@ -110,7 +110,7 @@ def train(
         if ckpt.exists():
             raise FileExistsError(f"{ckpt} exists: pass resume to continue it, or use "
                                   "another output folder")
-        agent = SingleStepPPO(cfg.ppo)
+        agent = PPOLearner(cfg.ppo)
         start = 0
     meta = {
         "command": "aoi3d ppo train", "train_config": cfg.to_dict(),
@@ -155,7 +155,7 @@ def train(
             for e in batch:
                 o, _ = env.reset(seed=train_seed(e, cfg.seed_offset))
                 obs.append(o)
-                acts.append(agent.act(o))
+                acts.append(agent.sample(o))
             results: dict[int, dict[str, Any]] = {}
             for i, outcome in pool.run([(train_seed(e, cfg.seed_offset), a.action)
                                         for e, a in zip(batch, acts, strict=True)]):
@@ -179,7 +179,7 @@ def train(
             episodes = [Episode(obs=o, action=a.action, logp=a.logp,
                                 reward=results[i]["reward"])
                         for i, (o, a) in enumerate(zip(obs, acts, strict=True))]
-            stats = ppo.update(agent, Batch.of(episodes))
+            stats = agent.update(Batch.of(episodes))
             last_batch = float(np.mean([e.reward for e in episodes]))
             update_rows.append({"update": agent.updates, "episodes": agent.episodes,
                                 "first_episode": batch[0], **stats})

@@ -14,9 +14,7 @@ from aoi3d.policy import (
     ACCEPTED_FORMS,
     Policy,
     PolicySpecError,
-    check_fits,
     parse_policy,
-    place_on,
     policy_from_json,
 )
 from aoi3d.rl.online import LearnerStatus
@@ -76,7 +74,7 @@ class PolicyRequest(BaseModel):
                           "at t + ω and uses camera n iff its AoI then is <= ω (a frame "
                           "captured since t). 0 selects no camera.", examples=[40])
     checkpoint: str | None = Field(
-        None, description="kind ppo: path of a SingleStepPPO checkpoint, as the scheduler "
+        None, description="kind ppo: path of a PPO checkpoint (aoi3d ppo train), as the scheduler "
                           "process sees it; trained for N cameras.",
         examples=["runs/ppo/quick/final.pt"])
     learn: StrictBool | None = Field(
@@ -308,8 +306,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     settings = settings or Settings()
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
-    policy = place_on(parse_policy(settings.policy), settings.device)
-    check_fits(policy, common.cameras)  # fail at start-up, not at the first decision
+    policy = parse_policy(settings.policy).on_device(settings.device)
+    policy.check_fits(common.cameras)  # fail at start-up, not at the first decision
 
     def build_worker(the_bus: Bus, registry, site: str) -> SchedulerWorker:
         return SchedulerWorker(the_bus, registry, run_id=common.run_id, site=site,

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pytest
 
-from aoi3d.rl.agent import SingleStepPPO
+from aoi3d.policy.ppo.learner import PPOLearner
 from tests.integration.test_pipeline import (
     HTTP,
     PORT_OFFSET,
@@ -119,9 +119,9 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
         r = HTTP.put(sched, json={"kind": "all"}, headers=AUTH)
         assert r.status_code == 200, r.text
         assert metric("scheduler", "aoi3d_ppo_learning") == 0
-        learned = SingleStepPPO.load(online)
+        learned = PPOLearner.load(online)
         assert learned.episodes >= 2 and learned.updates >= 1
-        assert SingleStepPPO.load(ckpt).episodes == 0  # the source is untouched
+        assert PPOLearner.load(ckpt).episodes == 0  # the source is untouched
     finally:
         if tap is not None:
             tap.close()

@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from aoi3d.clock import SimClock
 from aoi3d.experiment import EpisodeConfig, plan_episode
 from aoi3d.experiment.episode import EpisodeLinks, episode_links
-from aoi3d.policy import parse_policy, wait_ms_of
+from aoi3d.policy import parse_policy
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.bus import MemoryBus
 from services.kit.settings import CommonSettings
@@ -82,7 +82,7 @@ def publish_trace(h: Harness, links: EpisodeLinks) -> int:
 def test_live_scheduler_decides_as_the_experiment(spec: str, seed: int, cfg: EpisodeConfig,
                                                    dataset: SceneDataset, live) -> None:
     plan = plan_episode(cfg, dataset, spec, seed)
-    links = episode_links(cfg, dataset, seed, wait_ms=wait_ms_of(parse_policy(spec)))
+    links = episode_links(cfg, dataset, seed, wait_ms=parse_policy(spec).wait_ms)
     assert links.camera_ids == tuple(range(1, N + 1))  # the scheduler's camera ids
     h = live(spec)
     assert publish_trace(h, links) < 1024  # fits the scheduler's inbox
@@ -101,9 +101,10 @@ def test_live_scheduler_decides_as_the_experiment(spec: str, seed: int, cfg: Epi
 def test_live_ppo_policy_decides_as_the_experiment(cfg: EpisodeConfig, dataset: SceneDataset,
                                                    live, tmp_path: Path) -> None:
     """A learned policy too: a fresh agent's deterministic action depends on the AoI."""
-    from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+    from aoi3d.policy.ppo import PPOConfig
+    from aoi3d.policy.ppo.learner import PPOLearner
 
-    SingleStepPPO(PPOConfig(n_cameras=N, seed=3)).save(tmp_path / "agent.pt")
+    PPOLearner(PPOConfig(n_cameras=N, seed=3)).save(tmp_path / "agent.pt")
     spec = f"ppo:{tmp_path / 'agent.pt'}"
     plan = plan_episode(cfg, dataset, spec, 5)
     h = live(spec)

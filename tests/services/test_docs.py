@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.kit import configdoc
+from services import configdoc
 from services.kit.bus import MemoryBus
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -18,7 +18,7 @@ PORTS = {8101: "camera", 8102: "network", 8103: "scheduler", 8104: "trainer", 81
 
 def test_configuration_table_is_current() -> None:
     assert configdoc.readme_section(README) == configdoc.markdown().strip(), (
-        "README configuration table is stale: run `python -m services.kit.configdoc --update`")
+        "README configuration table is stale: run `python -m services.configdoc --update`")
 
 
 @pytest.fixture(scope="module")

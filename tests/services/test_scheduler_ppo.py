@@ -20,7 +20,8 @@ import torch
 from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
-from aoi3d.rl.agent import PPOConfig, SingleStepPPO
+from aoi3d.policy.ppo import PPOConfig
+from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.online import LearnConfig, online_checkpoint_path
 from services.kit.bus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
@@ -49,7 +50,7 @@ def make_subset_checkpoint(path: Path, *, n_cameras: int, subset: Sequence[int],
 
     Reaches into the agent's network (``net.actor``, an ``nn.Sequential`` ending in the
     logits layer), which is what makes the selection known in advance."""
-    agent = SingleStepPPO(PPOConfig(n_cameras=n_cameras, seed=seed))
+    agent = PPOLearner(PPOConfig(n_cameras=n_cameras, seed=seed))
     head = agent.net.actor[-1]
     with torch.no_grad():
         head.weight.zero_()
@@ -286,9 +287,9 @@ def test_learning_from_quality_rewards_updates_the_agent_and_checkpoints_on_stop
     assert all(torch.equal(v, acting[k]) for k, v in learner.agent.net.state_dict().items())
 
     make_harness.stop(h)  # shutdown writes the online checkpoint
-    learned = SingleStepPPO.load(online)
+    learned = PPOLearner.load(online)
     assert learned.episodes == 2 and learned.updates == 1
-    source = SingleStepPPO.load(ckpt)
+    source = PPOLearner.load(ckpt)
     changed = [not torch.equal(a, b) for a, b in zip(learned.net.state_dict().values(),
                                                       source.net.state_dict().values(),
                                                       strict=True)]
@@ -307,13 +308,13 @@ def test_checkpoints_every_k_updates_and_when_the_policy_is_replaced(make_harnes
         wait_for(lambda i=i: ppo_metrics(h)["aoi3d_ppo_updates_total"] == i)
     m = ppo_metrics(h)
     assert m["aoi3d_ppo_checkpoints_total"] == 1  # after update 2
-    assert SingleStepPPO.load(target).updates == 2
+    assert PPOLearner.load(target).updates == 2
     # replacing the policy stops learning and saves the update made since
     assert h.client.put("/policy", json={"kind": "all"}).status_code == 200
     m = ppo_metrics(h)
     assert m["aoi3d_ppo_learning"] == 0 and m["aoi3d_ppo_checkpoints_total"] == 2
     assert math.isnan(m["aoi3d_ppo_policy_entropy"])
-    assert SingleStepPPO.load(target).updates == 3
+    assert PPOLearner.load(target).updates == 3
     assert "online" not in h.client.get("/policy").json()
     # a reward arriving now is not learned from
     d = h.decide_at(120.0)
@@ -329,7 +330,7 @@ def test_resuming_may_overwrite_the_source_only_when_asked(make_harness, ckpt: P
     h.put(KEYS.quality, quality(h, d.decision_id, d.time_ms, 0.3))
     wait_for(lambda: ppo_metrics(h)["aoi3d_ppo_updates_total"] == 1)
     make_harness.stop(h)
-    assert SingleStepPPO.load(ckpt).episodes == 1
+    assert PPOLearner.load(ckpt).episodes == 1
     assert not ckpt.with_name("subset.online.pt").exists()
 
 
@@ -379,7 +380,7 @@ def test_learning_decisions_are_reproducible_per_checkpoint_seed(make_harness, t
                                                                  ) -> None:
     """Sampled actions come from the agent's generator (seeded by its config): two schedulers
     loading the same checkpoint take the same decisions; an even head makes them vary."""
-    even = SingleStepPPO(PPOConfig(n_cameras=N, seed=7))
+    even = PPOLearner(PPOConfig(n_cameras=N, seed=7))
     even.save(tmp_path / "even.pt")
     runs = []
     for _ in range(2):

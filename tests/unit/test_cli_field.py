@@ -85,7 +85,7 @@ def test_train_scores_the_novel_view_and_writes_it(dataset: SceneDataset, tmp_pa
     (["--cameras", "0-2"], "held-out"),
     (["--frame", "7"], "0..1"),
     (["--seconds", "0"], "must be > 0"),
-    (["--device", "tpu"], "auto, cpu or cuda"),
+    (["--device", "tpu"], "accepted: auto, cpu, cuda"),  # aoi3d.device's message
 ])
 def test_train_refuses_bad_options(dataset: SceneDataset, args: list[str], message: str) -> None:
     result = runner.invoke(root_app, ["field", "train", "--dataset", str(dataset.root), *args])

@@ -31,7 +31,7 @@ import pytest
 import yaml
 from pydantic_settings import BaseSettings
 
-from services.kit.configdoc import DOMAIN_VARIABLES
+from services.configdoc import DOMAIN_VARIABLES
 from services.kit.settings import CommonSettings, ServiceSettings
 
 ROOT = Path(__file__).resolve().parents[2]

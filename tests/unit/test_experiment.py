@@ -24,7 +24,7 @@ from aoi3d.experiment import (
     run_plan,
 )
 from aoi3d.policy import PolicySpecError, parse_policy, policy_from_json
-from aoi3d.policy.wait import WaitPolicy, wait_ms_of
+from aoi3d.policy.wait import WaitPolicy
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 
 N_TRAIN = 4
@@ -50,11 +50,11 @@ def cfg(dataset: SceneDataset) -> EpisodeConfig:
 # --- ω-wait ----------------------------------------------------------------------------------
 def test_wait_policy_spec_json_and_selection() -> None:
     pol = parse_policy("wait:40")
-    assert isinstance(pol, WaitPolicy) and pol.spec == "wait:40" and wait_ms_of(pol) == 40
+    assert isinstance(pol, WaitPolicy) and pol.spec == "wait:40" and pol.wait_ms == 40
     assert policy_from_json(pol.to_json()) == pol
     mask = pol.select(np.array([40.0, 41.0, np.nan, 0.0]))
     assert mask.tolist() == [True, False, False, True]  # Δ ≤ ω; unknown never
-    assert wait_ms_of(parse_policy("mat:50")) == 0
+    assert parse_policy("mat:50").wait_ms == 0
     for bad in ("wait", "wait:-1", "wait:2.5", "wait:x", "wait:1:2"):
         with pytest.raises(PolicySpecError, match="Accepted forms"):
             parse_policy(bad)

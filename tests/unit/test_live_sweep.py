@@ -1,10 +1,11 @@
-"""`aoi3d live sweep`'s statistics: per-policy summaries and the interior-maximum test."""
+"""`aoi3d live sweep`'s statistics: per-policy summaries and the unpaired interior-maximum test;
+its progress lines print policy specs as they are."""
 
 from __future__ import annotations
 
 import pytest
 
-from aoi3d.cli.live import Measurement, interior_maximum, summarise
+from aoi3d.cli.live import Measurement, summarise, unpaired_interior_maximum
 
 
 def stat(mean: float | None, ci95: float | None) -> dict:
@@ -16,31 +17,31 @@ def results(*points: tuple[str, float, float]) -> list[dict]:
             for p, m, h in points]
 
 
-def test_interior_maximum_needs_the_difference_to_both_ends_significant() -> None:
-    clear = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.5),
+def test_unpaired_interior_maximum_needs_the_difference_to_both_ends_significant() -> None:
+    clear = unpaired_interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.5),
                                      ("all", 24.0, 0.3)), "psnr_db")
     assert clear["best"] == "mat:70" and clear["interior"] and clear["beyond_ci"]
     assert clear["best_minus_end"]["all"]["difference"] == pytest.approx(2.0)
     # Welch by hand: standard errors 0.5/t(.975, 9) = 0.2210 and 0.3/t(.975, 9) = 0.1326,
     # Welch–Satterthwaite dof 14.7, t(.975, 14.7) = 2.135: 2.135 · √(0.2210² + 0.1326²)
     assert clear["best_minus_end"]["all"]["ci95"] == pytest.approx(0.550, abs=0.002)
-    close = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.8),
+    close = unpaired_interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 26.0, 0.8),
                                      ("all", 25.5, 0.3)), "psnr_db")
     assert close["interior"] and not close["beyond_ci"]
-    end = interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 23.0, 0.5),
+    end = unpaired_interior_maximum(results(("mat:40", 20.0, 1.0), ("mat:70", 23.0, 0.5),
                                    ("all", 24.0, 0.3)), "psnr_db")
     assert end["best"] == "all" and not end["interior"] and not end["beyond_ci"]
     # LPIPS: lower is better
-    low = interior_maximum(results(("a", 20.0, 1.0), ("b", 26.0, 0.5), ("c", 24.0, 0.3)),
+    low = unpaired_interior_maximum(results(("a", 20.0, 1.0), ("b", 26.0, 0.5), ("c", 24.0, 0.3)),
                            "lpips")
     assert low["best"] == "b" and low["beyond_ci"]
     # an unknown CI never counts as separated; too few policies or a missing metric: None
-    unknown = interior_maximum([*results(("a", 20.0, 1.0)),
+    unknown = unpaired_interior_maximum([*results(("a", 20.0, 1.0)),
                                 {"policy": "b", "psnr_db": stat(26.0, None)},
                                 *results(("c", 24.0, 0.3))], "psnr_db")
     assert unknown["interior"] and not unknown["beyond_ci"]
-    assert interior_maximum(results(("a", 1.0, 0.1), ("b", 2.0, 0.1)), "psnr_db") is None
-    assert interior_maximum([{"policy": p, "psnr_db": stat(None, None)} for p in "abc"],
+    assert unpaired_interior_maximum(results(("a", 1.0, 0.1), ("b", 2.0, 0.1)), "psnr_db") is None
+    assert unpaired_interior_maximum([{"policy": p, "psnr_db": stat(None, None)} for p in "abc"],
                             "psnr_db") is None
 
 
@@ -79,3 +80,15 @@ def test_summarise_groups_by_policy_over_repeats() -> None:
     assert first["aoi_used_ms"]["mean"] == pytest.approx(50.0)  # empty decisions have none
     assert first["psnr_dynamic_db"] == {"mean": None, "ci95": None, "n": 0}
     assert out[1]["psnr_db"] == {"mean": 24.0, "ci95": None, "n": 1}
+
+
+def test_progress_prints_a_policy_spec_as_it_is() -> None:
+    """Rich would turn ``mat:100:`` into an emoji ("mat💯") and eat ``[...]`` as markup."""
+    from rich.markup import escape
+
+    from aoi3d.cli.common import make_console
+
+    out = make_console(width=80)  # the live sweep's console, as every command's
+    with out.capture() as cap:  # as the sweep prints its progress: user text escaped
+        out.print(f"\\[3/8] {escape('mat:100')}: settle 30 s, {escape('ppo:[runs]/final.pt')}")
+    assert cap.get().strip() == "[3/8] mat:100: settle 30 s, ppo:[runs]/final.pt"

@@ -21,8 +21,7 @@ from aoi3d.field.nerfacto import (
     weights_from_density,
 )
 from aoi3d.field.rays import RayBundle, camera_rays, ray_aabb
-from aoi3d.field.render import RenderOptions, RenderResult
-from aoi3d.field.trainer import render_rays
+from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
 from aoi3d.scene.camera import Camera, look_at
 
 BOX = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -173,7 +172,7 @@ def test_default_render_rays_is_the_uniform_renderer() -> None:
     rays = _rays(_camera(30.0))
     jitter = torch.rand(rays.n_rays, generator=torch.Generator().manual_seed(2))
     new = field.render_rays(rays, RenderOptions(0.1, jitter))
-    old = render_rays(field, rays.origins, rays.dirs, rays.t_near, rays.t_far, 0.1, jitter)
+    old = render_uniform(field, rays, RenderOptions(0.1, jitter))
     assert new.aux_loss is None
     torch.testing.assert_close(new.rgb, old.rgb, rtol=0, atol=0)
     torch.testing.assert_close(new.weights, old.weights, rtol=0, atol=0)

@@ -14,6 +14,7 @@ import pytest
 from aoi3d.policy import (
     ACCEPTED_FORMS,
     AllPolicy,
+    BasePolicy,
     FreshestPolicy,
     MatPolicy,
     Policy,
@@ -24,6 +25,7 @@ from aoi3d.policy import (
     register_policy,
 )
 from aoi3d.policy import base as policy_base
+from aoi3d.policy.wait import WaitPolicy
 
 NAN = np.nan
 AOI = np.array([10.0, NAN, 50.0, 51.0, 5.0, 10.0, 80.0])
@@ -149,7 +151,7 @@ def test_a_new_kind_plugs_in_through_the_registry() -> None:
     """A later kind (e.g. ``wait:<ms>`` or ``ppo``) needs no change to parsing or JSON."""
 
     @dataclass(frozen=True)
-    class OldestPolicy:
+    class OldestPolicy(BasePolicy):  # the answers it has no need of: BasePolicy's defaults
         kind = "oldest"
         spec = "oldest"
 
@@ -162,9 +164,6 @@ def test_a_new_kind_plugs_in_through_the_registry() -> None:
 
         def to_json(self) -> dict[str, Any]:
             return {"kind": "oldest"}
-
-        def reset(self) -> None:
-            pass
 
     def from_args(fields: list[str]) -> OldestPolicy:
         policy_base.expect_fields("oldest", fields, ())
@@ -242,15 +241,45 @@ def test_decide_takes_the_aoi_at_t_plus_the_wait_and_never_an_unknown_camera() -
 
 
 def test_policies_answer_their_own_questions() -> None:
-    from aoi3d.policy import check_fits, learns, place_on, wait_ms_of
-
     fresh = parse_policy("freshest:5")
-    check_fits(fresh, 5)
+    fresh.check_fits(5)
     with pytest.raises(PolicySpecError, match=r"0\.\.4"):
-        check_fits(fresh, 4)
-    for spec in ("all", "mat:10", "wait:20"):
+        fresh.check_fits(4)
+    for spec in ("all", "mat:10", "wait:20", "freshest:1"):
         policy = parse_policy(spec)
-        check_fits(policy, 1)  # any rig
-        assert place_on(policy, "cuda") is policy  # no model to place
-        assert not learns(policy)
-    assert wait_ms_of(parse_policy("wait:20")) == 20 and wait_ms_of(parse_policy("all")) == 0
+        assert isinstance(policy, BasePolicy)
+        policy.check_fits(1)  # any rig
+        assert policy.on_device("cuda") is policy  # no model to place
+        assert not policy.learns
+    assert parse_policy("wait:20").wait_ms == 20 and parse_policy("all").wait_ms == 0
+    assert parse_policy("mat:10").gamma_ms == 10.0 and parse_policy("all").gamma_ms is None
+    with pytest.raises(TypeError):
+        WaitPolicy()  # type: ignore[call-arg]  # ω is required, not BasePolicy's 0
+
+
+def test_a_policy_missing_a_member_is_not_a_policy() -> None:
+    """The protocol is complete: a kind that forgets an answer (here ``wait_ms``) is refused,
+    not silently given a default."""
+
+    class Bare:
+        kind = "bare"
+        spec = "bare"
+        learns = False
+        gamma_ms = None
+
+        def select(self, aoi_ms):
+            return np.zeros(len(aoi_ms), bool)
+
+        def to_json(self):
+            return {"kind": "bare"}
+
+        def reset(self) -> None: ...
+
+        def check_fits(self, n_cameras: int) -> None: ...
+
+        def on_device(self, device: str):
+            return self
+
+    assert not isinstance(Bare(), Policy)
+    Bare.wait_ms = 0
+    assert isinstance(Bare(), Policy)

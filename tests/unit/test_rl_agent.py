@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from aoi3d.policy import PolicySpecError, parse_policy, policy_from_json
-from aoi3d.rl import PPOConfig, PPOPolicy, SingleStepPPO, encode_aoi
+from aoi3d.policy.ppo import Batch, PPOConfig, PPOPolicy, encode_aoi
+from aoi3d.policy.ppo.learner import PPOLearner
 
 
 @pytest.fixture(autouse=True)
@@ -52,40 +53,40 @@ def test_config_validation_and_round_trip() -> None:
 
 @pytest.mark.parametrize("arch", ["mlp", "shared"])
 def test_untrained_policy_selects_each_camera_with_half_chance(arch: str) -> None:
-    agent = SingleStepPPO(PPOConfig(n_cameras=18, seed=1, arch=arch))
-    act = agent.act(agent.observe(np.full(18, 60.0)))
+    agent = PPOLearner(PPOConfig(n_cameras=18, seed=1, arch=arch))
+    act = agent.sample(agent.observe(np.full(18, 60.0)))
     assert act.action.dtype == np.int8 and act.action.shape == (18,)
     assert np.allclose(act.probs, 0.5, atol=0.02)
     assert act.logp == pytest.approx(18 * np.log(0.5), abs=0.2)
     assert act.entropy == pytest.approx(18 * np.log(2), abs=0.01)
-    biased = SingleStepPPO(PPOConfig(n_cameras=4, init_select_p=0.9, arch=arch))
-    assert np.allclose(biased.act(biased.observe(np.zeros(4))).probs, 0.9, atol=0.02)
+    biased = PPOLearner(PPOConfig(n_cameras=4, init_select_p=0.9, arch=arch))
+    assert np.allclose(biased.sample(biased.observe(np.zeros(4))).probs, 0.9, atol=0.02)
 
 
 def test_acting_is_reproducible_per_seed() -> None:
     def actions(seed: int) -> list[list[int]]:
-        agent = SingleStepPPO(PPOConfig(n_cameras=8, seed=seed))
+        agent = PPOLearner(PPOConfig(n_cameras=8, seed=seed))
         obs = agent.observe(np.linspace(0, 200, 8))
-        return [agent.act(obs).action.tolist() for _ in range(5)]
+        return [agent.sample(obs).action.tolist() for _ in range(5)]
 
     assert actions(3) == actions(3)
     assert actions(3) != actions(4)
 
 
 def test_bad_observations_and_batches_are_rejected() -> None:
-    agent = SingleStepPPO(PPOConfig(n_cameras=3))
+    agent = PPOLearner(PPOConfig(n_cameras=3))
     with pytest.raises(ValueError, match="trained for 3 cameras"):
         agent.observe(np.zeros(4))
     with pytest.raises(ValueError, match="observation must have shape"):
-        agent.act(np.zeros(5, dtype=np.float32))
+        agent.sample(np.zeros(5, dtype=np.float32))
     obs = np.zeros((2, 6), dtype=np.float32)
     with pytest.raises(ValueError, match="actions must be 0/1"):
-        agent.update(obs, np.full((2, 3), 2), np.zeros(2), np.zeros(2))
+        agent.update(Batch(obs, np.full((2, 3), 2), np.zeros(2), np.zeros(2)))
     with pytest.raises(ValueError, match="rewards"):
-        agent.update(obs, np.zeros((2, 3)), np.zeros(2), np.array([0.0, np.nan]))
+        agent.update(Batch(obs, np.zeros((2, 3)), np.zeros(2), np.array([0.0, np.nan])))
 
 
-def _learn(agent: SingleStepPPO, rng: np.random.Generator, target_of, iters: int,
+def _learn(agent: PPOLearner, rng: np.random.Generator, target_of, iters: int,
            batch: int) -> None:
     n = agent.config.n_cameras
     for _ in range(iters):
@@ -93,12 +94,13 @@ def _learn(agent: SingleStepPPO, rng: np.random.Generator, target_of, iters: int
         for _ in range(batch):
             aoi = rng.uniform(0.0, 300.0, n)
             o = agent.observe(aoi)
-            act = agent.act(o)
+            act = agent.sample(o)
             rewards.append(float((act.action.astype(bool) == target_of(aoi)).mean()))
             obs.append(o)
             acts.append(act.action)
             logps.append(act.logp)
-        stats = agent.update(np.array(obs), np.array(acts), np.array(logps), np.array(rewards))
+        stats = agent.update(Batch(np.array(obs), np.array(acts), np.array(logps),
+                                   np.array(rewards)))
         assert set(stats) == {"policy_loss", "value_loss", "entropy", "approx_kl",
                               "clip_frac", "mean_reward"}
         assert all(np.isfinite(v) for v in stats.values())
@@ -108,11 +110,10 @@ def _learn(agent: SingleStepPPO, rng: np.random.Generator, target_of, iters: int
 def test_ppo_learns_a_fixed_target_mask() -> None:
     """Reward = fraction of bits matching a fixed mask: the best action is the mask."""
     target = np.array([1, 0, 1, 1, 0, 0, 1, 0], dtype=bool)
-    agent = SingleStepPPO(PPOConfig(n_cameras=8, lr=3e-3, seed=0))
+    agent = PPOLearner(PPOConfig(n_cameras=8, lr=3e-3, seed=0))
     _learn(agent, np.random.default_rng(0), lambda aoi: target, iters=25, batch=32)
-    act = agent.act(agent.observe(np.full(8, 100.0)), deterministic=True)
-    assert act.action.astype(bool).tolist() == target.tolist()
-    assert np.all(np.abs(act.probs - target) < 0.25)
+    assert agent.select(np.full(8, 100.0)).tolist() == target.tolist()
+    assert np.all(np.abs(agent.probabilities(agent.observe(np.full(8, 100.0))) - target) < 0.25)
 
 
 @pytest.mark.parametrize(("arch", "iters"), [("mlp", 60), ("shared", 25)])
@@ -121,29 +122,29 @@ def test_ppo_learns_a_contextual_bandit(arch: str, iters: int) -> None:
     observation (a MAT rule), and the best constant action scores only ≈ 2/3. The shared
     actor learns the per-camera rule from fewer episodes."""
     rng = np.random.default_rng(1)
-    agent = SingleStepPPO(PPOConfig(n_cameras=6, lr=3e-3, ent_coef=0.01, seed=0, arch=arch))
+    agent = PPOLearner(PPOConfig(n_cameras=6, lr=3e-3, ent_coef=0.01, seed=0, arch=arch))
     _learn(agent, rng, lambda aoi: aoi < 100.0, iters=iters, batch=32)
     test = rng.uniform(0.0, 300.0, (300, 6))
-    acc = np.mean([(agent.act(agent.observe(a), deterministic=True).action.astype(bool)
+    acc = np.mean([(agent.select(a)
                     == (a < 100.0)).mean() for a in test])
     assert acc > 0.85  # (0.90–0.96 over seeds 0–4; the best constant action: ≈ 0.67)
 
 
 def test_single_episode_update_uses_raw_advantage() -> None:
     """B = 1: no normalisation; a positive advantage raises the probability of that action."""
-    agent = SingleStepPPO(PPOConfig(n_cameras=4, lr=1e-2, update_epochs=4))
+    agent = PPOLearner(PPOConfig(n_cameras=4, lr=1e-2, update_epochs=4))
     obs = agent.observe(np.full(4, 50.0))
     action = np.array([1, 1, 0, 0], dtype=np.int8)
-    before = agent.act(obs, deterministic=True).probs
+    before = agent.probabilities(obs)
     logp = float(np.log(np.where(action == 1, before, 1 - before)).sum())
-    agent.update(obs[None], action[None], np.array([logp]), np.array([5.0]))
-    after = agent.act(obs, deterministic=True).probs
+    agent.update(Batch(obs[None], action[None], np.array([logp]), np.array([5.0])))
+    after = agent.probabilities(obs)
     assert np.all(after[:2] > before[:2]) and np.all(after[2:] < before[2:])
 
 
 # --- checkpoints -----------------------------------------------------------------------------
-def _trained(n: int = 5) -> SingleStepPPO:
-    agent = SingleStepPPO(PPOConfig(n_cameras=n, lr=1e-2, seed=2))
+def _trained(n: int = 5) -> PPOLearner:
+    agent = PPOLearner(PPOConfig(n_cameras=n, lr=1e-2, seed=2))
     _learn(agent, np.random.default_rng(2), lambda aoi: aoi < 150.0, iters=3, batch=16)
     return agent
 
@@ -153,7 +154,7 @@ def test_checkpoint_round_trip(tmp_path) -> None:
     path = tmp_path / "ckpt" / "agent.pt"
     agent.save(path, extra={"next_episode": 48})
     assert sorted(p.name for p in path.parent.iterdir()) == ["agent.pt"]  # no temp left
-    loaded, extra = SingleStepPPO.load_with_extra(path)
+    loaded, extra = PPOLearner.load_with_extra(path)
     assert extra == {"next_episode": 48}
     assert loaded.config == agent.config
     assert (loaded.episodes, loaded.updates) == (agent.episodes, agent.updates)
@@ -170,38 +171,38 @@ def test_checkpoint_round_trip(tmp_path) -> None:
     rng = np.random.default_rng(9)
     for _ in range(10):
         obs = agent.observe(rng.uniform(0, 300, 5))
-        assert np.array_equal(agent.act(obs, deterministic=True).action,
-                              loaded.act(obs, deterministic=True).action)
-        x, y = agent.act(obs), loaded.act(obs)
+        assert np.array_equal(agent.probabilities(obs), loaded.probabilities(obs))
+        x, y = agent.sample(obs), loaded.sample(obs)
         assert np.array_equal(x.action, y.action) and x.logp == pytest.approx(y.logp)
     # and the same update afterwards
-    batch = (np.stack([agent.observe(np.full(5, 10.0))] * 4), np.ones((4, 5), np.int8),
-             np.full(4, -3.0), np.array([1.0, 0.0, 0.5, 0.2]))
-    assert agent.update(*batch) == pytest.approx(loaded.update(*batch))
+    batch = Batch(np.stack([agent.observe(np.full(5, 10.0))] * 4), np.ones((4, 5), np.int8),
+                  np.full(4, -3.0), np.array([1.0, 0.0, 0.5, 0.2]))
+    assert agent.update(batch) == pytest.approx(loaded.update(batch))
 
 
 def test_bad_checkpoints_give_clear_errors(tmp_path) -> None:
     with pytest.raises(FileNotFoundError, match="no PPO checkpoint"):
-        SingleStepPPO.load(tmp_path / "missing.pt")
+        PPOLearner.load(tmp_path / "missing.pt")
     junk = tmp_path / "junk.pt"
     junk.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match="not a readable PPO checkpoint"):
-        SingleStepPPO.load(junk)
+        PPOLearner.load(junk)
     other = tmp_path / "other.pt"
     torch.save({"weights": torch.zeros(3)}, other)
     with pytest.raises(ValueError, match="not an aoi3d PPO checkpoint"):
-        SingleStepPPO.load(other)
+        PPOLearner.load(other)
     agent = _trained()
-    doc = agent.state()
+    agent.save(tmp_path / "good.pt")
+    doc = torch.load(tmp_path / "good.pt", weights_only=True)
     doc["version"] = 99
     torch.save(doc, tmp_path / "future.pt")
     with pytest.raises(ValueError, match="version 99"):
-        SingleStepPPO.load(tmp_path / "future.pt")
-    doc = agent.state()
-    doc["config"]["n_cameras"] = 7  # weights no longer fit the config
-    torch.save(doc, tmp_path / "damaged.pt")
+        PPOLearner.load(tmp_path / "future.pt")
+    ckpt = agent.checkpoint()
+    ckpt.config["n_cameras"] = 7  # weights no longer fit the config
+    ckpt.write(tmp_path / "damaged.pt")
     with pytest.raises(ValueError, match="damaged PPO checkpoint"):
-        SingleStepPPO.load(tmp_path / "damaged.pt")
+        PPOLearner.load(tmp_path / "damaged.pt")
 
 
 # --- as a policy -----------------------------------------------------------------------------
@@ -219,7 +220,7 @@ def test_ppo_policy_via_registry(tmp_path) -> None:
     aoi = np.array([10.0, 250.0, np.nan, 40.0, 120.0])
     mask = pol.select(aoi)
     assert mask.dtype == bool and mask.shape == (5,)
-    expected = agent.act(agent.observe(aoi), deterministic=True).action.astype(bool)
+    expected = agent.select(aoi)
     assert mask.tolist() == (expected & ~np.isnan(aoi)).tolist()
     assert not pol.select(np.full(5, np.nan)).any()  # unknown AoI is never selected
 
@@ -240,22 +241,20 @@ def test_ppo_policy_errors(tmp_path) -> None:
 
 
 def test_ppo_policy_answers_its_questions(tmp_path) -> None:
-    from aoi3d.policy import check_fits, learns, place_on
-
     path = tmp_path / "agent.pt"
     _trained(5).save(path)
     pol = parse_policy(f"ppo:{path}")
-    check_fits(pol, 5)
+    pol.check_fits(5)
     with pytest.raises(PolicySpecError, match="trained for 5 cameras, but there are N = 4"):
-        check_fits(pol, 4)
-    assert not learns(pol)
-    assert learns(policy_from_json({"kind": "ppo", "checkpoint": str(path), "learn": True}))
-    assert place_on(pol, "cpu") is pol and pol.device == "cpu"
+        pol.check_fits(4)
+    assert not pol.learns and pol.wait_ms == 0 and pol.gamma_ms is None
+    assert policy_from_json({"kind": "ppo", "checkpoint": str(path), "learn": True}).learns
+    assert pol.on_device("cpu") is pol and pol.device == "cpu"
     if not torch.cuda.is_available():
         with pytest.raises(PolicySpecError, match="CUDA is not available"):
-            place_on(pol, "cuda")
+            pol.on_device("cuda")
     with pytest.raises(PolicySpecError, match="unknown device"):
-        place_on(pol, "tpu")
+        pol.on_device("tpu")
 
 
 # --- online learning -------------------------------------------------------------------------
@@ -281,8 +280,8 @@ def test_online_learner_matches_rewards_updates_and_reports_to_its_hook(tmp_path
         def saved(self, path) -> None:
             self.seen.append(("saved", path.name))
 
-    agent = SingleStepPPO(PPOConfig(n_cameras=3, seed=7))
-    twin = SingleStepPPO(PPOConfig(n_cameras=3, seed=7))
+    agent = PPOLearner(PPOConfig(n_cameras=3, seed=7))
+    twin = PPOLearner(PPOConfig(n_cameras=3, seed=7))
     hook = Events()
     learner = OnlineLearner(agent, source="src.pt", save_to=tmp_path / "online.pt",
                             config=LearnConfig(batch_size=2), hook=hook, wall=lambda: 0.0)
@@ -290,7 +289,7 @@ def test_online_learner_matches_rewards_updates_and_reports_to_its_hook(tmp_path
             np.array([90.0, 60.0, 30.0])]
     bits = [learner.act(i, aoi, 30.0 * i) for i, aoi in enumerate(aois, start=1)]
     # the acting copy samples what the agent would have sampled from its own generator
-    expected = [twin.act(twin.observe(a)).action.astype(bool) for a in aois]
+    expected = [twin.sample(twin.observe(a)).action.astype(bool) for a in aois]
     assert [b.tolist() for b in bits] == [e.tolist() for e in expected]
     assert learner.reward(1, 30.0, 0.5) == Outcome.USED
     assert learner.reward(1, 30.0, 0.5) == Outcome.DUPLICATE
@@ -304,5 +303,5 @@ def test_online_learner_matches_rewards_updates_and_reports_to_its_hook(tmp_path
     assert hook.seen == [("rewarded", 0, 2), ("ignored", "duplicate"), ("rewarded", 1, 0),
                          ("ignored", "late"), ("updated", 2, pytest.approx(0.3)),
                          ("saved", "online.pt")]
-    saved = SingleStepPPO.load(tmp_path / "online.pt")
+    saved = PPOLearner.load(tmp_path / "online.pt")
     assert saved.updates == 1 and saved.episodes == 2

@@ -15,7 +15,9 @@ from typer.testing import CliRunner
 
 import aoi3d.rl
 from aoi3d.experiment import EpisodeConfig, ResultCache, plan_episode, plan_key, run_plan
-from aoi3d.rl import ENV_ID, PPOConfig, SingleStepPPO
+from aoi3d.policy.ppo import PPOConfig
+from aoi3d.policy.ppo.learner import PPOLearner
+from aoi3d.rl import ENV_ID
 from aoi3d.rl.env import FrameSelectionEnv
 from aoi3d.rl.evaluate import evaluate
 from aoi3d.rl.presets import (
@@ -81,7 +83,7 @@ def test_step_is_the_experiment_engine_on_one_decision(cfg: EpisodeConfig,
     env = FrameSelectionEnv(cfg, dataset)
     obs, info = env.reset(seed=11)
     aoi = info["aoi"]
-    np.testing.assert_array_equal(obs, aoi3d.rl.encode_aoi(aoi, 300.0))
+    np.testing.assert_array_equal(obs, aoi3d.policy.ppo.encode_aoi(aoi, 300.0))
     mask = aoi < 70.0
     _, reward, _, _, step_info = env.step(mask.astype(np.int8))
     plan = plan_episode(cfg, dataset, "mat:70", seed=11)
@@ -170,8 +172,8 @@ def test_train_writes_files_and_resumes_identically(cfg: EpisodeConfig, dataset:
     resumed = train(_train_cfg(cfg, 8), tmp_path / "split", dataset=dataset, workers=1,
                     cache=tmp_path / "cache", resume=True)
     assert resumed.episodes == 8 and resumed.cached == 4  # same actions → cache hits
-    a = SingleStepPPO.load(tmp_path / "full" / "final.pt")
-    b = SingleStepPPO.load(tmp_path / "split" / "final.pt")
+    a = PPOLearner.load(tmp_path / "full" / "final.pt")
+    b = PPOLearner.load(tmp_path / "split" / "final.pt")
     for x, y in zip(a.net.state_dict().values(), b.net.state_dict().values(), strict=True):
         assert torch.equal(x, y)
     with pytest.raises(ValueError, match="another config"):
@@ -182,7 +184,7 @@ def test_train_writes_files_and_resumes_identically(cfg: EpisodeConfig, dataset:
 
 def test_evaluate_on_held_out_seeds(cfg: EpisodeConfig, dataset: SceneDataset,
                                     tmp_path) -> None:
-    agent = SingleStepPPO(PPOConfig(n_cameras=N_TRAIN))
+    agent = PPOLearner(PPOConfig(n_cameras=N_TRAIN))
     agent.save(tmp_path / "a.pt")
     seeds = eval_seeds(3)
     outcome = evaluate([f"ppo:{tmp_path / 'a.pt'}", "all", "mat:0"], cfg, seeds,
@@ -194,7 +196,7 @@ def test_evaluate_on_held_out_seeds(cfg: EpisodeConfig, dataset: SceneDataset,
     assert "first_minus_this_reward" in summary["all"]
     with pytest.raises(ValueError, match="waiting"):
         evaluate(["wait:40"], cfg, seeds, dataset=dataset, workers=1)
-    big = SingleStepPPO(PPOConfig(n_cameras=N_TRAIN + 1))
+    big = PPOLearner(PPOConfig(n_cameras=N_TRAIN + 1))
     big.save(tmp_path / "big.pt")
     with pytest.raises(ValueError, match="trained for 5 cameras"):
         evaluate([f"ppo:{tmp_path / 'big.pt'}"], cfg, seeds, dataset=dataset, workers=1)
@@ -247,7 +249,7 @@ def test_cli_bad_input(dataset: SceneDataset, tmp_path) -> None:
     bad.write_text("nope")
     res = _cli(["ppo", "eval", "--checkpoint", str(bad)])
     assert res.exit_code == 2 and "not a readable PPO checkpoint" in res.output
-    agent = SingleStepPPO(PPOConfig(n_cameras=N_TRAIN))
+    agent = PPOLearner(PPOConfig(n_cameras=N_TRAIN))
     agent.save(tmp_path / "a.pt")
     res = _cli(["ppo", "eval", "--checkpoint", str(tmp_path / "a.pt"), "--seeds", "1",
                 "--compare", "bogus:1", *_tiny_sets(dataset)[:-2], "--workers", "1"])
@@ -257,7 +259,7 @@ def test_cli_bad_input(dataset: SceneDataset, tmp_path) -> None:
 def test_experiment_compare_accepts_a_ppo_checkpoint(dataset: SceneDataset, tmp_path) -> None:
     """``ppo:<checkpoint>`` in `aoi3d experiment compare`: its deterministic action at every
     decision, through the normal planning path; a checkpoint of another N is refused."""
-    agent = SingleStepPPO(PPOConfig(n_cameras=N_TRAIN, init_select_p=0.9))  # selects all
+    agent = PPOLearner(PPOConfig(n_cameras=N_TRAIN, init_select_p=0.9))  # selects all
     agent.save(tmp_path / "a.pt")
     common = ["--dataset", str(dataset.root), "--cache", str(tmp_path / "cache"),
               "--workers", "1", "--steps-per-epoch", "2", "--no-lpips", "--seeds", "2",
@@ -273,7 +275,7 @@ def test_experiment_compare_accepts_a_ppo_checkpoint(dataset: SceneDataset, tmp_
     # p = 0.9 everywhere → every known camera, i.e. the same frames as `all`: same numbers
     assert rows[spec]["reward"] == pytest.approx(rows["all"]["reward"])
     assert rows[spec]["n_selected"] == rows["all"]["n_selected"]
-    SingleStepPPO(PPOConfig(n_cameras=N_TRAIN + 2)).save(tmp_path / "b.pt")
+    PPOLearner(PPOConfig(n_cameras=N_TRAIN + 2)).save(tmp_path / "b.pt")
     res = _cli(["experiment", "compare", "--policy", f"ppo:{tmp_path / 'b.pt'}",
                 "--out", str(tmp_path / "d"), *common])
     assert res.exit_code == 2 and "trained for 6 cameras" in res.output

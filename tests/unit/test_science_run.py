@@ -17,7 +17,8 @@ TINY_FIELD = ('{"batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "gri
 
 
 def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=4, rotor_rpm=60.0,
+    # 6 training cameras: science.py compares freshest:6, which a rig must fit (check_fits)
+    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=6, rotor_rpm=60.0,
                       spp=1)
     ds = generate_dataset(tmp_path / "tiny", cfg)
     aoi3d = str(Path(sys.executable).with_name("aoi3d"))

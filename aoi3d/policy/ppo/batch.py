@@ -1,8 +1,8 @@
 """The one-step episodes a PPO update learns from (plain data: no torch here).
 
 An :class:`Episode` is one decision and its reward; a :class:`Batch` is B of them as arrays,
-what :func:`aoi3d.rl.ppo.update` takes. Offline training collects a batch from the env
-workers, the online learner from the scheduler's rewarded decisions.
+what :meth:`aoi3d.policy.ppo.learner.PPOLearner.update` takes. Offline training collects a
+batch from the env workers, the online learner from the scheduler's rewarded decisions.
 """
 
 from __future__ import annotations

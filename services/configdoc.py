@@ -1,6 +1,6 @@
 """The configuration reference: every environment variable the processes read.
 
-``python -m services.kit.configdoc`` prints it as a Markdown table; the README embeds it
+``python -m services.configdoc`` prints it as a Markdown table; the README embeds it
 between markers and a test fails when the two drift apart.
 """
 
