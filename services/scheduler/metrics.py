@@ -11,9 +11,11 @@ import math
 from collections.abc import Mapping
 from pathlib import Path
 
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, Info, Summary
 
+from aoi3d.policy import Policy
 from aoi3d.rl.online import LearnerHook
+from services.kit.pb import aoi3d_pb2 as pb
 
 __all__ = ["LearnerMetrics"]
 
@@ -96,3 +98,57 @@ class LearnerMetrics(LearnerHook):
         if not learning:
             self.entropy.set(math.nan)
             self.pending.set(0)
+
+
+class DecisionMetrics:
+    """The scheduler's decisions, frames and policy as Prometheus series."""
+
+    def __init__(self, registry: CollectorRegistry) -> None:
+        self.aoi = Gauge(
+            "aoi3d_aoi_seconds",
+            "AoI of each camera at the latest decision (sim s); a camera is exported only "
+            "once a frame of it was delivered (unknown AoI has no series).",
+            ["camera"], registry=registry)
+        self.selected = Gauge("aoi3d_cameras_selected",
+                              "Cameras selected at the latest decision.", registry=registry)
+        self.decisions = Counter("aoi3d_decisions", "Decisions published.",
+                                 registry=registry)
+        self.selections = Counter(
+            "aoi3d_camera_selections",
+            "Cameras selected, summed over every decision: rate(...) / "
+            "rate(aoi3d_decisions_total) is the mean selected per decision, none missed.",
+            registry=registry)
+        self.skipped = Counter(
+            "aoi3d_decisions_skipped",
+            "Decision epochs skipped because the decision thread fell behind the clock.",
+            registry=registry)
+        self.frames = Counter("aoi3d_frames_received", "Delivered frames received.",
+                              ["camera"], registry=registry)
+        self.inbox_dropped = Counter(
+            "aoi3d_inbox_dropped", "Frames dropped because the decision thread fell behind.",
+            registry=registry)
+        self.aoi_summary = Summary(
+            "aoi3d_decision_aoi_seconds",
+            "AoI of each camera at every decision (sim s): rate(_sum)/rate(_count) is its "
+            "mean over a window, not a snapshot.", ["camera"], registry=registry)
+        self.policy = Info("aoi3d_policy", "The selection policy in force (kind and spec).",
+                           registry=registry)
+        self.mat = Gauge("aoi3d_policy_mat_seconds",
+                         "Γ of the MAT policy in force (sim s); NaN for other kinds.",
+                         registry=registry)
+
+    def decided(self, msg: pb.Decision) -> None:
+        self.decisions.inc()
+        self.selected.set(len(msg.selected))
+        self.selections.inc(len(msg.selected))
+        for cam, a in zip(msg.camera_ids, msg.aoi_ms, strict=True):
+            if math.isfinite(a):
+                self.aoi.labels(camera=str(cam)).set(a / 1000.0)
+                self.aoi_summary.labels(camera=str(cam)).observe(a / 1000.0)
+
+    def policy_changed(self, policy: Policy) -> None:
+        doc = policy.to_json()
+        self.policy.info({"kind": str(doc.get("kind", "")), "spec": policy.spec})
+        mat_ms = doc.get("mat_ms") if doc.get("kind") == "mat" else None
+        self.mat.set(float(mat_ms) / 1000.0 if mat_ms is not None else math.nan)
+

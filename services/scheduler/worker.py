@@ -27,62 +27,36 @@ stopping the worker closes the learner (which writes its online checkpoint).
 from __future__ import annotations
 
 import functools
-import heapq
-import itertools
 import logging
 import math
-import secrets
 import threading
-from dataclasses import dataclass
 
-import numpy as np
-from prometheus_client import CollectorRegistry, Counter, Gauge, Info, Summary
+from prometheus_client import CollectorRegistry
 
-from aoi3d.aoi import AoITracker
 from aoi3d.clock import SimClock
 from aoi3d.device import check_device
 from aoi3d.policy import (
     Policy,
     PolicySpecError,
     check_fits,
-    decide,
     learns,
     place_on,
     wait_ms_of,
 )
 from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
-from services.kit.codec import decode_frame, decode_quality
+from services.kit.codec import decode_quality
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
-from services.scheduler.metrics import LearnerMetrics
+from services.scheduler.core import MAX_AHEAD_MS, AoISnapshot, NewestFrame, SchedulerCore
+from services.scheduler.metrics import DecisionMetrics, LearnerMetrics
 
 log = logging.getLogger(__name__)
 
-MAX_AHEAD_MS = 60_000.0
-"""A frame stamped as delivered further than this in the (sim) future is rejected: the
-sender's clock (epoch/time scale) disagrees with ours."""
-
 _POLL_S = 0.05  # longest wait before re-checking the clock and the stop flag
 
-
-@dataclass(frozen=True)
-class NewestFrame:
-    """The newest delivered frame of one camera (what a selection refers to)."""
-
-    sequence: int
-    generation_ms: float
-
-
-@dataclass(frozen=True)
-class AoISnapshot:
-    """The AoI vector at one time; NaN where no frame of the camera was delivered yet."""
-
-    time_ms: float
-    camera_ids: tuple[int, ...]
-    aoi_ms: np.ndarray
-    newest_ms: np.ndarray
+__all__ = ["MAX_AHEAD_MS", "AoISnapshot", "NewestFrame", "SchedulerWorker"]
 
 
 class SchedulerWorker:
@@ -101,8 +75,6 @@ class SchedulerWorker:
                  stall_s: float = 30.0) -> None:
         if not (math.isfinite(decision_period_ms) and decision_period_ms > 0):
             raise ValueError(f"decision_period_ms must be > 0, got {decision_period_ms}")
-        if n_cameras < 1:
-            raise ValueError(f"n_cameras must be >= 1, got {n_cameras}")
         check_device(device)  # fail on a bad name now, not at the first policy with a model
         check_fits(policy, n_cameras)
         self._bus = bus
@@ -112,24 +84,15 @@ class SchedulerWorker:
         self._period_ms = float(decision_period_ms)
         self._learn_cfg = learn or LearnConfig()
         self._device = device
-        self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
-        self._accepted = frozenset(self.camera_ids)
-        self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
+        self.core = SchedulerCore(n_cameras)
+        self.camera_ids = self.core.camera_ids
+        self.incarnation = self.core.incarnation
+        self._inbox = Inbox(inbox_size, on_drop=lambda: self._m.inbox_dropped.inc())
         self._quality_inbox = Inbox(quality_inbox_size, on_drop=self._on_quality_overflow)
 
-        self._lock = threading.Lock()  # guards everything below that routes read
+        self._lock = threading.Lock()  # guards the core and the policy that routes read
         self._policy: Policy = policy
         self._learner: OnlineLearner | None = None
-        self._tracker = AoITracker(list(self.camera_ids))
-        self._newest: dict[int, NewestFrame] = {}
-        self._last_decision: pb.Decision | None = None
-        # frames received but not yet delivered in sim time: (delivery_ms, tie, cam, seq, gen)
-        self._pending: list[tuple[float, int, int, int, float]] = []
-        self._tie = itertools.count()
-        self._decision_id = 0
-        # This process's decisions are (incarnation, decision_id): a restarted scheduler gets a
-        # new incarnation, so the trainer takes its decisions at once (proto Decision).
-        self.incarnation = secrets.randbits(63) | 1
         self._frames_beat = Heartbeat(stall_s)  # a delivered frame accepted
 
         self._stop = threading.Event()
@@ -138,38 +101,7 @@ class SchedulerWorker:
         self._started = False
 
         self.rejections = Rejections(registry)
-        self._m_aoi = Gauge(
-            "aoi3d_aoi_seconds",
-            "AoI of each camera at the latest decision (sim s); a camera is exported only "
-            "once a frame of it was delivered (unknown AoI has no series).",
-            ["camera"], registry=registry)
-        self._m_selected = Gauge("aoi3d_cameras_selected",
-                                 "Cameras selected at the latest decision.", registry=registry)
-        self._m_decisions = Counter("aoi3d_decisions", "Decisions published.",
-                                    registry=registry)
-        self._m_selections = Counter(
-            "aoi3d_camera_selections",
-            "Cameras selected, summed over every decision: rate(...) / "
-            "rate(aoi3d_decisions_total) is the mean selected per decision, none missed.",
-            registry=registry)
-        self._m_skipped = Counter(
-            "aoi3d_decisions_skipped",
-            "Decision epochs skipped because the decision thread fell behind the clock.",
-            registry=registry)
-        self._m_frames = Counter("aoi3d_frames_received", "Delivered frames received.",
-                                 ["camera"], registry=registry)
-        self._m_inbox_dropped = Counter(
-            "aoi3d_inbox_dropped", "Frames dropped because the decision thread fell behind.",
-            registry=registry)
-        self._m_aoi_summary = Summary(
-            "aoi3d_decision_aoi_seconds",
-            "AoI of each camera at every decision (sim s): rate(_sum)/rate(_count) is its "
-            "mean over a window, not a snapshot.", ["camera"], registry=registry)
-        self._m_policy = Info("aoi3d_policy", "The selection policy in force (kind and spec).",
-                              registry=registry)
-        self._m_mat = Gauge("aoi3d_policy_mat_seconds",
-                            "Γ of the MAT policy in force (sim s); NaN for other kinds.",
-                            registry=registry)
+        self._m = DecisionMetrics(registry)
         self._m_learn = LearnerMetrics(registry)
         self._install(place_on(policy, device), save_to=None)
 
@@ -204,7 +136,7 @@ class SchedulerWorker:
         if self._learn_thread is None or not self._learn_thread.is_alive():
             return False, "learning thread not running"
         with self._lock:
-            known = len(self._newest)
+            known = self.core.cameras_known
             learning = self._learner is not None
         if self._frames_beat.stalled():
             return False, (f"no frame delivered for {self._frames_beat.idle_s():.0f} s "
@@ -269,10 +201,7 @@ class SchedulerWorker:
             old, self._learner = self._learner, learner
             self._policy = policy
         self._m_learn.learning_changed(learner is not None)
-        doc = policy.to_json()
-        self._m_policy.info({"kind": str(doc.get("kind", "")), "spec": policy.spec})
-        mat_ms = doc.get("mat_ms") if doc.get("kind") == "mat" else None
-        self._m_mat.set(float(mat_ms) / 1000.0 if mat_ms is not None else math.nan)
+        self._m.policy_changed(policy)
         return old
 
     def _close_learner(self, learner: OnlineLearner) -> None:
@@ -288,14 +217,12 @@ class SchedulerWorker:
         """The AoI vector at ``time_ms`` (default: now) from the frames applied so far."""
         t = self._clock.now_ms() if time_ms is None else time_ms
         with self._lock:
-            aoi = np.asarray(self._tracker.aoi_ms(t), dtype=np.float64).copy()
-            newest = np.asarray(self._tracker.newest_ms, dtype=np.float64).copy()
-        return AoISnapshot(time_ms=t, camera_ids=self.camera_ids, aoi_ms=aoi, newest_ms=newest)
+            return self.core.aoi(t)
 
     @property
     def last_decision(self) -> pb.Decision | None:
         with self._lock:
-            return self._last_decision
+            return self.core.last_decision
 
     # ------------------------------------------------------------------ the decision thread
     def _on_frame(self, key: str, payload: bytes) -> None:
@@ -313,7 +240,7 @@ class SchedulerWorker:
             if now >= due:
                 behind = math.floor((now - due) / self._period_ms)
                 if behind > 0:  # skip missed epochs rather than bursting decisions
-                    self._m_skipped.inc(behind)
+                    self._m.skipped.inc(behind)
                     next_t += behind * self._period_ms
                 for item in self._inbox.drain():
                     self._ingest(*item, now_ms=now)
@@ -336,15 +263,8 @@ class SchedulerWorker:
     def _ingest(self, key: str, payload: bytes, *, now_ms: float) -> None:
         """Validate a delivered frame and queue it until its delivery time."""
         try:
-            frame = decode_frame(payload, self._accepted)
-            delivery_ms = frame.delivery_ms if frame.delivery_ms > 0 else now_ms
-            if frame.generation_ms > delivery_ms:
-                raise Rejected("bad_time", f"frame generated at {frame.generation_ms:g} ms but "
-                                           f"delivered at {delivery_ms:g} ms")
-            if delivery_ms > now_ms + MAX_AHEAD_MS:
-                raise Rejected("future_delivery",
-                               f"delivery at {delivery_ms:g} ms is more than {MAX_AHEAD_MS:g} ms "
-                               f"ahead of this clock ({now_ms:g} ms): epoch/time scale differ?")
+            with self._lock:
+                frame = self.core.ingest(payload, now_ms)
         except Rejected as err:
             self.rejections.reject(err, key)
             return
@@ -352,53 +272,20 @@ class SchedulerWorker:
             log.exception("failed to decode a frame on %s", key)
             self.rejections.reject(Rejected("internal_error", repr(err)), key)
             return
-        self._m_frames.labels(camera=str(frame.camera_id)).inc()
+        self._m.frames.labels(camera=str(frame.camera_id)).inc()
         self._frames_beat.beat()
-        heapq.heappush(self._pending, (delivery_ms, next(self._tie), frame.camera_id,
-                                       frame.sequence, frame.generation_ms))
 
     def _apply_pending(self, upto_ms: float) -> None:
-        """Deliver every queued frame whose delivery time is ≤ ``upto_ms`` to the tracker."""
         with self._lock:
-            while self._pending and self._pending[0][0] <= upto_ms:
-                _, _, cam, seq, gen_ms = heapq.heappop(self._pending)
-                if self._tracker.deliver(cam, gen_ms):  # it is the camera's newest frame
-                    self._newest[cam] = NewestFrame(sequence=seq, generation_ms=gen_ms)
-
-    def _newest_at(self, s_ms: float) -> np.ndarray:
-        """U(s) from the frames delivered by ``s_ms`` (the decision step's ``newest_at``)."""
-        self._apply_pending(s_ms)
-        with self._lock:
-            return np.asarray(self._tracker.newest_ms, dtype=np.float64).copy()
+            self.core.apply_pending(upto_ms)
 
     def _decide(self, t_ms: float, *, policy: Policy, learner: OnlineLearner | None) -> None:
         """Take the decision step of epoch ``t_ms`` and publish the Decision (stamped with
         the time the selection is for: t, or t + ω for a waiting policy)."""
-        decision_id = self._decision_id + 1
-        act = None if learner is None else functools.partial(learner.act, decision_id)
-        sel = decide(policy, t_ms, self._newest_at, act=act)
         with self._lock:
-            newest = dict(self._newest)
-        selected = [
-            pb.FrameRef(camera_id=cam, sequence=newest[cam].sequence,
-                        generation_ms=newest[cam].generation_ms, aoi_ms=float(sel.aoi_ms[i]))
-            for i, cam in zip(sel.indices, sel.cameras(self.camera_ids), strict=True)
-        ]
-        self._decision_id = decision_id
-        msg = pb.Decision(decision_id=decision_id, incarnation=self.incarnation,
-                          time_ms=sel.eval_ms,
-                          camera_ids=list(self.camera_ids), aoi_ms=[float(a) for a in sel.aoi_ms],
-                          selected=selected, policy=sel.policy)
+            msg = self.core.decide(t_ms, policy, None if learner is None else learner.act)
         self._bus.publish(self._keys.decision, msg.SerializeToString())
-        with self._lock:
-            self._last_decision = msg
-        self._m_decisions.inc()
-        self._m_selected.set(len(selected))
-        self._m_selections.inc(len(selected))
-        for cam, a in zip(self.camera_ids, sel.aoi_ms, strict=True):
-            if math.isfinite(a):
-                self._m_aoi.labels(camera=str(cam)).set(a / 1000.0)
-                self._m_aoi_summary.labels(camera=str(cam)).observe(a / 1000.0)
+        self._m.decided(msg)
 
     # ------------------------------------------------------------------ the learning thread
     def _on_quality(self, key: str, payload: bytes) -> None:

@@ -1,0 +1,75 @@
+"""The trainer's core and a reconstruction worker's core on their own: no bus, no server."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from aoi3d.scene import SceneDataset
+from services.kit.observe import Rejected
+from services.kit.pb import aoi3d_pb2 as pb
+from services.recon.core import JobFailed, ReconCore
+from services.trainer.core import RenderSettings, TrainerCore
+from services.trainer.pool import Dispatcher, Report
+from tests.services.test_trainer import (
+    CONFIGS,
+    N_TRAIN,
+    dataset,  # noqa: F401  (module fixture)
+    decision_payload,
+    frame_payload,
+)
+
+
+def make_core(ds: SceneDataset, pool: Dispatcher) -> TrainerCore:
+    return TrainerCore(camera_ids=frozenset(range(1, N_TRAIN + 1)),
+                       size=(ds.width, ds.height), skew_ms=1e9,
+                       heldout=ds.cameras[ds.heldout_id], aabb=np.asarray(ds.aabb),
+                       frames_per_camera=4, render=RenderSettings("grid", "fresh", 12, 3),
+                       dispatcher=pool, site="north")
+
+
+def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDataset) -> None:  # noqa: F811
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    for cam in (1, 2, 3):
+        core.on_frame(frame_payload(dataset, cam, 0.0), now_ms=0.0)
+    assert core.on_decision(decision_payload(4, 100.0, [(1, 0.0), (3, 0.0), (2, 700.0)]),
+                            now_ms=100.0, now_s=1.0) is None  # no worker waits
+    assert core.frames_missing == 1 and core.decision.n_missing == 1
+    with pytest.raises(Rejected, match="stale_decision"):
+        core.on_decision(decision_payload(4, 100.0, []), now_ms=100.0, now_s=1.1)
+    pool.joined("w", 1.2)
+    assignment = pool.request(Report("w", max_wait_s=1.0), 1.5)
+    job = pb.WorkReply.FromString(core.job(assignment, 1.5)).job
+    assert job.decision.decision_id == 4 and job.site == "north"
+    assert sorted(f.camera_id for f in job.frames) == [1, 3] and job.n_missing == 1
+    assert (job.backend, job.carry, job.render_steps, job.seed) == ("grid", "fresh", 12, 3)
+    assert list(job.aabb) == np.asarray(dataset.aabb).reshape(-1).tolist()
+
+    # a worker's core turns it into a render of the held-out camera, from those frames
+    out = ReconCore(worker_id="w", device="cpu", configs=CONFIGS).run(job)
+    r = out.render
+    assert (r.decision_id, r.site, r.worker_id, r.n_views, r.render_steps) == (4, "north", "w",
+                                                                               2, 12)
+    assert sorted(r.frame_generation_ms) == [0.0, 0.0] and math.isfinite(r.loss)
+    latest = core.on_render(r.SerializeToString(), now_s=2.0, now_ms=200.0)
+    assert latest.decision_id == 4 and latest.worker_id == "w" and latest.age_s == 1.0
+
+
+def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason(
+        dataset: SceneDataset) -> None:  # noqa: F811
+    core = make_core(dataset, Dispatcher())
+    core.set_backend("ngp")
+    core.reset()
+    assert (core.render.backend, core.render.model_epoch) == ("ngp", 2)
+    with pytest.raises(ValueError):
+        core.set_backend("nope")
+    recon = ReconCore(worker_id="w", device="cpu", configs=CONFIGS)
+    with pytest.raises(JobFailed) as err:
+        recon.run(pb.Job(aabb=[0, 0, 0, -1, 1, 1]))
+    assert err.value.reason == "bad_job"
+    with pytest.raises(JobFailed) as err:
+        recon.run(pb.Job(aabb=[0, 0, 0, 1, 1, 1]))  # no camera to render
+    assert err.value.reason == "bad_job"
