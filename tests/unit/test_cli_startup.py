@@ -209,3 +209,19 @@ def test_up_reads_another_folder_as_it_is(tmp_path: Path, monkeypatch: pytest.Mo
     result = CliRunner().invoke(app, ["up", "--dataset", str(tmp_path / "mine")])
     assert result.exit_code == 0, result.output
     assert started == [tmp_path / "mine"] and "aoi3d layout" in " ".join(result.output.split())
+
+
+def test_ppo_commands_take_their_own_options_then_the_shared_ones() -> None:
+    """`aoi3d ppo train` and `eval` share their options the way the experiment commands do
+    (cli.common.with_shared_options), not by copied lists."""
+    import typer.main
+
+    from aoi3d.cli.ppo import app
+
+    shared = ["dataset", "steps_per_epoch", "workers", "threads", "cache", "no_cache", "device",
+              "lpips", "set_"]
+    commands = typer.main.get_command(app).commands
+    for name in ("train", "eval"):
+        names = [p.name for p in commands[name].params]
+        assert names[-len(shared):] == shared, name
+        assert not set(names[:-len(shared)]) & set(shared), name

@@ -11,7 +11,13 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import stats
 
-from aoi3d.experiment.optimum import optimum, paired_difference
+from aoi3d.experiment.optimum import (
+    LOWER_IS_BETTER,
+    optima,
+    optimum,
+    paired_difference,
+    sign_of,
+)
 
 GAMMAS = [40.0, 70.0, 100.0, 130.0, 160.0, "all"]
 
@@ -74,6 +80,20 @@ def test_lower_is_better_and_unordered_policies() -> None:
     assert opt.best == "mat:70" and "all" not in opt.members
     assert opt.ends == () and not opt.interior
     assert opt.to_best["all"].mean == pytest.approx(0.10) and opt.to_best["all"].significant
+
+
+def test_the_direction_is_stated_once_and_optima_applies_it_per_metric() -> None:
+    assert {"lpips"} == LOWER_IS_BETTER and sign_of("lpips") == -1.0 and sign_of("ssim") == 1.0
+    means = (("all", 20.0, 0.30), ("mat:70", 22.0, 0.20), ("wait:40", 21.0, 0.25))
+    rows = [{"policy": p, "seed": s, "psnr": psnr + 0.1 * s, "lpips": lp + 0.01 * s, "ssim": None}
+            for s in range(3) for p, psnr, lp in means]
+    out = optima(rows, ("psnr", "lpips", "ssim"), ordered=False)
+    assert set(out) == {"psnr", "lpips"}  # no finite SSIM: left out
+    assert out["psnr"].best == "mat:70" and out["lpips"].best == "mat:70"  # lowest LPIPS
+    # the default direction is the metric's: the same as saying it
+    lp = {p: {r["seed"]: r["lpips"] for r in rows if r["policy"] == p} for p in ("all", "mat:70")}
+    assert (optimum(lp, metric="lpips", ordered=False).best
+            == optimum(lp, metric="lpips", lower_is_better=True, ordered=False).best == "mat:70")
 
 
 def test_one_seed_decides_nothing_and_seeds_are_paired() -> None:

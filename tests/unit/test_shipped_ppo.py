@@ -23,6 +23,23 @@ def test_shipped_checkpoint_loads_and_fits_the_default_scene() -> None:
     assert mask.shape == (18,) and not mask[3]  # never a camera without a frame
 
 
+def test_shipped_checkpoint_loads_on_both_sides() -> None:
+    """The checkpoint format is unchanged by the agent's move to aoi3d/policy/ppo/: the acting
+    side keeps the AgentConfig part of the stored config, the learner the whole PPOConfig
+    (its update's hyper-parameters, optimizer state and generator) — and both act alike."""
+    from aoi3d.policy.ppo import AgentConfig, PPOConfig
+    from aoi3d.policy.ppo.actor import Actor
+    from aoi3d.policy.ppo.learner import PPOLearner
+
+    actor, extra = Actor.load_with_extra(SHIPPED / "final.pt")
+    learner = PPOLearner.load(SHIPPED / "final.pt")
+    assert type(actor.config) is AgentConfig and isinstance(learner.config, PPOConfig)
+    assert learner.config.agent == actor.config and learner.updates == actor.updates > 0
+    assert extra["preset"] == "quick" and "episode_config" in extra
+    aoi = np.random.default_rng(0).uniform(0, 300, (20, 18))
+    assert all((actor.select(a) == learner.select(a)).all() for a in aoi)
+
+
 def test_shipped_checkpoint_comes_with_its_training_record() -> None:
     command = (SHIPPED / "COMMAND").read_text()
     assert "aoi3d ppo train --preset quick" in command
