@@ -327,8 +327,8 @@ def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
 def _gamma_of(policy: str) -> float | None:
     from aoi3d.policy import parse_policy
 
-    parsed = parse_policy(policy)
-    return float(parsed.mat_ms) if parsed.kind == "mat" else None  # type: ignore[attr-defined]
+    gamma_ms = parse_policy(policy).gamma_ms  # Γ of a MAT rule; None for the other kinds
+    return float(gamma_ms) if gamma_ms is not None else None
 
 
 def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any]],

@@ -17,13 +17,9 @@ from aoi3d.policy.base import (
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
-    check_fits,
-    learns,
     parse_policy,
-    place_on,
     policy_from_json,
     register_policy,
-    wait_ms_of,
 )
 from aoi3d.policy.decide import Selection, decide
 from aoi3d.policy.ppo import PPOPolicy
@@ -48,12 +44,8 @@ __all__ = [
     "Selection",
     "WaitPolicy",
     "as_aoi_vector",
-    "check_fits",
     "decide",
-    "learns",
     "parse_policy",
-    "place_on",
     "policy_from_json",
     "register_policy",
-    "wait_ms_of",
 ]

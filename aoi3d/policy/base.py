@@ -238,27 +238,3 @@ def integer(name: str, value: Any, *, minimum: int = 0) -> int:
     if x < minimum:
         raise PolicySpecError(f"{name} must be >= {minimum}, got {value!r}")
     return int(x)
-
-
-# Kept for services/scheduler/worker.py until it asks the members itself (being rewritten
-# in parallel); nothing else calls these. Remove them with its last call.
-
-
-def wait_ms_of(policy: Policy) -> int:
-    """``policy.wait_ms``."""
-    return policy.wait_ms
-
-
-def check_fits(policy: Policy, n_cameras: int) -> None:
-    """``policy.check_fits(n_cameras)``."""
-    policy.check_fits(n_cameras)
-
-
-def place_on(policy: Policy, device: str) -> Policy:
-    """``policy.on_device(device)``."""
-    return policy.on_device(device)
-
-
-def learns(policy: Policy) -> bool:
-    """``policy.learns``."""
-    return policy.learns

@@ -147,8 +147,7 @@ class DecisionMetrics:
                 self.aoi_summary.labels(camera=str(cam)).observe(a / 1000.0)
 
     def policy_changed(self, policy: Policy) -> None:
-        doc = policy.to_json()
-        self.policy.info({"kind": str(doc.get("kind", "")), "spec": policy.spec})
-        mat_ms = doc.get("mat_ms") if doc.get("kind") == "mat" else None
-        self.mat.set(float(mat_ms) / 1000.0 if mat_ms is not None else math.nan)
+        self.policy.info({"kind": policy.kind, "spec": policy.spec})
+        gamma_ms = policy.gamma_ms  # Γ of a MAT rule, None for the other kinds
+        self.mat.set(float(gamma_ms) / 1000.0 if gamma_ms is not None else math.nan)
 

@@ -14,8 +14,8 @@ s, the AoI vector is the one at s, and the Decision is stamped ``time_ms = s`` �
 render is scored against, exactly as in the experiments (:func:`aoi3d.experiment.plan_episode`).
 
 The scheduler asks the policy, never its kind: whether it fits N cameras
-(:func:`aoi3d.policy.check_fits`), where its model goes (:func:`aoi3d.policy.place_on`),
-whether it learns (:func:`aoi3d.policy.learns`). A policy that learns (``ppo`` with
+(``policy.check_fits``), where its model goes (``policy.on_device``),
+whether it learns (``policy.learns``). A policy that learns (``ppo`` with
 ``learn: true``) gets an :class:`aoi3d.rl.online.OnlineLearner`: the decision step then takes
 the learner's sampled action, the worker subscribes ``Keys.quality`` (handler: enqueue only),
 and a second thread, the learning thread, decodes the ``Quality`` messages and hands their
@@ -35,14 +35,7 @@ from prometheus_client import CollectorRegistry
 
 from aoi3d.clock import SimClock
 from aoi3d.device import check_device
-from aoi3d.policy import (
-    Policy,
-    PolicySpecError,
-    check_fits,
-    learns,
-    place_on,
-    wait_ms_of,
-)
+from aoi3d.policy import Policy, PolicySpecError
 from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import decode_quality
@@ -76,7 +69,7 @@ class SchedulerWorker:
         if not (math.isfinite(decision_period_ms) and decision_period_ms > 0):
             raise ValueError(f"decision_period_ms must be > 0, got {decision_period_ms}")
         check_device(device)  # fail on a bad name now, not at the first policy with a model
-        check_fits(policy, n_cameras)
+        policy.check_fits(n_cameras)
         self._bus = bus
         self._keys = Keys(run_id, site)
         self.site = site
@@ -103,7 +96,7 @@ class SchedulerWorker:
         self.rejections = Rejections(registry)
         self._m = DecisionMetrics(registry)
         self._m_learn = LearnerMetrics(registry)
-        self._install(place_on(policy, device), save_to=None)
+        self._install(policy.on_device(device), save_to=None)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -164,16 +157,16 @@ class SchedulerWorker:
         ``PolicySpecError`` — with nothing changed — when the policy does not fit the rig,
         ``save_to`` is given without learning, or the online checkpoint cannot be written.
         """
-        check_fits(policy, len(self.camera_ids))
-        if save_to is not None and not learns(policy):
+        policy.check_fits(len(self.camera_ids))
+        if save_to is not None and not policy.learns:
             raise PolicySpecError("save_to applies only to a ppo policy with learn: true",
                                   policy.to_json())
-        policy = place_on(policy, self._device)
+        policy = policy.on_device(self._device)
         old = self._install(policy, save_to=save_to)
         if old is not None:
             self._close_learner(old)
         log.info("policy set to %s%s", policy.spec, " (learning online)"
-                 if learns(policy) else "")
+                 if policy.learns else "")
         return policy
 
     @property
@@ -190,7 +183,7 @@ class SchedulerWorker:
     def _install(self, policy: Policy, *, save_to: str | None) -> OnlineLearner | None:
         """Make ``policy`` (and its learner) current; returns the replaced learner."""
         learner = None
-        if learns(policy):
+        if policy.learns:
             try:
                 learner = OnlineLearner.for_policy(policy, save_to=save_to,
                                                    config=self._learn_cfg, hook=self._m_learn,
@@ -236,7 +229,7 @@ class SchedulerWorker:
         while not self._stop.is_set():
             now = clock.now_ms()
             policy, learner = self.policy_and_learner()
-            due = next_t + wait_ms_of(policy)
+            due = next_t + policy.wait_ms
             if now >= due:
                 behind = math.floor((now - due) / self._period_ms)
                 if behind > 0:  # skip missed epochs rather than bursting decisions
