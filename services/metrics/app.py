@@ -13,8 +13,9 @@ from aoi3d.lpips import load_lpips_fn, weights_path
 from aoi3d.quality import LpipsFn
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
+from services.metrics.core import QualityRecord, mean_of_present, mean_or_none
 from services.metrics.settings import Settings
-from services.metrics.worker import MetricsWorker, QualityRecord, mean_of_present, mean_or_none
+from services.metrics.worker import MetricsWorker
 
 log = logging.getLogger(__name__)
 

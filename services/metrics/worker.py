@@ -1,132 +1,35 @@
-"""The metrics worker: pairs each render of the novel view with its ground truth and scores it.
+"""The metrics worker: the runtime of :class:`services.metrics.core.MetricsCore` (the pairing
+and scoring rules are documented there).
 
-Bus handlers only enqueue; one scoring thread decodes, pairs, calls
-:func:`aoi3d.quality.score` and publishes a ``Quality`` message. Pairing rule: a render at
-decision time t is compared with the ground-truth frame generated exactly at t; failing
-that, with the newest one generated in [t − C, t] (C = ``truth_period_ms``); failing that the
-render is rejected with reason ``no_truth`` (counted in ``aoi3d_messages_rejected_total``).
-
-Dynamic region: the truth frame paired with a render, generated at t', is compared with the
-truth frames generated at t' − C and t' − 2C (each the newest generated within half a period
-of that time, from the same ring) to build the mask of :func:`aoi3d.quality.dynamic_mask`;
-the render's PSNR and SSIM over it and its pixel fraction go into the Quality message. When
-those earlier frames are missing (the first two periods, a gap, a size change) the dynamic
-fields are absent and the render is counted in ``aoi3d_quality_dynamic_missing_total`` with
-reason ``no_history``; an empty mask (nothing moved) leaves the two scores absent and counts
-reason ``empty_mask``. The full-image scores and the reward do not depend on either.
+Bus handlers only enqueue; one scoring thread hands truth frames and renders to the core,
+publishes the ``Quality`` it returns, keeps the history the REST API shows and updates the
+Prometheus series.
 """
 
 from __future__ import annotations
 
-import bisect
 import logging
 import math
 import threading
 from collections import deque
-from dataclasses import dataclass
 
-import numpy as np
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
 from aoi3d.clock import SimClock
-from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
-from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
+from aoi3d.quality import LpipsFn, RewardWeights
 from services.kit.bus import Bus, Inbox
-from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
-from services.kit.pb import aoi3d_pb2 as pb
+from services.metrics.core import (
+    MetricsCore,
+    QualityRecord,
+    or_nan,
+)
 
 log = logging.getLogger(__name__)
 
 _POLL_S = 0.1  # longest wait on the inbox before checking the stop flag
 _TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
-
-
-@dataclass(frozen=True)
-class TruthFrame:
-    """A ground-truth frame of the held-out camera, image still encoded."""
-
-    generation_ms: float
-    scene_time_ms: float
-    image: pb.Image
-
-
-class TruthRing:
-    """The most recent ground-truth frames, by generation time (not thread-safe)."""
-
-    def __init__(self, capacity: int) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {capacity}")
-        self._capacity = capacity
-        self._times: list[float] = []  # sorted generation times
-        self._frames: dict[float, TruthFrame] = {}
-
-    def __len__(self) -> int:
-        return len(self._times)
-
-    def add(self, frame: TruthFrame) -> None:
-        """Keep ``frame`` (a repeat of a generation time replaces it); evict the oldest."""
-        if frame.generation_ms not in self._frames:
-            bisect.insort(self._times, frame.generation_ms)
-        self._frames[frame.generation_ms] = frame
-        while len(self._times) > self._capacity:
-            del self._frames[self._times.pop(0)]
-
-    def pair(self, time_ms: float, period_ms: float) -> TruthFrame:
-        """The frame generated at ``time_ms``, else the newest in [time_ms − period_ms,
-        time_ms]; raises ``Rejected("no_truth")`` when there is none."""
-        exact = self._frames.get(time_ms)
-        if exact is not None:
-            return exact
-        i = bisect.bisect_right(self._times, time_ms + _TIME_TOL_MS) - 1
-        if i >= 0 and time_ms - self._times[i] <= period_ms + _TIME_TOL_MS:
-            return self._frames[self._times[i]]
-        held = (f"holding {len(self)} frame(s) generated in [{self._times[0]:g}, "
-                f"{self._times[-1]:g}] ms" if self._times else "holding no frame")
-        raise Rejected("no_truth", f"no ground-truth frame generated at t = {time_ms:g} ms or "
-                                   f"within {period_ms:g} ms before it ({held})")
-
-    def before(self, generation_ms: float, period_ms: float, count: int
-               ) -> list[TruthFrame] | None:
-        """The frames generated at ``generation_ms`` − k·``period_ms``, k = 1..``count``:
-        for each, the newest generated in (that time − period/2, that time + period/2];
-        None when any of them is missing."""
-        half = period_ms / 2.0
-        frames = []
-        for k in range(1, count + 1):
-            target = generation_ms - k * period_ms
-            i = bisect.bisect_right(self._times, target + half) - 1
-            if i < 0 or self._times[i] <= target - half:
-                return None
-            frames.append(self._frames[self._times[i]])
-        return frames
-
-
-@dataclass(frozen=True)
-class QualityRecord:
-    """One scored render (the published Quality plus the render's context)."""
-
-    decision_id: int
-    time_ms: float
-    truth_time_ms: float
-    scene_time_ms: float
-    psnr_db: float
-    ssim: float
-    lpips: float | None
-    reward: float
-    reward_terms: tuple[str, ...]
-    training_step: int
-    n_views: int
-    backend: str
-    lag_ms: float
-    """Sim ms between the render's time t and its scoring."""
-    psnr_dynamic_db: float | None = None
-    """PSNR over the dynamic region; None when its mask is empty or could not be built."""
-    ssim_dynamic: float | None = None
-    """SSIM over the dynamic region; None likewise."""
-    dynamic_fraction: float | None = None
-    """Pixel fraction of the dynamic mask; None when the earlier truth frames were missing."""
 
 
 class MetricsWorker:
@@ -138,19 +41,16 @@ class MetricsWorker:
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
                  stall_s: float = 30.0) -> None:
-        if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
-            raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
+        self.core = MetricsCore(truth_period_ms=truth_period_ms, truth_frames=truth_frames,
+                                weights=weights, lpips_fn=lpips_fn, max_skew_ms=max_skew_ms,
+                                site=site)
         self._bus = bus
         self._keys = Keys(run_id, site)
         self.site = site
         self._clock = clock
-        self._period_ms = truth_period_ms
-        self._skew_ms = float(max_skew_ms)
         self._quality_beat = Heartbeat(stall_s)  # a Quality published
-        self._weights = weights or RewardWeights()
         self._lpips_fn = lpips_fn
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
-        self._ring = TruthRing(truth_frames)  # used by the scoring thread only
         self._history: deque[QualityRecord] = deque(maxlen=history)
         self._scored = 0
         self._lock = threading.Lock()  # guards _history and _scored
@@ -298,68 +198,14 @@ class MetricsWorker:
                 log.exception("failed to handle a message on %s", key)
                 self.rejections.reject(Rejected("internal_error", repr(err)), key)
 
-    def _ahead(self, what: str, time_ms: float) -> None:
-        """Reject a message stamped ahead of this clock by more than the skew: 512 truth
-        frames from the future would otherwise push every real one out of the ring."""
-        now_ms = self._clock.now_ms()
-        if time_ms > now_ms + self._skew_ms:
-            raise Rejected("clock_skew", f"{what} at {time_ms:g} ms but this clock says "
-                                         f"{now_ms:g} ms")
-
     def _on_truth(self, payload: bytes) -> None:
-        frame = decode_frame(payload, camera_ids={HELDOUT_ID})
-        self._ahead("truth frame generated", frame.generation_ms)
-        self._ring.add(TruthFrame(generation_ms=frame.generation_ms,
-                                  scene_time_ms=frame.scene_time_ms, image=frame.image))
+        self.core.on_truth(payload, self._clock.now_ms())
         self._m_truth.inc()
 
     def _on_render(self, payload: bytes) -> None:
-        render, _camera = decode_render(payload)
-        self._ahead("render for", render.time_ms)
-        truth = self._ring.pair(render.time_ms, self._period_ms)
-        check_size(render.image, (truth.image.width, truth.image.height))
-        pred = decode_image(render.image)
-        gt = decode_image(truth.image)
-        if pred.shape != gt.shape:
-            raise Rejected("image_size_mismatch",
-                           f"render is {pred.shape[1]}x{pred.shape[0]} but the ground truth is "
-                           f"{gt.shape[1]}x{gt.shape[0]}")
-        previous = self._previous_truth(truth, gt.shape)
-        try:
-            q = score(pred, gt, self._weights, lpips_fn=self._lpips_fn, previous=previous)
-        except ValueError as err:
-            raise Rejected("unscorable", str(err)) from err
-        dyn = q.dynamic
-
-        msg = pb.Quality(decision_id=render.decision_id,
-                         decision_incarnation=render.decision_incarnation,
-                         time_ms=render.time_ms,
-                         scene_time_ms=truth.scene_time_ms, psnr_db=q.psnr_db, ssim=q.ssim,
-                         reward=q.reward, reward_terms=list(q.reward_terms),
-                         training_step=render.training_step,
-                         truth_time_ms=truth.generation_ms, site=self.site)
-        if q.lpips is not None:
-            msg.lpips = q.lpips  # proto3 optional: left unset (absent) when unavailable
-        if dyn is not None:
-            msg.dynamic_fraction = dyn.fraction
-            if dyn.psnr_db is not None:
-                msg.psnr_dynamic_db = dyn.psnr_db
-            if dyn.ssim is not None:
-                msg.ssim_dynamic = dyn.ssim
-        self._bus.publish(self._keys.quality, msg.SerializeToString())
-
-        lag_ms = self._clock.now_ms() - render.time_ms
-        record = QualityRecord(
-            decision_id=render.decision_id, time_ms=render.time_ms,
-            truth_time_ms=truth.generation_ms, scene_time_ms=truth.scene_time_ms,
-            psnr_db=q.psnr_db, ssim=q.ssim, lpips=q.lpips, reward=q.reward,
-            reward_terms=q.reward_terms, training_step=render.training_step,
-            n_views=render.n_views, backend=render.backend, lag_ms=lag_ms,
-            psnr_dynamic_db=dyn.psnr_db if dyn else None,
-            ssim_dynamic=dyn.ssim if dyn else None,
-            dynamic_fraction=dyn.fraction if dyn else None)
-        missing = ("no_history" if dyn is None else
-                   "empty_mask" if dyn.psnr_db is None else None)
+        scored = self.core.score(payload, self._clock.now_ms())
+        self._bus.publish(self._keys.quality, scored.message.SerializeToString())
+        record, missing = scored.record, scored.dynamic_missing
         with self._lock:
             self._history.append(record)
             self._scored += 1
@@ -367,58 +213,22 @@ class MetricsWorker:
                 self._dyn_missing[missing] += 1
         self._m_quality.inc()
         self._quality_beat.beat()
-        self._m_psnr.set(q.psnr_db)
-        self._m_ssim.set(q.ssim)
-        self._m_reward.set(q.reward)
-        self._m_psnr_dyn.set(_or_nan(record.psnr_dynamic_db))
-        self._m_ssim_dyn.set(_or_nan(record.ssim_dynamic))
-        self._m_dyn_fraction.set(_or_nan(record.dynamic_fraction))
+        self._m_psnr.set(record.psnr_db)
+        self._m_ssim.set(record.ssim)
+        self._m_reward.set(record.reward)
+        self._m_psnr_dyn.set(or_nan(record.psnr_dynamic_db))
+        self._m_ssim_dyn.set(or_nan(record.ssim_dynamic))
+        self._m_dyn_fraction.set(or_nan(record.dynamic_fraction))
         if missing is not None:
             self._m_dyn_missing.labels(reason=missing).inc()
-        if self._m_lpips is not None and q.lpips is not None:
-            self._m_lpips.set(q.lpips)
-        self._h_psnr.observe(q.psnr_db)
-        self._h_ssim.observe(q.ssim)
-        self._h_reward.observe(q.reward)
+        if self._m_lpips is not None and record.lpips is not None:
+            self._m_lpips.set(record.lpips)
+        self._h_psnr.observe(record.psnr_db)
+        self._h_ssim.observe(record.ssim)
+        self._h_reward.observe(record.reward)
         if record.psnr_dynamic_db is not None:
             self._h_psnr_dyn.observe(record.psnr_dynamic_db)
-        if self._h_lpips is not None and q.lpips is not None:
-            self._h_lpips.observe(q.lpips)
-        if math.isfinite(lag_ms) and lag_ms >= 0:
-            self._m_lag.observe(lag_ms / 1000.0)
-
-
-    def _previous_truth(self, truth: TruthFrame, shape: tuple[int, ...]
-                        ) -> list[np.ndarray] | None:
-        """The decoded truth one to K periods before ``truth`` (see :meth:`TruthRing.before`),
-        or None when a frame is missing, undecodable or of another size."""
-        frames = self._ring.before(truth.generation_ms, self._period_ms, DYNAMIC_FRAMES)
-        if frames is None:
-            return None
-        images = []
-        for frame in frames:
-            try:
-                image = decode_image(frame.image)
-            except Rejected:
-                return None
-            if image.shape != shape:
-                return None
-            images.append(image)
-        return images
-
-
-def _or_nan(value: float | None) -> float:
-    return math.nan if value is None else value
-
-
-def mean_of_present(values: list[float | None]) -> float | None:
-    """The mean of the values that are not None, or None when there are none."""
-    present = [v for v in values if v is not None]
-    return float(np.mean(present)) if present else None
-
-
-def mean_or_none(values: list[float | None]) -> float | None:
-    """The mean of ``values``, or None when empty or when any value is None."""
-    if not values or any(v is None for v in values):
-        return None
-    return float(np.mean(values))
+        if self._h_lpips is not None and record.lpips is not None:
+            self._h_lpips.observe(record.lpips)
+        if math.isfinite(record.lag_ms) and record.lag_ms >= 0:
+            self._m_lag.observe(record.lag_ms / 1000.0)

@@ -31,8 +31,8 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
+from services.metrics.core import TruthFrame, TruthRing
 from services.metrics.settings import Settings
-from services.metrics.worker import TruthFrame, TruthRing
 from tests.services.series import without_site
 
 RUN = "test-metrics"

@@ -1,0 +1,53 @@
+"""The metrics service's core on its own: truth frames and renders in, Quality out (no bus,
+no server, no thread)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from services.kit.observe import Rejected
+from services.metrics.core import MetricsCore
+from tests.services.test_metrics import noisy, render, truth, truth_image
+
+
+def test_a_render_is_scored_against_the_truth_of_its_time_with_the_dynamic_region() -> None:
+    core = MetricsCore(truth_period_ms=30.0, site="north")
+    for t in (0.0, 30.0, 60.0):
+        core.on_truth(truth(t), now_ms=t)
+    scored = core.score(render(60.0, noisy(truth_image(60.0), seed=1)), now_ms=65.0)
+    q = scored.message
+    assert (q.decision_id, q.time_ms, q.truth_time_ms, q.site) == (7, 60.0, 60.0, "north")
+    assert 10 < q.psnr_db < 60 and 0 < q.ssim <= 1 and not q.HasField("lpips")
+    assert list(q.reward_terms) == ["psnr", "ssim"]
+    assert scored.record.lag_ms == 5.0 and scored.record.psnr_db == q.psnr_db
+    assert q.HasField("dynamic_fraction")  # two earlier truth frames were there
+    assert (scored.dynamic_missing is None) == q.HasField("psnr_dynamic_db")
+
+
+def test_without_earlier_truth_the_dynamic_scores_are_absent_and_say_why() -> None:
+    core = MetricsCore(truth_period_ms=30.0)
+    core.on_truth(truth(90.0), now_ms=90.0)
+    scored = core.score(render(100.0, truth_image(90.0)), now_ms=100.0)
+    assert scored.message.truth_time_ms == 90.0  # the newest within a period before t
+    assert scored.dynamic_missing == "no_history"
+    assert not scored.message.HasField("dynamic_fraction")
+    assert math.isinf(scored.message.psnr_db) or scored.message.psnr_db > 40
+
+
+@pytest.mark.parametrize(("setup", "payload", "reason"), [
+    ((), lambda: render(100.0, truth_image(100.0)), "no_truth"),
+    ((0.0,), lambda: render(1e9, truth_image(0.0)), "clock_skew"),
+    ((0.0,), lambda: b"\xff\x00", "malformed"),
+])
+def test_renders_that_cannot_be_scored_are_rejected_with_their_reason(setup, payload,
+                                                                      reason) -> None:
+    core = MetricsCore(truth_period_ms=30.0, max_skew_ms=50.0)
+    for t in setup:
+        core.on_truth(truth(t), now_ms=t)
+    with pytest.raises(Rejected) as err:
+        core.score(payload(), now_ms=100.0)
+    assert err.value.reason == reason
+    with pytest.raises(Rejected):
+        core.on_truth(truth(10_000.0), now_ms=100.0)  # from the future
