@@ -28,7 +28,7 @@ $(STAMP): pyproject.toml
 	@touch $@
 	@echo "==> installed ($(VENV)); make up runs the pipeline, make test the tests"
 
-up: install  ## run router + five services + the console (http://127.0.0.1:8106/) until Ctrl-C on the rotor scene (generated if missing; UP_ARGS='--framing site' for the whole turbine)
+up: install  ## run router + five services + a reconstruction worker + the console (http://127.0.0.1:8106/) until Ctrl-C on the rotor scene (generated if missing; UP_ARGS="--workers 2 --sites 2" for a pool and two turbines, "--framing site" for the whole turbine)
 	$(VENV)/bin/aoi3d up $(UP_ARGS)
 
 test: install  ## the whole test suite (unit, services, integration)
