@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from aoi3d.field import native
 from aoi3d.field.base import (
     CoarseToFineConfig,
     CoarseToFineField,
@@ -85,6 +86,9 @@ class DenseGridField(CoarseToFineField):
 
     # --- the Field interface -------------------------------------------------------------
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        fused = native.grid_query(self.grid, points, self.aabb, self.shape)
+        if fused is not None:
+            return fused
         raw = interpolate(self.grid, self.shape, self._coords(points), sparse=True)
         return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
 

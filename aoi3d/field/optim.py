@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from aoi3d.field import native
+
 __all__ = ["LazyAdam"]
 
 
@@ -68,6 +70,9 @@ class LazyAdam(torch.optim.Optimizer):
                 grad = p.grad
                 if grad.is_sparse:
                     rows, g = _unique_rows(grad)
+                    if native.lazy_adam_rows(p, m, v, rows, g, beta1, beta2, step_size,
+                                             root_bias, eps):
+                        continue
                     m_rows = m.index_select(0, rows).lerp_(g, 1 - beta1)
                     v_rows = v.index_select(0, rows).mul_(beta2).addcmul_(g, g, value=1 - beta2)
                     m.index_copy_(0, rows, m_rows)

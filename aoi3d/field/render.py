@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from aoi3d.field import native
 from aoi3d.field.rays import RayBundle, sample_uniform
 
 if TYPE_CHECKING:
@@ -91,6 +92,10 @@ def volume_render(
             f"rgb must be (P, 3) and background (R, 3), got {tuple(rgb.shape)}, "
             f"{tuple(background.shape)}"
         )
+    fused = native.volume_render(sigma, rgb, deltas, ray_index, background)
+    if fused is not None:
+        color, transmittance, weights, alpha = fused
+        return RenderResult(color, transmittance, weights, rgb, ray_index, alpha)
     n_rays = background.shape[0]
     tau = sigma * deltas
     tau64 = tau.double()

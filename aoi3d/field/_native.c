@@ -1,0 +1,225 @@
+/* Fused CPU kernels of the radiance-field hot path (see aoi3d/field/native.py).
+ *
+ * Plain C99, no Python or torch headers: compiled at first use with the system C compiler
+ * and called through ctypes on float32 / int64 tensor memory (contiguous). Each kernel is
+ * the fused form of a chain of torch operations whose result it reproduces up to float
+ * rounding order; the torch chains remain the reference (and the fallback).
+ */
+#include <math.h>
+#include <stdint.h>
+#include <stdlib.h>
+#include <string.h>
+
+/* The 8 corner rows and trilinear weights of a world point in a grid of shape (nx, ny, nz)
+ * vertices spanning the box from lo, factor = (n - 1) / (hi - lo) per axis; rows are
+ * row-major (z minor), corner k takes the upper vertex along x, y, z for bits 2, 1, 0 of k
+ * (aoi3d.field.encodings.corner_rows). Coordinates are clamped to the grid. */
+static inline void corners(const float *p, const float *lo, const float *factor,
+                           const int64_t *shape, int64_t *rows, float *w) {
+    int64_t base[3];
+    float frac[3];
+    for (int d = 0; d < 3; d++) {
+        float n1 = (float)(shape[d] - 1);
+        float c = (p[d] - lo[d]) * factor[d];
+        c = c < 0.0f ? 0.0f : (c > n1 ? n1 : c);
+        float b = floorf(c);
+        if (b > n1 - 1.0f) b = n1 - 1.0f;
+        base[d] = (int64_t)b;
+        frac[d] = c - b;
+    }
+    int64_t sy = shape[2], sx = shape[1] * shape[2];
+    int64_t r0 = base[0] * sx + base[1] * sy + base[2];
+    for (int k = 0; k < 8; k++) {
+        int ux = (k >> 2) & 1, uy = (k >> 1) & 1, uz = k & 1;
+        rows[k] = r0 + (ux ? sx : 0) + (uy ? sy : 0) + (uz ? 1 : 0);
+        float wx = ux ? frac[0] : 1.0f - frac[0];
+        float wy = uy ? frac[1] : 1.0f - frac[1];
+        float wz = uz ? frac[2] : 1.0f - frac[2];
+        w[k] = (wx * wy) * wz;
+    }
+}
+
+/* exp(x) in float32 to about 1 ulp (Cephes' expf: 2^n · e^r, |r| ≤ ln2/2, degree-7
+ * polynomial), in arithmetic only, so that loops over it vectorise. */
+static inline float exp_approx(float x) {
+    x = x > 88.3762626647949f ? 88.3762626647949f : x;
+    x = x < -87.3365447505531f ? -87.3365447505531f : x;
+    float fx = x * 1.44269504088896341f + 0.5f;
+    int32_t n = (int32_t)fx;
+    n -= (float)n > fx;  /* floor */
+    float nf = (float)n;
+    float r = x - nf * 0.693359375f + nf * 2.12194440e-4f;
+    float r2 = r * r;
+    float y = 1.9875691500e-4f;
+    y = y * r + 1.3981999507e-3f;
+    y = y * r + 8.3334519073e-3f;
+    y = y * r + 4.1665795894e-2f;
+    y = y * r + 1.6666665459e-1f;
+    y = y * r + 5.0000001201e-1f;
+    y = y * r2 + r + 1.0f;
+    union { int32_t i; float f; } scale = {.i = (n + 127) << 23};
+    return y * scale.f;
+}
+
+/* The grid backend's query: trilinear interpolation of the table (N, 4) (raw density, raw
+ * RGB) at points (P, 3), then sigma = softplus(raw density), rgb = sigmoid(raw RGB) (the
+ * RGB's in a separate loop over exp_approx, which vectorises). Writes sigma (P), rgb (P, 3)
+ * and sigma_grad (P): d sigma / d raw density, for the backward. */
+void grid_query_forward(const float *table, const float *points, int64_t n_points,
+                        const float *lo, const float *factor, const int64_t *shape,
+                        float *sigma, float *rgb, float *sigma_grad) {
+    int64_t rows[8];
+    float w[8];
+    for (int64_t i = 0; i < n_points; i++) {
+        corners(points + 3 * i, lo, factor, shape, rows, w);
+        float acc[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+        for (int k = 0; k < 8; k++) {
+            const float *row = table + 4 * rows[k];
+            for (int c = 0; c < 4; c++) acc[c] += w[k] * row[c];
+        }
+        sigma[i] = acc[0];
+        for (int c = 0; c < 3; c++) rgb[3 * i + c] = acc[1 + c];
+    }
+    for (int64_t j = 0; j < 3 * n_points; j++) rgb[j] = 1.0f / (1.0f + exp_approx(-rgb[j]));
+    for (int64_t i = 0; i < n_points; i++) {
+        float x = sigma[i];
+        if (x > 20.0f) {  /* torch's softplus threshold */
+            sigma_grad[i] = 1.0f;
+        } else {
+            float z = expf(x);
+            sigma[i] = log1pf(z);
+            sigma_grad[i] = z / (z + 1.0f);
+        }
+    }
+}
+
+/* Its backward: the gradient of the table, row-sparse. grad_sigma (P) and grad_rgb (P, 3)
+ * (either may be NULL: zero) go back through the activations and are scattered into
+ * dense (N, 4), zero on entry, with touched (N) bytes, zero on entry; then the touched rows
+ * are compacted in increasing order into out_rows (≤ N) and out_values (≤ N, 4). Returns
+ * the number of touched rows. */
+int64_t grid_query_backward(const float *points, int64_t n_points, const float *lo,
+                            const float *factor, const int64_t *shape, const float *grad_sigma,
+                            const float *grad_rgb, const float *rgb, const float *sigma_grad,
+                            int64_t n_rows, float *dense, uint8_t *touched, int64_t *out_rows,
+                            float *out_values) {
+    int64_t rows[8];
+    float w[8];
+    for (int64_t i = 0; i < n_points; i++) {
+        float g[4];
+        g[0] = grad_sigma ? grad_sigma[i] * sigma_grad[i] : 0.0f;
+        for (int c = 0; c < 3; c++) {
+            float s = rgb[3 * i + c];
+            g[1 + c] = grad_rgb ? grad_rgb[3 * i + c] * (s * (1.0f - s)) : 0.0f;
+        }
+        corners(points + 3 * i, lo, factor, shape, rows, w);
+        for (int k = 0; k < 8; k++) {
+            float *row = dense + 4 * rows[k];
+            for (int c = 0; c < 4; c++) row[c] += w[k] * g[c];
+            touched[rows[k]] = 1;
+        }
+    }
+    int64_t n = 0;
+    for (int64_t r = 0; r < n_rows; r++) {
+        if (!touched[r]) continue;
+        out_rows[n] = r;
+        memcpy(out_values + 4 * n, dense + 4 * r, 4 * sizeof(float));
+        n++;
+    }
+    return n;
+}
+
+/* Volume rendering of packed samples (aoi3d.field.render.volume_render): sigma (P),
+ * rgb (P, 3), deltas (P), ray_index (P) (the samples of a ray in order along it),
+ * background (R, 3). Writes color (R, 3), transmittance (R), weights (P), alpha (P) and
+ * before (P): the transmittance T_i in front of each sample (for the backward). Optical
+ * depth is accumulated in double. */
+void volume_render_forward(const float *sigma, const float *rgb, const float *deltas,
+                           const int64_t *ray_index, int64_t n_samples, const float *background,
+                           int64_t n_rays, float *color, float *transmittance, float *weights,
+                           float *alpha, float *before) {
+    double *depth = calloc((size_t)(n_rays > 0 ? n_rays : 1), sizeof(double));
+    memset(color, 0, (size_t)n_rays * 3 * sizeof(float));
+    for (int64_t i = 0; i < n_samples; i++) {
+        int64_t r = ray_index[i];
+        float tau = sigma[i] * deltas[i];
+        float a = -expm1f(-tau);
+        float t = (float)exp(-depth[r]);
+        float wi = t * a;
+        alpha[i] = a;
+        before[i] = t;
+        weights[i] = wi;
+        for (int c = 0; c < 3; c++) color[3 * r + c] += wi * rgb[3 * i + c];
+        depth[r] += (double)tau;
+    }
+    for (int64_t r = 0; r < n_rays; r++) {
+        float t = (float)exp(-depth[r]);
+        transmittance[r] = t;
+        for (int c = 0; c < 3; c++) color[3 * r + c] += t * background[3 * r + c];
+    }
+    free(depth);
+}
+
+/* Its backward. grad_color (R, 3), grad_transmittance (R), grad_weights (P), grad_alpha (P)
+ * (any may be NULL: zero). With w_i = T_i α_i, T_i = exp(−Σ_{j<i} τ_j), α_i = 1 − exp(−τ_i):
+ *   dL/dτ_k = (g_w,k T_k + g_α,k)(1 − α_k) − Σ_{i>k, same ray} g_w,i w_i − g_T,N T_N,
+ * with g_w,i = grad_weights_i + grad_color_r · c_i and g_T,N = grad_transmittance_r +
+ * grad_color_r · background_r. Writes grad_sigma (P) = δ · dL/dτ, grad_rgb (P, 3) and
+ * grad_background (R, 3). */
+void volume_render_backward(const float *rgb, const float *deltas, const int64_t *ray_index,
+                            int64_t n_samples, const float *background, int64_t n_rays,
+                            const float *transmittance, const float *weights, const float *alpha,
+                            const float *before, const float *grad_color,
+                            const float *grad_transmittance, const float *grad_weights,
+                            const float *grad_alpha, float *grad_sigma, float *grad_rgb,
+                            float *grad_background) {
+    double *suffix = calloc((size_t)(n_rays > 0 ? n_rays : 1), sizeof(double));
+    float *g_end = malloc((size_t)(n_rays > 0 ? n_rays : 1) * sizeof(float));
+    for (int64_t r = 0; r < n_rays; r++) {
+        float g = grad_transmittance ? grad_transmittance[r] : 0.0f;
+        for (int c = 0; c < 3; c++) {
+            float gc = grad_color ? grad_color[3 * r + c] : 0.0f;
+            g += gc * background[3 * r + c];
+            grad_background[3 * r + c] = gc * transmittance[r];
+        }
+        g_end[r] = g * transmittance[r];
+    }
+    for (int64_t i = n_samples - 1; i >= 0; i--) {
+        int64_t r = ray_index[i];
+        float gw = grad_weights ? grad_weights[i] : 0.0f;
+        for (int c = 0; c < 3; c++) {
+            float gc = grad_color ? grad_color[3 * r + c] : 0.0f;
+            gw += gc * rgb[3 * i + c];
+            grad_rgb[3 * i + c] = gc * weights[i];
+        }
+        float ga = grad_alpha ? grad_alpha[i] : 0.0f;
+        double gtau = (double)((gw * before[i] + ga) * (1.0f - alpha[i])) - suffix[r] - g_end[r];
+        grad_sigma[i] = (float)gtau * deltas[i];
+        suffix[r] += (double)gw * (double)weights[i];
+    }
+    free(suffix);
+    free(g_end);
+}
+
+/* LazyAdam's update of the rows of a row-sparse gradient (aoi3d.field.optim.LazyAdam):
+ * rows (n, increasing, unique) of param, exp_avg, exp_avg_sq (each (N, C)), gradient
+ * values (n, C). m ← m + (g − m)(1 − β1); v ← β2 v + (1 − β2) g²;
+ * p ← p − step_size · m / (√v / root_bias + eps), in torch's order of operations. */
+void lazy_adam_rows(float *param, float *exp_avg, float *exp_avg_sq, const int64_t *rows,
+                    const float *values, int64_t n, int64_t columns, float beta1, float beta2,
+                    float step_size, float root_bias, float eps) {
+    float w1 = 1.0f - beta1, w2 = 1.0f - beta2;
+    for (int64_t i = 0; i < n; i++) {
+        int64_t base = rows[i] * columns;
+        for (int64_t c = 0; c < columns; c++) {
+            float g = values[i * columns + c];
+            float m = exp_avg[base + c];
+            m = m + w1 * (g - m);
+            float v = exp_avg_sq[base + c] * beta2 + w2 * g * g;
+            exp_avg[base + c] = m;
+            exp_avg_sq[base + c] = v;
+            float denom = sqrtf(v) / root_bias + eps;
+            param[base + c] += (m / denom) * -step_size;
+        }
+    }
+}
