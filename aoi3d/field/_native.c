@@ -22,7 +22,7 @@ static inline void corners(const float *p, const float *lo, const float *factor,
         float n1 = (float)(shape[d] - 1);
         float c = (p[d] - lo[d]) * factor[d];
         c = c < 0.0f ? 0.0f : (c > n1 ? n1 : c);
-        float b = floorf(c);
+        float b = (float)(int64_t)c;  /* floor: c >= 0 */
         if (b > n1 - 1.0f) b = n1 - 1.0f;
         base[d] = (int64_t)b;
         frac[d] = c - b;
@@ -61,9 +61,35 @@ static inline float exp_approx(float x) {
     return y * scale.f;
 }
 
+/* log(y) in float32 to about 1 ulp for normal y > 0 (Cephes' logf), in arithmetic only. */
+static inline float log_approx(float y) {
+    union { float f; int32_t i; } u = {.f = y};
+    int32_t e = ((u.i >> 23) & 0xff) - 126;
+    u.i = (u.i & (int32_t)0x807fffff) | 0x3f000000;  /* mantissa in [0.5, 1) */
+    float m = u.f;
+    float small = m < 0.707106781186547524f ? 1.0f : 0.0f;  /* then use 2m, e − 1 */
+    m = (m - 1.0f) + small * m;
+    float z2 = m * m;
+    float p = 7.0376836292e-2f;
+    p = p * m - 1.1514610310e-1f;
+    p = p * m + 1.1676998740e-1f;
+    p = p * m - 1.2420140846e-1f;
+    p = p * m + 1.4249322787e-1f;
+    p = p * m - 1.6668057665e-1f;
+    p = p * m + 2.0000714765e-1f;
+    p = p * m - 2.4999993993e-1f;
+    p = p * m + 3.3333331174e-1f;
+    float ef = (float)e - small;
+    float r = p * m * z2;
+    r += ef * -2.12194440e-4f;
+    r += -0.5f * z2;
+    r = m + r;
+    return r + ef * 0.693359375f;
+}
+
 /* The grid backend's query: trilinear interpolation of the table (N, 4) (raw density, raw
- * RGB) at points (P, 3), then sigma = softplus(raw density), rgb = sigmoid(raw RGB) (the
- * RGB's in a separate loop over exp_approx, which vectorises). Writes sigma (P), rgb (P, 3)
+ * RGB) at points (P, 3), then sigma = softplus(raw density), rgb = sigmoid(raw RGB) (in
+ * loops over exp_approx and log_approx after the gather, which vectorise). Writes sigma (P), rgb (P, 3)
  * and sigma_grad (P): d sigma / d raw density, for the backward. */
 void grid_query_forward(const float *table, const float *points, int64_t n_points,
                         const float *lo, const float *factor, const int64_t *shape,
@@ -82,14 +108,15 @@ void grid_query_forward(const float *table, const float *points, int64_t n_point
     }
     for (int64_t j = 0; j < 3 * n_points; j++) rgb[j] = 1.0f / (1.0f + exp_approx(-rgb[j]));
     for (int64_t i = 0; i < n_points; i++) {
+        /* softplus = log1p(e^x) = log(y) + (z − (y − 1)) / y with z = e^x, y = 1 + z (the
+         * correction restores what 1 + z rounds away); linear above torch's threshold 20 */
         float x = sigma[i];
-        if (x > 20.0f) {  /* torch's softplus threshold */
-            sigma_grad[i] = 1.0f;
-        } else {
-            float z = expf(x);
-            sigma[i] = log1pf(z);
-            sigma_grad[i] = z / (z + 1.0f);
-        }
+        float z = exp_approx(x < 20.0f ? x : 20.0f);
+        float y = 1.0f + z;
+        float softplus = log_approx(y) + (z - (y - 1.0f)) / y;
+        float linear = x > 20.0f ? 1.0f : 0.0f;
+        sigma[i] = linear * x + (1.0f - linear) * softplus;
+        sigma_grad[i] = linear + (1.0f - linear) * (z / y);
     }
 }
 
@@ -204,10 +231,13 @@ void volume_render_backward(const float *rgb, const float *deltas, const int64_t
 /* LazyAdam's update of the rows of a row-sparse gradient (aoi3d.field.optim.LazyAdam):
  * rows (n, increasing, unique) of param, exp_avg, exp_avg_sq (each (N, C)), gradient
  * values (n, C). m ← m + (g − m)(1 − β1); v ← β2 v + (1 − β2) g²;
- * p ← p − step_size · m / (√v / root_bias + eps), in torch's order of operations. */
-void lazy_adam_rows(float *param, float *exp_avg, float *exp_avg_sq, const int64_t *rows,
-                    const float *values, int64_t n, int64_t columns, float beta1, float beta2,
-                    float step_size, float root_bias, float eps) {
+ * p ← p − step_size · m / (√v / root_bias + eps), in torch's order of operations. Returns 0
+ * (nothing done) when the rows are not increasing, else 1. */
+int64_t lazy_adam_rows(float *param, float *exp_avg, float *exp_avg_sq, const int64_t *rows,
+                       const float *values, int64_t n, int64_t columns, float beta1, float beta2,
+                       float step_size, float root_bias, float eps) {
+    for (int64_t i = 1; i < n; i++)
+        if (rows[i] <= rows[i - 1]) return 0;  /* not coalesced: the caller sums rows first */
     float w1 = 1.0f - beta1, w2 = 1.0f - beta2;
     for (int64_t i = 0; i < n; i++) {
         int64_t base = rows[i] * columns;
@@ -221,5 +251,61 @@ void lazy_adam_rows(float *param, float *exp_avg, float *exp_avg_sq, const int64
             float denom = sqrtf(v) / root_bias + eps;
             param[base + c] += (m / denom) * -step_size;
         }
+    }
+    return 1;
+}
+
+/* The uniform sampler (aoi3d.field.rays.sample_uniform), in two calls. Count: the samples of
+ * each ray (counts, R) for chords max(t_far − t_near, 0) cut at step, from at most n_steps
+ * intervals; returns their total. Fill: points (P, 3), deltas (P), ray_index (P) ray after
+ * ray, the sample at fraction jitter[r] (0.5 when jitter is NULL) of its clipped interval,
+ * in torch's order of operations. */
+int64_t sample_uniform_count(const float *t_near, const float *t_far, int64_t n_rays,
+                             float step, int64_t n_steps, int64_t *counts) {
+    int64_t total = 0;
+    for (int64_t r = 0; r < n_rays; r++) {
+        float chord = t_far[r] - t_near[r];
+        chord = chord > 0.0f ? chord : 0.0f;
+        int64_t k = 0;
+        while (k < n_steps && chord - (float)k * step > 0.0f) k++;
+        counts[r] = k;
+        total += k;
+    }
+    return total;
+}
+
+void sample_uniform_fill(const float *origins, const float *dirs, const float *t_near,
+                         const float *t_far, const float *jitter, int64_t n_rays, float step,
+                         const int64_t *counts, float *points, float *deltas,
+                         int64_t *ray_index) {
+    int64_t j = 0;
+    for (int64_t r = 0; r < n_rays; r++) {
+        float chord = t_far[r] - t_near[r];
+        chord = chord > 0.0f ? chord : 0.0f;
+        float frac = jitter ? jitter[r] : 0.5f;
+        for (int64_t k = 0; k < counts[r]; k++, j++) {
+            float start = (float)k * step;
+            float remaining = chord - start;
+            float delta = remaining < step ? remaining : step;
+            float t = (t_near[r] + start) + frac * delta;
+            for (int c = 0; c < 3; c++) points[3 * j + c] = origins[3 * r + c] + dirs[3 * r + c] * t;
+            deltas[j] = delta;
+            ray_index[j] = r;
+        }
+    }
+}
+
+/* Adam's update of a whole tensor of n values from a dense gradient, as LazyAdam's dense path
+ * does it (same formulas as lazy_adam_rows). */
+void adam_dense(float *param, float *exp_avg, float *exp_avg_sq, const float *grad, int64_t n,
+                float beta1, float beta2, float step_size, float root_bias, float eps) {
+    float w1 = 1.0f - beta1, w2 = 1.0f - beta2;
+    for (int64_t i = 0; i < n; i++) {
+        float g = grad[i];
+        float m = exp_avg[i] + w1 * (g - exp_avg[i]);
+        float v = exp_avg_sq[i] * beta2 + w2 * g * g;
+        exp_avg[i] = m;
+        exp_avg_sq[i] = v;
+        param[i] += (m / (sqrtf(v) / root_bias + eps)) * -step_size;
     }
 }

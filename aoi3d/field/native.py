@@ -35,12 +35,14 @@ from typing import Any
 
 import torch
 
-__all__ = ["available", "grid_query", "lazy_adam_rows", "volume_render"]
+__all__ = ["adam_dense", "available", "grid_query", "lazy_adam_rows", "sample_uniform",
+           "volume_render"]
 
 log = logging.getLogger(__name__)
 
 _SOURCE = Path(__file__).with_name("_native.c")
-_FLAGS = ("-O3", "-fno-trapping-math", "-fno-math-errno", "-std=c99", "-fPIC", "-shared")
+_FLAGS = ("-O3", "-fno-trapping-math", "-fno-math-errno", "-ffp-contract=off", "-std=c99",
+          "-fPIC", "-shared")
 _LIB: ctypes.CDLL | None = None
 _TRIED = False
 
@@ -52,8 +54,12 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "volume_render_forward": (None, [_P, _P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P]),
     "volume_render_backward": (None, [_P, _P, _P, _I, _P, _I, _P, _P, _P, _P, _P, _P, _P,
                                       _P, _P, _P, _P]),
-    "lazy_adam_rows": (None, [_P, _P, _P, _P, _P, _I, _I, ctypes.c_float, ctypes.c_float,
+    "lazy_adam_rows": (_I, [_P, _P, _P, _P, _P, _I, _I, ctypes.c_float, ctypes.c_float,
                               ctypes.c_float, ctypes.c_float, ctypes.c_float]),
+    "adam_dense": (None, [_P, _P, _P, _P, _I, ctypes.c_float, ctypes.c_float, ctypes.c_float,
+                          ctypes.c_float, ctypes.c_float]),
+    "sample_uniform_count": (_I, [_P, _P, _I, ctypes.c_float, _I, _P]),
+    "sample_uniform_fill": (None, [_P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _P, _P, _P]),
 }
 
 
@@ -252,11 +258,14 @@ def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, deltas: torch.Tensor,
 def lazy_adam_rows(param: torch.Tensor, exp_avg: torch.Tensor, exp_avg_sq: torch.Tensor,
                    rows: torch.Tensor, values: torch.Tensor, beta1: float, beta2: float,
                    step_size: float, root_bias: float, eps: float) -> bool:
-    """:class:`aoi3d.field.optim.LazyAdam`'s update of ``rows`` (unique, int64) of the 2-D
-    ``param`` and its moments from the gradient ``values`` (rows, C), in place; False (nothing
-    done) where the kernel cannot: the caller runs its torch code."""
+    """:class:`aoi3d.field.optim.LazyAdam`'s update of ``rows`` (int64) of the 2-D ``param``
+    and its moments from the gradient ``values`` (rows, C), in place; False (nothing done)
+    where the kernel cannot — rows not strictly increasing (duplicates to sum first), tensors
+    it does not take: the caller runs its torch code."""
     tensors = (param, exp_avg, exp_avg_sq, values)
     if not _usable(*tensors) or param.ndim != 2 or rows.dtype != torch.int64:
+        return False
+    if values.shape != (rows.shape[0], param.shape[1]):
         return False
     if not all(t.is_contiguous() for t in (param, exp_avg, exp_avg_sq)):
         return False
@@ -264,7 +273,50 @@ def lazy_adam_rows(param: torch.Tensor, exp_avg: torch.Tensor, exp_avg_sq: torch
     assert lib is not None
     values = values.contiguous()
     rows = rows.contiguous()
-    lib.lazy_adam_rows(param.data_ptr(), exp_avg.data_ptr(), exp_avg_sq.data_ptr(),
-                       rows.data_ptr(), values.data_ptr(), rows.shape[0], param.shape[1],
-                       beta1, beta2, step_size, root_bias, eps)
+    return bool(lib.lazy_adam_rows(param.data_ptr(), exp_avg.data_ptr(), exp_avg_sq.data_ptr(),
+                                   rows.data_ptr(), values.data_ptr(), rows.shape[0],
+                                   param.shape[1], beta1, beta2, step_size, root_bias, eps))
+
+
+def adam_dense(param: torch.Tensor, exp_avg: torch.Tensor, exp_avg_sq: torch.Tensor,
+               grad: torch.Tensor, beta1: float, beta2: float, step_size: float,
+               root_bias: float, eps: float) -> bool:
+    """:class:`aoi3d.field.optim.LazyAdam`'s update of a parameter from a dense gradient, in
+    place; False (nothing done) where the kernel cannot: the caller runs its torch code."""
+    tensors = (param, exp_avg, exp_avg_sq, grad)
+    if not _usable(*tensors) or not all(t.is_contiguous() for t in tensors):
+        return False
+    if not param.shape == exp_avg.shape == exp_avg_sq.shape == grad.shape:
+        return False
+    lib = _lib()
+    assert lib is not None
+    lib.adam_dense(param.data_ptr(), exp_avg.data_ptr(), exp_avg_sq.data_ptr(), grad.data_ptr(),
+                   param.numel(), beta1, beta2, step_size, root_bias, eps)
     return True
+
+
+# --- the uniform sampler --------------------------------------------------------------------
+def sample_uniform(origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor,
+                   t_far: torch.Tensor, step: float, n_steps: int,
+                   jitter: torch.Tensor | None) -> tuple[torch.Tensor, ...] | None:
+    """points (P, 3), deltas (P,), ray_index (P,) of :func:`aoi3d.field.rays.sample_uniform`
+    (``n_steps`` intervals at most per ray, as it computes them), the same numbers; None where
+    the kernel cannot (then its torch code runs)."""
+    tensors = [origins, dirs, t_near, t_far] + ([] if jitter is None else [jitter])
+    if not _usable(*tensors) or any(t.requires_grad for t in tensors):
+        return None
+    lib = _lib()
+    assert lib is not None
+    o, d, tn, tf = (t.contiguous() for t in (origins, dirs, t_near, t_far))
+    jit = None if jitter is None else jitter.contiguous()
+    n_rays = o.shape[0]
+    counts = torch.empty(n_rays, dtype=torch.int64)
+    total = lib.sample_uniform_count(tn.data_ptr(), tf.data_ptr(), n_rays, step, n_steps,
+                                     counts.data_ptr())
+    points = o.new_empty(total, 3)
+    deltas = o.new_empty(total)
+    ray_index = torch.empty(total, dtype=torch.int64)
+    lib.sample_uniform_fill(o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), _ptr(jit),
+                            n_rays, step, counts.data_ptr(), points.data_ptr(),
+                            deltas.data_ptr(), ray_index.data_ptr())
+    return points, deltas, ray_index
