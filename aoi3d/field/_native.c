@@ -121,10 +121,10 @@ void grid_query_forward(const float *table, const float *points, int64_t n_point
 }
 
 /* Its backward: the gradient of the table, row-sparse. grad_sigma (P) and grad_rgb (P, 3)
- * (either may be NULL: zero) go back through the activations and are scattered into
- * dense (N, 4), zero on entry, with touched (N) bytes, zero on entry; then the touched rows
- * are compacted in increasing order into out_rows (≤ N) and out_values (≤ N, 4). Returns
- * the number of touched rows. */
+ * (either may be NULL: zero) go back through the activations and are scattered into the
+ * workspace dense (N, 4), zero on entry, marking touched (N) bytes, zero on entry; then the
+ * touched rows are compacted in increasing order into out_rows (≤ N) and out_values
+ * (≤ N, 4), and the workspace is left zero again. Returns the number of touched rows. */
 int64_t grid_query_backward(const float *points, int64_t n_points, const float *lo,
                             const float *factor, const int64_t *shape, const float *grad_sigma,
                             const float *grad_rgb, const float *rgb, const float *sigma_grad,
@@ -151,6 +151,8 @@ int64_t grid_query_backward(const float *points, int64_t n_points, const float *
         if (!touched[r]) continue;
         out_rows[n] = r;
         memcpy(out_values + 4 * n, dense + 4 * r, 4 * sizeof(float));
+        memset(dense + 4 * r, 0, 4 * sizeof(float));  /* left zero for the next call */
+        touched[r] = 0;
         n++;
     }
     return n;
@@ -307,5 +309,42 @@ void adam_dense(float *param, float *exp_avg, float *exp_avg_sq, const float *gr
         exp_avg[i] = m;
         exp_avg_sq[i] = v;
         param[i] += (m / (sqrtf(v) / root_bias + eps)) * -step_size;
+    }
+}
+
+/* DVGO's per-sample colour loss, summed: Σ_i w_i ‖c_i − target[ray_i]‖² over samples with
+ * colours c (P, 3), weights w (P), their rays (P) and the rays' target colours (R, 3); the
+ * sum accumulated in double. */
+double weighted_colour_error_forward(const float *colours, const float *weights,
+                                     const int64_t *ray_index, int64_t n_samples,
+                                     const float *target) {
+    double total = 0.0;
+    for (int64_t i = 0; i < n_samples; i++) {
+        const float *t = target + 3 * ray_index[i];
+        float err = 0.0f;
+        for (int c = 0; c < 3; c++) {
+            float d = colours[3 * i + c] - t[c];
+            err += d * d;
+        }
+        total += (double)(weights[i] * err);
+    }
+    return total;
+}
+
+/* Its backward for the upstream gradient g: grad_colours (P, 3), grad_weights (P). */
+void weighted_colour_error_backward(const float *colours, const float *weights,
+                                    const int64_t *ray_index, int64_t n_samples,
+                                    const float *target, float g, float *grad_colours,
+                                    float *grad_weights) {
+    for (int64_t i = 0; i < n_samples; i++) {
+        const float *t = target + 3 * ray_index[i];
+        float err = 0.0f;
+        float gw = g * weights[i] * 2.0f;
+        for (int c = 0; c < 3; c++) {
+            float d = colours[3 * i + c] - t[c];
+            err += d * d;
+            grad_colours[3 * i + c] = gw * d;
+        }
+        grad_weights[i] = g * err;
     }
 }

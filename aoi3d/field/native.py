@@ -30,13 +30,14 @@ import os
 import shutil
 import subprocess
 import tempfile
+import threading
 from pathlib import Path
 from typing import Any
 
 import torch
 
 __all__ = ["adam_dense", "available", "grid_query", "lazy_adam_rows", "sample_uniform",
-           "volume_render"]
+           "volume_render", "weighted_colour_error"]
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,8 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
                               ctypes.c_float, ctypes.c_float, ctypes.c_float]),
     "adam_dense": (None, [_P, _P, _P, _P, _I, ctypes.c_float, ctypes.c_float, ctypes.c_float,
                           ctypes.c_float, ctypes.c_float]),
+    "weighted_colour_error_forward": (ctypes.c_double, [_P, _P, _P, _I, _P]),
+    "weighted_colour_error_backward": (None, [_P, _P, _P, _I, _P, ctypes.c_float, _P, _P]),
     "sample_uniform_count": (_I, [_P, _P, _I, ctypes.c_float, _I, _P]),
     "sample_uniform_fill": (None, [_P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _P, _P, _P]),
 }
@@ -140,6 +143,19 @@ def _ptr(t: torch.Tensor | None) -> int | None:
 
 
 # --- the grid's query ------------------------------------------------------------------------
+_WORKSPACE = threading.local()
+
+
+def _workspace(n_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """This thread's zeroed scatter buffers of the grid's backward: dense (n_rows, 4) float32
+    and touched (n_rows,) uint8, kept between calls (the kernel leaves them zero)."""
+    cached = getattr(_WORKSPACE, "buffers", None)
+    if cached is None or cached[1].shape[0] != n_rows:
+        cached = (torch.zeros(n_rows, 4), torch.zeros(n_rows, dtype=torch.uint8))
+        _WORKSPACE.buffers = cached
+    return cached
+
+
 class _GridQuery(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, table: torch.Tensor, points: torch.Tensor, lo: torch.Tensor,
@@ -166,8 +182,7 @@ class _GridQuery(torch.autograd.Function):
         n_rows = ctx.n_rows
         gs = None if grad_sigma is None else grad_sigma.contiguous()
         gc = None if grad_rgb is None else grad_rgb.contiguous()
-        dense = points.new_zeros(n_rows, 4)
-        touched = torch.zeros(n_rows, dtype=torch.uint8)
+        dense, touched = _workspace(n_rows)
         rows = torch.empty(n_rows, dtype=torch.int64)
         values = points.new_empty(n_rows, 4)
         count = lib.grid_query_backward(points.data_ptr(), points.shape[0], lo.data_ptr(),
@@ -252,6 +267,47 @@ def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, deltas: torch.Tensor,
         return None
     return _VolumeRender.apply(sigma.contiguous(), rgb.contiguous(), background.contiguous(),
                                deltas.contiguous(), ray_index.contiguous())
+
+
+# --- the per-sample colour loss ---------------------------------------------------------------
+class _WeightedColourError(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, colours: torch.Tensor, weights: torch.Tensor, target: torch.Tensor,
+                ray_index: torch.Tensor) -> torch.Tensor:
+        lib = _lib()
+        assert lib is not None
+        total = lib.weighted_colour_error_forward(colours.data_ptr(), weights.data_ptr(),
+                                                  ray_index.data_ptr(), colours.shape[0],
+                                                  target.data_ptr())
+        ctx.save_for_backward(colours, weights, target, ray_index)
+        return colours.new_tensor(total)
+
+    @staticmethod
+    def backward(ctx: Any, grad: torch.Tensor) -> tuple[Any, ...]:
+        lib = _lib()
+        assert lib is not None
+        colours, weights, target, ray_index = ctx.saved_tensors
+        grad_colours = torch.empty_like(colours)
+        grad_weights = torch.empty_like(weights)
+        lib.weighted_colour_error_backward(colours.data_ptr(), weights.data_ptr(),
+                                           ray_index.data_ptr(), colours.shape[0],
+                                           target.data_ptr(), float(grad), grad_colours.data_ptr(),
+                                           grad_weights.data_ptr())
+        return grad_colours, grad_weights, None, None
+
+
+def weighted_colour_error(colours: torch.Tensor, weights: torch.Tensor, target: torch.Tensor,
+                          ray_index: torch.Tensor) -> torch.Tensor:
+    """Σ_i w_i ‖c_i − target[ray_i]‖² (a scalar): samples' ``colours`` (P, 3) and ``weights``
+    (P,), their rays ``ray_index`` (P,) and the rays' ``target`` colours (R, 3) (no gradient
+    for the target). Fused where the kernel can, else the same in torch."""
+    tensors = (colours, weights, target)
+    if (_usable(*tensors) and ray_index.dtype == torch.int64 and ray_index.device.type == "cpu"
+            and not target.requires_grad and colours.ndim == 2 and colours.shape[1] == 3):
+        return _WeightedColourError.apply(colours.contiguous(), weights.contiguous(),
+                                          target.contiguous(), ray_index.contiguous())
+    err = ((colours - target.index_select(0, ray_index)) ** 2).sum(dim=1)
+    return (weights * err).sum()
 
 
 # --- LazyAdam ---------------------------------------------------------------------------------

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from aoi3d.field import native
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, as_aabb, camera_rays, ray_aabb
@@ -326,8 +327,9 @@ class FieldTrainer:
             mse = torch.mean((out.rgb - target) ** 2)
             loss = mse
             if self.cfg.sample_rgb_loss > 0:
-                err = ((out.sample_rgb - target.index_select(0, out.ray_index)) ** 2).sum(dim=1)
-                loss = loss + self.cfg.sample_rgb_loss * (out.weights * err).sum() / len(batch)
+                err = native.weighted_colour_error(out.sample_rgb, out.weights, target,
+                                                   out.ray_index)
+                loss = loss + self.cfg.sample_rgb_loss * err / len(batch)
             if self.cfg.opacity_loss > 0:
                 loss = loss + self.cfg.opacity_loss * out.opacity.sum() / len(batch)
             if out.aux_loss is not None:
