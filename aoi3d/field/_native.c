@@ -348,3 +348,65 @@ void weighted_colour_error_backward(const float *colours, const float *weights,
         grad_weights[i] = g * err;
     }
 }
+
+/* The lat-long background (aoi3d.field.background.latlong_background): the four map cells
+ * around each direction and their bilinear weights. */
+static inline void latlong_cell(const float *dir, int64_t up, int64_t rows, int64_t cols,
+                                int64_t *idx, float *w) {
+    const float pi = 3.14159265358979323846f;
+    int64_t a = (up + 1) % 3, b = (up + 2) % 3;
+    float du = dir[up];
+    du = du < -1.0f ? -1.0f : (du > 1.0f ? 1.0f : du);
+    float polar = acosf(du) / pi;
+    float azimuth = atan2f(dir[b], dir[a]) / (2.0f * pi);
+    azimuth = azimuth - floorf(azimuth);  /* % 1.0 */
+    float r = polar * (float)(rows - 1);
+    float r0 = floorf(r);
+    r0 = r0 < 0.0f ? 0.0f : (r0 > (float)(rows - 2) ? (float)(rows - 2) : r0);
+    float fr = r - r0;
+    float col = azimuth * (float)cols;
+    float c0f = floorf(col);
+    float fc = col - c0f;
+    int64_t c0 = ((int64_t)c0f % cols + cols) % cols;
+    int64_t c1 = (c0 + 1) % cols;
+    int64_t i0 = (int64_t)r0;
+    idx[0] = i0 * cols + c0;
+    idx[1] = i0 * cols + c1;
+    idx[2] = (i0 + 1) * cols + c0;
+    idx[3] = (i0 + 1) * cols + c1;
+    w[0] = (1.0f - fc) * (1.0f - fr);
+    w[1] = fc * (1.0f - fr);
+    w[2] = (1.0f - fc) * fr;
+    w[3] = fc * fr;
+}
+
+/* Colours (R, 3) = sigmoid of the bilinear sample of the raw map env (rows, cols, 3) in the
+ * unit directions dirs (R, 3) around axis up. */
+void latlong_forward(const float *env, int64_t rows, int64_t cols, const float *dirs,
+                     int64_t n_rays, int64_t up, float *out) {
+    int64_t idx[4];
+    float w[4];
+    for (int64_t r = 0; r < n_rays; r++) {
+        latlong_cell(dirs + 3 * r, up, rows, cols, idx, w);
+        for (int c = 0; c < 3; c++) {
+            float top = env[3 * idx[0] + c] * w[0] + env[3 * idx[1] + c] * w[1];
+            float bottom = env[3 * idx[2] + c] * w[2] + env[3 * idx[3] + c] * w[3];
+            out[3 * r + c] = 1.0f / (1.0f + expf(-(top + bottom)));
+        }
+    }
+}
+
+/* Its backward: grad_env (rows, cols, 3), zero on entry, from grad_out (R, 3) and out. */
+void latlong_backward(int64_t rows, int64_t cols, const float *dirs, int64_t n_rays, int64_t up,
+                      const float *out, const float *grad_out, float *grad_env) {
+    int64_t idx[4];
+    float w[4];
+    for (int64_t r = 0; r < n_rays; r++) {
+        latlong_cell(dirs + 3 * r, up, rows, cols, idx, w);
+        for (int c = 0; c < 3; c++) {
+            float s = out[3 * r + c];
+            float g = grad_out[3 * r + c] * (s * (1.0f - s));
+            for (int k = 0; k < 4; k++) grad_env[3 * idx[k] + c] += g * w[k];
+        }
+    }
+}

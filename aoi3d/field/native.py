@@ -36,8 +36,8 @@ from typing import Any
 
 import torch
 
-__all__ = ["adam_dense", "available", "grid_query", "lazy_adam_rows", "sample_uniform",
-           "volume_render", "weighted_colour_error"]
+__all__ = ["adam_dense", "available", "grid_query", "latlong_background", "lazy_adam_rows",
+           "sample_uniform", "volume_render", "weighted_colour_error"]
 
 log = logging.getLogger(__name__)
 
@@ -61,6 +61,8 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
                           ctypes.c_float, ctypes.c_float]),
     "weighted_colour_error_forward": (ctypes.c_double, [_P, _P, _P, _I, _P]),
     "weighted_colour_error_backward": (None, [_P, _P, _P, _I, _P, ctypes.c_float, _P, _P]),
+    "latlong_forward": (None, [_P, _I, _I, _P, _I, _I, _P]),
+    "latlong_backward": (None, [_I, _I, _P, _I, _I, _P, _P, _P]),
     "sample_uniform_count": (_I, [_P, _P, _I, ctypes.c_float, _I, _P]),
     "sample_uniform_fill": (None, [_P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _P, _P, _P]),
 }
@@ -267,6 +269,41 @@ def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, deltas: torch.Tensor,
         return None
     return _VolumeRender.apply(sigma.contiguous(), rgb.contiguous(), background.contiguous(),
                                deltas.contiguous(), ray_index.contiguous())
+
+
+# --- the background ---------------------------------------------------------------------------
+class _LatLong(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx: Any, env: torch.Tensor, dirs: torch.Tensor, up_axis: int) -> torch.Tensor:
+        lib = _lib()
+        assert lib is not None
+        rows, cols = env.shape[:2]
+        out = dirs.new_empty(dirs.shape[0], 3)
+        lib.latlong_forward(env.data_ptr(), rows, cols, dirs.data_ptr(), dirs.shape[0], up_axis,
+                            out.data_ptr())
+        ctx.save_for_backward(dirs, out)
+        ctx.env_shape, ctx.up_axis = tuple(env.shape), up_axis
+        return out
+
+    @staticmethod
+    def backward(ctx: Any, grad_out: torch.Tensor) -> tuple[Any, ...]:
+        lib = _lib()
+        assert lib is not None
+        dirs, out = ctx.saved_tensors
+        grad_env = out.new_zeros(ctx.env_shape)
+        lib.latlong_backward(ctx.env_shape[0], ctx.env_shape[1], dirs.data_ptr(), dirs.shape[0],
+                             ctx.up_axis, out.data_ptr(), grad_out.contiguous().data_ptr(),
+                             grad_env.data_ptr())
+        return grad_env, None, None
+
+
+def latlong_background(env: torch.Tensor, dirs: torch.Tensor,
+                       up_axis: int) -> torch.Tensor | None:
+    """:func:`aoi3d.field.background.latlong_background` fused; None where the kernel cannot
+    (then its torch code runs)."""
+    if not _usable(env, dirs) or dirs.requires_grad or env.ndim != 3 or env.shape[2] != 3:
+        return None
+    return _LatLong.apply(env.contiguous(), dirs.contiguous(), int(up_axis))
 
 
 # --- the per-sample colour loss ---------------------------------------------------------------
