@@ -162,7 +162,7 @@ int64_t grid_query_backward(const float *points, int64_t n_points, const float *
  * rgb (P, 3), deltas (P), ray_index (P) (the samples of a ray in order along it),
  * background (R, 3). Writes color (R, 3), transmittance (R), weights (P), alpha (P) and
  * before (P): the transmittance T_i in front of each sample (for the backward). Optical
- * depth is accumulated in double. */
+ * depth is accumulated in double, its exponential taken in float. */
 void volume_render_forward(const float *sigma, const float *rgb, const float *deltas,
                            const int64_t *ray_index, int64_t n_samples, const float *background,
                            int64_t n_rays, float *color, float *transmittance, float *weights,
@@ -173,7 +173,7 @@ void volume_render_forward(const float *sigma, const float *rgb, const float *de
         int64_t r = ray_index[i];
         float tau = sigma[i] * deltas[i];
         float a = -expm1f(-tau);
-        float t = (float)exp(-depth[r]);
+        float t = exp_approx(-(float)depth[r]);
         float wi = t * a;
         alpha[i] = a;
         before[i] = t;
@@ -182,7 +182,7 @@ void volume_render_forward(const float *sigma, const float *rgb, const float *de
         depth[r] += (double)tau;
     }
     for (int64_t r = 0; r < n_rays; r++) {
-        float t = (float)exp(-depth[r]);
+        float t = exp_approx(-(float)depth[r]);
         transmittance[r] = t;
         for (int c = 0; c < 3; c++) color[3 * r + c] += t * background[3 * r + c];
     }

@@ -73,6 +73,8 @@ class GridConfig(CoarseToFineConfig):
 class DenseGridField(CoarseToFineField):
     """Density + RGB on a dense grid inside the box, lat-long background outside."""
 
+    view_dependent = False  # colour per vertex
+
     def __init__(self, cfg: GridConfig, aabb: np.ndarray) -> None:
         super().__init__()
         box = self._setup(cfg, aabb)

@@ -132,5 +132,9 @@ def render_uniform(field: Field, rays: RayBundle, options: RenderOptions) -> Ren
     if keep is not None:
         samples = samples.select(keep)
     dirs = rays.dirs
-    sigma, rgb = field.query(samples.points, dirs.index_select(0, samples.ray_index))
+    if field.view_dependent or dirs.shape[0] == 0:
+        sample_dirs = dirs.index_select(0, samples.ray_index)
+    else:  # the field does not read them: the first ray's, broadcast (a view, no copy)
+        sample_dirs = dirs[:1].expand(samples.points.shape[0], 3)
+    sigma, rgb = field.query(samples.points, sample_dirs)
     return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))
