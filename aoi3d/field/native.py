@@ -208,11 +208,26 @@ def grid_query(table: torch.Tensor, points: torch.Tensor, aabb: torch.Tensor,
     if points.requires_grad or len(shape) != 3:
         return None
     table = table if table.is_contiguous() else table.contiguous()
-    lo = aabb[0].detach().contiguous()
-    n1 = torch.tensor([n - 1 for n in shape], dtype=torch.float32)
-    factor = (n1 / (aabb[1] - aabb[0])).detach().contiguous()  # as vertex_coords computes it
-    return _GridQuery.apply(table, points.contiguous(), lo, factor,
-                            torch.tensor(shape, dtype=torch.int64))
+    return _GridQuery.apply(table, points.contiguous(), *_grid_geometry(aabb, tuple(shape)))
+
+
+_GEOMETRY: dict[tuple[Any, ...], tuple[torch.Tensor, ...]] = {}
+
+
+def _grid_geometry(aabb: torch.Tensor, shape: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
+    """The kernel's view of a grid: box corner, vertex units per world unit (as
+    :func:`aoi3d.field.encodings.vertex_coords` computes them) and shape; cached by value."""
+    box = aabb.detach()
+    key = (*box.reshape(-1).tolist(), *shape)
+    cached = _GEOMETRY.get(key)
+    if cached is None:
+        n1 = torch.tensor([n - 1 for n in shape], dtype=torch.float32)
+        cached = (box[0].clone().contiguous(), (n1 / (box[1] - box[0])).contiguous(),
+                  torch.tensor(shape, dtype=torch.int64))
+        if len(_GEOMETRY) > 64:
+            _GEOMETRY.clear()
+        _GEOMETRY[key] = cached
+    return cached
 
 
 # --- volume rendering -----------------------------------------------------------------------
