@@ -47,6 +47,7 @@ lint: install  ## ruff and the import contracts of pyproject.toml (lint-imports;
 bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
+	$(PY) bench/recon.py
 	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.1 --window-s 60
 	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.3 --window-s 60
 	$(PY) bench/pipeline.py --policy mat:70 --time-scale 1 --window-s 60

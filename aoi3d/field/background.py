@@ -12,12 +12,17 @@ import math
 
 import torch
 
+from aoi3d.field import native
+
 __all__ = ["latlong_background"]
 
 
 def latlong_background(env: torch.Tensor, dirs: torch.Tensor, up_axis: int) -> torch.Tensor:
     """Colour in [0, 1] (R, 3) of unit directions ``dirs`` (R, 3) from the raw lat-long map
     ``env`` (rows ≥ 2, columns, 3); differentiable with respect to ``env``."""
+    fused = native.latlong_background(env, dirs, up_axis)
+    if fused is not None:
+        return fused
     rows, cols = env.shape[:2]
     a, b = (up_axis + 1) % 3, (up_axis + 2) % 3
     polar = torch.acos(dirs[:, up_axis].clamp(-1.0, 1.0)) / math.pi  # 0 at zenith, 1 at nadir

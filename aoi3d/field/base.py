@@ -160,6 +160,9 @@ class Field(nn.Module, ABC):
 
     cfg: FieldConfig
     env: nn.Parameter
+    view_dependent: bool = True
+    """Whether :meth:`query`'s colour depends on ``dirs``; False lets the uniform renderer
+    skip gathering each sample's direction (it then passes any unit direction)."""
 
     def _setup(self, cfg: FieldConfig, aabb: np.ndarray) -> np.ndarray:
         """Keep ``cfg``, register the box (2, 3) as buffer ``aabb`` and create the background

@@ -15,6 +15,8 @@ from typing import Any
 
 import torch
 
+from aoi3d.field import native
+
 __all__ = ["LazyAdam"]
 
 
@@ -67,6 +69,10 @@ class LazyAdam(torch.optim.Optimizer):
                 m, v = state["exp_avg"], state["exp_avg_sq"]
                 grad = p.grad
                 if grad.is_sparse:
+                    # the kernel checks that the rows are unique (sorted) itself:
+                    if native.lazy_adam_rows(p, m, v, grad._indices()[0], grad._values(), beta1,
+                                             beta2, step_size, root_bias, eps):
+                        continue
                     rows, g = _unique_rows(grad)
                     m_rows = m.index_select(0, rows).lerp_(g, 1 - beta1)
                     v_rows = v.index_select(0, rows).mul_(beta2).addcmul_(g, g, value=1 - beta2)
@@ -74,7 +80,8 @@ class LazyAdam(torch.optim.Optimizer):
                     v.index_copy_(0, rows, v_rows)
                     denom = v_rows.sqrt_().div_(root_bias).add_(eps)
                     p.index_add_(0, rows, m_rows.div_(denom).mul_(-step_size))
-                else:
+                elif not native.adam_dense(p, m, v, grad, beta1, beta2, step_size, root_bias,
+                                           eps):
                     m.lerp_(grad, 1 - beta1)
                     v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
                     denom = v.sqrt().div_(root_bias).add_(eps)

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from aoi3d.field import native
+
 if TYPE_CHECKING:
     from aoi3d.scene.camera import Camera
 
@@ -148,6 +150,9 @@ def sample_uniform(
     chord = (t_far - t_near).clamp_min(0.0)
     max_chord = float(chord.max()) if n_rays else 0.0
     n_steps = max(1, int(np.ceil(max_chord / step)))
+    fused = native.sample_uniform(origins, dirs, t_near, t_far, step, n_steps, jitter)
+    if fused is not None:
+        return RaySamples(*fused, n_rays)
     start = torch.arange(n_steps, device=origins.device, dtype=origins.dtype) * step  # (S,)
     remaining = chord[:, None] - start[None, :]  # (R, S)
     flat = (remaining > 0).view(-1).nonzero().squeeze(1)

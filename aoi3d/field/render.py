@@ -23,6 +23,7 @@ from typing import Protocol
 
 import torch
 
+from aoi3d.field import native
 from aoi3d.field.rays import RayBundle, sample_uniform
 
 __all__ = ["RenderOptions", "RenderResult", "SampledField", "render_uniform", "volume_render"]
@@ -100,6 +101,10 @@ def volume_render(
             f"rgb must be (P, 3) and background (R, 3), got {tuple(rgb.shape)}, "
             f"{tuple(background.shape)}"
         )
+    fused = native.volume_render(sigma, rgb, deltas, ray_index, background)
+    if fused is not None:
+        color, transmittance, weights, alpha = fused
+        return RenderResult(color, transmittance, weights, rgb, ray_index, alpha)
     n_rays = background.shape[0]
     tau = sigma * deltas
     tau64 = tau.double()
@@ -137,5 +142,9 @@ def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
     if keep is not None:
         samples = samples.select(keep)
     dirs = rays.dirs
-    sigma, rgb = field.query(samples.points, dirs.index_select(0, samples.ray_index))
+    if field.view_dependent or dirs.shape[0] == 0:
+        sample_dirs = dirs.index_select(0, samples.ray_index)
+    else:  # the field does not read them: the first ray's, broadcast (a view, no copy)
+        sample_dirs = dirs[:1].expand(samples.points.shape[0], 3)
+    sigma, rgb = field.query(samples.points, sample_dirs)
     return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))

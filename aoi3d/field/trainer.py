@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from aoi3d.device import resolve_device
+from aoi3d.field import native
 from aoi3d.field.base import Field, FieldConfig
 from aoi3d.field.optim import LazyAdam
 from aoi3d.field.rays import RayBundle, as_aabb, camera_rays, ray_aabb
@@ -107,6 +108,7 @@ class FieldTrainer:
         self._views: list[TrainView] = []
         # origins, dirs, t_near, t_far, rgb, appearance row of every pixel of the views:
         self._rays: tuple[torch.Tensor, ...] | None = None
+        self._packed: torch.Tensor | None = None  # the float columns of _rays, side by side
         # appearance key → row, least recently used first:
         self._appearance_rows: OrderedDict[Hashable, int] = OrderedDict()
         self.reset()
@@ -252,7 +254,7 @@ class FieldTrainer:
         self._colour_cache = {id(v): (v, c) for v, c in zip(views, colours, strict=True)}
         self._views = views
         if not views:
-            self._rays = None
+            self._rays = self._packed = None
             return
         parts = [torch.cat([r[i] for r in rays]) for i in range(4)]
         rows = torch.cat(
@@ -262,6 +264,10 @@ class FieldTrainer:
             ]
         )
         self._rays = (*parts, torch.cat(colours), rows)
+        # the float columns side by side, so that a step gathers its batch in one call:
+        # origins 0:3, dirs 3:6, t_near 6, t_far 7, rgb 8:11
+        o, d, near, far, rgb = self._rays[:5]
+        self._packed = torch.cat([o, d, near[:, None], far[:, None], rgb], dim=1)
 
     # --- training -------------------------------------------------------------------------
     def step(self, n: int = 1) -> float:
@@ -272,8 +278,10 @@ class FieldTrainer:
         if self._rays is None:
             return math.nan
         loss_value = math.nan
-        origins, dirs, t_near, t_far, rgb, appearance = self._rays
-        n_rays = origins.shape[0]
+        appearance = self._rays[5]
+        packed = self._packed
+        assert packed is not None
+        n_rays = packed.shape[0]
         self._field.train()
         for _ in range(n):
             if self._field.on_step(self._steps):
@@ -282,11 +290,12 @@ class FieldTrainer:
                 n_rays, (self.cfg.batch_rays,), generator=self._generator, device=self._device
             )
             jitter = torch.rand(self.cfg.batch_rays, generator=self._generator, device=self._device)
+            picked = packed.index_select(0, batch)
             rays = RayBundle(
-                origins.index_select(0, batch),
-                dirs.index_select(0, batch),
-                t_near.index_select(0, batch),
-                t_far.index_select(0, batch),
+                picked[:, 0:3],
+                picked[:, 3:6],
+                picked[:, 6],
+                picked[:, 7],
                 appearance.index_select(0, batch),
             )
             options = RenderOptions(
@@ -296,12 +305,13 @@ class FieldTrainer:
                 self._generator,
             )
             out = self._field.render_rays(rays, options)
-            target = rgb.index_select(0, batch)
+            target = picked[:, 8:11]
             mse = torch.mean((out.rgb - target) ** 2)
             loss = mse
             if self.cfg.sample_rgb_loss > 0:
-                err = ((out.sample_rgb - target.index_select(0, out.ray_index)) ** 2).sum(dim=1)
-                loss = loss + self.cfg.sample_rgb_loss * (out.weights * err).sum() / len(batch)
+                err = native.weighted_colour_error(out.sample_rgb, out.weights, target,
+                                                   out.ray_index)
+                loss = loss + self.cfg.sample_rgb_loss * err / len(batch)
             if self.cfg.opacity_loss > 0:
                 loss = loss + self.cfg.opacity_loss * out.opacity.sum() / len(batch)
             if out.aux_loss is not None:
