@@ -23,18 +23,15 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
-import httpx
 import pytest
 
-from tests.containers.test_compose_up import ROOT, SCALE, wait_for
-
-HTTP = httpx.Client(timeout=30 * SCALE)
-pytestmark = [
-    pytest.mark.containers,
-    pytest.mark.slow,
-    pytest.mark.skipif(os.environ.get("AOI3D_COMPOSE_TEST") != "1",
-                       reason="runs containers: `make compose-test` (sets AOI3D_COMPOSE_TEST=1)"),
-]
+from tests.containers.test_compose_up import (  # the same marks: skipped unless compose-test
+    HTTP,
+    ROOT,
+    SCALE,
+    pytestmark,  # noqa: F401
+    wait_for,
+)
 
 PORT_BASE = 36_000 + (os.getpid() % 90) * 10
 PORTS = {"ZENOH": PORT_BASE, "SCHEDULER": PORT_BASE + 1, "TRAINER": PORT_BASE + 2,
