@@ -106,7 +106,7 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,  # noqa: F
         assert len(done) == len(set(done)), "a decision was rendered twice"
         assert final["rendered"] + sum(final["lost"].values()) + final["in_flight"] \
             == final["assigned"]
-        assert final["assigned"] + final["superseded"] + (final["pending"] is not None) \
+        assert final["assigned"] + final["superseded"] + len(final["pending"]) \
             == final["decisions"]
         assert pool["workers"][0]["device"] == "cpu"
     finally:
