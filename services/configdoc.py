@@ -84,7 +84,7 @@ if __name__ == "__main__":
     import sys
 
     if sys.argv[1:] == ["--update"]:
-        readme = Path(__file__).resolve().parents[2] / "README.md"
+        readme = Path(__file__).resolve().parents[1] / "README.md"
         print("README updated" if update_readme(readme) else "README already current")
     else:
         print(markdown())
