@@ -12,7 +12,10 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Summa
 RATE_WINDOW_S = 5.0
 """Wall seconds over which ``aoi3d_trainer_steps_per_second`` is measured."""
 
-__all__ = ["RATE_WINDOW_S", "PoolCollector"]
+LOST_REASONS = ("not_delivered", "timeout", "worker_died")
+"""Why the pool itself counts a handed-out decision lost (a worker adds failed:<why>)."""
+
+__all__ = ["LOST_REASONS", "RATE_WINDOW_S", "PoolCollector"]
 
 class PoolCollector:
     """The trainer's Prometheus series, read from the core at scrape time."""
@@ -104,7 +107,10 @@ class PoolCollector:
         yield each(CounterMetricFamily(
             "aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended without a "
             "render, by reason (worker_died, timeout, not_delivered, failed:<why>).",
-            labels=["reason"]), [([r], n) for r, n in sorted(pool.lost.items())])
+            labels=["reason"]),
+            # the reasons the pool itself gives are always there (0 until one happens)
+            [([r], n) for r, n in sorted({**dict.fromkeys(LOST_REASONS, 0),
+                                          **pool.lost}.items())])
         yield one(GaugeMetricFamily("aoi3d_pool_rendered_fraction",
                                     f"Decisions rendered / decisions taken over the last "
                                     f"{pool.window_s:g} s."), pool.rendered_fraction)
