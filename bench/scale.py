@@ -1,7 +1,8 @@
 """Benchmark: how the live pipeline scales with reconstruction workers (issue 22, part 4).
 
-For each pool size in ``--workers`` (default 1,2,3) it starts ``aoi3d up --workers K`` on its
-own ports with the default scene and policy, lets it settle ``--settle-s``, then measures
+For each configuration in ``--configs`` (``KxS``: K workers, S sites; default 1x1,2x1,3x1,2x2)
+it starts ``aoi3d up --workers K --sites S`` on its own ports with the default scene and
+policy, lets it settle ``--settle-s``, then measures
 ``--measure-s`` wall seconds from the services' counters: renders per wall second, the
 fraction of decisions rendered, the mean wait from a decision to its hand-out and the mean
 render age (the trainer's pool summaries), each worker's busy fraction, the decisions lost,
@@ -11,7 +12,7 @@ traffic one site puts through a router). It ends with the arithmetic for a large
 the measured per-worker throughput and per-site bytes.
 
     python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
-    python bench/scale.py --workers 1,2 --measure-s 90
+    python bench/scale.py --configs 1x1,2x1 --measure-s 90
 
 The machine's other load is recorded (load average before and after each run).
 """
@@ -100,13 +101,13 @@ class ByteTap:
         self.session.close()
 
 
-def run_one(workers: int, args: argparse.Namespace) -> dict:
-    run_id = f"scale{workers}"
+def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
+    run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
     cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", run_id,
            "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET), "--log-dir",
            str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
-           "--workers", str(workers)]
+           "--workers", str(workers), "--sites", str(sites)]
     load_before = os.getloadavg()
     up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                           start_new_session=True)
@@ -129,17 +130,23 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         time.sleep(args.settle_s)
         first = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
         bytes0, msgs0 = tap.read()
-        decision0 = HTTP.get(f"http://127.0.0.1:{port('scheduler')}/decision").json()
+        names = [f"site{i}" for i in range(1, sites + 1)]
+
+        def ids() -> dict[str, int]:
+            return {n: HTTP.get(f"http://127.0.0.1:{port('scheduler')}/sites/{n}/decision"
+                                ).json()["decision_id"] for n in names}
+
+        decision0 = ids()
         t0 = time.monotonic()
         time.sleep(args.measure_s)
         last = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
         bytes1, msgs1 = tap.read()
-        decision1 = HTTP.get(f"http://127.0.0.1:{port('scheduler')}/decision").json()
+        decision1 = ids()
         dt = time.monotonic() - t0
         pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
         time.sleep(5.0)  # the window's last renders are scored a reconstruction later
-        history = HTTP.get(f"http://127.0.0.1:{port('metrics')}/quality",
-                           params={"limit": 100000}).json()["history"]
+        history = {n: HTTP.get(f"http://127.0.0.1:{port('metrics')}/sites/{n}/quality",
+                               params={"limit": 100000}).json()["history"] for n in names}
     finally:
         if tap is not None:
             tap.close()
@@ -149,14 +156,17 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
     def delta(service: str, name: str) -> float:
         return last[service].get(name, 0.0) - first[service].get(name, 0.0)
 
-    ids = (decision0["decision_id"], decision1["decision_id"])
-    window = [q for q in history if ids[0] < q["decision_id"] <= ids[1]]
-    rendered = delta("trainer", 'aoi3d_pool_decisions_total{outcome="rendered"}')
+    window = [q for n in names for q in history[n]
+              if decision0[n] < q["decision_id"] <= decision1[n]]
+    by_site = {n: delta("trainer", f'aoi3d_pool_decisions_total{{outcome="rendered",site="{n}"}}')
+               for n in names}
+    rendered = sum(by_site.values())
     taken = delta("trainer", "aoi3d_trainer_decisions_total")
     wait_n = delta("trainer", "aoi3d_pool_wait_seconds_count")
     age_n = delta("trainer", "aoi3d_pool_render_age_seconds_count")
     return {
-        "workers": workers, "window_s": round(dt, 1), "time_scale": args.time_scale,
+        "workers": workers, "sites": sites, "window_s": round(dt, 1),
+        "time_scale": args.time_scale,
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,
         "fraction_rendered": rendered / taken if taken else None,
@@ -170,6 +180,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         "psnr_db": mean_ci95([q["psnr_db"] for q in window]),
         "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]),
         "views": mean_ci95([q["n_views"] for q in window]),
+        "renders_per_s_by_site": {n: v / dt for n, v in by_site.items()},
         "zenoh_bytes_per_s": (bytes1 - bytes0) / dt,
         "zenoh_messages_per_s": (msgs1 - msgs0) / dt,
         "load_before": [round(x, 2) for x in load_before],
@@ -180,7 +191,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
 def farm(rows: list[dict], sites: int, cameras: int, time_scale: float) -> dict:
     """The arithmetic for ``sites`` sites from the measured rows: worker cores to render every
     decision, and router bandwidth."""
-    one = next(r for r in rows if r["workers"] == 1)
+    one = next(r for r in rows if r["workers"] == 1 and r["sites"] == 1)
     per_worker = one["renders_per_s"]
     decisions = one["decisions_per_s"] * sites
     site_bytes = one["zenoh_bytes_per_s"] * cameras / 18
@@ -199,7 +210,8 @@ def farm(rows: list[dict], sites: int, cameras: int, time_scale: float) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--workers", default="1,2,3", help="pool sizes, comma-separated")
+    ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
+                    help="KxS: K workers, S sites; comma-separated")
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--settle-s", type=float, default=20.0)
     ap.add_argument("--measure-s", type=float, default=60.0)
@@ -210,20 +222,20 @@ def main() -> None:
     if not (Path(args.dataset) / "scene.json").is_file():
         subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--framing",
                         "rotor", "--rotor-rpm", "6", "--out", args.dataset], check=True)
-    sizes = [int(x) for x in args.workers.split(",")]
+    configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
     rows = []
-    for k in sizes:
-        row = run_one(k, args)
+    for k, sites in configs:
+        row = run_one(k, sites, args)
         rows.append(row)
         if not args.json:
-            print(f"workers {k}: {row['renders_per_s']:.3f} renders/s, "
+            print(f"workers {k}, sites {sites}: {row['renders_per_s']:.3f} renders/s, "
                   f"{row['fraction_rendered']:.2f} of decisions, age "
                   f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "
                   f"{row['psnr_db']['ci95'] or 0:.2f} dB, load {row['load_after'][0]}",
                   flush=True)
-    base = next((r for r in rows if r["workers"] == 1), None)
+    base = next((r for r in rows if r["workers"] == 1 and r["sites"] == 1), None)
     doc = {"rows": rows,
-           "speedup": {str(r["workers"]): r["renders_per_s"] / base["renders_per_s"]
+           "speedup": {f"{r['workers']}x{r['sites']}": r["renders_per_s"] / base["renders_per_s"]
                        for r in rows} if base and base["renders_per_s"] else None,
            "farm": farm(rows, 10, 18, args.time_scale) if base else None,
            "command": " ".join(["python", "bench/scale.py", *sys.argv[1:]]),
