@@ -29,6 +29,7 @@ from tests.containers.test_compose_up import (  # the same marks: skipped unless
     HTTP,
     ROOT,
     SCALE,
+    Stack,
     pytestmark,  # noqa: F401
     wait_for,
 )
@@ -55,30 +56,20 @@ def url(service: str, path: str) -> str:
     return f"http://127.0.0.1:{PORTS[service.upper()]}{path}"
 
 
-class Hosts:
-    def __init__(self, secrets_dir: Path) -> None:
+class Hosts(Stack):
+    """The three-host stack: :class:`Stack`'s commands on compose.multihost.yaml."""
+
+    def __init__(self, secrets_dir: Path) -> None:  # its own ports and project, not Stack's
         self.env = {**os.environ,
                     **{f"AOI3D_PORT_{name}": str(port) for name, port in PORTS.items()},
                     "AOI3D_SECRETS_DIR": str(secrets_dir), "AOI3D_RUN_ID": PROJECT,
                     "COMPOSE_PROJECT_NAME": PROJECT}
         self.secrets_dir = secrets_dir
 
-    def run(self, *argv: str, timeout_s: float = 120.0,
-            check: bool = True) -> subprocess.CompletedProcess[str]:
-        proc = subprocess.run(argv, env=self.env, capture_output=True, text=True,
-                              timeout=timeout_s * SCALE)
-        if check and proc.returncode != 0:
-            raise AssertionError(f"{' '.join(argv)} exited {proc.returncode}:\n"
-                                 f"{proc.stdout[-3000:]}\n{proc.stderr[-3000:]}")
-        return proc
-
     def compose(self, *args: str, timeout_s: float = 120.0,
                 check: bool = True) -> subprocess.CompletedProcess[str]:
         return self.run("docker", "compose", "-f", str(FILE), "-p", PROJECT, *args,
                         timeout_s=timeout_s, check=check)
-
-    def container(self, service: str) -> str:
-        return self.compose("ps", "-aq", service).stdout.strip()
 
     def workers(self) -> dict[str, Any]:
         return HTTP.get(url("trainer", "/workers")).json()
