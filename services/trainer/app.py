@@ -132,7 +132,7 @@ class CarryRequest(BaseModel):
     responses={422: {"description": "Unknown carry mode or render budget."}})
 def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
     steps = (body.render_steps if body.render_steps is not None
-             else worker.render_settings.render_steps)
+             else worker.render.render_steps)
     try:
         worker.set_carry(body.carry, steps)
     except CarryError as err:

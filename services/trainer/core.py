@@ -14,7 +14,7 @@ the workers are read back for the latest image and the status.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -33,13 +33,34 @@ __all__ = ["RenderSettings", "TrainerCore", "decode_request"]
 
 @dataclass(frozen=True)
 class RenderSettings:
-    """What every job carries: how the worker reconstructs and renders."""
+    """What every job carries: how the worker reconstructs and renders. The run's, one for
+    every site; changes make a new value (checked; a refused change raises and changes
+    nothing). ``model_epoch`` counts the resets (backend switches included)."""
 
     backend: str
     carry: str
     render_steps: int
     seed: int
     model_epoch: int = 0
+
+    def __post_init__(self) -> None:
+        check_backend(self.backend)
+        try:
+            check_carry(self.carry, self.render_steps)
+        except ValueError as err:
+            raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
+
+    def with_backend(self, name: str) -> RenderSettings:
+        """Backend ``name`` from now on: a new model (the model epoch moves on)."""
+        return replace(self, backend=name, model_epoch=self.model_epoch + 1)
+
+    def with_carry(self, carry: str, render_steps: int) -> RenderSettings:
+        """Another carry or budget; the models (warm, fork) are kept."""
+        return replace(self, carry=carry, render_steps=int(render_steps))
+
+    def reset(self) -> RenderSettings:
+        """New models at every worker's next job (warm and fork carry one from job to job)."""
+        return replace(self, model_epoch=self.model_epoch + 1)
 
 
 @dataclass(frozen=True)
@@ -75,7 +96,7 @@ class TrainerCore:
 
     def __init__(self, *, camera_ids: frozenset[int], size: tuple[int, int] | None,
                  skew_ms: float, heldout: Camera, aabb: np.ndarray, frames_per_camera: int,
-                 render: RenderSettings, dispatcher: Dispatcher,
+                 dispatcher: Dispatcher,
                  site: str = DEFAULT_SITE) -> None:
         self.site = site
         self._camera_ids = camera_ids
@@ -84,9 +105,6 @@ class TrainerCore:
         self.heldout = heldout
         self._aabb = [float(v) for v in np.asarray(aabb, dtype=np.float64).reshape(-1)]
         self._frames = FrameBuffer(frames_per_camera)
-        check_backend(render.backend)
-        check_carry(render.carry, render.render_steps)
-        self.render = render
         self.pool = dispatcher
         self.decision: DecisionInForce | None = None
         self._decisions: dict[tuple[int, int], pb.Decision] = {}
@@ -168,10 +186,10 @@ class TrainerCore:
         self._decisions = {k: v for k, v in self._decisions.items() if k in keep}
 
     # ------------------------------------------------------------------ workers
-    def job(self, assignment: Assignment, now_s: float) -> bytes:
-        """The WorkReply carrying ``assignment``'s job (the decision's frames that are held)."""
+    def job(self, assignment: Assignment, now_s: float, r: RenderSettings) -> bytes:
+        """The WorkReply carrying ``assignment``'s job (the decision's frames that are held)
+        with the render settings ``r``."""
         msg = self._decisions[assignment.decision.key]
-        r = self.render
         pose, intrinsics = camera_to_pb(self.heldout)
         job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
                      render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
@@ -223,24 +241,3 @@ class TrainerCore:
         self.n_views = int(msg.n_views)
         self.last_render_steps = int(msg.render_steps)
         self.render_lag_ms = now_ms - msg.time_ms
-
-    # ------------------------------------------------------------------ settings
-    def set_backend(self, name: str) -> None:
-        """Jobs from now on carry backend ``name`` (a new model: the model epoch moves on)."""
-        check_backend(name)
-        r = self.render
-        self.render = RenderSettings(name, r.carry, r.render_steps, r.seed, r.model_epoch + 1)
-
-    def set_carry(self, carry: str, render_steps: int) -> None:
-        try:
-            check_carry(carry, render_steps)
-        except ValueError as err:
-            raise CarryError(f"{err}; accepted carry modes: {', '.join(CARRY_MODES)}") from None
-        r = self.render
-        self.render = RenderSettings(r.backend, carry, int(render_steps), r.seed, r.model_epoch)
-
-    def reset(self) -> None:
-        """Workers start new models (warm and fork carry a model from job to job)."""
-        r = self.render
-        self.render = RenderSettings(r.backend, r.carry, r.render_steps, r.seed,
-                                     r.model_epoch + 1)

@@ -13,7 +13,6 @@ from aoi3d.field import BACKENDS
 from services.trainer.pool import PoolStatus
 
 __all__ = [
-    "BackendBuildError",
     "CarryError",
     "DecisionInForce",
     "LatestRender",
@@ -25,10 +24,6 @@ __all__ = [
 
 class UnknownBackendError(ValueError):
     """The backend name is not in ``aoi3d.field.BACKENDS``; the message lists those that are."""
-
-
-class BackendBuildError(RuntimeError):
-    """The new backend's model could not be built; the previous one keeps training."""
 
 
 def check_backend(name: str) -> str:

@@ -55,14 +55,14 @@ class TrainerWorker:
         sizes = {(c.width, c.height) for c in dataset.cameras}
         size = sizes.pop() if len(sizes) == 1 else None
         self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
-        render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
-                                settings.seed)
+        self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
+                                     settings.seed)
         # the sites film the same scene (at their own phases): one camera and box for all
         self.cores = {site: TrainerCore(
             camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,
             skew_ms=settings.common.skew_ms, heldout=dataset.cameras[dataset.heldout_id],
             aabb=np.asarray(dataset.aabb), frames_per_camera=settings.frames_per_camera,
-            render=render, dispatcher=self.pool, site=site) for site in settings.common.sites}
+            dispatcher=self.pool, site=site) for site in settings.common.sites}
         self.sites = list(self.cores)
         self.core = self.cores[self.sites[0]]
         self.rejections = Rejections(registry)
@@ -75,7 +75,6 @@ class TrainerWorker:
         self.steps_per_s = 0.0
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self.resets = 0
         registry.register(PoolCollector(self))
 
     # ------------------------------------------------------------------ lifecycle
@@ -150,7 +149,7 @@ class TrainerWorker:
             log.error("decision %d assigned to %s, which holds no request",
                       assignment.decision.decision_id, assignment.worker_id)
             return None
-        return query, self.cores[assignment.decision.site].job(assignment, time.time())
+        return query, self.cores[assignment.decision.site].job(assignment, time.time(), self.render)
 
     def _on_request(self, query: Query) -> None:
         try:
@@ -162,7 +161,7 @@ class TrainerWorker:
                 previous = self._held.pop(report.worker_id, None)
                 if assignment is not None:
                     answer: bytes | None = self.cores[assignment.decision.site].job(
-                        assignment, time.time())
+                        assignment, time.time(), self.render)
                 elif report.max_wait_s > 0:
                     self._held[report.worker_id] = (query, time.monotonic() + report.max_wait_s)
                     answer = None
@@ -235,26 +234,17 @@ class TrainerWorker:
     def set_backend(self, name: str) -> None:
         """Jobs from now on name backend ``name`` (:class:`UnknownBackendError` otherwise)."""
         with self._lock:
-            for core in self.cores.values():
-                core.set_backend(name)
-            self.resets += 1
+            self.render = self.render.with_backend(name)
 
     def set_carry(self, carry: str, render_steps: int) -> None:
         """Jobs from now on carry ``carry`` and ``render_steps``; :class:`CarryError` — nothing
         changed — for a mode or budget the reconstruction refuses."""
         with self._lock:
-            for core in self.cores.values():
-                core.set_carry(carry, render_steps)
+            self.render = self.render.with_carry(carry, render_steps)
 
     def reset(self) -> None:
         with self._lock:
-            for core in self.cores.values():
-                core.reset()
-            self.resets += 1
-
-    @property
-    def render_settings(self) -> RenderSettings:
-        return self.core.render
+            self.render = self.render.reset()
 
     def latest_render(self, site: str | None = None) -> LatestRender | None:
         with self._lock:
@@ -275,11 +265,11 @@ class TrainerWorker:
                 n_views=c.n_views, decision=c.decision,
                 decision_age_ms=None if c.decision is None
                 else self.clock.now_ms() - c.decision.time_ms,
-                backend=c.render.backend, device=",".join(devices) or "none",
-                carry=c.render.carry, render_steps=c.render.render_steps,
+                backend=self.render.backend, device=",".join(devices) or "none",
+                carry=self.render.carry, render_steps=self.render.render_steps,
                 renders=c.renders_seen, frames_received=c.frames_received,
                 frames_buffered=c.frames_buffered, frames_missing=c.frames_missing,
-                resets=self.resets, running=self.running(), pool=pool)
+                resets=self.render.model_epoch, running=self.running(), pool=pool)
 
 
 __all__ = ["CarryError", "TrainerWorker"]

@@ -26,8 +26,7 @@ def make_core(ds: SceneDataset, pool: Dispatcher) -> TrainerCore:
     return TrainerCore(camera_ids=frozenset(range(1, N_TRAIN + 1)),
                        size=(ds.width, ds.height), skew_ms=1e9,
                        heldout=ds.cameras[ds.heldout_id], aabb=np.asarray(ds.aabb),
-                       frames_per_camera=4, render=RenderSettings("grid", "fresh", 12, 3),
-                       dispatcher=pool, site="north")
+                       frames_per_camera=4, dispatcher=pool, site="north")
 
 
 def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDataset) -> None:  # noqa: F811
@@ -42,7 +41,8 @@ def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDatase
         core.on_decision(decision_payload(4, 100.0, []), now_ms=100.0, now_s=1.1)
     pool.joined("w", 1.2)
     assignment = pool.request(Report("w", max_wait_s=1.0), 1.5)
-    job = pb.WorkReply.FromString(core.job(assignment, 1.5)).job
+    job = pb.WorkReply.FromString(
+        core.job(assignment, 1.5, RenderSettings("grid", "fresh", 12, 3))).job
     assert job.decision.decision_id == 4 and job.site == "north"
     assert sorted(f.camera_id for f in job.frames) == [1, 3] and job.n_missing == 1
     assert (job.backend, job.carry, job.render_steps, job.seed) == ("grid", "fresh", 12, 3)
@@ -58,14 +58,14 @@ def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDatase
     assert latest.decision_id == 4 and latest.worker_id == "w" and latest.age_s == 1.0
 
 
-def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason(
-        dataset: SceneDataset) -> None:  # noqa: F811
-    core = make_core(dataset, Dispatcher())
-    core.set_backend("ngp")
-    core.reset()
-    assert (core.render.backend, core.render.model_epoch) == ("ngp", 2)
+def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None:
+    render = RenderSettings("grid", "fresh", 12, 3).with_backend("ngp").reset()
+    assert (render.backend, render.model_epoch) == ("ngp", 2)
+    assert render.with_carry("warm", 20).model_epoch == 2  # a carry change keeps the models
     with pytest.raises(ValueError):
-        core.set_backend("nope")
+        render.with_backend("nope")
+    with pytest.raises(ValueError):
+        render.with_carry("fresh", 0)
     recon = ReconCore(worker_id="w", device="cpu", configs=CONFIGS)
     with pytest.raises(JobFailed) as err:
         recon.run(pb.Job(aabb=[0, 0, 0, -1, 1, 1]))
