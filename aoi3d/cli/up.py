@@ -79,7 +79,7 @@ def up(
     """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C. The
     ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
     service that does not become healthy is one line and exit status 1."""
-    from services.supervisor import Supervisor, UpConfig, taken_ports
+    from services.supervisor import Supervisor, UpConfig, site_names, taken_ports
 
     if framing not in FRAMING_SCENES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
@@ -126,7 +126,7 @@ def up(
                       "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
         sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
         if sites > 1:
-            console.print(f"Sites: {', '.join(f'site{i}' for i in range(1, sites + 1))} — "
+            console.print(f"Sites: {', '.join(site_names(sites))} — "
                           f"e.g. http://127.0.0.1:{cfg.port('scheduler')}/sites/site2/policy",
                           soft_wrap=True)
         console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
