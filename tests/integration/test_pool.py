@@ -115,5 +115,6 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,  # noqa: F
         if tap is not None:
             tap.close()
         out = stop_pipeline(up)
+        print(out[-3000:])  # pytest shows it when the test fails, whatever failed
     assert_clean_exit(up, out, run_id)
     assert "recon-" in out and "restarted" in out
