@@ -23,6 +23,7 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
+from tests.ports import block
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = [
@@ -32,8 +33,9 @@ pytestmark = [
 ]
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
 
-PORT_OFFSET = 32_000 + (os.getpid() % 100) * 10
-ZENOH_PORT = 32_500 + os.getpid() % 400
+_PORTS = block("browser")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
          "console": 8106}
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",

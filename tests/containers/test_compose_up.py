@@ -29,6 +29,8 @@ from typing import Any
 import httpx
 import pytest
 
+from tests.ports import block
+
 ROOT = Path(__file__).resolve().parents[2]
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
 """Every wait is multiplied by this (a busy machine: AOI3D_TEST_TIMEOUT_SCALE=3)."""
@@ -41,11 +43,10 @@ pytestmark = [
                        reason="runs containers: `make compose-test` (sets AOI3D_COMPOSE_TEST=1)"),
 ]
 
-PORT_BASE = 35_000 + (os.getpid() % 90) * 10
 TARGET_PORTS = {"ZENOH": 7447, "CAMERA": 8101, "NETWORK": 8102, "SCHEDULER": 8103,
                 "TRAINER": 8104, "METRICS": 8105, "CONSOLE": 8106, "PROMETHEUS": 9090,
                 "GRAFANA": 3000}
-PORTS = {name: PORT_BASE + i for i, name in enumerate(TARGET_PORTS)}
+PORTS = dict(zip(TARGET_PORTS, block("compose").ports(), strict=False))
 """Published ports of this run (compose.yaml's AOI3D_PORT_<NAME>)."""
 PROJECT = f"aoi3d-test-{os.getpid()}"
 HAS_CONSOLE = (ROOT / "services" / "console" / "__main__.py").is_file()

@@ -33,10 +33,10 @@ from tests.containers.test_compose_up import (  # the same marks: skipped unless
     pytestmark,  # noqa: F401
     wait_for,
 )
+from tests.ports import block
 
-PORT_BASE = 36_000 + (os.getpid() % 90) * 10
-PORTS = {"ZENOH": PORT_BASE, "SCHEDULER": PORT_BASE + 1, "TRAINER": PORT_BASE + 2,
-         "METRICS": PORT_BASE + 3}
+PORTS = dict(zip(["ZENOH", "SCHEDULER", "TRAINER", "METRICS"], block("multihost").ports(),
+                 strict=False))
 PROJECT = f"aoi3d-mh-{os.getpid()}"
 FILE = ROOT / "compose.multihost.yaml"
 LEASE_S = 10.0

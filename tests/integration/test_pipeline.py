@@ -24,6 +24,7 @@ import pytest
 from aoi3d.lpips import weights_path
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
+from tests.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -32,8 +33,9 @@ SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
 set AOI3D_TEST_TIMEOUT_SCALE=3)."""
 HTTP = httpx.Client(timeout=30 * SCALE)
 """The tests' REST client: never httpx's default 5 s timeout."""
-PORT_OFFSET = 10_000 + (os.getpid() % 500) * 10
-ZENOH_PORT = 17_000 + os.getpid() % 1000
+_PORTS = block("pipeline")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
 
 # The series each service documents (README, "Metrics"); every one must be exposed.

@@ -26,11 +26,13 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
+from tests.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-PORT_OFFSET = 40_000 + (os.getpid() % 100) * 10
-ZENOH_PORT = 41_000 + os.getpid() % 1000
+_PORTS = block("pool")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 
 
 def url(service: str, path: str) -> str:

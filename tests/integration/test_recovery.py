@@ -27,11 +27,13 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
+from tests.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-PORT_OFFSET = 30_000 + (os.getpid() % 100) * 10
-ZENOH_PORT = 31_000 + os.getpid() % 1000
+_PORTS = block("recovery")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105}
 ORDER = ("router", "camera", "network", "scheduler", "trainer", "metrics", "recon-1")
 BOUND_S = 15.0

@@ -24,11 +24,13 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
+from tests.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-PORT_OFFSET = 42_000 + (os.getpid() % 100) * 10
-ZENOH_PORT = 43_000 + os.getpid() % 1000
+_PORTS = block("sites")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 SITES = ("site1", "site2")
 
 

@@ -31,6 +31,7 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
+from tests.ports import block
 
 ROOT = Path(__file__).resolve().parents[2]
 PROMETHEUS = shutil.which("prometheus")
@@ -40,9 +41,10 @@ pytestmark = [
                                                   "prometheus; .ci/setup/30-prometheus.sh)"),
 ]
 
-PORT_OFFSET = 33_000 + (os.getpid() % 100) * 10
-ZENOH_PORT = 34_000 + os.getpid() % 1000
-PROM_PORT = 39_000 + os.getpid() % 1000
+_PORTS = block("prometheus")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
+PROM_PORT = _PORTS.extra(0)
 PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105}
 WINDOW = "20s"
 """What the dashboard's $__rate_interval becomes (scrapes every second)."""

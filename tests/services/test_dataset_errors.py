@@ -13,9 +13,11 @@ from pathlib import Path
 import pytest
 
 from aoi3d.scene import SceneConfig, generate_dataset
+from tests.ports import block
 
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT_OFFSET = 23_000 + (os.getpid() % 500) * 10
+_PORTS = block("dataset-errors-service")
+PORT_OFFSET = _PORTS.rest_offset
 SMALL = SceneConfig(width=16, height=12, fps=10, duration_s=0.5, n_train=3, spp=1,
                     rotor_rpm=120.0, framing="rotor")
 

@@ -28,10 +28,12 @@ from services.supervisor import (
     run_log_dir,
     taken_ports,
 )
+from tests.ports import block
 
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT_OFFSET = 20_000 + (os.getpid() % 500) * 10
-ZENOH_PORT = 27_000 + os.getpid() % 1000
+_PORTS = block("supervisor")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 
 ROUTER = """
 import os, socket, time

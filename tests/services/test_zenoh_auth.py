@@ -14,9 +14,10 @@ import pytest
 
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
+from tests.ports import block
 
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT = 31_500 + os.getpid() % 400
+PORT = block("zenoh-auth").zenoh
 ENDPOINT = f"tcp/127.0.0.1:{PORT}"
 
 

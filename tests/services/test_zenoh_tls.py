@@ -19,12 +19,14 @@ import pytest
 
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
+from tests.ports import block
 
 ROOT = Path(__file__).resolve().parents[2]
 SECRETS_SCRIPT = ROOT / "deploy" / "secrets.sh"
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT = 36_000 + os.getpid() % 400 * 3
-"""Three ports of this file's own (PORT, +1, +2), apart from the other live tests'."""
+_PORTS = block("zenoh-tls")
+PORT = _PORTS.zenoh
+"""Three ports of this file's own: PORT and the block's two extras."""
 
 
 def make_secrets(folder: Path, **env: str) -> Path:
@@ -60,7 +62,7 @@ def test_a_client_with_the_ca_joins_and_one_without_cannot(pki, mtls: bool) -> N
     import zenoh
 
     ours, other = pki
-    port = PORT + int(mtls)
+    port = _PORTS.extra(0) if mtls else PORT
     endpoint = f"tls/127.0.0.1:{port}"
     common = CommonSettings(zenoh_tls_root_ca=ours / "zenoh_tls_ca",
                             zenoh_tls_cert=ours / "zenoh_tls_router_cert",
@@ -109,7 +111,7 @@ def test_tls_with_user_and_password(pki, tmp_path: Path) -> None:
     import zenoh
 
     ours, _ = pki
-    endpoint = f"tls/127.0.0.1:{PORT + 2}"
+    endpoint = f"tls/127.0.0.1:{_PORTS.extra(1)}"
     tls = {"zenoh_tls_root_ca": ours / "zenoh_tls_ca"}
     router = zenoh.open(router_config(
         RouterSettings(listen=[endpoint]),

@@ -20,9 +20,12 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
+from tests.ports import block
+
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT_OFFSET = 21_000 + (os.getpid() % 500) * 10
-ZENOH_PORT = 28_000 + os.getpid() % 1000
+_PORTS = block("cli-startup")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 ROOT = Path(__file__).resolve().parents[2]
 HELP_CPU_LIMIT_S = 1.5
 """CPU seconds `aoi3d --help` may take (the goal is under 1 s; measured ≈ 0.4 s)."""

@@ -24,10 +24,12 @@ from aoi3d.scene import (
     generate_dataset,
     open_dataset,
 )
+from tests.ports import block
 
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-PORT_OFFSET = 22_000 + (os.getpid() % 500) * 10
-ZENOH_PORT = 29_000 + os.getpid() % 1000
+_PORTS = block("dataset-errors")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
 SMALL = SceneConfig(width=16, height=12, fps=10, duration_s=0.5, n_train=3, spp=1,
                     rotor_rpm=120.0, framing="rotor")
 KINDS = ("missing frame", "truncated png", "bad json", "wrong layout")
