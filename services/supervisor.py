@@ -240,6 +240,8 @@ class Supervisor:
             for child in self.children:
                 child.log_path = self.log_dir / child.log_path.name
             log.info("logs of this run: %s", self.log_dir)
+            for child in self.children:  # the decision ledger outlives a metrics restart
+                child.env.setdefault("AOI3D_METRICS_STATE_DIR", str(self.log_dir))
             self._write_state()
             router, services = self.children[0], self.children[1:]
             router.start(self.cfg.echo)

@@ -191,7 +191,8 @@ class ConsoleWorker:
             status: dict[str, Any] = {}
             for key, service, path in (("channel", "network", "/channel"),
                                        ("trainer", "trainer", "/status"),
-                                       ("policy", "scheduler", "/policy")):
+                                       ("policy", "scheduler", "/policy"),
+                                       ("ledger", "metrics", "/ledger")):
                 try:
                     status[key] = self._get(service, path)
                 except (httpx.HTTPError, ValueError) as err:

@@ -78,6 +78,11 @@ class Keys:
         return f"{self.root}/quality"
 
     @property
+    def outcome(self) -> str:
+        """How a decision ended without a render (trainer → the ledger in metrics)."""
+        return f"{self.root}/outcome"
+
+    @property
     def work(self) -> str:
         """The pool's dispatcher answers queries for work here (reconstruction workers ask)."""
         return f"{self.run_root}/pool/work"

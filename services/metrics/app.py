@@ -34,6 +34,10 @@ frames one and two generation periods earlier, dilated by one pixel (`aoi3d.qual
 the fraction of the image they cover. Null when those earlier frames are missing
 (`no_history`) or nothing moved (`empty_mask`, scores only), counted in
 `aoi3d_quality_dynamic_missing_total{reason}`; never 0. The reward uses the full image only.
+
+Decision ledger (`GET /ledger`, `aoi3d_ledger_decisions_total{state,reason}`): every decision
+of the site ends in exactly one state — scored, skipped by choice (superseded) or lost with a
+reason — or is still open; one open longer than `ledger_open_s` is counted lost (expired).
 """
 
 Metrics = Annotated[MetricsWorker, Depends(get_worker)]
@@ -169,6 +173,51 @@ def get_quality(
     return QualityResponse(summary=summary, history=[QualityEntry.of(r) for r in records])
 
 
+class LedgerResponse(BaseModel):
+    """The site's decision ledger: every decision seen ends in exactly one state."""
+
+    decisions: int = Field(description="Decisions counted: scored + skipped + lost + open. "
+                                       "Every id of a scheduler incarnation up to the highest "
+                                       "seen is counted once.", examples=[1200])
+    scored: int = Field(description="Rendered, paired with their truth frame and scored.",
+                        examples=[150])
+    skipped: dict[str, int] = Field(
+        description="Skipped by choice, by reason: superseded (a newer decision of the site "
+                    "was taken before a worker was free).", examples=[{"superseded": 1040}])
+    lost: dict[str, int] = Field(
+        description="Lost, by reason: worker_died, timeout, not_delivered, render_failed, "
+                    "refused (from the trainer), truth_missing, render_rejected (from scoring), "
+                    "unseen (never seen: made while this service was down or lost in transit), "
+                    "expired (open longer than open_bound_s).",
+        examples=[{"worker_died": 1, "unseen": 4}])
+    lost_total: int = Field(description="The sum of lost.", examples=[5])
+    open: int = Field(description="Seen, not ended yet.", examples=[5])
+    oldest_open_s: float | None = Field(
+        description="Wall seconds the oldest open decision has waited; null when none.",
+        examples=[1.2])
+    open_bound_s: float = Field(description="An open decision older than this is counted lost "
+                                            "(expired).", examples=[150.0])
+    after_close: int = Field(description="Events for a decision that had already ended (a late "
+                                         "render, a repeated message).", examples=[0])
+    incarnations: int = Field(description="Scheduler incarnations seen.", examples=[1])
+    persisted: bool = Field(description="Whether the ledger is saved to the state folder (and "
+                                        "so survives a restart of this service).",
+                            examples=[True])
+
+
+ledger_router = APIRouter(prefix="/ledger", tags=["ledger"])
+
+
+@ledger_router.get("", summary="The decision ledger: how every decision of the site ended.")
+def get_ledger(worker: Metrics) -> LedgerResponse:
+    s = worker.ledger.summary()
+    return LedgerResponse(
+        decisions=s.decisions, scored=s.scored, skipped=s.skipped, lost=s.lost,
+        lost_total=sum(s.lost.values()), open=s.open, oldest_open_s=s.oldest_open_s,
+        open_bound_s=worker.ledger.ledger.open_bound_s, after_close=s.after_close,
+        incarnations=s.incarnations, persisted=worker.ledger.path is not None)
+
+
 def resolve_lpips_fn(settings: Settings, lpips_fn: LpipsFn | None = None) -> LpipsFn | None:
     """The LPIPS function the worker uses: ``lpips_fn`` when given; else, with
     ``settings.lpips`` on, the cached pretrained ``settings.lpips_net`` (None when not cached)."""
@@ -205,9 +254,10 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
             history=settings.history, inbox_size=settings.inbox_size,
             weights=settings.reward_weights(), lpips_fn=lpips[0],
-            max_skew_ms=common.skew_ms, stall_s=common.stall_s)
+            max_skew_ms=common.skew_ms, stall_s=common.stall_s,
+            ledger_open_s=settings.ledger_open_s, state_dir=settings.state_dir)
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, per_site=True)
-    include_site_routers(app, quality_router)
+    include_site_routers(app, quality_router, ledger_router)
     return app

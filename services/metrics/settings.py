@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field
@@ -47,6 +48,16 @@ class Settings(ServiceSettings):
                           "null and the reward uses PSNR and SSIM only.")
     lpips_net: Literal["alex", "vgg"] = Field(
         "alex", description="LPIPS backbone: alex (the paper's) or vgg (VGG16).")
+    ledger_open_s: float = Field(
+        150.0, gt=0, le=86_400,
+        description="Wall seconds a decision may stay open in the decision ledger (no render, "
+                    "no outcome) before it is counted lost (expired). Above the trainer's "
+                    "job_timeout_s, so a job the pool still waits for is not counted twice.")
+    state_dir: Path | None = Field(
+        None, description="Folder where the decision ledger is saved (ledger-<run>-<site>.json, "
+                          "at most once a second and on stop) and restored from on start, so "
+                          "its totals survive a restart; unset: kept in memory only. `aoi3d "
+                          "up` sets it to the run's log folder.")
     torch_threads: int = Field(
         1, ge=0, le=256,
         description="Torch CPU threads of this process (LPIPS); 0 keeps torch's default. One "

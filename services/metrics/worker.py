@@ -3,7 +3,9 @@ and scoring rules are documented there).
 
 Bus handlers only enqueue; one scoring thread hands truth frames and renders to the core,
 publishes the ``Quality`` it returns, keeps the history the REST API shows and updates the
-Prometheus series.
+Prometheus series. The same thread keeps the site's decision ledger
+(:mod:`services.metrics.bookkeeping`): Decisions, the trainer's Outcomes and each render's
+fate close every decision in exactly one state.
 """
 
 from __future__ import annotations
@@ -11,7 +13,9 @@ from __future__ import annotations
 import logging
 import math
 import threading
+import time
 from collections import deque
+from pathlib import Path
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
@@ -20,6 +24,7 @@ from aoi3d.quality import LpipsFn, RewardWeights
 from services.kit.bus import Bus, Inbox
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
+from services.metrics.bookkeeping import LedgerKeeper
 from services.metrics.core import (
     MetricsCore,
     QualityRecord,
@@ -29,6 +34,7 @@ from services.metrics.core import (
 log = logging.getLogger(__name__)
 
 _POLL_S = 0.1  # longest wait on the inbox before checking the stop flag
+_TICK_S = 0.2  # how often the ledger expires and saves
 _TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
 
 
@@ -40,7 +46,8 @@ class MetricsWorker:
                  truth_period_ms: float = 30.0, truth_frames: int = 512, history: int = 1000,
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
-                 stall_s: float = 30.0) -> None:
+                 stall_s: float = 30.0, ledger_open_s: float = 150.0,
+                 state_dir: Path | None = None) -> None:
         self.core = MetricsCore(truth_period_ms=truth_period_ms, truth_frames=truth_frames,
                                 weights=weights, lpips_fn=lpips_fn, max_skew_ms=max_skew_ms,
                                 site=site)
@@ -59,6 +66,8 @@ class MetricsWorker:
         self._started = False
 
         self.rejections = Rejections(registry)
+        self.ledger = LedgerKeeper(registry, run_id=run_id, site=site,
+                                   open_bound_s=ledger_open_s, state_dir=state_dir)
         self._m_quality = Counter("aoi3d_quality", "Renders scored against their ground truth.",
                                   registry=registry)
         self._m_truth = Counter("aoi3d_truth_frames", "Ground-truth frames received.",
@@ -130,6 +139,8 @@ class MetricsWorker:
         self._started = True
         self._bus.subscribe(self._keys.truth, self._enqueue("truth"))
         self._bus.subscribe(self._keys.render, self._enqueue("render"))
+        self._bus.subscribe(self._keys.decision, self._enqueue("decision"))
+        self._bus.subscribe(self._keys.outcome, self._enqueue("outcome"))
         self._thread = threading.Thread(target=self._run, name="metrics-scoring", daemon=True)
         self._thread.start()
 
@@ -137,6 +148,7 @@ class MetricsWorker:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
+        self.ledger.tick(force=True)
 
     def readiness(self) -> tuple[bool, str]:
         if self._thread is None or not self._thread.is_alive():
@@ -182,28 +194,39 @@ class MetricsWorker:
         return handler
 
     def _run(self) -> None:
+        handlers = {"truth": self._on_truth, "render": self._on_render,
+                    "decision": self.ledger.on_decision, "outcome": self.ledger.on_outcome}
+        ticked = time.monotonic()
         while not self._stop.is_set():
+            if time.monotonic() - ticked >= _TICK_S:
+                ticked = time.monotonic()
+                self._guarded("ledger", self.ledger.tick)
             item = self._inbox.get(timeout=_POLL_S)
             if item is None:
                 continue
             kind, key, payload = item
-            try:
-                if kind == "truth":
-                    self._on_truth(payload)
-                else:
-                    self._on_render(payload)
-            except Rejected as err:
-                self.rejections.reject(err, key)
-            except Exception as err:  # a bug must not kill the thread; count and go on
-                log.exception("failed to handle a message on %s", key)
-                self.rejections.reject(Rejected("internal_error", repr(err)), key)
+            self._guarded(key, handlers[kind], payload)
+
+    def _guarded(self, key: str, call, *args) -> None:
+        """``call(*args)``; a rejection is counted, a bug logged and counted, never fatal."""
+        try:
+            call(*args)
+        except Rejected as err:
+            self.rejections.reject(err, key)
+        except Exception as err:  # a bug must not kill the thread; count and go on
+            log.exception("failed to handle a message on %s", key)
+            self.rejections.reject(Rejected("internal_error", repr(err)), key)
 
     def _on_truth(self, payload: bytes) -> None:
         self.core.on_truth(payload, self._clock.now_ms())
         self._m_truth.inc()
 
     def _on_render(self, payload: bytes) -> None:
-        scored = self.core.score(payload, self._clock.now_ms())
+        try:
+            scored = self.core.score(payload, self._clock.now_ms())
+        except Rejected as err:
+            self._guarded(self._keys.render, self.ledger.on_render, payload, err)
+            raise
         self._bus.publish(self._keys.quality, scored.message.SerializeToString())
         record, missing = scored.record, scored.dynamic_missing
         with self._lock:
@@ -232,3 +255,4 @@ class MetricsWorker:
             self._h_lpips.observe(record.lpips)
         if math.isfinite(record.lag_ms) and record.lag_ms >= 0:
             self._m_lag.observe(record.lag_ms / 1000.0)
+        self._guarded(self._keys.render, self.ledger.on_render, payload, None)

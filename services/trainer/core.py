@@ -140,7 +140,12 @@ class TrainerCore:
         """Take a decision if it supersedes the one in force (else :class:`Rejected`) and offer
         it to the pool; the assignment when a waiting worker takes it at once."""
         msg = decode_decision(payload)
-        self._check_order(msg, now_ms)
+        try:
+            self._check_order(msg, now_ms)
+        except Rejected as err:
+            self.pool.refuse(DecisionRef(msg.incarnation, msg.decision_id, msg.time_ms,
+                                         self.site), err.reason)
+            raise
         gens = []
         missing = 0
         for ref in msg.selected:

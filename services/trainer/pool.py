@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 from services.kit.keys import DEFAULT_SITE
 
-__all__ = ["Assignment", "Dispatcher", "PoolStatus", "Report", "WorkerView"]
+__all__ = ["Assignment", "Dispatcher", "Ended", "PoolStatus", "Report", "WorkerView"]
 
 
 @dataclass(frozen=True)
@@ -63,6 +63,20 @@ class Assignment:
     def wait_s(self) -> float:
         """From the decision's arrival to the start of its reconstruction (its hand-out)."""
         return self.assigned_s - self.arrived_s
+
+
+@dataclass(frozen=True)
+class Ended:
+    """A decision that ended in the pool without a render: the trainer publishes it as an
+    Outcome for the decision ledger (services.metrics.ledger)."""
+
+    decision: DecisionRef
+    state: str
+    """``skipped`` or ``lost``."""
+    reason: str
+    """skipped: ``superseded``; lost: ``worker_died``, ``timeout``, ``not_delivered``,
+    ``render_failed`` or ``refused``."""
+    detail: str = ""
 
 
 @dataclass(frozen=True)
@@ -162,6 +176,14 @@ class Dispatcher:
         self._events: deque[tuple[float, str, float]] = deque()
         """(wall s, kind, value) over the window: kind decision | render | wait | age."""
         self._first_s: float | None = None
+        self._ended: deque[Ended] = deque(maxlen=100_000)
+        """Bounded: should nobody drain it, the ledger counts what falls out ``expired``."""
+
+    def drain_ended(self) -> list[Ended]:
+        """The decisions that ended without a render since the last call (oldest first)."""
+        ended = list(self._ended)
+        self._ended.clear()
+        return ended
 
     # ------------------------------------------------------------------ membership
     def joined(self, worker_id: str, now_s: float) -> None:
@@ -175,8 +197,7 @@ class Dispatcher:
         if worker is None or worker.holding is None:
             return None
         held = worker.holding
-        self.lost["worker_died"] += 1
-        self._count(held.decision.site, "lost")
+        self._lose(held.decision, "worker_died")
         return held
 
     @property
@@ -207,6 +228,7 @@ class Dispatcher:
         if decision.site in self._pending:
             self.superseded += 1
             self._count(decision.site, "superseded")
+            self._ended.append(Ended(self._pending[decision.site][0], "skipped", "superseded"))
         self._pending[decision.site] = (decision, now_s)
         return None
 
@@ -232,6 +254,11 @@ class Dispatcher:
             self._waiting.append(worker.worker_id)
         return None
 
+    def refuse(self, decision: DecisionRef, why: str) -> None:
+        """The trainer did not take ``decision`` (stale, or ahead of its clock): it never
+        reaches the pool, but its end is told (lost, ``refused``)."""
+        self._ended.append(Ended(decision, "lost", "refused", why))
+
     def give_up(self, worker_id: str) -> None:
         """The worker's held query was answered with no job (its wait ran out)."""
         self._unwait(worker_id)
@@ -244,8 +271,7 @@ class Dispatcher:
             if held is not None and now_s - held.assigned_s > self.job_timeout_s:
                 worker.holding = None
                 worker.lost += 1
-                self.lost["timeout"] += 1
-                self._count(held.decision.site, "lost")
+                self._lose(held.decision, "timeout")
                 out.append(held)
         return out
 
@@ -271,8 +297,7 @@ class Dispatcher:
         site = held.decision.site
         if report.done != held.decision.key:
             worker.lost += 1
-            self.lost["not_delivered"] += 1
-            self._count(site, "lost")
+            self._lose(held.decision, "not_delivered")
             return
         if report.rendered:
             worker.rendered += 1
@@ -284,8 +309,16 @@ class Dispatcher:
             self._event(now_s, "age", age)
         else:
             worker.lost += 1
-            self.lost[f"failed:{report.reason or 'unknown'}"] += 1
-            self._count(site, "lost")
+            self._lose(held.decision, f"failed:{report.reason or 'unknown'}")
+
+    def _lose(self, decision: DecisionRef, reason: str) -> None:
+        """Count a handed-out decision lost; ``failed:<why>`` goes to the ledger as
+        ``render_failed`` with its why."""
+        self.lost[reason] += 1
+        self._count(decision.site, "lost")
+        failed = reason.startswith("failed:")
+        self._ended.append(Ended(decision, "lost", "render_failed" if failed else reason,
+                                 reason.removeprefix("failed:") if failed else ""))
 
     def _count(self, site: str, what: str) -> None:
         self.by_site.setdefault(site, Counter())[what] += 1

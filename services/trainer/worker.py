@@ -11,8 +11,9 @@ them to the bus (the site of a message is its key's ``<site>`` chunk):
   decision is pending, else held (a long poll) until a decision comes or the worker's
   ``max_wait_s`` runs out;
 - worker liveliness tokens ``aoi3d/<run>/pool/worker/*`` are the pool's membership;
-- a housekeeping thread answers held requests whose wait ran out and expires jobs held past
-  ``job_timeout_s``;
+- a housekeeping thread answers held requests whose wait ran out, expires jobs held past
+  ``job_timeout_s`` and publishes an ``Outcome`` for each decision that ended without a render
+  (``aoi3d/<run>/<site>/outcome``: the decision ledger in the metrics service closes it);
 - the metrics are read from the core at scrape time (:class:`PoolCollector`), so no state is
   kept twice.
 """
@@ -31,6 +32,7 @@ from aoi3d.scene import SceneDataset
 from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
+from services.kit.pb import aoi3d_pb2 as pb
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
 from services.trainer.pool import Assignment, Dispatcher, PoolStatus
@@ -95,6 +97,18 @@ class TrainerWorker:
             held, self._held = list(self._held.values()), {}
         for query, _ in held:
             query.reply(self.core.no_job("the trainer is stopping"))
+        self._tell_ended()
+
+    def _tell_ended(self) -> None:
+        """Publish an Outcome for each decision that ended without a render since last time."""
+        with self._lock:
+            ended = self.pool.drain_ended()
+        for e in ended:
+            d = e.decision
+            msg = pb.Outcome(decision_id=d.decision_id, incarnation=d.incarnation, site=d.site,
+                             state=e.state, reason=e.reason, detail=e.detail[:200])
+            self.bus.publish(Keys(self.settings.common.run_id, d.site).outcome,
+                             msg.SerializeToString())
 
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
@@ -226,6 +240,7 @@ class TrainerWorker:
             for a in expired:
                 log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
                             a.worker_id, self.settings.job_timeout_s)
+            self._tell_ended()
             if self._renders_beat.idle_s() > RATE_WINDOW_S:
                 self.steps_per_s = self._steps_rate.idle(
                     time.monotonic(), sum(c.steps_total for c in self.cores.values()))

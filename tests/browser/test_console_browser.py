@@ -80,6 +80,13 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None: 
             page.wait_for_function(f"document.getElementById('render').src !== {first!r} && "
                                    "document.getElementById('truth').naturalWidth > 0")
 
+            # the decision ledger (metrics GET /ledger): scored decisions, and the rest
+            page.wait_for_function(
+                r"/decisions\s+[1-9][\s\S]*scored\s+[1-9]/"
+                r".test(document.getElementById('ledger').innerText)")
+            ledger = HTTP.get(url("metrics", "/ledger")).json()
+            assert ledger["decisions"] >= ledger["scored"] > 0, ledger
+
             # the controls know the trainer's backends and the scheduler's checkpoints
             page.wait_for_function("document.getElementById('backend').options.length > 0")
             backends = page.eval_on_selector_all("#backend option", "os => os.map(o => o.value)")

@@ -161,7 +161,7 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
 
         groups = prom("/api/v1/rules")["groups"]
         loaded = {r["name"] for g in groups for r in g["rules"]}
-        assert len(loaded) == 7 and {"AoI3DServiceDown", "AoI3DPoolEmpty"} <= loaded
+        assert len(loaded) == 8 and {"AoI3DServiceDown", "AoI3DPoolEmpty"} <= loaded
         assert all(r["health"] == "ok" for g in groups for r in g["rules"])
 
         # the camera stops answering (frozen, so `aoi3d up` does not restart it)

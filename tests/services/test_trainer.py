@@ -251,11 +251,34 @@ def test_a_worker_gone_mid_job_loses_only_its_decision(
     p = client.get("/workers").json()
     assert p["lost"] == {"worker_died": 1} and p["workers"] == []
     assert metric(client, "aoi3d_pool_decisions_lost_total", 'reason="worker_died"') == 1
+    wait_for(lambda: [(o.decision_id, o.state, o.reason) for o in outcomes(bus)]
+             == [(1, "lost", "worker_died")], what="its Outcome for the ledger")
     # the pool goes on with a new worker
     pool.add("w2")
     bus.publish(KEYS.decision, decision_payload(2, 200.0, [(1, 0.0)]))
     wait_for(lambda: any(r.decision_id == 2 for r in renders(bus)), what="decision 2 rendered")
     assert [r.decision_id for r in renders(bus)] == [2]
+
+
+def outcomes(bus: MemoryBus) -> list[pb.Outcome]:
+    return [pb.Outcome.FromString(p) for p in bus.messages(KEYS.outcome)]
+
+
+def test_decisions_ended_without_a_render_are_told_to_the_ledger(
+        client: TestClient, bus: MemoryBus, dataset: SceneDataset) -> None:
+    """No worker: each newer decision supersedes the pending one; a decision older than the
+    one in force is refused. Each gets one Outcome on the site's outcome key."""
+    publish_frames(bus, dataset, 0.0)
+    for i in (1, 2, 3):
+        bus.publish(KEYS.decision, decision_payload(i, 100.0 * i, [(1, 0.0)]))
+    bus.publish(KEYS.decision, decision_payload(4, 50.0, [(1, 0.0)]))
+    wait_for(lambda: len(outcomes(bus)) == 3, what="three Outcomes")
+    got = [(o.decision_id, o.state, o.reason, o.detail, o.site) for o in outcomes(bus)]
+    assert got == [(1, "skipped", "superseded", "", "site1"),
+                   (2, "skipped", "superseded", "", "site1"),
+                   (4, "lost", "refused", "stale_decision", "site1")]
+    time.sleep(0.3)  # nothing more: decision 3 is pending, not ended
+    assert len(outcomes(bus)) == 3
 
 
 def test_render_png_404_then_200(client: TestClient, bus: MemoryBus, pool: Pool,

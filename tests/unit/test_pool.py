@@ -196,3 +196,35 @@ def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) ->
     for counts in s.by_site.values():
         assert counts.get("assigned", 0) + counts.get("superseded", 0) <= counts["decisions"]
     assert s.assigned + s.superseded + len(s.pending) == s.decisions
+    ended = pool.drain_ended()  # what the trainer tells the ledger: each end once
+    assert len({e.decision.key for e in ended}) == len(ended)
+    assert sum(e.state == "skipped" for e in ended) == s.superseded
+    assert sum(e.state == "lost" for e in ended) == sum(s.lost.values())
+    assert pool.drain_ended() == []
+
+
+def test_each_end_without_a_render_is_told_with_its_reason() -> None:
+    """The Ended events the trainer publishes as Outcomes: one per pool reason."""
+    pool = Dispatcher(job_timeout_s=5.0)
+    for w in "abcd":
+        pool.joined(w, 0.0)
+    pool.offer(d(1), 0.0)
+    pool.offer(d(2), 0.1)  # 1 superseded
+    a = ask(pool, "a", 0.2)  # takes 2
+    pool.offer(d(3), 0.3)
+    ask(pool, "b", 0.4)  # takes 3
+    pool.offer(d(4), 0.5)
+    ask(pool, "c", 0.6)  # takes 4
+    pool.offer(d(5), 0.7)
+    ask(pool, "d", 0.8)  # takes 5
+    pool.left("a", 1.0)  # 2: worker_died
+    ask(pool, "b", 1.1, done=d(3), rendered=False, reason="out of memory")  # 3: render_failed
+    ask(pool, "c", 1.2)  # 4: not_delivered (asks again without reporting it)
+    pool.expire(10.0)  # 5: timeout
+    pool.refuse(d(6), "stale_decision")
+    got = [(e.decision.decision_id, e.state, e.reason, e.detail) for e in pool.drain_ended()]
+    assert got == [(1, "skipped", "superseded", ""), (2, "lost", "worker_died", ""),
+                   (3, "lost", "render_failed", "out of memory"),
+                   (4, "lost", "not_delivered", ""), (5, "lost", "timeout", ""),
+                   (6, "lost", "refused", "stale_decision")]
+    assert a is not None and pool.lost["failed:out of memory"] == 1

@@ -138,8 +138,24 @@ function drawChannel(s) {
     ["wait to start", p.wait_s_mean === null || p.wait_s_mean === undefined ? "–" : `${fmt(p.wait_s_mean, 2)} s`],
     ["decisions lost", p.lost ? `${lost}` : "–"],
   ]);
+  drawLedger(s.ledger || {});
   $("policy-now").textContent = s.decision ? `policy ${s.decision.policy}` : "";
   $("delay-now").textContent = c ? `delay ${c.delay}` : "";
+}
+
+// The decision ledger (metrics GET /ledger): how every decision of the site ended.
+function drawLedger(l) {
+  if (l.error || l.decisions === undefined) { facts($("ledger"), [["decision ledger", l.error || "–"]]); return; }
+  const pct = (n) => l.decisions ? ` (${fmt(100 * n / l.decisions, 1)} %)` : "";
+  const reasons = (o) => Object.entries(o).filter(([, n]) => n > 0).map(([r, n]) => `${r} ${n}`).join(", ");
+  const skipped = Object.values(l.skipped).reduce((a, b) => a + b, 0);
+  facts($("ledger"), [
+    ["decisions", `${l.decisions}`],
+    ["scored", `${l.scored}${pct(l.scored)}`],
+    ["skipped (newer taken)", `${skipped}${pct(skipped)}`],
+    ["lost", `${l.lost_total}${pct(l.lost_total)}` + (l.lost_total ? ` — ${reasons(l.lost)}` : "")],
+    ["open", `${l.open}` + (l.oldest_open_s !== null ? ` (oldest ${fmt(l.oldest_open_s, 1)} s)` : "")],
+  ]);
 }
 
 function drawCharts(s) {

@@ -202,6 +202,22 @@ class WorkReply(_message.Message):
     reason: str
     def __init__(self, job: _Optional[_Union[Job, _Mapping]] = ..., reason: _Optional[str] = ...) -> None: ...
 
+class Outcome(_message.Message):
+    __slots__ = ("decision_id", "incarnation", "site", "state", "reason", "detail")
+    DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    SITE_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    DETAIL_FIELD_NUMBER: _ClassVar[int]
+    decision_id: int
+    incarnation: int
+    site: str
+    state: str
+    reason: str
+    detail: str
+    def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[str] = ..., detail: _Optional[str] = ...) -> None: ...
+
 class Quality(_message.Message):
     __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
