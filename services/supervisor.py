@@ -17,7 +17,8 @@ Start-up: the router must accept TCP connections, then every service must answer
 same ports never passes for this one) within ``ready_timeout_s``. A service that exits before
 it is healthy is restarted once; a second exit, or the timeout, ends the start-up with one
 error naming the service and the last line of its log, and :meth:`Supervisor.run` returns 1.
-After start-up, a child that exits unexpectedly is restarted with a back-off and the restart
+After start-up, a child that exits unexpectedly is restarted with a back-off (1 s; doubling
+up to 30 s only while it keeps exiting within :data:`STEADY_S` of its start) and the restart
 is logged. On SIGINT/SIGTERM (or after ``duration_s``) every child gets SIGTERM, then SIGKILL
 after a grace period, so no process is left behind.
 """
@@ -57,6 +58,9 @@ WORKER = "recon"
 LATEST = "latest"
 """The link in ``log_dir`` to the newest run's log folder."""
 STARTUP_RESTARTS = 1
+STEADY_S = 60.0
+"""A child that ran this long before it exited is restarted after 1 s; one that keeps
+exiting sooner waits 1, 2, 4 … 30 s (a crash loop does not spin, one crash does not wait)."""
 """How often a service that exits before it is healthy is restarted before start-up fails."""
 
 
@@ -158,10 +162,16 @@ class Child:
     next_start: float = 0.0
     exits: list[int | None] = field(default_factory=list)
     """Exit codes of this child so far (the supervisor records each exit it sees)."""
+    started_s: float = 0.0
+    """Monotonic time of its latest start."""
+    quick_exits: int = 0
+    """Exits in a row that came within :data:`STEADY_S` of a start (the restart backoff
+    doubles with each; a child that ran longer restarts after 1 s again)."""
     _pump: threading.Thread | None = None
 
     def start(self, echo: bool) -> None:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self.started_s = time.monotonic()
         self.proc = subprocess.Popen(
             self.argv, env=self.env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
             stdin=subprocess.DEVNULL, start_new_session=True, bufsize=1, text=True,
@@ -294,7 +304,9 @@ class Supervisor:
             if child.next_start == 0.0:
                 code = child.proc.returncode if child.proc else None
                 child.exits.append(code)
-                backoff = min(30.0, 1.0 * 2 ** min(child.restarts, 5))
+                child.quick_exits = child.quick_exits + 1 if now - child.started_s < STEADY_S \
+                    else 0
+                backoff = min(30.0, 1.0 * 2 ** min(max(child.quick_exits - 1, 0), 5))
                 child.next_start = now + backoff
                 log.warning("service %s exited with code %s; restarting in %.0f s "
                             "(restart #%d, log: %s)", child.name, code, backoff,

@@ -12,7 +12,8 @@ States (:data:`STATES`) and their reasons:
 - ``skipped`` (by choice): ``superseded`` — a newer decision of its site was taken before a
   worker was free (the pool keeps one pending decision per site).
 - ``lost``, with a reason (:data:`LOST_REASONS`): from the trainer's Outcome —
-  ``worker_died``, ``timeout``, ``not_delivered``, ``render_failed``, ``refused``; from the
+  ``worker_died``, ``timeout``, ``not_delivered``, ``render_failed``, ``refused``,
+  ``not_received`` (a gap in the ids the trainer received: lost in transit); from the
   metrics service itself — ``truth_missing`` (no truth frame of its time), ``render_rejected``
   (its render could not be scored); from the ledger — ``unseen`` (it never saw the decision: made
   while the metrics service was down, or lost in transit) and ``expired`` (still open after
@@ -37,7 +38,8 @@ __all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary
 
 STATES = ("scored", "skipped", "lost")
 SKIPPED_REASONS = ("superseded",)
-TRAINER_LOST = ("worker_died", "timeout", "not_delivered", "render_failed", "refused")
+TRAINER_LOST = ("worker_died", "timeout", "not_delivered", "render_failed", "refused",
+                "not_received")
 LOST_REASONS = (*TRAINER_LOST, "truth_missing", "render_rejected", "unseen", "expired")
 MAX_GAP = 1_000_000
 """Ids skipped at once that the ledger believes (8 h of decisions every 30 ms); a larger jump

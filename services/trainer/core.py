@@ -30,6 +30,10 @@ from services.trainer.state import CarryError, DecisionInForce, LatestRender, ch
 
 __all__ = ["RenderSettings", "TrainerCore", "decode_request"]
 
+MAX_NOT_RECEIVED = 1000
+"""Most ids of one gap told ``not_received`` (50 s of decisions at one per 50 ms); a hostile
+id cannot make the trainer publish more."""
+
 
 @dataclass(frozen=True)
 class RenderSettings:
@@ -109,6 +113,8 @@ class TrainerCore:
         self.decision: DecisionInForce | None = None
         self._decisions: dict[tuple[int, int], pb.Decision] = {}
         """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
+        self._highest: dict[int, int] = {}
+        """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
         self.latest: LatestRender | None = None
         self._latest_incarnation = 0
         self.frames_received = 0
@@ -140,6 +146,7 @@ class TrainerCore:
         """Take a decision if it supersedes the one in force (else :class:`Rejected`) and offer
         it to the pool; the assignment when a waiting worker takes it at once."""
         msg = decode_decision(payload)
+        self._never_received(msg)
         try:
             self._check_order(msg, now_ms)
         except Rejected as err:
@@ -164,6 +171,18 @@ class TrainerCore:
         assignment = self.pool.offer(ref, now_s)
         self.forget()
         return assignment
+
+    def _never_received(self, msg: pb.Decision) -> None:
+        """Ids skipped since the highest received of the incarnation (since this process
+        started) never reached the trainer — lost in transit, a router restarting: each is told
+        lost (``not_received``), up to :data:`MAX_NOT_RECEIVED` per gap (the ledger counts any
+        beyond that ``expired``)."""
+        high = self._highest.get(msg.incarnation)
+        if high is not None and msg.decision_id > high + 1:
+            for i in range(high + 1, min(msg.decision_id, high + 1 + MAX_NOT_RECEIVED)):
+                self.pool.never_received(DecisionRef(msg.incarnation, i, math.nan, self.site))
+        if high is None or msg.decision_id > high:
+            self._highest[msg.incarnation] = msg.decision_id
 
     def _check_order(self, msg: pb.Decision, now_ms: float) -> None:
         """Decisions are ordered by the sim time they are for, then by id, within one

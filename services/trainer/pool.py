@@ -75,7 +75,7 @@ class Ended:
     """``skipped`` or ``lost``."""
     reason: str
     """skipped: ``superseded``; lost: ``worker_died``, ``timeout``, ``not_delivered``,
-    ``render_failed`` or ``refused``."""
+    ``render_failed``, ``refused`` or ``not_received``."""
     detail: str = ""
 
 
@@ -258,6 +258,11 @@ class Dispatcher:
         """The trainer did not take ``decision`` (stale, or ahead of its clock): it never
         reaches the pool, but its end is told (lost, ``refused``)."""
         self._ended.append(Ended(decision, "lost", "refused", why))
+
+    def never_received(self, decision: DecisionRef) -> None:
+        """The trainer never received ``decision`` (a gap in its incarnation's ids): its end
+        is told (lost, ``not_received``)."""
+        self._ended.append(Ended(decision, "lost", "not_received"))
 
     def give_up(self, worker_id: str) -> None:
         """The worker's held query was answered with no job (its wait ran out)."""

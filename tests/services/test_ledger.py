@@ -86,22 +86,23 @@ def sites() -> Iterator[list]:
 def test_each_state_and_reason_reaches_rest_and_prometheus(sites, tmp_path: Path) -> None:
     site = Site(None)
     sites.append(site)
-    site.decide(1, 2, 3, 4, 5, 6, 7, 8, 10, 11)  # 9 never arrives: unseen
+    site.decide(1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12)  # 9 never arrives: unseen
     site.render(1)  # scored
     site.outcome(2, "skipped", "superseded")
-    for i, reason in zip((3, 4, 5, 6, 7), ("worker_died", "timeout", "not_delivered",
-                                          "render_failed", "refused"), strict=True):
+    for i, reason in zip((3, 4, 5, 6, 7, 12), ("worker_died", "timeout", "not_delivered",
+                                              "render_failed", "refused", "not_received"),
+                         strict=True):
         site.outcome(i, "lost", reason)
     site.render(8, time_ms=5000.0)  # no truth frame of its time: truth_missing
     site.render(10, image=truth_image(60.0)[:9])  # another size: render_rejected
     site.render(11)  # scored
-    got = site.settle(11)
+    got = site.settle(12)
     assert got["scored"] == 2 and got["skipped"] == {"superseded": 1}
     for reason in ("worker_died", "timeout", "not_delivered", "render_failed", "refused",
-                   "truth_missing", "render_rejected", "unseen"):
+                   "not_received", "truth_missing", "render_rejected", "unseen"):
         assert got["lost"][reason] == 1, (reason, got)
-    assert got["lost"]["expired"] == 0 and got["lost_total"] == 8
-    assert got["decisions"] == 11 and not got["persisted"]
+    assert got["lost"]["expired"] == 0 and got["lost_total"] == 9
+    assert got["decisions"] == 12 and not got["persisted"]
     text = site.client.get("/metrics").text
     for reason in LOST_REASONS:  # every reason is a series from the start
         assert metric(text, f'aoi3d_ledger_decisions_total{{reason="{reason}",state="lost"}}'
@@ -109,7 +110,7 @@ def test_each_state_and_reason_reaches_rest_and_prometheus(sites, tmp_path: Path
     assert metric(text, 'aoi3d_ledger_decisions_total{reason="",state="scored"}') == 2
     assert metric(text, "aoi3d_ledger_open") == 0
     # the same under the site's own path
-    assert site.client.get("/sites/site1/ledger").json()["decisions"] == 11
+    assert site.client.get("/sites/site1/ledger").json()["decisions"] == 12
 
 
 def test_an_open_decision_expires_and_nonsense_is_counted_not_believed(sites) -> None:

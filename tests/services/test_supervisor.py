@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import socket
+import subprocess
 import sys
 import threading
 import time
@@ -196,3 +197,29 @@ def test_a_router_that_exits_fails_the_start_up(tmp_path: Path) -> None:
     assert "Zenoh router exited with code 3" in sup.failure
     assert "cannot listen: address in use" in sup.failure
     assert_all_gone(sup)
+
+
+def test_the_restart_backoff_doubles_only_while_a_child_keeps_dying_young(tmp_path: Path,
+                                                                        monkeypatch) -> None:
+    """1 s after a child that ran for a while; 1, 2, 4 s … while it exits within STEADY_S of
+    its start (a chaos run kills the same process many times: each waits 1 s, not 30)."""
+    import services.supervisor as sv
+
+    sup = Supervisor(config(tmp_path))
+    child = sup.children[1]
+    sup.children = [child]  # the others are never started
+    child.start = lambda echo: None  # restarts are not the point here
+    done = subprocess.Popen([sys.executable, "-c", "pass"])
+    done.wait()
+    child.proc = done
+    now = [1000.0]
+    monkeypatch.setattr(sv.time, "monotonic", lambda: now[0])
+    waits = []
+    for ran_s in (500.0, 5.0, 5.0, 5.0, 500.0):
+        child.started_s = now[0] - ran_s
+        sup._restart_dead()  # sees the exit: schedules the restart
+        waits.append(child.next_start - now[0])
+        now[0] = child.next_start
+        sup._restart_dead()  # restarts it (start is a no-op; proc stays exited)
+    assert waits == [1.0, 1.0, 2.0, 4.0, 1.0]
+    assert child.restarts == 5 and len(child.exits) == 5

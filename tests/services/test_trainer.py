@@ -267,18 +267,23 @@ def outcomes(bus: MemoryBus) -> list[pb.Outcome]:
 def test_decisions_ended_without_a_render_are_told_to_the_ledger(
         client: TestClient, bus: MemoryBus, dataset: SceneDataset) -> None:
     """No worker: each newer decision supersedes the pending one; a decision older than the
-    one in force is refused. Each gets one Outcome on the site's outcome key."""
+    one in force is refused; ids skipped are not received. Each gets one Outcome on the
+    site's outcome key."""
     publish_frames(bus, dataset, 0.0)
     for i in (1, 2, 3):
         bus.publish(KEYS.decision, decision_payload(i, 100.0 * i, [(1, 0.0)]))
     bus.publish(KEYS.decision, decision_payload(4, 50.0, [(1, 0.0)]))
-    wait_for(lambda: len(outcomes(bus)) == 3, what="three Outcomes")
+    bus.publish(KEYS.decision, decision_payload(7, 700.0, [(1, 0.0)]))  # 5, 6 never came
+    wait_for(lambda: len(outcomes(bus)) == 6, what="six Outcomes")
     got = [(o.decision_id, o.state, o.reason, o.detail, o.site) for o in outcomes(bus)]
     assert got == [(1, "skipped", "superseded", "", "site1"),
                    (2, "skipped", "superseded", "", "site1"),
-                   (4, "lost", "refused", "stale_decision", "site1")]
-    time.sleep(0.3)  # nothing more: decision 3 is pending, not ended
-    assert len(outcomes(bus)) == 3
+                   (4, "lost", "refused", "stale_decision", "site1"),
+                   (5, "lost", "not_received", "", "site1"),
+                   (6, "lost", "not_received", "", "site1"),
+                   (3, "skipped", "superseded", "", "site1")]
+    time.sleep(0.3)  # nothing more: decision 7 is pending, not ended
+    assert len(outcomes(bus)) == 6
 
 
 def test_render_png_404_then_200(client: TestClient, bus: MemoryBus, pool: Pool,

@@ -222,9 +222,11 @@ def test_each_end_without_a_render_is_told_with_its_reason() -> None:
     ask(pool, "c", 1.2)  # 4: not_delivered (asks again without reporting it)
     pool.expire(10.0)  # 5: timeout
     pool.refuse(d(6), "stale_decision")
+    pool.never_received(d(7))
     got = [(e.decision.decision_id, e.state, e.reason, e.detail) for e in pool.drain_ended()]
     assert got == [(1, "skipped", "superseded", ""), (2, "lost", "worker_died", ""),
                    (3, "lost", "render_failed", "out of memory"),
                    (4, "lost", "not_delivered", ""), (5, "lost", "timeout", ""),
-                   (6, "lost", "refused", "stale_decision")]
+                   (6, "lost", "refused", "stale_decision"),
+                   (7, "lost", "not_received", "")]
     assert a is not None and pool.lost["failed:out of memory"] == 1

@@ -73,3 +73,21 @@ def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None
     with pytest.raises(JobFailed) as err:
         recon.run(pb.Job(aabb=[0, 0, 0, 1, 1, 1]))  # no camera to render
     assert err.value.reason == "bad_job"
+
+
+def test_a_gap_in_the_ids_received_is_told_not_received_and_bounded(
+        dataset: SceneDataset) -> None:  # noqa: F811
+    """The first decision of a trainer's life has no gap before it; later gaps end lost
+    ``not_received``, at most MAX_NOT_RECEIVED per gap (a hostile id cannot make more)."""
+    from services.trainer.core import MAX_NOT_RECEIVED
+
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    core.on_decision(decision_payload(50, 100.0, []), now_ms=100.0, now_s=1.0)
+    assert pool.drain_ended() == []  # 1..49 were another trainer's (or never made)
+    core.on_decision(decision_payload(53, 200.0, []), now_ms=200.0, now_s=1.1)
+    ended = [(e.decision.decision_id, e.reason) for e in pool.drain_ended()]
+    assert ended == [(51, "not_received"), (52, "not_received"), (50, "superseded")]
+    core.on_decision(decision_payload(10**9, 300.0, []), now_ms=300.0, now_s=1.2)
+    reasons = [e.reason for e in pool.drain_ended()]
+    assert reasons.count("not_received") == MAX_NOT_RECEIVED
