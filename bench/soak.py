@@ -1,13 +1,20 @@
-"""Soak: run the whole pipeline for a long time and record each process's memory.
+"""Soak: run the whole pipeline for an hour; memory, render rate and the decision ledger.
 
-Starts ``aoi3d up`` (default scene and settings, its own ports), samples the resident memory
-(RSS, from /proc) of the router and every service every ``--every-s`` seconds for
-``--minutes``, and checks that Quality keeps flowing. The JSON gives, per process, the RSS
-after the warm-up, at the end, the growth and a least-squares slope in MiB per hour, plus the
-restarts `aoi3d up` made and the Quality count.
+Starts ``aoi3d up`` (default scene and settings, ``--sites`` 2 and ``--workers`` 2, its own
+ports), waits ``--warmup-s`` and then for ``--minutes`` samples, every ``--every-s`` seconds,
+the resident memory (RSS, from /proc) of the router, every service and every reconstruction
+worker, and the pool's renders so far (the trainer's ``GET /status``). At the end it reads the
+decision ledger of every site (the metrics service's ``GET /sites/<site>/ledger``).
 
-    python bench/soak.py                  # 30 min, JSON to bench/results/soak.json
-    python bench/soak.py --minutes 3      # a quick look
+The JSON (``--out``) gives per process the RSS over the first and over the last window (the
+median of its samples there: a worker's RSS rises and falls with each job), the growth (MiB,
+%) and a least-squares slope in MiB per hour; renders per second over the first and the
+last ``--window-min`` minutes and their ratio; the restarts ``aoi3d up`` made; the load; the
+ledger per site. The verdict: every process grew less than 10 % and the last window's render
+rate is within 5 % of the first's (exit status 1 otherwise).
+
+    python bench/soak.py --minutes 60        # the README's table (bench/results/soak.json)
+    python bench/soak.py --minutes 3 --window-min 1 --out /tmp/soak.json   # a quick look
 """
 
 from __future__ import annotations
@@ -19,13 +26,16 @@ import signal
 import subprocess
 import sys
 import time
+import uuid
 from pathlib import Path
 
 import httpx
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-OFFSET, ZENOH = 4000, 9467
+OFFSET, ZENOH = 4000, 9467  # REST 12101…12106: apart from make up, chaos and the tests
+MAX_GROWTH = 0.10
+MAX_RATE_CHANGE = 0.05
 
 
 def rss_mib(pid: int) -> float | None:
@@ -38,58 +48,111 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-def main() -> None:
+def url(port: int, path: str) -> str:
+    return f"http://127.0.0.1:{port + OFFSET}{path}"
+
+
+def rate(points: list[tuple[float, int]], t0: float, t1: float) -> float:
+    """Renders per second between the samples nearest t0 and t1 (seconds since the start)."""
+    t = np.array([p[0] for p in points])
+    a, b = points[int(np.abs(t - t0).argmin())], points[int(np.abs(t - t1).argmin())]
+    return (b[1] - a[1]) / (b[0] - a[0]) if b[0] > a[0] else float("nan")
+
+
+def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--minutes", type=float, default=30.0)
+    parser.add_argument("--minutes", type=float, default=60.0)
+    parser.add_argument("--sites", type=int, default=2)
+    parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--every-s", type=float, default=30.0)
-    parser.add_argument("--warmup-s", type=float, default=60.0)
+    parser.add_argument("--warmup-s", type=float, default=90.0)
+    parser.add_argument("--window-min", type=float, default=10.0)
     parser.add_argument("--out", type=Path, default=ROOT / "bench/results/soak.json")
     args = parser.parse_args()
     log_dir = ROOT / "runs" / "bench-soak"
-    up = subprocess.Popen([sys.executable, "-m", "aoi3d", "up", "--run-id", "soak",
+    run_id = f"soak{uuid.uuid4().hex[:6]}"
+    up = subprocess.Popen([sys.executable, "-m", "aoi3d", "up", "--run-id", run_id,
                            "--port-offset", str(OFFSET), "--zenoh-port", str(ZENOH),
+                           "--sites", str(args.sites), "--workers", str(args.workers),
                            "--log-dir", str(log_dir), "--quiet"], cwd=ROOT,
                           stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
                           start_new_session=True)
-    quality = f"http://127.0.0.1:{8105 + OFFSET}/quality"
+    http = httpx.Client(timeout=60.0)
     samples: dict[str, list[tuple[float, float]]] = {}
+    renders: list[tuple[float, int]] = []
+    loads: list[float] = []
     try:
+        deadline = time.monotonic() + 600
+        while True:  # up and rendering
+            try:
+                if http.get(url(8104, "/status")).json()["pool"]["rendered"] > 0:
+                    break
+            except (httpx.HTTPError, ValueError, KeyError):
+                pass
+            if time.monotonic() > deadline or up.poll() is not None:
+                raise SystemExit("soak: the pipeline did not start rendering")
+            time.sleep(2.0)
         time.sleep(args.warmup_s)
         t0 = time.monotonic()
         end = t0 + args.minutes * 60.0
-        scored0 = None
         while True:
             state = json.loads((log_dir / "latest" / "up.json").read_text())
             now = time.monotonic() - t0
             for name, child in state["children"].items():
-                mib = rss_mib(child["pid"])
+                mib = rss_mib(child["pid"]) if child["pid"] else None
                 if mib is not None:
                     samples.setdefault(name, []).append((now, mib))
-            summary = httpx.get(quality, timeout=30).json()["summary"]
-            scored0 = summary["scored_total"] if scored0 is None else scored0
+            renders.append((now, http.get(url(8104, "/status")).json()["pool"]["rendered"]))
+            loads.append(os.getloadavg()[0])
             if time.monotonic() >= end:
                 break
             time.sleep(min(args.every_s, max(0.0, end - time.monotonic())))
         restarts = {n: c["restarts"] for n, c in state["children"].items()}
-        scored = summary["scored_total"] - scored0
+        sites = http.get(url(8105, "/sites")).json()["sites"]
+        ledgers = {s: http.get(url(8105, f"/sites/{s}/ledger")).json() for s in sites}
     finally:
         up.send_signal(signal.SIGTERM)
-        up.wait(timeout=60)
+        try:
+            up.wait(timeout=90)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+    span = renders[-1][0]
+    window = min(args.window_min * 60.0, span / 2)
     processes = {}
     for name, points in samples.items():
         t, m = np.array(points).T
+        # a worker's RSS rises and falls with each job's model: the median of each window
+        start = float(np.median(m[t <= window])) if (t <= window).any() else m[0]
+        stop = float(np.median(m[t >= span - window])) if (t >= span - window).any() else m[-1]
         slope = float(np.polyfit(t / 3600.0, m, 1)[0]) if len(t) > 2 else None
-        processes[name] = {"rss_start_mib": round(m[0], 1), "rss_end_mib": round(m[-1], 1),
-                           "growth_mib": round(m[-1] - m[0], 1),
+        processes[name] = {"rss_start_mib": round(start, 1), "rss_end_mib": round(stop, 1),
+                           "growth_mib": round(stop - start, 1),
+                           "growth_pct": round(100 * (stop - start) / start, 1),
                            "slope_mib_per_hour": None if slope is None else round(slope, 1),
                            "samples": len(m)}
-    result = {"command": " ".join(sys.argv), "minutes": args.minutes,
-              "load_1min_at_end": os.getloadavg()[0], "quality_scored": scored,
-              "restarts": restarts, "processes": processes}
+    first, last = rate(renders, 0.0, window), rate(renders, span - window, span)
+    ok_memory = all(p["growth_pct"] < 100 * MAX_GROWTH for p in processes.values())
+    ok_rate = abs(last / first - 1) <= MAX_RATE_CHANGE if first > 0 else False
+    result = {
+        "command": "python bench/soak.py " + " ".join(sys.argv[1:]),
+        "minutes": args.minutes, "sites": args.sites, "workers": args.workers,
+        "renders_per_s_first": round(first, 3), "renders_per_s_last": round(last, 3),
+        "window_min": round(window / 60.0, 1),
+        "rate_ratio_last_first": round(last / first, 3) if first > 0 else None,
+        "renders": renders[-1][1] - renders[0][1],
+        "load_1min_mean": round(float(np.mean(loads)), 2),
+        "load_1min_max": round(float(np.max(loads)), 2),
+        "restarts": restarts, "processes": processes,
+        "ledger": {s: {k: led[k] for k in ("decisions", "scored", "skipped", "lost",
+                                           "lost_total", "open", "after_close")}
+                   for s, led in ledgers.items()},
+        "memory_ok": ok_memory, "rate_ok": ok_rate,
+    }
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=1) + "\n")
     print(json.dumps(result, indent=1))
+    return 0 if ok_memory and ok_rate else 1
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

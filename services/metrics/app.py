@@ -26,7 +26,8 @@ per render. `reward_terms` says which metrics the reward was built from.
 
 Pairing: the truth frame generated exactly at the render's time t, else the newest generated
 within one generation period before t; otherwise the render is dropped and counted in
-`aoi3d_messages_rejected_total{reason="no_truth"}`.
+`aoi3d_messages_rejected_total{reason="no_truth"}` — after a wait of up to `truth_wait_s` when
+its time is past every truth frame received (its truth may still be on its way).
 
 Dynamic region: besides the full-image scores, PSNR and SSIM over the pixels of the view that
 move — those whose ground truth changed by more than 8/255 in some channel since the truth
@@ -256,7 +257,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             history=settings.history, inbox_size=settings.inbox_size,
             weights=settings.reward_weights(), lpips_fn=lpips[0],
             max_skew_ms=common.skew_ms, stall_s=common.stall_s,
-            ledger_open_s=settings.ledger_open_s, state_dir=settings.state_dir)
+            ledger_open_s=settings.ledger_open_s, state_dir=settings.state_dir,
+            truth_wait_s=settings.truth_wait_s)
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, per_site=True)

@@ -5,7 +5,9 @@ from its scoring thread and publishes what it returns; tests drive it directly.
 
 Pairing rule: a render at decision time t is compared with the ground-truth frame generated
 exactly at t; failing that, with the newest one generated in [t − C, t] (C =
-``truth_period_ms``); failing that the render is rejected with reason ``no_truth``.
+``truth_period_ms``); failing that the render is rejected with reason ``no_truth`` — the
+runtime first holds a render whose t is past every truth frame received (its truth may still
+be on its way) for up to ``truth_wait_s`` and tries again as truth frames arrive.
 
 Dynamic region: the truth frame paired with a render, generated at t', is compared with the
 truth frames generated at t' − C and t' − 2C (each the newest generated within half a period
@@ -66,6 +68,11 @@ class TruthRing:
 
     def __len__(self) -> int:
         return len(self._times)
+
+    @property
+    def newest_ms(self) -> float | None:
+        """Generation time of the newest frame held (None when empty)."""
+        return self._times[-1] if self._times else None
 
     def add(self, frame: TruthFrame) -> None:
         """Keep ``frame`` (a repeat of a generation time replaces it); evict the oldest."""

@@ -34,7 +34,7 @@ from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 
 __all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary",
-           "decode_outcome", "render_ids"]
+           "decode_outcome", "render_ids", "render_time"]
 
 STATES = ("scored", "skipped", "lost")
 SKIPPED_REASONS = ("superseded",)
@@ -207,3 +207,11 @@ def render_ids(payload: bytes) -> tuple[int, int] | None:
     except Exception:  # protobuf raises DecodeError and others
         return None
     return (msg.decision_incarnation, msg.decision_id) if msg.decision_id else None
+
+
+def render_time(payload: bytes) -> float | None:
+    """A Render's time t (sim ms), or None when the payload does not parse."""
+    try:
+        return pb.Render.FromString(payload).time_ms
+    except Exception:  # protobuf raises DecodeError and others
+        return None

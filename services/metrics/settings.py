@@ -48,6 +48,11 @@ class Settings(ServiceSettings):
                           "null and the reward uses PSNR and SSIM only.")
     lpips_net: Literal["alex", "vgg"] = Field(
         "alex", description="LPIPS backbone: alex (the paper's) or vgg (VGG16).")
+    truth_wait_s: float = Field(
+        5.0, ge=0, le=60,
+        description="Wall seconds a render whose time is past every truth frame received is "
+                    "held for its truth frame (still on its way when the camera lags) before "
+                    "it is rejected as no_truth; 0 rejects it at once.")
     ledger_open_s: float = Field(
         150.0, gt=0, le=86_400,
         description="Wall seconds a decision may stay open in the decision ledger (no render, "

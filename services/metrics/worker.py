@@ -30,11 +30,13 @@ from services.metrics.core import (
     QualityRecord,
     or_nan,
 )
+from services.metrics.ledger import render_time
 
 log = logging.getLogger(__name__)
 
 _POLL_S = 0.1  # longest wait on the inbox before checking the stop flag
-_TICK_S = 0.2  # how often the ledger expires and saves
+_TICK_S = 0.2  # how often the ledger expires and saves, and held renders are given up
+_MAX_WAITING = 64  # renders held for their truth frame at most
 _TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
 
 
@@ -47,7 +49,7 @@ class MetricsWorker:
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
                  stall_s: float = 30.0, ledger_open_s: float = 150.0,
-                 state_dir: Path | None = None) -> None:
+                 state_dir: Path | None = None, truth_wait_s: float = 5.0) -> None:
         self.core = MetricsCore(truth_period_ms=truth_period_ms, truth_frames=truth_frames,
                                 weights=weights, lpips_fn=lpips_fn, max_skew_ms=max_skew_ms,
                                 site=site)
@@ -59,6 +61,9 @@ class MetricsWorker:
         self._lpips_fn = lpips_fn
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
         self._history: deque[QualityRecord] = deque(maxlen=history)
+        self._truth_wait_s = float(truth_wait_s)
+        self._waiting: deque[tuple[float, float, bytes]] = deque()
+        """Renders ahead of every truth frame received: (monotonic deadline, t, payload)."""
         self._scored = 0
         self._lock = threading.Lock()  # guards _history and _scored
         self._stop = threading.Event()
@@ -201,6 +206,7 @@ class MetricsWorker:
             if time.monotonic() - ticked >= _TICK_S:
                 ticked = time.monotonic()
                 self._guarded("ledger", self.ledger.tick)
+                self._retry_waiting(expire=True)
             item = self._inbox.get(timeout=_POLL_S)
             if item is None:
                 continue
@@ -217,14 +223,44 @@ class MetricsWorker:
             log.exception("failed to handle a message on %s", key)
             self.rejections.reject(Rejected("internal_error", repr(err)), key)
 
+    def _ahead_of_truth(self, payload: bytes) -> bool:
+        """Hold the render (True) when its time is past every truth frame received and the
+        wait is on; the oldest held one is given up when :data:`_MAX_WAITING` are held."""
+        newest = self.core.ring.newest_ms
+        t = render_time(payload)
+        if self._truth_wait_s <= 0 or t is None or (newest is not None and t <= newest):
+            return False
+        if len(self._waiting) >= _MAX_WAITING:
+            _, _, oldest = self._waiting.popleft()
+            self._guarded(self._keys.render, self._on_render, oldest, False)
+        self._waiting.append((time.monotonic() + self._truth_wait_s, t, payload))
+        return True
+
     def _on_truth(self, payload: bytes) -> None:
         self.core.on_truth(payload, self._clock.now_ms())
         self._m_truth.inc()
+        self._retry_waiting(expire=False)
 
-    def _on_render(self, payload: bytes) -> None:
+    def _retry_waiting(self, *, expire: bool) -> None:
+        """Score the held renders whose time the truth frames have reached; with ``expire``,
+        give up (``no_truth``) on those held longer than ``truth_wait_s``."""
+        newest, now = self.core.ring.newest_ms, time.monotonic()
+        keep: deque[tuple[float, float, bytes]] = deque()
+        while self._waiting:
+            deadline, t, payload = self._waiting.popleft()
+            due = newest is not None and t <= newest + _TIME_TOL_MS
+            if due or (expire and now >= deadline):
+                self._guarded(self._keys.render, self._on_render, payload, False)
+            else:
+                keep.append((deadline, t, payload))
+        self._waiting = keep
+
+    def _on_render(self, payload: bytes, may_wait: bool = True) -> None:
         try:
             scored = self.core.score(payload, self._clock.now_ms())
         except Rejected as err:
+            if may_wait and err.reason == "no_truth" and self._ahead_of_truth(payload):
+                return  # held: its truth frame may still come
             self._guarded(self._keys.render, self.ledger.on_render, payload, err)
             raise
         self._bus.publish(self._keys.quality, scored.message.SerializeToString())

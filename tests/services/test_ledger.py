@@ -39,7 +39,8 @@ class Site:
     def __init__(self, state_dir: Path | None, open_s: float = 60.0) -> None:
         self.bus = MemoryBus()
         settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN),
-                            lpips=False, ledger_open_s=open_s, state_dir=state_dir)
+                            lpips=False, ledger_open_s=open_s, state_dir=state_dir,
+                            truth_wait_s=0.5)
         self.client = TestClient(create_app(settings, bus=self.bus, clock=SimClock(
             epoch_s=time.time() - 60.0, time_scale=1.0)))
         self.client.__enter__()

@@ -120,12 +120,12 @@ class Harness:
 def make_harness() -> Iterator[Callable[..., Harness]]:
     clients: list[TestClient] = []
 
-    def make(*, lpips: bool = False, **app_kw) -> Harness:
+    def make(*, lpips: bool = False, settings_kw: dict | None = None, **app_kw) -> Harness:
         """The service on a memory bus; LPIPS off unless asked for (``lpips=True`` loads the
         cached weights, ``lpips_fn=`` injects one), so no test depends on the cache."""
         bus = MemoryBus()
         settings = Settings(truth_period_ms=PERIOD_MS, common=CommonSettings(run_id=RUN),
-                            lpips=lpips)
+                            lpips=lpips, **(settings_kw or {}))
         app = create_app(settings, bus=bus,
                          clock=SimClock(epoch_s=time.time() - 60.0, time_scale=1.0),
                          **app_kw)
@@ -180,7 +180,7 @@ def test_render_without_exact_truth_uses_the_newest_within_a_period(make_harness
 
 
 def test_render_without_truth_is_rejected_and_counted(make_harness) -> None:
-    h = make_harness()
+    h = make_harness(settings_kw={"truth_wait_s": 0.0})  # no wait: rejected at once
     h.bus.publish(KEYS.render, render(120.1, truth_image(90.0)))  # newest truth 30.1 ms old
     h.bus.publish(KEYS.render, render(-5.0, truth_image(0.0)))    # before every truth frame
     body = h.client.get("/quality").json()
@@ -194,6 +194,24 @@ def test_render_without_truth_is_rejected_and_counted(make_harness) -> None:
     # a truth frame arriving later makes a later render at that time scorable
     h.bus.publish(KEYS.truth, truth(120.0))
     assert h.score(120.1, truth_image(120.0)).truth_time_ms == 120.0
+
+
+def test_a_render_ahead_of_its_truth_waits_for_it_then_gives_up(make_harness) -> None:
+    """A render whose time is past every truth frame received is held (the camera lags) and
+    scored when its truth comes; one whose truth never comes is rejected after truth_wait_s.
+    A render before every truth frame is not held: its truth will not come."""
+    h = make_harness(settings_kw={"truth_wait_s": 1.0})
+    h.bus.publish(KEYS.render, render(150.0, truth_image(150.0), decision_id=1))
+    h.bus.publish(KEYS.render, render(-5.0, truth_image(0.0), decision_id=2))
+    h.flush()
+    assert [q.decision_id for q in h.qualities()] == [424242] and h.rejected("no_truth") == 1
+    h.bus.publish(KEYS.truth, truth(120.0))  # not yet: 150 is past it and not within a period
+    h.bus.publish(KEYS.truth, truth(150.0))
+    wait_for(lambda: [q.decision_id for q in h.qualities()] == [424242, 1])
+    assert h.qualities()[-1].truth_time_ms == 150.0 and h.qualities()[-1].psnr_db == 100.0
+    h.bus.publish(KEYS.render, render(900.0, truth_image(150.0), decision_id=3))  # never
+    wait_for(lambda: h.rejected("no_truth") == 2, timeout_s=5.0)
+    assert [q.decision_id for q in h.qualities()] == [424242, 1]
 
 
 # ---------------------------------------------------------------- the dynamic region
