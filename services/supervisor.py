@@ -58,10 +58,10 @@ WORKER = "recon"
 LATEST = "latest"
 """The link in ``log_dir`` to the newest run's log folder."""
 STARTUP_RESTARTS = 1
+"""How often a service that exits before it is healthy is restarted before start-up fails."""
 STEADY_S = 60.0
 """A child that ran this long before it exited is restarted after 1 s; one that keeps
 exiting sooner waits 1, 2, 4 … 30 s (a crash loop does not spin, one crash does not wait)."""
-"""How often a service that exits before it is healthy is restarted before start-up fails."""
 
 
 @dataclass
