@@ -1,0 +1,114 @@
+"""The values the pool's dispatcher (:mod:`services.trainer.pool`) takes and gives: a
+decision as the pool knows it, an assignment, a decision ended without a render, a worker's
+report, and the status views. Pure data, no logic."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from services.kit.keys import DEFAULT_SITE
+
+__all__ = ["Assignment", "DecisionRef", "Ended", "PoolStatus", "Report", "WorkerView"]
+
+
+@dataclass(frozen=True)
+class DecisionRef:
+    """A decision as the pool knows it: (site, incarnation, id) names it."""
+
+    incarnation: int
+    decision_id: int
+    time_ms: float
+    site: str = DEFAULT_SITE
+
+    @property
+    def key(self) -> tuple[str, int, int]:
+        return self.site, self.incarnation, self.decision_id
+
+
+@dataclass(frozen=True)
+class Assignment:
+    """A decision handed to one worker."""
+
+    decision: DecisionRef
+    worker_id: str
+    arrived_s: float
+    """Wall time the decision reached the dispatcher."""
+    assigned_s: float
+
+    @property
+    def wait_s(self) -> float:
+        """From the decision's arrival to the start of its reconstruction (its hand-out)."""
+        return self.assigned_s - self.arrived_s
+
+
+@dataclass(frozen=True)
+class Ended:
+    """A decision that ended in the pool without a render: the trainer publishes it as an
+    Outcome for the decision ledger (services.metrics.ledger)."""
+
+    decision: DecisionRef
+    state: str
+    """``skipped`` or ``lost``."""
+    reason: str
+    """skipped: ``superseded``; lost: ``worker_died``, ``timeout``, ``not_delivered``,
+    ``render_failed``, ``refused`` or ``not_received``."""
+    detail: str = ""
+
+
+@dataclass(frozen=True)
+class Report:
+    """What a worker says when it asks for work (decoded from its WorkRequest)."""
+
+    worker_id: str
+    done: tuple[str, int, int] | None = None
+    """(site, incarnation, decision id) of the job finished since its last request."""
+    rendered: bool = False
+    reason: str = ""
+    busy_s: float = 0.0
+    jobs: int = 0
+    max_wait_s: float = 0.0
+    device: str = ""
+    pid: int = 0
+    host: str = ""
+
+
+@dataclass(frozen=True)
+class WorkerView:
+    worker_id: str
+    pid: int
+    host: str
+    device: str
+    joined_s: float
+    rendered: int
+    lost: int
+    holding: int | None
+    """Decision id it is reconstructing now, None when idle."""
+    holding_site: str | None
+    busy_fraction: float
+    """Share of the last window's wall time it spent reconstructing (NaN: too new to say)."""
+
+
+@dataclass(frozen=True)
+class PoolStatus:
+    workers: tuple[WorkerView, ...]
+    decisions: int
+    """Decisions offered to the pool since start."""
+    assigned: int
+    rendered: int
+    superseded: int
+    lost: dict[str, int]
+    pending: dict[str, int]
+    """Site → id of its decision waiting for a worker."""
+    in_flight: int
+    renders_per_s: float
+    decisions_per_s: float
+    rendered_fraction: float
+    """Decisions rendered / decisions offered over the window (NaN before any decision)."""
+    wait_s_mean: float
+    """Mean wait from a decision's arrival to its hand-out over the window (NaN: none)."""
+    render_age_s_mean: float
+    """Mean wall s from a decision's arrival to its render's report, over the window."""
+    late_reports: int
+    window_s: float
+    by_site: dict[str, dict[str, int]]
+    """Site → its counts: decisions, assigned, rendered, superseded, lost."""
