@@ -36,9 +36,9 @@ from aoi3d.policy.ppo import PPOConfig
 from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.online import LearnConfig
 from aoi3d.scene.camera import Camera, look_at
-from services.kit.bus import MemoryBus
 from services.kit.codec import encode_frame, encode_png
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.scheduler.worker import SchedulerWorker
 

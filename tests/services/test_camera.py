@@ -17,9 +17,9 @@ from aoi3d.clock import SimClock
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset, load_dataset
 from services.camera.app import create_app
 from services.camera.settings import Settings
-from services.kit.bus import MemoryBus
 from services.kit.codec import FrameData, decode_frame
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 
 KEYS = Keys("t")

@@ -14,9 +14,9 @@ from PIL import Image
 
 from services.console.app import create_app
 from services.console.settings import Settings
-from services.kit.bus import MemoryBus
 from services.kit.codec import camera_to_pb, encode_frame, encode_png
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from tests.services.test_network import CAMERA

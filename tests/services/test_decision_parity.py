@@ -22,7 +22,7 @@ from aoi3d.experiment import EpisodeConfig, plan_episode
 from aoi3d.experiment.episode import EpisodeLinks, episode_links
 from aoi3d.policy import parse_policy
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from services.kit.bus import MemoryBus
+from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings

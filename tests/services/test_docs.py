@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from services import configdoc
-from services.kit.bus import MemoryBus
+from services.kit.membus import MemoryBus
 
 ROOT = Path(__file__).resolve().parents[2]
 README = (ROOT / "README.md").read_text()

@@ -16,7 +16,7 @@ from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
 from services.camera.app import create_app as camera_app
 from services.camera.settings import Settings as CameraSettings
-from services.kit.bus import MemoryBus
+from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app as metrics_app
 from services.metrics.settings import Settings as MetricsSettings

@@ -13,8 +13,9 @@ import pytest
 
 from aoi3d.scene.camera import Camera
 from services.kit import codec
-from services.kit.bus import Inbox, MemoryBus, key_matches
+from services.kit.bus import Inbox
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus, key_matches
 from services.kit.observe import Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings

@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
-from services.kit.bus import MemoryBus
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app

@@ -18,7 +18,6 @@ from aoi3d.clock import SimClock
 from aoi3d.lpips import LPIPS, load_lpips
 from aoi3d.quality import dynamic_mask, dynamic_score, psnr, ssim
 from aoi3d.scene.camera import Camera, look_at
-from services.kit.bus import MemoryBus
 from services.kit.codec import (
     PNG,
     camera_to_pb,
@@ -28,6 +27,7 @@ from services.kit.codec import (
     encode_png,
 )
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app

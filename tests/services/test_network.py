@@ -15,9 +15,9 @@ from prometheus_client.parser import text_string_to_metric_families
 from aoi3d.channel import Link, camera_rngs
 from aoi3d.clock import SimClock
 from aoi3d.scene import Camera, look_at
-from services.kit.bus import MemoryBus
 from services.kit.codec import camera_to_pb, decode_frame, encode_frame, encode_png
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.network.app import create_app

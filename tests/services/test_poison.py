@@ -14,8 +14,8 @@ from PIL import Image
 
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
-from services.kit.bus import MemoryBus
 from services.kit.codec import PNG, encode_frame
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.trainer.app import create_app as trainer_app
 from tests.services.test_trainer import (

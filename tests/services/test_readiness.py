@@ -9,9 +9,9 @@ import time
 from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
-from services.kit.bus import MemoryBus
 from services.kit.codec import with_delivery
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app as metrics_app
 from services.metrics.settings import Settings as MetricsSettings

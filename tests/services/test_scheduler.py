@@ -20,9 +20,9 @@ from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
 from aoi3d.scene.camera import Camera, look_at
-from services.kit.bus import MemoryBus
 from services.kit.codec import decode_decision, encode_frame, encode_png
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app

@@ -23,7 +23,7 @@ from aoi3d.clock import SimClock
 from aoi3d.policy.ppo import PPOConfig
 from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.online import LearnConfig, online_checkpoint_path
-from services.kit.bus import MemoryBus
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app

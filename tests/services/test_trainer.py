@@ -19,9 +19,9 @@ from pydantic import ValidationError
 from aoi3d.clock import SimClock
 from aoi3d.field import GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from services.kit.bus import MemoryBus
 from services.kit.codec import PNG, decode_image, decode_render, encode_frame
 from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.recon.core import ReconCore
