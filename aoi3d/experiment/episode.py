@@ -55,6 +55,7 @@ __all__ = [
     "PlannedDecision",
     "dataset_fingerprint",
     "episode_links",
+    "episode_result",
     "plan_episode",
     "plan_key",
     "planned_decision",
@@ -468,10 +469,19 @@ def run_plan(
         last_image = image
         if on_render is not None:
             on_render(d, image)
+    result = episode_result(plan, epochs, key=key, wall_s=time.perf_counter() - started)
+    return result, _png(last_image)
+
+
+def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str = "",
+                   wall_s: float = math.nan) -> EpisodeResult:
+    """The episode's numbers from the scores of its scored decisions (``epochs``, in order):
+    their means, and the selections of the plan's reported decisions."""
+    cfg = plan.config
     used = plan.reported
     aois = [a for d in used for a in d.aoi_ms]
     lpips_values = [e.lpips for e in epochs if e.lpips is not None]
-    result = EpisodeResult(
+    return EpisodeResult(
         key=key, policy=plan.policy, delay=cfg.delay, seed=plan.seed, epochs=tuple(epochs),
         n_selected=float(np.mean([len(d.cameras) for d in used])) if used else 0.0,
         aoi_used_ms=float(np.mean(aois)) if aois else math.nan,
@@ -485,9 +495,8 @@ def run_plan(
         ssim_dynamic=_mean_or_none([e.ssim_dynamic for e in epochs]),
         dynamic_fraction=float(np.mean([e.dynamic_fraction for e in epochs])),
         train_steps=_total_steps(plan),
-        wall_s=time.perf_counter() - started,
+        wall_s=wall_s,
     )
-    return result, _png(last_image)
 
 
 def _render_budget(cfg: EpisodeConfig) -> int:
