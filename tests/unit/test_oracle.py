@@ -95,7 +95,7 @@ def test_rule_candidates_are_every_mat_and_freshest_selection() -> None:
     aoi = np.array([30.0, 60.0, np.nan, 30.0, 90.0, 150.0])
     masks = rule_masks(aoi)
     as_sets = [frozenset(np.flatnonzero(m)) for m in masks]
-    assert len(set(as_sets)) == len(masks) <= 5  # distinct, at most N_known
+    assert len(set(as_sets)) == len(masks) == 5  # distinct: freshest:1 … freshest:N_known
     for gamma in range(0, 400, 5):
         chosen = frozenset(np.flatnonzero(MatPolicy(gamma).select(aoi)))
         assert not chosen or chosen in as_sets, gamma
@@ -127,6 +127,7 @@ def test_rules_oracle_is_never_below_what_it_searches(cfg: EpisodeConfig, datase
     # cost: at most N_known reconstructions per decision, all computed once
     cost = bound.cost()
     assert cost["decisions"] == 3 * len(SEEDS)
+    assert all(d.candidates == d.n_known for e in bound.episodes for d in e.decisions)
     assert 1 <= cost["reconstructions_per_decision"]["max"] <= N_TRAIN
     assert bound.computed + bound.cached == bound.reconstructions
     assert cost["compute_s"] > 0
