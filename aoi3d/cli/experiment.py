@@ -579,7 +579,12 @@ def compare(
     preset: PresetOpt = "quick",
     policy: Annotated[list[str] | None, typer.Option(
         "--policy", help="Policy spec (repeat): all, mat:<ms>, mat:best, freshest:<k>, "
-                         "wait:<ms>, or any registered kind. Default: the preset's.")] = None,
+                         "wait:<ms>, or any registered kind; a baseline of the follow-up "
+                         "paper, tembed[:<features>[:<scale_ms>]] (timeliness embedding) or "
+                         "wsum:<tau_ms> (weighted sum), each optionally @<policy> (default "
+                         "@all); or the oracle bound, oracle[:rules|greedy[:<metric>]] "
+                         "(searched with the truth: a bound, not a policy). Default: the "
+                         "preset's.")] = None,
     mat_ms: Annotated[float | None, typer.Option(
         help="Γ for mat:best; default: the best Γ of the preset's tradeoff sweep (cached).")]
     = None,
@@ -590,51 +595,191 @@ def compare(
 ) -> None:
     """All policies side by side on the same seeds (same channel draws, same model seeds).
 
-    ``ppo:<checkpoint>`` applies a trained agent's deterministic action at every decision."""
+    ``ppo:<checkpoint>`` applies a trained agent's deterministic action at every decision.
+    ``tembed`` and ``wsum:<τ>`` train the field on the policy's frames (``all`` by default)
+    with the follow-up paper's timeliness embedding or age-weighted loss
+    (:mod:`aoi3d.experiment.baselines`). ``oracle`` is the bound: at each scored decision, the
+    best selection found by search with the true reward (:mod:`aoi3d.experiment.oracle`),
+    reported beside the policies with every policy's paired distance to it, and left out of
+    the policies' optimum set."""
     from aoi3d.experiment import Job, aggregate
+    from aoi3d.experiment.baselines import TrainerSpecError, is_trainer_spec, split_baseline
     from aoi3d.experiment.figures import plot_compare
-    from aoi3d.policy import PolicySpecError, parse_policy
+    from aoi3d.experiment.oracle import OracleSpecError, is_oracle_spec, parse_oracle
+    from aoi3d.field import field_config
+    from aoi3d.policy import parse_policy
 
     _check_metric(best_metric, "'--best-metric'")
     setup = shared.setup("compare", preset)
     delay = _delay(delay)
     specs = list(policy) if policy else list(setup.preset.compare)
     n_cameras = setup.cfg.n_cameras or len(setup.dataset.train_ids)
-    resolved = []
+    oracles = []
+    entries: list[tuple[str | None, str]] = []  # (trainer option, policy spec) per spec
     for spec in specs:  # validate every spec before any sweep runs
-        if spec == "mat:best":
+        if is_oracle_spec(spec):
+            try:
+                oracle = parse_oracle(spec)
+            except OracleSpecError as err:
+                raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+            if setup.cfg.carry != "fresh":
+                raise typer.BadParameter(
+                    f"{spec}: the oracle searches each scored decision on its own, which needs "
+                    f"--carry fresh (a fresh model per scored decision), not "
+                    f"{setup.cfg.carry!r}", param_hint="'--policy'")
+            oracles.append(oracle)
             continue
-        try:
-            parsed = parse_policy(spec)
-        except PolicySpecError as err:
-            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
-        try:
-            parsed.check_fits(n_cameras)  # e.g. a ppo checkpoint trained for another N
-        except PolicySpecError as err:
-            raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+        trainer = None
+        policy_spec = spec
+        if is_trainer_spec(spec):
+            try:
+                option, policy_spec = split_baseline(spec)
+            except TrainerSpecError as err:
+                raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+            try:
+                field_config(setup.cfg.backend, **{**setup.cfg.field,
+                                                   **option.field_overrides()})
+            except (TypeError, ValueError) as err:
+                raise typer.BadParameter(
+                    f"{spec}: the {setup.cfg.backend!r} backend cannot take it ({err}); the "
+                    "timeliness embedding (tembed) needs the grid backend",
+                    param_hint="'--policy'") from None
+            trainer = option.spec
+        if policy_spec != "mat:best":
+            _check_policy(policy_spec, n_cameras, spec)
+        entries.append((trainer, policy_spec))
     outcomes = []
-    if "mat:best" in specs and mat_ms is None:
+    if any(p == "mat:best" for _, p in entries) and mat_ms is None:
         sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seed_list),
                      "tradeoff (for mat:best)")
         outcomes.append(sweep)
         mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0], best_metric)
-    for spec in specs:
-        text = f"mat:{mat_ms:g}" if spec == "mat:best" else spec
-        resolved.append(parse_policy(text).spec)
-    resolved = list(dict.fromkeys(resolved))
-    outcome = _run(setup, [Job(p, delay, s) for s in setup.seed_list for p in resolved],
-                   "compare")
-    outcomes.append(outcome)
-    rows = aggregate(outcome.results)
-    optima = _optima(outcome.results, ordered=False, label=str)
-    _write(setup, outcomes, {"policies": resolved, "delay": delay, "mat_best_ms": mat_ms,
+    resolved = list(dict.fromkeys(
+        (trainer, parse_policy(f"mat:{mat_ms:g}" if p == "mat:best" else p).spec)
+        for trainer, p in entries))
+    results: list[EpisodeResult] = []
+    if resolved:
+        outcome = _run(setup, [Job(p, delay, s, trainer=t) for s in setup.seed_list
+                               for t, p in resolved], "compare")
+        outcomes.append(outcome)
+        results = list(outcome.results)
+    labels = list(dict.fromkeys(r.policy for r in results))
+    bounds = []
+    for oracle in dict.fromkeys(oracles):
+        bounds.append(_run_oracle(setup, oracle, delay))
+    rows = aggregate(results + [r for b in bounds for r in b.results])
+    bound_labels = {b.spec for b in bounds}
+    for row in rows:
+        row["bound"] = row["policy"] in bound_labels
+    optima = _optima(results, ordered=False, label=str) if results else {}
+    bound_doc = {b.spec: _bound_doc(b, results) for b in bounds}
+    _write(setup, outcomes, {"policies": labels, "oracles": [b.spec for b in bounds],
+                             "delay": delay, "mat_best_ms": mat_ms,
                              "best_metric": best_metric},
-           outcome.results, {"compare.csv": rows}, policies=rows,
-           optimum={m: o.to_dict() for m, o in optima.items()})
+           results + [r for b in bounds for r in b.results], {"compare.csv": rows},
+           policies=rows, optimum={m: o.to_dict() for m, o in optima.items()},
+           bound=bound_doc)
     plot_compare([{**r, "policy": short_label(r["policy"])} for r in rows],
                  setup.out / "compare.png", title=(
         f"Policies at {delay}, S = {setup.seeds} (the same seeds, {_seed_span(setup)}), "
         f"{setup.cfg.carry} model"))
     _table(rows, "policy", f"policies at {delay} (mean ± 95% CI over seeds {_seed_span(setup)})")
     _print_optima(optima, unit="policy")
+    for b in bounds:
+        _print_bound(b, bound_doc[b.spec])
     console.print(f"results in {setup.out}")
+
+
+def _check_policy(spec: str, n_cameras: int, given: str) -> None:
+    """``typer.BadParameter`` unless ``spec`` is a policy that fits ``n_cameras``."""
+    from aoi3d.policy import PolicySpecError, parse_policy
+
+    try:
+        parse_policy(spec).check_fits(n_cameras)  # e.g. a ppo checkpoint for another N
+    except PolicySpecError as err:
+        where = "" if spec == given else f"in {given!r}: "
+        raise typer.BadParameter(f"{where}{err}", param_hint="'--policy'") from None
+
+
+def _run_oracle(setup: _Setup, oracle: Any, delay: str) -> Any:
+    """The oracle bound's search on the setup's seeds, with a progress bar per round."""
+    from rich.progress import Progress
+
+    from aoi3d.experiment import run_oracle
+
+    where = (f"Ray ({setup.ray_address})" if setup.ray_address
+             else f"{setup.workers} process(es) × {setup.threads} thread(s)")
+    console.print(f"[bold]{oracle.spec}[/] (a bound, searched with the truth): "
+                  f"{setup.seeds} seed(s) on {where}; cache {setup.cache.root}")
+    try:
+        with Progress(*progress_columns(), console=console, transient=False) as bar:
+            task = bar.add_task(oracle.spec, total=None)
+
+            def round_(text: str) -> None:
+                bar.update(task, description=text, completed=0, total=None)
+
+            def report(done: int, total: int) -> None:
+                bar.update(task, completed=done, total=total)
+
+            outcome = run_oracle(setup.cfg.with_(delay=delay), oracle, setup.seed_list,
+                                 cache=setup.cache, workers=setup.workers,
+                                 threads_per_worker=setup.threads,
+                                 ray_address=setup.ray_address, progress=report,
+                                 on_round=round_, dataset=setup.dataset)
+    except KeyboardInterrupt:
+        console.print(f"[yellow]interrupted[/]: the candidates evaluated are kept in "
+                      f"{setup.cache.root}; run the same command again to resume")
+        raise typer.Exit(130) from None
+    console.print(f"{oracle.spec}: {outcome.reconstructions} reconstruction(s) "
+                  f"({outcome.computed} computed, {outcome.cached} from the cache), "
+                  f"{outcome.wall_s:.1f} s")
+    return outcome
+
+
+def _bound_doc(bound: Any, results: Sequence[EpisodeResult]) -> dict[str, Any]:
+    """What results.json says of one oracle bound: the search, its cost, and for every
+    metric of :data:`OPTIMUM_METRICS` each policy's paired distance to it (bound − policy in
+    the metric's better direction: positive where the bound is better), over the seeds both
+    have."""
+    from aoi3d.experiment.optimum import paired_difference, sign_of
+
+    search, metric = bound.spec.split(":")[1:]
+    minus: dict[str, dict[str, Any]] = {}
+    for name in OPTIMUM_METRICS:
+        sign = sign_of(name)
+
+        def per_seed(rs: Sequence[EpisodeResult], name: str = name, sign: float = sign
+                     ) -> dict[int, float]:
+            return {r.seed: sign * getattr(r, name) for r in rs
+                    if getattr(r, name) is not None}
+
+        mine = per_seed(bound.results)
+        by_policy: dict[str, list[EpisodeResult]] = {}
+        for r in results:
+            by_policy.setdefault(r.policy, []).append(r)
+        minus[name] = {p: paired_difference(mine, per_seed(rs)).to_dict()
+                       for p, rs in by_policy.items()}
+    return {"kind": "bound", "search": search, "metric": metric,
+            "note": "searched with the ground truth at each scored decision: a bound on "
+                    "frame selection, not a policy a scheduler could run",
+            "cost": bound.cost(), "minus": minus}
+
+
+def _print_bound(bound: Any, doc: dict[str, Any]) -> None:
+    cost = doc["cost"]
+    per = cost["reconstructions_per_decision"]
+    console.print(
+        f"[bold]{bound.spec}[/] is a bound (searched with the truth), not a policy: "
+        f"{cost['reconstructions']} reconstructions over {cost['decisions']} decisions "
+        f"({per['mean']:.1f} per decision, {per['min']}–{per['max']}), "
+        f"{cost['compute_s']:.0f} s of compute")
+    table = Table(title=f"{bound.spec} − policy (paired; positive: the bound is better)")
+    table.add_column("policy")
+    for name in ("psnr_db", "psnr_dynamic_db", "reward"):
+        table.add_column(name, justify="right")
+    for p in doc["minus"]["psnr_db"]:
+        table.add_row(short_label(p), *(fmt(doc["minus"][m][p]["mean"],
+                                             doc["minus"][m][p]["ci95"],
+                                             3 if m == "reward" else 2)
+                                         for m in ("psnr_db", "psnr_dynamic_db", "reward")))
+    console.print(table)

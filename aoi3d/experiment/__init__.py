@@ -5,6 +5,8 @@ composed in one process and driven slot by slot: deterministic per seed, as fast
 machine allows. :mod:`~aoi3d.experiment.config` holds the episode config and the presets,
 :mod:`~aoi3d.experiment.episode` plans and runs one episode, :mod:`~aoi3d.experiment.sweep`
 runs many (cached, on local cores or Ray), :mod:`~aoi3d.experiment.figures` draws them.
+:mod:`~aoi3d.experiment.oracle` is the bound a selection could reach (search with the truth),
+:mod:`~aoi3d.experiment.baselines` the follow-up paper's trainer options.
 """
 
 from aoi3d.experiment.config import (
@@ -21,6 +23,7 @@ from aoi3d.experiment.episode import (
     EpisodeResult,
     EpochScore,
     PlannedDecision,
+    episode_result,
     plan_episode,
     plan_key,
     run_plan,
@@ -28,12 +31,16 @@ from aoi3d.experiment.episode import (
 from aoi3d.experiment.sweep import (
     METRICS,
     Job,
+    OracleOutcome,
+    PlansOutcome,
     ResultCache,
     SweepOutcome,
     aggregate,
     default_workers,
     mean_ci95,
     run_jobs,
+    run_oracle,
+    run_plans,
 )
 
 __all__ = [
@@ -47,16 +54,21 @@ __all__ = [
     "EpisodeResult",
     "EpochScore",
     "Job",
+    "OracleOutcome",
     "PlannedDecision",
+    "PlansOutcome",
     "Preset",
     "ResultCache",
     "SweepOutcome",
     "aggregate",
     "default_workers",
+    "episode_result",
     "get_preset",
     "mean_ci95",
     "plan_episode",
     "plan_key",
     "run_jobs",
+    "run_oracle",
     "run_plan",
+    "run_plans",
 ]

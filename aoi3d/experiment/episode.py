@@ -31,7 +31,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -55,6 +55,7 @@ __all__ = [
     "PlannedDecision",
     "dataset_fingerprint",
     "episode_links",
+    "episode_result",
     "plan_episode",
     "plan_key",
     "planned_decision",
@@ -287,9 +288,17 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
     return hashlib.sha256(text.encode()).hexdigest()
 
 
+_OFF_WHEN = {"age_weight_tau_ms": None, "age_features": 0}
+"""Field settings that change no number at these values, left out of the cache key (a key
+made before they existed stays valid); ``age_scale_ms`` goes with ``age_features`` = 0."""
+
+
 def _field_dict(cfg: EpisodeConfig) -> dict[str, Any]:
     fc = field_config(cfg.backend, **cfg.field)
-    out = {k: v for k, v in vars(fc).items() if k != "num_threads"}
+    out = {k: v for k, v in vars(fc).items() if k != "num_threads"
+           and not (k in _OFF_WHEN and v == _OFF_WHEN[k])}
+    if "age_features" not in out:
+        out.pop("age_scale_ms", None)
     return {"backend": cfg.backend, "type": type(fc).__name__, **out}
 
 
@@ -389,12 +398,18 @@ class _Frames:
         """The scene frame shown at channel time ``time_ms``."""
         return self.ds.frame_index(time_ms + self.offset_ms)
 
-    def view(self, camera_id: int, gen_ms: int) -> TrainView:
-        """Camera ``camera_id``'s frame generated at ``gen_ms``."""
+    def view(self, camera_id: int, gen_ms: int, eval_ms: int) -> TrainView:
+        """Camera ``camera_id``'s frame generated at ``gen_ms``, used for time ``eval_ms``
+        (its age, ``eval_ms − gen_ms``, is what the age-aware trainers read)."""
         k = self.index(gen_ms)
+        age = float(eval_ms - gen_ms)
         held = self._views.get(camera_id)
         if held is None or held[0] != k:
-            held = (k, TrainView(self.ds.cameras[camera_id], self.ds.frame(camera_id, k)))
+            held = (k, TrainView(self.ds.cameras[camera_id], self.ds.frame(camera_id, k),
+                                 age_ms=age))
+            self._views[camera_id] = held
+        elif held[1].age_ms != age:  # the same frame, older: its pixels are shared
+            held = (k, replace(held[1], age_ms=age))
             self._views[camera_id] = held
         return held[1]
 
@@ -432,7 +447,8 @@ def run_plan(
     loss = math.nan
     for d in plan.decisions:
         if d.train:
-            rec.set_views([frames.view(c, g) for c, g in zip(d.cameras, d.gen_ms, strict=True)])
+            rec.set_views([frames.view(c, g, d.eval_ms)
+                           for c, g in zip(d.cameras, d.gen_ms, strict=True)])
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
@@ -453,10 +469,19 @@ def run_plan(
         last_image = image
         if on_render is not None:
             on_render(d, image)
+    result = episode_result(plan, epochs, key=key, wall_s=time.perf_counter() - started)
+    return result, _png(last_image)
+
+
+def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str = "",
+                   wall_s: float = math.nan) -> EpisodeResult:
+    """The episode's numbers from the scores of its scored decisions (``epochs``, in order):
+    their means, and the selections of the plan's reported decisions."""
+    cfg = plan.config
     used = plan.reported
     aois = [a for d in used for a in d.aoi_ms]
     lpips_values = [e.lpips for e in epochs if e.lpips is not None]
-    result = EpisodeResult(
+    return EpisodeResult(
         key=key, policy=plan.policy, delay=cfg.delay, seed=plan.seed, epochs=tuple(epochs),
         n_selected=float(np.mean([len(d.cameras) for d in used])) if used else 0.0,
         aoi_used_ms=float(np.mean(aois)) if aois else math.nan,
@@ -470,9 +495,8 @@ def run_plan(
         ssim_dynamic=_mean_or_none([e.ssim_dynamic for e in epochs]),
         dynamic_fraction=float(np.mean([e.dynamic_fraction for e in epochs])),
         train_steps=_total_steps(plan),
-        wall_s=time.perf_counter() - started,
+        wall_s=wall_s,
     )
-    return result, _png(last_image)
 
 
 def _render_budget(cfg: EpisodeConfig) -> int:

@@ -30,6 +30,7 @@ import torch
 from scipy import stats
 
 from aoi3d.atomic import write_atomic
+from aoi3d.experiment.baselines import baseline_label, parse_trainer
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.experiment.episode import (
     EpisodePlan,
@@ -39,12 +40,15 @@ from aoi3d.experiment.episode import (
     run_plan,
     set_torch_threads,
 )
+from aoi3d.experiment.oracle import OracleEpisode, OracleSpec, parse_oracle, search_oracle
 from aoi3d.lpips import weights_path
 from aoi3d.scene import SceneDataset, open_dataset
 
 __all__ = [
     "METRICS",
     "Job",
+    "OracleOutcome",
+    "PlansOutcome",
     "ResultCache",
     "SweepOutcome",
     "aggregate",
@@ -52,6 +56,8 @@ __all__ = [
     "lpips_available",
     "mean_ci95",
     "run_jobs",
+    "run_oracle",
+    "run_plans",
 ]
 
 METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic",
@@ -65,11 +71,15 @@ Progress = Callable[[int, int], None]
 
 @dataclass(frozen=True)
 class Job:
-    """One episode to run: a policy spec, a delay spec, a seed."""
+    """One episode to run: a policy spec, a delay spec, a seed, and optionally a trainer
+    option (``trainer``: a baseline of :mod:`aoi3d.experiment.baselines`, e.g. ``wsum:60``,
+    whose field settings apply to this episode; its result is labelled
+    ``<trainer>[@<policy>]``)."""
 
     policy: str
     delay: str
     seed: int
+    trainer: str | None = None
 
 
 class ResultCache:
@@ -113,6 +123,17 @@ class ResultCache:
 
     def __contains__(self, key: str) -> bool:
         return self._path(key, ".json").is_file()
+
+
+@dataclass(frozen=True)
+class PlansOutcome:
+    """Results of planned episodes, in the order of the plans, with their cache keys."""
+
+    results: list[EpisodeResult]
+    keys: list[str]
+    computed: int
+    cached: int
+    wall_s: float
 
 
 @dataclass(frozen=True)
@@ -188,23 +209,62 @@ def run_jobs(
     progress: Progress | None = None,
     dataset: SceneDataset | None = None,
 ) -> SweepOutcome:
-    """Run ``jobs`` (each ``cfg`` with the job's delay) and return their results in order.
+    """Run ``jobs`` (each ``cfg`` with the job's delay, and its trainer option's field
+    settings) and return their results in order.
 
     ``workers``: processes (None: :func:`default_workers`; 1: this process).
     ``ray_address``: run on Ray (``auto``, ``ray://host:port``, or ``local`` to start a local
     instance) instead of the process pool. ``cache``: where results are kept between runs.
     """
     started = time.perf_counter()
+    ds = dataset if dataset is not None else open_dataset(cfg.dataset)
+    plans: list[EpisodePlan] = []
+    labels: list[str] = []
+    for job in jobs:
+        job_cfg = cfg.with_(delay=job.delay)
+        option = None
+        if job.trainer is not None:
+            option = parse_trainer(job.trainer)
+            job_cfg = job_cfg.with_(field={**cfg.field, **option.field_overrides()})
+        plan = plan_episode(job_cfg, ds, job.policy, job.seed)
+        plans.append(plan)
+        labels.append(plan.policy if option is None else baseline_label(option, plan.policy))
+    outcome = run_plans(plans, cache=cache, workers=workers,
+                        threads_per_worker=threads_per_worker, ray_address=ray_address,
+                        progress=progress, dataset=ds)
+    results = [r.relabel(label, p.config.delay)
+               for r, label, p in zip(outcome.results, labels, plans, strict=True)]
+    return SweepOutcome(results=results, plans=plans, keys=outcome.keys,
+                        computed=outcome.computed, cached=outcome.cached,
+                        wall_s=time.perf_counter() - started)
+
+
+def run_plans(
+    plans: Sequence[EpisodePlan],
+    *,
+    cache: ResultCache | None = None,
+    workers: int | None = None,
+    threads_per_worker: int = 1,
+    ray_address: str | None = None,
+    progress: Progress | None = None,
+    dataset: SceneDataset | None = None,
+) -> PlansOutcome:
+    """Compute planned episodes (of one dataset) and return their results in order, each
+    key once: from ``cache`` where it has them, else in this process, a process pool or on
+    Ray (see :func:`run_jobs`). The results carry their plans' own policy names."""
+    started = time.perf_counter()
     if threads_per_worker < 1:
         raise ValueError(f"threads_per_worker must be >= 1, got {threads_per_worker}")
-    ds = dataset if dataset is not None else open_dataset(cfg.dataset)
-    lpips = lpips_available(cfg)
-    plans: list[EpisodePlan] = []
-    keys: list[str] = []
-    for job in jobs:
-        plan = plan_episode(cfg.with_(delay=job.delay), ds, job.policy, job.seed)
-        plans.append(plan)
-        keys.append(plan_key(plan, ds, lpips=lpips))
+    if not plans:
+        return PlansOutcome([], [], 0, 0, 0.0)
+    root = plans[0].config.dataset
+    if any(p.config.dataset != root for p in plans):
+        raise ValueError("run_plans takes the plans of one dataset")
+    ds = dataset if dataset is not None else open_dataset(root)
+    lpips = lpips_available(plans[0].config)
+    if any(p.config.lpips != plans[0].config.lpips for p in plans):
+        raise ValueError("run_plans takes plans that all compute LPIPS or all do not")
+    keys = [plan_key(plan, ds, lpips=lpips) for plan in plans]
 
     found: dict[str, EpisodeResult] = {}
     todo: dict[str, EpisodePlan] = {}
@@ -239,7 +299,7 @@ def run_jobs(
     elif items and (n_workers == 1 or len(items) == 1):
         previous = torch.get_num_threads()
         set_torch_threads(threads_per_worker)
-        _DATASETS.setdefault(cfg.dataset, ds)
+        _DATASETS.setdefault(root, ds)
         try:
             for doc, key in items:
                 result, png = _work(doc, key, lpips)
@@ -251,8 +311,85 @@ def run_jobs(
 
     results = [found[k].relabel(p.policy, p.config.delay)
                for k, p in zip(keys, plans, strict=True)]
-    return SweepOutcome(results=results, plans=plans, keys=keys, computed=len(order),
-                        cached=cached, wall_s=time.perf_counter() - started)
+    return PlansOutcome(results=results, keys=keys, computed=len(order), cached=cached,
+                        wall_s=time.perf_counter() - started)
+
+
+@dataclass(frozen=True)
+class OracleOutcome:
+    """The oracle bound's episodes (one per seed, in seed order) and what its search cost:
+    ``reconstructions`` tried (each a one-decision episode), of which ``computed`` were run
+    now and ``cached`` came from the cache; ``compute_s``: the compute time of all of them
+    (the sum of their episodes' ``wall_s``, whenever they were run); ``wall_s``: this call."""
+
+    spec: str
+    episodes: list[OracleEpisode]
+    computed: int
+    cached: int
+    wall_s: float
+
+    @property
+    def results(self) -> list[EpisodeResult]:
+        return [e.result for e in self.episodes]
+
+    @property
+    def reconstructions(self) -> int:
+        return sum(e.reconstructions for e in self.episodes)
+
+    @property
+    def compute_s(self) -> float:
+        return float(sum(e.result.wall_s for e in self.episodes))
+
+    def cost(self) -> dict[str, Any]:
+        """What the search cost, for ``results.json``."""
+        per = [d.candidates for e in self.episodes for d in e.decisions]
+        return {
+            "decisions": len(per), "reconstructions": self.reconstructions,
+            "reconstructions_per_decision": {
+                "mean": float(np.mean(per)) if per else math.nan,
+                "min": min(per, default=0), "max": max(per, default=0)},
+            "computed": self.computed, "cached": self.cached,
+            "compute_s": self.compute_s,
+            "compute_s_per_reconstruction": (self.compute_s / self.reconstructions
+                                             if self.reconstructions else math.nan),
+            "wall_s": self.wall_s,
+            "searches": [d.to_dict() for e in self.episodes for d in e.decisions],
+        }
+
+
+def run_oracle(
+    cfg: EpisodeConfig,
+    oracle: OracleSpec | str,
+    seeds: Sequence[int],
+    *,
+    cache: ResultCache | None = None,
+    workers: int | None = None,
+    threads_per_worker: int = 1,
+    ray_address: str | None = None,
+    progress: Progress | None = None,
+    on_round: Callable[[str], None] | None = None,
+    dataset: SceneDataset | None = None,
+) -> OracleOutcome:
+    """The oracle bound (:mod:`aoi3d.experiment.oracle`) for ``seeds`` of ``cfg``: each
+    search round's candidates run as one batch by :func:`run_plans` (cached, on local cores
+    or Ray, as any sweep); ``on_round(text)`` hears what each round runs."""
+    started = time.perf_counter()
+    spec = parse_oracle(oracle) if isinstance(oracle, str) else oracle
+    ds = dataset if dataset is not None else open_dataset(cfg.dataset)
+    counts = {"computed": 0, "cached": 0}
+
+    def evaluate(plans: Sequence[EpisodePlan]) -> list[EpisodeResult]:
+        out = run_plans(plans, cache=cache, workers=workers,
+                        threads_per_worker=threads_per_worker, ray_address=ray_address,
+                        progress=progress, dataset=ds)
+        counts["computed"] += out.computed
+        counts["cached"] += out.cached
+        return out.results
+
+    episodes = search_oracle(cfg, ds, spec, seeds, evaluate, lpips=lpips_available(cfg),
+                             progress=on_round)
+    return OracleOutcome(spec=spec.spec, episodes=episodes, computed=counts["computed"],
+                         cached=counts["cached"], wall_s=time.perf_counter() - started)
 
 
 def _run_pool(items: list[tuple[dict[str, Any], str]], lpips: bool, workers: int, threads: int,

@@ -99,6 +99,13 @@ class FieldConfig:
     least recently used row when more ids come; fields without embeddings ignore it).
     Background (every backend's, :mod:`aoi3d.field.background`): a lat-long map of
     ``background_size`` (rows, columns) around ``up_axis``, learned at ``lr_background``.
+
+    ``age_weight_tau_ms``: the *weighted-sum* baseline of the follow-up paper (arXiv
+    2509.17282): each ray's data terms (the colour MSE and the per-sample colour loss) are
+    weighted by w = exp(−age/τ), the age being its image's (``TrainView.age_ms``, the AoI of
+    the frame at the decision it trains for), and normalised over the batch, Σ w·e / Σ w, so
+    that images of equal age give the plain loss. None (the default): the plain loss; every
+    view may then lack an age.
     """
 
     batch_rays: int = 1024
@@ -116,12 +123,17 @@ class FieldConfig:
     lr_background: float = 0.05
     background_size: tuple[int, int] = (64, 128)
     up_axis: int = 2
+    age_weight_tau_ms: float | None = None
 
     def __post_init__(self) -> None:
         names = ("batch_rays", "samples_coarse", "samples_fine", "render_chunk_rays",
                  "appearance_slots")
         check_at_least(self, 1, names)
         check_at_least(self, 0, ("sample_rgb_loss", "opacity_loss"))
+        tau = self.age_weight_tau_ms
+        if tau is not None and (isinstance(tau, bool) or not isinstance(tau, int | float)
+                                or not math.isfinite(tau) or tau <= 0):
+            raise ValueError(f"age_weight_tau_ms must be a number > 0 or None, got {tau!r}")
         check_positive(self, ("lr_background",))
         if min(self.background_size) < 2:
             raise ValueError(f"background_size must be >= (2, 2), got {self.background_size}")
@@ -133,6 +145,18 @@ class FieldConfig:
             raise ValueError(f"fine_from_step must be >= 0, got {self.fine_from_step}")
         if self.num_threads is not None and self.num_threads < 1:
             raise ValueError(f"num_threads must be >= 1 or None, got {self.num_threads}")
+
+    @property
+    def takes_age(self) -> bool:
+        """Whether the field this config builds takes each training ray's image age as an
+        input (``RayBundle.age_ms``; the grid's timeliness embedding). Default: no."""
+        return False
+
+    @property
+    def uses_age(self) -> bool:
+        """Whether training needs each view's age (``TrainView.age_ms``): the field takes it,
+        or the loss is weighted by it (``age_weight_tau_ms``)."""
+        return self.takes_age or self.age_weight_tau_ms is not None
 
     def ray_step(self, aabb: np.ndarray, step: int) -> float:
         """World distance between samples at training step ``step``."""
@@ -178,6 +202,13 @@ class Field(nn.Module, ABC):
     def query(self, points: torch.Tensor, dirs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Density σ ≥ 0 (P,) and colour in [0, 1] (P, 3) at world ``points`` seen along
         ``dirs`` (P, 3)."""
+
+    def query_aged(self, points: torch.Tensor, dirs: torch.Tensor, age_ms: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """:meth:`query` for samples of images of age ``age_ms`` (P,): what the scene looked
+        like that long before the time the field stands for. Only a field whose config
+        ``takes_age`` is asked; the others take no age."""
+        raise NotImplementedError(f"{type(self).__name__} takes no age input")
 
     def background(self, dirs: torch.Tensor) -> torch.Tensor:
         """Colour in [0, 1] (R, 3) of rays leaving the box with unit directions ``dirs``;

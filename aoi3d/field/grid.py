@@ -20,6 +20,21 @@ step over that grid costs 29 / 18 ms. On the CPU the query (interpolation and ac
 and its row-sparse gradient) runs fused in C where it can (:func:`aoi3d.field.native.grid_query`;
 the code above is its reference and fallback); with the other fused kernels a 100-step
 reconstruction takes about a third of the CPU time it took in torch (``bench/recon.py``).
+
+Timeliness embedding (``age_features`` = K > 0; the follow-up paper's baseline, arXiv
+2509.17282: each image's AoI given to the scene model): the field also takes the age a of the
+image a ray comes from (``RayBundle.age_ms``) and represents the scene a ms before the time
+it stands for. A second table R of K × 4 raw values per vertex, on the same grid, is added
+before the activations:
+
+    raw(x, a) = G(x) + Σ_k φ_k(a) · R_k(x),   φ_k(a) = sin(k·π·min(a, A) / (2A)),
+
+A = ``age_scale_ms``: a Fourier embedding of the age that is 0 at age 0, so G alone is the
+scene at the decision's time — what a novel view renders (no age: age 0, the fused query) —
+and R holds how older frames differ from it. R starts at 0 and trains with G; occupancy keeps
+a voxel when G's density could reach the threshold with any age (|φ| ≤ 1). With the age
+input ignored (every age 0, or K = 0) the field is the plain grid. Queries at an age run the
+torch interpolation (the fused kernel has no age input).
 """
 
 from __future__ import annotations
@@ -40,7 +55,15 @@ from aoi3d.field.base import (
     check_positive,
     check_schedule,
 )
-from aoi3d.field.encodings import cells_near, grid_shape, interpolate, resample
+from aoi3d.field.encodings import (
+    cells_near,
+    corner_rows,
+    grid_shape,
+    interpolate,
+    linear_corners,
+    resample,
+    row_gather,
+)
 
 __all__ = ["DenseGridField", "GridConfig"]
 
@@ -55,6 +78,8 @@ class GridConfig(CoarseToFineConfig):
     Empty-space skipping: from step ``occupancy_from_step``, every ``occupancy_every`` steps,
     a voxel is kept when one of its corners has an opacity 1 − exp(−σ·δ_fine) above
     ``occupancy_alpha``, dilated by one voxel; samples in other voxels are skipped (σ = 0).
+    Timeliness embedding: ``age_features`` K (0: off) Fourier features of the image's age over
+    ``age_scale_ms`` (see the module).
     """
 
     init_density: float = 0.1
@@ -62,12 +87,22 @@ class GridConfig(CoarseToFineConfig):
     occupancy_from_step: int = 100
     occupancy_every: int = 16
     occupancy_alpha: float = 1e-3
+    age_features: int = 0
+    age_scale_ms: float = 300.0
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        check_positive(self, ("init_density", "lr_grid"))
+        check_positive(self, ("init_density", "lr_grid", "age_scale_ms"))
         check_schedule("occupancy", self.occupancy_from_step, self.occupancy_every,
                        self.occupancy_alpha)
+        k = self.age_features
+        if isinstance(k, bool) or not isinstance(k, int) or k < 0:
+            raise ValueError(f"age_features must be an int >= 0, got {k!r}")
+
+    @property
+    def takes_age(self) -> bool:
+        """The timeliness embedding is on (``age_features`` > 0)."""
+        return self.age_features > 0
 
     def build(self, aabb: np.ndarray) -> DenseGridField:
         return DenseGridField(self, aabb)
@@ -85,6 +120,9 @@ class DenseGridField(CoarseToFineField):
         table = torch.zeros(math.prod(self.shape), 4)
         table[:, 0] = raw_density
         self.grid = nn.Parameter(table)  # (vertices, 4): raw density, raw RGB
+        # the timeliness embedding's residuals, (vertices, 4·K): feature k in columns 4k:4k+4
+        self.age_grid = (nn.Parameter(torch.zeros(table.shape[0], 4 * cfg.age_features))
+                         if cfg.age_features else None)
         sigma_min = cfg.density_threshold(box, cfg.occupancy_alpha)
         self._raw_density_min = math.log(math.expm1(sigma_min))
         self._occupancy: torch.Tensor | None = None  # (cells,) bool, None: skip nothing
@@ -97,8 +135,30 @@ class DenseGridField(CoarseToFineField):
         raw = interpolate(self.grid, self.shape, self._coords(points), sparse=True)
         return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
 
+    def query_aged(self, points: torch.Tensor, dirs: torch.Tensor, age_ms: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
+        """The scene ``age_ms`` (P,) before the field's time: G + Σ_k φ_k(age)·R_k, then the
+        activations (see the module); the plain query without the embedding."""
+        if self.age_grid is None:
+            return self.query(points, dirs)
+        coords = self._coords(points)
+        axes = [linear_corners(coords[:, d], n) for d, n in enumerate(self.shape)]
+        idx, w = corner_rows(axes, self.shape)
+        raw = row_gather(self.grid, idx, w, True)
+        residual = row_gather(self.age_grid, idx, w, True).view(-1, self.cfg.age_features, 4)
+        raw = raw + (self.age_embedding(age_ms)[:, :, None] * residual).sum(dim=1)
+        return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
+
+    def age_embedding(self, age_ms: torch.Tensor) -> torch.Tensor:
+        """φ(a) (P, K): sin(k·π·min(a, A)/(2A)), k = 1..K; 0 at age 0."""
+        cfg = self.cfg
+        a = age_ms.clamp(0.0, cfg.age_scale_ms) * (math.pi / (2.0 * cfg.age_scale_ms))
+        k = torch.arange(1, cfg.age_features + 1, device=age_ms.device, dtype=age_ms.dtype)
+        return torch.sin(a[:, None] * k[None, :])
+
     def param_groups(self) -> list[dict[str, Any]]:
-        return [{"params": [self.grid], "lr": self.cfg.lr_grid}, self.background_group()]
+        grids = [self.grid] if self.age_grid is None else [self.grid, self.age_grid]
+        return [{"params": grids, "lr": self.cfg.lr_grid}, self.background_group()]
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None:
         return self._at_cells(self._occupancy, points)
@@ -116,7 +176,10 @@ class DenseGridField(CoarseToFineField):
     def refresh_occupancy(self) -> None:
         """Recompute which voxels may hold density (see ``GridConfig``): a voxel is kept when a
         vertex within one voxel of it (4 vertices per axis) is above the threshold."""
-        dense = (self.grid[:, 0] > self._raw_density_min).view(*self.shape)
+        raw = self.grid[:, 0]
+        if self.age_grid is not None:  # the largest density any age can give (|φ| ≤ 1)
+            raw = raw + self.age_grid[:, 0::4].abs().sum(dim=1)
+        dense = (raw > self._raw_density_min).view(*self.shape)
         self._occupancy = cells_near(dense).reshape(-1)
 
     # --- coarse to fine -------------------------------------------------------------------
@@ -125,4 +188,6 @@ class DenseGridField(CoarseToFineField):
         new_shape = grid_shape(self.aabb.cpu().numpy(), size)
         with torch.no_grad():
             self.grid = nn.Parameter(resample(self.grid, self.shape, new_shape))
+            if self.age_grid is not None:
+                self.age_grid = nn.Parameter(resample(self.age_grid, self.shape, new_shape))
         self.shape = new_shape

@@ -4,7 +4,8 @@ Shared by every field backend: a ray is an origin and a unit direction in world
 coordinates; samples are taken at a fixed world step inside the scene AABB only (outside the
 box the scene depends on the ray direction alone and is the field's background). A
 :class:`RayBundle` is what a field's ``render_rays`` receives: rays, their chord through the
-box and, in training, the appearance row of the image each ray comes from.
+box and, in training, the appearance row of the image each ray comes from and, for a field
+that takes it, that image's age.
 """
 
 from __future__ import annotations
@@ -69,7 +70,10 @@ class RayBundle:
     (a ray misses the box when ``t_far <= t_near``) and ``appearance`` (R,) int64: the row of
     each ray's training image in the field's appearance table (see
     ``FieldConfig.appearance_slots``), or None for a novel view (fields with per-image
-    embeddings then use their neutral one).
+    embeddings then use their neutral one). ``age_ms`` (R,) float: the age of each ray's
+    training image (its AoI at the decision it trains for), given only to a field that takes
+    it (``FieldConfig.takes_age``: the grid's timeliness embedding); None for a novel view,
+    which is the scene at age 0.
     """
 
     origins: torch.Tensor
@@ -77,6 +81,7 @@ class RayBundle:
     t_near: torch.Tensor
     t_far: torch.Tensor
     appearance: torch.Tensor | None = None
+    age_ms: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         n = self.origins.shape[0]
@@ -86,10 +91,11 @@ class RayBundle:
                 f"{tuple(self.dirs.shape)}"
             )
         shapes = [self.t_near.shape, self.t_far.shape]
-        if self.appearance is not None:
-            shapes.append(self.appearance.shape)
+        for extra in (self.appearance, self.age_ms):
+            if extra is not None:
+                shapes.append(extra.shape)
         if any(s != (n,) for s in shapes):
-            raise ValueError(f"t_near, t_far and appearance must be ({n},), got {shapes}")
+            raise ValueError(f"t_near, t_far, appearance and age_ms must be ({n},), got {shapes}")
 
     @property
     def n_rays(self) -> int:
@@ -102,8 +108,10 @@ class RayBundle:
             return x[index] if isinstance(index, slice) else x.index_select(0, index)
 
         appearance = None if self.appearance is None else pick(self.appearance)
+        age = None if self.age_ms is None else pick(self.age_ms)
         return RayBundle(
-            pick(self.origins), pick(self.dirs), pick(self.t_near), pick(self.t_far), appearance
+            pick(self.origins), pick(self.dirs), pick(self.t_near), pick(self.t_far), appearance,
+            age,
         )
 
 

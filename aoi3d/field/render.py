@@ -38,6 +38,9 @@ class SampledField(Protocol):
     def query(self, points: torch.Tensor, dirs: torch.Tensor
               ) -> tuple[torch.Tensor, torch.Tensor]: ...
 
+    def query_aged(self, points: torch.Tensor, dirs: torch.Tensor, age_ms: torch.Tensor
+                   ) -> tuple[torch.Tensor, torch.Tensor]: ...
+
     def background(self, dirs: torch.Tensor) -> torch.Tensor: ...
 
 
@@ -127,7 +130,9 @@ def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
 
     Samples the field marks empty (``Field.occupied``) are skipped; ``options.explore`` > 0
     keeps that fraction of them at random (drawn from ``options.generator``), so that density
-    can grow again where new frames need it. Appearance rows are not used.
+    can grow again where new frames need it. Appearance rows are not used. Rays with an age
+    (``rays.age_ms``, given only to a field that takes it) are queried at their image's age
+    (``query_aged``).
     """
     samples = sample_uniform(
         rays.origins, rays.dirs, rays.t_near, rays.t_far, options.ray_step, options.jitter
@@ -146,5 +151,9 @@ def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
         sample_dirs = dirs.index_select(0, samples.ray_index)
     else:  # the field does not read them: the first ray's, broadcast (a view, no copy)
         sample_dirs = dirs[:1].expand(samples.points.shape[0], 3)
-    sigma, rgb = field.query(samples.points, sample_dirs)
+    if rays.age_ms is None:
+        sigma, rgb = field.query(samples.points, sample_dirs)
+    else:
+        age = rays.age_ms.index_select(0, samples.ray_index)
+        sigma, rgb = field.query_aged(samples.points, sample_dirs, age)
     return volume_render(sigma, rgb, samples.deltas, samples.ray_index, field.background(dirs))

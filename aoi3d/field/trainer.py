@@ -17,6 +17,13 @@ fixed table of ``FieldConfig.appearance_slots`` rows and passes each ray's row t
 embeddings survive the live trainer's view swaps; when a new key finds the table full, the
 least recently used row outside the current views is recycled (the field resets it). Novel
 views are rendered with ``appearance=None``: the field's neutral embedding.
+
+Image age: a view may carry ``TrainView.age_ms``, how old its frame is at the decision it
+trains for (its AoI). A config that uses it (``FieldConfig.uses_age``) needs it on every
+view: the timeliness embedding (a field that ``takes_age``) gets each ray's age in
+``RayBundle.age_ms``; the weighted-sum loss (``FieldConfig.age_weight_tau_ms`` = τ) weights
+each ray's data terms by exp(−age/τ), normalised over the batch. Novel views are rendered
+without an age: the scene at age 0, the time the decision stands for.
 """
 
 from __future__ import annotations
@@ -47,17 +54,25 @@ __all__ = ["FieldTrainer", "TrainView"]
 @dataclass(frozen=True, eq=False)
 class TrainView:
     """One training frame: the camera it was taken with, its image (uint8 or float32 H×W×3
-    in [0, 1]) and ``appearance_id``, the stable key of its per-image appearance embedding
-    (e.g. the camera id; None: keyed by the camera itself)."""
+    in [0, 1]), ``appearance_id``, the stable key of its per-image appearance embedding
+    (e.g. the camera id; None: keyed by the camera itself), and ``age_ms``, how old the frame
+    is at the time the model is trained for (its AoI, ms ≥ 0; None: not known, which only a
+    config that uses ages refuses)."""
 
     camera: Camera
     image: np.ndarray
     appearance_id: int | None = None
+    age_ms: float | None = None
 
     def __post_init__(self) -> None:
         a = self.appearance_id
         if a is not None and (isinstance(a, bool) or not isinstance(a, int | np.integer)):
             raise TypeError(f"appearance_id must be an int or None, got {a!r}")
+        age = self.age_ms
+        if age is not None and (isinstance(age, bool)
+                                or not isinstance(age, int | float | np.integer | np.floating)
+                                or not math.isfinite(age) or age < 0):
+            raise ValueError(f"age_ms must be a finite number >= 0 or None, got {age!r}")
 
 
 def _image_tensor(image: np.ndarray, camera: Camera) -> torch.Tensor:
@@ -85,6 +100,14 @@ def _appearance_key(view: TrainView) -> Hashable:
 
 
 _RENDER_CACHE_SIZE = 8
+
+
+def _age_weights(age_ms: torch.Tensor, tau_ms: float) -> torch.Tensor:
+    """Per-ray weights exp(−age/τ) of the weighted-sum loss, normalised to sum to 1 (shifted
+    by the batch's youngest age first, which the normalisation cancels: no underflow to an
+    all-zero batch however old the frames are)."""
+    w = torch.exp(-(age_ms - age_ms.min()) / tau_ms)
+    return w / w.sum()
 
 
 class FieldTrainer:
@@ -242,6 +265,9 @@ class FieldTrainer:
         for v in views:
             if not isinstance(v, TrainView):
                 raise TypeError(f"views must be TrainView objects, got {type(v).__name__}")
+        if self.cfg.uses_age and any(v.age_ms is None for v in views):
+            raise ValueError("this field config uses each image's age (timeliness embedding or "
+                             "age-weighted loss): every TrainView needs age_ms")
         colours = [self._colours(v) for v in views]
         rays = []
         for v in views:
@@ -265,14 +291,21 @@ class FieldTrainer:
         )
         self._rays = (*parts, torch.cat(colours), rows)
         # the float columns side by side, so that a step gathers its batch in one call:
-        # origins 0:3, dirs 3:6, t_near 6, t_far 7, rgb 8:11
+        # origins 0:3, dirs 3:6, t_near 6, t_far 7, rgb 8:11 (and the image's age 11)
         o, d, near, far, rgb = self._rays[:5]
-        self._packed = torch.cat([o, d, near[:, None], far[:, None], rgb], dim=1)
+        columns = [o, d, near[:, None], far[:, None], rgb]
+        if self.cfg.uses_age:
+            columns.append(torch.cat([
+                torch.full((c.shape[0], 1), float(v.age_ms), device=self._device)  # type: ignore[arg-type]
+                for c, v in zip(colours, views, strict=True)
+            ]))
+        self._packed = torch.cat(columns, dim=1)
 
     # --- training -------------------------------------------------------------------------
     def step(self, n: int = 1) -> float:
         """``n`` training steps; the last step's photometric loss (MSE of the batch's colours,
-        without the regularisers and the field's ``aux_loss``), NaN when there are no views."""
+        unweighted, without the regularisers and the field's ``aux_loss``), NaN when there are
+        no views."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         if self._rays is None:
@@ -282,6 +315,8 @@ class FieldTrainer:
         packed = self._packed
         assert packed is not None
         n_rays = packed.shape[0]
+        tau = self.cfg.age_weight_tau_ms
+        takes_age = self.cfg.takes_age
         self._field.train()
         for _ in range(n):
             if self._field.on_step(self._steps):
@@ -297,6 +332,7 @@ class FieldTrainer:
                 picked[:, 6],
                 picked[:, 7],
                 appearance.index_select(0, batch),
+                picked[:, 11] if takes_age else None,
             )
             options = RenderOptions(
                 self.cfg.ray_step(self.aabb, self._steps),
@@ -306,10 +342,17 @@ class FieldTrainer:
             )
             out = self._field.render_rays(rays, options)
             target = picked[:, 8:11]
-            mse = torch.mean((out.rgb - target) ** 2)
-            loss = mse
+            sq = (out.rgb - target) ** 2
+            mse = torch.mean(sq)
+            sample_weights = out.weights
+            if tau is None:
+                loss = mse
+            else:  # the weighted sum: w = exp(−age/τ), normalised (equal ages: the plain loss)
+                ray_w = _age_weights(picked[:, 11], tau)
+                loss = (sq.mean(dim=1) * ray_w).sum()
+                sample_weights = out.weights * (ray_w * len(batch)).index_select(0, out.ray_index)
             if self.cfg.sample_rgb_loss > 0:
-                err = native.weighted_colour_error(out.sample_rgb, out.weights, target,
+                err = native.weighted_colour_error(out.sample_rgb, sample_weights, target,
                                                    out.ray_index)
                 loss = loss + self.cfg.sample_rgb_loss * err / len(batch)
             if self.cfg.opacity_loss > 0:
