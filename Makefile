@@ -44,7 +44,7 @@ lint: install  ## ruff and the import contracts of pyproject.toml (lint-imports;
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
 
-bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 minutes)
+bench: install bench-ray  ## benchmarks (results under bench/results/; about 110 minutes)
 	$(PY) bench/channel.py
 	$(PY) bench/fields.py
 	$(PY) bench/recon.py
@@ -56,7 +56,8 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 65 
 	$(PY) bench/staleness.py --dataset data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine
 	$(PY) bench/scale.py
-	$(PY) bench/soak.py --minutes 30
+	$(PY) bench/chaos.py --minutes 10
+	$(PY) bench/soak.py --minutes 60
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'

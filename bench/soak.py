@@ -139,7 +139,10 @@ def main() -> int:
         "renders_per_s_first": round(first, 3), "renders_per_s_last": round(last, 3),
         "window_min": round(window / 60.0, 1),
         "rate_ratio_last_first": round(last / first, 3) if first > 0 else None,
+        "renders_per_s_by_window": [round(rate(renders, t, min(t + window, span)), 3)
+                                    for t in np.arange(0.0, span - 1e-9, window)],
         "renders": renders[-1][1] - renders[0][1],
+        "renders_series": [[round(t, 1), n] for t, n in renders],
         "load_1min_mean": round(float(np.mean(loads)), 2),
         "load_1min_max": round(float(np.max(loads)), 2),
         "restarts": restarts, "processes": processes,
