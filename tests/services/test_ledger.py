@@ -72,7 +72,8 @@ class Site:
         return r.json()
 
     def settle(self, decisions: int) -> dict:
-        wait_for(lambda: self.ledger()["decisions"] >= decisions and self.ledger()["open"] == 0)
+        wait_for(lambda: self.ledger()["decisions"] >= decisions and self.ledger()["open"] == 0,
+                 timeout_s=10.0)
         return self.ledger()
 
 
@@ -122,7 +123,8 @@ def test_an_open_decision_expires_and_nonsense_is_counted_not_believed(sites) ->
     site.decide(10**12)  # would skip a trillion ids
     site.bus.publish(KEYS.outcome, b"\xff\x00junk")
     site.outcome(1, "lost", "gremlins")
-    wait_for(lambda: "implausible_decision_id" in site.client.get("/metrics").text)
+    wait_for(lambda: "implausible_decision_id" in site.client.get("/metrics").text,
+             timeout_s=10.0)
     got = site.ledger()
     assert got["decisions"] == 1 and got["lost"]["expired"] == 1 and got["after_close"] == 0
     text = site.client.get("/metrics").text
@@ -135,7 +137,8 @@ def test_the_ledger_survives_a_restart_of_the_service(sites, tmp_path: Path) -> 
     first.decide(1, 2, 3)
     first.render(1)
     first.outcome(2, "skipped", "superseded")
-    wait_for(lambda: first.ledger()["scored"] == 1 and first.ledger()["skipped"]["superseded"])
+    wait_for(lambda: first.ledger()["scored"] == 1 and first.ledger()["skipped"]["superseded"],
+             timeout_s=10.0)
     assert first.ledger()["persisted"]
     first.close()
     sites.remove(first)
