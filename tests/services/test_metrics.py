@@ -207,10 +207,10 @@ def test_a_render_ahead_of_its_truth_waits_for_it_then_gives_up(make_harness) ->
     assert [q.decision_id for q in h.qualities()] == [424242] and h.rejected("no_truth") == 1
     h.bus.publish(KEYS.truth, truth(120.0))  # not yet: 150 is past it and not within a period
     h.bus.publish(KEYS.truth, truth(150.0))
-    wait_for(lambda: [q.decision_id for q in h.qualities()] == [424242, 1])
+    wait_for(lambda: [q.decision_id for q in h.qualities()] == [424242, 1], timeout_s=10.0)
     assert h.qualities()[-1].truth_time_ms == 150.0 and h.qualities()[-1].psnr_db == 100.0
     h.bus.publish(KEYS.render, render(900.0, truth_image(150.0), decision_id=3))  # never
-    wait_for(lambda: h.rejected("no_truth") == 2, timeout_s=5.0)
+    wait_for(lambda: h.rejected("no_truth") == 2, timeout_s=10.0)
     assert [q.decision_id for q in h.qualities()] == [424242, 1]
 
 
