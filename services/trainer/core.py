@@ -14,6 +14,7 @@ the workers are read back for the latest image and the status.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -30,6 +31,8 @@ from services.trainer.state import CarryError, DecisionInForce, LatestRender, ch
 
 __all__ = ["RenderSettings", "TrainerCore", "decode_request"]
 
+_ARRIVALS_KEPT = 4096
+"""Recent decisions whose arrival time is kept (two minutes of decisions every 30 ms)."""
 MAX_NOT_RECEIVED = 1000
 """Most ids of one gap told ``not_received`` (50 s of decisions at one per 50 ms); a hostile
 id cannot make the trainer publish more."""
@@ -114,6 +117,9 @@ class TrainerCore:
         self._decisions: dict[tuple[int, int], pb.Decision] = {}
         """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
         self._highest: dict[int, int] = {}
+        self._arrived: OrderedDict[tuple[str, int, int], float] = OrderedDict()
+        """Wall s each recent decision reached the trainer (its render's age is measured from
+        it, whether or not the worker's report of the job came first)."""
         """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
         self.latest: LatestRender | None = None
         self._latest_incarnation = 0
@@ -167,6 +173,9 @@ class TrainerCore:
             policy=msg.policy, n_selected=len(msg.selected), n_missing=missing,
             applied_wall_s=now_s, generation_ms=tuple(gens))
         ref = DecisionRef(msg.incarnation, msg.decision_id, msg.time_ms, self.site)
+        self._arrived[ref.key] = now_s
+        while len(self._arrived) > _ARRIVALS_KEPT:
+            self._arrived.popitem(last=False)
         self._decisions[ref.key] = msg
         assignment = self.pool.offer(ref, now_s)
         self.forget()
@@ -248,8 +257,7 @@ class TrainerCore:
         self.frames_age_ms = frames_age_ms
         self._latest_incarnation = msg.decision_incarnation
         key = (self.site, msg.decision_incarnation, msg.decision_id)
-        arrived = next((a.arrived_s for a in self.pool.held() if a.decision.key == key),
-                       math.nan)
+        arrived = self._arrived.get(key, math.nan)
         self.latest = LatestRender(
             png=msg.image.data, decision_id=msg.decision_id, time_ms=msg.time_ms,
             training_step=msg.training_step, n_views=msg.n_views, wall_s=now_s,
