@@ -31,7 +31,6 @@ from services.metrics.ledger import (
     Ledger,
     LedgerSummary,
     decode_outcome,
-    render_ids,
 )
 
 log = logging.getLogger(__name__)
@@ -79,12 +78,13 @@ class LedgerKeeper:
             self.ledger.closed(msg.incarnation, msg.decision_id, msg.state, msg.reason,
                                time.time())
 
-    def on_render(self, payload: bytes, rejected: Rejected | None) -> None:
-        """A render was scored (``rejected`` None) or could not be (``no_truth`` →
-        ``truth_missing``, anything else → ``render_rejected``)."""
-        ids = render_ids(payload)
+    def on_render(self, ids: tuple[int, int] | None, rejected: Rejected | None) -> None:
+        """The render of decision ``ids`` (incarnation, id) was scored (``rejected`` None) or
+        could not be (``no_truth`` → ``truth_missing``, anything else → ``render_rejected``).
+        ``ids`` None: not a Render of a decision — nothing to close (an open decision whose
+        render was unreadable expires)."""
         if ids is None:
-            return  # not a Render at all: its decision stays open and expires
+            return
         state, reason = (("scored", "") if rejected is None else
                          ("lost", "truth_missing" if rejected.reason == "no_truth"
                           else "render_rejected"))

@@ -34,7 +34,7 @@ from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 
 __all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary",
-           "decode_outcome", "render_ids", "render_time"]
+           "decode_outcome", "render_header"]
 
 STATES = ("scored", "skipped", "lost")
 SKIPPED_REASONS = ("superseded",)
@@ -109,9 +109,6 @@ class Ledger:
         return len(due)
 
     # ------------------------------------------------------------------ reading
-    def count(self, state: str, reason: str = "") -> int:
-        return self.totals[state, reason]
-
     def summary(self, now_s: float) -> LedgerSummary:
         by = {s: {r: n for (st, r), n in sorted(self.totals.items()) if st == s and n}
               for s in STATES}
@@ -200,18 +197,11 @@ def decode_outcome(payload: bytes, site: str) -> pb.Outcome:
     return msg
 
 
-def render_ids(payload: bytes) -> tuple[int, int] | None:
-    """(incarnation, decision id) of a Render, or None when the payload does not parse."""
+def render_header(payload: bytes) -> tuple[int, int, float] | None:
+    """(incarnation, decision id, time t in sim ms) of a Render, or None when the payload does
+    not parse."""
     try:
         msg = pb.Render.FromString(payload)
     except Exception:  # protobuf raises DecodeError and others
         return None
-    return (msg.decision_incarnation, msg.decision_id) if msg.decision_id else None
-
-
-def render_time(payload: bytes) -> float | None:
-    """A Render's time t (sim ms), or None when the payload does not parse."""
-    try:
-        return pb.Render.FromString(payload).time_ms
-    except Exception:  # protobuf raises DecodeError and others
-        return None
+    return msg.decision_incarnation, msg.decision_id, msg.time_ms

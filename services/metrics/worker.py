@@ -30,7 +30,7 @@ from services.metrics.core import (
     QualityRecord,
     or_nan,
 )
-from services.metrics.ledger import render_time
+from services.metrics.ledger import render_header
 
 log = logging.getLogger(__name__)
 
@@ -223,12 +223,11 @@ class MetricsWorker:
             log.exception("failed to handle a message on %s", key)
             self.rejections.reject(Rejected("internal_error", repr(err)), key)
 
-    def _ahead_of_truth(self, payload: bytes) -> bool:
-        """Hold the render (True) when its time is past every truth frame received and the
-        wait is on; the oldest held one is given up when :data:`_MAX_WAITING` are held."""
+    def _ahead_of_truth(self, payload: bytes, t: float) -> bool:
+        """Hold the render at ``t`` (True) when ``t`` is past every truth frame received and
+        the wait is on; the oldest held one is given up when :data:`_MAX_WAITING` are held."""
         newest = self.core.ring.newest_ms
-        t = render_time(payload)
-        if self._truth_wait_s <= 0 or t is None or (newest is not None and t <= newest):
+        if self._truth_wait_s <= 0 or (newest is not None and t <= newest):
             return False
         if len(self._waiting) >= _MAX_WAITING:
             _, _, oldest = self._waiting.popleft()
@@ -259,9 +258,12 @@ class MetricsWorker:
         try:
             scored = self.core.score(payload, self._clock.now_ms())
         except Rejected as err:
-            if may_wait and err.reason == "no_truth" and self._ahead_of_truth(payload):
+            header = render_header(payload)  # parsed once, only when scoring failed
+            if (may_wait and err.reason == "no_truth" and header is not None
+                    and self._ahead_of_truth(payload, header[2])):
                 return  # held: its truth frame may still come
-            self._guarded(self._keys.render, self.ledger.on_render, payload, err)
+            ids = None if header is None or not header[1] else header[:2]
+            self._guarded(self._keys.render, self.ledger.on_render, ids, err)
             raise
         self._bus.publish(self._keys.quality, scored.message.SerializeToString())
         record, missing = scored.record, scored.dynamic_missing
@@ -291,4 +293,6 @@ class MetricsWorker:
             self._h_lpips.observe(record.lpips)
         if math.isfinite(record.lag_ms) and record.lag_ms >= 0:
             self._m_lag.observe(record.lag_ms / 1000.0)
-        self._guarded(self._keys.render, self.ledger.on_render, payload, None)
+        q = scored.message
+        self._guarded(self._keys.render, self.ledger.on_render,
+                      (q.decision_incarnation, q.decision_id) if q.decision_id else None, None)

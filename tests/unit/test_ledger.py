@@ -16,7 +16,7 @@ from services.metrics.ledger import (
     SKIPPED_REASONS,
     Ledger,
     decode_outcome,
-    render_ids,
+    render_header,
 )
 
 INC = 7
@@ -134,9 +134,10 @@ def test_outcome_and_render_decoding() -> None:
     for payload, message in bad.items():
         with pytest.raises(Rejected, match=message):
             decode_outcome(payload, "site1")
-    render = pb.Render(decision_id=9, decision_incarnation=INC).SerializeToString()
-    assert render_ids(render) == (INC, 9)
-    assert render_ids(b"\xff\xff") is None and render_ids(b"") is None
+    render = pb.Render(decision_id=9, decision_incarnation=INC, time_ms=60.0)
+    assert render_header(render.SerializeToString()) == (INC, 9, 60.0)
+    assert render_header(b"\xff\xff") is None
+    assert render_header(b"") == (0, 0, 0.0)  # an empty Render names no decision (id 0)
 
 
 EVENT = st.tuples(st.sampled_from(["decided", "scored", "skipped", "lost", "expire"]),

@@ -35,12 +35,8 @@ from aoi3d.experiment.oracle import (
 )
 from aoi3d.policy import FreshestPolicy, MatPolicy
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+from tests.unit.test_experiment import N_TRAIN, TINY_FIELD  # the same tiny rig and field
 
-N_TRAIN = 4
-TINY_FIELD = {
-    "batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],
-    "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000,
-}
 SEEDS = [0, 1, 2]
 RULES = ["all", "mat:40", "mat:70", "mat:100", "mat:130",
          *(f"freshest:{k}" for k in range(1, N_TRAIN + 1))]
