@@ -8,7 +8,9 @@ fraction of decisions rendered, the mean wait from a decision to its hand-out an
 render age (the trainer's pool summaries), each worker's busy fraction, the decisions lost,
 the PSNR of the window's renders (mean ± 95 % CI, from the metrics service), and the Zenoh
 bytes per second of the run (a subscriber on ``aoi3d/<run>/**`` counting payload bytes: the
-traffic one site puts through a router). It ends with the arithmetic for a larger farm from
+traffic one site puts through a router; in a window of its own after the renders', since the
+subscriber costs CPU), and the cores each process of the pipeline used in the window. It
+ends with the arithmetic for a larger farm from
 the measured per-worker throughput and per-site bytes.
 
     python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
@@ -101,6 +103,41 @@ class ByteTap:
         self.session.close()
 
 
+def tree_cpu_s(root: int) -> dict[str, float]:
+    """CPU seconds (user + system) so far of every process under ``root``, by a short name
+    (the module it runs, numbered when repeated): where the machine's cores go."""
+    tick = os.sysconf("SC_CLK_TCK")
+    procs: dict[int, tuple[int, float, str]] = {}
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit():
+            continue
+        try:
+            stat = (d / "stat").read_text()
+            argv = (d / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        ppid, cpu = int(fields[1]), (int(fields[11]) + int(fields[12])) / tick
+        args_ = [a.decode(errors="replace") for a in argv if a]
+        name = next((args_[i + 1] for i, a in enumerate(args_[:-1]) if a == "-m"),
+                    Path(args_[0]).name if args_ else d.name)
+        procs[int(d.name)] = (ppid, cpu, name.removeprefix("services."))
+    keep, frontier = {}, [root]
+    while frontier:
+        pid = frontier.pop()
+        for child, (ppid, cpu, name) in procs.items():
+            if ppid == pid and child not in keep:
+                keep[child] = (cpu, name)
+                frontier.append(child)
+    out: dict[str, float] = {}
+    for _pid, (cpu, name) in sorted(keep.items()):
+        key, i = name, 2
+        while key in out:
+            key, i = f"{name}-{i}", i + 1
+        out[key] = cpu
+    return out
+
+
 def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
     run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
@@ -126,10 +163,9 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
                 raise SystemExit(f"the pipeline with {workers} workers did not come up; see "
                                  f"{log_dir}/latest/")
             time.sleep(0.5)
-        tap = ByteTap(run_id)
         time.sleep(args.settle_s)
         first = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
-        bytes0, msgs0 = tap.read()
+        cpu0 = tree_cpu_s(up.pid)
         names = [f"site{i}" for i in range(1, sites + 1)]
 
         def ids() -> dict[str, int]:
@@ -140,11 +176,21 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
         t0 = time.monotonic()
         time.sleep(args.measure_s)
         last = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
-        bytes1, msgs1 = tap.read()
+        cpu1 = tree_cpu_s(up.pid)
         decision1 = ids()
         dt = time.monotonic() - t0
         pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
-        time.sleep(5.0)  # the window's last renders are scored a reconstruction later
+        # Bytes in a window of their own, after the renders' window: a subscriber to every key
+        # makes the router send everything twice and costs this process CPU, which the
+        # workers would otherwise have had.
+        tap = ByteTap(run_id)
+        time.sleep(1.0)
+        bytes0, msgs0 = tap.read()
+        tb = time.monotonic()
+        time.sleep(args.bytes_s)
+        bytes1, msgs1 = tap.read()
+        dtb = time.monotonic() - tb
+        time.sleep(max(0.0, 5.0 - args.bytes_s))  # the window's last renders are scored later
         history = {n: HTTP.get(f"http://127.0.0.1:{port('metrics')}/sites/{n}/quality",
                                params={"limit": 100000}).json()["history"] for n in names}
     finally:
@@ -181,8 +227,10 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
         "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]),
         "views": mean_ci95([q["n_views"] for q in window]),
         "renders_per_s_by_site": {n: v / dt for n, v in by_site.items()},
-        "zenoh_bytes_per_s": (bytes1 - bytes0) / dt,
-        "zenoh_messages_per_s": (msgs1 - msgs0) / dt,
+        "zenoh_bytes_per_s": (bytes1 - bytes0) / dtb,
+        "zenoh_messages_per_s": (msgs1 - msgs0) / dtb,
+        "cores_by_process": {k: round((cpu1[k] - cpu0.get(k, 0.0)) / dt, 3)
+                             for k in cpu1 if k in cpu0},
         "load_before": [round(x, 2) for x in load_before],
         "load_after": [round(x, 2) for x in os.getloadavg()],
     }
@@ -208,6 +256,30 @@ def farm(rows: list[dict], sites: int, cameras: int, time_scale: float) -> dict:
     }
 
 
+def speedups(rows: list[dict]) -> dict | None:
+    """Renders/s of each configuration over ``1x1``'s: of the medians over the passes, and
+    pass by pass (each pass's configurations ran back to back, so a pass shares its load)."""
+    def label(r: dict) -> str:
+        return f"{r['workers']}x{r['sites']}"
+
+    by: dict[str, list[float]] = {}
+    for r in rows:
+        by.setdefault(label(r), []).append(r["renders_per_s"])
+    if not by.get("1x1") or not statistics.median(by["1x1"]):
+        return None
+    base = statistics.median(by["1x1"])
+    out: dict = {name: statistics.median(v) / base for name, v in by.items()}
+    passes = sorted({r.get("pass", 1) for r in rows})
+    if len(passes) > 1:
+        per = {}
+        for p in passes:
+            one = {label(r): r["renders_per_s"] for r in rows if r.get("pass", 1) == p}
+            if one.get("1x1"):
+                per[str(p)] = {name: v / one["1x1"] for name, v in one.items()}
+        out["by_pass"] = per
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
@@ -215,6 +287,11 @@ def main() -> None:
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--settle-s", type=float, default=20.0)
     ap.add_argument("--measure-s", type=float, default=60.0)
+    ap.add_argument("--repeats", type=int, default=1,
+                    help="passes over --configs (interleaved, so drift hits every one); the "
+                         "speedup is of the medians")
+    ap.add_argument("--bytes-s", type=float, default=10.0,
+                    help="wall seconds of the Zenoh byte count, after the renders' window")
     ap.add_argument("--ready-timeout-s", type=float, default=180.0)
     ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine-rotor"))
     ap.add_argument("--json", action="store_true", help="print one JSON object")
@@ -224,19 +301,21 @@ def main() -> None:
                         "rotor", "--rotor-rpm", "6", "--out", args.dataset], check=True)
     configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
     rows = []
-    for k, sites in configs:
-        row = run_one(k, sites, args)
-        rows.append(row)
-        if not args.json:
-            print(f"workers {k}, sites {sites}: {row['renders_per_s']:.3f} renders/s, "
-                  f"{row['fraction_rendered']:.2f} of decisions, age "
-                  f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "
-                  f"{row['psnr_db']['ci95'] or 0:.2f} dB, load {row['load_after'][0]}",
-                  flush=True)
+    for rep in range(args.repeats):
+        for k, sites in configs:
+            row = run_one(k, sites, args)
+            row["pass"] = rep + 1
+            rows.append(row)
+            if not args.json:
+                print(f"pass {rep + 1}, workers {k}, sites {sites}: "
+                      f"{row['renders_per_s']:.3f} renders/s, "
+                      f"{row['fraction_rendered']:.2f} of decisions, age "
+                      f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "
+                      f"{row['psnr_db']['ci95'] or 0:.2f} dB, load {row['load_after'][0]}",
+                      flush=True)
     base = next((r for r in rows if r["workers"] == 1 and r["sites"] == 1), None)
     doc = {"rows": rows,
-           "speedup": {f"{r['workers']}x{r['sites']}": r["renders_per_s"] / base["renders_per_s"]
-                       for r in rows} if base and base["renders_per_s"] else None,
+           "speedup": speedups(rows),
            "farm": farm(rows, 10, 18, args.time_scale) if base else None,
            "command": " ".join(["python", "bench/scale.py", *sys.argv[1:]]),
            "cpus": os.cpu_count()}

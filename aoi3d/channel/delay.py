@@ -22,6 +22,8 @@ from typing import ClassVar, overload
 import numpy as np
 from scipy import special
 
+from aoi3d.numbers import format_number
+
 ACCEPTED_FORMS: tuple[str, ...] = (
     "exp:MEAN",
     "const:D",
@@ -48,14 +50,6 @@ class DelaySpecError(ValueError):
         super().__init__(f"{where}{problem}. Accepted forms: {forms} ({_FORMS_NOTE}).")
         self.problem = problem
         self.spec = spec
-
-
-def format_number(x: float) -> str:
-    """Shortest round-tripping text of ``x``: ``60`` rather than ``60.0``."""
-    x = float(x)
-    if x.is_integer() and abs(x) < 1e15:
-        return str(int(x))
-    return repr(x)
 
 
 @overload

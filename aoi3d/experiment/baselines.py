@@ -24,6 +24,8 @@ import math
 from dataclasses import dataclass
 from typing import Any
 
+from aoi3d.numbers import format_number
+
 __all__ = [
     "TRAINER_FORMS",
     "TRAINER_KINDS",
@@ -62,18 +64,14 @@ class TrainerOption:
     def spec(self) -> str:
         """The canonical text: ``tembed:<features>:<scale_ms>`` or ``wsum:<tau_ms>``."""
         if self.kind == "tembed":
-            return f"tembed:{self.features}:{_fmt(self.scale_ms)}"
-        return f"wsum:{_fmt(self.tau_ms)}"
+            return f"tembed:{self.features}:{format_number(self.scale_ms)}"
+        return f"wsum:{format_number(self.tau_ms)}"
 
     def field_overrides(self) -> dict[str, Any]:
         """The field config settings this option sets (merged over the episode's)."""
         if self.kind == "tembed":
             return {"age_features": self.features, "age_scale_ms": self.scale_ms}
         return {"age_weight_tau_ms": self.tau_ms}
-
-
-def _fmt(x: float) -> str:
-    return str(int(x)) if float(x).is_integer() else repr(float(x))
 
 
 def _positive(name: str, text: str, spec: str) -> float:

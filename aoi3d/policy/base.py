@@ -203,12 +203,6 @@ def expect_keys(kind: str, params: Mapping[str, Any], keys: Sequence[str]) -> No
         raise PolicySpecError(f"{kind} does not take key(s) {extra}")
 
 
-def format_number(x: float) -> str:
-    """Shortest round-tripping text of ``x``: ``51`` rather than ``51.0``."""
-    x = float(x)
-    return str(int(x)) if x.is_integer() and abs(x) < 1e15 else repr(x)
-
-
 def number(name: str, value: Any, *, minimum: float = -math.inf) -> float:
     """A finite number >= ``minimum`` (a spec field or a JSON number; not a bool)."""
     x: float

@@ -8,6 +8,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from aoi3d.numbers import format_number
 from aoi3d.policy.base import (
     BasePolicy,
     PolicyKind,
@@ -15,7 +16,6 @@ from aoi3d.policy.base import (
     as_aoi_vector,
     expect_fields,
     expect_keys,
-    format_number,
     integer,
     number,
 )

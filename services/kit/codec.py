@@ -16,8 +16,8 @@ from google.protobuf.message import DecodeError
 
 from aoi3d.scene import to_uint8
 from aoi3d.scene.camera import Camera
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 
 PNG = pb.IMAGE_ENCODING_PNG
 RAW = pb.IMAGE_ENCODING_RAW_RGB8

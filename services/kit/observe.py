@@ -9,16 +9,9 @@ from collections import deque
 
 from prometheus_client import CollectorRegistry, Counter
 
+from services.kit.rejected import Rejected  # re-exported: the workers count what cores raise
+
 log = logging.getLogger("aoi3d.rejected")
-
-
-class Rejected(ValueError):
-    """A message that must be dropped; ``reason`` is a short label for metrics."""
-
-    def __init__(self, reason: str, detail: str) -> None:
-        super().__init__(f"{reason}: {detail}")
-        self.reason = reason
-        self.detail = detail
 
 
 class Rejections:

@@ -30,8 +30,8 @@ from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
 from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import DEFAULT_SITE
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 
 __all__ = [
     "MetricsCore",

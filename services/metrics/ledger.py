@@ -30,8 +30,8 @@ import json
 from collections import Counter
 from dataclasses import dataclass
 
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 
 __all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary",
            "decode_outcome", "render_header"]

@@ -24,6 +24,7 @@ from aoi3d.quality import LpipsFn, RewardWeights
 from services.kit.bus import Bus, Inbox
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
+from services.kit.runtime import Loops
 from services.metrics.bookkeeping import LedgerKeeper
 from services.metrics.core import (
     MetricsCore,
@@ -66,9 +67,8 @@ class MetricsWorker:
         """Renders ahead of every truth frame received: (monotonic deadline, t, payload)."""
         self._scored = 0
         self._lock = threading.Lock()  # guards _history and _scored
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._started = False
+        self._loops = Loops("metrics")
+        self._loops.thread("scoring", self._run)
 
         self.rejections = Rejections(registry)
         self.ledger = LedgerKeeper(registry, run_id=run_id, site=site,
@@ -139,25 +139,20 @@ class MetricsWorker:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        if self._started:
-            raise RuntimeError("the metrics worker was already started")
-        self._started = True
+        self._loops.start()
         self._bus.subscribe(self._keys.truth, self._enqueue("truth"))
         self._bus.subscribe(self._keys.render, self._enqueue("render"))
         self._bus.subscribe(self._keys.decision, self._enqueue("decision"))
         self._bus.subscribe(self._keys.outcome, self._enqueue("outcome"))
-        self._thread = threading.Thread(target=self._run, name="metrics-scoring", daemon=True)
-        self._thread.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        self._loops.stop(timeout_s=2.0)
         self.ledger.tick(force=True)
 
     def readiness(self) -> tuple[bool, str]:
-        if self._thread is None or not self._thread.is_alive():
-            return False, "scoring thread not running"
+        why_not = self._loops.not_running()
+        if why_not is not None:
+            return False, why_not
         with self._lock:
             scored = self._scored
         if self._quality_beat.stalled():
@@ -198,11 +193,11 @@ class MetricsWorker:
 
         return handler
 
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         handlers = {"truth": self._on_truth, "render": self._on_render,
                     "decision": self.ledger.on_decision, "outcome": self.ledger.on_outcome}
         ticked = time.monotonic()
-        while not self._stop.is_set():
+        while not stop.is_set():
             if time.monotonic() - ticked >= _TICK_S:
                 ticked = time.monotonic()
                 self._guarded("ledger", self.ledger.tick)

@@ -19,8 +19,8 @@ from aoi3d.field import FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
 from aoi3d.field.carry import Reconstruction, RenderedDecision
 from services.kit.codec import camera_from_pb, decode_frame, encode_png
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 
 __all__ = ["JobFailed", "Outcome", "ReconCore", "decode_reply"]
 

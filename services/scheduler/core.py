@@ -22,8 +22,8 @@ import numpy as np
 from aoi3d.aoi import AoITracker
 from aoi3d.policy import Policy, decide
 from services.kit.codec import FrameData, decode_frame
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 
 __all__ = ["MAX_AHEAD_MS", "AoISnapshot", "NewestFrame", "SchedulerCore"]
 

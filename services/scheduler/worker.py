@@ -26,7 +26,6 @@ stopping the worker closes the learner (which writes its online checkpoint).
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 import threading
@@ -42,6 +41,7 @@ from services.kit.codec import decode_quality
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.runtime import Loops, guarded
 from services.scheduler.core import MAX_AHEAD_MS, AoISnapshot, NewestFrame, SchedulerCore
 from services.scheduler.metrics import DecisionMetrics, LearnerMetrics
 
@@ -88,10 +88,9 @@ class SchedulerWorker:
         self._learner: OnlineLearner | None = None
         self._frames_beat = Heartbeat(stall_s)  # a delivered frame accepted
 
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._learn_thread: threading.Thread | None = None
-        self._started = False
+        self._loops = Loops("scheduler")
+        self._loops.thread("decisions", self._run)
+        self._loops.forever("learning", self._learn_step)
 
         self.rejections = Rejections(registry)
         self._m = DecisionMetrics(registry)
@@ -100,34 +99,22 @@ class SchedulerWorker:
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
-        if self._started:
-            raise RuntimeError("the scheduler worker was already started")
-        self._started = True
+        self._loops.start()
         self._bus.subscribe(self._keys.edge_frames, self._on_frame)
         self._bus.subscribe(self._keys.quality, self._on_quality)
-        self._thread = threading.Thread(target=self._run, name="scheduler-decisions",
-                                        daemon=True)
-        self._learn_thread = threading.Thread(target=self._learn_loop,
-                                              name="scheduler-learning", daemon=True)
-        self._thread.start()
-        self._learn_thread.start()
 
     def stop(self) -> None:
         """Stop both threads, then close the learner (writing its online checkpoint)."""
-        self._stop.set()
-        for thread in (self._thread, self._learn_thread):
-            if thread is not None:
-                thread.join(timeout=5.0)
+        self._loops.stop()
         with self._lock:
             learner, self._learner = self._learner, None
         if learner is not None:
             self._close_learner(learner)
 
     def readiness(self) -> tuple[bool, str]:
-        if self._thread is None or not self._thread.is_alive():
-            return False, "decision thread not running"
-        if self._learn_thread is None or not self._learn_thread.is_alive():
-            return False, "learning thread not running"
+        why_not = self._loops.not_running()
+        if why_not is not None:
+            return False, why_not
         with self._lock:
             known = self.core.cameras_known
             learning = self._learner is not None
@@ -221,12 +208,12 @@ class SchedulerWorker:
     def _on_frame(self, key: str, payload: bytes) -> None:
         self._inbox.put((key, payload))
 
-    def _run(self) -> None:
+    def _run(self, stop: threading.Event) -> None:
         """Epoch t = next_t is decided at s = t + the policy's wait (the policy in force
         when s comes; one read per pass, so the wait and the decision agree)."""
         clock = self._clock
         next_t = math.ceil(clock.now_ms() / self._period_ms) * self._period_ms
-        while not self._stop.is_set():
+        while not stop.is_set():
             now = clock.now_ms()
             policy, learner = self.policy_and_learner()
             due = next_t + policy.wait_ms
@@ -237,21 +224,16 @@ class SchedulerWorker:
                     next_t += behind * self._period_ms
                 for item in self._inbox.drain():
                     self._ingest(*item, now_ms=now)
-                self._guarded(functools.partial(self._decide, policy=policy, learner=learner),
-                              next_t)
+                guarded(f"the decision at t = {next_t} ms", self._decide, next_t,
+                        policy=policy, learner=learner)
                 next_t += self._period_ms
                 continue
             wait_s = min(max(clock.wall_s(due) - clock.wall(), 0.0), _POLL_S)
             item = self._inbox.get(timeout=wait_s)
             if item is not None:
                 self._ingest(*item, now_ms=clock.now_ms())
-            self._guarded(self._apply_pending, min(clock.now_ms(), due))
-
-    def _guarded(self, fn, t_ms: float) -> None:
-        try:
-            fn(t_ms)
-        except Exception:  # a bug must not stop the decisions
-            log.exception("%s at t = %s ms failed", getattr(fn, "__name__", fn), t_ms)
+            guarded("applying delivered frames", self._apply_pending,
+                    min(clock.now_ms(), due))
 
     def _ingest(self, key: str, payload: bytes, *, now_ms: float) -> None:
         """Validate a delivered frame and queue it until its delivery time."""
@@ -289,20 +271,16 @@ class SchedulerWorker:
         if learner is not None:
             learner.ignore("inbox_overflow")
 
-    def _learn_loop(self) -> None:
+    def _learn_step(self) -> None:
         """Rewards in, updates and checkpoints out; idle while no learner is installed."""
-        while not self._stop.is_set():
-            item = self._quality_inbox.get(timeout=_POLL_S)
-            learner = self.learner
-            try:
-                if item is not None:
-                    self._on_reward(*item, learner=learner)
-                if learner is not None and not learner.closed:
-                    learner.expire()
-                    while learner.update_if_ready() is not None:
-                        pass
-            except Exception:  # a bug must not stop learning for good; logged, next item
-                log.exception("online learning step failed")
+        item = self._quality_inbox.get(timeout=_POLL_S)
+        learner = self.learner
+        if item is not None:
+            self._on_reward(*item, learner=learner)
+        if learner is not None and not learner.closed:
+            learner.expire()
+            while learner.update_if_ready() is not None:
+                pass
 
     def _on_reward(self, key: str, payload: bytes, *, learner: OnlineLearner | None) -> None:
         """Validate a Quality and, while learning, hand its reward to the learner."""

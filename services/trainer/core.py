@@ -23,8 +23,8 @@ from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.scene.camera import Camera
 from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
 from services.kit.keys import DEFAULT_SITE
-from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected
 from services.trainer.frames import FrameBuffer
 from services.trainer.pool import Assignment, DecisionRef, Dispatcher, Report
 from services.trainer.state import CarryError, DecisionInForce, LatestRender, check_backend

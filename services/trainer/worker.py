@@ -33,6 +33,7 @@ from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.runtime import Loops
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
 from services.trainer.pool import Assignment, Dispatcher, PoolStatus
@@ -75,8 +76,8 @@ class TrainerWorker:
         self._renders_beat = Heartbeat(settings.common.stall_s)
         self._steps_rate = RateMeter(RATE_WINDOW_S)
         self.steps_per_s = 0.0
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._loops = Loops("trainer")
+        self._loops.every("pool", _TICK_S, self._housekeeping)
         registry.register(PoolCollector(self))
 
     # ------------------------------------------------------------------ lifecycle
@@ -86,13 +87,10 @@ class TrainerWorker:
         self.bus.subscribe(self.keys.decision, self._on_decision)
         self.bus.subscribe(self.keys.render, self._on_render)
         self.bus.declare_queryable(self.keys.work, self._on_request)
-        self._thread = threading.Thread(target=self._housekeeping, name="pool", daemon=True)
-        self._thread.start()
+        self._loops.start()
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=_STOP_JOIN_S)
+        self._loops.stop(timeout_s=_STOP_JOIN_S)
         with self._lock:
             held, self._held = list(self._held.values()), {}
         for query, _ in held:
@@ -111,7 +109,7 @@ class TrainerWorker:
                              msg.SerializeToString())
 
     def running(self) -> bool:
-        return self._thread is not None and self._thread.is_alive()
+        return self._loops.not_running() is None
 
     def readiness(self) -> tuple[bool, str]:
         if not self.running():
@@ -224,26 +222,27 @@ class TrainerWorker:
 
     # ------------------------------------------------------------------ housekeeping thread
     def _housekeeping(self) -> None:
-        while not self._stop.wait(_TICK_S):
-            now = time.monotonic()
-            with self._lock:
-                due = [w for w, (_, deadline) in self._held.items() if deadline <= now]
-                released = [self._held.pop(w)[0] for w in due]
-                for w in due:
-                    self.pool.give_up(w)
-                expired = self.pool.expire(time.time())
-                if expired:
-                    for core in self.cores.values():
-                        core.forget()
-            for query in released:
-                query.reply(TrainerCore.no_job("no decision pending"))
-            for a in expired:
-                log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
-                            a.worker_id, self.settings.job_timeout_s)
-            self._tell_ended()
-            if self._renders_beat.idle_s() > RATE_WINDOW_S:
-                self.steps_per_s = self._steps_rate.idle(
-                    time.monotonic(), sum(c.steps_total for c in self.cores.values()))
+        """Every tick: answer held requests that waited long enough, expire jobs held too
+        long, publish the Outcomes of ended decisions."""
+        now = time.monotonic()
+        with self._lock:
+            due = [w for w, (_, deadline) in self._held.items() if deadline <= now]
+            released = [self._held.pop(w)[0] for w in due]
+            for w in due:
+                self.pool.give_up(w)
+            expired = self.pool.expire(time.time())
+            if expired:
+                for core in self.cores.values():
+                    core.forget()
+        for query in released:
+            query.reply(TrainerCore.no_job("no decision pending"))
+        for a in expired:
+            log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
+                        a.worker_id, self.settings.job_timeout_s)
+        self._tell_ended()
+        if self._renders_beat.idle_s() > RATE_WINDOW_S:
+            self.steps_per_s = self._steps_rate.idle(
+                time.monotonic(), sum(c.steps_total for c in self.cores.values()))
 
     # ------------------------------------------------------------------ control (REST threads)
     def set_backend(self, name: str) -> None:

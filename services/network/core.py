@@ -1,0 +1,182 @@
+"""The network's core: offered frames and a time in, frames due for delivery out.
+
+No bus, no threads, no metrics library: the runtime (:mod:`services.network.worker`) feeds it
+under its lock and publishes what it returns; tests drive it directly.
+
+Camera n's offered frame goes through its :class:`aoi3d.channel.link.Link` (a D/G/1/0
+queue): ``offer`` gives the frame's delivery slot, or drops it when the previous frame is still
+in flight. Accepted frames wait in a heap ordered by delivery time (then by arrival) until
+:meth:`NetworkCore.pop_due` hands them out.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from aoi3d.channel import DelayDistribution, Link, camera_rngs, parse_delay
+from services.kit.codec import decode_frame
+from services.kit.rejected import Rejected
+
+__all__ = ["ChannelConfig", "ChannelConfigError", "LinkStats", "NetworkCore", "Pending"]
+
+
+class ChannelConfigError(ValueError):
+    """A channel change that cannot be applied; the message says what is accepted."""
+
+
+@dataclass(frozen=True)
+class ChannelConfig:
+    """The links' settings: the default delay spec, per-camera overrides and the seed."""
+
+    delay: str
+    per_camera: dict[int, str] = field(default_factory=dict)
+    seed: int = 1
+
+    def spec_of(self, camera_id: int) -> str:
+        return self.per_camera.get(camera_id, self.delay)
+
+
+@dataclass
+class LinkStats:
+    """One link's counts since the service started (they survive a reseed)."""
+
+    camera_id: int
+    delay: DelayDistribution
+    offered: int = 0
+    dropped: int = 0
+    delivered: int = 0
+    in_flight: bool = False
+
+
+@dataclass(order=True)
+class Pending:
+    """An accepted frame waiting for its delivery slot."""
+
+    delivery_ms: float
+    order: int
+    camera_id: int = field(compare=False)
+    generation_ms: float = field(compare=False)
+    payload: bytes = field(compare=False, repr=False)
+
+
+class NetworkCore:
+    """N independent links and the frames in flight. Not thread-safe: the runtime serialises
+    calls.
+
+    ``max_skew_ms``: a frame generated further than this after ``now_ms`` is rejected (the
+    sender's clock disagrees with ours)."""
+
+    def __init__(self, n_cameras: int, *, delay: str = "exp:60",
+                 per_camera: dict[int, str] | None = None, seed: int = 1,
+                 max_skew_ms: float = 1000.0) -> None:
+        self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
+        self._accepted = frozenset(self.camera_ids)
+        self._max_skew_ms = float(max_skew_ms)
+        self.config = self._checked(delay, per_camera or {}, seed)
+        rngs = camera_rngs(self.config.seed, n_cameras)
+        self._links = {n: Link(self.config.spec_of(n), rngs[n - 1]) for n in self.camera_ids}
+        self._reseed: dict[int, np.random.Generator] = {}
+        self._stats = {n: LinkStats(n, self._links[n].delay) for n in self.camera_ids}
+        self._heap: list[Pending] = []
+        self._order = itertools.count()
+
+    # ------------------------------------------------------------------ configuration
+    def _checked(self, delay: str, per_camera: dict[int, str], seed: int) -> ChannelConfig:
+        """Validate a full config (raises ``DelaySpecError`` / ``ChannelConfigError``)."""
+        spec = parse_delay(delay).spec
+        unknown = sorted(set(per_camera) - self._accepted)
+        if unknown:
+            raise ChannelConfigError(
+                f"per_camera names unknown camera id(s) {unknown}; the links are cameras "
+                f"{self.camera_ids[0]}..{self.camera_ids[-1]}")
+        overrides: dict[int, str] = {}
+        for n, camera_spec in sorted(per_camera.items()):
+            try:
+                overrides[n] = parse_delay(camera_spec).spec
+            except ValueError as err:
+                raise ChannelConfigError(f"per_camera {n}: {err}") from err
+        if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+            raise ChannelConfigError(f"seed must be an integer >= 0, got {seed!r}")
+        return ChannelConfig(delay=spec, per_camera=overrides, seed=seed)
+
+    def update(self, *, delay: str | None = None, per_camera: dict[int, str] | None = None,
+               seed: int | None = None) -> ChannelConfig:
+        """Partial update (``per_camera`` replaces the whole override map); nothing changes
+        when it raises ``DelaySpecError`` or ``ChannelConfigError``.
+
+        A new delay applies to the frames offered from now on (a frame in flight keeps its
+        delivery slot). A new seed restarts each link's random stream once its frame in
+        flight is delivered.
+        """
+        old = self.config
+        new = self._checked(old.delay if delay is None else delay,
+                            old.per_camera if per_camera is None else per_camera,
+                            old.seed if seed is None else seed)
+        for n, link in self._links.items():
+            if link.delay.spec != new.spec_of(n):
+                link.set_delay(new.spec_of(n))
+                self._stats[n].delay = link.delay
+        if new.seed != old.seed:
+            rngs = camera_rngs(new.seed, len(self.camera_ids))
+            self._reseed = {n: rngs[n - 1] for n in self.camera_ids}
+        self.config = new
+        return new
+
+    def link_stats(self, now_ms: float) -> list[LinkStats]:
+        """A snapshot of every link's counts and state at ``now_ms``."""
+        return [LinkStats(n, s.delay, s.offered, s.dropped, s.delivered,
+                          self._links[n].in_flight(now_ms)) for n, s in self._stats.items()]
+
+    # ------------------------------------------------------------------ frames
+    def offer(self, key: str, payload: bytes, now_ms: float) -> tuple[int, Pending | None]:
+        """Offer a camera's frame (published on ``key``) to its link at ``now_ms``: (camera,
+        the queued delivery) or (camera, None) when the link dropped it. Raises
+        :class:`Rejected` for a malformed frame, a key naming another camera or a frame from
+        the future."""
+        frame = decode_frame(payload, self._accepted)
+        key_camera = key.rsplit("/", 2)[-2]
+        if key_camera != str(frame.camera_id):
+            raise Rejected("key_mismatch", f"frame of camera {frame.camera_id} published on "
+                                           f"{key}")
+        if frame.generation_ms > now_ms + self._max_skew_ms:
+            raise Rejected("clock_skew",
+                           f"frame generated at {frame.generation_ms:.0f} ms but the clock "
+                           f"says {now_ms:.0f} ms; check AOI3D_EPOCH_S and AOI3D_TIME_SCALE")
+        n = frame.camera_id
+        link = self._links[n]
+        rng = self._reseed.get(n)
+        if rng is not None and not link.in_flight(frame.generation_ms):
+            link = self._links[n] = Link(link.delay, rng)
+            del self._reseed[n]
+        slot = link.offer(frame.generation_ms)
+        stats = self._stats[n]
+        stats.offered += 1
+        if slot is None:
+            stats.dropped += 1
+            return n, None
+        item = Pending(float(slot), next(self._order), n, frame.generation_ms, payload)
+        heapq.heappush(self._heap, item)
+        return n, item
+
+    @property
+    def pending(self) -> int:
+        """Frames in flight (accepted, not yet handed out)."""
+        return len(self._heap)
+
+    def next_due_ms(self) -> float | None:
+        """Delivery time of the next frame in flight; None when none is."""
+        return self._heap[0].delivery_ms if self._heap else None
+
+    def pop_due(self, now_ms: float) -> list[Pending]:
+        """Every frame whose delivery slot is at or before ``now_ms``, in delivery order;
+        each counts as delivered."""
+        out = []
+        while self._heap and self._heap[0].delivery_ms <= now_ms:
+            item = heapq.heappop(self._heap)
+            self._stats[item.camera_id].delivered += 1
+            out.append(item)
+        return out
