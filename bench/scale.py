@@ -10,11 +10,11 @@ the PSNR of the window's renders (mean ± 95 % CI, from the metrics service), an
 bytes per second of the run (a subscriber on ``aoi3d/<run>/**`` counting payload bytes: the
 traffic one site puts through a router; in a window of its own after the renders', since the
 subscriber costs CPU), and the cores each process of the pipeline used in the window. It
-ends with the arithmetic for a larger farm from
-the measured per-worker throughput and per-site bytes.
+ends with the arithmetic for a larger farm from the measured per-worker throughput and
+per-site bytes.
 
     python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
-    python bench/scale.py --configs 1x1,2x1 --measure-s 90
+    python bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
 
 The machine's other load is recorded (load average before and after each run).
 """
@@ -237,12 +237,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
 
 
 def farm(rows: list[dict], sites: int, cameras: int, time_scale: float) -> dict:
-    """The arithmetic for ``sites`` sites from the measured rows: worker cores to render every
-    decision, and router bandwidth."""
-    one = next(r for r in rows if r["workers"] == 1 and r["sites"] == 1)
-    per_worker = one["renders_per_s"]
-    decisions = one["decisions_per_s"] * sites
-    site_bytes = one["zenoh_bytes_per_s"] * cameras / 18
+    """The arithmetic for ``sites`` sites from the measured rows (the medians of the ``1x1``
+    passes): worker cores to render every decision, and router bandwidth."""
+    ones = [r for r in rows if r["workers"] == 1 and r["sites"] == 1]
+    per_worker = statistics.median(r["renders_per_s"] for r in ones)
+    decisions = statistics.median(r["decisions_per_s"] for r in ones) * sites
+    site_bytes = statistics.median(r["zenoh_bytes_per_s"] for r in ones) * cameras / 18
     return {
         "sites": sites, "cameras_per_site": cameras, "time_scale": time_scale,
         "renders_per_s_per_worker": per_worker,
