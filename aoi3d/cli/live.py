@@ -490,6 +490,8 @@ def sweep(
     = 7447,
     time_scale: Annotated[float, typer.Option(
         help="Time scale of the pipeline --up starts.")] = 0.1,
+    workers: Annotated[int, typer.Option(
+        min=1, help="Reconstruction workers of the pipeline --up starts.")] = 1,
     sim: Annotated[bool, typer.Option(
         help="Overlay the virtual-clock curve (same scene, channel, carry, budget).")] = True,
     sim_seeds: Annotated[int, typer.Option(
@@ -534,7 +536,7 @@ def sweep(
         if up:
             run_id = f"live-sweep-{os.getpid()}"
             proc = _start_pipeline(port_offset, zenoh_port, time_scale, run_id, timeout_s,
-                                   ["--dataset", str(dataset)])
+                                   ["--dataset", str(dataset), "--workers", str(workers)])
             _wait("every service to be ready", pipe.ready, 10 * timeout_s, every_s=1.0)
         try:
             status0 = pipe.call("GET", "trainer", "/status")

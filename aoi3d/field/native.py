@@ -36,6 +36,8 @@ from typing import Any
 
 import torch
 
+from aoi3d.atomic import atomic_path
+
 __all__ = ["adam_dense", "available", "grid_query", "latlong_background", "lazy_adam_rows",
            "sample_uniform", "volume_render", "weighted_colour_error"]
 
@@ -95,12 +97,9 @@ def _build() -> ctypes.CDLL | None:
                 log.info("no C compiler: the torch fallback of aoi3d.field.native runs")
                 return None
             try:
-                folder.mkdir(parents=True, exist_ok=True)
-                fd, tmp = tempfile.mkstemp(suffix=".so", dir=folder)
-                os.close(fd)
-                subprocess.run([cc, *_FLAGS, "-o", tmp, str(_SOURCE), "-lm"], check=True,
-                               capture_output=True, timeout=120)
-                os.replace(tmp, lib_path)  # atomic: concurrent builders agree
+                with atomic_path(lib_path) as tmp:  # concurrent builders agree
+                    subprocess.run([cc, *_FLAGS, "-o", str(tmp), str(_SOURCE), "-lm"],
+                                   check=True, capture_output=True, timeout=120)
             except (OSError, subprocess.SubprocessError) as exc:
                 log.info("could not build %s in %s (%s)", name, folder, exc)
                 continue
