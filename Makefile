@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live figures science clean help \
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 figures science clean help \
         lock wheelhouse secrets images compose-test
 
 help:  ## list the targets
@@ -55,7 +55,7 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine-rotor
 	$(PY) bench/staleness.py --dataset data/turbine
-	$(PY) bench/scale.py
+	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
 	$(PY) bench/chaos.py --minutes 10
 	$(PY) bench/soak.py --minutes 60
 
@@ -67,6 +67,15 @@ bench-live: install  ## the live sweep on a pipeline of its own, with the virtua
 	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
 	    --sim-seeds 16 --out bench/results/live-sweep
+
+bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (2 workers) and the scaling bench (about 22 min)
+	$(VENV)/bin/aoi3d scene generate --width 192 --height 144 --workers 2 \
+	    --out data/turbine-rotor-192x144
+	$(VENV)/bin/aoi3d live sweep --up --workers 2 --dataset data/turbine-rotor-192x144 \
+	    --port-offset 2000 --zenoh-port 9447 --policies mat:40,mat:70,mat:130,all \
+	    --settle-s 10 --measure-s 75 --repeats 2 --no-sim --out bench/results/live-sweep-192x144
+	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --dataset data/turbine-rotor-192x144 \
+	    --out bench/results/scale-192x144.json
 
 science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (17–21 min on 2 cores; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) bench/science.py $(SCIENCE_ARGS)

@@ -38,6 +38,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 OFFSET = 3000  # REST ports 11101..11106, so a running `make up` is not disturbed
 ZENOH_PORT = 7647
+DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
 
 
@@ -141,7 +142,7 @@ def tree_cpu_s(root: int) -> dict[str, float]:
 def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
     run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", run_id,
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(args.dataset), "--run-id", run_id,
            "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET), "--log-dir",
            str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
            "--workers", str(workers), "--sites", str(sites)]
@@ -293,12 +294,17 @@ def main() -> None:
     ap.add_argument("--bytes-s", type=float, default=10.0,
                     help="wall seconds of the Zenoh byte count, after the renders' window")
     ap.add_argument("--ready-timeout-s", type=float, default=180.0)
-    ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine-rotor"))
+    ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET,
+                    help="the scene (default: the live pipeline's, generated when missing)")
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scale.json",
+                    help="the JSON file written")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     args = ap.parse_args()
-    if not (Path(args.dataset) / "scene.json").is_file():
-        subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--framing",
-                        "rotor", "--rotor-rpm", "6", "--out", args.dataset], check=True)
+    if Path(args.dataset) == DEFAULT_DATASET:  # generated when missing ("up to date" if not)
+        subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--out",
+                        args.dataset], check=True)
+    elif not Path(args.dataset).is_dir():
+        raise SystemExit(f"no dataset at {args.dataset} (aoi3d scene generate --out …)")
     configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
     rows = []
     for rep in range(args.repeats):
@@ -319,7 +325,7 @@ def main() -> None:
            "farm": farm(rows, 10, 18, args.time_scale) if base else None,
            "command": " ".join(["python", "bench/scale.py", *sys.argv[1:]]),
            "cpus": os.cpu_count()}
-    out = ROOT / "bench" / "results" / "scale.json"
+    out = args.out
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(doc, indent=2) + "\n")
     print(json.dumps(doc, indent=2) if args.json else f"written: {out}")
