@@ -73,6 +73,7 @@ from scipy import ndimage
 __all__ = [
     "DYNAMIC_DILATION_PX",
     "DYNAMIC_FRAMES",
+    "DYNAMIC_REWARD",
     "DYNAMIC_TAU",
     "PSNR_CAP_DB",
     "SSIM_SIGMA",
@@ -243,16 +244,34 @@ def dynamic_score(pred: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> Dyna
 
 @dataclass(frozen=True)
 class RewardWeights:
-    """Weights of the reward ``psnr·PSNR_dB + ssim·SSIM + lpips·LPIPS`` (LPIPS: lower is better)."""
+    """Weights of the reward ``psnr·PSNR_dB + ssim·SSIM + lpips·LPIPS + psnr_dynamic·
+    PSNR_dyn_dB + ssim_dynamic·SSIM_dyn`` (LPIPS: lower is better).
+
+    The default is the founding paper's reward (no dynamic terms).
+    :data:`DYNAMIC_REWARD` weights what moves instead: the dynamic region's PSNR and SSIM in
+    place of the full image's (see :func:`score` for a render with nothing moving)."""
 
     psnr: float = 0.02
     ssim: float = 0.5
     lpips: float = -1.0
+    psnr_dynamic: float = 0.0
+    ssim_dynamic: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("psnr", "ssim", "lpips"):
+        for name in ("psnr", "ssim", "lpips", "psnr_dynamic", "ssim_dynamic"):
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"reward weight {name} must be finite, got {getattr(self, name)}")
+
+    @property
+    def dynamic(self) -> bool:
+        """Whether the reward has a dynamic-region term."""
+        return self.psnr_dynamic != 0.0 or self.ssim_dynamic != 0.0
+
+
+DYNAMIC_REWARD = RewardWeights(psnr=0.0, ssim=0.0, lpips=-1.0, psnr_dynamic=0.02,
+                               ssim_dynamic=0.5)
+"""The paper's weights on the dynamic region (the blades: what someone watching a turbine
+looks at) instead of the whole image; LPIPS stays full-image."""
 
 
 @dataclass(frozen=True)
@@ -280,7 +299,11 @@ def score(
 
     Without ``lpips_fn`` the LPIPS term is unavailable: ``lpips`` is None and the reward is
     ``weights.psnr·psnr_db + weights.ssim·ssim`` with ``reward_terms == ("psnr", "ssim")``.
-    ``previous`` None (or empty): ``dynamic`` is None. The reward never uses ``dynamic``.
+    ``previous`` None (or empty): ``dynamic`` is None. The reward uses ``dynamic`` only
+    through the weights ``psnr_dynamic`` and ``ssim_dynamic``; those need ``previous``
+    (``ValueError`` without it), and where the dynamic region has nothing to score (an empty
+    mask: nothing moved) the full image's PSNR or SSIM stands in, named ``psnr_dynamic=full``
+    or ``ssim_dynamic=full`` in ``reward_terms``.
     """
     w = weights
     p, t = _pair(pred, truth)
@@ -301,6 +324,19 @@ def score(
             raise ValueError(f"lpips_fn returned a non-finite value: {lpips_value}")
         reward += w.lpips * lpips_value
         terms = (*terms, "lpips")
+    if w.dynamic:
+        if dynamic is None:
+            raise ValueError("the reward weighs the dynamic region (psnr_dynamic, "
+                             "ssim_dynamic) but no earlier truth frames were given")
+        for name, weight, value, full in (("psnr_dynamic", w.psnr_dynamic, dynamic.psnr_db,
+                                           psnr_db),
+                                          ("ssim_dynamic", w.ssim_dynamic, dynamic.ssim,
+                                           ssim_value)):
+            if weight == 0.0:
+                continue
+            reward += weight * (full if value is None else value)
+            terms = (*terms, name if value is not None else f"{name}=full")
+    terms = tuple(t for t in terms if getattr(w, t.split("=")[0]) != 0.0)  # weighed ones only
     return QualityScore(
         psnr_db=psnr_db, ssim=ssim_value, lpips=lpips_value, reward=reward, reward_terms=terms,
         dynamic=dynamic,

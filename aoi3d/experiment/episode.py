@@ -277,7 +277,9 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
         **({"render_steps": cfg.render_steps} if cfg.carry == "fork" else {}),
-        "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips],
+        "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
+                                       *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
+                                         if cfg.reward.dynamic else [])],
         "seed": plan.seed, "scene_offset_ms": plan.scene_offset_ms,
         "decisions": [
             [d.eval_ms, d.cameras, d.gen_ms, d.train, d.scored] for d in plan.decisions

@@ -42,6 +42,14 @@ class Settings(ServiceSettings):
         _DEFAULT_WEIGHTS.lpips, allow_inf_nan=False,
         description="Reward weight of the LPIPS term (negative: lower LPIPS is better); "
                     "unused while LPIPS is unavailable.")
+    reward_psnr_dynamic: float = Field(
+        _DEFAULT_WEIGHTS.psnr_dynamic, allow_inf_nan=False,
+        description="Reward weight of the dynamic region's PSNR (per dB; 0: the paper's "
+                    "reward). The dynamic reward weighs what moves: PSNR 0, SSIM 0, "
+                    "PSNR_DYNAMIC 0.02, SSIM_DYNAMIC 0.5, LPIPS -1.")
+    reward_ssim_dynamic: float = Field(
+        _DEFAULT_WEIGHTS.ssim_dynamic, allow_inf_nan=False,
+        description="Reward weight of the dynamic region's SSIM (0: the paper's reward).")
     lpips: bool = Field(
         True, description="Compute LPIPS when its weights are cached (`python -m aoi3d.lpips "
                           "fetch`, run by `make install`); without them, or when false, LPIPS is "
@@ -71,4 +79,5 @@ class Settings(ServiceSettings):
     def reward_weights(self) -> RewardWeights:
         """The reward weights as the domain's :class:`RewardWeights`."""
         return RewardWeights(psnr=self.reward_psnr, ssim=self.reward_ssim,
-                             lpips=self.reward_lpips)
+                             lpips=self.reward_lpips, psnr_dynamic=self.reward_psnr_dynamic,
+                             ssim_dynamic=self.reward_ssim_dynamic)

@@ -10,6 +10,7 @@ import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from aoi3d.quality import (
+    DYNAMIC_REWARD,
     DYNAMIC_TAU,
     PSNR_CAP_DB,
     DynamicScore,
@@ -301,3 +302,44 @@ def test_dynamic_score_rejects_a_mask_of_the_wrong_shape_or_type() -> None:
         dynamic_score(image, image, np.zeros((20, 31), bool))
     with pytest.raises(ValueError, match="bool"):
         dynamic_score(image, image, np.zeros((20, 30), np.uint8))
+
+
+def test_the_dynamic_reward_weighs_the_dynamic_region_instead_of_the_whole_image() -> None:
+    before2, before1, now = _square_at(15, 3), _square_at(15, 13), _square_at(15, 23)
+    pred = now.copy()
+    pred[15:23, 23:31] += 0.1  # the moving square is off
+    s = score(pred, now, DYNAMIC_REWARD, previous=[before1, before2])
+    assert s.dynamic is not None and s.dynamic.psnr_db is not None
+    assert s.reward == pytest.approx(0.02 * s.dynamic.psnr_db + 0.5 * s.dynamic.ssim)
+    assert s.reward_terms == ("psnr_dynamic", "ssim_dynamic")  # no LPIPS fn, weight-0 terms out
+    # The same error on a static part costs the dynamic reward nothing, the paper's a lot.
+    still_err = now.copy()
+    still_err[0:8, 0:8] += 0.1
+    prev = [before1, before2]
+    a, perfect = score(still_err, now, DYNAMIC_REWARD, previous=prev), score(
+        now, now, DYNAMIC_REWARD, previous=prev)
+    assert a.reward == pytest.approx(perfect.reward) and a.reward > s.reward
+    paper, paper_perfect = score(still_err, now, previous=prev), score(now, now, previous=prev)
+    assert paper.reward < paper_perfect.reward - 0.1
+    # With LPIPS the full-image LPIPS term stays.
+    lp = score(pred, now, DYNAMIC_REWARD, lambda p, t: 0.25, previous=[before1, before2])
+    assert lp.reward == pytest.approx(s.reward - 0.25)
+    assert lp.reward_terms == ("lpips", "psnr_dynamic", "ssim_dynamic")
+
+
+def test_the_dynamic_reward_falls_back_to_the_full_image_when_nothing_moved() -> None:
+    still = _square_at(15, 20)
+    pred = np.clip(still + 0.1, 0, 1)
+    s = score(pred, still, DYNAMIC_REWARD, previous=[still, still])
+    assert s.dynamic.psnr_db is None
+    assert s.reward == pytest.approx(0.02 * s.psnr_db + 0.5 * s.ssim)
+    assert s.reward_terms == ("psnr_dynamic=full", "ssim_dynamic=full")
+
+
+def test_the_dynamic_reward_needs_earlier_truth_frames_and_finite_weights() -> None:
+    pred, truth = _pair()
+    with pytest.raises(ValueError, match="no earlier truth frames"):
+        score(pred, truth, DYNAMIC_REWARD)
+    with pytest.raises(ValueError, match="psnr_dynamic"):
+        RewardWeights(psnr_dynamic=math.inf)
+    assert not RewardWeights().dynamic and DYNAMIC_REWARD.dynamic
