@@ -269,6 +269,21 @@ def test_dynamic_region_score_in_quality_rest_and_metrics(make_harness) -> None:
     assert metric(text, "aoi3d_render_dynamic_fraction") == pytest.approx(q.dynamic_fraction)
 
 
+def test_the_dynamic_reward_setting_scores_the_dynamic_region(make_harness) -> None:
+    h = make_harness(settings_kw={"reward_psnr": 0.0, "reward_ssim": 0.0,
+                                  "reward_psnr_dynamic": 0.02, "reward_ssim_dynamic": 0.5})
+    for gen_ms, col in ((300.0, 2), (330.0, 9), (360.0, 16)):
+        h.bus.publish(KEYS.truth, truth(gen_ms, image=square_scene(col)))
+    gt = square_scene(16)
+    pred = gt.astype(np.int16)
+    pred[grown(16)] += 25
+    q = h.score(360.0, pred.astype(np.uint8), decision_id=6)
+    assert q.reward == pytest.approx(0.02 * q.psnr_dynamic_db + 0.5 * q.ssim_dynamic)
+    assert list(q.reward_terms) == ["psnr_dynamic", "ssim_dynamic"]
+    assert h.client.get("/quality").json()["summary"]["reward_terms"] == [
+        "psnr_dynamic", "ssim_dynamic"]
+
+
 def test_dynamic_score_without_earlier_truth_is_null_and_counted(make_harness) -> None:
     h = make_harness()  # truth at 0, 30, 60, 90 ms
     for t in (0.0, 30.0):  # t − 2C (and at 0 also t − C) was never generated
