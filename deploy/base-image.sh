@@ -6,7 +6,8 @@
 #   docker build --build-arg BASE_IMAGE=$(deploy/base-image.sh) -f deploy/Dockerfile .
 #
 # bookworm's python3 is 3.11, as requires-python asks; python3-venv gives the image's venv its
-# pip. The tag is a hash of this script, so an unchanged script finds its image in the engine
+# pip; gcc and libc6-dev build the fused kernels of aoi3d/field/native.py in the image's build
+# stage (the build runs with no network, so the compiler must be in the base). The tag is a hash of this script, so an unchanged script finds its image in the engine
 # (seconds); a rootfs tarball cached in AOI3D_BASE_CACHE (default ~/.cache/aoi3d/base) is
 # imported without debootstrap after the engine's images are gone. Needs root, debootstrap
 # (installed with apt if missing) and a Debian mirror (AOI3D_DEBIAN_MIRROR).
@@ -14,7 +15,7 @@ set -euo pipefail
 
 SUITE=bookworm
 MIRROR=${AOI3D_DEBIAN_MIRROR:-http://deb.debian.org/debian}
-PACKAGES=python3,python3-venv,ca-certificates
+PACKAGES=python3,python3-venv,ca-certificates,gcc,libc6-dev
 CACHE=${AOI3D_BASE_CACHE:-$HOME/.cache/aoi3d/base}
 HASH=$( (cat "$0"; echo "$SUITE $PACKAGES") | sha256sum | cut -c1-12)
 TAG=aoi3d-base:$SUITE-$HASH

@@ -18,6 +18,12 @@ DOMAIN_VARIABLES: dict[str, tuple[str, str]] = {
     "AOI3D_LPIPS_WEIGHTS": ("`$XDG_CACHE_HOME/aoi3d/lpips`",
                             "Folder of the cached LPIPS weights (`python -m aoi3d.lpips fetch` "
                             "writes it, the metrics service reads it)."),
+    "AOI3D_CACHE": ("(unset: `~/.cache/aoi3d`)",
+                    "Folder whose `native/` holds the compiled fused kernels "
+                    "(aoi3d/field/native.py), looked in first; the service image sets it to "
+                    "`/opt/aoi3d-cache`, compiled in its build stage."),
+    "AOI3D_NATIVE": ("`1`", "0 turns the fused C kernels off: the torch code runs (same "
+                            "results up to float rounding, about 3× slower)."),
 }
 
 
