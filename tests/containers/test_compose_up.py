@@ -266,12 +266,15 @@ def test_a_killed_trainer_is_restarted(stack: Stack) -> None:
     restarts the container (restart: unless-stopped) and it becomes healthy again. (A
     `docker kill` would count as stopping it by hand: Docker leaves such a container down.)"""
     before = stack.inspect("trainer")
-    stack.compose("exec", "-T", "trainer", "python", "-c",
-                  "import os, signal\n"
-                  "for pid in filter(str.isdigit, os.listdir('/proc')):\n"
-                  "    cmd = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')\n"
-                  "    if cmd[:3] == [b'python', b'-m', b'services.trainer']:\n"
-                  "        os.kill(int(pid), signal.SIGKILL)\n")
+    killer = stack.compose("exec", "-T", "trainer", "python", "-c",
+                           "import os, signal\n"
+                           "for pid in filter(str.isdigit, os.listdir('/proc')):\n"
+                           "    cmd = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')\n"
+                           "    if cmd[:3] == [b'python', b'-m', b'services.trainer']:\n"
+                           "        os.kill(int(pid), signal.SIGKILL)\n", check=False)
+    # 137: the container went down with its main process before the exec'd script exited,
+    # and took the script with it (a race, seen once); the restart below is the evidence
+    assert killer.returncode in (0, 137), killer.stdout + killer.stderr
     # the engine counts the restart when it schedules it, and sets StartedAt once the new
     # process runs: wait for both
     wait_for("the trainer restarted", lambda: (
