@@ -57,7 +57,7 @@ class ConsoleWorker:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         core = self.core
-        self._bus.subscribe(self._keys.truth, self._guard(lambda p: core.on_truth(p)))
+        self._bus.subscribe(self._keys.truth, self._guard(core.on_truth))
         self._bus.subscribe(self._keys.render, self._guard(self._on_render))
         self._bus.subscribe(self._keys.quality,
                             self._guard(lambda p: core.on_quality(p, time.time())))

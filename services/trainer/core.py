@@ -117,10 +117,10 @@ class TrainerCore:
         self._decisions: dict[tuple[int, int], pb.Decision] = {}
         """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
         self._highest: dict[int, int] = {}
+        """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
         self._arrived: OrderedDict[tuple[str, int, int], float] = OrderedDict()
         """Wall s each recent decision reached the trainer (its render's age is measured from
         it, whether or not the worker's report of the job came first)."""
-        """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
         self.latest: LatestRender | None = None
         self._latest_incarnation = 0
         self.frames_received = 0

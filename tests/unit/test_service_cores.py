@@ -98,6 +98,7 @@ def test_a_link_delivers_after_its_delay_and_drops_while_busy() -> None:
     assert n == 1 and first is not None and first.delivery_ms == 50.0
     assert core.offer("aoi3d/x/cam/1/frame", offered(1, 30.0), now_ms=30.0) == (1, None)
     _, other = core.offer("aoi3d/x/cam/2/frame", offered(2, 10.0), now_ms=10.0)
+    assert other is not None and other.delivery_ms == 60.0
     assert core.pending == 2 and core.next_due_ms() == 50.0
     assert core.pop_due(49.0) == []
     assert [p.camera_id for p in core.pop_due(60.0)] == [1, 2]  # in delivery order
