@@ -18,7 +18,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -28,6 +28,9 @@ from aoi3d.field.background import latlong_background
 from aoi3d.field.encodings import cell_index, grid_shape, vertex_coords
 from aoi3d.field.rays import RayBundle
 from aoi3d.field.render import RenderOptions, RenderResult, render_uniform
+
+if TYPE_CHECKING:
+    from aoi3d.field.optim import LazyAdam
 
 __all__ = [
     "CoarseToFineConfig",
@@ -242,6 +245,16 @@ class Field(nn.Module, ABC):
         is not used.
         """
         return render_uniform(self, rays, options)
+
+    def train_step(self, rays: RayBundle, options: RenderOptions, target: torch.Tensor,
+                   optimizer: LazyAdam) -> float | None:
+        """Hook: one whole training step on ``rays`` and their ``target`` colours (R, 3) —
+        render, the trainer's loss (:meth:`aoi3d.field.trainer.FieldTrainer.step`, unweighted),
+        gradients and ``optimizer``'s update — done by the field itself, faster than the
+        trainer's autograd step and equal to it up to float rounding; returns the step's
+        colour MSE. None (default): nothing was done, not even a random draw; the trainer
+        takes its autograd step."""
+        return None
 
     def reset_appearance(self, rows: torch.Tensor) -> None:
         """Hook: the trainer gave appearance ``rows`` (int64) to new images; a field with

@@ -12,6 +12,13 @@ and the volume renderer's float64 prefix sums. Two fused kernels in plain C
 - :func:`volume_render` — NeRF's compositing of packed samples
   (:func:`aoi3d.field.render.volume_render`), forward and backward.
 
+With the uniform sampler, the lat-long background, the per-sample colour loss and
+``LazyAdam``'s updates fused too, what was left of a step was autograd's own bookkeeping
+(graph, saved tensors, sparse gradient tensors; a third of the step): the ``grid`` backend
+therefore takes its whole training step through these kernels without autograd
+(:func:`grid_training_grads`, called by ``DenseGridField.train_step``), the gradients the
+autograd path computes, from the same random draws.
+
 The source is compiled at first use with the system C compiler (``$CC``, else ``cc`` or
 ``gcc``; ``-O3``, no Python or torch headers, a fraction of a second) into
 ``$AOI3D_CACHE/native`` (default ``~/.cache/aoi3d/native``, else the temporary directory),
@@ -38,8 +45,9 @@ import torch
 
 from aoi3d.atomic import atomic_path
 
-__all__ = ["adam_dense", "available", "grid_query", "latlong_background", "lazy_adam_rows",
-           "sample_uniform", "volume_render", "weighted_colour_error"]
+__all__ = ["adam_dense", "available", "grid_query", "grid_step_available", "grid_training_grads",
+           "latlong_background", "lazy_adam_rows", "sample_uniform", "volume_render",
+           "weighted_colour_error"]
 
 log = logging.getLogger(__name__)
 
@@ -157,19 +165,44 @@ def _workspace(n_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
     return cached
 
 
+def _grid_forward(lib: ctypes.CDLL, table: torch.Tensor, points: torch.Tensor,
+                  geometry: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
+    """σ (P,), rgb (P, 3) and dσ/d raw density (P,) of the grid's query (contiguous inputs)."""
+    lo, factor, shape = geometry
+    n = points.shape[0]
+    sigma = points.new_empty(n)
+    rgb = points.new_empty(n, 3)
+    sigma_grad = points.new_empty(n)
+    lib.grid_query_forward(table.data_ptr(), points.data_ptr(), n, lo.data_ptr(),
+                           factor.data_ptr(), shape.data_ptr(), sigma.data_ptr(),
+                           rgb.data_ptr(), sigma_grad.data_ptr())
+    return sigma, rgb, sigma_grad
+
+
+def _grid_backward(lib: ctypes.CDLL, n_rows: int, points: torch.Tensor,
+                   geometry: tuple[torch.Tensor, ...], grad_sigma: torch.Tensor | None,
+                   grad_rgb: torch.Tensor | None, rgb: torch.Tensor,
+                   sigma_grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The table's row-sparse gradient: its rows (increasing) and values (rows, 4)."""
+    lo, factor, shape = geometry
+    dense, touched = _workspace(n_rows)
+    rows = torch.empty(n_rows, dtype=torch.int64)
+    values = points.new_empty(n_rows, 4)
+    count = lib.grid_query_backward(points.data_ptr(), points.shape[0], lo.data_ptr(),
+                                    factor.data_ptr(), shape.data_ptr(), _ptr(grad_sigma),
+                                    _ptr(grad_rgb), rgb.data_ptr(), sigma_grad.data_ptr(),
+                                    n_rows, dense.data_ptr(), touched.data_ptr(),
+                                    rows.data_ptr(), values.data_ptr())
+    return rows[:count], values[:count]
+
+
 class _GridQuery(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, table: torch.Tensor, points: torch.Tensor, lo: torch.Tensor,
                 factor: torch.Tensor, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lib = _lib()
         assert lib is not None
-        n = points.shape[0]
-        sigma = points.new_empty(n)
-        rgb = points.new_empty(n, 3)
-        sigma_grad = points.new_empty(n)
-        lib.grid_query_forward(table.data_ptr(), points.data_ptr(), n, lo.data_ptr(),
-                               factor.data_ptr(), shape.data_ptr(), sigma.data_ptr(),
-                               rgb.data_ptr(), sigma_grad.data_ptr())
+        sigma, rgb, sigma_grad = _grid_forward(lib, table, points, (lo, factor, shape))
         ctx.save_for_backward(points, lo, factor, shape, rgb, sigma_grad)
         ctx.n_rows = table.shape[0]
         return sigma, rgb
@@ -183,16 +216,10 @@ class _GridQuery(torch.autograd.Function):
         n_rows = ctx.n_rows
         gs = None if grad_sigma is None else grad_sigma.contiguous()
         gc = None if grad_rgb is None else grad_rgb.contiguous()
-        dense, touched = _workspace(n_rows)
-        rows = torch.empty(n_rows, dtype=torch.int64)
-        values = points.new_empty(n_rows, 4)
-        count = lib.grid_query_backward(points.data_ptr(), points.shape[0], lo.data_ptr(),
-                                        factor.data_ptr(), shape.data_ptr(), _ptr(gs), _ptr(gc),
-                                        rgb.data_ptr(), sigma_grad.data_ptr(), n_rows,
-                                        dense.data_ptr(), touched.data_ptr(), rows.data_ptr(),
-                                        values.data_ptr())
-        grad = torch.sparse_coo_tensor(rows[:count][None], values[:count], (n_rows, 4),
-                                       is_coalesced=True, check_invariants=False)
+        rows, values = _grid_backward(lib, n_rows, points, (lo, factor, shape), gs, gc, rgb,
+                                      sigma_grad)
+        grad = torch.sparse_coo_tensor(rows[None], values, (n_rows, 4), is_coalesced=True,
+                                       check_invariants=False)
         return grad, None, None, None, None
 
 
@@ -230,22 +257,50 @@ def _grid_geometry(aabb: torch.Tensor, shape: tuple[int, ...]) -> tuple[torch.Te
 
 
 # --- volume rendering -----------------------------------------------------------------------
+def _volume_forward(lib: ctypes.CDLL, sigma: torch.Tensor, rgb: torch.Tensor,
+                    background: torch.Tensor, deltas: torch.Tensor,
+                    ray_index: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Colour (R, 3), transmittance (R,), weights, alpha and the transmittance in front of
+    each sample (P,) of packed samples (contiguous inputs)."""
+    n, r = sigma.shape[0], background.shape[0]
+    color = sigma.new_empty(r, 3)
+    transmittance = sigma.new_empty(r)
+    weights = sigma.new_empty(n)
+    alpha = sigma.new_empty(n)
+    before = sigma.new_empty(n)
+    lib.volume_render_forward(sigma.data_ptr(), rgb.data_ptr(), deltas.data_ptr(),
+                              ray_index.data_ptr(), n, background.data_ptr(), r,
+                              color.data_ptr(), transmittance.data_ptr(), weights.data_ptr(),
+                              alpha.data_ptr(), before.data_ptr())
+    return color, transmittance, weights, alpha, before
+
+
+def _volume_backward(lib: ctypes.CDLL, saved: tuple[torch.Tensor, ...],
+                     grads: tuple[torch.Tensor | None, ...]) -> tuple[torch.Tensor, ...]:
+    """Gradients of σ (P,), rgb (P, 3) and the background (R, 3) from those of colour,
+    transmittance, weights and alpha (contiguous or None); ``saved``: rgb, deltas, ray_index,
+    background and :func:`_volume_forward`'s transmittance, weights, alpha and before."""
+    rgb, deltas, ray_index, background, transmittance, weights, alpha, before = saved
+    n, r = weights.shape[0], background.shape[0]
+    grad_sigma = weights.new_empty(n)
+    grad_rgb = weights.new_empty(n, 3)
+    grad_bg = weights.new_empty(r, 3)
+    lib.volume_render_backward(rgb.data_ptr(), deltas.data_ptr(), ray_index.data_ptr(), n,
+                               background.data_ptr(), r, transmittance.data_ptr(),
+                               weights.data_ptr(), alpha.data_ptr(), before.data_ptr(),
+                               *(_ptr(g) for g in grads), grad_sigma.data_ptr(),
+                               grad_rgb.data_ptr(), grad_bg.data_ptr())
+    return grad_sigma, grad_rgb, grad_bg
+
+
 class _VolumeRender(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, sigma: torch.Tensor, rgb: torch.Tensor, background: torch.Tensor,
                 deltas: torch.Tensor, ray_index: torch.Tensor) -> tuple[torch.Tensor, ...]:
         lib = _lib()
         assert lib is not None
-        n, r = sigma.shape[0], background.shape[0]
-        color = sigma.new_empty(r, 3)
-        transmittance = sigma.new_empty(r)
-        weights = sigma.new_empty(n)
-        alpha = sigma.new_empty(n)
-        before = sigma.new_empty(n)
-        lib.volume_render_forward(sigma.data_ptr(), rgb.data_ptr(), deltas.data_ptr(),
-                                  ray_index.data_ptr(), n, background.data_ptr(), r,
-                                  color.data_ptr(), transmittance.data_ptr(), weights.data_ptr(),
-                                  alpha.data_ptr(), before.data_ptr())
+        color, transmittance, weights, alpha, before = _volume_forward(
+            lib, sigma, rgb, background, deltas, ray_index)
         ctx.save_for_backward(rgb, deltas, ray_index, background, transmittance, weights, alpha,
                               before)
         return color, transmittance, weights, alpha
@@ -255,19 +310,9 @@ class _VolumeRender(torch.autograd.Function):
                  g_weights: torch.Tensor | None, g_alpha: torch.Tensor | None) -> tuple[Any, ...]:
         lib = _lib()
         assert lib is not None
-        rgb, deltas, ray_index, background, transmittance, weights, alpha, before = (
-            ctx.saved_tensors)
-        n, r = weights.shape[0], background.shape[0]
-        grads = [None if g is None else g.contiguous()
-                 for g in (g_color, g_trans, g_weights, g_alpha)]
-        grad_sigma = weights.new_empty(n)
-        grad_rgb = weights.new_empty(n, 3)
-        grad_bg = weights.new_empty(r, 3)
-        lib.volume_render_backward(rgb.data_ptr(), deltas.data_ptr(), ray_index.data_ptr(), n,
-                                   background.data_ptr(), r, transmittance.data_ptr(),
-                                   weights.data_ptr(), alpha.data_ptr(), before.data_ptr(),
-                                   *(_ptr(g) for g in grads), grad_sigma.data_ptr(),
-                                   grad_rgb.data_ptr(), grad_bg.data_ptr())
+        grads = tuple(None if g is None else g.contiguous()
+                      for g in (g_color, g_trans, g_weights, g_alpha))
+        grad_sigma, grad_rgb, grad_bg = _volume_backward(lib, ctx.saved_tensors, grads)
         return grad_sigma, grad_rgb, grad_bg, None, None
 
 
@@ -286,15 +331,29 @@ def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, deltas: torch.Tensor,
 
 
 # --- the background ---------------------------------------------------------------------------
+def _latlong_forward(lib: ctypes.CDLL, env: torch.Tensor, dirs: torch.Tensor,
+                     up_axis: int) -> torch.Tensor:
+    rows, cols = env.shape[:2]
+    out = dirs.new_empty(dirs.shape[0], 3)
+    lib.latlong_forward(env.data_ptr(), rows, cols, dirs.data_ptr(), dirs.shape[0], up_axis,
+                        out.data_ptr())
+    return out
+
+
+def _latlong_backward(lib: ctypes.CDLL, env_shape: tuple[int, ...], dirs: torch.Tensor,
+                      up_axis: int, out: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
+    grad_env = out.new_zeros(env_shape)
+    lib.latlong_backward(env_shape[0], env_shape[1], dirs.data_ptr(), dirs.shape[0], up_axis,
+                         out.data_ptr(), grad_out.data_ptr(), grad_env.data_ptr())
+    return grad_env
+
+
 class _LatLong(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, env: torch.Tensor, dirs: torch.Tensor, up_axis: int) -> torch.Tensor:
         lib = _lib()
         assert lib is not None
-        rows, cols = env.shape[:2]
-        out = dirs.new_empty(dirs.shape[0], 3)
-        lib.latlong_forward(env.data_ptr(), rows, cols, dirs.data_ptr(), dirs.shape[0], up_axis,
-                            out.data_ptr())
+        out = _latlong_forward(lib, env, dirs, up_axis)
         ctx.save_for_backward(dirs, out)
         ctx.env_shape, ctx.up_axis = tuple(env.shape), up_axis
         return out
@@ -304,11 +363,8 @@ class _LatLong(torch.autograd.Function):
         lib = _lib()
         assert lib is not None
         dirs, out = ctx.saved_tensors
-        grad_env = out.new_zeros(ctx.env_shape)
-        lib.latlong_backward(ctx.env_shape[0], ctx.env_shape[1], dirs.data_ptr(), dirs.shape[0],
-                             ctx.up_axis, out.data_ptr(), grad_out.contiguous().data_ptr(),
-                             grad_env.data_ptr())
-        return grad_env, None, None
+        return (_latlong_backward(lib, ctx.env_shape, dirs, ctx.up_axis, out,
+                                  grad_out.contiguous()), None, None)
 
 
 def latlong_background(env: torch.Tensor, dirs: torch.Tensor,
@@ -321,6 +377,18 @@ def latlong_background(env: torch.Tensor, dirs: torch.Tensor,
 
 
 # --- the per-sample colour loss ---------------------------------------------------------------
+def _colour_error_backward(lib: ctypes.CDLL, colours: torch.Tensor, weights: torch.Tensor,
+                           target: torch.Tensor, ray_index: torch.Tensor,
+                           grad: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """Gradients of the colours (P, 3) and weights (P,) of ``grad`` · Σ_i w_i ‖c_i − t‖²."""
+    grad_colours = torch.empty_like(colours)
+    grad_weights = torch.empty_like(weights)
+    lib.weighted_colour_error_backward(colours.data_ptr(), weights.data_ptr(),
+                                       ray_index.data_ptr(), colours.shape[0], target.data_ptr(),
+                                       grad, grad_colours.data_ptr(), grad_weights.data_ptr())
+    return grad_colours, grad_weights
+
+
 class _WeightedColourError(torch.autograd.Function):
     @staticmethod
     def forward(ctx: Any, colours: torch.Tensor, weights: torch.Tensor, target: torch.Tensor,
@@ -338,13 +406,8 @@ class _WeightedColourError(torch.autograd.Function):
         lib = _lib()
         assert lib is not None
         colours, weights, target, ray_index = ctx.saved_tensors
-        grad_colours = torch.empty_like(colours)
-        grad_weights = torch.empty_like(weights)
-        lib.weighted_colour_error_backward(colours.data_ptr(), weights.data_ptr(),
-                                           ray_index.data_ptr(), colours.shape[0],
-                                           target.data_ptr(), float(grad), grad_colours.data_ptr(),
-                                           grad_weights.data_ptr())
-        return grad_colours, grad_weights, None, None
+        return (*_colour_error_backward(lib, colours, weights, target, ray_index, float(grad)),
+                None, None)
 
 
 def weighted_colour_error(colours: torch.Tensor, weights: torch.Tensor, target: torch.Tensor,
@@ -427,3 +490,61 @@ def sample_uniform(origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tens
                             n_rays, step, counts.data_ptr(), points.data_ptr(),
                             deltas.data_ptr(), ray_index.data_ptr())
     return points, deltas, ray_index
+
+
+# --- the grid's training step, without autograd ----------------------------------------------
+def grid_step_available(*tensors: torch.Tensor) -> bool:
+    """Whether :func:`grid_training_grads` can run on these tensors (float32 on the CPU, the
+    kernels built): the grid's training step is then fused (``DenseGridField.train_step``)."""
+    return _usable(*tensors)
+
+
+def grid_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[int, int, int],
+                        env: torch.Tensor, up_axis: int, points: torch.Tensor,
+                        deltas: torch.Tensor, ray_index: torch.Tensor, dirs: torch.Tensor,
+                        target: torch.Tensor, sample_rgb_loss: float, opacity_loss: float
+                        ) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One training step of the ``grid`` backend — query, background, volume rendering, loss
+    and backward — as the kernels above do them under autograd, without autograd's graph (on
+    the CPU a reconstruction's steps are small and autograd's bookkeeping is a third of their
+    time).
+
+    Inputs: the grid's ``table`` (N, 4), box and ``shape``; the background map ``env``; the
+    packed samples (``points``, ``deltas``, ``ray_index``) of R rays with unit ``dirs`` (R, 3)
+    and ``target`` colours (R, 3). The loss is the trainer's
+    (:meth:`aoi3d.field.trainer.FieldTrainer.step`, without the age-weighted variant):
+
+        MSE(C(r), C_gt) + sample_rgb_loss · Σ_i w_i ‖c_i − C_gt‖² / R + opacity_loss · Σ_i α_i / R
+
+    Returns the MSE (float), the table's row-sparse gradient (rows increasing, values
+    (rows, 4)) and the background's dense gradient. Check :func:`grid_step_available` first.
+    """
+    lib = _lib()
+    assert lib is not None
+    table, env, points, deltas, ray_index, dirs, target = (
+        t.detach().contiguous() for t in (table, env, points, deltas, ray_index, dirs, target))
+    geometry = _grid_geometry(aabb, tuple(shape))
+    n_rays = dirs.shape[0]
+    sigma, rgb, sigma_grad = _grid_forward(lib, table, points, geometry)
+    background = _latlong_forward(lib, env, dirs, up_axis)
+    color, transmittance, weights, alpha, before = _volume_forward(
+        lib, sigma, rgb, background, deltas, ray_index)
+    diff = color - target
+    mse = float(torch.mean(diff * diff))
+    g_color = diff * (2.0 / max(diff.numel(), 1))  # d MSE / d colour
+    g_weights = None
+    g_sample_rgb = None
+    if sample_rgb_loss > 0:
+        g_sample_rgb, g_weights = _colour_error_backward(lib, rgb, weights, target, ray_index,
+                                                         sample_rgb_loss / n_rays)
+    g_alpha = (weights.new_full(weights.shape, opacity_loss / n_rays) if opacity_loss > 0
+               else None)
+    saved = (rgb, deltas, ray_index, background, transmittance, weights, alpha, before)
+    grad_sigma, grad_rgb, grad_bg = _volume_backward(lib, saved,
+                                                     (g_color, None, g_weights, g_alpha))
+    if g_sample_rgb is not None:
+        grad_rgb += g_sample_rgb
+    grad_env = _latlong_backward(lib, tuple(env.shape), dirs, up_axis, background, grad_bg)
+    rows, values = _grid_backward(lib, table.shape[0], points, geometry, grad_sigma, grad_rgb,
+                                  rgb, sigma_grad)
+    return mse, rows, values, grad_env

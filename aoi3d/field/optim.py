@@ -53,37 +53,54 @@ class LazyAdam(torch.optim.Optimizer):
             with torch.enable_grad():
                 loss = closure()
         for group in self.param_groups:
-            lr, (beta1, beta2), eps = group["lr"], group["betas"], group["eps"]
             for p in group["params"]:
-                if p.grad is None:
-                    continue
-                state = self.state[p]
-                if not state:
-                    state["step"] = 0
-                    state["exp_avg"] = torch.zeros_like(p)
-                    state["exp_avg_sq"] = torch.zeros_like(p)
-                state["step"] += 1
-                t = state["step"]
-                step_size = lr / (1 - beta1**t)
-                root_bias = math.sqrt(1 - beta2**t)
-                m, v = state["exp_avg"], state["exp_avg_sq"]
-                grad = p.grad
-                if grad.is_sparse:
-                    # the kernel checks that the rows are unique (sorted) itself:
-                    if native.lazy_adam_rows(p, m, v, grad._indices()[0], grad._values(), beta1,
-                                             beta2, step_size, root_bias, eps):
-                        continue
-                    rows, g = _unique_rows(grad)
-                    m_rows = m.index_select(0, rows).lerp_(g, 1 - beta1)
-                    v_rows = v.index_select(0, rows).mul_(beta2).addcmul_(g, g, value=1 - beta2)
-                    m.index_copy_(0, rows, m_rows)
-                    v.index_copy_(0, rows, v_rows)
-                    denom = v_rows.sqrt_().div_(root_bias).add_(eps)
-                    p.index_add_(0, rows, m_rows.div_(denom).mul_(-step_size))
-                elif not native.adam_dense(p, m, v, grad, beta1, beta2, step_size, root_bias,
-                                           eps):
-                    m.lerp_(grad, 1 - beta1)
-                    v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
-                    denom = v.sqrt().div_(root_bias).add_(eps)
-                    p.addcdiv_(m, denom, value=-step_size)
+                if p.grad is not None:
+                    self._update(group, p, p.grad)
         return loss
+
+    @torch.no_grad()
+    def update(self, param: torch.Tensor,
+               grad: torch.Tensor | tuple[torch.Tensor, torch.Tensor]) -> None:
+        """One Adam step of ``param`` (one of this optimizer's) from ``grad`` given directly,
+        not through ``param.grad``: a dense or sparse COO tensor as :meth:`step` takes, or
+        ``(rows, values)`` of a row-sparse gradient (rows int64 (n,) of the 2-D ``param``,
+        values (n, C)). For training steps that compute their gradients without autograd
+        (``DenseGridField.train_step``); the result is :meth:`step`'s with that gradient."""
+        for group in self.param_groups:
+            if any(q is param for q in group["params"]):
+                self._update(group, param, grad)
+                return
+        raise ValueError("update: the tensor is not a parameter of this optimizer")
+
+    def _update(self, group: dict[str, Any], p: torch.Tensor,
+                grad: torch.Tensor | tuple[torch.Tensor, torch.Tensor]) -> None:
+        lr, (beta1, beta2), eps = group["lr"], group["betas"], group["eps"]
+        state = self.state[p]
+        if not state:
+            state["step"] = 0
+            state["exp_avg"] = torch.zeros_like(p)
+            state["exp_avg_sq"] = torch.zeros_like(p)
+        state["step"] += 1
+        t = state["step"]
+        step_size = lr / (1 - beta1**t)
+        root_bias = math.sqrt(1 - beta2**t)
+        m, v = state["exp_avg"], state["exp_avg_sq"]
+        if isinstance(grad, tuple) or grad.is_sparse:
+            rows, g = grad if isinstance(grad, tuple) else (grad._indices()[0], grad._values())
+            # the kernel checks that the rows are unique (sorted) itself:
+            if native.lazy_adam_rows(p, m, v, rows, g, beta1, beta2, step_size, root_bias, eps):
+                return
+            if isinstance(grad, tuple):
+                grad = torch.sparse_coo_tensor(rows[None], g, p.shape, check_invariants=False)
+            rows, g = _unique_rows(grad)
+            m_rows = m.index_select(0, rows).lerp_(g, 1 - beta1)
+            v_rows = v.index_select(0, rows).mul_(beta2).addcmul_(g, g, value=1 - beta2)
+            m.index_copy_(0, rows, m_rows)
+            v.index_copy_(0, rows, v_rows)
+            denom = v_rows.sqrt_().div_(root_bias).add_(eps)
+            p.index_add_(0, rows, m_rows.div_(denom).mul_(-step_size))
+        elif not native.adam_dense(p, m, v, grad, beta1, beta2, step_size, root_bias, eps):
+            m.lerp_(grad, 1 - beta1)
+            v.mul_(beta2).addcmul_(grad, grad, value=1 - beta2)
+            denom = v.sqrt().div_(root_bias).add_(eps)
+            p.addcdiv_(m, denom, value=-step_size)

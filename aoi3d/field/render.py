@@ -24,9 +24,10 @@ from typing import Protocol
 import torch
 
 from aoi3d.field import native
-from aoi3d.field.rays import RayBundle, sample_uniform
+from aoi3d.field.rays import RayBundle, RaySamples, sample_uniform
 
-__all__ = ["RenderOptions", "RenderResult", "SampledField", "render_uniform", "volume_render"]
+__all__ = ["RenderOptions", "RenderResult", "SampledField", "render_uniform", "sample_kept",
+           "volume_render"]
 
 
 class SampledField(Protocol):
@@ -123,17 +124,11 @@ def volume_render(
     return RenderResult(color, transmittance, weights, rgb, ray_index, alpha)
 
 
-def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
-                   ) -> RenderResult:
-    """The default renderer: sample the rays inside the box at ``options.ray_step``, skip
-    empty space, query the field, composite over its background.
-
-    Samples the field marks empty (``Field.occupied``) are skipped; ``options.explore`` > 0
-    keeps that fraction of them at random (drawn from ``options.generator``), so that density
-    can grow again where new frames need it. Appearance rows are not used. Rays with an age
-    (``rays.age_ms``, given only to a field that takes it) are queried at their image's age
-    (``query_aged``).
-    """
+def sample_kept(field: SampledField, rays: RayBundle, options: RenderOptions) -> RaySamples:
+    """The uniform sampler's samples of ``rays`` at ``options.ray_step`` that the field does
+    not skip as empty (``Field.occupied``); ``options.explore`` > 0 keeps that fraction of the
+    skipped ones at random, drawn from ``options.generator``, so that density can grow again
+    where new frames need it."""
     samples = sample_uniform(
         rays.origins, rays.dirs, rays.t_near, rays.t_far, options.ray_step, options.jitter
     )
@@ -146,6 +141,19 @@ def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
         keep = keep | lucky
     if keep is not None:
         samples = samples.select(keep)
+    return samples
+
+
+def render_uniform(field: SampledField, rays: RayBundle, options: RenderOptions
+                   ) -> RenderResult:
+    """The default renderer: sample the rays inside the box at ``options.ray_step``, skip
+    empty space, query the field, composite over its background.
+
+    The samples are :func:`sample_kept`'s. Appearance rows are not used. Rays with an age
+    (``rays.age_ms``, given only to a field that takes it) are queried at their image's age
+    (``query_aged``).
+    """
+    samples = sample_kept(field, rays, options)
     dirs = rays.dirs
     if field.view_dependent or dirs.shape[0] == 0:
         sample_dirs = dirs.index_select(0, samples.ray_index)

@@ -340,8 +340,14 @@ class FieldTrainer:
                 self.cfg.explore_empty,
                 self._generator,
             )
-            out = self._field.render_rays(rays, options)
             target = picked[:, 8:11]
+            if tau is None:  # the field's own fused step, where it has one
+                mse_fused = self._field.train_step(rays, options, target, self._optimizer)
+                if mse_fused is not None:
+                    self._steps += 1
+                    loss_value = mse_fused
+                    continue
+            out = self._field.render_rays(rays, options)
             sq = (out.rgb - target) ** 2
             mse = torch.mean(sq)
             sample_weights = out.weights

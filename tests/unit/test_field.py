@@ -17,6 +17,7 @@ from aoi3d.field import (
     TrainView,
     camera_rays,
     field_config,
+    native,
     ray_aabb,
     sample_uniform,
     volume_render,
@@ -257,7 +258,58 @@ def test_lazy_adam_leaves_untouched_rows_alone() -> None:
     torch.testing.assert_close(p[1].detach(), torch.full((2,), -0.5))
 
 
+def test_lazy_adam_update_takes_rows_and_values_as_step_takes_the_sparse_grad() -> None:
+    torch.manual_seed(4)
+    start = torch.randn(6, 4)
+    rows, values = torch.tensor([0, 2, 5]), torch.randn(3, 4)
+    by_step = start.clone().requires_grad_()
+    by_update = start.clone().requires_grad_()
+    other = torch.zeros(2, requires_grad=True)
+    opt_step, opt_update = LazyAdam([by_step], lr=0.1), LazyAdam([by_update, other], lr=0.1)
+    for _ in range(3):
+        by_step.grad = torch.sparse_coo_tensor(rows[None], values, (6, 4), check_invariants=True)
+        opt_step.step()
+        opt_update.update(by_update, (rows, values))
+    torch.testing.assert_close(by_update, by_step, atol=0, rtol=0)
+    assert other.abs().max() == 0  # a parameter not named is not stepped
+    with pytest.raises(ValueError, match="not a parameter"):
+        opt_update.update(torch.zeros(6, 4), (rows, values))
+
+
 # --- the trainer -----------------------------------------------------------------------------
+def test_the_grids_fused_step_is_the_autograd_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The grid trains without autograd where the kernels run (DenseGridField.train_step): the
+    same random draws (the generator ends in the same state), the same loss and parameters up
+    to float rounding, through occupancy, exploration and an upsampling."""
+    if not native.available():
+        pytest.skip("no C compiler: the grid has no fused step")
+    cfg = _tiny_cfg(explore_empty=0.3)
+
+    def train() -> tuple[FieldTrainer, list[float]]:
+        trainer = FieldTrainer(cfg, BOX, device="cpu", seed=0)
+        trainer.set_views(_views([0, 90, 180]))
+        return trainer, [trainer.step() for _ in range(25)]
+
+    calls = []
+    fused_step = DenseGridField.train_step
+
+    def counted(self, *args, **kwargs):
+        out = fused_step(self, *args, **kwargs)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(DenseGridField, "train_step", counted)
+    fused, fused_losses = train()
+    assert calls == [True] * 25
+    monkeypatch.setattr(DenseGridField, "train_step", lambda self, *a, **k: None)
+    autograd, autograd_losses = train()
+    np.testing.assert_allclose(fused_losses, autograd_losses, rtol=1e-4, atol=1e-7)
+    assert torch.equal(fused._generator.get_state(), autograd._generator.get_state())
+    for a, b in zip(fused.field.parameters(), autograd.field.parameters(), strict=True):
+        torch.testing.assert_close(a, b, atol=1e-4, rtol=1e-4)
+    assert fused.field.grid.shape[0] > 8 ** 3  # upsampled at step 15
+
+
 def test_training_decreases_the_loss_and_renders_images() -> None:
     trainer = FieldTrainer(_tiny_cfg(), BOX, device="cpu", seed=0)
     assert trainer.device == torch.device("cpu")

@@ -171,3 +171,36 @@ def test_disabled_by_environment(monkeypatch: pytest.MonkeyPatch) -> None:
     assert not native.available()
     assert native.volume_render(torch.zeros(1), torch.zeros(1, 3), torch.zeros(1),
                                 torch.zeros(1, dtype=torch.long), torch.zeros(1, 3)) is None
+
+
+@pytest.mark.parametrize("sample_rgb_loss, opacity_loss", [(0.0, 0.0), (0.05, 0.01)])
+def test_grid_training_grads_are_autograds(sample_rgb_loss: float, opacity_loss: float) -> None:
+    """The grid's step without autograd gives the loss and gradients that autograd gives
+    through the same kernels, with and without the regularisers."""
+    g = torch.Generator().manual_seed(5)
+    shape = (6, 5, 7)
+    aabb = torch.tensor([[-1.0, -0.5, 0.0], [1.0, 0.5, 2.0]])
+    table = torch.randn(6 * 5 * 7, 4, generator=g).requires_grad_()
+    env = torch.randn(4, 8, 3, generator=g).requires_grad_()
+    dirs = F.normalize(torch.randn(40, 3, generator=g), dim=1)
+    origins = torch.tensor([0.0, 0.0, 1.0]) - 1.5 * dirs
+    samples = sample_uniform(origins, dirs, torch.full((40,), 0.5), torch.full((40,), 2.5), 0.1,
+                             torch.rand(40, generator=g))
+    target = torch.rand(40, 3, generator=g)
+    mse, rows, values, grad_env = native.grid_training_grads(
+        table, aabb, shape, env, 2, samples.points, samples.deltas, samples.ray_index, dirs,
+        target, sample_rgb_loss, opacity_loss)
+
+    sigma, rgb = native.grid_query(table, samples.points, aabb, shape)
+    out = volume_render(sigma, rgb, samples.deltas, samples.ray_index,
+                        latlong_background(env, dirs, 2))
+    ref_mse = torch.mean((out.rgb - target) ** 2)
+    loss = (ref_mse + sample_rgb_loss * native.weighted_colour_error(
+        rgb, out.weights, target, samples.ray_index) / 40 + opacity_loss * out.opacity.sum() / 40)
+    g_table, g_env = torch.autograd.grad(loss, (table, env))
+    assert mse == pytest.approx(float(ref_mse.detach()), rel=1e-6)
+    _close(torch.sparse_coo_tensor(rows[None], values, table.shape,
+                                   check_invariants=True).to_dense(),
+           g_table.to_dense())
+    torch.testing.assert_close(rows, g_table._indices()[0])
+    _close(grad_env, g_env)
