@@ -118,3 +118,37 @@ def test_selective_beats_all() -> None:
     doc = json.loads(json.dumps({"optimum": {"psnr_db": optimum(values, ordered=False)
                                              .to_dict()}}))
     assert not claims.compare_selective_beats_all(doc).holds
+
+
+def compare_doc(learned: float, oracle: float | None = None) -> dict:
+    """A results.json of `experiment compare` with a learned policy ``learned`` dB above the
+    best rule, three rules, `all` and (optionally) the PSNR oracle bound ``oracle`` dB above the
+    best rule, as far as the claim reads it."""
+    nominal = {"all": 24.0, "mat:100": 26.0, "freshest:6": 26.4, "wait:40": 25.0,
+               "ppo:agent.pt": 26.4 + learned}
+    values = per_seed(nominal)
+    episodes = [{"policy": p, "seed": s, "psnr_db": v} for p, per in values.items()
+                for s, v in per.items()]
+    doc = {"meta": {"seed_list": list(SEEDS), "episode_config": {"steps_per_epoch": 300}},
+           "policies": [{"policy": p, "bound": False} for p in values], "episodes": episodes}
+    if oracle is not None:
+        minus = {p: {"mean": 26.4 + oracle - v, "ci95": 0.1, "n": 8} for p, v in nominal.items()}
+        doc["bound"] = {"oracle:rules:psnr_db": {"minus": {"psnr_db": minus}}}
+    return json.loads(json.dumps(doc))
+
+
+def test_learned_beats_best_rule() -> None:
+    ahead = claims.learned_beats_best_rule(compare_doc(0.8, oracle=1.0))
+    assert ahead.holds and ahead.numbers["best_rule"] == "freshest:6"
+    assert "goal ≥ 0.5: met" in ahead.evidence and "within half the distance: yes" in ahead.evidence
+    small = claims.learned_beats_best_rule(compare_doc(0.3, oracle=1.0))
+    assert small.holds and "goal ≥ 0.5: not met" in small.evidence
+    assert "within half the distance: no" in small.evidence
+    tied = claims.learned_beats_best_rule(compare_doc(0.0))
+    assert not tied.holds and "not significantly different" in tied.evidence
+    assert "no oracle bound" in tied.evidence
+    worse = claims.learned_beats_best_rule(compare_doc(-0.8))
+    assert not worse.holds and "significantly worse" in worse.evidence
+    doc = compare_doc(0.8)
+    doc["policies"] = [r for r in doc["policies"] if not r["policy"].startswith("ppo:")]
+    assert not claims.learned_beats_best_rule(doc).holds

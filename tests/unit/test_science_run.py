@@ -46,6 +46,12 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     assert not all(c["holds"] for c in doc["claims"])
     for c in doc["claims"]:
         assert ("PASS" if c["holds"] else "FAIL") + f"  {c['claim']}" in res.stdout
+    # the open question: the agent and the oracle bound ran in compare, its answer is reported
+    [question] = doc["questions"]
+    assert question["claim"] == "learned-beats-best-rule"
+    assert question["numbers"]["learned"].startswith("ppo:")
+    assert "oracle_minus_learned" in question["numbers"]
+    assert f"{question['claim']} (open question)" in res.stdout
     tradeoff = json.loads((tmp_path / "out/tradeoff/results.json").read_text())
     assert tradeoff["meta"]["seed_list"] == [31000, 31001]
     evaluation = json.loads((tmp_path / "out/ppo/eval.json").read_text())
@@ -53,5 +59,6 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     assert evaluation["meta"]["equal_budget"] is True
     report = (tmp_path / "science.md").read_text()
     assert "Experiment seeds: 31000–31001" in report and "1007000–1007001" in report
+    assert "**Open questions**" in report and "`oracle:rules:psnr_db` (bound)" in report
     for name in ("tradeoff.png", "delay.png", "compare.png", "views.png"):
         assert (tmp_path / "figs" / name).stat().st_size > 0
