@@ -18,8 +18,9 @@ claims on yet another block. The exit status is 1 when a claim fails. Open quest
 25's "the learned policy beats the best fixed rule", with the oracle bound) are tested and
 reported the same way but do not decide the exit status: the README does not make them.
 
-About 11 minutes on 2 idle cores from an empty cache before the compare run gained the PPO
-agent and the oracle bound (``--seeds 8 --delay-seeds 6 --ppo-seeds 40``).
+About 22 minutes on 2 idle cores from an empty cache (``--seeds 8 --delay-seeds 6
+--ppo-seeds 40``): 11 for the claims' commands, 11 for the compare run's oracle bound (576
+reconstructions of 300 steps).
 """
 
 from __future__ import annotations
@@ -169,6 +170,14 @@ def _num(v: Any, digits: int = 2) -> str:
         return "—"
 
 
+def _policy_name(spec: str, path: bool = False) -> str:
+    """A policy as the report writes it: `spec`, or PPO for ``ppo:<checkpoint>`` (with the
+    checkpoint relative to the repository when ``path``)."""
+    if spec.startswith("ppo:"):
+        return f"PPO (`{os.path.relpath(spec[4:], ROOT)}`)" if path else "PPO"
+    return f"`{spec}`"
+
+
 def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
            compare: dict[str, Any], evaluation: dict[str, Any], out: Path) -> str:
     rel = os.path.relpath(out, ROOT)
@@ -250,16 +259,15 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
               "| policy | PSNR (dB) | SSIM | LPIPS | reward | cameras |",
               "|---|---|---|---|---|---|"]
     for r in compare["policies"]:
-        name = (f"PPO (`{os.path.relpath(r['policy'][4:], ROOT)}`)"
-                if r["policy"].startswith("ppo:") else f"`{r['policy']}`"
-                + (" (bound)" if r.get("bound") else ""))
+        name = _policy_name(r["policy"], path=True) + (" (bound)" if r.get("bound") else "")
         lines.append(f"| {name} | {_num(r['psnr_db'])} ± {_num(r['psnr_db_ci95'])} | "
                      f"{_num(r['ssim'], 3)} | {_num(r['lpips'], 3)} | {_num(r['reward'], 3)} | "
                      f"{_num(r['n_selected'], 1)} |")
     opt = compare["optimum"]["psnr_db"]
-    lines += ["", f"PSNR optimum set: {', '.join(f'`{m}`' for m in opt['members'])}; "
+    lines += ["", "PSNR optimum set: "
+              f"{', '.join(_policy_name(m) for m in opt['members'])}; "
               "paired best − policy: " + ", ".join(
-                  f"`{k}` {_num(v['mean'])} ± {_num(v['ci95'])}"
+                  f"{_policy_name(k)} {_num(v['mean'])} ± {_num(v['ci95'])}"
                   for k, v in opt["best_minus"].items()) + ".", "",
               "## PPO at its training budget "
               f"({evaluation['meta']['episode_config']['steps_per_epoch']} field steps)", "",

@@ -1,9 +1,10 @@
 /* Fused CPU kernels of the radiance-field hot path (see aoi3d/field/native.py).
  *
- * Plain C99, no Python or torch headers: compiled at first use with the system C compiler
- * and called through ctypes on float32 / int64 tensor memory (contiguous). Each kernel is
- * the fused form of a chain of torch operations whose result it reproduces up to float
- * rounding order; the torch chains remain the reference (and the fallback).
+ * C99 with GCC/Clang vector extensions, no Python or torch headers: compiled at first use
+ * with the system C compiler and called through ctypes on float32 / int64 tensor memory
+ * (contiguous). Each kernel is the fused form of a chain of torch operations whose result it
+ * reproduces up to float rounding order; the torch chains remain the reference (and the
+ * fallback).
  */
 #include <math.h>
 #include <stdint.h>
@@ -74,7 +75,7 @@ static inline float exp_approx(float x) {
 }
 
 /* expm1(x) = e^x − 1 in float32 without cancellation near 0: its Taylor polynomial of degree 8
- * for |x| ≤ 0.5 (truncation below 2e-8 relative), exp_approx(x) − 1 beyond; in arithmetic
+ * for |x| < 0.5 (truncation below 2e-8 relative), exp_approx(x) − 1 beyond; in arithmetic
  * only, so that loops over it vectorise. */
 static inline float expm1_approx(float x) {
     float p = 1.0f / 40320.0f;

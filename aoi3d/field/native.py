@@ -4,7 +4,7 @@ A reconstruction (100 steps of 1024 rays on the rotor scene, about 23k samples a
 made of many small torch operations; on the CPU each costs its dispatch and a pass over
 memory, and the grid backend's step was ~28 ms, mostly in the trilinear gather's backward
 (8 ``index_add_`` of 4 columns and the row-sparse bookkeeping), ``LazyAdam``'s row updates
-and the volume renderer's float64 prefix sums. Two fused kernels in plain C
+and the volume renderer's float64 prefix sums. Two fused kernels in C
 (``_native.c``) do the same work in one pass each:
 
 - :func:`grid_query` — the ``grid`` backend's query: trilinear interpolation of its table,

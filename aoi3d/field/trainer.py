@@ -305,7 +305,9 @@ class FieldTrainer:
     def step(self, n: int = 1) -> float:
         """``n`` training steps; the last step's photometric loss (MSE of the batch's colours,
         unweighted, without the regularisers and the field's ``aux_loss``), NaN when there are
-        no views."""
+        no views. A field that can take a whole step itself (``Field.train_step``: the grid on
+        the CPU, without autograd) does, with the unweighted loss below; the others, and the
+        age-weighted loss, train under autograd here."""
         if n < 0:
             raise ValueError(f"n must be >= 0, got {n}")
         if self._rays is None:
@@ -348,6 +350,7 @@ class FieldTrainer:
                     loss_value = mse_fused
                     continue
             out = self._field.render_rays(rays, options)
+            # the loss (native.grid_training_grads computes the same for the fused step)
             sq = (out.rgb - target) ** 2
             mse = torch.mean(sq)
             sample_weights = out.weights
