@@ -22,9 +22,10 @@ class Settings(BaseSettings):
     torch_threads: int = Field(
         1, ge=0, le=256,
         description="Torch CPU threads of this worker (0: torch's default). 1 by default: "
-                    "measured on 2 cores, one reconstruction takes 1.38 s on 1 thread and "
-                    "1.71 s on 2, and two 1-thread workers side by side 1.30-1.37 s each; "
-                    "add workers, not threads.")
+                    "the grid's fused kernels run on one thread whatever this says (measured "
+                    "on 2 cores: 0.42-0.55 s per reconstruction on 1 thread and on 2); with "
+                    "the torch code, 1.38 s on 1 thread against 1.71 s on 2, and two 1-thread "
+                    "workers side by side 1.30-1.37 s each; add workers, not threads.")
     max_wait_s: float = Field(
         2.0, gt=0, le=60,
         description="How long the trainer may hold this worker's request for work when no "
