@@ -267,6 +267,12 @@ class RewardWeights:
         """Whether the reward has a dynamic-region term."""
         return self.psnr_dynamic != 0.0 or self.ssim_dynamic != 0.0
 
+    def terms(self, lpips: bool) -> tuple[str, ...]:
+        """The terms a reward with these weights is built from (those weighed, not 0), LPIPS
+        only where it is available (``lpips``)."""
+        names = ("psnr", "ssim", *(("lpips",) if lpips else ()), "psnr_dynamic", "ssim_dynamic")
+        return tuple(n for n in names if getattr(self, n) != 0.0)
+
 
 DYNAMIC_REWARD = RewardWeights(psnr=0.0, ssim=0.0, lpips=-1.0, psnr_dynamic=0.02,
                                ssim_dynamic=0.5)
@@ -336,7 +342,8 @@ def score(
                 continue
             reward += weight * (full if value is None else value)
             terms = (*terms, name if value is not None else f"{name}=full")
-    terms = tuple(t for t in terms if getattr(w, t.split("=")[0]) != 0.0)  # weighed ones only
+    weighed = w.terms(lpips_fn is not None)
+    terms = tuple(t for t in terms if t.split("=")[0] in weighed)
     return QualityScore(
         psnr_db=psnr_db, ssim=ssim_value, lpips=lpips_value, reward=reward, reward_terms=terms,
         dynamic=dynamic,

@@ -274,14 +274,13 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
               "| policy | reward | PSNR (dB) | SSIM | LPIPS | cameras |",
               "|---|---|---|---|---|---|"]
     for r in evaluation["summary"]:
-        name = (f"PPO (`{os.path.relpath(evaluation['meta']['checkpoint'], ROOT)}`)"
-                if r["policy"].startswith("ppo:") else f"`{r['policy']}`")
-        lines.append(f"| {name} | {_num(r['reward'], 4)} ± {_num(r['reward_ci95'], 4)} | "
+        lines.append(f"| {_policy_name(r['policy'], path=True)} | "
+                     f"{_num(r['reward'], 4)} ± {_num(r['reward_ci95'], 4)} | "
                      f"{_num(r['psnr'])} | {_num(r['ssim'], 3)} | {_num(r['lpips'], 3)} | "
                      f"{_num(r['n_selected'], 1)} |")
     ropt = evaluation["optimum"]["reward"]
     lines += ["", "Reward optimum set: " + ", ".join(
-        "PPO" if m.startswith("ppo:") else f"`{m}`" for m in ropt["members"]) + ".", "",
+        _policy_name(m) for m in ropt["members"]) + ".", "",
         f"Outputs: `{rel}/` (every command's CSV/JSON/PNG, `claims.json`).", ""]
     return "\n".join(lines)
 

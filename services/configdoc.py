@@ -23,7 +23,8 @@ DOMAIN_VARIABLES: dict[str, tuple[str, str]] = {
                     "(aoi3d/field/native.py), looked in first; the service image sets it to "
                     "`/opt/aoi3d-cache`, compiled in its build stage."),
     "AOI3D_NATIVE": ("`1`", "0 turns the fused C kernels off: the torch code runs (same "
-                            "results up to float rounding, about 3× slower)."),
+                            "results up to float rounding, about 3.5× slower: 2.44 s "
+                            "against 0.68 s per reconstruction in the service image)."),
 }
 
 

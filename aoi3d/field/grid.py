@@ -170,11 +170,9 @@ class DenseGridField(CoarseToFineField):
         age (the timeliness embedding trains under autograd); for this class itself only: a
         subclass may render otherwise (its own ``render_rays``, ``query`` or ``background``),
         so it trains under autograd."""
-        if type(self) is not DenseGridField or rays.age_ms is not None:
-            return None
-        if self.age_grid is not None:
-            return None
-        if not native.grid_step_available(self.grid, self.env, rays.origins, target):
+        if (type(self) is not DenseGridField or rays.age_ms is not None
+                or self.age_grid is not None
+                or not native.grid_step_available(self.grid, self.env, rays.origins, target)):
             return None
         samples = sample_kept(self, rays, options)
         cfg = self.cfg

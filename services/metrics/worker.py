@@ -168,10 +168,7 @@ class MetricsWorker:
     @property
     def reward_terms(self) -> tuple[str, ...]:
         """The terms the reward is built from with the metrics available now."""
-        w = self.core.weights
-        terms = ("psnr", "ssim", *(("lpips",) if self._lpips_fn is not None else ()),
-                 "psnr_dynamic", "ssim_dynamic")
-        return tuple(t for t in terms if getattr(w, t) != 0.0)
+        return self.core.weights.terms(self._lpips_fn is not None)
 
     @property
     def scored_total(self) -> int:

@@ -289,7 +289,7 @@ def test_a_killed_trainer_is_restarted(stack: Stack) -> None:
 
 def test_the_reconstruction_workers_run_the_fused_kernels(stack: Stack) -> None:
     """The image carries the native kernels compiled in its build stage (no compiler is
-    needed at run time); without them a worker falls back to torch, about 3× slower."""
+    needed at run time); without them a worker falls back to torch, about 3.5× slower."""
     out = stack.compose("exec", "-T", "recon", "python", "-c",
                         "from aoi3d.field import native; print(native.available())")
     assert out.stdout.strip() == "True", out.stdout + out.stderr
