@@ -166,6 +166,11 @@ def train_cmd(
     = None,
     checkpoint_every: Annotated[int, typer.Option(
         min=1, help="PPO updates between two checkpoints.")] = 5,
+    features: Annotated[list[str] | None, typer.Option(
+        "--features", help="What the agent observes of each camera besides its AoI "
+                           "(repeatable): pose = its angle and distance to the held-out view, "
+                           "fixed per rig and stored in the checkpoint. Default: the AoI "
+                           "vector alone.")] = None,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
     from rich.progress import Progress
@@ -185,6 +190,18 @@ def train_cmd(
     for key, value in (("lr", lr), ("clip_eps", clip_eps), ("seed", seed)):
         if value is not None:
             hyper[key] = value
+    if features:
+        from aoi3d.experiment.episode import train_ids
+        from aoi3d.policy.ppo.obs import CAMERA_FEATURES
+        from aoi3d.rl.train import camera_feature_values
+
+        unknown = sorted(set(features) - set(CAMERA_FEATURES))
+        if unknown:
+            raise typer.BadParameter(f"unknown camera feature(s) {unknown}; known: "
+                                     f"{sorted(CAMERA_FEATURES)}", param_hint="'--features'")
+        hyper["features"] = tuple(dict.fromkeys(features))
+        hyper["camera_features"] = camera_feature_values(hyper["features"], ds,
+                                                         train_ids(episode, ds))
     try:
         ppo_cfg = PPOConfig.from_dict({**hyper, "n_cameras": n})
         cfg = TrainConfig(episode=episode, ppo=ppo_cfg,

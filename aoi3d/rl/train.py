@@ -27,13 +27,31 @@ from aoi3d.experiment.episode import dataset_fingerprint
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.policy.ppo.batch import Batch, Episode
 from aoi3d.policy.ppo.learner import PPOLearner
+from aoi3d.policy.ppo.obs import pose_features
 from aoi3d.rl.env import FrameSelectionEnv
 from aoi3d.rl.pool import EnvPool
 from aoi3d.rl.presets import EVAL_SEED_BASE, TRAIN_SEED_BASE, TrainConfig, train_seed
 from aoi3d.rl.record import moving_average, plot_rewards, read_rows
 from aoi3d.scene import SceneDataset, open_dataset
 
-__all__ = ["TrainProgress", "TrainSummary", "train"]
+__all__ = ["TrainProgress", "TrainSummary", "camera_feature_values", "train"]
+
+
+def camera_feature_values(features: tuple[str, ...], dataset: SceneDataset,
+                          camera_ids: tuple[int, ...] | list[int]) -> tuple[float, ...]:
+    """The values of the camera ``features`` for this rig's training cameras (in AoI-vector
+    order), as :class:`~aoi3d.policy.ppo.config.AgentConfig` stores them (value-major)."""
+    values = []
+    for name in features:
+        if name == "pose":
+            values.append(pose_features(
+                np.stack([dataset.cameras[i].c2w for i in camera_ids]),
+                dataset.cameras[dataset.heldout_id].c2w))
+        else:  # CAMERA_FEATURES and this function are kept in step by a test
+            raise ValueError(f"no values for camera feature {name!r}")
+    if not values:
+        return ()
+    return tuple(float(x) for x in np.concatenate(values, axis=1).T.reshape(-1))
 
 
 @dataclass(frozen=True)
@@ -87,6 +105,9 @@ def train(
     if env.n_cameras != cfg.ppo.n_cameras:
         raise ValueError(f"the PPO config has n_cameras={cfg.ppo.n_cameras} but the "
                          f"environment has {env.n_cameras} cameras")
+    if cfg.ppo.camera_features != camera_feature_values(cfg.ppo.features, ds, env.camera_ids):
+        raise ValueError(f"the agent's camera_features are not those of this rig's cameras "
+                         f"for features {list(cfg.ppo.features)} (see camera_feature_values)")
     rows: list[dict[str, Any]] = []
     update_rows: list[dict[str, Any]] = []
     if resume:
@@ -153,7 +174,9 @@ def train(
             batch = list(range(first, min(first + cfg.batch_size, total)))
             obs, acts = [], []
             for e in batch:
-                o, _ = env.reset(seed=train_seed(e, cfg.seed_offset))
+                # the agent observes the AoI vector its own way (and its rig's features)
+                _, info = env.reset(seed=train_seed(e, cfg.seed_offset))
+                o = agent.observe(info["aoi"])
                 obs.append(o)
                 acts.append(agent.sample(o))
             results: dict[int, dict[str, Any]] = {}

@@ -305,3 +305,54 @@ def test_online_learner_matches_rewards_updates_and_reports_to_its_hook(tmp_path
                          ("saved", "online.pt")]
     saved = PPOLearner.load(tmp_path / "online.pt")
     assert saved.updates == 1 and saved.episodes == 2
+
+
+# --- a richer state: fixed per-camera features (issue 25, item 3) ----------------------------
+def test_pose_features_measure_each_camera_against_the_held_out_view() -> None:
+    from aoi3d.policy.ppo.obs import pose_features
+    from aoi3d.scene.camera import look_at
+
+    def at(deg: float) -> np.ndarray:
+        a = np.radians(deg)
+        return look_at(np.array([2 * np.cos(a), 2 * np.sin(a), 0.0]), np.zeros(3))
+
+    v = pose_features(np.stack([at(0), at(90), at(180)]), at(0))
+    assert v.shape == (3, 2)
+    np.testing.assert_allclose(v[:, 0], [0.0, 0.5, 1.0], atol=1e-9)  # angle / π
+    np.testing.assert_allclose(v[:, 1], [0.0, np.sqrt(8) / 4, 1.0], atol=1e-9)  # / farthest
+    with pytest.raises(ValueError, match="poses"):
+        pose_features(np.eye(4), at(0))
+
+
+def test_an_agent_observes_its_rigs_camera_features() -> None:
+    n = 3
+    values = (0.0, 0.5, 1.0, 0.2, 0.4, 0.6)  # pose_angle of cameras 1..3, then pose_distance
+    cfg = PPOConfig(n_cameras=n, arch="shared", features=["pose"], camera_features=values)
+    assert cfg.features == ("pose",) and cfg.obs_dim == 4 * n and cfg.values_per_camera == 2
+    assert PPOConfig.from_dict(cfg.to_dict()) == cfg
+    agent = PPOLearner(cfg)
+    obs = agent.observe(np.array([30.0, 60.0, np.nan]))
+    np.testing.assert_allclose(obs, [0.1, 0.2, 1.0, 0, 0, 1, *values], atol=1e-7)
+    # the shared actor reads the features as each camera's own channels: swapping two
+    # cameras' features (and nothing else) swaps what the network sees of them
+    with torch.no_grad():
+        for p in agent.net.actor.g.parameters():
+            p.copy_(torch.randn(p.shape, generator=torch.Generator().manual_seed(0)))
+        agent.net.actor.embedding.zero_()
+        agent.net.actor.bias.zero_()
+    swapped = obs.copy()
+    swapped[6:8], swapped[9:11] = obs[[7, 6]], obs[[10, 9]]
+    base = agent.net.logits(torch.as_tensor(obs)).detach().numpy()
+    moved = agent.net.logits(torch.as_tensor(swapped)).detach().numpy()
+    assert not np.allclose(base, moved)
+    same = obs.copy()
+    same[[0, 1]], same[6:8], same[9:11] = obs[[1, 0]], obs[[7, 6]], obs[[10, 9]]
+    np.testing.assert_allclose(agent.net.logits(torch.as_tensor(same)).detach().numpy()[[1, 0, 2]],
+                               base, atol=1e-6)  # camera 1 and 2 swapped whole: logits swap
+    for bad, match in ((dict(features=["colour"]), "features"),
+                       (dict(features=["pose", "pose"], camera_features=values * 2), "distinct"),
+                       (dict(features=["pose"], camera_features=values[:5]), "need 6"),
+                       (dict(features=["pose"], camera_features=(2.0,) * 6), r"\[0, 1\]"),
+                       (dict(camera_features=values), "need 0")):
+        with pytest.raises(ValueError, match=match):
+            PPOConfig(n_cameras=n, **bad)

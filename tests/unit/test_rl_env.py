@@ -292,3 +292,35 @@ def test_worker_pool_matches_in_process(cfg: EpisodeConfig, dataset: SceneDatase
     for i in range(2):
         assert parallel[i]["reward"] == serial[i]["reward"]
         assert parallel[i]["selected"] == serial[i]["selected"]
+
+
+def test_an_agent_with_pose_features_trains_and_acts(dataset: SceneDataset, cfg: EpisodeConfig,
+                                                     tmp_path) -> None:
+    """``--features pose``: the rig's geometry goes into the checkpoint, training observes it,
+    and the policy acts on it in evaluation; a config whose values are not this rig's is
+    refused."""
+    from aoi3d.policy.ppo.obs import CAMERA_FEATURES
+    from aoi3d.rl.train import camera_feature_values
+
+    ids = FrameSelectionEnv(cfg, dataset).camera_ids
+    for name, values in CAMERA_FEATURES.items():  # every feature has its values
+        assert len(camera_feature_values((name,), dataset, ids)) == len(values) * N_TRAIN
+    out = tmp_path / "pose"
+    res = _cli(["ppo", "train", "--episodes", "4", "--batch-size", "2", "--out", str(out),
+                "--features", "pose", "--ppo-set", "arch=shared", *_tiny_sets(dataset)])
+    assert res.exit_code == 0, res.output
+    agent = PPOLearner.load(out / "final.pt")
+    assert agent.config.features == ("pose",)
+    assert agent.config.camera_features == camera_feature_values(("pose",), dataset, ids)
+    rows = list(csv.DictReader((out / "episodes.csv").open()))
+    assert len(rows) == 4
+    res = _cli(["ppo", "eval", "--checkpoint", str(out / "final.pt"), "--seeds", "1",
+                "--workers", "1", "--no-lpips"])
+    assert res.exit_code == 0, res.output
+    res = _cli(["ppo", "train", "--features", "colour", "--out", str(tmp_path / "x"),
+                *_tiny_sets(dataset)])
+    assert res.exit_code == 2 and "unknown camera feature" in res.output
+    wrong = PPOConfig(n_cameras=N_TRAIN, features=("pose",), camera_features=(0.5,) * 8)
+    with pytest.raises(ValueError, match="not those of this rig"):
+        train(TrainConfig(episode=cfg, ppo=wrong, episodes=2, batch_size=2, preset="test"),
+              tmp_path / "wrong", dataset=dataset, workers=1)

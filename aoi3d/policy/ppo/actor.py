@@ -25,7 +25,7 @@ from aoi3d.device import resolve_device
 from aoi3d.policy.ppo.checkpoint import Checkpoint
 from aoi3d.policy.ppo.config import AgentConfig, PPOConfig
 from aoi3d.policy.ppo.network import ActorCritic
-from aoi3d.policy.ppo.obs import encode_aoi
+from aoi3d.policy.ppo.obs import encode_aoi, with_camera_features
 
 __all__ = ["Actor"]
 
@@ -50,20 +50,27 @@ class Actor:
 
     # --- acting --------------------------------------------------------------------------
     def observe(self, aoi_ms: np.ndarray) -> np.ndarray:
-        """The observation of an AoI vector (ms, NaN = unknown), with the config's scale."""
+        """The observation of an AoI vector (ms, NaN = unknown), with the config's scale and,
+        when the agent observes more of each camera, its rig's fixed camera features."""
         aoi = np.asarray(aoi_ms, dtype=np.float64)
-        if aoi.ndim != 1 or aoi.shape[0] != self.config.n_cameras:
-            raise ValueError(f"this agent was trained for {self.config.n_cameras} cameras; "
+        cfg = self.config
+        if aoi.ndim != 1 or aoi.shape[0] != cfg.n_cameras:
+            raise ValueError(f"this agent was trained for {cfg.n_cameras} cameras; "
                              f"got an AoI vector of shape {aoi.shape}")
-        return encode_aoi(aoi, self.config.aoi_scale_ms)
+        obs = encode_aoi(aoi, cfg.aoi_scale_ms)
+        if not cfg.features:
+            return obs
+        values = np.asarray(cfg.camera_features).reshape(cfg.values_per_camera, cfg.n_cameras)
+        return with_camera_features(obs, values.T)
 
     def obs_tensor(self, obs: np.ndarray, batch: bool) -> torch.Tensor:
-        """Observations (2N,) or, with ``batch``, (B, 2N) as a tensor on the device."""
+        """Observations (D,) or, with ``batch``, (B, D) as a tensor on the device, D the
+        config's ``obs_dim`` (2N for the AoI vector alone)."""
         arr = np.asarray(obs, dtype=np.float32)
         ndim = 2 if batch else 1
         if arr.ndim != ndim or arr.shape[-1] != self.config.obs_dim or arr.shape[0] < 1:
-            shape = "(B, 2N)" if batch else "(2N,)"
-            raise ValueError(f"observation must have shape {shape} with 2N = "
+            shape = "(B, D)" if batch else "(D,)"
+            raise ValueError(f"observation must have shape {shape} with D = "
                              f"{self.config.obs_dim}, got {arr.shape}")
         if not np.all(np.isfinite(arr)):
             raise ValueError("observation holds non-finite values")

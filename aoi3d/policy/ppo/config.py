@@ -18,7 +18,7 @@ import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any, Self
 
-from aoi3d.policy.ppo.obs import obs_size
+from aoi3d.policy.ppo.obs import CAMERA_FEATURES, obs_size
 
 __all__ = ["ARCHS", "AgentConfig", "PPOConfig"]
 
@@ -55,7 +55,11 @@ class AgentConfig:
     (:class:`aoi3d.policy.ppo.network.SharedCameraActor`: one small MLP applied to every
     camera's AoI with the mean over the cameras as context, plus a learned per-camera
     embedding and bias; it learns a per-camera rule from N samples per episode — see
-    docs/ppo.md for the measured gain).
+    docs/ppo.md for the measured gain). ``features``: what the agent observes of each camera
+    besides its AoI (:data:`aoi3d.policy.ppo.obs.CAMERA_FEATURES`; empty: the AoI vector
+    alone, the paper's state); ``camera_features``: their values for the rig it was trained on
+    (fixed per rig, so the checkpoint carries them: N values per feature value, value-major),
+    appended to every observation.
     """
 
     n_cameras: int
@@ -64,21 +68,45 @@ class AgentConfig:
     aoi_scale_ms: float = 300.0
     seed: int = 0
     arch: str = "mlp"
+    features: tuple[str, ...] = ()
+    camera_features: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.arch not in ARCHS:
             raise ValueError(f"arch must be one of {ARCHS}, got {self.arch!r}")
+        if isinstance(self.features, str) or not isinstance(self.features, list | tuple):
+            raise ValueError(f"features must be a list of names, got {self.features!r}")
+        unknown = [f for f in self.features if f not in CAMERA_FEATURES]
+        if unknown or len(set(self.features)) != len(self.features):
+            raise ValueError(f"features must be distinct names among "
+                             f"{sorted(CAMERA_FEATURES)}, got {list(self.features)!r}")
+        object.__setattr__(self, "features", tuple(self.features))
+        if not isinstance(self.camera_features, list | tuple) or not all(
+                isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+                and 0.0 <= v <= 1.0 for v in self.camera_features):
+            raise ValueError("camera_features must be numbers in [0, 1]")
+        object.__setattr__(self, "camera_features", tuple(float(v) for v in self.camera_features))
         _check_int("n_cameras", self.n_cameras, 1)
         _check_int("hidden", self.hidden, 1)
         _check_int("seed", self.seed, 0)
         _check_float("init_select_p", self.init_select_p, 0.0, 1.0, open_low=True,
                      open_high=True)
         _check_float("aoi_scale_ms", self.aoi_scale_ms, 0.0, open_low=True)
+        want = self.n_cameras * self.values_per_camera
+        if len(self.camera_features) != want:
+            raise ValueError(f"features {list(self.features)} need {want} camera_features "
+                             f"(N = {self.n_cameras} × {self.values_per_camera}), got "
+                             f"{len(self.camera_features)}")
+
+    @property
+    def values_per_camera(self) -> int:
+        """Fixed values observed per camera besides its AoI and unknown flag."""
+        return sum(len(CAMERA_FEATURES[f]) for f in self.features)
 
     @property
     def obs_dim(self) -> int:
-        """Length of the observation (2N)."""
-        return obs_size(self.n_cameras)
+        """Length of the observation ((2 + values per camera)·N)."""
+        return obs_size(self.n_cameras, self.values_per_camera)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -33,8 +33,9 @@ def _layer(n_in: int, n_out: int, gain: float, gen: torch.Generator, bias: float
 class SharedCameraActor(nn.Module):
     """Logits from one small MLP shared by all cameras (permutation-equivariant).
 
-    Camera n's logit is ``g([x_n, c, e_n]) + b_n``: ``x_n`` = (scaled AoI, unknown flag) of
-    camera n, ``c`` = the mean of ``x`` over the cameras (the context: how fresh the others
+    Camera n's logit is ``g([x_n, c, e_n]) + b_n``: ``x_n`` = (scaled AoI, unknown flag, and
+    the camera's fixed features when the agent observes any) of camera n, ``c`` = the mean of
+    ``x`` over the cameras (the context: how fresh the others
     are), ``e_n`` a learned embedding of the camera (its place in the rig), ``b_n`` its bias.
     Every episode then teaches the one function g with N samples — what the rule "use camera
     n iff its frame is fresh enough, given the others" needs — instead of N separate ones.
@@ -44,16 +45,18 @@ class SharedCameraActor(nn.Module):
         super().__init__()
         n, h, e = cfg.n_cameras, cfg.hidden, 4
         self.n = n
+        self.channels = 2 + cfg.values_per_camera
         self.embedding = nn.Parameter(0.1 * torch.randn(n, e, generator=gen))
         self.bias = nn.Parameter(torch.full((n,), bias))
         self.g = nn.Sequential(
-            _layer(2 + 2 + e, h, math.sqrt(2), gen), nn.Tanh(),
+            _layer(2 * self.channels + e, h, math.sqrt(2), gen), nn.Tanh(),
             _layer(h, h, math.sqrt(2), gen), nn.Tanh(),
             _layer(h, 1, 0.01, gen),
         )
 
     def forward(self, obs: torch.Tensor) -> torch.Tensor:
-        x = torch.stack([obs[..., : self.n], obs[..., self.n:]], dim=-1)  # (..., N, 2)
+        # (..., C·N) value-major → (..., N, C)
+        x = obs.unflatten(-1, (self.channels, self.n)).transpose(-1, -2)
         ctx = x.mean(dim=-2, keepdim=True).expand_as(x)
         emb = self.embedding.expand(*x.shape[:-1], self.embedding.shape[-1])
         return self.g(torch.cat([x, ctx, emb], dim=-1)).squeeze(-1) + self.bias

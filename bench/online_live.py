@@ -1,0 +1,267 @@
+"""Benchmark: does the live scheduler's PPO agent learn online? (issue 25, item 4)
+
+Starts one pipeline, ``aoi3d up --sites 3 --workers K``, on its own ports: three sites of the
+same scene and channel model (each site's link delays are its own draw of the same
+distribution, its camera phase its own), the worker pool rendering for all three, and puts
+
+- ``site1``: the shipped agent (``models/ppo/quick/final.pt``, copied into
+  ``runs/online-live/``), learning online (``learn: true``);
+- ``site2``: an untrained agent of the same architecture and hyper-parameters (a fresh
+  ``PPOLearner``, seed ``--scratch-seed``), learning online; both learners' online
+  checkpoints are written beside them in ``runs/online-live/``;
+- ``site3``: the best fixed rule (``--rule``, default ``mat:100``: the best rule by reward at
+  the agent's 100-step budget in ``make science``'s ``ppo eval`` and in the live policy
+  measurement of issue 25, item 5).
+
+Then, for ``--minutes`` wall minutes, every ``--poll-s`` it reads each site's scored renders
+(the metrics service's ``/sites/<site>/quality``) and each learner's state (the scheduler's
+``/sites/<site>/policy``). Every render's reward closes one online episode of its site's
+learner, so the rewards it reads are what the learners learn from.
+
+Writes into ``--out`` (default ``bench/results/online-live``): ``qualities.csv`` (every scored
+render: site, wall seconds since the policies were put, decision, reward, PSNR, SSIM, LPIPS,
+views), ``learners.csv`` (each poll: episodes learned, updates, entropy, the latest batch's
+mean reward), ``summary.json`` (per site and per ``--window-min`` window: mean reward ± 95 %
+CI; the paired first-vs-last window difference; the machine's load) and ``online_live.png``
+(reward against wall time, a moving mean per site), which docs/ppo.md shows.
+
+    python bench/online_live.py --minutes 60          # the issue's hour
+    python bench/online_live.py --minutes 3 --out /tmp/online-smoke
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from aoi3d.cli.live import mean_ci95  # noqa: E402
+
+OFFSET = 3200  # REST ports 11301..11306: a running `make up` or bench/scale.py is not disturbed
+ZENOH_PORT = 7649
+SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
+DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
+SITES = ("site1", "site2", "site3")
+HTTP = httpx.Client(timeout=60)
+
+
+def port(service: str) -> int:
+    return {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
+            "metrics": 8105, "console": 8106}[service] + OFFSET
+
+
+def url(service: str, site: str, path: str) -> str:
+    return f"http://127.0.0.1:{port(service)}/sites/{site}{path}"
+
+
+def scratch_checkpoint(path: Path, seed: int) -> None:
+    """An untrained agent with the shipped agent's architecture and PPO settings."""
+    from aoi3d.policy.ppo.checkpoint import Checkpoint
+    from aoi3d.policy.ppo.config import PPOConfig
+    from aoi3d.policy.ppo.learner import PPOLearner
+
+    shipped = Checkpoint.read(SHIPPED)
+    PPOLearner(PPOConfig.from_dict({**shipped.config, "seed": seed})).save(path)
+
+
+def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if up.poll() is not None:
+            raise SystemExit("the pipeline exited while starting; see runs/bench-online/latest/")
+        try:
+            pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()["workers"]
+            ready = all(HTTP.get(f"http://127.0.0.1:{port(s)}/readyz").status_code == 200
+                        for s in ("scheduler", "metrics", "trainer"))
+            if len(pool) == workers and ready:
+                return
+        except (httpx.HTTPError, KeyError, ValueError):
+            pass
+        time.sleep(1.0)
+    raise SystemExit(f"the pipeline was not ready after {timeout_s:g} s")
+
+
+def put_policy(site: str, body: dict[str, Any]) -> dict[str, Any]:
+    resp = HTTP.put(url("scheduler", site, "/policy"), json=body)
+    if resp.status_code >= 400:
+        raise SystemExit(f"PUT {site} policy {body}: {resp.status_code} {resp.text[:300]}")
+    return resp.json()
+
+
+def windows(rows: list[dict[str, Any]], window_s: float) -> list[dict[str, Any]]:
+    out = []
+    if not rows:
+        return out
+    end = max(r["wall_s"] for r in rows)
+    k = 0
+    while k * window_s < end:
+        sel = [r["reward"] for r in rows if k * window_s <= r["wall_s"] < (k + 1) * window_s]
+        out.append({"from_min": k * window_s / 60, "to_min": (k + 1) * window_s / 60,
+                    "reward": mean_ci95(sel)})
+        k += 1
+    return out
+
+
+def plot(rows_by_site: dict[str, list[dict[str, Any]]], labels: dict[str, str], path: Path,
+         smooth_s: float) -> None:
+    """Reward and PSNR of every scored render against wall time, with a trailing moving mean
+    over ``smooth_s``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6.4), dpi=120, sharex=True)
+    for (site, rows), colour in zip(rows_by_site.items(), ("C0", "C1", "C2"), strict=False):
+        if not rows:
+            continue
+        t = np.array([r["wall_s"] for r in rows]) / 60.0
+        for ax, key in zip(axes, ("reward", "psnr_db"), strict=True):
+            v = np.array([r[key] for r in rows])
+            ax.scatter(t, v, s=2, alpha=0.12, color=colour)
+            mean = np.array([v[(t >= ti - smooth_s / 60) & (t <= ti)].mean() for ti in t])
+            ax.plot(t, mean, lw=1.8, color=colour, label=f"{labels[site]} ({len(rows)} renders)")
+    axes[0].set_ylabel("reward per scored render")
+    axes[1].set_ylabel("PSNR (dB)")
+    axes[1].set_xlabel("wall time since the policies were put (min)")
+    axes[0].set_title(f"Online learning, live (lines: mean over the last {smooth_s / 60:g} min)")
+    for ax, key in zip(axes, ("reward", "psnr_db"), strict=True):
+        ax.grid(alpha=0.3)
+        vals = np.concatenate([[r[key] for r in rs] for rs in rows_by_site.values() if rs])
+        ax.set_ylim(np.percentile(vals, 1), np.percentile(vals, 99.5))
+    axes[0].legend(fontsize=8, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--minutes", type=float, default=60.0, help="wall minutes to measure")
+    ap.add_argument("--workers", type=int, default=2, help="reconstruction workers")
+    ap.add_argument("--time-scale", type=float, default=0.1)
+    ap.add_argument("--rule", default="mat:100", help="the fixed rule of site3")
+    ap.add_argument("--scratch-seed", type=int, default=1)
+    ap.add_argument("--poll-s", type=float, default=30.0)
+    ap.add_argument("--window-min", type=float, default=10.0)
+    ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
+    ap.add_argument("--ready-timeout-s", type=float, default=300.0)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "online-live")
+    args = ap.parse_args()
+
+    from aoi3d.policy import parse_policy
+
+    out = args.out.resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    agents = ROOT / "runs" / "online-live"  # the scheduler loads agents from runs/ or models/
+    agents.mkdir(parents=True, exist_ok=True)
+    shutil.copyfile(SHIPPED, agents / "shipped.pt")
+    scratch_checkpoint(agents / "scratch.pt", args.scratch_seed)
+    policies = {
+        "site1": {"kind": "ppo", "checkpoint": str(agents / "shipped.pt"), "learn": True,
+                  "save_to": str(agents / "shipped.online.pt")},
+        "site2": {"kind": "ppo", "checkpoint": str(agents / "scratch.pt"), "learn": True,
+                  "save_to": str(agents / "scratch.online.pt")},
+        "site3": parse_policy(args.rule).to_json(),
+    }
+    labels = {"site1": "shipped agent, learning", "site2": "untrained agent, learning",
+              "site3": f"{args.rule} (fixed rule)"}
+
+    log_dir = ROOT / "runs" / "bench-online"
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(args.dataset),
+           "--run-id", "online", "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET),
+           "--log-dir", str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
+           "--workers", str(args.workers), "--sites", str(len(SITES))]
+    load_before = os.getloadavg()
+    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                          start_new_session=True)
+    seen: dict[str, dict[int, dict[str, Any]]] = {s: {} for s in SITES}
+    learners: list[dict[str, Any]] = []
+    try:
+        wait_up(up, args.workers, args.ready_timeout_s)
+        first_id, first_ms = {}, {}
+        for site, body in policies.items():
+            put_policy(site, body)
+        t0 = time.monotonic()
+        for site in SITES:  # renders of decisions taken before the PUT are not counted
+            d = HTTP.get(url("scheduler", site, "/decision")).json()
+            first_id[site], first_ms[site] = d["decision_id"], d["time_ms"]
+        print(f"policies put; measuring {args.minutes:g} min -> {out}", flush=True)
+        while (now := time.monotonic() - t0) < args.minutes * 60:
+            time.sleep(min(args.poll_s, max(0.1, args.minutes * 60 - now)))
+            wall = time.monotonic() - t0
+            for site in SITES:
+                hist = HTTP.get(url("metrics", site, "/quality"),
+                                params={"limit": 1000}).json()["history"]
+                for q in hist:
+                    if q["decision_id"] > first_id[site] and q["decision_id"] not in seen[site]:
+                        # the decision's epoch on the wall clock (sim ms / time scale)
+                        at = (q["time_ms"] - first_ms[site]) / 1000 / args.time_scale
+                        seen[site][q["decision_id"]] = {**q, "wall_s": round(at, 2)}
+                pol = HTTP.get(url("scheduler", site, "/policy")).json()
+                online = pol.get("online") or {}
+                learners.append({"site": site, "wall_s": round(wall, 1),
+                                 "scored": len(seen[site]),
+                                 **{k: online.get(k) for k in (
+                                     "episodes_learned", "agent_episodes", "updates", "entropy",
+                                     "mean_reward", "unscored", "expired")}})
+            print(f"{wall / 60:5.1f} min: " + ", ".join(
+                f"{s} {len(seen[s])} renders" for s in SITES), flush=True)
+        pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
+    finally:
+        os.killpg(up.pid, signal.SIGTERM)
+        try:
+            up.wait(timeout=120)
+        except subprocess.TimeoutExpired:
+            os.killpg(up.pid, signal.SIGKILL)
+
+    rows_by_site = {s: sorted(seen[s].values(), key=lambda q: q["decision_id"]) for s in SITES}
+    fields = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim", "lpips",
+              "psnr_dynamic_db", "n_views"]
+    with open(out / "qualities.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        for site, rows in rows_by_site.items():
+            w.writerows({**r, "site": site} for r in rows)
+    with open(out / "learners.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=list(learners[0]))
+        w.writeheader()
+        w.writerows(learners)
+    window_s = args.window_min * 60
+    summary = {
+        "command": " ".join(["python", "bench/online_live.py", *sys.argv[1:]]),
+        "minutes": args.minutes, "workers": args.workers, "time_scale": args.time_scale,
+        "policies": {s: {"label": labels[s], **policies[s]} for s in SITES},
+        "load_before": [round(x, 2) for x in load_before],
+        "load_after": [round(x, 2) for x in os.getloadavg()],
+        "pool_lost": pool.get("lost"),
+        "sites": {s: {"renders": len(rows), "reward": mean_ci95([r["reward"] for r in rows]),
+                      "psnr_db": mean_ci95([r["psnr_db"] for r in rows]),
+                      "views": mean_ci95([r["n_views"] for r in rows]),
+                      "windows": windows(rows, window_s),
+                      "last_learner": next((x for x in reversed(learners) if x["site"] == s),
+                                           None)}
+                  for s, rows in rows_by_site.items()},
+    }
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    plot(rows_by_site, labels, out / "online_live.png", smooth_s=min(600.0, window_s))
+    print(json.dumps({s: {k: v for k, v in d.items() if k in ("renders", "reward")}
+                      for s, d in summary["sites"].items()}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
