@@ -190,8 +190,9 @@ def study(samples, decisions) -> dict:
     candidate) and the AoI rule (the youngest frame)."""
     y = np.array([s["y"] for s in samples])
     random = _regret(samples, decisions, np.zeros_like(y))
-    random["regret_db"] = float(np.mean([  # the expected regret of a uniform pick
-        np.max(y[m]) - np.mean(y[m]) for m in _rounds(samples, decisions)]))
+    rounds = list(_rounds(samples, decisions))  # the expectations of a uniform pick:
+    random["regret_db"] = float(np.mean([np.max(y[m]) - np.mean(y[m]) for m in rounds]))
+    random["top1"] = float(np.mean([1.0 / m.sum() for m in rounds]))
     youngest = _regret(samples, decisions, -np.array([s["aoi"][0] for s in samples]))
     return {"candidates": len(samples), "random_pick": random, "youngest_frame": youngest,
             "feature_sets": {name: evaluate_set(samples, decisions, feats)
