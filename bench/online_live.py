@@ -19,14 +19,19 @@ Then, for ``--minutes`` wall minutes, every ``--poll-s`` it reads each site's sc
 learner, so the rewards it reads are what the learners learn from.
 
 Writes into ``--out`` (default ``bench/results/online-live``): ``qualities.csv`` (every scored
-render: site, wall seconds since the policies were put, decision, reward, PSNR, SSIM, LPIPS,
-views), ``learners.csv`` (each poll: episodes learned, updates, entropy, the latest batch's
-mean reward), ``summary.json`` (per site and per ``--window-min`` window: mean reward ± 95 %
-CI; the paired first-vs-last window difference; the machine's load) and ``online_live.png``
-(reward against wall time, a moving mean per site), which docs/ppo.md shows.
+render: site, the wall seconds of its decision since the policies were put — sim time over
+the time scale —, decision, reward, PSNR, SSIM, LPIPS, dynamic-region PSNR, views),
+``learners.csv`` (each poll: episodes learned, updates, entropy, the latest batch's mean
+reward), ``run.json`` (the command, policies, the machine's load, the learners' last state),
+``summary.json`` (per site and per ``--window-min`` window the mean reward ± 95 % CI; per
+site the first window and the last two against the rule's site, Welch, since the sites'
+channels are independent draws) and ``online_live.png`` (reward and PSNR against wall time,
+a trailing mean per site), which docs/ppo.md shows. ``--from-csv`` redoes the last two from
+the first ones.
 
     python bench/online_live.py --minutes 60          # the issue's hour
     python bench/online_live.py --minutes 3 --out /tmp/online-smoke
+    python bench/online_live.py --from-csv           # summary and figure again
 """
 
 from __future__ import annotations
@@ -48,7 +53,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from aoi3d.cli.live import mean_ci95  # noqa: E402
+from aoi3d.cli.live import mean_ci95, welch_ci95  # noqa: E402
 
 OFFSET = 3200  # REST ports 11301..11306: a running `make up` or bench/scale.py is not disturbed
 ZENOH_PORT = 7649
@@ -56,6 +61,8 @@ SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
 HTTP = httpx.Client(timeout=60)
+FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim", "lpips",
+          "psnr_dynamic_db", "n_views"]
 
 
 def port(service: str) -> int:
@@ -161,7 +168,13 @@ def main() -> None:
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     ap.add_argument("--ready-timeout-s", type=float, default=300.0)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "online-live")
+    ap.add_argument("--from-csv", action="store_true",
+                    help="only summarise: summary.json and the figure from --out's "
+                         "qualities.csv and run.json")
     args = ap.parse_args()
+    if args.from_csv:
+        summarise(args.out.resolve(), args.window_min)
+        return
 
     from aoi3d.policy import parse_policy
 
@@ -230,10 +243,8 @@ def main() -> None:
             os.killpg(up.pid, signal.SIGKILL)
 
     rows_by_site = {s: sorted(seen[s].values(), key=lambda q: q["decision_id"]) for s in SITES}
-    fields = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim", "lpips",
-              "psnr_dynamic_db", "n_views"]
     with open(out / "qualities.csv", "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")
         w.writeheader()
         for site, rows in rows_by_site.items():
             w.writerows({**r, "site": site} for r in rows)
@@ -241,27 +252,66 @@ def main() -> None:
         w = csv.DictWriter(fh, fieldnames=list(learners[0]))
         w.writeheader()
         w.writerows(learners)
-    window_s = args.window_min * 60
-    summary = {
-        "command": " ".join(["python", "bench/online_live.py", *sys.argv[1:]]),
-        "minutes": args.minutes, "workers": args.workers, "time_scale": args.time_scale,
-        "policies": {s: {"label": labels[s], **policies[s]} for s in SITES},
-        "load_before": [round(x, 2) for x in load_before],
-        "load_after": [round(x, 2) for x in os.getloadavg()],
-        "pool_lost": pool.get("lost"),
-        "sites": {s: {"renders": len(rows), "reward": mean_ci95([r["reward"] for r in rows]),
-                      "psnr_db": mean_ci95([r["psnr_db"] for r in rows]),
-                      "views": mean_ci95([r["n_views"] for r in rows]),
-                      "windows": windows(rows, window_s),
-                      "last_learner": next((x for x in reversed(learners) if x["site"] == s),
-                                           None)}
-                  for s, rows in rows_by_site.items()},
-    }
-    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
-    plot(rows_by_site, labels, out / "online_live.png", smooth_s=min(600.0, window_s))
-    print(json.dumps({s: {k: v for k, v in d.items() if k in ("renders", "reward")}
-                      for s, d in summary["sites"].items()}, indent=1))
+    run = {"command": " ".join(["python", "bench/online_live.py", *sys.argv[1:]]),
+           "minutes": args.minutes, "workers": args.workers, "time_scale": args.time_scale,
+           "policies": {s: {"label": labels[s], **policies[s]} for s in SITES},
+           "load_before": [round(x, 2) for x in load_before],
+           "load_after": [round(x, 2) for x in os.getloadavg()],
+           "pool_lost": pool.get("lost"),
+           "last_learner": {s: next((x for x in reversed(learners) if x["site"] == s), None)
+                            for s in SITES}}
+    (out / "run.json").write_text(json.dumps(run, indent=1) + "\n")
+    summarise(out, args.window_min)
 
+
+def summarise(out: Path, window_min: float) -> None:
+    """summary.json and online_live.png from ``out``'s qualities.csv and run.json: per site
+    and ``window_min`` window the mean reward ± 95 % CI; per site the first window and the
+    last two against the rule's site (Welch: the sites' channels are independent draws)."""
+    run = json.loads((out / "run.json").read_text())
+    rows_by_site: dict[str, list[dict[str, Any]]] = {s: [] for s in SITES}
+    with open(out / "qualities.csv", newline="") as fh:
+        for r in csv.DictReader(fh):
+            rows_by_site[r["site"]].append(
+                {k: (float(v) if v not in ("", None) else None) for k, v in r.items()
+                 if k != "site"})
+    window_s = window_min * 60
+    end_s = max(r["wall_s"] for rows in rows_by_site.values() for r in rows)
+    spans = {"first": (0.0, window_s), "last": (end_s - 2 * window_s, end_s + 1)}
+
+    def stats(rows: list[dict[str, Any]], lo: float, hi: float) -> dict[str, Any]:
+        sel = [r for r in rows if lo <= r["wall_s"] < hi]
+        return {key: mean_ci95([r[key] for r in sel])
+                for key in ("reward", "psnr_db", "psnr_dynamic_db", "n_views")}
+
+    rule = SITES[-1]
+    sites = {}
+    for s, rows in rows_by_site.items():
+        spans_s = {name: stats(rows, lo, hi) for name, (lo, hi) in spans.items()}
+        against = {name: {key: {"difference": v[key]["mean"] - spans_rule[key]["mean"],
+                                "ci95": welch_ci95(v[key], spans_rule[key])}
+                          for key in ("reward", "psnr_db", "psnr_dynamic_db")}
+                   for name, v in spans_s.items()
+                   for spans_rule in [stats(rows_by_site[rule], *spans[name])]}
+        sites[s] = {"label": run["policies"][s]["label"], "renders": len(rows),
+                    "reward": mean_ci95([r["reward"] for r in rows]),
+                    "windows": windows(rows, window_s), "spans": spans_s,
+                    "minus_rule": against if s != rule else None,
+                    "last_learner": run["last_learner"][s]}
+    summary = {**{k: v for k, v in run.items() if k != "last_learner"},
+               "spans_s": spans, "sites": sites}
+    (out / "summary.json").write_text(json.dumps(summary, indent=1) + "\n")
+    labels = {s: run["policies"][s]["label"] for s in SITES}
+    plot(rows_by_site, labels, out / "online_live.png", smooth_s=min(600.0, window_s))
+    for s, d in sites.items():
+        last = d["spans"]["last"]["reward"]
+        line = (f"{s} ({d['label']}): {d['renders']} renders; reward first "
+                f"{d['spans']['first']['reward']['mean']:.4f}, last {2 * window_min:g} min "
+                f"{last['mean']:.4f} ± {last['ci95']:.4f}")
+        if d["minus_rule"]:
+            m = d["minus_rule"]["last"]["reward"]
+            line += f"; minus the rule {m['difference']:+.4f} ± {m['ci95']:.4f}"
+        print(line)
 
 if __name__ == "__main__":
     main()
