@@ -46,3 +46,23 @@ def test_shipped_checkpoint_comes_with_its_training_record() -> None:
     with (SHIPPED / "episodes.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert len(rows) == 600
+
+
+def test_the_experiments_budget_agent_observes_pose_and_comes_with_its_record() -> None:
+    """models/ppo/quick300: trained at 300 field steps with features=pose (the compare run of
+    `make science` scores it); its rig's geometry is in the checkpoint."""
+    from aoi3d.policy.ppo.actor import Actor
+
+    folder = ROOT / "models" / "ppo" / "quick300"
+    actor, extra = Actor.load_with_extra(folder / "final.pt")
+    cfg = actor.config
+    assert cfg.features == ("pose",) and cfg.n_cameras == EXPERIMENT_SCENE.n_train
+    assert len(cfg.camera_features) == 2 * cfg.n_cameras
+    assert extra["episode_config"]["steps_per_epoch"] == 300
+    assert actor.observe(np.full(cfg.n_cameras, 60.0)).shape == (4 * cfg.n_cameras,)
+    policy = parse_policy(f"ppo:{folder / 'final.pt'}")
+    aoi = np.array([30.0, 60.0, 90.0, np.nan] * 4 + [30.0, 120.0])
+    assert not np.asarray(policy.select(aoi), dtype=bool)[3]
+    assert "--features pose" in (folder / "COMMAND").read_text()
+    with (folder / "episodes.csv").open() as f:
+        assert len(list(csv.DictReader(f))) == 600
