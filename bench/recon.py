@@ -13,6 +13,7 @@ it: reset, views, training, render; not the dataset's decoding), ``psnr_db`` the
     python bench/recon.py                      # the default workload, a line per reconstruction
     python bench/recon.py --json               # one JSON object
     python bench/recon.py --backend ngp --size 192x144 --threads 2 --json
+    python bench/recon.py --backend tensorf --device cuda --json   # on a GPU
 
 The dataset is generated when missing (as the experiment commands do): at 96×72 into
 ``data/turbine-rotor``, at another ``--size`` into ``data/turbine-rotor-<W>x<H>``.
@@ -64,6 +65,8 @@ def main(argv: list[str] | None = None) -> None:
                         help=f"reconstructions (>= 5; t0 cycles through {TIMES})")
     parser.add_argument("--dataset", type=Path, default=None,
                         help="where the rotor scene at --size is (generated when missing)")
+    parser.add_argument("--device", default="cpu",
+                        help="torch device of the field: cpu (default), cuda or auto")
     parser.add_argument("--json", action="store_true", help="print one JSON object only")
     args = parser.parse_args(argv)
     if args.repeats < 5:
@@ -88,7 +91,13 @@ def main(argv: list[str] | None = None) -> None:
     frames = {t0: ([TrainView(ds.cameras[c], ds.frame(c, t0)) for c in chosen],
                    ds.frame(ds.heldout_id, t0)) for t0 in TIMES}
 
-    trainer = FieldTrainer(field_config(args.backend), ds.aabb, device="cpu", seed=0)
+    from aoi3d.device import resolve_device
+
+    try:
+        device = resolve_device(args.device)
+    except ValueError as err:
+        parser.error(str(err))
+    trainer = FieldTrainer(field_config(args.backend), ds.aabb, device=device, seed=0)
     seconds, scores = [], []
     for i in range(args.repeats):
         t0 = TIMES[i % len(TIMES)]
@@ -110,6 +119,7 @@ def main(argv: list[str] | None = None) -> None:
         "steps": args.steps,
         "threads": args.threads,
         "views": args.views,
+        "device": device,
     }
     if args.json:
         print(json.dumps(result))
