@@ -53,7 +53,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from aoi3d.cli.live import mean_ci95, welch_ci95  # noqa: E402
+from aoi3d.cli.live import SERVICE_PORTS, mean_ci95, welch_ci95  # noqa: E402
 
 OFFSET = 3200  # REST ports 11301..11306: a running `make up` or bench/scale.py is not disturbed
 ZENOH_PORT = 7649
@@ -66,8 +66,7 @@ FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim
 
 
 def port(service: str) -> int:
-    return {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-            "metrics": 8105, "console": 8106}[service] + OFFSET
+    return SERVICE_PORTS[service] + OFFSET
 
 
 def url(service: str, site: str, path: str) -> str:

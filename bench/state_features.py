@@ -49,6 +49,7 @@ sys.path.insert(0, str(ROOT))
 from aoi3d.experiment import ResultCache, get_preset  # noqa: E402
 from aoi3d.experiment.oracle import search_oracle  # noqa: E402
 from aoi3d.experiment.sweep import open_dataset, run_plans  # noqa: E402
+from aoi3d.policy.ppo.obs import pose_features  # noqa: E402
 
 FEATURE_SETS = {
     "aoi": ("aoi",),
@@ -61,20 +62,18 @@ FEATURE_SETS = {
 
 
 def geometry(ds, ids):
-    """Per training camera: angle (rad) between its optical axis and the held-out camera's,
-    distance between their centres (scene units), and the unit axes (for overlaps)."""
-    held = ds.cameras[ds.heldout_id].c2w
-    axis_h, centre_h = -held[:3, 2], held[:3, 3]
-    axes = np.array([-ds.cameras[i].c2w[:3, 2] for i in ids])
-    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
-    centres = np.array([ds.cameras[i].c2w[:3, 3] for i in ids])
-    angle = np.arccos(np.clip(axes @ (axis_h / np.linalg.norm(axis_h)), -1, 1))
-    dist = np.linalg.norm(centres - centre_h, axis=1)
-    return angle, dist, axes
+    """Per training camera: the pose features of the agent (angle to the held-out camera's
+    axis / π, distance / the largest; :func:`aoi3d.policy.ppo.obs.pose_features`) and the unit
+    optical axes (for overlaps)."""
+    c2w = np.stack([ds.cameras[i].c2w for i in ids])
+    pose = pose_features(c2w, ds.cameras[ds.heldout_id].c2w)
+    axes = -c2w[:, :3, 2] / np.linalg.norm(c2w[:, :3, 2], axis=1, keepdims=True)
+    return pose[:, 0], pose[:, 1], axes
 
 
-def collect(args) -> list[dict]:
-    """Every greedy candidate: its decision, round, camera, base selection and PSNR."""
+def collect(args):
+    """Every greedy candidate (its decision, selection and PSNR), the oracle's episodes, the
+    episode config, the dataset and how many reconstructions were computed."""
     cfg = replace(get_preset("quick").episode, steps_per_epoch=args.steps,
                   dataset=str(ROOT / "data" / "turbine-rotor"))
     ds = open_dataset(cfg.dataset)
@@ -147,11 +146,11 @@ def features(rows, cfg, ds) -> tuple[list[dict], list[str]]:
                     "y": p - mean,
                     "aoi": [aoi[c] / 300.0, (aoi[c] / 300.0) ** 2],
                     "id": list(np.eye(n)[c]),
-                    "pose": [angle[c], angle[c] ** 2, dist[c] / np.mean(dist)],
+                    "pose": [angle[c], angle[c] ** 2, dist[c]],
                     "delay": [delay[c] / 300.0, since[c] / 300.0, inflight[c]],
                     "overlap": [overlap, overlap ** 2],
                 })
-    return samples, [f"{s}" for s in sorted({s["decision"] for s in samples})]
+    return samples, sorted({s["decision"] for s in samples})
 
 
 def evaluate_set(samples, decisions, feats, ridge=1e-2) -> dict:
@@ -174,13 +173,8 @@ def evaluate_set(samples, decisions, feats, ridge=1e-2) -> dict:
 def _regret(samples, decisions, score) -> dict:
     """Per round: the best candidate's PSNR minus that of the one ranked first by ``score``."""
     y = np.array([s["y"] for s in samples])
-    dec = np.array([s["decision"] for s in samples])
-    rnd = np.array([s["round"] for s in samples])
-    regrets = []
-    for d in decisions:
-        for r in np.unique(rnd[dec == d]):
-            m = (dec == d) & (rnd == r)
-            regrets.append(float(np.max(y[m]) - y[m][np.argmax(score[m])]))
+    regrets = [float(np.max(y[m]) - y[m][np.argmax(score[m])])
+               for m in _rounds(samples, decisions)]
     return {"regret_db": float(np.mean(regrets)), "rounds": len(regrets),
             "top1": float(np.mean([r == 0.0 for r in regrets]))}
 
@@ -200,6 +194,7 @@ def study(samples, decisions) -> dict:
 
 
 def _rounds(samples, decisions):
+    """A mask over ``samples`` per round of each decision."""
     dec = np.array([s["decision"] for s in samples])
     rnd = np.array([s["round"] for s in samples])
     for d in decisions:
