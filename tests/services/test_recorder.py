@@ -282,3 +282,76 @@ def test_full_disk_ends_the_recording_and_the_service_goes_on(tmp_path: Path) ->
         bus.publish(K.decision, one_of_each()[2][1])
         _wait("recorded", lambda: client.get("/recording").json()["messages"] >= 1)
         assert client.post("/recording/stop").json()["state"] == "stopped"
+
+
+# ---------------------------------------------------------------- replay: the arrivals
+def _decision(s: float, newest: dict[int, float], cams=(1, 2), selected=()) -> pb.Decision:
+    return pb.Decision(decision_id=int(s), time_ms=s, camera_ids=list(cams), policy="all",
+                       aoi_ms=[s - newest[c] if c in newest else math.nan for c in cams],
+                       selected=[pb.FrameRef(camera_id=c, generation_ms=newest[c])
+                                 for c in selected])
+
+
+def _delivery(cam: int, gen: float, delivered: float) -> pb.Frame:
+    return pb.Frame(camera_id=cam, generation_ms=gen, delivery_ms=delivered)
+
+
+def test_arrivals_follow_the_schedulers_vectors() -> None:
+    """A frame counts from its delivery stamp, unless the first decision after the stamp did
+    not know it (it reached the scheduler late): then from the first decision that did."""
+    from services.recorder.replay import SiteRecord, arrivals
+
+    rec = SiteRecord()
+    rec.deliveries = [_delivery(1, 0.0, 10.0), _delivery(2, 5.0, 30.0),  # 2: late, at s = 30
+                      _delivery(1, 30.0, 55.0), _delivery(2, 35.0, 70.0)]  # never known
+    rec.decisions = [_decision(30.0, {1: 0.0}), _decision(60.0, {1: 30.0, 2: 5.0}),
+                     _decision(90.0, {1: 30.0, 2: 5.0})]
+    arr = arrivals(rec)
+    assert arr.late == 1
+    assert np.array_equal(arr.newest_at(30.0), [0.0, np.nan], equal_nan=True)
+    assert np.array_equal(arr.newest_at(59.0), [30.0, np.nan], equal_nan=True)
+    assert np.array_equal(arr.newest_at(60.0), [30.0, 5.0])
+    assert np.array_equal(arr.newest_at(10_000.0), [30.0, 5.0])  # 35 never reached it
+    assert arr.frame(2, 35.0).arrival_ms == math.inf and arr.frame(2, 5.0).arrival_ms == 60.0
+    for d in rec.decisions:  # so every recorded vector comes back
+        assert np.allclose(d.time_ms - arr.newest_at(d.time_ms), d.aoi_ms, equal_nan=True)
+
+
+def test_frames_known_before_the_recording_enter_without_pixels() -> None:
+    from services.recorder.replay import SiteRecord, arrivals
+
+    rec = SiteRecord()
+    rec.deliveries = [_delivery(1, 40.0, 45.0)]
+    rec.decisions = [_decision(30.0, {1: 0.0, 2: -30.0}), _decision(60.0, {1: 40.0, 2: -30.0})]
+    arr = arrivals(rec)
+    assert np.array_equal(arr.newest_at(30.0), [0.0, -30.0])
+    assert arr.frame(2, -30.0).frame is None and arr.frame(1, 40.0).frame is not None
+
+
+def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Path) -> None:
+    """Without scores: a recording of decisions under mat:10 replays to the same selections;
+    under all, to more cameras on the same AoI vectors."""
+    from services.recorder.replay import load, replay
+
+    rec = Recording(tmp_path / "r.mcap")
+    newest: dict[int, float] = {}
+    for k in range(1, 21):
+        s = 30.0 * k
+        for cam in (1, 2):
+            gen = s - 2.0 - 7.0 * cam * (k % 3)
+            if gen > newest.get(cam, -math.inf):
+                rec.write(K.edge_frame(cam), frame(cam, gen, delivery_ms=s - 1.0, seed=k),
+                          log_ns=k)
+                newest[cam] = gen
+        aoi = {c: s - g for c, g in newest.items()}
+        d = _decision(s, newest, selected=[c for c in (1, 2) if aoi[c] < 10.0])
+        d.policy = "mat:10"
+        rec.write(K.decision, d.SerializeToString(), log_ns=k)
+    rec.close()
+    data = load(tmp_path / "r.mcap")
+    same = replay(data, None, score=False)
+    assert len(same.decisions) == 20 and same.selections_equal == 20
+    assert all(d.aoi_equal for d in same.decisions)
+    every = replay(data, "all", score=False)
+    assert every.selections_equal < 20
+    assert all(len(d.selected) == 2 for d in every.decisions)
