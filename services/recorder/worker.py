@@ -68,7 +68,11 @@ class RecorderWorker:
         self._loops.start()
 
     def stop(self) -> None:
+        """Stop the writing thread, write what was received before, finish the file."""
+        self._on = False
         self._loops.stop()
+        for item in self._inbox.drain():
+            self._write(*item)
         with self._lock:
             self._close_locked()
 
