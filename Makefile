@@ -80,8 +80,9 @@ bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (
 science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) bench/science.py $(SCIENCE_ARGS)
 
-docs: install  ## regenerate docs/measurements.md from bench/results (bench/docs.py; a test fails when it is stale)
+docs: install  ## regenerate the generated pages: docs/measurements.md from bench/results (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)
 	$(PY) bench/docs.py
+	$(PY) -m services.configdoc --update
 
 figures: install  ## the PPO training figure from scratch, then `make science` (the experiment figures on unseen seeds) into docs/figures/ (about 28 min)
 	rm -rf runs/ppo/figures

@@ -24,7 +24,7 @@ CURL = re.compile(r"curl(?: -X (\w+))?[^\n]*?localhost:(\d+)(/[\w./]*)")
 #: pages that report the runs kept outside bench/results (development seeds, the oracle).
 NUMBER_SOURCES = ("measurements.md", "science.md", "ppo.md", "experiments.md")
 #: Overview pages, which quote numbers and must quote them as their source pages have them.
-OVERVIEWS = ("docs/operations.md", "docs/performance.md", "docs/research.md",
+OVERVIEWS = ("README.md", "docs/operations.md", "docs/performance.md", "docs/research.md",
              "docs/cli.md")
 
 
@@ -55,6 +55,8 @@ def test_curl_calls_exist(page: str, openapi_paths: dict[str, dict]) -> None:
 
 def test_the_pages_that_teach_control_show_it() -> None:
     """The front page shows how to change MAT and the policy; operations.md every control."""
+    readme = {(m or "GET", path) for m, _, path in CURL.findall(README)}
+    assert {("PUT", "/policy"), ("GET", "/aoi")} <= readme, readme
     assert len(CURL.findall(DOCS["operations.md"])) >= 12
 
 
@@ -71,6 +73,17 @@ def test_route_table_exists(openapi_paths: dict[str, dict]) -> None:
                 assert one.lower() in openapi_paths[m.group(1)].get(path, {}), (m.group(1),
                                                                                  one, path)
     assert rows == 5, "docs/operations.md's service table lost a service"
+
+
+def test_front_page_is_a_front_page() -> None:
+    lines = README.splitlines()
+    assert len(lines) <= 250, f"README.md has {len(lines)} lines; the rest belongs in docs/"
+    first_command = next(i for i, line in enumerate(lines) if line.startswith("```"))
+    assert "aoi3d" in " ".join(lines[:first_command]).lower() and first_command > 3, (
+        "say what aoi3d is before the commands")
+    assert "make up" in README and "make test" in README
+    linked = set(re.findall(r"\]\(docs/([\w-]+\.md)", README))
+    assert set(DOCS) <= linked, f"pages the front page does not link: {set(DOCS) - linked}"
 
 
 @pytest.mark.parametrize("page", sorted(PAGES))
