@@ -158,7 +158,7 @@ def live_sweep(results: Path) -> tuple[list[str], set[str]]:
         "",
     ]
     lines += interior_lines(r["interior_maximum"])
-    lines += ["", source("live-sweep/results.json", "live-sweep/sim-16-seeds.json"), ""]
+    lines.append("")
     return lines, {"live-sweep/results.json", "live-sweep/sim-16-seeds.json"}
 
 
@@ -206,8 +206,6 @@ def live_192(results: Path) -> tuple[list[str], set[str]]:
         "The pool at 192×144 (`mat:70`):",
         "",
         *scale_table([("192×144", row) for row in sc["rows"]]),
-        "",
-        source("live-sweep-192x144/results.json", "scale-192x144.json"),
         "",
     ]
     return lines, {"live-sweep-192x144/results.json", "scale-192x144.json"}
@@ -286,8 +284,6 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
         f"{farm['workers_to_render_every_decision']} worker cores, with "
         f"{farm['router_bytes_per_s'] / 1e6:.1f} MB/s through the edge router ({farm['note']}).",
         "",
-        source(*(n for n, _ in SCALE_RUNS)),
-        "",
     ]
     return lines, used
 
@@ -334,7 +330,7 @@ def reconstruction(results: Path) -> tuple[list[str], set[str]]:
     ]
     for i, b in enumerate(blocks, 1):
         lines.append(f"{i}. " + " ".join(b["notes"]))
-    lines += ["", source("recon-ab.txt"), ""]
+    lines.append("")
     return lines, {"recon-ab.txt"}
 
 
@@ -391,8 +387,6 @@ def gpu(results: Path) -> tuple[list[str], set[str]]:
         "",
         f"The machine: {cpu['cpus']} cores.",
         "",
-        source("recon-cuda-h200.jsonl", "scale-h200-cuda.json", "scale-h200-cpu.json"),
-        "",
     ]
     return lines, {"recon-cuda-h200.jsonl", "scale-h200-cuda.json", "scale-h200-cpu.json"}
 
@@ -431,8 +425,6 @@ def pipeline(results: Path) -> tuple[list[str], set[str]]:
                 "views", "render lag sim s / wall s", "camera ticks skipped/s",
                 "decisions skipped/s"], rows),
         "",
-        source(*(p.name for p in files)),
-        "",
     ]
     return lines, {p.name for p in files}
 
@@ -455,8 +447,6 @@ def channel(results: Path) -> tuple[list[str], set[str]]:
                rows),
         "",
         f"Mean AoI in the run: {d['mean_aoi_ms']:.1f} ms.",
-        "",
-        source("channel.json"),
         "",
     ]
     return lines, {"channel.json"}
@@ -501,7 +491,6 @@ def fields(results: Path) -> tuple[list[str], set[str]]:
                     "peak RSS", "time to the reference's PSNR"], rows),
             "",
         ]
-    lines += [source("fields.json"), ""]
     return lines, {"fields.json"}
 
 
@@ -540,8 +529,6 @@ def chaos(results: Path) -> tuple[list[str], set[str]]:
         "",
         "</details>",
         "",
-        source("chaos.json"),
-        "",
     ]
     return lines, {"chaos.json"}
 
@@ -577,8 +564,6 @@ def soak(results: Path) -> tuple[list[str], set[str]]:
         "",
         *table(["site", "decisions", "scored", "skipped", "lost", "lost by reason",
                 "open when read"], ledgers),
-        "",
-        source("soak.json"),
         "",
     ]
     return lines, {"soak.json"}
@@ -623,9 +608,7 @@ def learning(results: Path) -> tuple[list[str], set[str]]:
                      diff(mr["last"]["reward"], 3) if mr else "—"])
     lines += [*table(["site", "policy", "renders", "reward, first span", "reward, last span",
                       "PSNR last span (dB)", "views last span",
-                      "reward − the rule's, last span"], rows), "",
-              source("scheduler-learning.json", "online-live/summary.json",
-                     "online-live/run.json"), ""]
+                      "reward − the rule's, last span"], rows), ""]
     return lines, {"scheduler-learning.json", "online-live/summary.json", "online-live/run.json"}
 
 
@@ -648,7 +631,6 @@ def staleness(results: Path) -> tuple[list[str], set[str]]:
                   *redo(f"python bench/staleness.py --dataset {d['dataset']}"), "",
                   *table(["views", "age (frames)", "age (ms)", "PSNR (dB)", "SSIM", "LPIPS"],
                          rows), ""]
-    lines += [source(*sorted(used)), ""]
     return lines, used
 
 
@@ -672,8 +654,6 @@ def dynamic_mask(results: Path) -> tuple[list[str], set[str]]:
         *table(["τ (/255)", "share of the image", "min–max", "recall", "marked, not moving"],
                rows),
         "",
-        source("dynamic_mask.json"),
-        "",
     ]
     return lines, {"dynamic_mask.json"}
 
@@ -695,8 +675,6 @@ def trainer_restart(results: Path) -> tuple[list[str], set[str]]:
         "",
         *table(["checkpoint period", "PSNR before (dB)", "PSNR after (dB)",
                 "first render after the kill", "renders averaged"], rows),
-        "",
-        source("trainer_restart.json"),
         "",
     ]
     return lines, {"trainer_restart.json"}
@@ -723,7 +701,7 @@ def render(results: Path = RESULTS) -> str:
     used: set[str] = set()
     for section in SECTIONS:
         lines, files = section(results)
-        body += lines
+        body += [*lines, source(*sorted(files)), ""]
         used |= files
     toc = [f"- [{line[3:]}](#{anchor(line[3:])})" for line in body if line.startswith("## ")]
     head = [
