@@ -107,6 +107,14 @@ def up(
         if record.is_dir():
             raise typer.BadParameter(f"{record} is a folder; give a file such as "
                                      f"{record / 'run.mcap'}", param_hint="'--record'")
+        import os
+
+        try:
+            record.resolve().parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            fail(f"cannot make the folder of --record {record}: {err}")
+        if not os.access(record.resolve().parent, os.W_OK):
+            fail(f"cannot write --record {record}: its folder is not writable")
         cfg.extra_env.update({"AOI3D_RECORDER_PATH": str(record.resolve()),
                               "AOI3D_RECORDER_MAX_BYTES": str(int(record_max_mb * 2**20))})
     taken = taken_ports(cfg)
