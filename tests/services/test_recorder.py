@@ -355,3 +355,21 @@ def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Pat
     every = replay(data, "all", score=False)
     assert every.selections_equal < 20
     assert all(len(d.selected) == 2 for d in every.decisions)
+
+
+def test_a_raw_frame_is_a_foxglove_raw_image(tmp_path: Path) -> None:
+    from services.kit.codec import RAW
+
+    pixels = noise_image(4)
+    payload = encode_frame(camera_id=2, sequence=1, generation_ms=30.0, scene_time_ms=30.0,
+                           camera=camera(), delivery_ms=40.0,
+                           image=pb.Image(encoding=RAW, width=W, height=H,
+                                          data=pixels.tobytes()))
+    rec = Recording(tmp_path / "raw.mcap")
+    rec.write(K.edge_frame(2), payload, log_ns=1)
+    rec.close()
+    got = {t: (s, m) for t, s, m, _ in read_all(tmp_path / "raw.mcap")}
+    schema, img = got["/site1/cam2/image"]
+    assert schema == "foxglove.RawImage" and img.encoding == "rgb8"
+    assert (img.width, img.height, img.step) == (W, H, 3 * W)
+    assert np.array_equal(np.frombuffer(img.data, np.uint8).reshape(H, W, 3), pixels)
