@@ -6,9 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-import os
 import subprocess
-import time
 from collections import Counter
 from pathlib import Path
 
@@ -28,11 +26,11 @@ from services.kit.settings import CommonSettings
 from services.recorder.app import create_app
 from services.recorder.core import Recording, segments
 from services.recorder.settings import Settings
+from tests.services.test_trainer import wait_for
 
 RUN = "rec"
 K = Keys(RUN)
 W, H = 24, 18
-TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
 
 
 def camera() -> Camera:
@@ -221,16 +219,6 @@ def _client(bus: MemoryBus, tmp_path: Path, **over) -> TestClient:
     return TestClient(create_app(settings, bus=bus))
 
 
-def _wait(what: str, check, timeout_s: float = 10.0):
-    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
-    while time.monotonic() < deadline:
-        got = check()
-        if got:
-            return got
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_rest_start_and_stop_record_the_bus(tmp_path: Path) -> None:
     bus = MemoryBus()
     with _client(bus, tmp_path) as client:
@@ -245,7 +233,8 @@ def test_rest_start_and_stop_record_the_bus(tmp_path: Path) -> None:
         for key, payload in one_of_each():
             bus.publish(key, payload)
         bus.publish("aoi3d/rec/site2/decision", b"\x01garbage")  # counted, not recorded
-        _wait("6 messages recorded", lambda: client.get("/recording").json()["messages"] >= 6)
+        wait_for(lambda: client.get("/recording").json()["messages"] >= 6,
+                 what="6 messages recorded")
         r = client.post("/recording/stop")
         assert r.status_code == 200 and r.json()["state"] == "stopped", r.text
         assert "aoi3d_messages_rejected_total" in client.get("/metrics").text
@@ -269,8 +258,8 @@ def test_full_disk_ends_the_recording_and_the_service_goes_on(tmp_path: Path) ->
         assert client.get("/recording").json()["state"] == "recording"
         for i in range(400):
             bus.publish(K.edge_frame(1), frame(1, 30.0 * i, delivery_ms=30.0 * i + 1, seed=i))
-        view = _wait("the recording to fail",
-                     lambda: (v := client.get("/recording").json())["state"] == "failed" and v)
+        view = wait_for(lambda: (v := client.get("/recording").json())["state"] == "failed"
+                        and v, what="the recording to fail")
         assert "disk is full" in view["error"], view
         assert client.get("/healthz").status_code == 200
         r = client.get("/readyz")
@@ -280,7 +269,7 @@ def test_full_disk_ends_the_recording_and_the_service_goes_on(tmp_path: Path) ->
         r = client.post("/recording/start", json={"path": str(tmp_path / "b.mcap")})
         assert r.status_code == 200, r.text
         bus.publish(K.decision, one_of_each()[2][1])
-        _wait("recorded", lambda: client.get("/recording").json()["messages"] >= 1)
+        wait_for(lambda: client.get("/recording").json()["messages"] >= 1, what="recorded")
         assert client.post("/recording/stop").json()["state"] == "stopped"
 
 
