@@ -322,7 +322,19 @@ def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Pat
     under all, to more cameras on the same AoI vectors."""
     from services.recorder.replay import load, replay
 
-    rec = Recording(tmp_path / "r.mcap")
+    _mat10_recording(tmp_path / "r.mcap")
+    data = load(tmp_path / "r.mcap")
+    same = replay(data, None, score=False)
+    assert len(same.decisions) == 20 and same.selections_equal == 20
+    assert all(d.aoi_equal for d in same.decisions)
+    every = replay(data, "all", score=False)
+    assert every.selections_equal < 20
+    assert all(len(d.selected) == 2 for d in every.decisions)
+
+
+def _mat10_recording(path: Path) -> None:
+    """20 decisions of two cameras under mat:10, their deliveries before them."""
+    rec = Recording(path)
     newest: dict[int, float] = {}
     for k in range(1, 21):
         s = 30.0 * k
@@ -337,13 +349,30 @@ def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Pat
         d.policy = "mat:10"
         rec.write(K.decision, d.SerializeToString(), log_ns=k)
     rec.close()
-    data = load(tmp_path / "r.mcap")
-    same = replay(data, None, score=False)
-    assert len(same.decisions) == 20 and same.selections_equal == 20
-    assert all(d.aoi_equal for d in same.decisions)
-    every = replay(data, "all", score=False)
-    assert every.selections_equal < 20
-    assert all(len(d.selected) == 2 for d in every.decisions)
+
+
+def test_replay_command_json_and_its_errors(tmp_path: Path) -> None:
+    import json
+
+    from typer.testing import CliRunner
+
+    from aoi3d.cli import app
+
+    _mat10_recording(tmp_path / "r.mcap")
+    out = CliRunner().invoke(app, ["replay", str(tmp_path / "r.mcap"), "--json", "--no-score",
+                                   "--policy", "all"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads(out.stdout)
+    assert (doc["decisions"], doc["selections_equal"]) == (20, 20)
+    assert doc["recorded_policies"] == ["mat:10"] and doc["rendered"] == 0
+    assert doc["max_abs_score_diff"] is None and doc["late_arrivals"] == 0
+    out = CliRunner().invoke(app, ["replay", str(tmp_path / "none.mcap")])
+    assert out.exit_code == 1 and "no recording at" in out.output
+    (tmp_path / "bad.mcap").write_bytes(b"not an mcap file at all")
+    out = CliRunner().invoke(app, ["replay", str(tmp_path / "bad.mcap")])
+    assert out.exit_code == 1 and "cannot be read as an MCAP recording" in out.output
+    out = CliRunner().invoke(app, ["replay", str(tmp_path / "r.mcap"), "--site", "site9"])
+    assert out.exit_code == 1 and "no site site9" in out.output
 
 
 def test_a_raw_frame_is_a_foxglove_raw_image(tmp_path: Path) -> None:
