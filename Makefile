@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 figures science clean help \
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 bench-multihost figures science clean help \
         lock wheelhouse secrets images compose-test monitoring k8s
 
 help:  ## list the targets
@@ -58,6 +58,10 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
 	$(PY) bench/chaos.py --minutes 10
 	$(PY) bench/soak.py --minutes 60
+
+bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)
+	eval "$$(deploy/engine.sh start)" && deploy/build-images.sh && \
+	    $(PY) bench/chaos.py --target multihost --minutes 10 --json
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'

@@ -636,7 +636,7 @@ def test_project_checks_catch_broken_manifests(rendered) -> None:
         lambda w: first(w)["resources"]["limits"].update(memory="512m")))
     assert any("memory limit" in p for p in problems), problems
     problems = environment_problems(broken(
-        docs, "Deployment", "router-edge" if False else "trainer",
+        docs, "Deployment", "trainer",
         lambda w: pod_spec(w)["volumes"][0]["projected"]["sources"].pop()))
     assert any("is not mounted" in p for p in problems), problems
 
