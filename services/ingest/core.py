@@ -112,8 +112,8 @@ class CameraState:
     delay between capture and publish."""
     ages: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
     held: list = field(default_factory=list)
-    """Images waiting for their pose or intrinsics: (deadline wall s, route, msg, stamp,
-    attachment, receipt wall s)."""
+    """Images waiting for their pose or intrinsics: (deadline wall s, RGB, stamp, attachment,
+    receipt wall s)."""
 
     @property
     def offset_estimate_s(self) -> float:
@@ -200,10 +200,10 @@ class IngestCore:
 
     def _sample(self, route: Route, states: list[CameraState], key: str, payload: bytes,
                 attachment: bytes | None, receipt_s: float) -> list[Published]:
-        self.format.check_key(key, route.ros_type)
         att = ros.parse_attachment(attachment) if self.format.attached else None
-        if att is not None and route.kind == "image":
+        if att is not None and route.kind == "image":  # a sample received, whatever it holds
             self._sequence(states, route.topic, att)
+        self.format.check_key(key, route.ros_type)
         cap = self.rig.max_image_bytes if route.kind == "image" else 1024 * 1024
         msg = ros.decode_cdr(payload, route.ros_type, cap)
         stamp = ros.stamp_s(msg.header)
@@ -223,10 +223,13 @@ class IngestCore:
                 c2w = s.spec.pose.to_gl(m)
                 s.poses.append((stamp, c2w))
             return self._retry(states, receipt_s)
+        for s in states:
+            self._stamp_ms(s, stamp, receipt_s)  # refused before the pixels are decoded
+        rgb = ros.image_rgb(msg, route.ros_type, self.rig.max_image_pixels)
         out = []
         for s in states:
             try:
-                out.append(self._frame(s, msg, route, stamp, att, receipt_s))
+                out.append(self._frame(s, rgb, stamp, att, receipt_s))
             except _Wait:
                 if len(s.held) >= HELD_PER_CAMERA:
                     s.held.pop(0)
@@ -234,7 +237,7 @@ class IngestCore:
                     self.expired.append((s.spec.name, Rejected(
                         "no_pose", f"{s.spec.name}: more than {HELD_PER_CAMERA} images wait "
                                    "for their pose or intrinsics")))
-                s.held.append((receipt_s + HOLD_S, route, msg, stamp, att, receipt_s))
+                s.held.append((receipt_s + HOLD_S, rgb, stamp, att, receipt_s))
         return out
 
     def _retry(self, states: list[CameraState], now_s: float) -> list[Published]:
@@ -242,11 +245,11 @@ class IngestCore:
         out = []
         for s in states:
             waiting, s.held = s.held, []
-            for deadline, route, msg, stamp, att, receipt_s in waiting:
+            for deadline, rgb, stamp, att, receipt_s in waiting:
                 try:
-                    out.append(self._frame(s, msg, route, stamp, att, receipt_s))
+                    out.append(self._frame(s, rgb, stamp, att, receipt_s))
                 except _Wait:
-                    s.held.append((deadline, route, msg, stamp, att, receipt_s))
+                    s.held.append((deadline, rgb, stamp, att, receipt_s))
                 except Rejected as err:
                     s.rejected[err.reason] += 1
                     self.expired.append((s.spec.name, err))
@@ -260,12 +263,12 @@ class IngestCore:
         for s in self.cameras.values():
             keep = []
             for item in s.held:
-                deadline, route, msg, stamp, att, receipt_s = item
+                deadline, rgb, stamp, att, receipt_s = item
                 if now_s < deadline:
                     keep.append(item)
                     continue
                 try:
-                    frames.append(self._frame(s, msg, route, stamp, att, receipt_s, final=True))
+                    frames.append(self._frame(s, rgb, stamp, att, receipt_s, final=True))
                 except Rejected as err:
                     s.rejected[err.reason] += 1
                     self.expired.append((s.spec.name, err))
@@ -303,7 +306,6 @@ class IngestCore:
             raise Rejected("stamp_stale", f"stamped {age:.1f} s before its receipt (limit "
                                           f"{clock.max_age_s:g} s)")
         if age < 0:
-            s.clamped += 1
             edge_stamp, age = receipt_s, 0.0
         gen = self.sim_ms(edge_stamp)
         if gen < 0:
@@ -340,14 +342,14 @@ class IngestCore:
             raise Rejected("no_intrinsics", f"no CameraInfo received yet on {spec.camera_info}")
         return s.intrinsics
 
-    def _frame(self, s: CameraState, msg, route: Route, stamp: float,
+    def _frame(self, s: CameraState, rgb: np.ndarray, stamp: float,
                att: ros.Attachment | None, receipt_s: float, final: bool = False) -> Published:
-        """The frame of an image; :class:`_Wait` when its pose or intrinsics may still come
-        (unless ``final``)."""
+        """The frame of a decoded image; :class:`_Wait` when its pose or intrinsics may still
+        come (unless ``final``)."""
         gen_ms, age = self._stamp_ms(s, stamp, receipt_s)
+        clamped = stamp - self.offset_in_force(s) > receipt_s  # within the tolerance
         intr = self._intrinsics(s, final)
         c2w = self._pose_at(s, stamp, final)
-        rgb = ros.image_rgb(msg, route.ros_type, self.rig.max_image_pixels)
         h, w = rgb.shape[:2]
         if (w, h) != (intr.width, intr.height):
             raise Rejected("image_mismatch", f"a {w}x{h} image, but its intrinsics are for "
@@ -377,6 +379,7 @@ class IngestCore:
                            delivery_ms=delivery, pose=pose, intrinsics=intrinsics,
                            image=image).SerializeToString()
         s.published += 1
+        s.clamped += clamped
         s.last_stamp_s, s.last_receipt_s, s.last_age_s = stamp, receipt_s, age
         s.ages.append(age)
         if att is not None and att.source_ns > 0:
