@@ -133,3 +133,24 @@ def test_up_with_a_rig_runs_the_ingest_in_the_cameras_slot(tmp_path: Path) -> No
     plain = {c.name: c for c in Supervisor(UpConfig(log_dir=tmp_path)).children}
     assert plain["camera"].argv[-1] == "services.camera" and "AOI3D_RIG" not in plain[
         "camera"].env or plain["camera"].env.get("AOI3D_RIG") is None
+
+
+def test_the_compose_rig_override_runs_the_ingest_in_the_cameras_slot() -> None:
+    """compose.rig.yaml (no Docker engine here: checked as data against compose.yaml and the
+    settings it sets)."""
+    from services.ingest.settings import Settings as IngestSettings
+    from services.metrics.settings import Settings as MetricsSettings
+
+    root = Path(__file__).resolve().parents[2]
+    base = yaml.safe_load((root / "compose.yaml").read_text())["services"]
+    rig = yaml.safe_load((root / "compose.rig.yaml").read_text())["services"]
+    assert set(rig) <= set(base)
+    assert rig["camera"]["command"] == ["python", "-m", "services.ingest"]
+    for name in ("camera", "trainer"):
+        assert rig[name]["environment"]["AOI3D_RIG"] == "/rig/rig.yaml"
+        assert any(v.endswith(":/rig/rig.yaml:ro") for v in rig[name]["volumes"])
+    for var in rig["camera"]["environment"]:
+        if var.startswith("AOI3D_INGEST_"):
+            assert var.removeprefix("AOI3D_INGEST_").lower() in IngestSettings.model_fields
+    (var,) = rig["metrics"]["environment"]
+    assert var.removeprefix("AOI3D_METRICS_").lower() in MetricsSettings.model_fields
