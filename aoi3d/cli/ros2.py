@@ -129,6 +129,39 @@ def publish(
 
 
 @app.command()
+def rtsp(
+    dataset: Annotated[Path, typer.Argument(help="A dataset folder aoi3d reads.")],
+    url: Annotated[str, typer.Option(help="Where to push: an ingest listening there (a rig "
+                                          "camera with url: this, listen: true).")],
+    camera: Annotated[int, typer.Option(help="The dataset's camera to stream.")] = 1,
+    period_ms: Annotated[float, typer.Option(help="Scene ms between two frames.")] = 30.0,
+    time_scale: Annotated[float, typer.Option(help="Scene seconds per wall second.")] = 1.0,
+    duration_s: Annotated[float | None, typer.Option(
+        help="Stop after this many wall seconds (default: until Ctrl-C).")] = None,
+) -> None:
+    """An IP camera: stream one of DATASET's cameras as H.264 over RTSP (pushed: RECORD)."""
+    from aoi3d.scene import open_dataset
+    from services.ingest.publish import push_rtsp
+
+    ds = open_dataset(dataset)
+    if not 0 <= camera < len(ds.cameras):
+        raise typer.BadParameter(f"0..{len(ds.cameras) - 1}", param_hint="'--camera'")
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    typer.echo(f"pushing camera {camera} of {dataset} as H.264 to {url}")
+    try:
+        sent = push_rtsp(ds, camera, url, period_ms=period_ms, time_scale=time_scale,
+                         stop=stop, duration_s=duration_s)
+    except Exception as err:  # av's connection errors: one line
+        fail(f"{url}: {err}")
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    typer.echo(f"sent {sent} frames")
+
+
+@app.command()
 def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")]) -> None:
     """Validate a rig file: one line per bad field, naming it; else a summary."""
     from services.kit.rig import RigError, load_rig
@@ -143,7 +176,7 @@ def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")
                f"working size {r.working_size[0]}x{r.working_size[1]}, time scale "
                f"{r.time_scale:g}")
     for c in r.cameras:
-        typer.echo(f"  {ids[c.name]:3d} {c.name}: {c.image} ({c.kind}), intrinsics "
+        typer.echo(f"  {ids[c.name]:3d} {c.name}: {c.image or c.url} ({c.kind}), intrinsics "
                    f"{'static' if c.intrinsics.static else c.intrinsics.camera_info}, pose "
                    f"{'static' if c.pose.static else c.pose.topic}")
 

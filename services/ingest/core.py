@@ -155,8 +155,9 @@ class IngestCore:
     def _routes(self) -> list[Route]:
         by_topic: dict[tuple[str, str, str], list[str]] = {}
         for c in self.rig.cameras:
-            image_type = ros.COMPRESSED if c.kind == "compressed" else ros.IMAGE
-            by_topic.setdefault(("image", c.image, image_type), []).append(c.name)
+            if c.image is not None:  # (a url camera is read by the runtime: on_video)
+                image_type = ros.COMPRESSED if c.kind == "compressed" else ros.IMAGE
+                by_topic.setdefault(("image", c.image, image_type), []).append(c.name)
             if c.intrinsics.camera_info is not None:
                 by_topic.setdefault(("camera_info", c.intrinsics.camera_info, ros.CAMERA_INFO),
                                     []).append(c.name)
@@ -226,6 +227,31 @@ class IngestCore:
         for s in states:
             self._stamp_ms(s, stamp, receipt_s)  # refused before the pixels are decoded
         rgb = ros.image_rgb(msg, route.ros_type, self.rig.max_image_pixels)
+        return self._images(states, rgb, stamp, att, receipt_s)
+
+    def on_video(self, name: str, rgb: np.ndarray, stamp_s: float,
+                 receipt_s: float) -> list[Published]:
+        """A decoded frame of a url camera (rtsp:// or a video file; the runtime reads them:
+        :mod:`services.ingest.video`) generated at ``stamp_s`` (wall s, the sender's clock):
+        its frame, or none while it waits for its pose; :class:`Rejected` as for a topic."""
+        s = self.cameras[name]
+        s.received["image"] += 1
+        try:
+            if not (math.isfinite(stamp_s) and stamp_s > 0):
+                raise Rejected("stamp_invalid", f"stamp {stamp_s}")
+            s.offsets.append(stamp_s - receipt_s)
+            self._stamp_ms(s, stamp_s, receipt_s)
+            h, w = rgb.shape[:2]
+            if w * h > self.rig.max_image_pixels:
+                raise Rejected("too_large", f"a {w}x{h} frame exceeds "
+                                            f"{self.rig.max_image_pixels} pixels")
+            return self._images([s], rgb, stamp_s, None, receipt_s)
+        except Rejected as err:
+            s.rejected[err.reason] += 1
+            raise
+
+    def _images(self, states: list[CameraState], rgb: np.ndarray, stamp: float,
+                att: ros.Attachment | None, receipt_s: float) -> list[Published]:
         out = []
         for s in states:
             try:
@@ -415,7 +441,8 @@ class IngestCore:
             spec = s.spec
             ages = sorted(s.ages)
             cams.append({
-                "name": spec.name, "id": s.camera_id, "role": s.role, "image": spec.image,
+                "name": spec.name, "id": s.camera_id, "role": s.role,
+                "image": spec.image or spec.url,
                 "image_type": spec.kind,
                 "intrinsics": "static" if spec.intrinsics.static else spec.intrinsics.camera_info,
                 "pose": "static" if spec.pose.static else spec.pose.topic,

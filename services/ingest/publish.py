@@ -262,3 +262,50 @@ def zenoh_put(connect: list[str], settle_s: float = 1.0):
         session.put(key, payload, attachment=attachment)
 
     return put, session.close
+
+
+def rtsp_camera_entry(ds, camera_id: int, url: str, *, listen: bool = True) -> dict:
+    """A rig file's entry for the dataset's camera ``camera_id`` streamed as H.264 to ``url``
+    (static pose and intrinsics: an IP camera has no topics)."""
+    c = ds.cameras[camera_id]
+    return {"name": _name(camera_id), "url": url, "listen": listen,
+            "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
+                           "height": c.height},
+            "pose": {"c2w": [float(x) for x in np.asarray(c.c2w).ravel()],
+                     "convention": "opengl"}}
+
+
+def push_rtsp(ds, camera_id: int, url: str, *, period_ms: float = 30.0,
+              time_scale: float = 1.0, stop: threading.Event | None = None,
+              frames: int | None = None, duration_s: float | None = None,
+              clock: Callable[[], float] = time.time) -> int:
+    """An IP camera: the dataset's camera ``camera_id`` as H.264 pushed over RTSP to ``url``
+    (an ingest listening there), frame k showing scene time k·period at wall start + k·period /
+    time scale; returns the frames sent."""
+    from services.ingest.video import RtspPusher
+
+    stop = stop or threading.Event()
+    c = ds.cameras[camera_id]
+    for attempt in range(20):  # a listener re-opens every few seconds: knock again
+        try:
+            pusher = RtspPusher(url, c.width, c.height)
+            break
+        except OSError:
+            if attempt == 19 or stop.wait(0.5):
+                raise
+    period_wall_s = period_ms / 1000.0 / time_scale
+    start, k, sent = clock(), 0, 0
+    try:
+        while not stop.is_set() and (frames is None or sent < frames):
+            due = start + k * period_wall_s
+            if duration_s is not None and due - start >= duration_s:
+                break
+            wait = due - clock()
+            if wait > 0 and stop.wait(wait):
+                break
+            pusher.send(ds.frame(camera_id, ds.frame_index(k * period_ms)), due)
+            sent += 1
+            k += 1
+    finally:
+        pusher.close()
+    return sent

@@ -110,8 +110,17 @@ class IngestWorker:
         for s in self.core.cameras.values():
             self._generated.labels(camera=str(s.camera_id))
         registry.register(_Collector(self))
+        self._stream_errors = Counter("aoi3d_ingest_stream_errors", "Times a url camera's "
+                                      "stream (rtsp:// or a video file) failed or ended and "
+                                      "was opened again.", ["camera"], registry=registry)
         self._loops = Loops("ingest")
         self._loops.forever("decode", self._step)
+        self._time_scale = float(time_scale)
+        for spec in rig.cameras:
+            if spec.url is not None:
+                self._stream_errors.labels(camera=spec.name)
+                self._loops.thread(f"video-{spec.name}",
+                                   lambda stop, spec=spec: self._video(spec, stop))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -165,6 +174,45 @@ class IngestWorker:
             self.rejections.reject(err, key)
             return
         self._publish(out)
+
+    def _video(self, spec, stop: threading.Event) -> None:
+        """Read a url camera until the worker stops, opening it again (after 0.5, 1, 2 … 10 s)
+        whenever it fails or ends; an RTSP listener just waits for its camera again."""
+        from services.ingest.video import StreamEnded, read_video
+
+        backoff = 0.5
+        while not stop.is_set():
+            got = False
+            try:
+                for frame in read_video(spec.url, listen=spec.listen, stamps=spec.stamps,
+                                        time_scale=self._time_scale,
+                                        max_pixels=self.core.rig.max_image_pixels,
+                                        stop=stop.is_set):
+                    got = True
+                    try:
+                        with self.lock:
+                            out = self.core.on_video(spec.name, frame.rgb, frame.stamp_s,
+                                                     frame.receipt_s)
+                    except Rejected as err:
+                        self.rejections.reject(err, spec.url)
+                        continue
+                    self._publish(out)
+                if stop.is_set():
+                    return
+            except StreamEnded as err:
+                waiting = spec.listen and not got and "timed out" in str(err).lower()
+                if waiting:  # a listener with no camera yet: not a failure
+                    continue
+                self._stream_errors.labels(camera=spec.name).inc()
+                log.warning("camera %s: %s; opening it again in %.1f s", spec.name, err,
+                            backoff)
+            except Exception as err:  # a bad stream never stops the worker
+                self._stream_errors.labels(camera=spec.name).inc()
+                log.warning("camera %s: %r; opening it again in %.1f s", spec.name, err,
+                            backoff)
+            backoff = 0.5 if got else min(backoff * 2, 10.0)
+            if stop.wait(backoff):
+                return
 
     def _publish(self, out) -> None:
         for frame in out:

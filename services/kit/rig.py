@@ -208,21 +208,55 @@ class CameraSpec(_Strict):
 
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]{1,64}$",
                       description="Its name (in logs, metrics labels and the status).")
-    image: Topic = Field(description="Its image topic: sensor_msgs/Image, or "
-                                     "sensor_msgs/CompressedImage (jpeg or png).")
+    image: Topic | None = Field(None, description="Its image topic: sensor_msgs/Image, or "
+                                                  "sensor_msgs/CompressedImage (jpeg or png).")
     image_type: Literal["raw", "compressed"] | None = Field(
         None, description="raw (Image) or compressed (CompressedImage); default: compressed "
                           "when the topic ends in /compressed, else raw.")
+    url: str | None = Field(
+        None, min_length=1, max_length=1024,
+        description="An IP camera or a video instead of a topic: rtsp://host:port/path (H.264 "
+                    "and whatever else FFmpeg decodes), or a video file (played in a loop at "
+                    "its own rate).")
+    listen: bool = Field(False, description="rtsp:// only: wait for the camera to push its "
+                                            "stream to this URL (RTSP RECORD) instead of "
+                                            "pulling from it.")
+    stamps: Literal["rtcp", "receipt"] = Field(
+        "rtcp", description="rtsp:// only: a frame's generation time from the sender's clock "
+                            "(its RTCP sender reports map the stream's clock to wall time) or "
+                            "its receipt (when the sender has no usable clock: AoI then omits "
+                            "the capture-to-receipt delay).")
     intrinsics: IntrinsicsSpec
     pose: PoseSpec
 
     @field_validator("image")
     @classmethod
-    def _t(cls, v: str) -> str:
-        return _topic(v)
+    def _t(cls, v: str | None) -> str | None:
+        return None if v is None else _topic(v)
+
+    @model_validator(mode="after")
+    def _source(self) -> CameraSpec:
+        if (self.image is None) == (self.url is None):
+            raise ValueError("give exactly one of image (a ROS topic) or url (rtsp:// or a "
+                             "video file)")
+        if self.url is not None:
+            if self.image_type is not None:
+                raise ValueError("image_type is for image topics")
+            if self.intrinsics.camera_info is not None:
+                raise ValueError("a url camera needs its intrinsics as values (fx, fy, cx, "
+                                 "cy, width, height): it has no CameraInfo topic")
+            if not self.is_rtsp and (self.listen or self.stamps != "rtcp"):
+                raise ValueError("listen and stamps are for rtsp:// urls")
+        return self
+
+    @property
+    def is_rtsp(self) -> bool:
+        return self.url is not None and self.url.lower().startswith("rtsp://")
 
     @property
     def kind(self) -> str:
+        if self.url is not None:
+            return "rtsp" if self.is_rtsp else "video"
         return self.image_type or ("compressed" if self.image.endswith("/compressed") else "raw")
 
 
@@ -334,9 +368,9 @@ class Rig(_Strict):
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise ValueError(f"cameras: names must differ ({', '.join(dupes)} repeated)")
-        topics = [c.image for c in self.cameras]
+        topics = [c.image or c.url for c in self.cameras]
         if len(set(topics)) != len(topics):
-            raise ValueError("cameras: two cameras share an image topic")
+            raise ValueError("cameras: two cameras share an image topic or url")
         if self.truth is not None:
             if self.truth not in names:
                 raise ValueError(f"truth: no camera is named {self.truth!r} (cameras: "

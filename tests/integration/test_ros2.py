@@ -151,3 +151,88 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
             tap.close()
         out = stop_pipeline(up)
     assert_clean_exit(up, out, run_id)
+
+
+def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+    """IP cameras (issue 31, part 2): two of the rig's training cameras are H.264 over RTSP,
+    pushed to the ingest over loopback (`aoi3d ros2 rtsp`); the truth camera and one more are
+    ROS 2 (rmw_zenoh). With the policy `all` every render trains on the RTSP frames too, and
+    Quality comes."""
+    import yaml
+
+    from aoi3d.scene import open_dataset
+    from services.ingest.publish import rtsp_camera_entry
+
+    rig = tmp_path / "rig.yaml"
+    robot_args = ["--format", "rmw_zenoh", "--cameras", "1", "--time-scale", str(TIME_SCALE),
+                  "--connect", f"tcp/127.0.0.1:{ZENOH_PORT}"]
+    made = subprocess.run([sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset),
+                           *robot_args, "--write-rig", str(rig), "--rig-only"],
+                          capture_output=True, text=True, timeout=120 * SCALE)
+    assert made.returncode == 0, made.stderr
+    doc = yaml.safe_load(rig.read_text())
+    ds = open_dataset(small_dataset)
+    urls = {n: f"rtsp://127.0.0.1:{_PORTS.extra(i)}/cam{n:02d}" for i, n in enumerate((2, 3))}
+    doc["cameras"] += [rtsp_camera_entry(ds, n, url) for n, url in urls.items()]
+    rig.write_text(yaml.safe_dump(doc))
+    run_id = f"rtsp{uuid.uuid4().hex[:8]}"
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
+         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+         str(tmp_path / "logs"), "--quiet"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    children: list[subprocess.Popen] = []
+    tap = None
+    try:
+        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
+            wait_for(f"{name} /healthz",
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        tap = QualityTap(run_id)
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "all"})
+        assert r.status_code == 200, r.text
+        children.append(subprocess.Popen(
+            [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True))
+        for n, address in urls.items():
+            children.append(subprocess.Popen(
+                [sys.executable, "-m", "aoi3d", "ros2", "rtsp", str(small_dataset), "--camera",
+                 str(n), "--url", address, "--time-scale", str(TIME_SCALE)],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                start_new_session=True))
+
+        def rtsp_frames() -> bool:
+            cams = {c["name"]: c for c in HTTP.get(url("ingest", "/status")).json()["cameras"]}
+            return all(cams[f"cam{n:02d}"]["published"] >= 10 for n in urls)
+
+        wait_for("frames from the RTSP cameras", rtsp_frames, 90)
+
+        def with_rtsp() -> int:
+            d = HTTP.get(url("scheduler", "/decision")).json()
+            chosen = {f["camera_id"] for f in d.get("selected", [])}
+            return d["decision_id"] if {2, 3} <= chosen else 0
+
+        first = wait_for("a decision selecting the RTSP cameras", with_rtsp, 60)
+        wait_for("Quality of renders with the RTSP cameras' frames",
+                 lambda: [q for q in tap.quality if q.decision_id >= first], 120)
+        with tap.lock:
+            assert all(math.isfinite(q.psnr_db) for q in tap.quality)
+        status = HTTP.get(url("ingest", "/status")).json()
+        for cam in status["cameras"]:
+            if cam["name"] in ("cam02", "cam03"):
+                assert cam["image_type"] == "rtsp" and cam["image"] == urls[int(cam["name"][3:])]
+                # stamps from the pusher's RTCP sender reports: a plausible age
+                assert cam["age_ms_median"] is not None and cam["age_ms_median"] < 2000, cam
+    finally:
+        for child in children:
+            child.terminate()
+            try:
+                child.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                child.kill()
+        if tap is not None:
+            tap.close()
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)

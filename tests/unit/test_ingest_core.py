@@ -438,3 +438,81 @@ def test_status_says_when_nothing_can_be_scored() -> None:
     assert st["truth"] is None and "cannot be scored" in st["scoring"]
     assert [c["id"] for c in st["cameras"]] == [1, 2, 3]
     assert isinstance(pb.Frame, type)
+
+
+# ---------------------------------------------------------------- IP cameras and videos
+def url_rig(**over) -> dict:
+    doc = rig_doc(**over)
+    doc["cameras"].append({"name": "ipcam", "url": "rtsp://127.0.0.1:8554/ipcam",
+                           "listen": True, "intrinsics": INTR,
+                           "pose": {"c2w": C2W.ravel().tolist()}})
+    return doc
+
+
+def test_a_url_cameras_frames_take_the_same_path() -> None:
+    core = IngestCore(rig_from_dict(url_rig()), Keys("t"), epoch_s=EPOCH, time_scale=1.0)
+    assert all(r.topic != "rtsp://127.0.0.1:8554/ipcam" for r in core.routes)
+    (out,) = core.on_video("ipcam", RGB, T0, T0 + 0.05)
+    frame = decode_frame(out.payload)
+    assert out.key == Keys("t").edge_frame(3) and frame.camera_id == 3
+    assert frame.generation_ms == pytest.approx(100_000.0, abs=1e-3)
+    assert frame.sequence == 1 and out.age_s == pytest.approx(0.05)
+    rejected(lambda: core.on_video("ipcam", RGB, T0 + 5.0, T0), "stamp_future")
+    rejected(lambda: core.on_video("ipcam", RGB, float("nan"), T0), "stamp_invalid")
+    rejected(lambda: core.on_video("ipcam", RGB[:, :10], T0, T0), "image_mismatch")
+    status = core.status(T0)["cameras"][3]
+    assert status["image_type"] == "rtsp" and status["image"].startswith("rtsp://")
+    assert status["rejected"] == {"stamp_future": 1, "stamp_invalid": 1, "image_mismatch": 1}
+
+
+def test_url_cameras_in_the_rig() -> None:
+    rig = rig_from_dict(url_rig())
+    assert rig.cameras[3].kind == "rtsp" and rig.cameras[3].is_rtsp
+    doc = url_rig()
+    doc["cameras"][3]["image"] = "/x"
+    assert "exactly one of image" in errors_of(doc)
+    doc = url_rig()
+    doc["cameras"][3]["intrinsics"] = {"camera_info": "/x/info"}
+    assert "intrinsics as values" in errors_of(doc)
+    doc = url_rig()
+    doc["cameras"][3]["url"] = "/videos/cam.mp4"
+    assert "listen and stamps are for rtsp" in errors_of(doc)
+    doc["cameras"][3]["listen"] = False
+    assert rig_from_dict(doc).cameras[3].kind == "video"
+
+
+def errors_of(doc) -> str:
+    from services.kit.rig import RigError
+
+    with pytest.raises(RigError) as info:
+        rig_from_dict(doc)
+    return str(info.value)
+
+
+def test_a_video_file_plays_in_a_loop_at_its_rate(tmp_path) -> None:
+    import av
+
+    from services.ingest.video import StreamEnded, read_video
+
+    path = tmp_path / "cam.mp4"
+    with av.open(str(path), mode="w") as out:
+        stream = out.add_stream("libx264", rate=30)
+        stream.width, stream.height, stream.pix_fmt = W, H, "yuv420p"
+        for i in range(6):
+            frame = av.VideoFrame.from_ndarray(np.full((H, W, 3), 40 * i, np.uint8),
+                                               format="rgb24")
+            frame.pts = i
+            for packet in stream.encode(frame):
+                out.mux(packet)
+        for packet in stream.encode():
+            out.mux(packet)
+    got = []
+    with pytest.raises(StreamEnded):
+        for f in read_video(str(path), time_scale=10.0):
+            got.append(f)
+    assert len(got) == 6 and got[0].rgb.shape == (H, W, 3)
+    gaps = np.diff([f.stamp_s for f in got])
+    np.testing.assert_allclose(gaps, 1 / 30 / 10, atol=1e-6)  # its rate, scaled
+    assert all(f.receipt_s >= f.stamp_s - 0.02 for f in got)
+    with pytest.raises(ValueError, match="pixels"):
+        next(read_video(str(path), max_pixels=10))
