@@ -67,6 +67,11 @@ def publish(
              "off).")] = 0.0,
     duration_s: Annotated[float | None, typer.Option(
         help="Stop after this many wall seconds (default: until Ctrl-C).")] = None,
+    epoch_s: Annotated[float | None, typer.Option(
+        help="Phase-lock to a pipeline's clock (its epoch, Unix s: the ingest's GET /status "
+             "shows time.epoch_s): frame k at epoch + k·period / time scale, showing scene "
+             "time k·period, exactly as the camera emulator's. Default: the robot's own "
+             "start (any phase).")] = None,
     write_rig: Annotated[Path | None, typer.Option(
         help="Write the rig file that reads what is published (YAML, or JSON for .json), "
              "for `aoi3d up --rig`.")] = None,
@@ -90,7 +95,8 @@ def publish(
                             period_ms=30.0 if period_ms is None else period_ms,
                             time_scale=time_scale, cameras=cameras, image=image,
                             intrinsics=intrinsics, pose=pose, truth=truth,
-                            clock_offset_s=clock_offset_s, duration_s=duration_s)
+                            clock_offset_s=clock_offset_s, duration_s=duration_s,
+                            epoch_s=epoch_s)
     except ValueError as err:
         fail(str(err))
     from aoi3d.scene import open_dataset

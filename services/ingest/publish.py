@@ -63,6 +63,10 @@ class PublishConfig:
     duration_s: float | None = None
     frames: int | None = None
     """Stop after this many periods (default: run for duration_s, else until stopped)."""
+    epoch_s: float | None = None
+    """Phase-lock to a pipeline's clock (its epoch, Unix s, e.g. the ingest's GET /status
+    ``time.epoch_s``): frame k at wall epoch + k·period / time scale showing scene time
+    k·period, as the camera emulator does. Default: the robot's own start."""
 
     def __post_init__(self) -> None:
         checks = [(self.format in ("rmw_zenoh", "bridge"), "format: rmw_zenoh or bridge"),
@@ -220,13 +224,18 @@ class Robot:
         cfg = self.cfg
         stop = stop or threading.Event()
         period_wall_s = cfg.period_ms / 1000.0 / cfg.time_scale
-        start = self._clock()
-        k = 0
+        now = self._clock()
+        if cfg.epoch_s is None:
+            start, k = now, 0
+        else:  # on the pipeline's grid: the first frame due from now on
+            start = cfg.epoch_s
+            k = max(0, math.ceil((now - start) / period_wall_s))
+        first = start + k * period_wall_s
         while not stop.is_set():
             if cfg.frames is not None and self.periods >= cfg.frames:
                 break
             due = start + k * period_wall_s
-            if cfg.duration_s is not None and due - start >= cfg.duration_s:
+            if cfg.duration_s is not None and due - first >= cfg.duration_s:
                 break
             wait = due - self._clock()
             if wait > 0 and stop.wait(wait):

@@ -516,3 +516,52 @@ def test_a_video_file_plays_in_a_loop_at_its_rate(tmp_path) -> None:
     assert all(f.receipt_s >= f.stamp_s - 0.02 for f in got)
     with pytest.raises(ValueError, match="pixels"):
         next(read_video(str(path), max_pixels=10))
+
+
+# ---------------------------------------------------------------- the test robot
+class _StubDataset:
+    """Two cameras (0 held out, 1 trains) of a 1 s loop at 10 fps."""
+
+    heldout_id = 0
+    train_ids = [1]
+    aabb = np.array([-2, -2, -1, 2, 2, 2.0])
+
+    def __init__(self) -> None:
+        from aoi3d.scene import Camera
+
+        self.cameras = [Camera(c2w=C2W, width=W, height=H, **{k: INTR[k] for k in
+                                                             ("fx", "fy", "cx", "cy")})] * 2
+        self.shown: list[int] = []
+
+    def frame_index(self, time_ms: float) -> int:
+        return int(time_ms // 100) % 10
+
+    def frame(self, camera_id: int, index: int) -> np.ndarray:
+        self.shown.append(index)
+        return RGB
+
+
+@pytest.mark.parametrize("fmt", ["rmw_zenoh", "bridge"])
+def test_the_robot_phase_locks_to_the_pipelines_clock_and_its_samples_decode(fmt) -> None:
+    from services.ingest.publish import PublishConfig, Robot, rig_document
+
+    ds = _StubDataset()
+    cfg = PublishConfig(dataset=None, format=fmt, namespace="r" if fmt == "bridge" else "",
+                        period_ms=30.0, time_scale=0.5, frames=2, epoch_s=EPOCH)
+    sent = []
+    now = EPOCH + 0.13  # 130 ms wall = 65 sim ms into the run: the next grid frame is k = 3
+    robot = Robot(cfg, lambda k, p, a: sent.append((k, p, a)), dataset=ds, clock=lambda: now)
+    robot.run()
+    core = IngestCore(rig_from_dict(rig_document(cfg, ds)), Keys("t"), epoch_s=EPOCH,
+                      time_scale=0.5)
+    routes = [(r, r.key_expr) for r in core.routes]
+    from services.kit.membus import key_matches
+
+    frames = []
+    for key, payload, att in sent:  # (the truth camera's pose and info: no subscriber)
+        for route in [r for r, expr in routes if key_matches(expr, key)]:
+            frames += core.on_sample(route, key, payload, att, now + 0.2)
+    gens = sorted(decode_frame(f.payload).generation_ms for f in frames)
+    assert gens == pytest.approx([90.0, 90.0, 120.0, 120.0], abs=1e-3)  # k·C on the sim clock
+    assert ds.shown == [0, 0, 1, 1]  # scene time k·C: frames of 90 and 120 ms
+    assert all((a is None) == (fmt == "bridge") for _, _, a in sent)
