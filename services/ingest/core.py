@@ -19,8 +19,8 @@ What a camera of the rig file (:mod:`services.kit.rig`) sends:
 Time (docs/real-cameras.md): a frame's generation time is its ``header.stamp`` − the camera's
 clock offset (robot − edge) in force, its arrival the receipt at the edge; both go on the
 pipeline's sim clock, ``sim_ms = (wall_s − epoch_s) × time_scale × 1000``. The offset is
-measured per camera from every sample (the largest stamp − receipt of the last ones: the
-publisher's source time from the rmw_zenoh attachment when there is one), shown, and used
+measured per camera from every sample (the 90th percentile of stamp − receipt over the last
+ones: the publisher's source time from the rmw_zenoh attachment when there is one), shown, and used
 when the rig says ``offset_s: auto``. Sequence gaps in the attachment count as losses.
 """
 
@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import io
 import math
-from collections import Counter, deque
+from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -50,6 +50,8 @@ POSES_KEPT = 256
 HOLD_S = 0.5
 """Wall seconds an image waits for a pose (or a first CameraInfo) that may still come: topics
 travel on separate Zenoh subscriptions, so an image can overtake the pose of its stamp."""
+STREAMS_KEPT = 16
+"""Publishers per camera whose sequence numbers are followed."""
 HELD_PER_CAMERA = 8
 """Images of one camera waiting at most (an older one is then refused)."""
 _KINDS = ("image", "camera_info", "pose")
@@ -93,7 +95,9 @@ class CameraState:
     intrinsics: ros.Intrinsics | None = None
     poses: deque = field(default_factory=lambda: deque(maxlen=POSES_KEPT))
     offsets: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
-    last_seq: dict[tuple[str, bytes], int] = field(default_factory=dict)
+    last_seq: OrderedDict[tuple[str, bytes], int] = field(default_factory=OrderedDict)
+    """The last sequence number of each publisher (topic, id): at most :data:`STREAMS_KEPT`,
+    the least recently heard forgotten (a sender inventing ids cannot grow it)."""
     own_seq: int = 0
     received: Counter = field(default_factory=Counter)
     """Samples received by kind."""
@@ -117,9 +121,13 @@ class CameraState:
 
     @property
     def offset_estimate_s(self) -> float:
-        """Robot clock − edge clock, estimated: the largest (robot time − receipt) of the last
-        samples, i.e. the offset if the fastest of them took no time (NaN before any)."""
-        return max(self.offsets) if self.offsets else math.nan
+        """Robot clock − edge clock, estimated: the 90th percentile of (robot time − receipt)
+        over the last samples — the offset if the fastest tenth of them took no time (NaN
+        before any). Not the largest: a few samples stamped wrong cannot move it."""
+        if not self.offsets:
+            return math.nan
+        ordered = sorted(self.offsets)
+        return ordered[min(len(ordered) - 1, int(0.9 * len(ordered)))]
 
     @property
     def role(self) -> str:
@@ -316,6 +324,9 @@ class IngestCore:
             if last is not None and att.sequence > last + 1:
                 s.lost += att.sequence - last - 1
             s.last_seq[stream] = att.sequence
+            s.last_seq.move_to_end(stream)
+            while len(s.last_seq) > STREAMS_KEPT:
+                s.last_seq.popitem(last=False)
 
     def _stamp_ms(self, s: CameraState, stamp: float, receipt_s: float) -> tuple[float, float]:
         """(generation sim ms, age in wall s) of an image stamped ``stamp``."""

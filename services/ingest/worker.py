@@ -60,8 +60,8 @@ class _Collector:
                                       "their receipt (within the tolerance): generation set "
                                       "to the receipt.", labels=["camera"])
         offset = GaugeMetricFamily("aoi3d_ingest_clock_offset_seconds", "Robot clock − edge "
-                                   "clock as measured (the largest robot time − receipt of "
-                                   "the last samples).", labels=["camera"])
+                                   "clock as measured (the 90th percentile of robot time − "
+                                   "receipt over the last samples).", labels=["camera"])
         in_force = GaugeMetricFamily("aoi3d_ingest_clock_offset_in_force_seconds", "The "
                                      "offset subtracted from the stamps.", labels=["camera"])
         with self._worker.lock:

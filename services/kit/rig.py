@@ -295,10 +295,11 @@ class SourceSpec(_Strict):
 
 class ClockSpec(_Strict):
     """Robot clocks are not the edge's. ``offset_s``: robot clock − edge clock, in seconds, a
-    number or ``auto`` (estimated per camera from the arrivals: the largest stamp − receipt of
-    the last frames, i.e. assuming the fastest frame took no time). Stamps further ahead of
-    their receipt than ``future_tolerance_s`` (after the offset) are refused, those within it
-    are clamped to the receipt; stamps older than ``max_age_s`` at receipt are refused."""
+    number or ``auto`` (estimated per camera from the arrivals: the 90th percentile of stamp −
+    receipt over the last samples, i.e. assuming the fastest tenth took no time). Stamps
+    further ahead of their receipt than ``future_tolerance_s`` (after the offset) are refused,
+    those within it are clamped to the receipt; stamps older than ``max_age_s`` at receipt are
+    refused."""
 
     offset_s: float | Literal["auto"] = 0.0
     future_tolerance_s: float = Field(0.5, ge=0, le=60)

@@ -523,7 +523,7 @@ class _StubDataset:
     """Two cameras (0 held out, 1 trains) of a 1 s loop at 10 fps."""
 
     heldout_id = 0
-    train_ids = [1]
+    train_ids = (1,)
     aabb = np.array([-2, -2, -1, 2, 2, 2.0])
 
     def __init__(self) -> None:
