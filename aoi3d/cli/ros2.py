@@ -113,8 +113,9 @@ def publish(
         if write_rig is None:
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
-    put, close = zenoh_put(cfg.connect)
-    robot = Robot(cfg, put, dataset=ds)
+    # the robot knows its keys; the session waits until they are subscribed (zenoh_put)
+    robot = Robot(cfg, lambda *sample: put(*sample), dataset=ds)
+    put, close = zenoh_put(cfg.connect, robot.keys())
     stop = threading.Event()
     previous = {sig: signal.signal(sig, lambda *_: stop.set())
                 for sig in (signal.SIGINT, signal.SIGTERM)}

@@ -250,9 +250,14 @@ class Robot:
             k += 1
 
 
-def zenoh_put(connect: list[str], settle_s: float = 1.0):
-    """(put, close) on a plain Zenoh client session to ``connect``, ``settle_s`` after it
-    opened."""
+def zenoh_put(connect: list[str], keys: list[str] | None = None, wait_s: float = 10.0):
+    """(put, close) on a plain Zenoh client session to ``connect``.
+
+    A new client session learns who subscribes to what from the router a moment after it
+    opens, and drops what it puts before that (seen: each camera's first pose and camera
+    info, and more on a loaded machine). So a publisher is declared for each of ``keys`` and
+    the robot waits — as a real one takes to start — until every image key has a subscriber
+    (then a moment more for the rest), or ``wait_s``."""
     import json
 
     import zenoh
@@ -262,16 +267,26 @@ def zenoh_put(connect: list[str], settle_s: float = 1.0):
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     session = zenoh.open(conf)
-    # a new client session learns who subscribes to what from the router a moment after it
-    # opens; samples put before that are dropped at the source (seen: each camera's first
-    # pose and camera info), so the robot waits as a real one takes to start
-    time.sleep(settle_s)
+    pubs = {key: session.declare_publisher(key) for key in keys or []}
+    deadline = time.monotonic() + wait_s
+    images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
+    while time.monotonic() < deadline and not all(p.matching_status.matching for p in images):
+        time.sleep(0.05)
+    time.sleep(0.5 if pubs else 1.0)
 
     def put(key: str, payload: bytes, attachment: bytes | None) -> None:
-        session.put(key, payload, attachment=attachment)
+        pub = pubs.get(key)
+        if pub is not None:
+            pub.put(payload, attachment=attachment)
+        else:
+            session.put(key, payload, attachment=attachment)
 
-    return put, session.close
+    def close() -> None:
+        for pub in pubs.values():
+            pub.undeclare()
+        session.close()
 
+    return put, close
 
 def rtsp_camera_entry(ds, camera_id: int, url: str, *, listen: bool = True) -> dict:
     """A rig file's entry for the dataset's camera ``camera_id`` streamed as H.264 to ``url``
