@@ -50,12 +50,13 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from aoi3d.ports import BENCH_BLOCKS, SERVICE_PORTS  # noqa: E402
 from services.kit.keys import Keys  # noqa: E402
 from services.kit.pb import aoi3d_pb2 as pb  # noqa: E402
 from services.kit.settings import CommonSettings, zenoh_config  # noqa: E402
-from services.supervisor import DEFAULT_PORTS  # noqa: E402
 
-OFFSET, ZENOH = 5000, 9567  # REST 13101…13106: apart from make up, soak and the tests
+PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (aoi3d/ports.py)
+OFFSET, ZENOH = PORTS.offset, PORTS.zenoh
 LEDGER_OPEN_S = 30.0
 JOB_TIMEOUT_S = 20.0
 STALL_S = 15.0
@@ -99,7 +100,7 @@ class Tap:
 
 
 def url(service: str, path: str) -> str:
-    return f"http://127.0.0.1:{DEFAULT_PORTS[service] + OFFSET}{path}"
+    return PORTS.url(service, path)
 
 
 def children(log_dir: Path) -> dict[str, int]:
@@ -121,7 +122,7 @@ def wait(what: str, cond, timeout_s: float) -> None:
 
 def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
     up = {}
-    for service in DEFAULT_PORTS:
+    for service in SERVICE_PORTS:
         try:
             up[service] = http.get(url(service, "/healthz")).status_code == 200
         except httpx.HTTPError:

@@ -53,10 +53,11 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from aoi3d.cli.live import SERVICE_PORTS, mean_ci95, welch_ci95  # noqa: E402
+from aoi3d.cli.live import mean_ci95, welch_ci95  # noqa: E402
+from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
 
-OFFSET = 3200  # REST ports 11301..11306: a running `make up` or bench/scale.py is not disturbed
-ZENOH_PORT = 7649
+PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (aoi3d/ports.py)
+OFFSET, ZENOH_PORT = PORTS.offset, PORTS.zenoh
 SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
@@ -66,7 +67,7 @@ FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim
 
 
 def port(service: str) -> int:
-    return SERVICE_PORTS[service] + OFFSET
+    return PORTS.rest(service)
 
 
 def url(service: str, site: str, path: str) -> str:

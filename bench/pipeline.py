@@ -25,10 +25,11 @@ from pathlib import Path
 import httpx
 
 from aoi3d.cli.common import control_headers
+from aoi3d.ports import BENCH_BLOCKS
 
 ROOT = Path(__file__).resolve().parents[1]
-OFFSET = 1000  # REST ports 9101..9105, so a running `make up` is not disturbed
-PORTS = {"camera": 9101, "network": 9102, "scheduler": 9103, "trainer": 9104, "metrics": 9105}
+BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)
+PORTS = {s: BLOCK.rest(s) for s in ("camera", "network", "scheduler", "trainer", "metrics")}
 
 
 def scrape(service: str) -> dict[str, float]:
@@ -62,8 +63,8 @@ def main() -> None:
 
     log_dir = ROOT / "runs" / "bench-pipeline"
     cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", "bench",
-           "--zenoh-port", "7547", "--port-offset", str(OFFSET), "--log-dir", str(log_dir),
-           "--quiet", "--time-scale", str(args.time_scale)]
+           *BLOCK.up_args(), "--log-dir", str(log_dir), "--quiet",
+           "--time-scale", str(args.time_scale)]
     up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                           start_new_session=True)
     try:

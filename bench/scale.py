@@ -35,16 +35,17 @@ from pathlib import Path
 
 import httpx
 
+from aoi3d.ports import BENCH_BLOCKS
+
 ROOT = Path(__file__).resolve().parents[1]
-OFFSET = 3000  # REST ports 11101..11106, so a running `make up` is not disturbed
-ZENOH_PORT = 7647
+PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (aoi3d/ports.py)
+OFFSET, ZENOH_PORT = PORTS.offset, PORTS.zenoh
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
 
 
 def port(service: str) -> int:
-    return {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-            "metrics": 8105, "console": 8106}[service] + OFFSET
+    return PORTS.rest(service)
 
 
 def scrape(service: str) -> dict[str, float]:

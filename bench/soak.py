@@ -32,8 +32,11 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from aoi3d.ports import BENCH_BLOCKS
+
 ROOT = Path(__file__).resolve().parents[1]
-OFFSET, ZENOH = 4000, 9467  # REST 12101…12106: apart from make up, chaos and the tests
+PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (aoi3d/ports.py)
+OFFSET, ZENOH = PORTS.offset, PORTS.zenoh
 MAX_GROWTH = 0.10
 MAX_RATE_CHANGE = 0.05
 
@@ -48,8 +51,8 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-def url(port: int, path: str) -> str:
-    return f"http://127.0.0.1:{port + OFFSET}{path}"
+def url(service: str, path: str) -> str:
+    return PORTS.url(service, path)
 
 
 def rate(points: list[tuple[float, int]], t0: float, t1: float) -> float:
@@ -85,7 +88,7 @@ def main() -> int:
         deadline = time.monotonic() + 600
         while True:  # up and rendering
             try:
-                if http.get(url(8104, "/status")).json()["pool"]["rendered"] > 0:
+                if http.get(url("trainer", "/status")).json()["pool"]["rendered"] > 0:
                     break
             except (httpx.HTTPError, ValueError, KeyError):
                 pass
@@ -102,14 +105,14 @@ def main() -> int:
                 mib = rss_mib(child["pid"]) if child["pid"] else None
                 if mib is not None:
                     samples.setdefault(name, []).append((now, mib))
-            renders.append((now, http.get(url(8104, "/status")).json()["pool"]["rendered"]))
+            renders.append((now, http.get(url("trainer", "/status")).json()["pool"]["rendered"]))
             loads.append(os.getloadavg()[0])
             if time.monotonic() >= end:
                 break
             time.sleep(min(args.every_s, max(0.0, end - time.monotonic())))
         restarts = {n: c["restarts"] for n, c in state["children"].items()}
-        sites = http.get(url(8105, "/sites")).json()["sites"]
-        ledgers = {s: http.get(url(8105, f"/sites/{s}/ledger")).json() for s in sites}
+        sites = http.get(url("metrics", "/sites")).json()["sites"]
+        ledgers = {s: http.get(url("metrics", f"/sites/{s}/ledger")).json() for s in sites}
     finally:
         up.send_signal(signal.SIGTERM)
         try:

@@ -30,7 +30,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from aoi3d.cli.common import fmt, make_console
-from services.supervisor import DEFAULT_PORTS as SERVICE_PORTS  # stdlib-only module
+from aoi3d.ports import REST_FIRST, REST_LAST, SERVICE_PORTS, ZENOH_PORT, rest_port
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -133,7 +133,7 @@ class Pipeline:
     def url(self, service: str, path: str) -> str:
         if self.site and (service, path) not in self.RUN_LEVEL and not path.startswith("/ready"):
             path = f"/sites/{self.site}{path}"
-        return f"{self.url_base.rstrip('/')}:{SERVICE_PORTS[service] + self.port_offset}{path}"
+        return f"{self.url_base.rstrip('/')}:{rest_port(service, self.port_offset)}{path}"
 
     def call(self, method: str, service: str, path: str, **kw: Any) -> Any:
         import httpx
@@ -476,7 +476,7 @@ def sweep(
     url_base: Annotated[str, typer.Option(help="Scheme and host of the services.")]
     = "http://127.0.0.1",
     port_offset: Annotated[int, typer.Option(
-        help="Added to the services' default ports 8101..8105.")] = 0,
+        help=f"Added to the services' default ports {REST_FIRST}..{REST_LAST}.")] = 0,
     site: Annotated[str | None, typer.Option(
         help="The site to measure (its policy, decisions and quality, /sites/<site>/…) while "
              "the run's other sites go on; default: the run's first site.")] = None,
@@ -487,7 +487,7 @@ def sweep(
     up: Annotated[bool, typer.Option(
         help="Start a pipeline (aoi3d up) for the sweep and stop it afterwards.")] = False,
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port of the pipeline --up starts.")]
-    = 7447,
+    = ZENOH_PORT,
     time_scale: Annotated[float, typer.Option(
         help="Time scale of the pipeline --up starts.")] = 0.1,
     workers: Annotated[int, typer.Option(
@@ -524,7 +524,7 @@ def sweep(
     canon = {s: parse_policy(s).spec for s in specs}
     proc = None
     if site is not None:
-        from services.kit.keys import check_site
+        from aoi3d.ports import check_site
 
         try:
             check_site(site)

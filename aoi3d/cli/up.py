@@ -1,7 +1,7 @@
 """``aoi3d up``: the whole live pipeline on this machine.
 
 Before anything starts: every port of the run (each service's REST port and the Zenoh port,
-from :data:`services.supervisor.SERVICES`) must be free — a taken one is one line naming it and
+from :data:`aoi3d.ports.SERVICE_PORTS`) must be free — a taken one is one line naming it and
 the option that moves it — and the dataset must be readable, every frame file present and
 whole. The scene is generated only into the framing's own folder (``data/turbine-rotor``,
 ``data/turbine``) or with ``--generate``; any other folder must hold a dataset already.
@@ -16,10 +16,10 @@ from typing import Annotated
 import typer
 
 from aoi3d.cli.common import fail
+from aoi3d.ports import REST_FIRST as _FIRST
+from aoi3d.ports import REST_LAST as _LAST
+from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT, site_names
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
-from services.supervisor import DEFAULT_PORTS, SERVICES
-
-_FIRST, _LAST = min(DEFAULT_PORTS.values()), max(DEFAULT_PORTS.values())
 
 HINTS = {
     "camera": "GET /config",
@@ -61,7 +61,7 @@ def up(
              "each): each renders the newest decision no other worker took. More can join "
              "from anywhere that reaches the router (see GET /workers on the trainer).")] = 1,
     zenoh_port: Annotated[int, typer.Option(
-        min=1, max=65535, help="TCP port of the local Zenoh router.")] = 7447,
+        min=1, max=65535, help="TCP port of the local Zenoh router.")] = ZENOH_PORT,
     port_offset: Annotated[int, typer.Option(
         help=f"Added to the default REST ports {_FIRST}..{_LAST} (one per service).")] = 0,
     log_dir: Annotated[Path, typer.Option(
@@ -79,13 +79,13 @@ def up(
     """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C. The
     ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
     service that does not become healthy is one line and exit status 1."""
-    from services.supervisor import Supervisor, UpConfig, site_names, taken_ports
+    # the one import of services in aoi3d: `up` composes them (docs/architecture.md)
+    from services.supervisor import Supervisor, UpConfig, taken_ports
 
     if framing not in FRAMING_SCENES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
                                  f"{framing!r}", param_hint="'--framing'")
-    if not 0 < min(DEFAULT_PORTS.values()) + port_offset <= max(
-            DEFAULT_PORTS.values()) + port_offset < 65536:
+    if not 0 < _FIRST + port_offset <= _LAST + port_offset < 65536:
         raise typer.BadParameter(f"the REST ports {_FIRST + port_offset}.."
                                  f"{_LAST + port_offset} are not valid ports",
                                  param_hint="'--port-offset'")
@@ -116,7 +116,7 @@ def up(
         table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
         for col in ("service", "REST API (docs at /docs)", "try"):
             table.add_column(col, no_wrap=True)
-        for name in SERVICES:
+        for name in SERVICE_PORTS:
             table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
         table.add_row(f"recon × {workers}", "no REST API (pull work over Zenoh)",

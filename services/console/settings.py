@@ -7,10 +7,10 @@ import os
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
-UPSTREAMS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-             "metrics": 8105}
+UPSTREAMS = {name: port for name, port in SERVICE_PORTS.items() if name != "console"}
 """The services the console shows and controls, with their default ports."""
 
 
@@ -26,7 +26,8 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_CONSOLE_", extra="ignore")
 
-    port: int = Field(8106, ge=0, le=65535, description="REST API and web page port.")
+    port: int = Field(SERVICE_PORTS["console"], ge=0, le=65535,
+                      description="REST API and web page port.")
     upstream: dict[str, str] = Field(
         default_factory=_default_upstream,
         json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_<NAME>_PORT>` each"},
