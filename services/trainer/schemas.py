@@ -55,7 +55,7 @@ class PoolInfo(BaseModel):
                                         "worker was free.", examples=[180])
     lost: dict[str, int] = Field(description="Decisions handed out that ended without a render, "
                                              "by reason: worker_died, timeout, not_delivered, "
-                                             "failed:<why>.", examples=[{"worker_died": 1}])
+                                             "render_failed.", examples=[{"worker_died": 1}])
     pending: dict[str, int] = Field(description="Site → its decision waiting for a free worker "
                                                 "(each site's newest not handed out).",
                                     examples=[{"site1": 301}])

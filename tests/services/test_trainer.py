@@ -24,6 +24,7 @@ from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
+from services.metrics.ledger import Outcome, decode_outcome
 from services.recon.core import ReconCore
 from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
@@ -260,8 +261,9 @@ def test_a_worker_gone_mid_job_loses_only_its_decision(
     assert [r.decision_id for r in renders(bus)] == [2]
 
 
-def outcomes(bus: MemoryBus) -> list[pb.Outcome]:
-    return [pb.Outcome.FromString(p) for p in bus.messages(KEYS.outcome)]
+def outcomes(bus: MemoryBus) -> list[Outcome]:
+    """The Outcomes published, as the ledger decodes them (the reason as its label)."""
+    return [decode_outcome(p, KEYS.site) for p in bus.messages(KEYS.outcome)]
 
 
 def test_decisions_ended_without_a_render_are_told_to_the_ledger(
