@@ -53,8 +53,8 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from aoi3d.cli.live import mean_ci95, welch_ci95  # noqa: E402
 from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
+from aoi3d.stats import mean_ci95, welch_ci95  # noqa: E402
 
 PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (aoi3d/ports.py)
 OFFSET, ZENOH_PORT = PORTS.offset, PORTS.zenoh
@@ -117,7 +117,7 @@ def windows(rows: list[dict[str, Any]], window_s: float) -> list[dict[str, Any]]
     while k * window_s < end:
         sel = [r["reward"] for r in rows if k * window_s <= r["wall_s"] < (k + 1) * window_s]
         out.append({"from_min": k * window_s / 60, "to_min": (k + 1) * window_s / 60,
-                    "reward": mean_ci95(sel)})
+                    "reward": mean_ci95(sel).to_dict()})
         k += 1
     return out
 
@@ -281,7 +281,7 @@ def summarise(out: Path, window_min: float) -> None:
 
     def stats(rows: list[dict[str, Any]], lo: float, hi: float) -> dict[str, Any]:
         sel = [r for r in rows if lo <= r["wall_s"] < hi]
-        return {key: mean_ci95([r[key] for r in sel])
+        return {key: mean_ci95([r[key] for r in sel]).to_dict()
                 for key in ("reward", "psnr_db", "psnr_dynamic_db", "n_views")}
 
     rule = SITES[-1]
@@ -294,7 +294,7 @@ def summarise(out: Path, window_min: float) -> None:
                    for name, v in spans_s.items()
                    for spans_rule in [stats(rows_by_site[rule], *spans[name])]}
         sites[s] = {"label": run["policies"][s]["label"], "renders": len(rows),
-                    "reward": mean_ci95([r["reward"] for r in rows]),
+                    "reward": mean_ci95([r["reward"] for r in rows]).to_dict(),
                     "windows": windows(rows, window_s), "spans": spans_s,
                     "minus_rule": against if s != rule else None,
                     "last_learner": run["last_learner"][s]}

@@ -109,7 +109,10 @@ def main() -> None:
     k = max(1, min(5, len(psnr) // 4))
     window = [q for q in history if id0 <= q["decision_id"] <= id1]
 
-    from aoi3d.cli.live import mean_ci95 as stat  # {"mean", "ci95", "n"}; None-safe
+    from aoi3d.stats import mean_ci95
+
+    def stat(values: list) -> dict:  # {"mean", "ci95", "n"}; None-safe
+        return mean_ci95(values).to_dict()
 
     result = {
         "policy": args.policy, "time_scale": args.time_scale, "window_s": round(dt, 1),

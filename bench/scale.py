@@ -36,6 +36,7 @@ from pathlib import Path
 import httpx
 
 from aoi3d.ports import BENCH_BLOCKS
+from aoi3d.stats import mean_ci95
 
 ROOT = Path(__file__).resolve().parents[1]
 PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (aoi3d/ports.py)
@@ -60,19 +61,6 @@ def scrape(service: str) -> dict[str, float]:
         if base != name:
             out[base] = out.get(base, 0.0) + float(value)
     return out
-
-
-def mean_ci95(xs: list[float]) -> dict:
-    xs = [x for x in xs if x is not None and math.isfinite(x)]
-    if not xs:
-        return {"mean": None, "ci95": None, "n": 0}
-    if len(xs) == 1:
-        return {"mean": xs[0], "ci95": None, "n": 1}
-    from scipy import stats
-
-    sd = statistics.stdev(xs)
-    half = float(stats.t.ppf(0.975, len(xs) - 1)) * sd / math.sqrt(len(xs))
-    return {"mean": statistics.fmean(xs), "ci95": half, "n": len(xs)}
 
 
 class ByteTap:
@@ -225,9 +213,9 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
                               if age_n else None),
         "busy_fraction": {w["worker_id"]: w["busy_fraction"] for w in pool["workers"]},
         "lost": pool["lost"],
-        "psnr_db": mean_ci95([q["psnr_db"] for q in window]),
-        "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]),
-        "views": mean_ci95([q["n_views"] for q in window]),
+        "psnr_db": mean_ci95([q["psnr_db"] for q in window]).to_dict(),
+        "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]).to_dict(),
+        "views": mean_ci95([q["n_views"] for q in window]).to_dict(),
         "renders_per_s_by_site": {n: v / dt for n, v in by_site.items()},
         "zenoh_bytes_per_s": (bytes1 - bytes0) / dtb,
         "zenoh_messages_per_s": (msgs1 - msgs0) / dtb,

@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from aoi3d.experiment.optimum import PairedDifference, paired_difference
+from aoi3d.stats import PairedDifference, paired_difference
 
 __all__ = [
     "Verdict",

@@ -17,7 +17,8 @@ overlapping bands. The criterion (:func:`optimum`):
    set is, if anything, too narrow by chance, never wider.
 6. The optimum is **interior** when the optimum set holds neither end of the eligible range:
    the smallest eligible Γ and the largest end — `all` (Γ = ∞) when it was run, else the
-   largest swept Γ.
+   largest swept Γ. That is :func:`aoi3d.stats.interior_maximum` on the paired differences
+   best − each end: the project's one interior-maximum criterion.
 
 With fewer than two paired seeds no interval exists; nothing is then significantly worse,
 the set is every candidate and the optimum is never interior.
@@ -26,9 +27,10 @@ Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare``,
 eval`` (all through :func:`optima`) and the science check (``bench/science.py``) alike.
 Which metrics are lower-is-better is stated here once: :data:`LOWER_IS_BETTER`.
 
-``aoi3d live sweep`` cannot use this criterion: its measurement windows are different renders
-of a running pipeline, not episodes paired by seed. It asks a different, unpaired question
-(:func:`aoi3d.cli.live.unpaired_interior_maximum`: Welch intervals of best − each end).
+``aoi3d live sweep`` cannot pair: its measurement windows are different renders of a running
+pipeline, not episodes paired by seed. :func:`unpaired_interior_maximum` asks the same question
+of it with Welch intervals of best − each end — the same :func:`aoi3d.stats.interior_maximum`.
+The intervals themselves live in :mod:`aoi3d.stats`.
 """
 
 from __future__ import annotations
@@ -39,7 +41,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+
+from aoi3d.stats import (
+    LEVEL,
+    PairedDifference,
+    interior_maximum,
+    paired_difference,
+    welch_ci95,
+)
 
 __all__ = [
     "LEVEL",
@@ -50,10 +59,8 @@ __all__ = [
     "optimum",
     "paired_difference",
     "sign_of",
+    "unpaired_interior_maximum",
 ]
-
-LEVEL = 0.95
-"""Confidence level of every interval of the criterion."""
 
 LOWER_IS_BETTER = frozenset({"lpips"})
 """The metrics whose better direction is down (LPIPS, a distance); every other metric — PSNR,
@@ -63,39 +70,6 @@ SSIM, their dynamic-region forms, the reward — is higher-is-better."""
 def sign_of(metric: str) -> float:
     """+1 for a higher-is-better metric, −1 for one of :data:`LOWER_IS_BETTER`."""
     return -1.0 if metric in LOWER_IS_BETTER else 1.0
-
-
-@dataclass(frozen=True)
-class PairedDifference:
-    """Mean of ``a − b`` over the seeds both have, the half-width of its confidence interval
-    (NaN below two seeds) and the count of seeds."""
-
-    mean: float
-    half: float
-    n: int
-
-    @property
-    def significant(self) -> bool:
-        """Whether the interval excludes zero."""
-        return math.isfinite(self.half) and abs(self.mean) > self.half
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"mean": self.mean, "ci95": self.half, "n": self.n}
-
-
-def paired_difference(a: Mapping[int, float], b: Mapping[int, float],
-                      level: float = LEVEL) -> PairedDifference:
-    """``a − b`` paired by seed (the keys), over the seeds where both are finite."""
-    seeds = sorted(s for s in a.keys() & b.keys()
-                   if math.isfinite(a[s]) and math.isfinite(b[s]))
-    d = np.array([a[s] - b[s] for s in seeds], dtype=np.float64)
-    n = int(d.size)
-    if n == 0:
-        return PairedDifference(math.nan, math.nan, 0)
-    if n < 2:
-        return PairedDifference(float(d[0]), math.nan, 1)
-    half = float(stats.t.ppf(0.5 + level / 2, n - 1) * d.std(ddof=1) / math.sqrt(n))
-    return PairedDifference(float(d.mean()), half, n)
 
 
 @dataclass(frozen=True)
@@ -180,7 +154,7 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
         order = sorted(eligible, key=lambda c: _as_gamma(c) if _as_gamma(c) is not None
                        else math.inf)
         ends = (order[0], order[-1])
-        interior = not any(e in members for e in ends)
+        interior = interior_maximum((to_best[e].mean, to_best[e].half) for e in ends)
     return Optimum(metric=metric, best=best, members=members, to_best=to_best,
                    excluded=excluded, seeds=seeds, ends=ends, interior=interior)
 
@@ -206,3 +180,34 @@ def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
         except ValueError:
             continue
     return out
+
+
+def unpaired_interior_maximum(results: Sequence[Mapping[str, Any]], metric: str
+                              ) -> dict[str, Any] | None:
+    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty,
+    judged on *unpaired* samples (``aoi3d live sweep``: its windows are different renders of a
+    running pipeline, so each policy's renders are an independent sample).
+
+    ``results``: one per policy, in sweep order (fresh to stale; the first and the last are
+    the ends), each with its ``policy`` and ``{"mean", "ci95", "n"}`` per metric. The maximum
+    is *interior* when the best mean is neither end's, and *beyond its confidence interval*
+    when :func:`aoi3d.stats.interior_maximum` holds on the Welch intervals of best − each end
+    (:data:`LOWER_IS_BETTER` says which side is better). None when the metric is missing or
+    fewer than three policies were measured.
+    """
+    sign = sign_of(metric)
+    stat = [r.get(metric) or {} for r in results]
+    if len(results) < 3 or any(s.get("mean") is None for s in stat):
+        return None
+    means = [sign * s["mean"] for s in stat]
+    best = max(range(len(means)), key=means.__getitem__)
+    interior = 0 < best < len(means) - 1
+    ends = {}
+    for end in (0, len(means) - 1):
+        half = welch_ci95(stat[best], stat[end])
+        diff = sign * (means[best] - means[end])
+        ends[results[end]["policy"]] = {"difference": diff, "ci95": half}
+    separated = interior and interior_maximum((sign * e["difference"], e["ci95"])
+                                              for e in ends.values())
+    return {"best": results[best]["policy"], "best_mean": stat[best]["mean"],
+            "interior": interior, "beyond_ci": bool(separated), "best_minus_end": ends}
