@@ -44,12 +44,10 @@ def scrape(service: str) -> dict[str, float]:
 
 
 def policy_body(spec: str) -> dict:
-    kind, _, arg = spec.partition(":")
-    if kind == "mat":
-        return {"kind": "mat", "mat_ms": float(arg)}
-    if kind == "freshest":
-        return {"kind": "freshest", "k": int(arg)}
-    return {"kind": kind}
+    """The scheduler's ``PUT /policy`` body: the policy's own JSON form."""
+    from aoi3d.policy import parse_policy
+
+    return parse_policy(spec).to_json()
 
 
 def main() -> None:

@@ -180,11 +180,11 @@ def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
 
 
 def short_label(spec: str) -> str:
-    """A policy's name for a table or figure: ``ppo:<folder>/<file>``, not the whole path."""
-    if not spec.startswith("ppo:"):
-        return spec
-    path = Path(spec[len("ppo:"):])
-    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
+    """A policy's name for a table or figure (:func:`aoi3d.policy.short_label`: its kind's
+    short form, e.g. ``ppo:<folder>/<file>`` instead of the checkpoint's whole path)."""
+    from aoi3d.policy import short_label as short
+
+    return short(spec)
 
 
 def control_headers() -> dict[str, str]:

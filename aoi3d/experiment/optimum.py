@@ -59,6 +59,7 @@ __all__ = [
     "optimum",
     "paired_difference",
     "sign_of",
+    "sweep_position",
     "unpaired_interior_maximum",
 ]
 
@@ -89,13 +90,15 @@ class Optimum:
     seeds: tuple[int, ...]
     ends: tuple[Any, ...] = field(default=())
     interior: bool = False
+    positions: dict[Any, float] = field(default_factory=dict, repr=False)
+    """Where each eligible candidate lies along the sweep (Γ in ms, ∞ for the reference);
+    empty for policies without an order."""
 
-    def range_of(self, numeric: Sequence[Any] | None = None) -> tuple[float, float] | None:
-        """The smallest and largest numeric member (Γ in ms; ``all`` counts as ∞), or None
-        when no member is numeric."""
-        values = [_as_gamma(m) for m in (numeric if numeric is not None else self.members)]
-        finite = [v for v in values if v is not None]
-        return (min(finite), max(finite)) if finite else None
+    def range_of(self) -> tuple[float, float] | None:
+        """The smallest and largest place of a member along the sweep (Γ in ms; the reference
+        `all` at ∞), or None for policies without an order."""
+        places = [self.positions[m] for m in self.members if m in self.positions]
+        return (min(places), max(places)) if places else None
 
     def to_dict(self) -> dict[str, Any]:
         span = self.range_of()
@@ -107,18 +110,19 @@ class Optimum:
         }
 
 
-def _as_gamma(candidate: Any) -> float | None:
-    if candidate == "all":
-        return math.inf
-    try:
+def sweep_position(candidate: Any) -> float:
+    """The default place of a candidate along a MAT sweep: a number is its Γ (ms); anything
+    else — the reference, ``all`` — lies at Γ = ∞, the sweep's stale end."""
+    if isinstance(candidate, int | float | np.integer | np.floating) and not isinstance(
+            candidate, bool):
         return float(candidate)
-    except (TypeError, ValueError):
-        return None
+    return math.inf
 
 
 def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db",
             lower_is_better: bool | None = None, selects: Mapping[Any, float] | None = None,
-            ordered: bool = True, level: float = LEVEL) -> Optimum:
+            ordered: bool = True, position: Mapping[Any, float] | None = None,
+            level: float = LEVEL) -> Optimum:
     """Apply the criterion of this module.
 
     ``values[c][seed]``: the per-seed (episode mean) metric of candidate ``c`` — a Γ in ms,
@@ -126,7 +130,9 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
     ``metric in LOWER_IS_BETTER``); ``selects[c]``: its mean count of selected cameras
     (candidates with 0 are excluded; None: all eligible); ``ordered``: the candidates are
     points of a sweep in Γ (their order defines the ends, so ``interior`` is judged), else
-    policies without an order (``interior`` is False, ``ends`` empty)."""
+    policies without an order (``interior`` is False, ``ends`` empty, no range);
+    ``position[c]``: where ``c`` lies along the sweep (the caller's Γ of each candidate;
+    default :func:`sweep_position`)."""
     if lower_is_better is None:
         lower_is_better = metric in LOWER_IS_BETTER
     if not values:
@@ -150,19 +156,21 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
                     if c == best or not (to_best[c].significant and to_best[c].mean > 0))
     ends: tuple[Any, ...] = ()
     interior = False
+    places = ({c: position[c] if position is not None and c in position
+               else sweep_position(c) for c in eligible} if ordered else {})
     if ordered and len(eligible) >= 3:
-        order = sorted(eligible, key=lambda c: _as_gamma(c) if _as_gamma(c) is not None
-                       else math.inf)
+        order = sorted(eligible, key=places.__getitem__)
         ends = (order[0], order[-1])
         interior = interior_maximum((to_best[e].mean, to_best[e].half) for e in ends)
     return Optimum(metric=metric, best=best, members=members, to_best=to_best,
-                   excluded=excluded, seeds=seeds, ends=ends, interior=interior)
+                   excluded=excluded, seeds=seeds, ends=ends, interior=interior,
+                   positions=places)
 
 
 def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
            candidate: Callable[[Mapping[str, Any]], Any] = lambda r: r["policy"],
-           selects: Mapping[Any, float] | None = None, ordered: bool = True
-           ) -> dict[str, Optimum]:
+           selects: Mapping[Any, float] | None = None, ordered: bool = True,
+           position: Mapping[Any, float] | None = None) -> dict[str, Optimum]:
     """:func:`optimum` for each of ``metrics`` over ``rows`` — one per episode, with its
     ``seed``, the metrics' values (None: not measured) and whatever ``candidate`` reads its
     candidate from (default: its ``policy``). Metrics the criterion cannot judge (no finite
@@ -176,7 +184,8 @@ def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
             values.setdefault(candidate(r), {})[int(r["seed"])] = (
                 math.nan if v is None else float(v))
         try:
-            out[metric] = optimum(values, metric=metric, selects=selects, ordered=ordered)
+            out[metric] = optimum(values, metric=metric, selects=selects, ordered=ordered,
+                                  position=position)
         except ValueError:
             continue
     return out
