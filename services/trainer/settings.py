@@ -11,7 +11,7 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from aoi3d.field import BACKENDS
+from aoi3d.field import check_backend
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
@@ -58,7 +58,4 @@ class Settings(ServiceSettings):
     @field_validator("backend")
     @classmethod
     def _known_backend(cls, value: str) -> str:
-        if value not in BACKENDS:
-            raise ValueError(
-                f"unknown backend {value!r}; available: {', '.join(sorted(BACKENDS))}")
-        return value
+        return check_backend(value)

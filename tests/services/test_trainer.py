@@ -17,7 +17,7 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
-from aoi3d.field import GridConfig, NgpConfig
+from aoi3d.field import BACKENDS, GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.codec import PNG, decode_image, decode_render, encode_frame
 from services.kit.keys import Keys
@@ -29,7 +29,7 @@ from services.recon.core import ReconCore
 from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
-from services.trainer.settings import BACKENDS, Settings
+from services.trainer.settings import Settings
 from tests.services.series import without_site
 
 N_TRAIN = 4
@@ -390,7 +390,7 @@ def test_openapi_documents_the_routes(client: TestClient) -> None:
 
 
 def test_settings_validate_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(ValidationError, match="unknown backend"):
+    with pytest.raises(ValidationError, match="unknown field backend"):
         Settings(backend="nope")
     with pytest.raises(ValidationError):
         Settings(job_timeout_s=0)
