@@ -46,8 +46,9 @@ __all__ = [
 ]
 
 WorkersOpt = Annotated[int | None, typer.Option(
-    min=1, help="Worker processes (default: all local cores).")]
-ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per worker process.")]
+    min=1, help="Local processes that run the episodes (default: all local cores); not the "
+                "pipeline's reconstruction workers (aoi3d up --workers).")]
+ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per episode process.")]
 LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
 
 

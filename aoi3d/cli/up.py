@@ -57,9 +57,11 @@ def up(
              "service's REST paths address site1; /sites/<site>/… any site.")] = 1,
     workers: Annotated[int, typer.Option(
         min=0, max=64,
-        help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
-             "each): each renders the newest decision no other worker took. More can join "
-             "from anywhere that reaches the router (see GET /workers on the trainer).")] = 1,
+        help="Reconstruction workers in the pool (python -m services.recon processes, 1 torch "
+             "thread each): each renders the newest decision no other worker took. More can "
+             "join from anywhere that reaches the router (see GET /workers on the trainer, "
+             "the pool's dispatcher). Not `aoi3d experiment --workers` (local processes that "
+             "run episodes).")] = 1,
     zenoh_port: Annotated[int, typer.Option(
         min=1, max=65535, help="TCP port of the local Zenoh router.")] = ZENOH_PORT,
     port_offset: Annotated[int, typer.Option(

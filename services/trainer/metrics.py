@@ -71,13 +71,15 @@ class PoolCollector:
             "aoi3d_renders", "Novel-view renders published by the pool's workers.",
             labels=["site"]), by_site("renders"))
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
+            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions (the "
+            "reconstruction workers'; the trainer service trains nothing itself).",
             labels=["site"]), by_site("steps"))
         yield one(GaugeMetricFamily(
             "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
             f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
         yield each(GaugeMetricFamily(
-            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
+            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step (as its "
+            "reconstruction worker reported it).",
             labels=["site"]), by_site("loss"))
         yield each(GaugeMetricFamily(
             "aoi3d_trainer_views", "Frames the latest render trained on.", labels=["site"]),

@@ -53,7 +53,10 @@ POOL_LOST = (EndReason.WORKER_DIED, EndReason.TIMEOUT, EndReason.NOT_DELIVERED,
 
 
 @dataclass
-class _Worker:
+class _Member:
+    """A member of the pool as the dispatcher sees it: one reconstruction worker (a
+    ``python -m services.recon`` process, named by its liveliness token)."""
+
     worker_id: str
     joined_s: float
     pid: int = 0
@@ -73,7 +76,7 @@ class Dispatcher:
     def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0) -> None:
         self.window_s = float(window_s)
         self.job_timeout_s = float(job_timeout_s)
-        self._workers: dict[str, _Worker] = {}
+        self._workers: dict[str, _Member] = {}
         self._waiting: deque[str] = deque()
         self._pending: dict[str, tuple[DecisionRef, float]] = {}
         self._served_s: dict[str, float] = {}
@@ -103,7 +106,7 @@ class Dispatcher:
     # ------------------------------------------------------------------ membership
     def joined(self, worker_id: str, now_s: float) -> None:
         if worker_id not in self._workers:
-            self._workers[worker_id] = _Worker(worker_id, joined_s=now_s)
+            self._workers[worker_id] = _Member(worker_id, joined_s=now_s)
 
     def left(self, worker_id: str, now_s: float) -> Assignment | None:
         """The worker's token vanished: its decision (if any) is lost, ``worker_died``."""
@@ -197,7 +200,7 @@ class Dispatcher:
         return out
 
     # ------------------------------------------------------------------ internals
-    def _assign(self, worker: _Worker, decision: DecisionRef, arrived_s: float,
+    def _assign(self, worker: _Member, decision: DecisionRef, arrived_s: float,
                 now_s: float) -> Assignment:
         held = Assignment(decision, worker.worker_id, arrived_s, now_s)
         worker.holding = held
@@ -208,7 +211,7 @@ class Dispatcher:
         self._event(now_s, "wait", held.wait_s)
         return held
 
-    def _close(self, worker: _Worker, report: Report, now_s: float) -> None:
+    def _close(self, worker: _Member, report: Report, now_s: float) -> None:
         held = worker.holding
         if report.done is not None and (held is None or held.decision.key != report.done):
             self.late_reports += 1  # counted lost already (timeout), or not ours
