@@ -61,7 +61,6 @@ import signal
 import socket
 import subprocess
 import sys
-import threading
 import time
 import uuid
 from pathlib import Path
@@ -70,33 +69,32 @@ import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))  # livebench, also when a test loads this file by path
 
+import livebench  # noqa: E402  (bench/livebench.py, a sibling)
+
+from aoi3d.ports import BENCH_BLOCKS, SERVICE_PORTS  # noqa: E402
 from services.kit.keys import Keys  # noqa: E402
 from services.kit.pb import aoi3d_pb2 as pb  # noqa: E402
-from services.kit.settings import CommonSettings, zenoh_config  # noqa: E402
-from services.supervisor import DEFAULT_PORTS  # noqa: E402
+from services.kit.settings import CommonSettings  # noqa: E402
 
-OFFSET, ZENOH = 5000, 9567  # REST 13101…13106: apart from make up, soak and the tests
+PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (aoi3d/ports.py)
+ZENOH = PORTS.zenoh
 LEDGER_OPEN_S = 30.0
 JOB_TIMEOUT_S = 20.0
 STALL_S = 15.0
 
 
-class Tap:
+class Tap(livebench.Tap):
     """Every Quality (site, monotonic time) and the highest decision id per (site,
     incarnation) of the run, from a Zenoh session of its own."""
 
     def __init__(self, run_id: str, common: CommonSettings | None = None) -> None:
-        import zenoh
-
         keys = Keys(run_id, "*")
-        self.session = zenoh.open(zenoh_config(common or CommonSettings(
-            zenoh_connect=[f"tcp/127.0.0.1:{ZENOH}"])))
-        self.lock = threading.Lock()
         self.qualities: list[tuple[str, float]] = []
         self.made: dict[tuple[str, int], int] = {}
-        self.subs = [self.session.declare_subscriber(keys.quality, self._on_quality),
-                     self.session.declare_subscriber(keys.decision, self._on_decision)]
+        super().__init__(PORTS, {keys.quality: self._on_quality,
+                                 keys.decision: self._on_decision}, common)
 
     def _on_quality(self, sample) -> None:
         msg = pb.Quality.FromString(sample.payload.to_bytes())
@@ -113,14 +111,9 @@ class Tap:
         with self.lock:
             return [t for s, t in self.qualities if s == site]
 
-    def close(self) -> None:
-        for sub in self.subs:
-            sub.undeclare()
-        self.session.close()
-
 
 def url(service: str, path: str) -> str:
-    return f"http://127.0.0.1:{DEFAULT_PORTS[service] + OFFSET}{path}"
+    return PORTS.url(service, path)
 
 
 def children(log_dir: Path) -> dict[str, int]:
@@ -129,20 +122,12 @@ def children(log_dir: Path) -> dict[str, int]:
 
 
 def wait(what: str, cond, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        try:
-            if cond():
-                return
-        except (OSError, ValueError, KeyError, httpx.HTTPError):
-            pass
-        time.sleep(0.5)
-    raise SystemExit(f"chaos: {what} not within {timeout_s:.0f} s")
+    livebench.wait_until(f"chaos: {what}", cond, timeout_s)
 
 
 def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
     up = {}
-    for service in DEFAULT_PORTS:
+    for service in SERVICE_PORTS:
         try:
             up[service] = http.get(url(service, "/healthz")).status_code == 200
         except httpx.HTTPError:
@@ -186,12 +171,9 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     log_dir = ROOT / "runs" / "bench-chaos"
     env = {**os.environ, "AOI3D_METRICS_LEDGER_OPEN_S": str(LEDGER_OPEN_S),
            "AOI3D_TRAINER_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S)}
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--run-id", run_id, "--port-offset", str(OFFSET),
-         "--zenoh-port", str(ZENOH), "--log-dir", str(log_dir), "--quiet", "--sites",
-         str(args.sites), "--workers", str(args.workers), "--time-scale",
-         str(args.time_scale)], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
-        stderr=subprocess.STDOUT, start_new_session=True)
+    up = livebench.start_up(PORTS, run_id, log_dir, [
+        "--sites", str(args.sites), "--workers", str(args.workers),
+        "--time-scale", str(args.time_scale)], env=env)
     http = httpx.Client(timeout=30.0)
     tap = None
     try:
@@ -244,11 +226,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     finally:
         if tap is not None:
             tap.close()
-        up.send_signal(signal.SIGTERM)
-        try:
-            up.wait(timeout=90)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
+        livebench.stop_up(up)
     return outcome(args, faults, made, ledgers, stalls, max_gap, up_state)
 
 

@@ -521,7 +521,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     if args.run_spec:
         _child(args.run_spec)
         return {}
-    from aoi3d.field import BACKENDS
+    from aoi3d.field import BACKENDS, UnknownBackendError, check_backend
     from aoi3d.scene import SceneConfig, ensure_dataset, load_dataset
 
     console = Console(width=max(Console().width, 120))  # the table, also in logs
@@ -531,9 +531,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         backends = list(BACKENDS)
     else:
         backends = [b.strip() for b in args.backends.split(",") if b.strip()]
-        unknown = [b for b in backends if b not in BACKENDS]
-        if unknown:
-            raise SystemExit(f"unknown backend(s) {unknown}; registered: {', '.join(BACKENDS)}")
+        try:
+            for b in backends:
+                check_backend(b)
+        except UnknownBackendError as err:
+            raise SystemExit(str(err)) from None
     if args.device == "auto":
         device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
     elif args.device == "cuda" and not torch.cuda.is_available():

@@ -41,7 +41,6 @@ import csv
 import json
 import os
 import shutil
-import signal
 import subprocess
 import sys
 import time
@@ -53,10 +52,12 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from aoi3d.cli.live import SERVICE_PORTS, mean_ci95, welch_ci95  # noqa: E402
+import livebench  # noqa: E402  (bench/livebench.py, a sibling)
 
-OFFSET = 3200  # REST ports 11301..11306: a running `make up` or bench/scale.py is not disturbed
-ZENOH_PORT = 7649
+from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
+from aoi3d.stats import mean_ci95, welch_ci95  # noqa: E402
+
+PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (aoi3d/ports.py)
 SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
@@ -65,12 +66,8 @@ FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim
           "psnr_dynamic_db", "n_views"]
 
 
-def port(service: str) -> int:
-    return SERVICE_PORTS[service] + OFFSET
-
-
 def url(service: str, site: str, path: str) -> str:
-    return f"http://127.0.0.1:{port(service)}/sites/{site}{path}"
+    return PORTS.url(service, f"/sites/{site}{path}")
 
 
 def scratch_checkpoint(path: Path, seed: int) -> None:
@@ -84,20 +81,12 @@ def scratch_checkpoint(path: Path, seed: int) -> None:
 
 
 def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        if up.poll() is not None:
-            raise SystemExit("the pipeline exited while starting; see runs/bench-online/latest/")
-        try:
-            pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()["workers"]
-            ready = all(HTTP.get(f"http://127.0.0.1:{port(s)}/readyz").status_code == 200
-                        for s in ("scheduler", "metrics", "trainer"))
-            if len(pool) == workers and ready:
-                return
-        except (httpx.HTTPError, KeyError, ValueError):
-            pass
-        time.sleep(1.0)
-    raise SystemExit(f"the pipeline was not ready after {timeout_s:g} s")
+    livebench.wait_until(
+        "the pipeline ready (see runs/bench-online/latest/)",
+        lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
+        and all(HTTP.get(PORTS.url(s, "/readyz")).status_code == 200
+                for s in ("scheduler", "metrics", "trainer")),
+        timeout_s, every_s=1.0, proc=up)
 
 
 def put_policy(site: str, body: dict[str, Any]) -> dict[str, Any]:
@@ -116,7 +105,7 @@ def windows(rows: list[dict[str, Any]], window_s: float) -> list[dict[str, Any]]
     while k * window_s < end:
         sel = [r["reward"] for r in rows if k * window_s <= r["wall_s"] < (k + 1) * window_s]
         out.append({"from_min": k * window_s / 60, "to_min": (k + 1) * window_s / 60,
-                    "reward": mean_ci95(sel)})
+                    "reward": mean_ci95(sel).to_dict()})
         k += 1
     return out
 
@@ -194,13 +183,10 @@ def main() -> None:
               "site3": f"{args.rule} (fixed rule)"}
 
     log_dir = ROOT / "runs" / "bench-online"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(args.dataset),
-           "--run-id", "online", "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET),
-           "--log-dir", str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
-           "--workers", str(args.workers), "--sites", str(len(SITES))]
     load_before = os.getloadavg()
-    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                          start_new_session=True)
+    up = livebench.start_up(PORTS, "online", log_dir, [
+        "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
+        "--workers", str(args.workers), "--sites", str(len(SITES))])
     seen: dict[str, dict[int, dict[str, Any]]] = {s: {} for s in SITES}
     learners: list[dict[str, Any]] = []
     try:
@@ -233,13 +219,9 @@ def main() -> None:
                                      "mean_reward", "unscored", "expired")}})
             print(f"{wall / 60:5.1f} min: " + ", ".join(
                 f"{s} {len(seen[s])} renders" for s in SITES), flush=True)
-        pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
+        pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
     finally:
-        os.killpg(up.pid, signal.SIGTERM)
-        try:
-            up.wait(timeout=120)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
+        livebench.stop_up(up, timeout_s=120)
 
     rows_by_site = {s: sorted(seen[s].values(), key=lambda q: q["decision_id"]) for s in SITES}
     with open(out / "qualities.csv", "w", newline="") as fh:
@@ -280,7 +262,7 @@ def summarise(out: Path, window_min: float) -> None:
 
     def stats(rows: list[dict[str, Any]], lo: float, hi: float) -> dict[str, Any]:
         sel = [r for r in rows if lo <= r["wall_s"] < hi]
-        return {key: mean_ci95([r[key] for r in sel])
+        return {key: mean_ci95([r[key] for r in sel]).to_dict()
                 for key in ("reward", "psnr_db", "psnr_dynamic_db", "n_views")}
 
     rule = SITES[-1]
@@ -293,7 +275,7 @@ def summarise(out: Path, window_min: float) -> None:
                    for name, v in spans_s.items()
                    for spans_rule in [stats(rows_by_site[rule], *spans[name])]}
         sites[s] = {"label": run["policies"][s]["label"], "renders": len(rows),
-                    "reward": mean_ci95([r["reward"] for r in rows]),
+                    "reward": mean_ci95([r["reward"] for r in rows]).to_dict(),
                     "windows": windows(rows, window_s), "spans": spans_s,
                     "minus_rule": against if s != rule else None,
                     "last_learner": run["last_learner"][s]}

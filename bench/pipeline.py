@@ -14,41 +14,29 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import signal
 import statistics
-import subprocess
-import sys
 import time
-from pathlib import Path
 
 import httpx
+import livebench  # bench/livebench.py, a sibling
 
 from aoi3d.cli.common import control_headers
+from aoi3d.ports import BENCH_BLOCKS
 
-ROOT = Path(__file__).resolve().parents[1]
-OFFSET = 1000  # REST ports 9101..9105, so a running `make up` is not disturbed
-PORTS = {"camera": 9101, "network": 9102, "scheduler": 9103, "trainer": 9104, "metrics": 9105}
+ROOT = livebench.ROOT
+BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)
+SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")  # the ones measured
 
 
 def scrape(service: str) -> dict[str, float]:
-    text = httpx.get(f"http://127.0.0.1:{PORTS[service]}/metrics", timeout=5).text
-    out: dict[str, float] = {}
-    for line in text.splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        name, value = line.rsplit(" ", 1)
-        out[name.split("{")[0]] = out.get(name.split("{")[0], 0.0) + float(value)
-    return out
+    return livebench.scrape(httpx.Client(timeout=5), BLOCK.url(service, "/metrics"))
 
 
 def policy_body(spec: str) -> dict:
-    kind, _, arg = spec.partition(":")
-    if kind == "mat":
-        return {"kind": "mat", "mat_ms": float(arg)}
-    if kind == "freshest":
-        return {"kind": "freshest", "k": int(arg)}
-    return {"kind": kind}
+    """The scheduler's ``PUT /policy`` body: the policy's own JSON form."""
+    from aoi3d.policy import parse_policy
+
+    return parse_policy(spec).to_json()
 
 
 def main() -> None:
@@ -61,45 +49,34 @@ def main() -> None:
     args = ap.parse_args()
 
     log_dir = ROOT / "runs" / "bench-pipeline"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", args.dataset, "--run-id", "bench",
-           "--zenoh-port", "7547", "--port-offset", str(OFFSET), "--log-dir", str(log_dir),
-           "--quiet", "--time-scale", str(args.time_scale)]
-    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                          start_new_session=True)
+    up = livebench.start_up(BLOCK, "bench", log_dir, ["--dataset", args.dataset,
+                                                      "--time-scale", str(args.time_scale)])
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                if all(httpx.get(f"http://127.0.0.1:{p}/healthz", timeout=1).status_code == 200
-                       for p in PORTS.values()):
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or up.poll() is not None:
-                raise SystemExit("the pipeline did not come up; see runs/bench-pipeline/")
-            time.sleep(0.5)
+        livebench.wait_until(
+            "the pipeline up (see runs/bench-pipeline/)",
+            lambda: all(httpx.get(BLOCK.url(s, "/healthz"), timeout=1).status_code == 200
+                        for s in SERVICES), 120, proc=up)
         t_ready = time.monotonic()
-        r = httpx.put(f"http://127.0.0.1:{PORTS['scheduler']}/policy",
+        r = httpx.put(BLOCK.url("scheduler", "/policy"),
                       json=policy_body(args.policy), headers=control_headers(), timeout=60)
         r.raise_for_status()
         time.sleep(args.warmup_s)
-        first = {s: scrape(s) for s in PORTS}
-        decision = f"http://127.0.0.1:{PORTS['scheduler']}/decision"
+        first = {s: scrape(s) for s in SERVICES}
+        decision = BLOCK.url("scheduler", "/decision")
         id0 = httpx.get(decision, timeout=30).json()["decision_id"]
         t0 = time.monotonic()
         time.sleep(args.window_s)
-        last = {s: scrape(s) for s in PORTS}
+        last = {s: scrape(s) for s in SERVICES}
         id1 = httpx.get(decision, timeout=30).json()["decision_id"]
         dt = time.monotonic() - t0
-        status = httpx.get(f"http://127.0.0.1:{PORTS['trainer']}/status", timeout=30).json()
+        status = httpx.get(BLOCK.url("trainer", "/status"), timeout=30).json()
         # the window's last decisions are rendered a render's compute later
         rate_now = status.get("steps_per_s") or 1.0
         time.sleep(min(120.0, 2.0 + 1.5 * (status.get("render_steps") or 0) / rate_now))
-        history = httpx.get(f"http://127.0.0.1:{PORTS['metrics']}/quality",
+        history = httpx.get(BLOCK.url("metrics", "/quality"),
                             params={"limit": 100000}).json()["history"]
     finally:
-        os.killpg(up.pid, signal.SIGTERM)
-        up.wait(timeout=60)
+        livebench.stop_up(up, timeout_s=60)
 
     def rate(service: str, name: str) -> float:
         return (last[service].get(name, 0.0) - first[service].get(name, 0.0)) / dt
@@ -108,7 +85,10 @@ def main() -> None:
     k = max(1, min(5, len(psnr) // 4))
     window = [q for q in history if id0 <= q["decision_id"] <= id1]
 
-    from aoi3d.cli.live import mean_ci95 as stat  # {"mean", "ci95", "n"}; None-safe
+    from aoi3d.stats import mean_ci95
+
+    def stat(values: list) -> dict:  # {"mean", "ci95", "n"}; None-safe
+        return mean_ci95(values).to_dict()
 
     result = {
         "policy": args.policy, "time_scale": args.time_scale, "window_s": round(dt, 1),

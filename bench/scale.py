@@ -25,69 +25,36 @@ import argparse
 import json
 import math
 import os
-import signal
 import statistics
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import httpx
+import livebench  # bench/livebench.py, a sibling
 
-ROOT = Path(__file__).resolve().parents[1]
-OFFSET = 3000  # REST ports 11101..11106, so a running `make up` is not disturbed
-ZENOH_PORT = 7647
+from aoi3d.ports import BENCH_BLOCKS
+from aoi3d.stats import mean_ci95
+
+ROOT = livebench.ROOT
+PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (aoi3d/ports.py)
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
 
 
-def port(service: str) -> int:
-    return {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-            "metrics": 8105, "console": 8106}[service] + OFFSET
-
-
 def scrape(service: str) -> dict[str, float]:
     """Series of a service's /metrics, summed over labels, plus each labelled sample."""
-    out: dict[str, float] = {}
-    for line in HTTP.get(f"http://127.0.0.1:{port(service)}/metrics").text.splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        name, value = line.rsplit(" ", 1)
-        out[name] = float(value)
-        base = name.split("{")[0]
-        if base != name:
-            out[base] = out.get(base, 0.0) + float(value)
-    return out
+    return livebench.scrape(HTTP, PORTS.url(service, "/metrics"))
 
 
-def mean_ci95(xs: list[float]) -> dict:
-    xs = [x for x in xs if x is not None and math.isfinite(x)]
-    if not xs:
-        return {"mean": None, "ci95": None, "n": 0}
-    if len(xs) == 1:
-        return {"mean": xs[0], "ci95": None, "n": 1}
-    from scipy import stats
-
-    sd = statistics.stdev(xs)
-    half = float(stats.t.ppf(0.975, len(xs) - 1)) * sd / math.sqrt(len(xs))
-    return {"mean": statistics.fmean(xs), "ci95": half, "n": len(xs)}
-
-
-class ByteTap:
+class ByteTap(livebench.Tap):
     """Counts the payload bytes of every message of the run (all keys)."""
 
     def __init__(self, run_id: str) -> None:
-        import zenoh
-
-        from services.kit.settings import CommonSettings, zenoh_config
-
-        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"]))
-        self.session = zenoh.open(conf)
         self.bytes = 0
         self.messages = 0
-        self.lock = threading.Lock()
-        self.sub = self.session.declare_subscriber(f"aoi3d/{run_id}/**", self._on)
+        super().__init__(PORTS, {f"aoi3d/{run_id}/**": self._on})
 
     def _on(self, sample) -> None:
         n = len(sample.payload)
@@ -98,10 +65,6 @@ class ByteTap:
     def read(self) -> tuple[int, int]:
         with self.lock:
             return self.bytes, self.messages
-
-    def close(self) -> None:
-        self.sub.undeclare()
-        self.session.close()
 
 
 def tree_cpu_s(root: int) -> dict[str, float]:
@@ -142,35 +105,24 @@ def tree_cpu_s(root: int) -> dict[str, float]:
 def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
     run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(args.dataset), "--run-id", run_id,
-           "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(OFFSET), "--log-dir",
-           str(log_dir), "--quiet", "--time-scale", str(args.time_scale),
-           "--workers", str(workers), "--sites", str(sites)]
     load_before = os.getloadavg()
-    up = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                          start_new_session=True)
+    up = livebench.start_up(PORTS, run_id, log_dir, [
+        "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
+        "--workers", str(workers), "--sites", str(sites)])
     tap = None
     try:
-        deadline = time.monotonic() + args.ready_timeout_s
-        while True:
-            try:
-                ws = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()["workers"]
-                if len(ws) == workers and HTTP.get(
-                        f"http://127.0.0.1:{port('metrics')}/healthz").status_code == 200:
-                    break
-            except (httpx.HTTPError, KeyError, ValueError):
-                pass
-            if time.monotonic() > deadline or up.poll() is not None:
-                raise SystemExit(f"the pipeline with {workers} workers did not come up; see "
-                                 f"{log_dir}/latest/")
-            time.sleep(0.5)
+        livebench.wait_until(
+            f"the pipeline with {workers} workers up (see {log_dir}/latest/)",
+            lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
+            and HTTP.get(PORTS.url("metrics", "/healthz")).status_code == 200,
+            args.ready_timeout_s, proc=up)
         time.sleep(args.settle_s)
         first = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
         cpu0 = tree_cpu_s(up.pid)
         names = [f"site{i}" for i in range(1, sites + 1)]
 
         def ids() -> dict[str, int]:
-            return {n: HTTP.get(f"http://127.0.0.1:{port('scheduler')}/sites/{n}/decision"
+            return {n: HTTP.get(PORTS.url("scheduler", f"/sites/{n}/decision")
                                 ).json()["decision_id"] for n in names}
 
         decision0 = ids()
@@ -180,7 +132,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
         cpu1 = tree_cpu_s(up.pid)
         decision1 = ids()
         dt = time.monotonic() - t0
-        pool = HTTP.get(f"http://127.0.0.1:{port('trainer')}/workers").json()
+        pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
         # Bytes in a window of their own, after the renders' window: a subscriber to every key
         # makes the router send everything twice and costs this process CPU, which the
         # workers would otherwise have had.
@@ -192,13 +144,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
         bytes1, msgs1 = tap.read()
         dtb = time.monotonic() - tb
         time.sleep(max(0.0, 5.0 - args.bytes_s))  # the window's last renders are scored later
-        history = {n: HTTP.get(f"http://127.0.0.1:{port('metrics')}/sites/{n}/quality",
+        history = {n: HTTP.get(PORTS.url("metrics", f"/sites/{n}/quality"),
                                params={"limit": 100000}).json()["history"] for n in names}
     finally:
         if tap is not None:
             tap.close()
-        os.killpg(up.pid, signal.SIGTERM)
-        up.wait(timeout=90)
+        livebench.stop_up(up)
 
     def delta(service: str, name: str) -> float:
         return last[service].get(name, 0.0) - first[service].get(name, 0.0)
@@ -224,9 +175,9 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
                               if age_n else None),
         "busy_fraction": {w["worker_id"]: w["busy_fraction"] for w in pool["workers"]},
         "lost": pool["lost"],
-        "psnr_db": mean_ci95([q["psnr_db"] for q in window]),
-        "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]),
-        "views": mean_ci95([q["n_views"] for q in window]),
+        "psnr_db": mean_ci95([q["psnr_db"] for q in window]).to_dict(),
+        "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]).to_dict(),
+        "views": mean_ci95([q["n_views"] for q in window]).to_dict(),
         "renders_per_s_by_site": {n: v / dt for n, v in by_site.items()},
         "zenoh_bytes_per_s": (bytes1 - bytes0) / dtb,
         "zenoh_messages_per_s": (msgs1 - msgs0) / dtb,

@@ -184,8 +184,15 @@ def _num(v: Any, digits: int = 2) -> str:
 def _policy_name(spec: str, path: bool = False) -> str:
     """A policy as the report writes it: `spec`, or PPO for ``ppo:<checkpoint>`` (with the
     checkpoint relative to the repository when ``path``)."""
-    if spec.startswith("ppo:"):
-        return f"PPO (`{os.path.relpath(spec[4:], ROOT)}`)" if path else "PPO"
+    from aoi3d.policy import PolicySpecError, kind_of
+
+    try:
+        ppo = kind_of(spec).kind == "ppo"
+    except PolicySpecError:  # a label no kind registered: written as it is
+        ppo = False
+    if ppo:
+        checkpoint = spec.partition(":")[2]  # ppo:<checkpoint>
+        return f"PPO (`{os.path.relpath(checkpoint, ROOT)}`)" if path else "PPO"
     return f"`{spec}`"
 
 

@@ -22,18 +22,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import signal
-import subprocess
 import sys
 import time
 import uuid
 from pathlib import Path
 
 import httpx
+import livebench  # bench/livebench.py, a sibling
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-OFFSET, ZENOH = 4000, 9467  # REST 12101…12106: apart from make up, chaos and the tests
+from aoi3d.ports import BENCH_BLOCKS
+
+ROOT = livebench.ROOT
+PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (aoi3d/ports.py)
 MAX_GROWTH = 0.10
 MAX_RATE_CHANGE = 0.05
 
@@ -48,8 +49,8 @@ def rss_mib(pid: int) -> float | None:
     return None
 
 
-def url(port: int, path: str) -> str:
-    return f"http://127.0.0.1:{port + OFFSET}{path}"
+def url(service: str, path: str) -> str:
+    return PORTS.url(service, path)
 
 
 def rate(points: list[tuple[float, int]], t0: float, t1: float) -> float:
@@ -71,27 +72,17 @@ def main() -> int:
     args = parser.parse_args()
     log_dir = ROOT / "runs" / "bench-soak"
     run_id = f"soak{uuid.uuid4().hex[:6]}"
-    up = subprocess.Popen([sys.executable, "-m", "aoi3d", "up", "--run-id", run_id,
-                           "--port-offset", str(OFFSET), "--zenoh-port", str(ZENOH),
-                           "--sites", str(args.sites), "--workers", str(args.workers),
-                           "--log-dir", str(log_dir), "--quiet"], cwd=ROOT,
-                          stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
-                          start_new_session=True)
+    up = livebench.start_up(PORTS, run_id, log_dir, ["--sites", str(args.sites),
+                                                     "--workers", str(args.workers)])
     http = httpx.Client(timeout=60.0)
     samples: dict[str, list[tuple[float, float]]] = {}
     renders: list[tuple[float, int]] = []
     loads: list[float] = []
     try:
-        deadline = time.monotonic() + 600
-        while True:  # up and rendering
-            try:
-                if http.get(url(8104, "/status")).json()["pool"]["rendered"] > 0:
-                    break
-            except (httpx.HTTPError, ValueError, KeyError):
-                pass
-            if time.monotonic() > deadline or up.poll() is not None:
-                raise SystemExit("soak: the pipeline did not start rendering")
-            time.sleep(2.0)
+        livebench.wait_until(
+            "soak: the pipeline rendering",
+            lambda: http.get(url("trainer", "/status")).json()["pool"]["rendered"] > 0,
+            600, every_s=2.0, proc=up)
         time.sleep(args.warmup_s)
         t0 = time.monotonic()
         end = t0 + args.minutes * 60.0
@@ -102,20 +93,16 @@ def main() -> int:
                 mib = rss_mib(child["pid"]) if child["pid"] else None
                 if mib is not None:
                     samples.setdefault(name, []).append((now, mib))
-            renders.append((now, http.get(url(8104, "/status")).json()["pool"]["rendered"]))
+            renders.append((now, http.get(url("trainer", "/status")).json()["pool"]["rendered"]))
             loads.append(os.getloadavg()[0])
             if time.monotonic() >= end:
                 break
             time.sleep(min(args.every_s, max(0.0, end - time.monotonic())))
         restarts = {n: c["restarts"] for n, c in state["children"].items()}
-        sites = http.get(url(8105, "/sites")).json()["sites"]
-        ledgers = {s: http.get(url(8105, f"/sites/{s}/ledger")).json() for s in sites}
+        sites = http.get(url("metrics", "/sites")).json()["sites"]
+        ledgers = {s: http.get(url("metrics", f"/sites/{s}/ledger")).json() for s in sites}
     finally:
-        up.send_signal(signal.SIGTERM)
-        try:
-            up.wait(timeout=90)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
+        livebench.stop_up(up)
     span = renders[-1][0]
     window = min(args.window_min * 60.0, span / 2)
     processes = {}

@@ -18,13 +18,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from aoi3d.atomic import atomic_path  # stdlib only, as this module
+from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT  # the one table of ports
+from aoi3d.ports import site_names as site_names  # re-exported (the supervisor, tests)
 
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics", "console", "recorder")
+SERVICES = tuple(SERVICE_PORTS)
 """The services ``aoi3d up`` runs, in start order (``python -m services.<name>``)."""
-DEFAULT_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-                 "metrics": 8105, "console": 8106, "recorder": 8107}
-"""Each service's REST port before ``--port-offset``."""
-assert set(DEFAULT_PORTS) == set(SERVICES)
+DEFAULT_PORTS = SERVICE_PORTS
+"""Each service's REST port before ``--port-offset`` (:data:`aoi3d.ports.SERVICE_PORTS`)."""
 WORKER = "recon"
 """The reconstruction workers (``python -m services.recon``): ``--workers`` of them, named
 ``recon-1`` … in the logs; no REST port each — a worker is ready when the trainer's ``GET
@@ -50,7 +50,7 @@ class UpConfig:
     workers: int = 1
     """Reconstruction workers of the pool (``python -m services.recon``, 1 torch thread each
     unless ``AOI3D_RECON_TORCH_THREADS`` says otherwise)."""
-    zenoh_port: int = 7447
+    zenoh_port: int = ZENOH_PORT
     port_offset: int = 0
     log_dir: Path = Path("runs/logs")
     """The parent of the runs' log folders (each run writes to a folder of its own)."""
@@ -82,11 +82,6 @@ class UpConfig:
     def ports(self) -> dict[str, int]:
         """Every port the run listens on: ``router`` (Zenoh) and each service's REST port."""
         return {"router": self.zenoh_port, **{name: self.port(name) for name in SERVICES}}
-
-
-def site_names(n: int) -> list[str]:
-    """The sites of an ``n``-site run: ``site1`` … ``site<n>``."""
-    return [f"site{i}" for i in range(1, n + 1)]
 
 
 def port_in_use(port: int, host: str = "127.0.0.1") -> bool:

@@ -18,6 +18,7 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from aoi3d.ports import ZENOH_PORT
 from services.kit.settings import CommonSettings, Endpoints, _split_endpoints, insert_tls
 
 log = logging.getLogger("aoi3d.router")
@@ -26,7 +27,7 @@ log = logging.getLogger("aoi3d.router")
 class RouterSettings(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="AOI3D_ROUTER_", extra="ignore")
 
-    listen: Endpoints = Field(default_factory=lambda: ["tcp/127.0.0.1:7447"],
+    listen: Endpoints = Field(default_factory=lambda: [f"tcp/127.0.0.1:{ZENOH_PORT}"],
                               description="Endpoints the router listens on.")
     connect: Endpoints = Field(
         default_factory=list,

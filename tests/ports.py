@@ -22,18 +22,18 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
-from services.supervisor import DEFAULT_PORTS
+from aoi3d.ports import REST_FIRST, REST_LAST, TEST_FIRST
 
-FIRST = 12_000
+FIRST = TEST_FIRST
 """Lowest test port: above the fixed ports of ``make up`` (7447, 8101…), ``make bench``
-(bench/pipeline.py 9101…, bench/scale.py 7647, 11101…) and below the ephemeral range."""
+(:data:`aoi3d.ports.BENCH_BLOCKS`: pipeline, scale, online_live) and below the ephemeral range."""
 SIZE = 16
 NAMES = ("pipeline", "recovery", "pool", "sites", "browser", "prometheus", "supervisor",
          "cli-startup", "dataset-errors", "dataset-errors-service", "zenoh-auth", "zenoh-tls",
          "compose", "multihost", "recording", "ros2")
 """The test files that listen; each has one block per slot."""
-_REST_FIRST = min(DEFAULT_PORTS.values())
-_REST_COUNT = max(DEFAULT_PORTS.values()) - _REST_FIRST + 1
+_REST_FIRST = REST_FIRST
+_REST_COUNT = REST_LAST - REST_FIRST + 1
 EXTRAS = SIZE - _REST_COUNT - 1
 
 

@@ -46,8 +46,9 @@ __all__ = [
 ]
 
 WorkersOpt = Annotated[int | None, typer.Option(
-    min=1, help="Worker processes (default: all local cores).")]
-ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per worker process.")]
+    min=1, help="Local processes that run the episodes (default: all local cores); not the "
+                "pipeline's reconstruction workers (aoi3d up --workers).")]
+ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per episode process.")]
 LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
 
 
@@ -188,11 +189,11 @@ def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
 
 
 def short_label(spec: str) -> str:
-    """A policy's name for a table or figure: ``ppo:<folder>/<file>``, not the whole path."""
-    if not spec.startswith("ppo:"):
-        return spec
-    path = Path(spec[len("ppo:"):])
-    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
+    """A policy's name for a table or figure (:func:`aoi3d.policy.short_label`: its kind's
+    short form, e.g. ``ppo:<folder>/<file>`` instead of the checkpoint's whole path)."""
+    from aoi3d.policy import short_label as short
+
+    return short(spec)
 
 
 def control_headers() -> dict[str, str]:

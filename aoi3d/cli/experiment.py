@@ -35,6 +35,7 @@ from aoi3d.cli.common import (
     short_label,
     with_shared_options,
 )
+from aoi3d.numbers import format_number
 from aoi3d.scene.framings import FRAMING_DATASETS
 
 if TYPE_CHECKING:
@@ -324,22 +325,50 @@ def _table(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
     console.print(table)
 
 
-def _gamma_of(policy: str) -> float | None:
-    from aoi3d.policy import parse_policy
+@dataclass(frozen=True)
+class _MatSweep:
+    """A MAT sweep's policies, by the label their results carry: ``MatPolicy(Γ)`` for each Γ,
+    then ``AllPolicy`` (the reference, at Γ = ∞). Γ is read from the policy objects built
+    here, never parsed back out of a label."""
 
-    gamma_ms = parse_policy(policy).gamma_ms  # Γ of a MAT rule; None for the other kinds
-    return float(gamma_ms) if gamma_ms is not None else None
+    policies: dict[str, Any]
+
+    @classmethod
+    def of(cls, gammas: Sequence[float]) -> _MatSweep:
+        from aoi3d.policy import AllPolicy, MatPolicy
+
+        built = [MatPolicy(float(g)) for g in gammas] + [AllPolicy()]
+        return cls({p.spec: p for p in built})
+
+    def gamma(self, label: str) -> float | None:
+        """Γ (ms) of the sweep's policy ``label``; None for the reference."""
+        return self.policies[label].gamma_ms
+
+    def candidate(self, label: str) -> Any:
+        """A tradeoff candidate: Γ in ms for a MAT point, else the label (``all``)."""
+        gamma = self.gamma(label)
+        return label if gamma is None else gamma
+
+    def position(self) -> dict[Any, float]:
+        """Where each candidate lies along the sweep: Γ, and ∞ for the reference."""
+        return {self.candidate(label): math.inf if p.gamma_ms is None else p.gamma_ms
+                for label, p in self.policies.items()}
+
+    def jobs(self, delays: Sequence[str], seeds: Sequence[int]) -> list[Job]:
+        from aoi3d.experiment import Job
+
+        return [Job(label, d, s) for s in seeds for d in delays for label in self.policies]
 
 
-def _tradeoff_rows(results: Sequence[EpisodeResult]) -> tuple[list[dict[str, Any]],
-                                                              dict[str, Any] | None]:
+def _tradeoff_rows(results: Sequence[EpisodeResult], sweep: _MatSweep
+                   ) -> tuple[list[dict[str, Any]], dict[str, Any] | None]:
     from aoi3d.experiment import aggregate
 
     rows = aggregate(results)
     points = []
     reference = None
     for row in rows:
-        gamma = _gamma_of(row["policy"])
+        gamma = sweep.gamma(row["policy"])
         if gamma is None:
             reference = row
         else:
@@ -361,18 +390,15 @@ def _best_gamma(points: Sequence[dict[str, Any]], metric: str = "psnr_db") -> fl
     return float(points[int(np.nanargmax(values))]["gamma_ms"])
 
 
-def _candidate(policy: str) -> Any:
-    """A tradeoff candidate: Γ in ms for ``mat:<Γ>``, else the policy spec (``all``)."""
-    gamma = _gamma_of(policy)
-    return policy if gamma is None else gamma
-
-
-def _optima(results: Sequence[EpisodeResult], *, ordered: bool = True,
-            label: Callable[[str], Any] = _candidate) -> dict[str, Optimum]:
+def _optima(results: Sequence[EpisodeResult], *, sweep: _MatSweep | None = None
+            ) -> dict[str, Optimum]:
     """Per metric of :data:`OPTIMUM_METRICS`, :func:`aoi3d.experiment.optimum.optima` over the
-    policies of ``results`` (one delay), paired by seed; ``label``: a policy's candidate name
-    (Γ for MAT)."""
+    policies of ``results`` (one delay), paired by seed: the points of a MAT ``sweep`` (its
+    candidates are Γ, ordered along it), or, without one, policies by their label
+    (unordered)."""
     from aoi3d.experiment.optimum import optima
+
+    label: Callable[[str], Any] = sweep.candidate if sweep is not None else str
 
     selects: dict[Any, list[float]] = {}
     for r in results:
@@ -380,7 +406,9 @@ def _optima(results: Sequence[EpisodeResult], *, ordered: bool = True,
     rows = [{"candidate": label(r.policy), "seed": r.seed,
              **{m: getattr(r, m) for m in OPTIMUM_METRICS}} for r in results]
     return optima(rows, OPTIMUM_METRICS, candidate=lambda row: row["candidate"],
-                  selects={c: float(np.mean(v)) for c, v in selects.items()}, ordered=ordered)
+                  selects={c: float(np.mean(v)) for c, v in selects.items()},
+                  ordered=sweep is not None,
+                  position=sweep.position() if sweep is not None else None)
 
 
 def _fmt_candidates(members: Sequence[Any]) -> str:
@@ -401,17 +429,14 @@ def _print_optima(optima: dict[str, Optimum], unit: str = "Γ") -> None:
                       f"{{{_fmt_candidates(opt.members)}}} {verdict}")
 
 
+MAT_BEST = "mat:best"
+"""The ``compare --policy`` value for MAT at the best Γ of the tradeoff sweep (or
+``--mat-ms``): the command's placeholder, resolved to a ``MatPolicy`` with that Γ."""
+
 OPTIMUM_METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
 """Metrics an optimum can be taken over (their direction:
 :data:`aoi3d.experiment.optimum.LOWER_IS_BETTER`); ``*_dynamic*``: over the dynamic region
 (:mod:`aoi3d.quality`)."""
-
-
-def _tradeoff_jobs(gammas: Sequence[int], delay: str, seeds: Sequence[int]) -> list[Job]:
-    from aoi3d.experiment import Job
-
-    policies = [f"mat:{g}" for g in gammas] + ["all"]
-    return [Job(p, delay, s) for s in seeds for p in policies]
 
 
 # --- commands --------------------------------------------------------------------------------
@@ -432,10 +457,11 @@ def tradeoff(
     setup = shared.setup("tradeoff", preset)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.gammas_ms
     delay = _delay(delay)
-    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seed_list), "tradeoff")
-    points, reference = _tradeoff_rows(outcome.results)
+    sweep = _MatSweep.of(gamma_list)
+    outcome = _run(setup, sweep.jobs([delay], setup.seed_list), "tradeoff")
+    points, reference = _tradeoff_rows(outcome.results, sweep)
     best = _best_gamma(points)
-    optima = _optima(outcome.results)
+    optima = _optima(outcome.results, sweep=sweep)
     _write(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay}, outcome.results,
            {"points.csv": points + ([reference] if reference else [])},
            best_gamma_ms=best, optimum={m: o.to_dict() for m, o in optima.items()},
@@ -471,7 +497,8 @@ def views(
     setup = shared.setup("views", preset, seeds=rows)
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.view_gammas_ms
     delay = _delay(delay)
-    outcome = _run(setup, _tradeoff_jobs(gamma_list, delay, setup.seed_list), "views")
+    sweep = _MatSweep.of(gamma_list)
+    outcome = _run(setup, sweep.jobs([delay], setup.seed_list), "views")
     ds = setup.dataset
     grid: list[list[tuple[str, np.ndarray]]] = []
     saved = []
@@ -493,7 +520,8 @@ def views(
             saved.append(name.name)
             image = np.asarray(Image.open(name).convert("RGB"))
             score = result.epochs[-1]
-            label = "all" if result.policy == "all" else f"Γ = {result.policy.split(':')[1]} ms"
+            gamma = sweep.gamma(result.policy)
+            label = "all" if gamma is None else f"Γ = {format_number(gamma)} ms"
             row.append((f"{label}\n{score.psnr_db:.1f} dB, {score.n_selected} cams", image))
         grid.append(row)
     _write(setup, [outcome], {"gammas_ms": list(gamma_list), "delay": delay, "rows": rows},
@@ -529,17 +557,19 @@ def delay_cmd(
     delay_list = ([_delay(d.strip(), "'--delays'") for d in delays.split(",") if d.strip()]
                   if delays else list(setup.preset.delays))
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.delay_gammas_ms
-    jobs = [Job(f"mat:{g}", d, s) for s in setup.seed_list for d in delay_list
-            for g in gamma_list]
+    sweep = _MatSweep.of(gamma_list)
+    jobs = [Job(label, d, s) for s in setup.seed_list for d in delay_list
+            for label in sweep.policies if sweep.gamma(label) is not None]  # no reference
     outcome = _run(setup, jobs, "delay")
     curves = []
     optima = []
     for d in delay_list:
-        points, _ = _tradeoff_rows([r for r in outcome.results if r.delay == d])
+        points, _ = _tradeoff_rows([r for r in outcome.results if r.delay == d], sweep)
         curves.extend(points)
         row: dict[str, Any] = {"delay": d, "mean_delay_ms": parse_delay(d).mean_ms,
                                "metric": metric}
-        for name, opt in _optima([r for r in outcome.results if r.delay == d]).items():
+        for name, opt in _optima([r for r in outcome.results if r.delay == d],
+                                 sweep=sweep).items():
             by_gamma = {p["gamma_ms"]: p for p in points}
             span = opt.range_of() or (math.nan, math.nan)
             suffix = "" if name == metric else f"_{name}"
@@ -603,11 +633,16 @@ def compare(
     reported beside the policies with every policy's paired distance to it, and left out of
     the policies' optimum set."""
     from aoi3d.experiment import Job, aggregate
-    from aoi3d.experiment.baselines import TrainerSpecError, is_trainer_spec, split_baseline
+    from aoi3d.experiment.baselines import (
+        TrainerSpecError,
+        baseline_label,
+        is_trainer_spec,
+        split_baseline,
+    )
     from aoi3d.experiment.figures import plot_compare
     from aoi3d.experiment.oracle import OracleSpecError, is_oracle_spec, parse_oracle
     from aoi3d.field import field_config
-    from aoi3d.policy import parse_policy
+    from aoi3d.policy import MatPolicy
 
     _check_metric(best_metric, "'--best-metric'")
     setup = shared.setup("compare", preset)
@@ -615,7 +650,9 @@ def compare(
     specs = list(policy) if policy else list(setup.preset.compare)
     n_cameras = setup.cfg.n_cameras or len(setup.dataset.train_ids)
     oracles = []
-    entries: list[tuple[str | None, str]] = []  # (trainer option, policy spec) per spec
+    # (trainer option, policy) per spec; the policy None stands for mat:best, whose Γ (a
+    # number) is known once the tradeoff sweep has run
+    entries: list[tuple[Any, Any]] = []
     for spec in specs:  # validate every spec before any sweep runs
         if is_oracle_spec(spec):
             try:
@@ -644,19 +681,28 @@ def compare(
                     f"{spec}: the {setup.cfg.backend!r} backend cannot take it ({err}); the "
                     "timeliness embedding (tembed) needs the grid backend",
                     param_hint="'--policy'") from None
-            trainer = option.spec
-        if policy_spec != "mat:best":
-            _check_policy(policy_spec, n_cameras, spec)
-        entries.append((trainer, policy_spec))
+            trainer = option
+        entries.append((trainer, None if policy_spec == MAT_BEST
+                        else _check_policy(policy_spec, n_cameras, spec)))
     outcomes = []
-    if any(p == "mat:best" for _, p in entries) and mat_ms is None:
-        sweep = _run(setup, _tradeoff_jobs(setup.preset.gammas_ms, delay, setup.seed_list),
-                     "tradeoff (for mat:best)")
+    if any(p is None for _, p in entries) and mat_ms is None:
+        mat_sweep = _MatSweep.of(setup.preset.gammas_ms)
+        sweep = _run(setup, mat_sweep.jobs([delay], setup.seed_list), "tradeoff (for mat:best)")
         outcomes.append(sweep)
-        mat_ms = _best_gamma(_tradeoff_rows(sweep.results)[0], best_metric)
-    resolved = list(dict.fromkeys(
-        (trainer, parse_policy(f"mat:{mat_ms:g}" if p == "mat:best" else p).spec)
-        for trainer, p in entries))
+        mat_ms = _best_gamma(_tradeoff_rows(sweep.results, mat_sweep)[0], best_metric)
+    # each run's label and its own JSON: the policy's to_json(), inside its trainer option's
+    # for a baseline (results carry it beside the label: kind, mat_ms … stay numbers)
+    resolved: dict[tuple[str | None, str], None] = {}
+    as_json: dict[str, dict[str, Any]] = {}
+    for trainer, p in entries:
+        pol = MatPolicy(mat_ms) if p is None else p
+        resolved[None if trainer is None else trainer.spec, pol.spec] = None
+        if trainer is None:
+            as_json[pol.spec] = pol.to_json()
+        else:
+            as_json[baseline_label(trainer, pol.spec)] = {**trainer.to_json(),
+                                                          "policy": pol.to_json()}
+    as_json.update({o.spec: o.to_json() for o in oracles})
     results: list[EpisodeResult] = []
     if resolved:
         outcome = _run(setup, [Job(p, delay, s, trainer=t) for s in setup.seed_list
@@ -671,14 +717,14 @@ def compare(
     bound_labels = {b.spec for b in bounds}
     for row in rows:
         row["bound"] = row["policy"] in bound_labels
-    optima = _optima(results, ordered=False, label=str) if results else {}
+    optima = _optima(results) if results else {}
     bound_doc = {b.spec: _bound_doc(b, results) for b in bounds}
     _write(setup, outcomes, {"policies": labels, "oracles": [b.spec for b in bounds],
                              "delay": delay, "mat_best_ms": mat_ms,
                              "best_metric": best_metric},
            results + [r for b in bounds for r in b.results], {"compare.csv": rows},
-           policies=rows, optimum={m: o.to_dict() for m, o in optima.items()},
-           bound=bound_doc)
+           policies=[{**r, "policy_json": as_json.get(r["policy"])} for r in rows],
+           optimum={m: o.to_dict() for m, o in optima.items()}, bound=bound_doc)
     plot_compare([{**r, "policy": short_label(r["policy"])} for r in rows],
                  setup.out / "compare.png", title=(
         f"Policies at {delay}, S = {setup.seeds} (the same seeds, {_seed_span(setup)}), "
@@ -690,12 +736,15 @@ def compare(
     console.print(f"results in {setup.out}")
 
 
-def _check_policy(spec: str, n_cameras: int, given: str) -> None:
-    """``typer.BadParameter`` unless ``spec`` is a policy that fits ``n_cameras``."""
+def _check_policy(spec: str, n_cameras: int, given: str) -> Any:
+    """The policy of ``spec``; ``typer.BadParameter`` unless it is one that fits
+    ``n_cameras``."""
     from aoi3d.policy import PolicySpecError, parse_policy
 
     try:
-        parse_policy(spec).check_fits(n_cameras)  # e.g. a ppo checkpoint for another N
+        policy = parse_policy(spec)
+        policy.check_fits(n_cameras)  # e.g. a ppo checkpoint for another N
+        return policy
     except PolicySpecError as err:
         where = "" if spec == given else f"in {given!r}: "
         raise typer.BadParameter(f"{where}{err}", param_hint="'--policy'") from None

@@ -126,13 +126,20 @@ def train(
     """Train a backend on one instant and score the held-out novel view as it goes."""
 
     from aoi3d.device import resolve_device
-    from aoi3d.field import BACKENDS, FieldTrainer, TrainView, field_config
+    from aoi3d.field import (
+        FieldTrainer,
+        TrainView,
+        UnknownBackendError,
+        check_backend,
+        field_config,
+    )
     from aoi3d.lpips import load_lpips_fn
     from aoi3d.quality import psnr, ssim
 
-    if backend not in BACKENDS:
-        raise typer.BadParameter(f"unknown backend {backend!r}; available: "
-                                 f"{', '.join(BACKENDS)}", param_hint="--backend")
+    try:
+        check_backend(backend)
+    except UnknownBackendError as err:
+        raise typer.BadParameter(str(err), param_hint="--backend") from None
     if not (math.isfinite(seconds) and seconds > 0):
         raise typer.BadParameter(f"must be > 0, got {seconds}", param_hint="--seconds")
     if not (math.isfinite(every) and every > 0):

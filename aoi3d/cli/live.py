@@ -30,7 +30,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from aoi3d.cli.common import fmt, make_console
-from services.supervisor import DEFAULT_PORTS as SERVICE_PORTS  # stdlib-only module
+from aoi3d.ports import REST_FIRST, REST_LAST, SERVICE_PORTS, ZENOH_PORT, rest_port
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -42,69 +42,6 @@ METRICS = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward")
 
 class LiveError(RuntimeError):
     """The pipeline did not answer as expected; the message says what and where."""
-
-
-# --- statistics (pure) -----------------------------------------------------------------------
-def mean_ci95(values: Sequence[float | None]) -> dict[str, float | int | None]:
-    """``{"mean", "ci95", "n"}`` of the finite values (Student t half-width; None below 2)."""
-    from aoi3d.experiment.sweep import mean_ci95 as _mean_ci95
-
-    mean, half, n = _mean_ci95(values)
-    return {"mean": None if not math.isfinite(mean) else mean,
-            "ci95": None if not math.isfinite(half) else half, "n": n}
-
-
-def welch_ci95(a: dict[str, Any], b: dict[str, Any]) -> float | None:
-    """Half-width of the 95% CI of ``mean(a) − mean(b)`` for two *independent* (unpaired)
-    samples given as ``{"mean", "ci95", "n"}`` (Welch–Satterthwaite degrees of freedom); None
-    when either lacks a CI."""
-    from scipy import stats
-
-    if a.get("ci95") is None or b.get("ci95") is None or a["n"] < 2 or b["n"] < 2:
-        return None
-    # back from each half-width to its variance of the mean
-    va = (a["ci95"] / stats.t.ppf(0.975, a["n"] - 1)) ** 2
-    vb = (b["ci95"] / stats.t.ppf(0.975, b["n"] - 1)) ** 2
-    if va + vb == 0:
-        return 0.0
-    dof = (va + vb) ** 2 / (va ** 2 / (a["n"] - 1) + vb ** 2 / (b["n"] - 1))
-    return float(stats.t.ppf(0.975, dof) * math.sqrt(va + vb))
-
-
-def unpaired_interior_maximum(results: Sequence[dict[str, Any]], metric: str
-                              ) -> dict[str, Any] | None:
-    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty,
-    judged on *unpaired* samples.
-
-    Not :func:`aoi3d.experiment.optimum.optimum`'s question: that criterion pairs episodes by
-    seed (the same channel draws for every policy), which a live sweep cannot — its windows
-    are different renders of a running pipeline, so each policy's renders are an independent
-    sample. The criterion, stated before measuring: the policies are taken in sweep order
-    (fresh to stale; the first and the last are the ends). The maximum is *interior* when the
-    best mean is neither end's, and *beyond its confidence interval* when, for both ends, the
-    95% confidence interval of the difference best − end (:func:`welch_ci95`) lies on the
-    better side of zero (:data:`aoi3d.experiment.optimum.LOWER_IS_BETTER` says which). None
-    when the metric is missing or fewer than three policies were measured.
-    """
-    from aoi3d.experiment.optimum import sign_of
-
-    sign = sign_of(metric)
-    stats = [r.get(metric) or {} for r in results]
-    if len(results) < 3 or any(s.get("mean") is None for s in stats):
-        return None
-    means = [sign * s["mean"] for s in stats]
-    best = max(range(len(means)), key=means.__getitem__)
-    interior = 0 < best < len(means) - 1
-    ends = {}
-    for end in (0, len(means) - 1):
-        half = welch_ci95(stats[best], stats[end])
-        diff = sign * (means[best] - means[end])
-        ends[results[end]["policy"]] = {"difference": diff, "ci95": half}
-    separated = interior and all(
-        e["ci95"] is not None and sign * e["difference"] - e["ci95"] > 0
-        for e in ends.values())
-    return {"best": results[best]["policy"], "best_mean": stats[best]["mean"],
-            "interior": interior, "beyond_ci": bool(separated), "best_minus_end": ends}
 
 
 # --- talking to the pipeline -----------------------------------------------------------------
@@ -133,7 +70,7 @@ class Pipeline:
     def url(self, service: str, path: str) -> str:
         if self.site and (service, path) not in self.RUN_LEVEL and not path.startswith("/ready"):
             path = f"/sites/{self.site}{path}"
-        return f"{self.url_base.rstrip('/')}:{SERVICE_PORTS[service] + self.port_offset}{path}"
+        return f"{self.url_base.rstrip('/')}:{rest_port(service, self.port_offset)}{path}"
 
     def call(self, method: str, service: str, path: str, **kw: Any) -> Any:
         import httpx
@@ -251,6 +188,8 @@ def _render_latency_s(pipe: Pipeline) -> float:
 def summarise(measurements: Sequence[Measurement], order: Sequence[str]) -> list[dict[str, Any]]:
     """One result per policy (in ``order``): per-render quality statistics and the cameras
     the window's decisions used."""
+    from aoi3d.stats import mean_ci95
+
     out = []
     for spec in order:
         ms = [m for m in measurements if m.policy == spec]
@@ -261,10 +200,10 @@ def summarise(measurements: Sequence[Measurement], order: Sequence[str]) -> list
                for d in ds if d["selected"]]
         row: dict[str, Any] = {"policy": spec, "n": len(qs)}
         for metric in METRICS:
-            row[metric] = mean_ci95([q.get(metric) for q in qs])
-        row["cameras_used"] = mean_ci95(used)
-        row["aoi_used_ms"] = mean_ci95(aoi)
-        row["render_views"] = mean_ci95([q.get("n_views") for q in qs])
+            row[metric] = mean_ci95([q.get(metric) for q in qs]).to_dict()
+        row["cameras_used"] = mean_ci95(used).to_dict()
+        row["aoi_used_ms"] = mean_ci95(aoi).to_dict()
+        row["render_views"] = mean_ci95([q.get("n_views") for q in qs]).to_dict()
         out.append(row)
     return out
 
@@ -277,6 +216,7 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
     ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds."""
     from aoi3d.experiment.config import get_preset
     from aoi3d.experiment.sweep import Job, ResultCache, run_jobs
+    from aoi3d.stats import mean_ci95
 
     base = get_preset("quick").episode
     changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry}
@@ -291,8 +231,8 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
     sim: dict[str, dict[str, Any]] = {}
     for spec in policies:
         rs = [r for r in outcome.results if r.policy == spec]
-        sim[spec] = {m: mean_ci95([getattr(r, m, None) for r in rs]) for m in METRICS}
-        sim[spec]["cameras_used"] = mean_ci95([r.n_selected for r in rs])
+        sim[spec] = {m: mean_ci95([getattr(r, m, None) for r in rs]).to_dict() for m in METRICS}
+        sim[spec]["cameras_used"] = mean_ci95([r.n_selected for r in rs]).to_dict()
     sim["_config"] = cfg.to_dict()
     return sim
 
@@ -476,7 +416,7 @@ def sweep(
     url_base: Annotated[str, typer.Option(help="Scheme and host of the services.")]
     = "http://127.0.0.1",
     port_offset: Annotated[int, typer.Option(
-        help="Added to the services' default ports 8101..8105.")] = 0,
+        help=f"Added to the services' default ports {REST_FIRST}..{REST_LAST}.")] = 0,
     site: Annotated[str | None, typer.Option(
         help="The site to measure (its policy, decisions and quality, /sites/<site>/…) while "
              "the run's other sites go on; default: the run's first site.")] = None,
@@ -487,7 +427,7 @@ def sweep(
     up: Annotated[bool, typer.Option(
         help="Start a pipeline (aoi3d up) for the sweep and stop it afterwards.")] = False,
     zenoh_port: Annotated[int, typer.Option(help="Zenoh port of the pipeline --up starts.")]
-    = 7447,
+    = ZENOH_PORT,
     time_scale: Annotated[float, typer.Option(
         help="Time scale of the pipeline --up starts.")] = 0.1,
     workers: Annotated[int, typer.Option(
@@ -524,7 +464,7 @@ def sweep(
     canon = {s: parse_policy(s).spec for s in specs}
     proc = None
     if site is not None:
-        from services.kit.keys import check_site
+        from aoi3d.ports import check_site
 
         try:
             check_site(site)
@@ -584,6 +524,8 @@ def sweep(
             live = r["psnr_db"]["mean"]
             r["sim_psnr_db"] = sim_doc[r["policy"]]["psnr_db"]
             r["live_minus_sim_db"] = None if s is None or live is None else live - s
+    from aoi3d.experiment.optimum import unpaired_interior_maximum
+
     shape = {m: unpaired_interior_maximum(results, m) for m in METRICS}
     doc = {
         "results": results,

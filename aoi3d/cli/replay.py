@@ -21,15 +21,9 @@ from aoi3d.cli.common import fail, fmt, make_console
 
 def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
     """Mean of a − b and its Student-t 95% half-width (None below two pairs)."""
-    import numpy as np
-    from scipy import stats
+    from aoi3d.stats import mean_ci95
 
-    d = np.asarray(a, dtype=float) - np.asarray(b, dtype=float)
-    if d.size == 0:
-        return {"n": 0, "mean": None, "ci95": None}
-    half = (float(stats.t.ppf(0.975, d.size - 1) * d.std(ddof=1) / math.sqrt(d.size))
-            if d.size > 1 else None)
-    return {"n": int(d.size), "mean": float(d.mean()), "ci95": half}
+    return mean_ci95([x - y for x, y in zip(a, b, strict=True)]).to_dict()
 
 
 def _summary(result, baseline) -> dict:

@@ -1,7 +1,7 @@
 """``aoi3d up``: the whole live pipeline on this machine.
 
 Before anything starts: every port of the run (each service's REST port and the Zenoh port,
-from :data:`services.supervisor.SERVICES`) must be free — a taken one is one line naming it and
+from :data:`aoi3d.ports.SERVICE_PORTS`) must be free — a taken one is one line naming it and
 the option that moves it — and the dataset must be readable, every frame file present and
 whole. The scene is generated only into the framing's own folder (``data/turbine-rotor``,
 ``data/turbine``) or with ``--generate``; any other folder must hold a dataset already.
@@ -16,10 +16,10 @@ from typing import Annotated
 import typer
 
 from aoi3d.cli.common import fail, fail_lines
+from aoi3d.ports import REST_FIRST as _FIRST
+from aoi3d.ports import REST_LAST as _LAST
+from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT, site_names
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
-from services.supervisor import DEFAULT_PORTS, SERVICES
-
-_FIRST, _LAST = min(DEFAULT_PORTS.values()), max(DEFAULT_PORTS.values())
 
 HINTS = {
     "camera": "GET /config",
@@ -67,11 +67,13 @@ def up(
              "service's REST paths address site1; /sites/<site>/… any site.")] = 1,
     workers: Annotated[int, typer.Option(
         min=0, max=64,
-        help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
-             "each): each renders the newest decision no other worker took. More can join "
-             "from anywhere that reaches the router (see GET /workers on the trainer).")] = 1,
+        help="Reconstruction workers in the pool (python -m services.recon processes, 1 torch "
+             "thread each): each renders the newest decision no other worker took. More can "
+             "join from anywhere that reaches the router (see GET /workers on the trainer, "
+             "the pool's dispatcher). Not `aoi3d experiment --workers` (local processes that "
+             "run episodes).")] = 1,
     zenoh_port: Annotated[int, typer.Option(
-        min=1, max=65535, help="TCP port of the local Zenoh router.")] = 7447,
+        min=1, max=65535, help="TCP port of the local Zenoh router.")] = ZENOH_PORT,
     port_offset: Annotated[int, typer.Option(
         help=f"Added to the default REST ports {_FIRST}..{_LAST} (one per service).")] = 0,
     log_dir: Annotated[Path, typer.Option(
@@ -98,13 +100,13 @@ def up(
     real cameras with --rig). The ports and the dataset (or rig file) are checked first: a
     taken port, a dataset that cannot be read or a service that does not become healthy is
     one line and exit status 1."""
-    from services.supervisor import Supervisor, UpConfig, site_names, taken_ports
+    # the one import of services in aoi3d: `up` composes them (docs/architecture.md)
+    from services.supervisor import Supervisor, UpConfig, taken_ports
 
     if framing not in FRAMING_SCENES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
                                  f"{framing!r}", param_hint="'--framing'")
-    if not 0 < min(DEFAULT_PORTS.values()) + port_offset <= max(
-            DEFAULT_PORTS.values()) + port_offset < 65536:
+    if not 0 < _FIRST + port_offset <= _LAST + port_offset < 65536:
         raise typer.BadParameter(f"the REST ports {_FIRST + port_offset}.."
                                  f"{_LAST + port_offset} are not valid ports",
                                  param_hint="'--port-offset'")
@@ -164,7 +166,7 @@ def up(
         table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
         for col in ("service", "REST API (docs at /docs)", "try"):
             table.add_column(col, no_wrap=True)
-        for name in SERVICES:
+        for name in SERVICE_PORTS:
             if name == "camera" and real is not None:
                 src = real.source
                 where = (f"rmw_zenoh, domain {src.domain_id}" if src.format == "rmw_zenoh"

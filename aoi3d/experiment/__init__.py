@@ -37,11 +37,11 @@ from aoi3d.experiment.sweep import (
     SweepOutcome,
     aggregate,
     default_workers,
-    mean_ci95,
     run_jobs,
     run_oracle,
     run_plans,
 )
+from aoi3d.stats import mean_ci95  # re-exported: the one home is aoi3d.stats
 
 __all__ = [
     "CAMERA_PHASES",

@@ -21,25 +21,26 @@ canonical ``<trainer>`` when the policy is ``all``, else ``<trainer>@<policy>``.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 from aoi3d.numbers import format_number
+from aoi3d.policy import PolicyKind, PolicySpecError, kind_of, register_policy
 
 __all__ = [
+    "KINDS",
     "TRAINER_FORMS",
     "TRAINER_KINDS",
+    "TimelinessEmbedding",
     "TrainerOption",
     "TrainerSpecError",
+    "WeightedSum",
     "baseline_label",
     "is_trainer_spec",
     "parse_trainer",
     "split_baseline",
 ]
-
-TRAINER_KINDS = ("tembed", "wsum")
-TRAINER_FORMS = ("tembed[:<features>[:<scale_ms>]]", "wsum:<tau_ms>")
-"""The accepted forms, as error messages list them."""
 
 
 class TrainerSpecError(ValueError):
@@ -52,69 +53,119 @@ class TrainerSpecError(ValueError):
 
 
 @dataclass(frozen=True)
-class TrainerOption:
-    """One baseline: ``kind`` (``tembed`` or ``wsum``) and its parameters."""
+class TimelinessEmbedding:
+    """``tembed:<features>:<scale_ms>``: the field takes each image's age as an input."""
 
-    kind: str
-    features: int = 0
-    scale_ms: float = 0.0
-    tau_ms: float = 0.0
+    features: int = 2
+    scale_ms: float = 300.0
+    kind: ClassVar[str] = "tembed"
 
     @property
     def spec(self) -> str:
-        """The canonical text: ``tembed:<features>:<scale_ms>`` or ``wsum:<tau_ms>``."""
-        if self.kind == "tembed":
-            return f"tembed:{self.features}:{format_number(self.scale_ms)}"
+        return f"tembed:{self.features}:{format_number(self.scale_ms)}"
+
+    def field_overrides(self) -> dict[str, Any]:
+        """The field config settings this option sets (merged over the episode's)."""
+        return {"age_features": self.features, "age_scale_ms": self.scale_ms}
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "features": self.features, "scale_ms": self.scale_ms}
+
+
+@dataclass(frozen=True)
+class WeightedSum:
+    """``wsum:<tau_ms>``: the loss weights each image by exp(−age/τ)."""
+
+    tau_ms: float
+    kind: ClassVar[str] = "wsum"
+
+    @property
+    def spec(self) -> str:
         return f"wsum:{format_number(self.tau_ms)}"
 
     def field_overrides(self) -> dict[str, Any]:
         """The field config settings this option sets (merged over the episode's)."""
-        if self.kind == "tembed":
-            return {"age_features": self.features, "age_scale_ms": self.scale_ms}
         return {"age_weight_tau_ms": self.tau_ms}
 
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "tau_ms": self.tau_ms}
 
-def _positive(name: str, text: str, spec: str) -> float:
+
+TrainerOption = TimelinessEmbedding | WeightedSum
+"""One baseline: its ``kind``, ``spec``, ``field_overrides()`` and ``to_json()``."""
+
+
+def _positive(name: str, value: Any) -> float:
     try:
-        value = float(text)
-    except ValueError:
-        raise TrainerSpecError(f"{name} must be a number, got {text!r}", spec) from None
-    if not math.isfinite(value) or value <= 0:
-        raise TrainerSpecError(f"{name} must be a finite number > 0, got {text!r}", spec)
-    return value
+        x = float(value)
+    except (TypeError, ValueError):
+        raise PolicySpecError(f"{name} must be a number, got {value!r}") from None
+    if isinstance(value, bool) or not math.isfinite(x) or x <= 0:
+        raise PolicySpecError(f"{name} must be a finite number > 0, got {value!r}")
+    return x
+
+
+def _tembed_from_args(fields: list[str]) -> TimelinessEmbedding:
+    if len(fields) > 2:
+        raise PolicySpecError(f"tembed takes at most 2 parameters, got {len(fields)}")
+    features = 2
+    if fields:
+        try:
+            features = int(fields[0])
+        except ValueError:
+            raise PolicySpecError(f"features must be a whole number, got {fields[0]!r}"
+                                  ) from None
+        if features < 1:
+            raise PolicySpecError(f"features must be >= 1, got {features}")
+    scale = _positive("scale_ms", fields[1]) if len(fields) == 2 else 300.0
+    return TimelinessEmbedding(features=features, scale_ms=scale)
+
+
+def _tembed_from_json(params: Mapping[str, Any]) -> TimelinessEmbedding:
+    return _tembed_from_args([str(params.get("features", 2)), str(params.get("scale_ms", 300.0))])
+
+
+def _wsum_from_args(fields: list[str]) -> WeightedSum:
+    if len(fields) != 1:
+        raise PolicySpecError(f"wsum takes 1 parameter (wsum:<tau_ms>), got {len(fields)}")
+    return WeightedSum(_positive("tau_ms", fields[0]))
+
+
+def _wsum_from_json(params: Mapping[str, Any]) -> WeightedSum:
+    return WeightedSum(_positive("tau_ms", params.get("tau_ms")))
+
+
+KINDS = (
+    PolicyKind("tembed", "tembed[:<features>[:<scale_ms>]]", _tembed_from_args,
+               _tembed_from_json, family="baseline"),
+    PolicyKind("wsum", "wsum:<tau_ms>", _wsum_from_args, _wsum_from_json, family="baseline"),
+)
+"""The baseline kinds, registered (family ``baseline``) when this module is imported."""
+for _kind in KINDS:
+    register_policy(_kind)
+del _kind
+TRAINER_KINDS = tuple(k.kind for k in KINDS)
+TRAINER_FORMS = tuple(k.form for k in KINDS)
+"""The accepted forms, as error messages list them."""
 
 
 def is_trainer_spec(spec: str) -> bool:
-    """Whether ``spec`` names a trainer option (its first field is one of the kinds)."""
-    head = spec.strip().split("@", 1)[0].split(":", 1)[0].strip().lower()
-    return head in TRAINER_KINDS
+    """Whether ``spec`` names a trainer option (its kind is of the ``baseline`` family)."""
+    try:
+        return kind_of(spec).family == "baseline"
+    except PolicySpecError:
+        return False
 
 
 def parse_trainer(spec: str) -> TrainerOption:
     """A trainer option from its spec (no ``@<policy>``); ``TrainerSpecError`` otherwise."""
     kind, *fields = (f.strip() for f in spec.strip().split(":"))
-    kind = kind.lower()
-    if kind == "tembed":
-        if len(fields) > 2:
-            raise TrainerSpecError(f"tembed takes at most 2 parameters, got {len(fields)}",
-                                   spec)
-        features = 2
-        if fields:
-            try:
-                features = int(fields[0])
-            except ValueError:
-                raise TrainerSpecError(f"features must be a whole number, got {fields[0]!r}",
-                                       spec) from None
-            if features < 1:
-                raise TrainerSpecError(f"features must be >= 1, got {features}", spec)
-        scale = _positive("scale_ms", fields[1], spec) if len(fields) == 2 else 300.0
-        return TrainerOption("tembed", features=features, scale_ms=scale)
-    if kind == "wsum":
-        if len(fields) != 1:
-            raise TrainerSpecError(f"wsum takes 1 parameter (wsum:<tau_ms>), got {len(fields)}",
-                                   spec)
-        return TrainerOption("wsum", tau_ms=_positive("tau_ms", fields[0], spec))
-    raise TrainerSpecError(f"unknown trainer option {kind!r}", spec)
+    if not is_trainer_spec(kind):
+        raise TrainerSpecError(f"unknown trainer option {kind.lower()!r}", spec)
+    try:
+        return kind_of(kind).from_args(fields)
+    except PolicySpecError as err:
+        raise TrainerSpecError(err.problem, spec) from None
 
 
 def split_baseline(spec: str) -> tuple[TrainerOption, str]:

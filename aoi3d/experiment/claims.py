@@ -16,7 +16,8 @@ from typing import Any
 
 import numpy as np
 
-from aoi3d.experiment.optimum import PairedDifference, paired_difference
+from aoi3d.policy import PolicyKind, kind_of
+from aoi3d.stats import PairedDifference, paired_difference
 
 __all__ = [
     "Verdict",
@@ -179,8 +180,15 @@ def _per_seed(episodes: Sequence[Mapping[str, Any]], policy: str, metric: str
     return {int(r["seed"]): float(r[metric]) for r in episodes if r["policy"] == policy}
 
 
+def _kind(label: str | Mapping[str, Any]) -> PolicyKind:
+    """The registered kind of a result — its own JSON form (``policy_json``) where the result
+    carries one, else its label — (:func:`aoi3d.policy.kind_of`): its name and family, read
+    by the registry, never by the label's prefix."""
+    return kind_of(label)
+
+
 def _ppo_spec(evaluation: Mapping[str, Any]) -> str:
-    return next(p for p in evaluation["meta"]["policies"] if p.startswith("ppo:"))
+    return next(p for p in evaluation["meta"]["policies"] if _kind(p).kind == "ppo")
 
 
 def ppo_reaches_best_mat(evaluation: Mapping[str, Any], metric: str = "reward") -> Verdict:
@@ -189,7 +197,7 @@ def ppo_reaches_best_mat(evaluation: Mapping[str, Any], metric: str = "reward") 
     within the best MAT's)."""
     episodes = evaluation["episodes"]
     ppo = _ppo_spec(evaluation)
-    mats = [p for p in evaluation["meta"]["policies"] if p.startswith("mat:")]
+    mats = [p for p in evaluation["meta"]["policies"] if _kind(p).kind == "mat"]
     means = {p: sum(v := list(_per_seed(episodes, p, metric).values())) / len(v)
              for p in mats}
     best = max(mats, key=lambda p: means[p])
@@ -226,8 +234,11 @@ def ppo_beats_all(evaluation: Mapping[str, Any], metric: str = "reward") -> Verd
         numbers={"ppo_minus_all": d.to_dict()})
 
 
-RULE_PREFIXES = ("mat:", "freshest:", "wait:")
-"""The fixed rules a learned policy is held against: MAT thresholds, freshest:k, wait:ω."""
+def _held_rule(label: str | Mapping[str, Any]) -> bool:
+    """A fixed rule a learned policy is held against: every kind of the ``rule`` family but
+    ``all``, the reference (MAT thresholds, freshest:k, wait:ω)."""
+    entry = _kind(label)
+    return entry.family == "rule" and entry.kind != "all"
 
 
 def learned_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db",
@@ -238,9 +249,10 @@ def learned_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db",
     least ``goal`` and within half the distance from the best rule to the oracle bound
     (``oracle:rules:<metric>``, when it was run) — which the verdict does not require."""
     episodes = compare["episodes"]
-    names = [r["policy"] for r in compare["policies"] if not r.get("bound")]
-    ppo = next((p for p in names if p.startswith("ppo:")), None)
-    rules = [p for p in names if p.startswith(RULE_PREFIXES)]
+    runs = {r["policy"]: r.get("policy_json") or r["policy"] for r in compare["policies"]
+            if not r.get("bound")}
+    ppo = next((p for p, own in runs.items() if _kind(own).family == "learned"), None)
+    rules = [p for p, own in runs.items() if _held_rule(own)]
     steps = compare["meta"]["episode_config"]["steps_per_epoch"]
     statement = (f"At the experiments' budget, the learned policy is significantly better in "
                  f"{metric_name(metric)} than the best fixed rule (MAT, freshest:k, wait:ω)")

@@ -17,7 +17,8 @@ overlapping bands. The criterion (:func:`optimum`):
    set is, if anything, too narrow by chance, never wider.
 6. The optimum is **interior** when the optimum set holds neither end of the eligible range:
    the smallest eligible Γ and the largest end — `all` (Γ = ∞) when it was run, else the
-   largest swept Γ.
+   largest swept Γ. That is :func:`aoi3d.stats.interior_maximum` on the paired differences
+   best − each end: the project's one interior-maximum criterion.
 
 With fewer than two paired seeds no interval exists; nothing is then significantly worse,
 the set is every candidate and the optimum is never interior.
@@ -26,9 +27,10 @@ Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare``,
 eval`` (all through :func:`optima`) and the science check (``bench/science.py``) alike.
 Which metrics are lower-is-better is stated here once: :data:`LOWER_IS_BETTER`.
 
-``aoi3d live sweep`` cannot use this criterion: its measurement windows are different renders
-of a running pipeline, not episodes paired by seed. It asks a different, unpaired question
-(:func:`aoi3d.cli.live.unpaired_interior_maximum`: Welch intervals of best − each end).
+``aoi3d live sweep`` cannot pair: its measurement windows are different renders of a running
+pipeline, not episodes paired by seed. :func:`unpaired_interior_maximum` asks the same question
+of it with Welch intervals of best − each end — the same :func:`aoi3d.stats.interior_maximum`.
+The intervals themselves live in :mod:`aoi3d.stats`.
 """
 
 from __future__ import annotations
@@ -39,7 +41,14 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy import stats
+
+from aoi3d.stats import (
+    LEVEL,
+    PairedDifference,
+    interior_maximum,
+    paired_difference,
+    welch_ci95,
+)
 
 __all__ = [
     "LEVEL",
@@ -50,10 +59,9 @@ __all__ = [
     "optimum",
     "paired_difference",
     "sign_of",
+    "sweep_position",
+    "unpaired_interior_maximum",
 ]
-
-LEVEL = 0.95
-"""Confidence level of every interval of the criterion."""
 
 LOWER_IS_BETTER = frozenset({"lpips"})
 """The metrics whose better direction is down (LPIPS, a distance); every other metric — PSNR,
@@ -63,39 +71,6 @@ SSIM, their dynamic-region forms, the reward — is higher-is-better."""
 def sign_of(metric: str) -> float:
     """+1 for a higher-is-better metric, −1 for one of :data:`LOWER_IS_BETTER`."""
     return -1.0 if metric in LOWER_IS_BETTER else 1.0
-
-
-@dataclass(frozen=True)
-class PairedDifference:
-    """Mean of ``a − b`` over the seeds both have, the half-width of its confidence interval
-    (NaN below two seeds) and the count of seeds."""
-
-    mean: float
-    half: float
-    n: int
-
-    @property
-    def significant(self) -> bool:
-        """Whether the interval excludes zero."""
-        return math.isfinite(self.half) and abs(self.mean) > self.half
-
-    def to_dict(self) -> dict[str, Any]:
-        return {"mean": self.mean, "ci95": self.half, "n": self.n}
-
-
-def paired_difference(a: Mapping[int, float], b: Mapping[int, float],
-                      level: float = LEVEL) -> PairedDifference:
-    """``a − b`` paired by seed (the keys), over the seeds where both are finite."""
-    seeds = sorted(s for s in a.keys() & b.keys()
-                   if math.isfinite(a[s]) and math.isfinite(b[s]))
-    d = np.array([a[s] - b[s] for s in seeds], dtype=np.float64)
-    n = int(d.size)
-    if n == 0:
-        return PairedDifference(math.nan, math.nan, 0)
-    if n < 2:
-        return PairedDifference(float(d[0]), math.nan, 1)
-    half = float(stats.t.ppf(0.5 + level / 2, n - 1) * d.std(ddof=1) / math.sqrt(n))
-    return PairedDifference(float(d.mean()), half, n)
 
 
 @dataclass(frozen=True)
@@ -115,13 +90,15 @@ class Optimum:
     seeds: tuple[int, ...]
     ends: tuple[Any, ...] = field(default=())
     interior: bool = False
+    positions: dict[Any, float] = field(default_factory=dict, repr=False)
+    """Where each eligible candidate lies along the sweep (Γ in ms, ∞ for the reference);
+    empty for policies without an order."""
 
-    def range_of(self, numeric: Sequence[Any] | None = None) -> tuple[float, float] | None:
-        """The smallest and largest numeric member (Γ in ms; ``all`` counts as ∞), or None
-        when no member is numeric."""
-        values = [_as_gamma(m) for m in (numeric if numeric is not None else self.members)]
-        finite = [v for v in values if v is not None]
-        return (min(finite), max(finite)) if finite else None
+    def range_of(self) -> tuple[float, float] | None:
+        """The smallest and largest place of a member along the sweep (Γ in ms; the reference
+        `all` at ∞), or None for policies without an order."""
+        places = [self.positions[m] for m in self.members if m in self.positions]
+        return (min(places), max(places)) if places else None
 
     def to_dict(self) -> dict[str, Any]:
         span = self.range_of()
@@ -133,18 +110,19 @@ class Optimum:
         }
 
 
-def _as_gamma(candidate: Any) -> float | None:
-    if candidate == "all":
-        return math.inf
-    try:
+def sweep_position(candidate: Any) -> float:
+    """The default place of a candidate along a MAT sweep: a number is its Γ (ms); anything
+    else — the reference, ``all`` — lies at Γ = ∞, the sweep's stale end."""
+    if isinstance(candidate, int | float | np.integer | np.floating) and not isinstance(
+            candidate, bool):
         return float(candidate)
-    except (TypeError, ValueError):
-        return None
+    return math.inf
 
 
 def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db",
             lower_is_better: bool | None = None, selects: Mapping[Any, float] | None = None,
-            ordered: bool = True, level: float = LEVEL) -> Optimum:
+            ordered: bool = True, position: Mapping[Any, float] | None = None,
+            level: float = LEVEL) -> Optimum:
     """Apply the criterion of this module.
 
     ``values[c][seed]``: the per-seed (episode mean) metric of candidate ``c`` — a Γ in ms,
@@ -152,7 +130,9 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
     ``metric in LOWER_IS_BETTER``); ``selects[c]``: its mean count of selected cameras
     (candidates with 0 are excluded; None: all eligible); ``ordered``: the candidates are
     points of a sweep in Γ (their order defines the ends, so ``interior`` is judged), else
-    policies without an order (``interior`` is False, ``ends`` empty)."""
+    policies without an order (``interior`` is False, ``ends`` empty, no range);
+    ``position[c]``: where ``c`` lies along the sweep (the caller's Γ of each candidate;
+    default :func:`sweep_position`)."""
     if lower_is_better is None:
         lower_is_better = metric in LOWER_IS_BETTER
     if not values:
@@ -176,19 +156,21 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
                     if c == best or not (to_best[c].significant and to_best[c].mean > 0))
     ends: tuple[Any, ...] = ()
     interior = False
+    places = ({c: position[c] if position is not None and c in position
+               else sweep_position(c) for c in eligible} if ordered else {})
     if ordered and len(eligible) >= 3:
-        order = sorted(eligible, key=lambda c: _as_gamma(c) if _as_gamma(c) is not None
-                       else math.inf)
+        order = sorted(eligible, key=places.__getitem__)
         ends = (order[0], order[-1])
-        interior = not any(e in members for e in ends)
+        interior = interior_maximum((to_best[e].mean, to_best[e].half) for e in ends)
     return Optimum(metric=metric, best=best, members=members, to_best=to_best,
-                   excluded=excluded, seeds=seeds, ends=ends, interior=interior)
+                   excluded=excluded, seeds=seeds, ends=ends, interior=interior,
+                   positions=places)
 
 
 def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
            candidate: Callable[[Mapping[str, Any]], Any] = lambda r: r["policy"],
-           selects: Mapping[Any, float] | None = None, ordered: bool = True
-           ) -> dict[str, Optimum]:
+           selects: Mapping[Any, float] | None = None, ordered: bool = True,
+           position: Mapping[Any, float] | None = None) -> dict[str, Optimum]:
     """:func:`optimum` for each of ``metrics`` over ``rows`` — one per episode, with its
     ``seed``, the metrics' values (None: not measured) and whatever ``candidate`` reads its
     candidate from (default: its ``policy``). Metrics the criterion cannot judge (no finite
@@ -202,7 +184,39 @@ def optima(rows: Iterable[Mapping[str, Any]], metrics: Sequence[str], *,
             values.setdefault(candidate(r), {})[int(r["seed"])] = (
                 math.nan if v is None else float(v))
         try:
-            out[metric] = optimum(values, metric=metric, selects=selects, ordered=ordered)
+            out[metric] = optimum(values, metric=metric, selects=selects, ordered=ordered,
+                                  position=position)
         except ValueError:
             continue
     return out
+
+
+def unpaired_interior_maximum(results: Sequence[Mapping[str, Any]], metric: str
+                              ) -> dict[str, Any] | None:
+    """Whether the best policy by ``metric`` is an interior maximum beyond its uncertainty,
+    judged on *unpaired* samples (``aoi3d live sweep``: its windows are different renders of a
+    running pipeline, so each policy's renders are an independent sample).
+
+    ``results``: one per policy, in sweep order (fresh to stale; the first and the last are
+    the ends), each with its ``policy`` and ``{"mean", "ci95", "n"}`` per metric. The maximum
+    is *interior* when the best mean is neither end's, and *beyond its confidence interval*
+    when :func:`aoi3d.stats.interior_maximum` holds on the Welch intervals of best − each end
+    (:data:`LOWER_IS_BETTER` says which side is better). None when the metric is missing or
+    fewer than three policies were measured.
+    """
+    sign = sign_of(metric)
+    stat = [r.get(metric) or {} for r in results]
+    if len(results) < 3 or any(s.get("mean") is None for s in stat):
+        return None
+    means = [sign * s["mean"] for s in stat]
+    best = max(range(len(means)), key=means.__getitem__)
+    interior = 0 < best < len(means) - 1
+    ends = {}
+    for end in (0, len(means) - 1):
+        half = welch_ci95(stat[best], stat[end])
+        diff = sign * (means[best] - means[end])
+        ends[results[end]["policy"]] = {"difference": diff, "ci95": half}
+    separated = interior and interior_maximum((sign * e["difference"], e["ci95"])
+                                              for e in ends.values())
+    return {"best": results[best]["policy"], "best_mean": stat[best]["mean"],
+            "interior": interior, "beyond_ci": bool(separated), "best_minus_end": ends}

@@ -45,7 +45,7 @@ two searches share the candidates they both try. What a search cost is recorded
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -64,7 +64,15 @@ from aoi3d.experiment.episode import (
     plan_key,
     planned_decision,
 )
-from aoi3d.policy import AllPolicy, FreshestPolicy, MatPolicy, decide
+from aoi3d.policy import (
+    AllPolicy,
+    FreshestPolicy,
+    MatPolicy,
+    PolicyKind,
+    decide,
+    kind_of,
+    register_policy,
+)
 from aoi3d.scene import SceneDataset
 
 __all__ = [
@@ -124,10 +132,18 @@ class OracleSpec:
         """+1 where the metric is maximised, −1 for LPIPS."""
         return -1.0 if self.metric == "lpips" else 1.0
 
+    kind = "oracle"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"kind": self.kind, "search": self.search, "metric": self.metric}
+
 
 def is_oracle_spec(spec: str) -> bool:
-    """Whether ``spec`` names the oracle (its first field is ``oracle``)."""
-    return spec.strip().split(":", 1)[0].strip().lower() == "oracle"
+    """Whether ``spec`` names a bound (its kind is of the ``bound`` family: the oracle)."""
+    try:
+        return kind_of(spec).family == "bound"
+    except ValueError:
+        return False
 
 
 def parse_oracle(spec: str) -> OracleSpec:
@@ -144,6 +160,21 @@ def parse_oracle(spec: str) -> OracleSpec:
     if metric not in ORACLE_METRICS:
         raise OracleSpecError(f"unknown metric {metric!r}", spec)
     return OracleSpec(search, metric)
+
+
+def _oracle_from_args(fields: list[str]) -> OracleSpec:
+    return parse_oracle(":".join(["oracle", *fields]))
+
+
+def _oracle_from_json(params: Mapping[str, Any]) -> OracleSpec:
+    return OracleSpec(params.get("search", "rules"), params.get("metric", "reward"))
+
+
+KIND = PolicyKind("oracle", "oracle[:<search>[:<metric>]]", _oracle_from_args,
+                  _oracle_from_json, family="bound")
+"""The oracle, registered (family ``bound``: searched with the truth, not a policy) when this
+module is imported."""
+register_policy(KIND)
 
 
 def rule_masks(aoi_ms: np.ndarray) -> list[np.ndarray]:

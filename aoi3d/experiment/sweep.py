@@ -19,7 +19,7 @@ import math
 import multiprocessing
 import os
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy import stats
 
 from aoi3d.atomic import write_atomic
 from aoi3d.experiment.baselines import baseline_label, parse_trainer
@@ -43,6 +42,7 @@ from aoi3d.experiment.episode import (
 from aoi3d.experiment.oracle import OracleEpisode, OracleSpec, parse_oracle, search_oracle
 from aoi3d.lpips import weights_path
 from aoi3d.scene import SceneDataset, open_dataset
+from aoi3d.stats import mean_ci95
 
 __all__ = [
     "METRICS",
@@ -54,7 +54,6 @@ __all__ = [
     "aggregate",
     "default_workers",
     "lpips_available",
-    "mean_ci95",
     "run_jobs",
     "run_oracle",
     "run_plans",
@@ -433,21 +432,6 @@ def _run_ray(items: list[tuple[dict[str, Any], str]], lpips: bool, threads: int,
 
 
 # --- statistics ------------------------------------------------------------------------------
-def mean_ci95(values: Iterable[float | None]) -> tuple[float, float, int]:
-    """Mean, half-width of the 95% confidence interval (Student t) and the count of the
-    finite values; the half-width is NaN below two values."""
-    arr = np.asarray([np.nan if v is None else v for v in values], dtype=np.float64)
-    arr = arr[np.isfinite(arr)]
-    n = int(arr.size)
-    if n == 0:
-        return math.nan, math.nan, 0
-    mean = float(arr.mean())
-    if n < 2:
-        return mean, math.nan, n
-    half = float(stats.t.ppf(0.975, n - 1) * arr.std(ddof=1) / math.sqrt(n))
-    return mean, half, n
-
-
 def aggregate(results: Sequence[EpisodeResult],
               by: Sequence[str] = ("policy", "delay")) -> list[dict[str, Any]]:
     """One row per group of ``by``: ``n`` episodes, ``<metric>`` mean and ``<metric>_ci95``

@@ -42,7 +42,9 @@ __all__ = [
     "TensorfConfig",
     "TensorfField",
     "TrainView",
+    "UnknownBackendError",
     "camera_rays",
+    "check_backend",
     "field_config",
     "ray_aabb",
     "render_uniform",
@@ -60,10 +62,20 @@ BACKENDS: dict[str, type[FieldConfig]] = {
 """Radiance-field backends by name: grid, ngp, tensorf, nerfacto and the reference nerf MLP."""
 
 
+class UnknownBackendError(ValueError):
+    """A backend name that is not in :data:`BACKENDS`; the message lists those that are."""
+
+
+def check_backend(name: str) -> str:
+    """``name`` if it is a registered backend, else :class:`UnknownBackendError` — the one
+    check of a backend name (the CLI, the trainer's settings and ``PUT /backend``, the
+    benches)."""
+    if name not in BACKENDS:
+        raise UnknownBackendError(
+            f"unknown field backend {name!r}; available: {', '.join(BACKENDS)}")
+    return name
+
+
 def field_config(name: str, **overrides: Any) -> FieldConfig:
     """The default config of backend ``name`` with ``overrides`` applied."""
-    try:
-        cls = BACKENDS[name]
-    except KeyError:
-        raise ValueError(f"unknown field backend {name!r}; known: {sorted(BACKENDS)}") from None
-    return cls(**overrides)
+    return BACKENDS[check_backend(name)](**overrides)

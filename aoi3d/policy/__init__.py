@@ -1,9 +1,10 @@
 """Frame-selection policies over the AoI vector, and the one decision step that applies them.
 
-Importing this package registers every kind, in this order: ``all``, ``mat:<ms>``,
-``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>`` (:mod:`~aoi3d.policy.wait`)
-and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`, the PPO agent's home: its acting side
-and its learning side; torch loads only with a checkpoint).
+Importing this package registers every policy kind (families ``rule`` and ``learned``; see
+:mod:`aoi3d.policy.base` for the families and how a new kind registers), in this order:
+``all``, ``mat:<ms>``, ``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>``
+(:mod:`~aoi3d.policy.wait`) and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`, the PPO
+agent's home: its acting side and its learning side; torch loads only with a checkpoint).
 :func:`~aoi3d.policy.decide.decide` is the decision step every setting uses. This package
 imports nothing from :mod:`aoi3d.rl` or :mod:`aoi3d.experiment`: they build on it (an
 import contract in pyproject.toml checks it).
@@ -12,14 +13,20 @@ import contract in pyproject.toml checks it).
 from aoi3d.policy import ppo, rules, wait
 from aoi3d.policy.base import (
     ACCEPTED_FORMS,
+    FAMILIES,
+    POLICY_FAMILIES,
     BasePolicy,
     Policy,
     PolicyKind,
     PolicySpecError,
     as_aoi_vector,
+    family_of,
+    kind_of,
     parse_policy,
     policy_from_json,
+    register_family,
     register_policy,
+    short_label,
 )
 from aoi3d.policy.decide import Selection, decide
 from aoi3d.policy.ppo import PPOPolicy
@@ -33,6 +40,8 @@ del _kind
 
 __all__ = [
     "ACCEPTED_FORMS",
+    "FAMILIES",
+    "POLICY_FAMILIES",
     "AllPolicy",
     "BasePolicy",
     "FreshestPolicy",
@@ -45,7 +54,11 @@ __all__ = [
     "WaitPolicy",
     "as_aoi_vector",
     "decide",
+    "family_of",
+    "kind_of",
     "parse_policy",
     "policy_from_json",
+    "register_family",
     "register_policy",
+    "short_label",
 ]

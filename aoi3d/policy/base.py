@@ -6,10 +6,22 @@ cameras whose newest frames the trainer uses. Every policy has a canonical text 
 (``mat:51``) and a JSON form (``{"kind": "mat", "mat_ms": 51}``); both round-trip through
 ``parse_policy`` / ``policy_from_json``.
 
-A new kind plugs in by implementing ``Policy`` (most simply by subclassing :class:`BasePolicy`,
-which answers the optional questions with the defaults of a policy that has none of these
-needs) and calling ``register_policy(PolicyKind(...))``; nothing here changes. Stateful
-policies clear their per-episode state in ``reset()``.
+A new kind plugs in in one step: implement ``Policy`` (most simply by subclassing
+:class:`BasePolicy`, which answers the optional questions with the defaults of a policy that
+has none of these needs) and call ``register_policy(PolicyKind(kind, form, from_args,
+from_json, family=...))``; nothing here changes. Stateful policies clear their per-episode
+state in ``reset()``.
+
+**Families.** Every registered kind belongs to one family of :data:`FAMILIES`: ``rule`` (a
+fixed selection rule: ``all``, ``mat``, ``freshest``, ``wait``), ``learned`` (it learns, or
+was trained: ``ppo``), ``baseline`` (a trainer option of the follow-up paper over a policy:
+``tembed``, ``wsum``; :mod:`aoi3d.experiment.baselines` registers them) and ``bound``
+(searched with the truth, not a policy: ``oracle``; :mod:`aoi3d.experiment.oracle`).
+:func:`parse_policy` builds only the policy families' kinds (:data:`POLICY_FAMILIES`); the
+others are known so that every label of a result can be asked its kind and family
+(:func:`kind_of`), which is how claims, figures and benches tell a rule from a learned policy
+or a bound — never by a prefix of the label. A new family is one call,
+:func:`register_family`.
 
 Besides selecting, a policy answers the questions its callers have:
 
@@ -124,27 +136,106 @@ def as_aoi_vector(aoi_ms: np.ndarray | Sequence[float]) -> np.ndarray:
     return arr
 
 
+FAMILIES: dict[str, str] = {
+    "rule": "a fixed selection rule",
+    "learned": "a policy that learns or was trained",
+    "baseline": "a trainer option over a policy (how the field learns, not which frames)",
+    "bound": "searched with the truth: a bound, not a policy",
+}
+"""The families of kinds and what each means (:func:`register_family` adds one)."""
+POLICY_FAMILIES: set[str] = {"rule", "learned"}
+"""The families whose kinds are policies (:func:`parse_policy` builds them)."""
+
+
+def register_family(name: str, meaning: str, *, policies: bool) -> None:
+    """Declare a new family of kinds (``policies``: its kinds select frames, so
+    :func:`parse_policy` builds them)."""
+    if name in FAMILIES:
+        raise ValueError(f"family {name!r} is already declared")
+    FAMILIES[name] = meaning
+    if policies:
+        POLICY_FAMILIES.add(name)
+
+
 @dataclass(frozen=True)
 class PolicyKind:
-    """How to build one kind of policy from its spec fields and from its JSON form."""
+    """One kind: its name, the spec form shown to users, how to build it from its spec fields
+    and from its JSON form, its family (:data:`FAMILIES`) and, optionally, how a table names
+    one of its labels when the label is long (``short``; default: the label itself)."""
 
     kind: str
     form: str  # as shown to users, e.g. "mat:<ms>"
-    from_args: Callable[[list[str]], Policy]  # the spec's fields after "kind:"
-    from_json: Callable[[Mapping[str, Any]], Policy]  # the JSON object without "kind"
+    from_args: Callable[[list[str]], Any]  # the spec's fields after "kind:"
+    from_json: Callable[[Mapping[str, Any]], Any]  # the JSON object without "kind"
+    family: str = "rule"
+    short: Callable[[str], str] | None = None
+
+    @property
+    def is_policy(self) -> bool:
+        """Whether the kind's family selects frames (:data:`POLICY_FAMILIES`)."""
+        return self.family in POLICY_FAMILIES
 
 
 _REGISTRY: dict[str, PolicyKind] = {}
-#: The accepted spec forms, in registration order (kept in step with ``register_policy``).
+#: The accepted policy spec forms, in registration order (kept in step with
+#: ``register_policy``); the other families' forms are not policies and are not listed.
 ACCEPTED_FORMS: list[str] = []
 
 
 def register_policy(kind: PolicyKind) -> None:
-    """Make a policy kind known to ``parse_policy`` and ``policy_from_json``."""
+    """Make a kind known: ``parse_policy`` and ``policy_from_json`` build it when its family is
+    a policy family, and :func:`kind_of` answers for its labels whatever its family."""
     if kind.kind in _REGISTRY:
         raise ValueError(f"policy kind {kind.kind!r} is already registered")
+    if kind.family not in FAMILIES:
+        raise ValueError(f"policy kind {kind.kind!r}: unknown family {kind.family!r} "
+                         f"(declared: {', '.join(FAMILIES)}; register_family adds one)")
     _REGISTRY[kind.kind] = kind
-    ACCEPTED_FORMS.append(kind.form)
+    if kind.is_policy:
+        ACCEPTED_FORMS.append(kind.form)
+
+
+def kind_of(spec: str | Mapping[str, Any] | Policy) -> PolicyKind:
+    """The registered kind of a label, a JSON form or a policy: ``mat:70`` → ``mat``,
+    ``{"kind": "ppo", …}`` → ``ppo``, ``wsum:60@mat:130`` → ``wsum`` (a baseline),
+    ``oracle:rules:reward`` → ``oracle`` (a bound). Reads the kind only (nothing is built, no
+    checkpoint is loaded); ``PolicySpecError`` for a kind nobody registered."""
+    if isinstance(spec, Mapping):
+        name = spec.get("kind")
+    elif isinstance(spec, str):
+        name = spec.strip().split("@", 1)[0].split(":", 1)[0].strip()
+    else:
+        name = getattr(spec, "kind", None)
+    entry = _REGISTRY.get(name.lower()) if isinstance(name, str) else None
+    if entry is None:
+        raise PolicySpecError(f"unknown kind {name!r}", spec if isinstance(spec, str) else None)
+    return entry
+
+
+def family_of(spec: str | Mapping[str, Any] | Policy) -> str:
+    """The family (:data:`FAMILIES`) of a label, a JSON form or a policy."""
+    return kind_of(spec).family
+
+
+def short_label(spec: str) -> str:
+    """A label's name for a table or a figure: its kind's ``short`` form (``ppo`` shortens a
+    checkpoint path to its folder and file), else the label itself (also for an unknown
+    kind)."""
+    try:
+        entry = kind_of(spec)
+    except PolicySpecError:
+        return spec
+    return entry.short(spec) if entry.short is not None else spec
+
+
+def _policy_entry(kind: str, spec: object) -> PolicyKind:
+    entry = _REGISTRY.get(kind.lower())
+    if entry is None:
+        raise PolicySpecError(f"unknown kind {kind!r}", spec)
+    if not entry.is_policy:
+        raise PolicySpecError(f"{entry.kind} is a {entry.family} ({FAMILIES[entry.family]}), "
+                              "not a policy", spec)
+    return entry
 
 
 def parse_policy(spec: str | Policy) -> Policy:
@@ -158,9 +249,7 @@ def parse_policy(spec: str | Policy) -> Policy:
     if not text:
         raise PolicySpecError("empty spec", spec)
     kind, *fields = (part.strip() for part in text.split(":"))
-    entry = _REGISTRY.get(kind.lower())
-    if entry is None:
-        raise PolicySpecError(f"unknown kind {kind!r}", spec)
+    entry = _policy_entry(kind, spec)
     try:
         return entry.from_args(fields)
     except PolicySpecError as err:
@@ -174,9 +263,7 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     kind = data.get("kind")
     if not isinstance(kind, str):
         raise PolicySpecError('missing or non-string "kind"', dict(data))
-    entry = _REGISTRY.get(kind.lower())
-    if entry is None:
-        raise PolicySpecError(f"unknown kind {kind!r}", dict(data))
+    entry = _policy_entry(kind, dict(data))
     params = {k: v for k, v in data.items() if k != "kind"}
     try:
         return entry.from_json(params)

@@ -133,8 +133,9 @@ def _freshest_from_json(params: Mapping[str, Any]) -> FreshestPolicy:
 
 
 KINDS = (
-    PolicyKind("all", "all", _all_from_args, _all_from_json),
-    PolicyKind("mat", "mat:<ms>", _mat_from_args, _mat_from_json),
-    PolicyKind("freshest", "freshest:<k>", _freshest_from_args, _freshest_from_json),
+    PolicyKind("all", "all", _all_from_args, _all_from_json, family="rule"),
+    PolicyKind("mat", "mat:<ms>", _mat_from_args, _mat_from_json, family="rule"),
+    PolicyKind("freshest", "freshest:<k>", _freshest_from_args, _freshest_from_json,
+               family="rule"),
 )
 """The rule kinds, registered by :mod:`aoi3d.policy`."""

@@ -77,5 +77,5 @@ def _wait_from_json(params: Mapping[str, Any]) -> WaitPolicy:
     return WaitPolicy(params["wait_ms"])
 
 
-KIND = PolicyKind("wait", "wait:<ms>", _wait_from_args, _wait_from_json)
+KIND = PolicyKind("wait", "wait:<ms>", _wait_from_args, _wait_from_json, family="rule")
 """The ``wait`` kind, registered by :mod:`aoi3d.policy`."""

@@ -29,7 +29,6 @@ import multiprocessing
 import os
 import re
 import shutil
-import uuid
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass, field
@@ -40,6 +39,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from aoi3d.atomic import atomic_dir
 from aoi3d.scene.camera import Camera
 from aoi3d.scene.rig import HELDOUT_ID, make_rig
 from aoi3d.scene.turbine import AABB, ROTOR_AABB, SCENE_VERSION, SceneConfig, TurbineScene
@@ -420,22 +420,6 @@ def _check_replaceable(path: Path) -> None:
         )
 
 
-def _swap_in(tmp: Path, path: Path, token: str) -> None:
-    """Move the finished ``tmp`` to ``path``, replacing an older dataset there."""
-    old = path.parent / f".{path.name}.old-{os.getpid()}-{token}"
-    had_old = path.exists()
-    if had_old:
-        os.rename(path, old)
-    try:
-        os.rename(tmp, path)
-    except OSError:
-        if had_old and not path.exists():
-            os.rename(old, path)
-        raise
-    if had_old:
-        shutil.rmtree(old, ignore_errors=True)
-
-
 def _write_camera(
     scene: TurbineScene,
     camera: Camera,
@@ -496,8 +480,6 @@ def generate_dataset(
         )
 
     cameras = make_rig(cfg)
-    token = uuid.uuid4().hex[:8]
-    tmp = path.parent / f".{path.name}.tmp-{os.getpid()}-{token}"
     total, done = len(cameras) * cfg.n_frames, 0
 
     def advance(n: int) -> None:
@@ -506,7 +488,7 @@ def generate_dataset(
         if progress:
             progress(done, total)
 
-    try:
+    with atomic_dir(path) as tmp:  # written beside, swapped into place when whole
         if progress:
             progress(0, total)
         for cam_id in range(len(cameras)):
@@ -528,10 +510,6 @@ def generate_dataset(
         for name, ids in ((TRAIN_JSON, train_ids), (TEST_JSON, [HELDOUT_ID])):
             doc = _transforms(ids, cameras, cfg, ROTOR_AABB if cfg.framing == "rotor" else AABB)
             (tmp / name).write_text(json.dumps(doc, indent=1))
-        _swap_in(tmp, path, token)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return load_dataset(path)
 
 

@@ -7,16 +7,15 @@ exporters so an interrupted export never leaves something that looks like a data
 from __future__ import annotations
 
 import contextlib
-import os
-import shutil
 import threading
-import uuid
 from collections.abc import Callable, Iterator
 from io import BytesIO
 from pathlib import Path
 
 import numpy as np
 from PIL import Image
+
+from aoi3d.atomic import atomic_dir
 
 __all__ = [
     "DEFAULT_PNG_CACHE_BYTES",
@@ -133,17 +132,5 @@ def replace_dir(out: str | Path, *, overwrite: bool = False) -> Iterator[Path]:
                 raise FileExistsError(f"{out} exists and is not empty (overwrite replaces it)")
             if not _looks_like_dataset(out):
                 raise FileExistsError(f"{out} exists and is not a dataset; refusing to replace it")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    token = f"{os.getpid()}-{uuid.uuid4().hex[:8]}"
-    tmp = out.parent / f".{out.name}.tmp-{token}"
-    tmp.mkdir()
-    try:
+    with atomic_dir(out) as tmp:  # the one folder swap (aoi3d.atomic)
         yield tmp
-        old = out.parent / f".{out.name}.old-{token}"
-        if out.exists():
-            os.rename(out, old)
-        os.rename(tmp, out)
-        shutil.rmtree(old, ignore_errors=True)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)

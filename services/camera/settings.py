@@ -8,6 +8,7 @@ from typing import Annotated
 from pydantic import Field, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
 
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 CameraIds = Annotated[list[int], NoDecode]
@@ -28,7 +29,7 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_CAMERA_", extra="ignore")
 
-    port: int = Field(8101, ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["camera"], ge=0, le=65535, description="REST API port.")
     period_ms: float = Field(30.0, ge=1.0, le=60_000,
                              description="Generation period C in sim ms: frames at t = k·C.")
     paused: bool = Field(False, description="Start with frame generation paused.")

@@ -7,11 +7,13 @@ import os
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
-UPSTREAMS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-             "metrics": 8105}
-"""The services the console shows and controls, with their default ports."""
+UPSTREAMS = {name: SERVICE_PORTS[name]
+             for name in ("camera", "network", "scheduler", "trainer", "metrics")}
+"""The services the console shows, polls and controls, with their default ports: the five of
+the pipeline (not the recorder, which compose and Kubernetes do not run)."""
 
 
 def _default_upstream() -> dict[str, str]:
@@ -26,7 +28,8 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_CONSOLE_", extra="ignore")
 
-    port: int = Field(8106, ge=0, le=65535, description="REST API and web page port.")
+    port: int = Field(SERVICE_PORTS["console"], ge=0, le=65535,
+                      description="REST API and web page port.")
     upstream: dict[str, str] = Field(
         default_factory=_default_upstream,
         json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_<NAME>_PORT>` each"},

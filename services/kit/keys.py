@@ -8,21 +8,12 @@ reconstruction workers is the run's, shared by its sites: ``aoi3d/<run>/pool/``.
 
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass
 
-DEFAULT_SITE = "site1"
-"""The site of a one-site run, and the one today's REST paths address."""
-SITE_PATTERN = r"^[a-z0-9][a-z0-9_-]{0,31}$"
-RESERVED = frozenset({"pool", "sites"})
+from aoi3d.ports import DEFAULT_SITE, SITE_PATTERN, check_site  # the sites' names: one home
+from aoi3d.ports import RESERVED_SITES as RESERVED
 
-
-def check_site(name: str) -> str:
-    """``name`` if it can name a site (a key chunk, a URL segment, a label value)."""
-    if not re.fullmatch(SITE_PATTERN, name) or name in RESERVED:
-        raise ValueError(f"site name {name!r}: 1-32 of a-z 0-9 _ -, starting with a letter or "
-                         f"digit, not one of {', '.join(sorted(RESERVED))}")
-    return name
+__all__ = ["DEFAULT_SITE", "RESERVED", "SITE_PATTERN", "Keys", "check_site"]
 
 
 @dataclass(frozen=True)

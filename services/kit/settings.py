@@ -13,6 +13,8 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from aoi3d.ports import ZENOH_PORT
+
 Endpoints = Annotated[list[str], NoDecode]
 
 
@@ -36,7 +38,7 @@ class CommonSettings(BaseSettings):
     zenoh_mode: Literal["client", "peer"] = Field(
         "client", description="Zenoh session mode of the services (the router is separate).")
     zenoh_connect: Endpoints = Field(
-        default_factory=lambda: ["tcp/127.0.0.1:7447"],
+        default_factory=lambda: [f"tcp/127.0.0.1:{ZENOH_PORT}"],
         description="Zenoh endpoints to connect to (comma-separated or JSON list).")
     zenoh_listen: Endpoints = Field(default_factory=list,
                                     description="Zenoh endpoints to listen on (peer mode).")

@@ -25,6 +25,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from aoi3d.atomic import write_atomic
 from services.kit.codec import decode_decision
 from services.kit.observe import Rejected
+from services.kit.reasons import EndReason
 from services.metrics.ledger import (
     LOST_REASONS,
     SKIPPED_REASONS,
@@ -75,7 +76,7 @@ class LedgerKeeper:
     def on_outcome(self, payload: bytes) -> None:
         msg = decode_outcome(payload, self.site)
         with self._lock:
-            self.ledger.closed(msg.incarnation, msg.decision_id, msg.state, msg.reason,
+            self.ledger.closed(msg.incarnation, msg.decision_id, msg.state, str(msg.reason),
                                time.time())
 
     def on_render(self, ids: tuple[int, int] | None, rejected: Rejected | None) -> None:
@@ -86,8 +87,8 @@ class LedgerKeeper:
         if ids is None:
             return
         state, reason = (("scored", "") if rejected is None else
-                         ("lost", "truth_missing" if rejected.reason == "no_truth"
-                          else "render_rejected"))
+                         ("lost", str(EndReason.TRUTH_MISSING if rejected.reason == "no_truth"
+                                      else EndReason.RENDER_REJECTED)))
         with self._lock:
             self.ledger.closed(*ids, state, reason, time.time())
 

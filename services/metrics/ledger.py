@@ -19,6 +19,9 @@ States (:data:`STATES`) and their reasons:
   while the metrics service was down, or lost in transit) and ``expired`` (still open after
   ``open_bound_s``: a trainer or worker died holding it, or its render or outcome was lost).
 
+Every reason is a member of :class:`services.kit.reasons.EndReason` (the proto's one enum); the
+ledger keeps and saves its label, the same text as before the enum (snapshot version 1).
+
 The first terminal event wins: a later one (a late render of a decision counted lost, a
 repeated message) only counts ``after_close``. Every id from 1 to the highest seen of an
 incarnation is therefore counted exactly once — open, or in one state.
@@ -30,17 +33,20 @@ import json
 from collections import Counter
 from dataclasses import dataclass
 
+from services.kit import reasons
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.reasons import EndReason
 from services.kit.rejected import Rejected
 
-__all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary",
+__all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary", "Outcome",
            "decode_outcome", "render_header"]
 
 STATES = ("scored", "skipped", "lost")
-SKIPPED_REASONS = ("superseded",)
-TRAINER_LOST = ("worker_died", "timeout", "not_delivered", "render_failed", "refused",
-                "not_received")
-LOST_REASONS = (*TRAINER_LOST, "truth_missing", "render_rejected", "unseen", "expired")
+SKIPPED_REASONS = tuple(str(r) for r in reasons.SKIPPED)
+"""The labels of :data:`services.kit.reasons.SKIPPED`: ``superseded``."""
+TRAINER_LOST = tuple(str(r) for r in reasons.TRAINER_LOST)
+LOST_REASONS = tuple(str(r) for r in reasons.LOST)
+"""The labels of :data:`services.kit.reasons.LOST`, in the proto's order."""
 MAX_GAP = 1_000_000
 """Ids skipped at once that the ledger believes (8 h of decisions every 30 ms); a larger jump
 is a corrupt or hostile message and is refused, so one message cannot add a billion ``unseen``."""
@@ -104,7 +110,7 @@ class Ledger:
         for key in due:
             del self._open[key]
         if due:
-            self.totals["lost", "expired"] += len(due)
+            self.totals["lost", str(EndReason.EXPIRED)] += len(due)
             self.changes += 1
         return len(due)
 
@@ -163,7 +169,7 @@ class Ledger:
                            f"decision {decision_id} of incarnation {incarnation} would skip "
                            f"{gap} ids (at most {MAX_GAP} are believed)")
         if gap:
-            self.totals["lost", "unseen"] += gap
+            self.totals["lost", str(EndReason.UNSEEN)] += gap
         self._high[incarnation] = decision_id
         self._open[incarnation, decision_id] = now_s
         self.changes += 1
@@ -180,7 +186,19 @@ class Ledger:
             raise Rejected("malformed", f"no decision ends {state!r} with reason {reason!r}")
 
 
-def decode_outcome(payload: bytes, site: str) -> pb.Outcome:
+@dataclass(frozen=True)
+class Outcome:
+    """A decoded Outcome: its reason as an :class:`EndReason` (a ``str``, its label)."""
+
+    decision_id: int
+    incarnation: int
+    site: str
+    state: str
+    reason: EndReason
+    detail: str
+
+
+def decode_outcome(payload: bytes, site: str) -> Outcome:
     """An Outcome message of ``site`` (:class:`Rejected` when it is not a valid one)."""
     try:
         msg = pb.Outcome.FromString(payload)
@@ -190,11 +208,15 @@ def decode_outcome(payload: bytes, site: str) -> pb.Outcome:
         raise Rejected("wrong_site", f"an Outcome of site {msg.site!r} on site {site!r}'s key")
     if msg.state not in ("skipped", "lost"):
         raise Rejected("malformed", f"an Outcome's state is skipped or lost, not {msg.state!r}")
-    if msg.state == "lost" and msg.reason not in TRAINER_LOST:
-        raise Rejected("malformed", f"the trainer does not lose a decision for {msg.reason!r} "
+    try:
+        reason = reasons.from_wire(msg.reason)
+    except ValueError as err:
+        raise Rejected("malformed", f"an Outcome's reason: {err}") from None
+    if msg.state == "lost" and reason not in reasons.TRAINER_LOST:
+        raise Rejected("malformed", f"the trainer does not lose a decision for {reason!s} "
                                     f"(its reasons: {', '.join(TRAINER_LOST)})")
-    Ledger._check(msg.state, msg.reason)
-    return msg
+    Ledger._check(msg.state, str(reason))
+    return Outcome(msg.decision_id, msg.incarnation, msg.site, msg.state, reason, msg.detail)
 
 
 def render_header(payload: bytes) -> tuple[int, int, float] | None:

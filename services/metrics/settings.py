@@ -8,6 +8,7 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
+from aoi3d.ports import SERVICE_PORTS
 from aoi3d.quality import RewardWeights
 from services.kit.settings import ServiceSettings
 
@@ -19,7 +20,7 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_METRICS_", extra="ignore")
 
-    port: int = Field(8105, ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["metrics"], ge=0, le=65535, description="REST API port.")
     truth_period_ms: float = Field(
         30.0, gt=0, le=60_000,
         description="Generation period C of the ground-truth frames in sim ms. A render at t "

@@ -6,6 +6,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.channel import parse_delay
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 
@@ -14,7 +15,7 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_NETWORK_", extra="ignore")
 
-    port: int = Field(8102, ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["network"], ge=0, le=65535, description="REST API port.")
     delay: str = Field("exp:60", description="Delay spec of every link (ms): exp:MEAN, const:D, "
                                              "uniform:LO:HI, gamma:K:THETA or lognormal:MU:SIGMA.")
     per_camera: dict[int, str] = Field(

@@ -29,7 +29,8 @@ MAX_FRAMES = 256
 
 
 class JobFailed(Exception):
-    """The job cannot be reconstructed; ``reason`` is its label in the pool's ledger."""
+    """The job cannot be reconstructed; ``reason`` (free text) is the detail of the decision the
+    pool counts lost, ``render_failed``."""
 
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(f"{reason}: {detail}")

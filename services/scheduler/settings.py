@@ -8,6 +8,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.policy import parse_policy
+from aoi3d.ports import SERVICE_PORTS
 from aoi3d.rl.online import LearnConfig
 from services.kit.settings import ServiceSettings
 
@@ -17,7 +18,7 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_SCHEDULER_", extra="ignore")
 
-    port: int = Field(8103, ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["scheduler"], ge=0, le=65535, description="REST API port.")
     decision_period_ms: float = Field(
         30.0, gt=0, le=60_000, allow_inf_nan=False,
         description="Sim ms between two decisions; decisions are taken at t = k·period.")

@@ -1,5 +1,7 @@
-"""REST API of the trainer: status, model reset, backend switch and the latest novel-view
-render."""
+"""REST API of the trainer service — the pool's dispatcher, which hands each decision to one
+reconstruction worker and publishes its render (it trains no model itself; the name is the
+service's, kept for its REST paths, compose service and ``aoi3d_trainer_*`` series): status,
+model reset, backend switch and the latest novel-view render."""
 
 from __future__ import annotations
 

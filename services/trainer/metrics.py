@@ -9,11 +9,13 @@ from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 
+from services.trainer.pool import POOL_LOST
+
 RATE_WINDOW_S = 5.0
 """Wall seconds over which ``aoi3d_trainer_steps_per_second`` is measured."""
 
-LOST_REASONS = ("not_delivered", "timeout", "worker_died")
-"""Why the pool itself counts a handed-out decision lost (a worker adds failed:<why>)."""
+LOST_REASONS = tuple(sorted(str(r) for r in POOL_LOST))
+"""Why the pool itself counts a handed-out decision lost (:data:`POOL_LOST`), as labels."""
 
 __all__ = ["LOST_REASONS", "RATE_WINDOW_S", "PoolCollector"]
 
@@ -69,13 +71,15 @@ class PoolCollector:
             "aoi3d_renders", "Novel-view renders published by the pool's workers.",
             labels=["site"]), by_site("renders"))
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions.",
+            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions (the "
+            "reconstruction workers'; the trainer service trains nothing itself).",
             labels=["site"]), by_site("steps"))
         yield one(GaugeMetricFamily(
             "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
             f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
         yield each(GaugeMetricFamily(
-            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step.",
+            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step (as its "
+            "reconstruction worker reported it).",
             labels=["site"]), by_site("loss"))
         yield each(GaugeMetricFamily(
             "aoi3d_trainer_views", "Frames the latest render trained on.", labels=["site"]),
@@ -106,11 +110,11 @@ class PoolCollector:
              for outcome in ("assigned", "rendered", "superseded", "lost")])
         yield each(CounterMetricFamily(
             "aoi3d_pool_decisions_lost", "Decisions handed to a worker that ended without a "
-            "render, by reason (worker_died, timeout, not_delivered, failed:<why>).",
+            "render, by reason (worker_died, timeout, not_delivered, render_failed).",
             labels=["reason"]),
             # the reasons the pool itself gives are always there (0 until one happens)
             [([r], n) for r, n in sorted({**dict.fromkeys(LOST_REASONS, 0),
-                                          **pool.lost}.items())])
+                                          **{str(k): v for k, v in pool.lost.items()}}.items())])
         yield one(GaugeMetricFamily("aoi3d_pool_rendered_fraction",
                                     f"Decisions rendered / decisions taken over the last "
                                     f"{pool.window_s:g} s."), pool.rendered_fraction)

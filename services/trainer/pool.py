@@ -19,7 +19,8 @@ services.recon``) pull work from it. Design (docs/architecture.md, "The worker p
   published in its next request) or ``lost`` with a reason: ``worker_died`` (its token
   vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
   longer than ``job_timeout_s``), ``not_delivered`` (the worker asked again without reporting
-  it: the reply never reached it), or the worker's own reason (``failed:<why>``). A decision
+  it: the reply never reached it) or ``render_failed`` (the worker could not render it; its
+  own why is the detail). The reasons are :class:`services.kit.reasons.EndReason`. A decision
   is never handed out twice, so nothing is rendered twice; a worker that comes back after its
   decision was counted lost has its late report ignored (``late_reports``).
 """
@@ -31,6 +32,7 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 
 from services.kit.keys import DEFAULT_SITE
+from services.kit.reasons import EndReason
 from services.trainer.poolmodel import (
     Assignment,
     DecisionRef,
@@ -40,12 +42,21 @@ from services.trainer.poolmodel import (
     WorkerView,
 )
 
-__all__ = ["Assignment", "DecisionRef", "Dispatcher", "Ended", "PoolStatus", "Report",
-           "WorkerView"]
+__all__ = ["POOL_LOST", "Assignment", "DecisionRef", "Dispatcher", "Ended", "PoolStatus",
+           "Report", "WorkerView"]
+
+POOL_LOST = (EndReason.WORKER_DIED, EndReason.TIMEOUT, EndReason.NOT_DELIVERED,
+             EndReason.RENDER_FAILED)
+"""Why the pool itself loses a decision it handed out (``Dispatcher.lost``, the
+``aoi3d_pool_decisions_lost{reason}`` series); the trainer tells ``refused`` and
+``not_received`` too, for decisions that never reached the pool."""
 
 
 @dataclass
-class _Worker:
+class _Member:
+    """A member of the pool as the dispatcher sees it: one reconstruction worker (a
+    ``python -m services.recon`` process, named by its liveliness token)."""
+
     worker_id: str
     joined_s: float
     pid: int = 0
@@ -65,7 +76,7 @@ class Dispatcher:
     def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0) -> None:
         self.window_s = float(window_s)
         self.job_timeout_s = float(job_timeout_s)
-        self._workers: dict[str, _Worker] = {}
+        self._workers: dict[str, _Member] = {}
         self._waiting: deque[str] = deque()
         self._pending: dict[str, tuple[DecisionRef, float]] = {}
         self._served_s: dict[str, float] = {}
@@ -75,7 +86,8 @@ class Dispatcher:
         self.assigned = 0
         self.rendered = 0
         self.superseded = 0
-        self.lost: Counter[str] = Counter()
+        self.lost: Counter[EndReason] = Counter()
+        """Handed-out decisions lost, by reason (:data:`POOL_LOST`)."""
         self.late_reports = 0
         self.wait_sum_s = 0.0
         self.age_sum_s = 0.0
@@ -94,7 +106,7 @@ class Dispatcher:
     # ------------------------------------------------------------------ membership
     def joined(self, worker_id: str, now_s: float) -> None:
         if worker_id not in self._workers:
-            self._workers[worker_id] = _Worker(worker_id, joined_s=now_s)
+            self._workers[worker_id] = _Member(worker_id, joined_s=now_s)
 
     def left(self, worker_id: str, now_s: float) -> Assignment | None:
         """The worker's token vanished: its decision (if any) is lost, ``worker_died``."""
@@ -103,7 +115,7 @@ class Dispatcher:
         if worker is None or worker.holding is None:
             return None
         held = worker.holding
-        self._lose(held.decision, "worker_died")
+        self._lose(held.decision, EndReason.WORKER_DIED)
         return held
 
     @property
@@ -134,7 +146,8 @@ class Dispatcher:
         if decision.site in self._pending:
             self.superseded += 1
             self._count(decision.site, "superseded")
-            self._ended.append(Ended(self._pending[decision.site][0], "skipped", "superseded"))
+            self._ended.append(Ended(self._pending[decision.site][0], "skipped",
+                                     EndReason.SUPERSEDED))
         self._pending[decision.site] = (decision, now_s)
         return None
 
@@ -163,12 +176,12 @@ class Dispatcher:
     def refuse(self, decision: DecisionRef, why: str) -> None:
         """The trainer did not take ``decision`` (stale, or ahead of its clock): it never
         reaches the pool, but its end is told (lost, ``refused``)."""
-        self._ended.append(Ended(decision, "lost", "refused", why))
+        self._ended.append(Ended(decision, "lost", EndReason.REFUSED, why))
 
     def never_received(self, decision: DecisionRef) -> None:
         """The trainer never received ``decision`` (a gap in its incarnation's ids): its end
         is told (lost, ``not_received``)."""
-        self._ended.append(Ended(decision, "lost", "not_received"))
+        self._ended.append(Ended(decision, "lost", EndReason.NOT_RECEIVED))
 
     def give_up(self, worker_id: str) -> None:
         """The worker's held query was answered with no job (its wait ran out)."""
@@ -182,12 +195,12 @@ class Dispatcher:
             if held is not None and now_s - held.assigned_s > self.job_timeout_s:
                 worker.holding = None
                 worker.lost += 1
-                self._lose(held.decision, "timeout")
+                self._lose(held.decision, EndReason.TIMEOUT)
                 out.append(held)
         return out
 
     # ------------------------------------------------------------------ internals
-    def _assign(self, worker: _Worker, decision: DecisionRef, arrived_s: float,
+    def _assign(self, worker: _Member, decision: DecisionRef, arrived_s: float,
                 now_s: float) -> Assignment:
         held = Assignment(decision, worker.worker_id, arrived_s, now_s)
         worker.holding = held
@@ -198,7 +211,7 @@ class Dispatcher:
         self._event(now_s, "wait", held.wait_s)
         return held
 
-    def _close(self, worker: _Worker, report: Report, now_s: float) -> None:
+    def _close(self, worker: _Member, report: Report, now_s: float) -> None:
         held = worker.holding
         if report.done is not None and (held is None or held.decision.key != report.done):
             self.late_reports += 1  # counted lost already (timeout), or not ours
@@ -208,7 +221,7 @@ class Dispatcher:
         site = held.decision.site
         if report.done != held.decision.key:
             worker.lost += 1
-            self._lose(held.decision, "not_delivered")
+            self._lose(held.decision, EndReason.NOT_DELIVERED)
             return
         if report.rendered:
             worker.rendered += 1
@@ -220,16 +233,13 @@ class Dispatcher:
             self._event(now_s, "age", age)
         else:
             worker.lost += 1
-            self._lose(held.decision, f"failed:{report.reason or 'unknown'}")
+            self._lose(held.decision, EndReason.RENDER_FAILED, report.reason or "unknown")
 
-    def _lose(self, decision: DecisionRef, reason: str) -> None:
-        """Count a handed-out decision lost; ``failed:<why>`` goes to the ledger as
-        ``render_failed`` with its why."""
+    def _lose(self, decision: DecisionRef, reason: EndReason, detail: str = "") -> None:
+        """Count a handed-out decision lost for ``reason`` (one of :data:`POOL_LOST`)."""
         self.lost[reason] += 1
         self._count(decision.site, "lost")
-        failed = reason.startswith("failed:")
-        self._ended.append(Ended(decision, "lost", "render_failed" if failed else reason,
-                                 reason.removeprefix("failed:") if failed else ""))
+        self._ended.append(Ended(decision, "lost", reason, detail))
 
     def _count(self, site: str, what: str) -> None:
         self.by_site.setdefault(site, Counter())[what] += 1

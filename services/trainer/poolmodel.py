@@ -7,6 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from services.kit.keys import DEFAULT_SITE
+from services.kit.reasons import EndReason
 
 __all__ = ["Assignment", "DecisionRef", "Ended", "PoolStatus", "Report", "WorkerView"]
 
@@ -49,9 +50,9 @@ class Ended:
     decision: DecisionRef
     state: str
     """``skipped`` or ``lost``."""
-    reason: str
-    """skipped: ``superseded``; lost: ``worker_died``, ``timeout``, ``not_delivered``,
-    ``render_failed``, ``refused`` or ``not_received``."""
+    reason: EndReason
+    """skipped: ``superseded``; lost: one the trainer tells
+    (:data:`services.kit.reasons.TRAINER_LOST`)."""
     detail: str = ""
 
 

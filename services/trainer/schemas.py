@@ -55,7 +55,7 @@ class PoolInfo(BaseModel):
                                         "worker was free.", examples=[180])
     lost: dict[str, int] = Field(description="Decisions handed out that ended without a render, "
                                              "by reason: worker_died, timeout, not_delivered, "
-                                             "failed:<why>.", examples=[{"worker_died": 1}])
+                                             "render_failed.", examples=[{"worker_died": 1}])
     pending: dict[str, int] = Field(description="Site → its decision waiting for a free worker "
                                                 "(each site's newest not handed out).",
                                     examples=[{"site1": 301}])
@@ -102,15 +102,20 @@ def pool_body(pool: PoolStatus) -> PoolInfo:
 
 
 class StatusResponse(BaseModel):
-    steps: int = Field(description="Training steps of the current model (since the last "
-                                   "reset); the Render's training_step.", examples=[1200])
-    steps_total: int = Field(description="Training steps since the service started.",
+    steps: int = Field(description="Training steps of the latest render's model (since the "
+                                   "last reset), as its reconstruction worker reported them: "
+                                   "the Render's training_step. The trainer service trains "
+                                   "nothing itself; it hands decisions to the workers.",
+                       examples=[1200])
+    steps_total: int = Field(description="Training steps of every render the workers "
+                                         "published since the service started.",
                              examples=[5400])
-    steps_per_s: float = Field(description="Training steps per wall second over the last few "
-                                           "seconds.", examples=[38.5])
-    loss: float | None = Field(description="Loss of the last training step; null before the "
-                                           "first step after start or reset.",
-                               examples=[0.0123])
+    steps_per_s: float = Field(description="The pool's training steps per wall second over "
+                                           "the last few seconds (all workers).",
+                               examples=[38.5])
+    loss: float | None = Field(description="Loss of the latest render's last training step (its "
+                                           "worker's); null before the first render after "
+                                           "start or reset.", examples=[0.0123])
     n_views: int = Field(description="Frames in the training set.", examples=[9])
     decision: DecisionInfo | None = Field(description="The decision in force; null before the "
                                                       "first one.")

@@ -11,7 +11,8 @@ from typing import Literal
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from aoi3d.field import BACKENDS
+from aoi3d.field import check_backend
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 
@@ -22,7 +23,7 @@ class Settings(ServiceSettings):
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_TRAINER_", extra="ignore")
 
-    port: int = Field(8104, ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["trainer"], ge=0, le=65535, description="REST API port.")
     backend: str = Field("grid", description="Radiance-field backend at start, a name in "
                                              "aoi3d.field.BACKENDS (`aoi3d field backends` "
                                              "lists them); `PUT /backend` switches it at run "
@@ -57,7 +58,4 @@ class Settings(ServiceSettings):
     @field_validator("backend")
     @classmethod
     def _known_backend(cls, value: str) -> str:
-        if value not in BACKENDS:
-            raise ValueError(
-                f"unknown backend {value!r}; available: {', '.join(sorted(BACKENDS))}")
-        return value
+        return check_backend(value)

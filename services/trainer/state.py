@@ -1,7 +1,8 @@
-"""What the trainer service reports and accepts: its status types, settings and errors.
+"""What the trainer service reports and accepts: its status types and errors.
 
-Plain data shared by the training thread (:mod:`services.trainer.worker`) and the REST
-layer (:mod:`services.trainer.app`); nothing here touches the model.
+Plain data shared by the dispatcher's runtime (:mod:`services.trainer.worker`) and the REST
+layer (:mod:`services.trainer.app`). The trainer service trains no model itself: it hands
+decisions to the reconstruction workers (:mod:`services.recon`) and publishes their renders.
 """
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from aoi3d.field import BACKENDS
+from aoi3d.field import UnknownBackendError, check_backend  # re-exported: one check
 from services.trainer.pool import PoolStatus
 
 __all__ = [
@@ -20,18 +21,6 @@ __all__ = [
     "UnknownBackendError",
     "check_backend",
 ]
-
-
-class UnknownBackendError(ValueError):
-    """The backend name is not in ``aoi3d.field.BACKENDS``; the message lists those that are."""
-
-
-def check_backend(name: str) -> str:
-    """``name`` if it is a registered backend, else :class:`UnknownBackendError`."""
-    if name not in BACKENDS:
-        raise UnknownBackendError(
-            f"unknown backend {name!r}; available: {', '.join(sorted(BACKENDS))}")
-    return name
 
 
 class CarryError(ValueError):

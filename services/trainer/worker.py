@@ -112,7 +112,7 @@ class TrainerWorker:
         for e in ended:
             d = e.decision
             msg = pb.Outcome(decision_id=d.decision_id, incarnation=d.incarnation, site=d.site,
-                             state=e.state, reason=e.reason, detail=e.detail[:200])
+                             state=e.state, reason=e.reason.wire, detail=e.detail[:200])
             self.bus.publish(Keys(self.settings.common.run_id, d.site).outcome,
                              msg.SerializeToString())
 

@@ -16,6 +16,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
+from aoi3d.ports import SERVICE_PORTS
 from tests.integration.test_pipeline import (
     HTTP,
     SCALE,
@@ -36,8 +37,7 @@ sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not ins
 _PORTS = block("browser")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
-PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
-         "console": 8106}
+PORTS = SERVICE_PORTS
 ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic"]
 

@@ -22,6 +22,7 @@ import httpx
 import pytest
 
 from aoi3d.lpips import weights_path
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.ports import block
@@ -55,8 +56,7 @@ DOCUMENTED_SERIES = {
 
 
 def url(service: str, path: str) -> str:
-    port = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-            "metrics": 8105}[service] + PORT_OFFSET
+    port = SERVICE_PORTS[service] + PORT_OFFSET
     return f"http://127.0.0.1:{port}{path}"
 
 

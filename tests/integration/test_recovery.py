@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 
+from aoi3d.ports import SERVICE_PORTS
 from tests.integration.test_pipeline import (
     HTTP,
     SCALE,
@@ -34,7 +35,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 _PORTS = block("recovery")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
-PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105}
+PORTS = {s: p for s, p in SERVICE_PORTS.items() if s != "console"}
 ORDER = ("router", "camera", "network", "scheduler", "trainer", "metrics", "recon-1")
 BOUND_S = 15.0
 TIME_SCALE = 0.1

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.integration.test_pipeline import (
@@ -35,8 +36,7 @@ SITES = ("site1", "site2")
 
 
 def url(service: str, path: str) -> str:
-    port = {"network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
-            "console": 8106}[service] + PORT_OFFSET
+    port = SERVICE_PORTS[service] + PORT_OFFSET
     return f"http://127.0.0.1:{port}{path}"
 
 

@@ -27,6 +27,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from tests.deploy_modules import load
 from tests.integration.test_pipeline import (
@@ -50,7 +51,7 @@ _PORTS = block("prometheus")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
 PROM_PORT = _PORTS.extra(0)
-PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105}
+PORTS = {s: p for s, p in SERVICE_PORTS.items() if s != "console"}
 WINDOW = "20s"
 """What the dashboard's $__rate_interval becomes (scrapes every second)."""
 WORKERS = 2

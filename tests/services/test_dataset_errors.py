@@ -12,6 +12,7 @@ from pathlib import Path
 
 import pytest
 
+from aoi3d.ports import SERVICE_PORTS
 from aoi3d.scene import SceneConfig, generate_dataset
 from tests.ports import block
 
@@ -30,7 +31,7 @@ def intact(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def run_service(name: str, dataset: Path) -> subprocess.CompletedProcess:
     env = dict(os.environ, AOI3D_DATASET=str(dataset), AOI3D_ZENOH_MODE="client",
                AOI3D_ZENOH_CONNECT="tcp/127.0.0.1:9",  # never reached: it fails first
-               **{f"AOI3D_{name.upper()}_PORT": str(8101 + PORT_OFFSET)})
+               **{f"AOI3D_{name.upper()}_PORT": str(SERVICE_PORTS[name] + PORT_OFFSET)})
     return subprocess.run([sys.executable, "-m", f"services.{name}"], env=env, text=True,
                           capture_output=True, timeout=120 * SCALE)
 

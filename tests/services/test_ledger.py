@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from aoi3d.clock import SimClock
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.reasons import EndReason
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
 from services.metrics.ledger import LOST_REASONS
@@ -55,10 +56,12 @@ class Site:
             self.bus.publish(KEYS.decision, pb.Decision(
                 decision_id=i, incarnation=inc, time_ms=60.0, policy="all").SerializeToString())
 
-    def outcome(self, i: int, state: str, reason: str, inc: int = INC) -> None:
+    def outcome(self, i: int, state: str, reason: str | int, inc: int = INC) -> None:
+        """``reason``: a label, or a raw enum number (one the proto does not have)."""
         self.bus.publish(KEYS.outcome, pb.Outcome(
             decision_id=i, incarnation=inc, site="site1", state=state,
-            reason=reason).SerializeToString())
+            reason=reason if isinstance(reason, int) else EndReason(reason).wire
+        ).SerializeToString())
 
     def render(self, i: int, time_ms: float = 60.0, image=None) -> None:
         msg = pb.Render.FromString(render(time_ms, noisy(truth_image(60.0), seed=i)
@@ -122,7 +125,7 @@ def test_an_open_decision_expires_and_nonsense_is_counted_not_believed(sites) ->
     wait_for(lambda: site.ledger()["lost"]["expired"] == 1, timeout_s=5.0)
     site.decide(10**12)  # would skip a trillion ids
     site.bus.publish(KEYS.outcome, b"\xff\x00junk")
-    site.outcome(1, "lost", "gremlins")
+    site.outcome(1, "lost", 99)  # no such EndReason
     wait_for(lambda: "implausible_decision_id" in site.client.get("/metrics").text,
              timeout_s=10.0)
     got = site.ledger()

@@ -67,7 +67,7 @@ def one_of_each(t_ms: float = 300.0) -> list[tuple[str, bytes]]:
     quality = pb.Quality(decision_id=7, time_ms=t_ms, psnr_db=21.5, ssim=0.6, reward=0.7,
                          decision_incarnation=5, site="site1")
     outcome = pb.Outcome(decision_id=6, incarnation=5, site="site1", state="skipped",
-                         reason="superseded")
+                         reason=pb.END_REASON_SUPERSEDED)
     return [(K.edge_frame(1), frame(1, t_ms - 40, delivery_ms=t_ms - 5)),
             (K.truth, encode_frame(camera_id=0, sequence=10, generation_ms=t_ms,
                                    scene_time_ms=t_ms, camera=cam,

@@ -17,18 +17,19 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
-from aoi3d.field import GridConfig, NgpConfig
+from aoi3d.field import BACKENDS, GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.codec import PNG, decode_image, decode_render, encode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
+from services.metrics.ledger import Outcome, decode_outcome
 from services.recon.core import ReconCore
 from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
-from services.trainer.settings import BACKENDS, Settings
+from services.trainer.settings import Settings
 from tests.services.series import without_site
 
 N_TRAIN = 4
@@ -260,8 +261,9 @@ def test_a_worker_gone_mid_job_loses_only_its_decision(
     assert [r.decision_id for r in renders(bus)] == [2]
 
 
-def outcomes(bus: MemoryBus) -> list[pb.Outcome]:
-    return [pb.Outcome.FromString(p) for p in bus.messages(KEYS.outcome)]
+def outcomes(bus: MemoryBus) -> list[Outcome]:
+    """The Outcomes published, as the ledger decodes them (the reason as its label)."""
+    return [decode_outcome(p, KEYS.site) for p in bus.messages(KEYS.outcome)]
 
 
 def test_decisions_ended_without_a_render_are_told_to_the_ledger(
@@ -388,7 +390,7 @@ def test_openapi_documents_the_routes(client: TestClient) -> None:
 
 
 def test_settings_validate_backend(monkeypatch: pytest.MonkeyPatch) -> None:
-    with pytest.raises(ValidationError, match="unknown backend"):
+    with pytest.raises(ValidationError, match="unknown field backend"):
         Settings(backend="nope")
     with pytest.raises(ValidationError):
         Settings(job_timeout_s=0)

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.reasons import EndReason
 from services.metrics.ledger import (
     LOST_REASONS,
     MAX_GAP,
@@ -121,16 +122,20 @@ def test_the_snapshot_round_trips_and_refuses_garbage() -> None:
 
 def test_outcome_and_render_decoding() -> None:
     ok = pb.Outcome(decision_id=3, incarnation=INC, site="site1", state="lost",
-                    reason="worker_died").SerializeToString()
+                    reason=pb.END_REASON_WORKER_DIED).SerializeToString()
     assert decode_outcome(ok, "site1").reason == "worker_died"
+    assert decode_outcome(ok, "site1").reason is EndReason.WORKER_DIED
     bad = {b"\xff\xff": "not an Outcome",
-           pb.Outcome(decision_id=3, site="site2", state="lost", reason="timeout")
+           pb.Outcome(decision_id=3, site="site2", state="lost", reason=pb.END_REASON_TIMEOUT)
            .SerializeToString(): "site 'site2'",
            pb.Outcome(decision_id=3, state="scored").SerializeToString(): "skipped or lost",
-           pb.Outcome(decision_id=3, state="lost", reason="unseen").SerializeToString():
-               "does not lose",
-           pb.Outcome(decision_id=3, state="skipped", reason="bored").SerializeToString():
-               "no decision ends"}
+           pb.Outcome(decision_id=3, state="lost").SerializeToString(): "no reason given",
+           pb.Outcome(decision_id=3, state="lost", reason=99).SerializeToString():
+               "unknown EndReason 99",
+           pb.Outcome(decision_id=3, state="lost", reason=pb.END_REASON_UNSEEN)
+           .SerializeToString(): "does not lose",
+           pb.Outcome(decision_id=3, state="skipped", reason=pb.END_REASON_TIMEOUT)
+           .SerializeToString(): "no decision ends"}
     for payload, message in bad.items():
         with pytest.raises(Rejected, match=message):
             decode_outcome(payload, "site1")

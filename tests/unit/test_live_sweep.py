@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from aoi3d.cli.live import Measurement, summarise, unpaired_interior_maximum
+from aoi3d.cli.live import Measurement, summarise
+from aoi3d.experiment.optimum import unpaired_interior_maximum
 
 
 def stat(mean: float | None, ci95: float | None) -> dict:
@@ -49,11 +50,12 @@ def test_welch_matches_scipy_on_raw_samples() -> None:
     import numpy as np
     from scipy import stats
 
-    from aoi3d.cli.live import mean_ci95, welch_ci95
+    from aoi3d.stats import mean_ci95, welch_ci95
 
     rng = np.random.default_rng(0)
     a, b = rng.normal(25, 2, 40), rng.normal(24, 1, 25)
     half = welch_ci95(mean_ci95(list(a)), mean_ci95(list(b)))
+    assert welch_ci95(mean_ci95(list(a)).to_dict(), mean_ci95(list(b)).to_dict()) == half
     res = stats.ttest_ind(a, b, equal_var=False)
     lo, hi = res.confidence_interval(0.95)
     assert half == pytest.approx((hi - lo) / 2, rel=1e-9)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from services.supervisor import DEFAULT_PORTS
+from aoi3d.ports import SERVICE_PORTS as DEFAULT_PORTS
 from tests import ports
 
 
@@ -43,3 +43,35 @@ def test_a_slot_with_a_port_in_use_is_stepped_over() -> None:
         s.bind(("127.0.0.1", first + span - 1))
         s.listen()
         assert ports.find_slot(0) >= first + span
+
+
+def test_every_port_comes_from_the_one_table() -> None:
+    """aoi3d/ports.py is the one home: the services' settings, the supervisor, the console's
+    upstreams and the Zenoh defaults read it; the benches' blocks are apart from ``make up``
+    and from each other."""
+    import importlib
+
+    from aoi3d import ports as table
+    from services.console.settings import UPSTREAMS
+    from services.kit.settings import CommonSettings
+    from services.router import RouterSettings
+    from services.supervisor import DEFAULT_PORTS as SUPERVISED
+    from services.supervisor import SERVICES, UpConfig
+
+    for name, port in table.SERVICE_PORTS.items():
+        settings = importlib.import_module(f"services.{name}.settings").Settings
+        assert settings.model_fields["port"].default == port, name
+    assert SUPERVISED is table.SERVICE_PORTS and tuple(table.SERVICE_PORTS) == SERVICES
+    assert {k: v for k, v in table.SERVICE_PORTS.items()
+            if k not in ("console", "recorder")} == UPSTREAMS
+    assert UpConfig().zenoh_port == table.ZENOH_PORT
+    assert CommonSettings().zenoh_connect == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]
+    assert RouterSettings().listen == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]
+    taken: dict[int, str] = {p: "up" for p in table.UP.ports()}
+    for name, block in table.BENCH_BLOCKS.items():
+        for p in block.ports():
+            assert p not in taken, f"bench {name}'s port {p} is also {taken[p]}'s"
+            taken[p] = name
+    assert table.UP.url("trainer", "/status") == "http://127.0.0.1:8104/status"
+    assert table.BENCH_BLOCKS["pipeline"].up_args() == ["--port-offset", "1000",
+                                                        "--zenoh-port", "7547"]

@@ -144,5 +144,12 @@ def ppo_from_json(params: Mapping[str, Any]) -> PPOPolicy:
     return PPOPolicy.from_checkpoint(path, learn=learn)
 
 
-KIND = PolicyKind("ppo", "ppo:<checkpoint>", ppo_from_args, ppo_from_json)
+def ppo_short(spec: str) -> str:
+    """``ppo:<folder>/<file>``, not the checkpoint's whole path (for tables and figures)."""
+    path = Path(spec.strip().split(":", 1)[1] if ":" in spec else "")
+    return f"ppo:{path.parent.name}/{path.name}" if path.parent.name else spec
+
+
+KIND = PolicyKind("ppo", "ppo:<checkpoint>", ppo_from_args, ppo_from_json, family="learned",
+                  short=ppo_short)
 """The ``ppo`` kind, registered by :mod:`aoi3d.policy`."""

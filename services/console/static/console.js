@@ -128,7 +128,7 @@ function drawChannel(s) {
   const busy = (p.workers || []).map((w) => w.busy_fraction === null ? "–" : fmt(w.busy_fraction, 2));
   const lost = Object.values(p.lost || {}).reduce((a, b) => a + b, 0);
   facts($("trainer"), [
-    ["backend", t.backend || "–"], ["training steps / s", fmt(t.steps_per_s, 1)],
+    ["backend", t.backend || "–"], ["worker training steps / s", fmt(t.steps_per_s, 1)],
     ["views", t.n_views ?? "–"], ["render age", s.render ? `${fmt(s.render.age_s, 1)} s` : "–"],
     ["renders", t.renders ?? "–"],
     ["workers", p.workers ? `${p.workers.length}` + (busy.length ? ` (busy ${busy.join(" / ")})` : "") : "–"],

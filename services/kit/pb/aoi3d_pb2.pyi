@@ -12,9 +12,36 @@ class ImageEncoding(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     IMAGE_ENCODING_UNSPECIFIED: _ClassVar[ImageEncoding]
     IMAGE_ENCODING_PNG: _ClassVar[ImageEncoding]
     IMAGE_ENCODING_RAW_RGB8: _ClassVar[ImageEncoding]
+
+class EndReason(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    END_REASON_UNSPECIFIED: _ClassVar[EndReason]
+    END_REASON_SUPERSEDED: _ClassVar[EndReason]
+    END_REASON_WORKER_DIED: _ClassVar[EndReason]
+    END_REASON_TIMEOUT: _ClassVar[EndReason]
+    END_REASON_NOT_DELIVERED: _ClassVar[EndReason]
+    END_REASON_RENDER_FAILED: _ClassVar[EndReason]
+    END_REASON_REFUSED: _ClassVar[EndReason]
+    END_REASON_NOT_RECEIVED: _ClassVar[EndReason]
+    END_REASON_TRUTH_MISSING: _ClassVar[EndReason]
+    END_REASON_RENDER_REJECTED: _ClassVar[EndReason]
+    END_REASON_UNSEEN: _ClassVar[EndReason]
+    END_REASON_EXPIRED: _ClassVar[EndReason]
 IMAGE_ENCODING_UNSPECIFIED: ImageEncoding
 IMAGE_ENCODING_PNG: ImageEncoding
 IMAGE_ENCODING_RAW_RGB8: ImageEncoding
+END_REASON_UNSPECIFIED: EndReason
+END_REASON_SUPERSEDED: EndReason
+END_REASON_WORKER_DIED: EndReason
+END_REASON_TIMEOUT: EndReason
+END_REASON_NOT_DELIVERED: EndReason
+END_REASON_RENDER_FAILED: EndReason
+END_REASON_REFUSED: EndReason
+END_REASON_NOT_RECEIVED: EndReason
+END_REASON_TRUTH_MISSING: EndReason
+END_REASON_RENDER_REJECTED: EndReason
+END_REASON_UNSEEN: EndReason
+END_REASON_EXPIRED: EndReason
 
 class Intrinsics(_message.Message):
     __slots__ = ("fx", "fy", "cx", "cy", "width", "height")
@@ -218,9 +245,9 @@ class Outcome(_message.Message):
     incarnation: int
     site: str
     state: str
-    reason: str
+    reason: EndReason
     detail: str
-    def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[str] = ..., detail: _Optional[str] = ...) -> None: ...
+    def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[_Union[EndReason, str]] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
     __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site")

@@ -1,0 +1,113 @@
+"""What the benches that start a live pipeline share (bench/pipeline.py, scale.py, soak.py,
+chaos.py, online_live.py): starting ``aoi3d up`` on a bench's own ports and stopping it, one
+wait loop, one ``/metrics`` scrape and one Zenoh tap of a run.
+
+The ports come from :data:`aoi3d.ports.BENCH_BLOCKS` (a :class:`aoi3d.ports.PortBlock` per
+bench: its URLs and its ``aoi3d up`` options). A bench imports this module as a sibling
+(``python bench/<name>.py`` puts bench/ first on ``sys.path``); benches import nothing from
+tests/.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # this checkout's aoi3d and services, whatever is installed
+    sys.path.insert(0, str(ROOT))
+
+from aoi3d.ports import PortBlock  # noqa: E402
+
+__all__ = ["ROOT", "Tap", "scrape", "start_up", "stop_up", "wait_until"]
+
+
+def start_up(block: PortBlock, run_id: str, log_dir: Path, args: Sequence[str] = (),
+             *, env: Mapping[str, str] | None = None,
+             stdout: int = subprocess.DEVNULL) -> subprocess.Popen:
+    """``python -m aoi3d up --quiet`` on ``block``'s ports with ``args``, in its own process
+    group (stop it with :func:`stop_up`)."""
+    cmd = [sys.executable, "-m", "aoi3d", "up", "--run-id", run_id, *block.up_args(),
+           "--log-dir", str(log_dir), "--quiet", *args]
+    return subprocess.Popen(cmd, cwd=ROOT, env=None if env is None else dict(env),
+                            stdout=stdout, stderr=subprocess.STDOUT, start_new_session=True)
+
+
+def stop_up(proc: subprocess.Popen, timeout_s: float = 90.0) -> None:
+    """SIGTERM to ``aoi3d up`` (it stops its children), SIGKILL to the group after
+    ``timeout_s``."""
+    if proc.poll() is not None:
+        return
+    proc.send_signal(signal.SIGTERM)
+    try:
+        proc.wait(timeout=timeout_s)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+
+
+def wait_until(what: str, cond: Callable[[], Any], timeout_s: float, *,
+               every_s: float = 0.5, proc: subprocess.Popen | None = None) -> None:
+    """Poll ``cond`` until it is true; ``SystemExit`` naming ``what`` when ``timeout_s``
+    passes or ``proc`` (the pipeline) exits. A poll that raises (the service is not up yet:
+    an HTTP error, a missing key, a half-written file) counts as not yet."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            if cond():
+                return
+        except (OSError, ValueError, KeyError, httpx.HTTPError):
+            pass
+        if proc is not None and proc.poll() is not None:
+            raise SystemExit(f"{what}: the pipeline exited (exit status {proc.returncode})")
+        if time.monotonic() > deadline:
+            raise SystemExit(f"{what}: not within {timeout_s:.0f} s")
+        time.sleep(every_s)
+
+
+def scrape(client: Any, url: str) -> dict[str, float]:
+    """A service's ``/metrics`` as ``{series: value}``: each labelled sample under its full
+    name, plus its metric's sum over labels under the bare name."""
+    out: dict[str, float] = {}
+    for line in client.get(url).text.splitlines():
+        if line.startswith("#") or not line.strip():
+            continue
+        name, value = line.rsplit(" ", 1)
+        out[name] = float(value)
+        base = name.split("{")[0]
+        if base != name:
+            out[base] = out.get(base, 0.0) + float(value)
+    return out
+
+
+class Tap:
+    """A Zenoh client session on ``block``'s router with one subscriber per key expression of
+    ``subscriptions`` (its callback gets each sample); the callbacks share :attr:`lock`."""
+
+    def __init__(self, block: PortBlock, subscriptions: Mapping[str, Callable[[Any], None]],
+                 common: Any = None) -> None:
+        """``common``: the session's :class:`services.kit.settings.CommonSettings` (a TLS
+        router's, say); by default a plain client of ``block``'s router on 127.0.0.1."""
+        import zenoh
+
+        from services.kit.settings import CommonSettings, zenoh_config
+
+        self.lock = threading.Lock()
+        self.session = zenoh.open(zenoh_config(common or CommonSettings(
+            zenoh_connect=[f"tcp/127.0.0.1:{block.zenoh}"])))
+        self.subs = [self.session.declare_subscriber(key, callback)
+                     for key, callback in subscriptions.items()]
+
+    def close(self) -> None:
+        for sub in self.subs:
+            sub.undeclare()
+        self.session.close()
