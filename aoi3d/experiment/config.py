@@ -26,7 +26,13 @@ Model carry-over (``carry``):
   exactly that decision's frames and renders the held-out view. Measured on the rotor scene
   it loses the tradeoff, as ``warm`` does; the live trainer renders with ``fresh``
   (docs/experiments.md, "The live carry"). :mod:`aoi3d.field.carry` is the one
-  implementation of all three modes, used here and by the trainer service.
+  implementation of these modes, used here and by the trainer service.
+- ``stream`` — the streaming warm start (issue 33): each scored decision starts from the
+  previous scored decision's model and trains ``render_steps`` steps on its own frames, a
+  share of each batch drawn from the pixels that changed since (:class:`aoi3d.field.carry.
+  WarmStart`); the first scored decision, or one whose previous model is more than
+  ``WarmStart.max_gap_ms`` older, starts cold with ``steps_per_epoch`` steps. Like
+  ``fresh``, unscored decisions cost nothing.
 
 Compute is fixed per decision, whatever the policy selects; an empty selection trains
 nothing (as in the live trainer) and the render shows the model as it is (fresh: untrained).
@@ -134,8 +140,8 @@ class EpisodeConfig:
             _int_at_least("n_cameras", self.n_cameras, 1)
         check_carry(self.carry, self.steps_per_epoch if self.carry == "fresh"
                     else self.render_steps)
-        if self.carry != "fork" and self.render_steps:
-            raise ValueError(f"render_steps applies to carry 'fork' only (carry "
+        if self.carry not in ("fork", "stream") and self.render_steps:
+            raise ValueError(f"render_steps applies to carry 'fork' and 'stream' only (carry "
                              f"{self.carry!r} got render_steps={self.render_steps})")
         if self.camera_phase not in CAMERA_PHASES:
             raise ValueError(

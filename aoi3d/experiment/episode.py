@@ -40,7 +40,7 @@ from PIL import Image
 from aoi3d.channel import ChannelRun, simulate
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
-from aoi3d.field.carry import Reconstruction
+from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
 from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
@@ -246,7 +246,7 @@ def plan_episode(
     decisions = []
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
-        train = scored or cfg.carry != "fresh"  # warm and fork train at every decision
+        train = scored or cfg.carry in ("warm", "fork")  # they train at every decision
         sel = decide(pol, t, links.newest_ms)
         decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
@@ -276,7 +276,7 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "dataset": dataset_fingerprint(dataset),
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
-        **({"render_steps": cfg.render_steps} if cfg.carry == "fork" else {}),
+        **({"render_steps": cfg.render_steps} if cfg.carry in ("fork", "stream") else {}),
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
                                        *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
                                          if cfg.reward.dynamic else [])],
@@ -441,7 +441,8 @@ def run_plan(
     started = time.perf_counter()
     trainer = FieldTrainer(field_config(cfg.backend, **cfg.field), dataset.aabb,
                            device=cfg.device, seed=plan.seed)
-    rec = Reconstruction(trainer, cfg.carry, _render_budget(cfg))
+    rec = Reconstruction(trainer, cfg.carry, _render_budget(cfg),
+                         WarmStart(cold_steps=cfg.steps_per_epoch))
     frames = _Frames(dataset, plan.scene_offset_ms)
     heldout = dataset.cameras[dataset.heldout_id]
     epochs: list[EpochScore] = []
@@ -454,7 +455,7 @@ def run_plan(
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
-        rendered = rec.render_decision(heldout)
+        rendered = rec.render_decision(heldout, time_ms=d.eval_ms)
         if rendered.render_steps:
             loss = rendered.loss
         image = rendered.image
@@ -504,17 +505,22 @@ def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str 
 def _render_budget(cfg: EpisodeConfig) -> int:
     """Steps spent on a scored decision's own frames: ``fresh`` trains each scored decision
     ``steps_per_epoch`` steps from scratch, ``fork`` a copy of the warm model
-    ``render_steps`` steps, ``warm`` none."""
-    return {"fresh": cfg.steps_per_epoch, "fork": cfg.render_steps, "warm": 0}[cfg.carry]
+    ``render_steps`` steps, ``stream`` ``render_steps`` from the previous one's model (its
+    cold starts ``steps_per_epoch``), ``warm`` none."""
+    return {"fresh": cfg.steps_per_epoch, "fork": cfg.render_steps, "stream": cfg.render_steps,
+            "warm": 0}[cfg.carry]
 
 
 def _total_steps(plan: EpisodePlan) -> int:
     """Training steps an episode takes (background and per scored decision)."""
     cfg = plan.config
-    background = 0 if cfg.carry == "fresh" else cfg.steps_per_epoch
+    background = cfg.steps_per_epoch if cfg.carry in ("warm", "fork") else 0
     per_render = _render_budget(cfg)
-    return sum((background if d.train else 0) + (per_render if d.scored else 0)
-               for d in plan.decisions if d.cameras)
+    total = sum((background if d.train else 0) + (per_render if d.scored else 0)
+                for d in plan.decisions if d.cameras)
+    if cfg.carry == "stream" and any(d.scored and d.cameras for d in plan.decisions):
+        total += cfg.steps_per_epoch - cfg.render_steps  # the first, cold, start (at least)
+    return total
 
 
 def _png(image: np.ndarray | None) -> bytes:

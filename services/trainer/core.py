@@ -49,6 +49,10 @@ class RenderSettings:
     render_steps: int
     seed: int
     model_epoch: int = 0
+    cold_steps: int = 100
+    """stream: the budget of a cold start."""
+    warm_max_gap_ms: float = 500.0
+    """stream: a model whose last decision is further away (scene ms) starts cold."""
 
     def __post_init__(self) -> None:
         check_backend(self.backend)
@@ -226,6 +230,7 @@ class TrainerCore:
         pose, intrinsics = camera_to_pb(self.heldout)
         job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
                      render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
+                     cold_steps=r.cold_steps, warm_max_gap_ms=r.warm_max_gap_ms,
                      pose=pose, intrinsics=intrinsics, aabb=self._aabb,
                      assigned_unix_s=now_s, site=self.site)
         for ref in msg.selected:

@@ -59,7 +59,8 @@ class TrainerWorker:
         size = sizes.pop() if len(sizes) == 1 else None
         self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
         self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
-                                     settings.seed)
+                                     settings.seed, cold_steps=settings.cold_steps,
+                                     warm_max_gap_ms=settings.warm_max_gap_ms)
         # the sites film the same scene (at their own phases): one camera and box for all
         self.cores = {site: TrainerCore(
             camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,

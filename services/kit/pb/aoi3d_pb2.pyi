@@ -137,7 +137,7 @@ class Render(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site")
+    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site", "cold_steps", "warm_max_gap_ms")
     DECISION_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     N_MISSING_FIELD_NUMBER: _ClassVar[int]
@@ -151,6 +151,8 @@ class Job(_message.Message):
     AABB_FIELD_NUMBER: _ClassVar[int]
     ASSIGNED_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     SITE_FIELD_NUMBER: _ClassVar[int]
+    COLD_STEPS_FIELD_NUMBER: _ClassVar[int]
+    WARM_MAX_GAP_MS_FIELD_NUMBER: _ClassVar[int]
     decision: Decision
     frames: _containers.RepeatedCompositeFieldContainer[Frame]
     n_missing: int
@@ -164,7 +166,9 @@ class Job(_message.Message):
     aabb: _containers.RepeatedScalarFieldContainer[float]
     assigned_unix_s: float
     site: str
-    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ..., site: _Optional[str] = ...) -> None: ...
+    cold_steps: int
+    warm_max_gap_ms: float
+    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ..., site: _Optional[str] = ..., cold_steps: _Optional[int] = ..., warm_max_gap_ms: _Optional[float] = ...) -> None: ...
 
 class WorkRequest(_message.Message):
     __slots__ = ("worker_id", "done_decision_id", "done_incarnation", "done_rendered", "done_reason", "busy_s", "jobs", "max_wait_s", "device", "pid", "host", "done_site")
