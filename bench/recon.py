@@ -74,6 +74,10 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--reset", action="store_true",
                         help="warm: reset the cells the change carve marks (a candidate that "
                              "lost, docs/streaming.md)")
+    parser.add_argument("--dilation", type=int, default=WarmStart.dilation_px,
+                        help="warm: dilation of the change masks, pixels")
+    parser.add_argument("--lr-scale", type=float, default=WarmStart.lr_scale,
+                        help="warm: learning rates of a warm start times this")
     parser.add_argument("--no-hold", action="store_true",
                         help="warm: let the carried model's schedule run on (no hold)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
@@ -130,7 +134,8 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(str(err))
     trainer = FieldTrainer(field_config(args.backend), ds.aabb, device=device, seed=0)
     warm_start = WarmStart(cold_steps=args.cold_steps,
-                           reset=args.reset, focus=args.focus, hold=not args.no_hold)
+                           reset=args.reset, focus=args.focus, hold=not args.no_hold,
+                           dilation_px=args.dilation, lr_scale=args.lr_scale)
     rec = Reconstruction(trainer, "stream", args.steps, warm_start)
     seconds, cpu_seconds, scores, dynamic, at_times, cold_seconds = [], [], [], [], [], []
     for i, t0 in enumerate(sequence):
@@ -179,7 +184,8 @@ def main(argv: list[str] | None = None) -> None:
             "psnr_dynamic_db_at_times": round(float(np.mean([b for _, b in at_times])), 3),
             "cold_seconds": round(cold_seconds[0], 4), "cold_steps": args.cold_steps,
             "gap_frames": args.gap, "focus": args.focus, "reset": args.reset,
-            "hold": not args.no_hold,
+            "hold": not args.no_hold, "dilation_px": args.dilation,
+            "lr_scale": args.lr_scale,
         })
     if args.json:
         print(json.dumps(result))

@@ -73,9 +73,10 @@ class WarmStart:
     moments to 0); ``focus`` — that share of each batch's rays comes from the changed pixels;
     ``hold`` — the carried model's step counter is set back to ``cold_steps − render_steps``
     first, so that its schedule (coarse-to-fine stage, ray step, empty-space skipping) stays
-    the one a fresh reconstruction ends on. The change of a view: its pixels whose colour
-    moved by more than ``change_tau`` since the camera's last frame this model trained on,
-    dilated by ``dilation_px`` (:func:`aoi3d.quality.dynamic_mask`).
+    the one a fresh reconstruction ends on; ``lr_scale`` multiplies the learning rates of a
+    warm start's steps. The change of a view: its pixels whose colour moved by more than
+    ``change_tau`` since the camera's last frame this model trained on, dilated by
+    ``dilation_px`` (:func:`aoi3d.quality.dynamic_mask`).
     """
 
     cold_steps: int = 100
@@ -85,6 +86,7 @@ class WarmStart:
     hold: bool = True
     change_tau: float = 8.0 / 255.0
     dilation_px: int = 1
+    lr_scale: float = 1.0
 
     def __post_init__(self) -> None:
         c = self.cold_steps
@@ -96,6 +98,8 @@ class WarmStart:
             raise ValueError(f"focus must be in [0, 1], got {self.focus}")
         if not 0.0 <= self.change_tau < 1.0:
             raise ValueError(f"change_tau must be in [0, 1), got {self.change_tau}")
+        if not (math.isfinite(self.lr_scale) and self.lr_scale > 0):
+            raise ValueError(f"lr_scale must be a finite number > 0, got {self.lr_scale}")
         d = self.dilation_px
         if isinstance(d, bool) or not isinstance(d, int) or d < 0:
             raise ValueError(f"dilation_px must be an int >= 0, got {d!r}")
@@ -262,7 +266,13 @@ class Reconstruction:
             model.set_views(views)
             self._frames.clear()
             budget = ws.cold_steps
-        loss = model.step(budget) if views else math.nan
+        if not views:
+            loss = math.nan
+        elif warm and ws.lr_scale != 1.0:
+            with model.lr_scaled(ws.lr_scale):
+                loss = model.step(budget)
+        else:
+            loss = model.step(budget)
         image = model.render(camera)
         for v in views:
             self._frames[v.camera] = _unit(v.image)

@@ -31,7 +31,8 @@ from __future__ import annotations
 import copy
 import math
 from collections import OrderedDict
-from collections.abc import Callable, Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -238,6 +239,22 @@ class FieldTrainer:
                 state["exp_avg_sq"].index_fill_(0, rows, 0.0)
             total += int(rows.numel())
         return total
+
+    @contextmanager
+    def lr_scaled(self, factor: float) -> Iterator[None]:
+        """Inside: every parameter group's learning rate times ``factor`` (the optimizer's
+        state kept); after: as before."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"factor must be a finite number > 0, got {factor}")
+        groups = self._optimizer.param_groups
+        saved = [g["lr"] for g in groups]
+        for g in groups:
+            g["lr"] *= factor
+        try:
+            yield
+        finally:
+            for g, lr in zip(self._optimizer.param_groups, saved, strict=False):
+                g["lr"] = lr
 
     def set_focus(self, pixels: torch.Tensor | None, fraction: float) -> None:
         """Draw ``fraction`` of each batch's rays from ``pixels`` (int64 indices into the
