@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 figures science clean help \
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 figures science docs clean help \
         lock wheelhouse secrets images compose-test
 
 help:  ## list the targets
@@ -77,8 +77,12 @@ bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (
 	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --dataset data/turbine-rotor-192x144 \
 	    --out bench/results/scale-192x144.json
 
-science: install  ## re-check the README's claims on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
+science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) bench/science.py $(SCIENCE_ARGS)
+
+docs: install  ## regenerate the generated pages: docs/measurements.md from bench/results (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)
+	$(PY) bench/docs.py
+	$(PY) -m services.configdoc --update
 
 figures: install  ## the PPO training figure from scratch, then `make science` (the experiment figures on unseen seeds) into docs/figures/ (about 28 min)
 	rm -rf runs/ppo/figures

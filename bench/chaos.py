@@ -23,7 +23,7 @@ after ``AOI3D_METRICS_LEDGER_OPEN_S``, 30 s here), and the run is judged:
   with a reason, or open): 0 when every decision is accounted for;
 - ``all_up_at_end``: every service answers /healthz and every worker is in the pool.
 
-    python bench/chaos.py --minutes 10 --json     # the README's run
+    python bench/chaos.py --minutes 10 --json     # docs/measurements.md's run
     python bench/chaos.py --minutes 2             # a quick look
 
 Exit status 1 when ``unaccounted`` or ``stalls_over_15s`` is not 0 or a process is down.

@@ -1,7 +1,8 @@
 """The configuration reference: every environment variable the processes read.
 
-``python -m services.configdoc`` prints it as a Markdown table; the README embeds it
-between markers and a test fails when the two drift apart.
+``python -m services.configdoc`` prints it as a Markdown table; docs/configuration.md embeds
+it between markers (``--update`` rewrites it there) and a test fails when the two drift
+apart.
 """
 
 from __future__ import annotations
@@ -72,13 +73,18 @@ def markdown() -> str:
     return "\n".join(rows)
 
 
-def readme_section(readme: str) -> str:
-    start, end = readme.index(BEGIN) + len(BEGIN), readme.index(END)
-    return readme[start:end].strip()
+#: The page that embeds the table.
+PAGE = Path(__file__).resolve().parents[1] / "docs" / "configuration.md"
 
 
-def update_readme(path: Path) -> bool:
-    """Rewrite the README's configuration table; True when it changed."""
+def embedded(page: str) -> str:
+    """The table a page holds between the markers."""
+    start, end = page.index(BEGIN) + len(BEGIN), page.index(END)
+    return page[start:end].strip()
+
+
+def update(path: Path = PAGE) -> bool:
+    """Rewrite the page's configuration table; True when it changed."""
     text = path.read_text()
     start, end = text.index(BEGIN) + len(BEGIN), text.index(END)
     new = text[:start] + "\n" + markdown() + "\n" + text[end:]
@@ -91,7 +97,6 @@ if __name__ == "__main__":
     import sys
 
     if sys.argv[1:] == ["--update"]:
-        readme = Path(__file__).resolve().parents[1] / "README.md"
-        print("README updated" if update_readme(readme) else "README already current")
+        print(f"{PAGE} updated" if update(PAGE) else f"{PAGE} already current")
     else:
         print(markdown())

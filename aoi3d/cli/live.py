@@ -496,7 +496,7 @@ def sweep(
         help="Overlay the virtual-clock curve (same scene, channel, carry, budget).")] = True,
     sim_seeds: Annotated[int, typer.Option(
         min=1, help="Virtual-clock seeds per policy (4 scored renders each; 4 seeds proved "
-                    "too few to compare with a live run, see the README).")] = 16,
+                    "too few to compare with a live run, see docs/research.md).")] = 16,
     sim_seed_offset: Annotated[int, typer.Option(
         min=0, help="First virtual-clock seed (default: away from the seeds 0..9 the "
                     "experiments were developed on).")] = 1000,

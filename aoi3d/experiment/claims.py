@@ -1,4 +1,4 @@
-"""The README's scientific claims, each a test on the results of the experiment commands.
+"""The scientific claims of docs/research.md, each a test on the results of the experiment commands.
 
 Every claim is stated here, before any run, as a function of the ``results.json`` (or
 ``eval.json``) the commands write; every one uses the optimum criterion of

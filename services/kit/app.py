@@ -189,8 +189,8 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
 
     if settings.host not in LOOPBACK and settings.common.token() is None:
         log.warning("the REST API listens on %s without a control token: anyone who can reach "
-                    "it can change the pipeline; set AOI3D_CONTROL_TOKEN (README, 'Reliability "
-                    "and security')",
+                    "it can change the pipeline; set AOI3D_CONTROL_TOKEN (docs/operations.md, "
+                    "'Reliability and security')",
                     settings.host)
 
     uvicorn.run(app, host=settings.host, port=settings.port, log_level="warning",

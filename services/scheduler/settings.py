@@ -25,8 +25,8 @@ class Settings(ServiceSettings):
         "mat:70", description="Initial selection policy spec: all | mat:<mat_ms> | "
                               "freshest:<k> | wait:<ms> | ppo:<checkpoint> (deterministic, not "
                               "learning; `PUT /policy` with learn=true learns online). mat:70 "
-                              "is the live optimum on the default scene (README, 'The "
-                              "tradeoff, live').",
+                              "is the live optimum on the default scene (docs/research.md, "
+                              "'The tradeoff, live').",
         examples=["mat:70", "all", "freshest:6", "ppo:models/ppo/quick/final.pt"])
     inbox_size: int = Field(
         1024, ge=1, le=100_000,

@@ -38,7 +38,8 @@ PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
 
-# The series each service documents (README, "Metrics"); every one must be exposed.
+# The series each service documents (docs/operations.md, "Metrics (Prometheus)"); every one
+# must be exposed.
 DOCUMENTED_SERIES = {
     "camera": ["aoi3d_frames_generated_total", "aoi3d_camera_ticks_skipped_total"],
     "network": ["aoi3d_frames_offered_total", "aoi3d_frames_dropped_total",

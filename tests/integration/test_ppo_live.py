@@ -56,7 +56,8 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1"]
-    # control locked with a token, checkpoints in the test's folder (README, Security)
+    # control locked with a token, checkpoints in the test's folder (docs/operations.md,
+    # "Reliability and security")
     env = dict(os.environ, AOI3D_SCHEDULER_POLICY="all", AOI3D_SCHEDULER_LEARN_BATCH_SIZE="2",
                AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
                AOI3D_CONTROL_TOKEN=TOKEN, AOI3D_FILES_ROOTS=str(tmp_path))

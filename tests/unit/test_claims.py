@@ -1,5 +1,5 @@
-"""The README's claims (aoi3d.experiment.claims) hold on data built to satisfy them and fail
-on data built to break them."""
+"""The experiments' claims (docs/research.md; aoi3d.experiment.claims) hold on data built to
+satisfy them and fail on data built to break them."""
 
 from __future__ import annotations
 
