@@ -86,7 +86,7 @@ class WarmStart:
     hold: bool = True
     change_tau: float = 8.0 / 255.0
     dilation_px: int = 1
-    lr_scale: float = 1.0
+    lr_scale: float = 2.0
 
     def __post_init__(self) -> None:
         c = self.cold_steps
