@@ -213,7 +213,7 @@ class MetricsCore:
             raise Rejected("unscorable", str(err)) from err
         dyn = q.dynamic
         display_ms = render.ready_ms if render.HasField("ready_ms") else now_ms
-        shown, shown_truth = self._display_score(pred, display_ms, truth)
+        shown, shown_truth = self._display_score(pred, display_ms, truth, q)
         msg = pb.Quality(decision_id=render.decision_id,
                          decision_incarnation=render.decision_incarnation,
                          time_ms=render.time_ms,
@@ -257,15 +257,19 @@ class MetricsCore:
                    "empty_mask" if dyn.psnr_db is None else None)
         return Scored(msg, record, missing)
 
-    def _display_score(self, pred: np.ndarray, display_ms: float, truth: TruthFrame
+    def _display_score(self, pred: np.ndarray, display_ms: float, truth: TruthFrame,
+                       at_decision: QualityScore
                        ) -> tuple[QualityScore | None, TruthFrame | None]:
         """The render against the truth at ``display_ms`` (the newest generated in
-        [display − C, display]); the decision-time pairing's truth when that is the same
-        frame. (None, None) when there is none, or it cannot be scored."""
+        [display − C, display]): ``at_decision`` again when that is the decision-time
+        pairing's frame (not scored twice). (None, None) when there is none, or it cannot be
+        scored."""
         try:
             shown = self.ring.pair(display_ms, self.period_ms)
         except Rejected:
             return None, None
+        if shown.generation_ms == truth.generation_ms:
+            return at_decision, shown
         try:
             gt = decode_image(shown.image)
             if gt.shape != pred.shape:
