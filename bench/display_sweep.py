@@ -12,7 +12,7 @@ the display-time optimum and the best Γ at decision time, both read at display 
     python bench/display_sweep.py                                  # the default grid
     python bench/display_sweep.py --gammas 40,70,130 --steps 25,100 --seeds 2
 
-Results: ``bench/results/display-sweep/`` (``cells.csv``, ``results.json``,
+Results: ``bench/results/streaming/display-sweep/`` (``cells.csv``, ``results.json``,
 ``display_sweep.png``); episodes are cached under ``runs/display-sweep-cache``.
 """
 
@@ -48,7 +48,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--time-scale", type=float, default=0.1,
                     help="the live run's time scale the compute is charged at")
     ap.add_argument("--workers", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "display-sweep")
+    ap.add_argument("--out", type=Path,
+                    default=ROOT / "bench" / "results" / "streaming" / "display-sweep")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "display-sweep-cache")
     args = ap.parse_args(argv)
     base = get_preset("quick").episode.with_(time_scale=args.time_scale, carry="fresh")

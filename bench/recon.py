@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> None:
                         help="warm: share of each batch drawn from the changed pixels")
     parser.add_argument("--reset", action="store_true",
                         help="warm: reset the cells the change carve marks (a candidate that "
-                             "lost, docs/streaming.md)")
+                             "lost: docs/performance.md, Streaming reconstruction)")
     parser.add_argument("--dilation", type=int, default=WarmStart.dilation_px,
                         help="warm: dilation of the change masks, pixels")
     parser.add_argument("--lr-scale", type=float, default=WarmStart.lr_scale,

@@ -79,7 +79,8 @@ def auto_workers(cores: int | None = None) -> int:
     0.1 (bench/results/scale.json, ``cores_by_process``), about 3× that at 0.3. On 2 cores
     two workers beside them rendered 3.29 of 3.33 decisions/s where one rendered 2.01, so
     both cores go to workers there; from 3 cores on, a core is kept for the services, whose
-    share grows with the renders they score and dispatch (docs/streaming.md)."""
+    share grows with the renders they score and dispatch (docs/performance.md, "Streaming
+    reconstruction")."""
     if cores is None:
         try:
             cores = len(os.sched_getaffinity(0))

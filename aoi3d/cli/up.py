@@ -59,7 +59,8 @@ def up(
         help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
              "each): each renders the newest decision no other worker took; 0 to 64, or auto "
              "(default): every core up to 2, one core left to the services beyond "
-             "(docs/streaming.md). More can join from anywhere that reaches the router (see "
+             "(docs/performance.md, Streaming reconstruction). More can join from anywhere "
+             "that reaches the router (see "
              "GET /workers on the trainer).")] = "auto",
     zenoh_port: Annotated[int, typer.Option(
         min=1, max=65535, help="TCP port of the local Zenoh router.")] = 7447,

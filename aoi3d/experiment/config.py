@@ -82,7 +82,8 @@ against 27.8); at 18 rpm one frame of age already cost 7 dB, so even the freshes
 too stale to trade against. Measured with ``bench/staleness.py``; See docs/experiments.md."""
 COMPUTE_FIXED_MS = 16.0
 """Wall ms of a reconstruction besides its steps (views, render of the held-out view), one
-CPU core, the grid backend at 96×72: the cost model's intercept (docs/streaming.md)."""
+CPU core, the grid backend at 96×72: the cost model's intercept (docs/performance.md,
+"Streaming reconstruction")."""
 COMPUTE_STEP_MS = 3.4
 """Wall ms per training step (1024 rays, the grid, one core): the cost model's slope."""
 EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
