@@ -84,6 +84,12 @@ def main(argv: list[str] | None = None) -> None:
         mean, half, n = mean_ci95(diff)
         return {"mean": mean, "ci95": half, "n": n}
 
+    for r in rows:  # every cell against the display-time optimum, paired by seed
+        r["psnr_display_db_by_seed"] = per_seed(r, "psnr_display_db")
+        if r is not best_display:
+            diff = paired(best_display, r, "psnr_display_db")
+            r["best_display_minus_this_db"], r["best_display_minus_this_ci95"] = (
+                diff["mean"], diff["ci95"])
     live = [r for r in rows if r["steps"] == 100]
     best_live_decision = max(live, key=lambda r: r["psnr_db"]) if live else None
     doc = {
@@ -104,7 +110,8 @@ def main(argv: list[str] | None = None) -> None:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     with open(args.out / "cells.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer = csv.DictWriter(fh, fieldnames=list(rows[1] if len(rows) > 1 else rows[0]),
+                                extrasaction="ignore")
         writer.writeheader()
         writer.writerows(rows)
     (args.out / "results.json").write_text(json.dumps(doc, indent=2) + "\n")
