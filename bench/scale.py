@@ -240,6 +240,9 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,
         "fraction_rendered": rendered / taken if taken else None,
+        "fraction_warm_start": (delta("trainer", "aoi3d_renders_warm_start_total")
+                                / delta("trainer", "aoi3d_renders_total")
+                                if delta("trainer", "aoi3d_renders_total") else None),
         "scored_per_s": delta("metrics", "aoi3d_quality_total") / dt,
         "wait_s_mean": (delta("trainer", "aoi3d_pool_wait_seconds_sum") / wait_n
                         if wait_n else None),

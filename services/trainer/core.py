@@ -135,6 +135,8 @@ class TrainerCore:
         self.loss: float | None = None
         self.n_views = 0
         self.last_render_steps = 0
+        self.warm_starts = 0
+        """Renders whose worker started from its previous model (the stream carry)."""
         self.render_lag_ms = math.nan
         self.frames_age_ms = math.nan
 
@@ -273,6 +275,7 @@ class TrainerCore:
 
     def _count_render(self, msg: pb.Render, now_ms: float) -> None:
         self.renders_seen += 1
+        self.warm_starts += int(msg.warm_start)
         self.steps_total += int(msg.render_steps)
         self.loss = float(msg.loss) if math.isfinite(msg.loss) and msg.render_steps else None
         self.n_views = int(msg.n_views)
