@@ -5,11 +5,11 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 figures science docs clean help \
-        lock wheelhouse secrets images compose-test
+.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 bench-multihost figures science docs clean help \
+        lock wheelhouse secrets images compose-test monitoring k8s
 
 help:  ## list the targets
-	@grep -E '^[a-z-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
+	@grep -E '^[a-z0-9-]+:.*##' $(MAKEFILE_LIST) | sed 's/:.*## /\t/'
 
 install: $(STAMP)  ## create the venv (if missing), install aoi3d editable with dev extras, fetch the LPIPS weights
 
@@ -59,6 +59,10 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(PY) bench/chaos.py --minutes 10
 	$(PY) bench/soak.py --minutes 60
 
+bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)
+	eval "$$(deploy/engine.sh start)" && deploy/build-images.sh && \
+	    $(PY) bench/chaos.py --target multihost --minutes 10 --json
+
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
@@ -101,6 +105,15 @@ wheelhouse:  ## fill deploy/wheelhouse/ with the locked files, for `docker build
 
 secrets:  ## control token, Zenoh and Grafana passwords for compose (deploy/secrets/, kept if present)
 	deploy/secrets.sh
+
+monitoring: install  ## regenerate the Grafana dashboard and the Prometheus rules from deploy/monitoring.py (their one source; deploy/k8s's copy too)
+	$(PY) deploy/monitoring.py
+	$(PY) deploy/k8s/generate.py
+
+k8s: install  ## regenerate deploy/k8s/base/generated (each container's environment from compose, Prometheus's files) and render every overlay
+	$(PY) deploy/k8s/generate.py
+	@for overlay in deploy/k8s/overlays/*/; do \
+	    kubectl kustomize "$$overlay" >/dev/null && echo "rendered $$overlay"; done
 
 images:  ## build the compose images without a registry (debootstrapped base; needs DOCKER_HOST: deploy/engine.sh start)
 	deploy/build-images.sh

@@ -19,10 +19,10 @@ from pathlib import Path
 
 from aoi3d.atomic import atomic_path  # stdlib only, as this module
 
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics", "console")
+SERVICES = ("camera", "network", "scheduler", "trainer", "metrics", "console", "recorder")
 """The services ``aoi3d up`` runs, in start order (``python -m services.<name>``)."""
 DEFAULT_PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-                 "metrics": 8105, "console": 8106}
+                 "metrics": 8105, "console": 8106, "recorder": 8107}
 """Each service's REST port before ``--port-offset``."""
 assert set(DEFAULT_PORTS) == set(SERVICES)
 WORKER = "recon"

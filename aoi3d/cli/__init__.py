@@ -17,7 +17,7 @@ import click
 import typer
 from typer.core import TyperGroup
 
-from aoi3d.cli import channel, experiment, field, live, ppo, scene, up
+from aoi3d.cli import channel, experiment, field, live, ppo, replay, scene, up
 from aoi3d.cli.common import fail
 from aoi3d.scene.dataset import DatasetError
 
@@ -48,6 +48,9 @@ app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO 
 app.add_typer(live.app, name="live", help="Drive and measure the running pipeline.")
 app.command("up", help=inspect.getdoc(up.up),
             short_help="Run the Zenoh router and the services locally until Ctrl-C.")(up.up)
+app.command("replay", help=inspect.getdoc(replay.replay),
+            short_help="Re-run a recording on the virtual clock under any policy.")(
+    replay.replay)
 
 
 def main() -> None:

@@ -28,6 +28,7 @@ HINTS = {
     "trainer": "GET /status, /render.png",
     "metrics": "GET /quality?limit=5",
     "console": "open / in a browser",
+    "recorder": "GET /recording, POST /recording/start",
 }
 """What to try first on each service (a service without a hint shows its /docs)."""
 
@@ -77,6 +78,14 @@ def up(
         help="Stop after this many seconds (default: run until Ctrl-C).")] = None,
     quiet: Annotated[bool, typer.Option(
         help="Do not echo the services' logs to the console.")] = False,
+    record: Annotated[Path | None, typer.Option(
+        help="Record the run from the start into this MCAP file (docs/recording.md): every "
+             "delivered and truth frame as a Foxglove image with its calibration and pose, "
+             "decisions, renders, Quality and outcomes. `aoi3d replay FILE` re-runs it. "
+             "Without it the recorder idles until POST /recording/start.")] = None,
+    record_max_mb: Annotated[float, typer.Option(
+        min=0, help="Size cap of one recording segment in MiB (0: none); the recording goes "
+                    "on in <stem>.part2.mcap, part3 … beside it.")] = 0.0,
 ) -> None:
     """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C. The
     ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
@@ -106,6 +115,20 @@ def up(
                    sites=sites,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
                    duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
+    if record is not None:
+        if record.is_dir():
+            raise typer.BadParameter(f"{record} is a folder; give a file such as "
+                                     f"{record / 'run.mcap'}", param_hint="'--record'")
+        import os
+
+        try:
+            record.resolve().parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            fail(f"cannot make the folder of --record {record}: {err}")
+        if not os.access(record.resolve().parent, os.W_OK):
+            fail(f"cannot write --record {record}: its folder is not writable")
+        cfg.extra_env.update({"AOI3D_RECORDER_PATH": str(record.resolve()),
+                              "AOI3D_RECORDER_MAX_BYTES": str(int(record_max_mb * 2**20))})
     taken = taken_ports(cfg)
     if taken:
         name, port = taken[0]

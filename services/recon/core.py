@@ -133,7 +133,8 @@ class ReconCore:
             pose=job.pose, intrinsics=job.intrinsics, image=encode_png(rendered.image),
             training_step=rendered.steps, n_views=rendered.n_views, backend=job.backend,
             frame_generation_ms=gens, carry=rec.carry, render_steps=rendered.render_steps,
-            worker_id=self.worker_id, site=job.site, warm_start=rendered.warm,
+            worker_id=self.worker_id, site=job.site, seed=job.seed, aabb=list(job.aabb),
+            warm_start=rendered.warm,
             loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
         return Outcome(render, rendered, rejected)
 

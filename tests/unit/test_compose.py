@@ -834,7 +834,11 @@ def dashboard_problems(dashboard: dict[str, Any], metrics: dict[str, set[str]],
     for expr in queries:
         names = set(re.findall(r"(?<![\w:])aoi3d_[A-Za-z0-9_]+", expr))
         names |= {n for n in PROMETHEUS_BUILTIN_METRICS if re.search(rf"(?<![\w:]){n}\{{", expr)}
-        if not names:
+        records = set(re.findall(r"(?<![\w:])aoi3d:[A-Za-z0-9_:]+", expr))
+        for name in sorted(records - recorded_series()):
+            problems.append(f"{name} is not a recording rule of deploy/prometheus/rules/ "
+                            f"(query: {expr})")
+        if not names and not records:
             problems.append(f"query names no aoi3d metric: {expr}")
         for name in sorted(names - set(metrics) - PROMETHEUS_BUILTIN_METRICS):
             problems.append(f"{name} is not defined in services/ (query: {expr})")
@@ -853,6 +857,12 @@ def dashboard_problems(dashboard: dict[str, Any], metrics: dict[str, set[str]],
                     problems.append(f"panel {panel.get('title')!r}: legend uses unknown "
                                     f"label {label!r}")
     return problems
+
+
+def recorded_series() -> set[str]:
+    """The series the recording rules of deploy/prometheus/rules/ write (``aoi3d:…``)."""
+    return {r["record"] for f in sorted((PROMETHEUS_DIR / "rules").glob("*.yml"))
+            for g in _yaml(f)["groups"] for r in g["rules"] if "record" in r}
 
 
 def scrape_labels(prom: dict[str, Any]) -> set[str]:

@@ -1,0 +1,1 @@
+"""The recorder service: every run on record, as MCAP (docs/recording.md)."""

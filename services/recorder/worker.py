@@ -1,0 +1,164 @@
+"""The recorder worker: the runtime of :class:`services.recorder.core.Recording`.
+
+It subscribes the run's recorded keys of every site (deliveries, truth frames, decisions,
+renders, quality, outcomes) once, at start; while no recording is open the handlers drop what
+comes (one flag read). While one is open they only enqueue (key, payload, receipt time) into
+a bounded inbox, and one writing thread hands them to the core. A write that fails (a full
+disk) ends the recording with its error — the recorder, and with it the pipeline, goes on.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from pathlib import Path
+
+from prometheus_client import CollectorRegistry, Counter, Gauge
+
+from services.kit.bus import Bus, Inbox
+from services.kit.keys import Keys
+from services.kit.observe import Rejected, Rejections
+from services.kit.runtime import Loops
+from services.recorder.core import Recording, RecordingStatus
+
+log = logging.getLogger(__name__)
+
+_POLL_S = 0.1
+RECORDED = ("edge/*/frame", "truth/frame", "decision", "render", "quality", "outcome")
+"""The keys recorded, under ``aoi3d/<run>/<site>/`` of every site."""
+
+
+class RecordingError(ValueError):
+    """A start or stop that cannot be done (already recording, nothing to stop)."""
+
+
+class RecorderWorker:
+    def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
+                 inbox_size: int = 4096, metadata: dict[str, str] | None = None,
+                 chunk_bytes: int = 1 << 20, compression: str = "zstd") -> None:
+        self._bus = bus
+        self._root = Keys(run_id, "*").root
+        self._metadata = dict(metadata or {})
+        self._chunk_bytes = chunk_bytes
+        self._compression = compression
+        self._lock = threading.Lock()  # guards _recording and _last
+        self._recording: Recording | None = None
+        self._last: RecordingStatus | None = None
+        self._on = False  # read by the bus handlers without the lock
+        self._inbox = Inbox(inbox_size, on_drop=self._dropped)
+        self._loops = Loops("recorder")
+        self._loops.forever("writer", self._step)
+        self.rejections = Rejections(registry)
+        self._m_messages = Counter("aoi3d_recorder_messages", "Bus messages recorded.",
+                                   registry=registry)
+        self._m_dropped = Counter("aoi3d_recorder_dropped",
+                                  "Bus messages not recorded while recording (inbox full).",
+                                  registry=registry)
+        self._m_bytes = Gauge("aoi3d_recorder_bytes", "Bytes written by the recording in force "
+                                                      "(0 when idle).", registry=registry)
+        self._m_state = Gauge("aoi3d_recorder_recording",
+                              "1 while a recording is open, else 0.", registry=registry)
+
+    # ------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        for suffix in RECORDED:
+            key = f"{self._root}/{suffix}"
+            self._bus.subscribe(key, self._on_message)
+        self._loops.start()
+
+    def stop(self) -> None:
+        """Stop the writing thread, write what was received before, finish the file."""
+        self._on = False
+        self._loops.stop()
+        for item in self._inbox.drain():
+            self._write(*item)
+        with self._lock:
+            self._close_locked()
+
+    def readiness(self) -> tuple[bool, str]:
+        why = self._loops.not_running()
+        if why:
+            return False, why
+        status = self.status()
+        if status is not None and status.state == "failed":
+            return True, status.error or "the recording failed"
+        return True, "recording" if self._on else "idle"
+
+    # ------------------------------------------------------------ control
+    def start_recording(self, path: Path, *, max_bytes: int = 0) -> RecordingStatus:
+        with self._lock:
+            if self._recording is not None:
+                raise RecordingError(f"already recording into {self._recording.path}; "
+                                     "POST /recording/stop first")
+            meta = {**self._metadata, "started_unix_s": repr(time.time())}
+            rec = Recording(path, max_bytes=max_bytes, chunk_bytes=self._chunk_bytes,
+                            compression=self._compression, metadata=meta)
+            self._last = rec.status
+            if not rec.active:
+                log.error("%s", rec.status.error)
+                return rec.status
+            self._recording = rec
+            self._on = True
+            self._m_state.set(1)
+            log.info("recording into %s", path)
+            return rec.status
+
+    def stop_recording(self) -> RecordingStatus:
+        self._on = False
+        for item in self._inbox.drain():  # what was received before the stop is kept
+            self._write(*item)
+        with self._lock:
+            if self._recording is None:
+                if self._last is not None:
+                    return self._last
+                raise RecordingError("no recording was started")
+            return self._close_locked()
+
+    def _close_locked(self) -> RecordingStatus | None:
+        rec, self._recording = self._recording, None
+        self._on = False
+        self._m_state.set(0)
+        self._m_bytes.set(0)
+        if rec is None:
+            return None
+        status = rec.close()
+        log.info("recording %s: %s, %d messages, %d bytes in %d segment(s)", status.path,
+                 status.state, status.messages, status.bytes_written, len(status.segments))
+        return status
+
+    def status(self) -> RecordingStatus | None:
+        with self._lock:
+            return self._last
+
+    # ------------------------------------------------------------ the bus and the writer
+    def _on_message(self, key: str, payload: bytes) -> None:
+        if self._on:
+            self._inbox.put((key, payload, time.time_ns()))
+
+    def _dropped(self) -> None:
+        self._m_dropped.inc()
+
+    def _step(self) -> None:
+        item = self._inbox.get(timeout=_POLL_S)
+        if item is not None:
+            self._write(*item)
+
+    def _write(self, key: str, payload: bytes, log_ns: int) -> None:
+        with self._lock:
+            rec = self._recording
+            if rec is None:
+                return
+            try:
+                rec.write(key, payload, log_ns)
+            except Rejected as err:
+                self.rejections.reject(err, key)
+                return
+            if not rec.active:  # the write failed: the recording ends, the recorder goes on
+                log.error("%s", rec.status.error)
+                self._recording = None
+                self._on = False
+                self._m_state.set(0)
+                return
+            self._m_messages.inc()
+            self._m_bytes.set(rec.status.bytes_written)

@@ -1,0 +1,89 @@
+"""bench/chaos.py's multi-host target, as far as it runs without a Docker engine: its compose
+override follows the Compose Specification and names real settings, its fault draw hits only
+services compose.multihost.yaml has (routers on the mesh, workers, edge services) and draws
+every kind, its ports are the ones compose.multihost.yaml publishes, and the judge counts
+recoveries and stalls as documented. The 10-minute run itself needs the images and an engine
+(`make bench-multihost`)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import random
+import re
+import sys
+from pathlib import Path
+
+import jsonschema
+import yaml
+
+from services.metrics.settings import Settings as MetricsSettings
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def _chaos():
+    if "bench_chaos" not in sys.modules:
+        spec = importlib.util.spec_from_file_location("bench_chaos", ROOT / "bench/chaos.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules["bench_chaos"] = module
+        spec.loader.exec_module(module)
+    return sys.modules["bench_chaos"]
+
+
+chaos = _chaos()
+MULTIHOST = yaml.safe_load((ROOT / "compose.multihost.yaml").read_text())
+
+
+def test_override_follows_the_spec_and_names_real_settings() -> None:
+    override = chaos.multihost_override()
+    schema = json.loads((ROOT / "tests/data/compose-spec.json").read_text())
+    jsonschema.validate(override, schema)
+    assert set(override["services"]) <= set(MULTIHOST["services"])
+    env = override["services"]["metrics"]["environment"]
+    fields = {f"AOI3D_METRICS_{name.upper()}" for name in MetricsSettings.model_fields}
+    assert set(env) <= fields, set(env) - fields
+    # the ledger's state folder is on the volume the override adds
+    (mount,) = override["services"]["metrics"]["volumes"]
+    volume, path = mount.split(":")
+    assert volume in override["volumes"] and env["AOI3D_METRICS_STATE_DIR"].startswith(path)
+    assert float(env["AOI3D_METRICS_LEDGER_OPEN_S"]) == chaos.LEDGER_OPEN_S
+
+
+def test_fault_draw_hits_what_the_stack_has() -> None:
+    rng = random.Random(1)
+    draws = [chaos.fault_plan(rng) for _ in range(2000)]
+    assert {k for k, _ in draws} == {"cut", "router_restart", "edge_restart", "worker_kill"}
+    services = MULTIHOST["services"]
+    for kind, target in draws:
+        assert target in services, target
+        if kind == "cut":  # a worker host's router, on the mesh (its only link to the edge)
+            assert "mesh" in services[target]["networks"] and target != "router-edge"
+        if kind == "worker_kill":
+            assert services[target]["command"] == ["python", "-m", "services.recon"]
+        if kind == "edge_restart":
+            assert "edge" in services[target]["networks"]
+    # every worker host in MH_HOSTS is a (router, worker) pair on one host network
+    for host, (router, worker) in chaos.MH_HOSTS.items():
+        assert services[worker]["hostname"] == host
+        assert set(services[worker]["networks"]) < set(services[router]["networks"])
+    compile(chaos.KILL_WORKER, "kill_worker", "exec")
+
+
+def test_ports_are_the_ones_the_stack_publishes() -> None:
+    text = (ROOT / "compose.multihost.yaml").read_text()
+    published = set(re.findall(r"AOI3D_PORT_(\w+):-", text))
+    assert set(chaos.MH_PORTS) == published
+    assert len(set(chaos.MH_PORTS.values())) == len(chaos.MH_PORTS)
+
+
+def test_judge_counts_recoveries_and_stalls() -> None:
+    class FakeTap:
+        def quality_times(self, site: str) -> list[float]:
+            return [1.0, 2.0, 20.0, 21.0, 25.0]
+
+    faults = [{"kind": "cut", "end": 2.5}, {"kind": "worker_kill", "end": 30.0}]
+    stalls, longest = chaos.judge(FakeTap(), ["site1"], faults, 0.0, 28.0)
+    assert [f["recovery_s"] for f in faults] == [17.5, None]
+    assert "end" not in faults[0]
+    assert stalls == 1 and longest == 18.0
