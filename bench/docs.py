@@ -683,9 +683,44 @@ def trainer_restart(results: Path) -> tuple[list[str], set[str]]:
     return lines, {"trainer_restart.json"}
 
 
+def ros2_path(results: Path) -> tuple[list[str], set[str]]:
+    runs = [("emulated cameras", "ros2_sweep_emulated.json"),
+            ("ROS 2, the robot at its own phase", "ros2_sweep_free_phase.json"),
+            ("ROS 2, the robot phase-locked to the pipeline", "ros2_sweep_phase_locked.json")]
+    loaded = [(label, load(results, name)) for label, name in runs]
+    policies = [p["policy"] for p in loaded[0][1]["results"]]
+    rows = []
+    for policy in policies:
+        row: list[Any] = [f"`{policy}`"]
+        for _, r in loaded:
+            p = next(x for x in r["results"] if x["policy"] == policy)
+            row.append(f"{ci(p['psnr_db'])} ({p['n']})")
+        rows.append(row)
+    s = loaded[0][1]["settings"]
+    lines = [
+        "## Real cameras: the ROS 2 path against the emulated cameras",
+        "",
+        "The live sweep on the emulated cameras, then on the ROS 2 path: the pure-Python robot "
+        "(`aoi3d ros2 publish`, rmw_zenoh keys) into `aoi3d up --rig` with the emulated link on "
+        "top, same scene; PSNR in dB, mean ± 95 % CI over renders (renders in brackets). "
+        "What the differences mean: [real-cameras.md](real-cameras.md).",
+        "",
+        *redo("bash bench/ros2_sweep.sh           # emulated, then the robot at its own phase",
+              "bash bench/ros2_sweep.sh --epoch   # the robot phase-locked to the pipeline"),
+        "",
+        f"Settings: delay `{s['channel']['delay']}`, carry `{s['carry']}`, "
+        f"{s['render_steps']} steps per render, {s['measure_s']:.0f} s windows × "
+        f"{s['repeats']} repeats; a machine shared with other work.",
+        "",
+        *table(["policy", *[label for label, _ in loaded]], rows),
+        "",
+    ]
+    return lines, {name for _, name in runs}
+
+
 SECTIONS: tuple[Callable[[Path], tuple[list[str], set[str]]], ...] = (
     live_sweep, live_192, scaling, reconstruction, gpu, chaos, soak, pipeline, fields,
-    channel, learning, staleness, dynamic_mask, trainer_restart,
+    channel, learning, staleness, dynamic_mask, trainer_restart, ros2_path,
 )
 
 

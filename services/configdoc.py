@@ -39,8 +39,10 @@ def settings_classes() -> list[tuple[str, type[BaseSettings]]]:
 
     for name in SERVICES:
         out.append((name, importlib.import_module(f"services.{name}.settings").Settings))
+    from services.ingest.settings import Settings as IngestSettings
     from services.recon.settings import Settings as ReconSettings
 
+    out.append(("ingest (real cameras: `aoi3d up --rig`)", IngestSettings))
     out.append(("recon (each worker)", ReconSettings))
     return out
 

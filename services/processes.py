@@ -59,9 +59,22 @@ class UpConfig:
     grace_s: float = 10.0
     echo: bool = True
     extra_env: dict[str, str] = field(default_factory=dict)
+    rig: Path | None = None
+    """A rig file of real cameras (ROS 2 over Zenoh): the camera slot runs the ingest service
+    (``python -m services.ingest``, on the camera's port) instead of the emulator, and every
+    process gets ``AOI3D_RIG``."""
+    delay: str | None = None
+    """The network emulator's delay spec (``AOI3D_NETWORK_DELAY``). With a rig: emulated
+    delay on top of the real link (the ingest publishes through the network service); without
+    it (None) the network steps aside."""
     commands: dict[str, list[str]] = field(default_factory=dict)
     """argv of a child by name (``router`` or a service) instead of ``python -m services.<name>``
     (tests run stand-ins)."""
+
+    def module(self, service: str) -> str:
+        """The module a service slot runs: the camera slot is the ingest service with a rig."""
+        return "services.ingest" if service == "camera" and self.rig is not None \
+            else f"services.{service}"
 
     def port(self, service: str) -> int:
         return DEFAULT_PORTS[service] + self.port_offset

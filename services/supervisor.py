@@ -95,11 +95,20 @@ class Supervisor:
         for name in SERVICES:
             base[f"AOI3D_{name.upper()}_PORT"] = str(cfg.port(name))
             base[f"AOI3D_{name.upper()}_HOST"] = "127.0.0.1"
+        if cfg.rig is not None:  # real cameras: the ingest service in the camera's slot
+            base.update({"AOI3D_RIG": str(Path(cfg.rig).resolve()),
+                         "AOI3D_INGEST_PORT": str(cfg.port("camera")),
+                         "AOI3D_INGEST_HOST": "127.0.0.1",
+                         "AOI3D_INGEST_THROUGH_NETWORK": "true" if cfg.delay else "false"})
+        if cfg.delay:
+            base["AOI3D_NETWORK_DELAY"] = cfg.delay
         base.update(cfg.extra_env)
-        names = ("router", *SERVICES)
-        children = [Child(name, cfg.commands.get(name, [sys.executable, "-m",
-                                                        f"services.{name}"]),
-                          base, Path(f"{name}.log")) for name in names]
+        children = [Child("router", cfg.commands.get("router", [sys.executable, "-m",
+                                                                "services.router"]),
+                          base, Path("router.log"))]
+        children += [Child(name, cfg.commands.get(name, [sys.executable, "-m",
+                                                         cfg.module(name)]),
+                           base, Path(f"{name}.log")) for name in SERVICES]
         argv = cfg.commands.get(WORKER, [sys.executable, "-m", f"services.{WORKER}"])
         children += [Child(f"{WORKER}-{i}", argv, base, Path(f"{WORKER}-{i}.log"))
                      for i in range(1, cfg.workers + 1)]

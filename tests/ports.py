@@ -30,7 +30,7 @@ FIRST = 12_000
 SIZE = 16
 NAMES = ("pipeline", "recovery", "pool", "sites", "browser", "prometheus", "supervisor",
          "cli-startup", "dataset-errors", "dataset-errors-service", "zenoh-auth", "zenoh-tls",
-         "compose", "multihost", "recording")
+         "compose", "multihost", "recording", "ros2")
 """The test files that listen; each has one block per slot."""
 _REST_FIRST = min(DEFAULT_PORTS.values())
 _REST_COUNT = max(DEFAULT_PORTS.values()) - _REST_FIRST + 1

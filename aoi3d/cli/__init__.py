@@ -17,7 +17,7 @@ import click
 import typer
 from typer.core import TyperGroup
 
-from aoi3d.cli import channel, experiment, field, live, ppo, replay, scene, up
+from aoi3d.cli import channel, experiment, field, live, ppo, replay, ros2, scene, up
 from aoi3d.cli.common import fail
 from aoi3d.scene.dataset import DatasetError
 
@@ -46,6 +46,8 @@ app.add_typer(experiment.app, name="experiment",
               help="Reproduce the paper's tradeoff figures on a virtual clock.")
 app.add_typer(ppo.app, name="ppo", help="Train and evaluate the single-step PPO agent.")
 app.add_typer(live.app, name="live", help="Drive and measure the running pipeline.")
+app.add_typer(ros2.app, name="ros2", help="Real cameras: ROS 2 over Zenoh (a robot that plays a "
+                                          "dataset; rig files).")
 app.command("up", help=inspect.getdoc(up.up),
             short_help="Run the Zenoh router and the services locally until Ctrl-C.")(up.up)
 app.command("replay", help=inspect.getdoc(replay.replay),

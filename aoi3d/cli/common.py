@@ -147,6 +147,14 @@ def fail(message: object, code: int = 1) -> NoReturn:
     raise typer.Exit(code)
 
 
+def fail_lines(message: object, code: int = 1) -> NoReturn:
+    """Print ``error: <line>`` for each line of ``message`` (a rig file's bad fields, one a
+    line) on stderr and exit ``code``."""
+    for line in str(message).splitlines() or [""]:
+        typer.echo(f"error: {' '.join(line.split())}", err=True)
+    raise typer.Exit(code)
+
+
 def progress_columns() -> tuple[ProgressColumn, ...]:
     """A sweep's progress bar: spinner, label, bar, done/total, elapsed, ETA."""
     from rich.progress import (

@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail
+from aoi3d.cli.common import fail, fail_lines
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
 from services.supervisor import DEFAULT_PORTS, SERVICES
 
@@ -46,9 +46,18 @@ def up(
     generate: Annotated[bool, typer.Option(
         help="Generate the framing's scene at --dataset if it is missing or stale, whatever "
              "the folder.")] = False,
-    time_scale: Annotated[float, typer.Option(
+    time_scale: Annotated[float | None, typer.Option(
         help="Simulation seconds per wall second; < 1 slows the world so the CPU trainer "
-             "keeps pace.")] = 0.1,
+             "keeps pace. Default: 0.1, or with --rig the rig file's time_scale (1 for a real "
+             "robot; a played dataset's --time-scale).")] = None,
+    rig: Annotated[Path | None, typer.Option(
+        help="A rig file of real cameras (ROS 2 over Zenoh, docs/real-cameras.md): the ingest "
+             "service takes their frames instead of the camera emulators, on the camera's "
+             "port; the dataset is not read.")] = None,
+    delay: Annotated[str | None, typer.Option(
+        help="The network emulator's delay spec (exp:60, const:40, …). With --rig: emulated "
+             "delay added on top of the real link, from each frame's receipt; without it the "
+             "emulator steps aside and frames are delivered at their receipt.")] = None,
     run_id: Annotated[str, typer.Option(help="Run id: the <run> in every key expression.")]
     = "default",
     sites: Annotated[int, typer.Option(
@@ -87,9 +96,10 @@ def up(
         min=0, help="Size cap of one recording segment in MiB (0: none); the recording goes "
                     "on in <stem>.part2.mcap, part3 … beside it.")] = 0.0,
 ) -> None:
-    """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C. The
-    ports and the dataset are checked first: a taken port, a dataset that cannot be read or a
-    service that does not become healthy is one line and exit status 1."""
+    """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C (on
+    real cameras with --rig). The ports and the dataset (or rig file) are checked first: a
+    taken port, a dataset that cannot be read or a service that does not become healthy is
+    one line and exit status 1."""
     from services.supervisor import Supervisor, UpConfig, auto_workers, site_names, taken_ports
 
     if framing not in FRAMING_SCENES:
@@ -111,8 +121,22 @@ def up(
             raise typer.BadParameter(f"expected an integer 0..64 or auto, got {workers!r}",
                                      param_hint="'--workers'")
     folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
+    real = _read_rig(rig, sites) if rig is not None else None
+    if delay is not None:
+        from aoi3d.channel import parse_delay
+
+        try:
+            delay = parse_delay(delay).spec
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--delay'") from None
+    if time_scale is None:
+        time_scale = real.time_scale if real is not None else 0.1
+    extra_env = {}
+    if real is not None:
+        extra_env["AOI3D_METRICS_TRUTH_PERIOD_MS"] = repr(real.truth_period_ms)
     cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale, workers=n_workers,
-                   sites=sites,
+                   sites=sites, rig=rig, delay=delay, extra_env=extra_env,
+                   cameras=len(real.train) if real is not None else 18,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
                    duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
     if record is not None:
@@ -138,8 +162,9 @@ def up(
         others = f" (also taken: {', '.join(str(p) for _, p in taken[1:])})" if taken[1:] else ""
         fail(f"port {port} for {what} is in use{others} — is another pipeline running? "
              f"Choose another with {option}.")
-    own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
-    _ensure_scene(folder, framing, generate=generate or own)
+    if real is None:
+        own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
+        _ensure_scene(folder, framing, generate=generate or own)
 
     from rich.table import Table
 
@@ -152,6 +177,13 @@ def up(
         for col in ("service", "REST API (docs at /docs)", "try"):
             table.add_column(col, no_wrap=True)
         for name in SERVICES:
+            if name == "camera" and real is not None:
+                src = real.source
+                where = (f"rmw_zenoh, domain {src.domain_id}" if src.format == "rmw_zenoh"
+                         else f"bridge, namespace '{src.prefix}'")
+                table.add_row(f"ingest ({where})", f"http://127.0.0.1:{cfg.port(name)}",
+                              "GET /status")
+                continue
             table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
         table.add_row(f"recon × {n_workers}", "no REST API (pull work over Zenoh)",
@@ -166,6 +198,14 @@ def up(
                           soft_wrap=True)
         console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
                       """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)
+        if real is not None:
+            link = (f"the emulated link ({delay}) adds its delay on top of the real one"
+                    if delay else "the link is real: frames are delivered at their receipt "
+                                  "(the network emulator steps aside)")
+            score = (f"truth camera {real.truth} scores every render" if real.truth else
+                     "no truth camera in the rig: renders are made but cannot be scored")
+            console.print(f"Real cameras ({rig}): {len(real.train)} training cameras; {link}; "
+                          f"{score}.", soft_wrap=True)
         console.print(f"Logs: {sup.log_dir}/<service>.log ({log_dir}/latest) · Prometheus "
                       "metrics: <service>/metrics · stop with Ctrl-C", soft_wrap=True)
 
@@ -175,6 +215,18 @@ def up(
     if code and sup.failure:
         fail(f"the pipeline did not start: {sup.failure}", code)
     raise typer.Exit(code)
+
+
+def _read_rig(path: Path, sites: int):
+    """The rig file, validated (one line per bad field ends the command)."""
+    from services.kit.rig import RigError, load_rig
+
+    if sites != 1:
+        raise typer.BadParameter("a rig is one site", param_hint="'--sites'")
+    try:
+        return load_rig(path)
+    except RigError as err:
+        fail_lines(err)
 
 
 def _ensure_scene(dataset: Path, framing: str, *, generate: bool) -> None:

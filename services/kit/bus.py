@@ -24,6 +24,8 @@ from typing import Protocol
 log = logging.getLogger(__name__)
 
 Handler = Callable[[str, bytes], None]
+AttachedHandler = Callable[[str, bytes, bytes | None], None]
+"""``(key, payload, attachment)``: a sample with its Zenoh attachment (None when it has none)."""
 LivelinessHandler = Callable[[str, bool], None]
 """``(key, alive)``: a token appeared (True) or vanished (False)."""
 
@@ -51,6 +53,11 @@ class Bus(Protocol):
     def publish(self, key: str, payload: bytes) -> None: ...
 
     def subscribe(self, key: str, handler: Handler) -> None: ...
+
+    def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
+        """As :meth:`subscribe`, with each sample's attachment (ROS 2's rmw_zenoh puts its
+        sequence number, source time and publisher id there)."""
+        ...
 
     def declare_queryable(self, key: str, handler: QueryHandler) -> None: ...
 
@@ -101,6 +108,26 @@ class ZenohBus:
 
         with self._lock:
             self._subscribers.append(self._session.declare_subscriber(key, on_sample))
+
+    def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
+        def on_sample(sample) -> None:
+            try:
+                att = sample.attachment
+                handler(str(sample.key_expr), sample.payload.to_bytes(),
+                        att.to_bytes() if att is not None else None)
+            except Exception:  # a handler bug must not kill Zenoh's thread
+                log.exception("handler for %s failed", key)
+
+        with self._lock:
+            self._subscribers.append(self._session.declare_subscriber(key, on_sample))
+
+    def put(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """One sample on ``key`` with an attachment (no publisher kept: a ROS 2 robot's
+        stand-in puts on many keys once per frame)."""
+        with self._lock:
+            if self._closed:
+                return
+        self._session.put(key, payload, attachment=attachment)
 
     def declare_queryable(self, key: str, handler: QueryHandler) -> None:
         def on_query(query) -> None:

@@ -8,7 +8,7 @@ from __future__ import annotations
 import threading
 import time
 
-from services.kit.bus import Handler, LivelinessHandler, QueryHandler, Token
+from services.kit.bus import AttachedHandler, Handler, LivelinessHandler, QueryHandler, Token
 
 __all__ = ["MemoryBus", "MemoryQuery", "key_matches"]
 
@@ -34,6 +34,7 @@ class MemoryBus:
 
     def __init__(self) -> None:
         self._subs: list[tuple[str, Handler]] = []
+        self._attached: list[tuple[str, AttachedHandler]] = []
         self._queryables: list[tuple[str, QueryHandler]] = []
         self._tokens: set[str] = set()
         self._watchers: list[tuple[str, LivelinessHandler]] = []
@@ -42,16 +43,28 @@ class MemoryBus:
         self.closed = False
 
     def publish(self, key: str, payload: bytes) -> None:
+        self.put(key, payload)
+
+    def put(self, key: str, payload: bytes, attachment: bytes | None = None) -> None:
+        """Publish with an attachment (seen by :meth:`subscribe_attached` handlers)."""
         with self._lock:
             self.published.append((key, payload))
             subs = list(self._subs)
+            attached = list(self._attached)
         for pattern, handler in subs:
             if key_matches(pattern, key):
                 handler(key, payload)
+        for pattern, handler_a in attached:
+            if key_matches(pattern, key):
+                handler_a(key, payload, attachment)
 
     def subscribe(self, key: str, handler: Handler) -> None:
         with self._lock:
             self._subs.append((key, handler))
+
+    def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
+        with self._lock:
+            self._attached.append((key, handler))
 
     def declare_queryable(self, key: str, handler: QueryHandler) -> None:
         with self._lock:

@@ -55,6 +55,11 @@ class CommonSettings(BaseSettings):
     dataset: Path = Field(Path("data/turbine-rotor"), description=(
         "Scene dataset folder (the rotor close-up, `aoi3d scene generate --framing rotor "
         "--rotor-rpm 6`; any layout `aoi3d scene info` reads)."))
+    rig: Path | None = Field(None, description=(
+        "A rig file of real cameras (ROS 2 over Zenoh; docs/real-cameras.md): the ingest "
+        "service takes their frames where the camera emulator would publish, and the trainer "
+        "renders the rig's view in the rig's scene box instead of the dataset's. Set by `aoi3d "
+        "up --rig`. Unset: the emulated cameras of AOI3D_DATASET."))
     log_level: str = Field("INFO", description="Python logging level.")
     max_skew_s: float = Field(
         0.5, gt=0, le=60,

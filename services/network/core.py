@@ -4,7 +4,9 @@ No bus, no threads, no metrics library: the runtime (:mod:`services.network.work
 under its lock and publishes what it returns; tests drive it directly.
 
 Camera n's offered frame goes through its :class:`aoi3d.channel.link.Link` (a D/G/1/0
-queue): ``offer`` gives the frame's delivery slot, or drops it when the previous frame is still
+queue), entering it at ``max(generation_ms, send_ms)`` (the camera emulator sends at generation;
+the ingest service of real cameras at receipt, so emulated delay adds to the real link's):
+``offer`` gives the frame's delivery slot, or drops it when the previous frame is still
 in flight. Accepted frames wait in a heap ordered by delivery time (then by arrival) until
 :meth:`NetworkCore.pop_due` hands them out.
 """
@@ -147,12 +149,16 @@ class NetworkCore:
                            f"frame generated at {frame.generation_ms:.0f} ms but the clock "
                            f"says {now_ms:.0f} ms; check AOI3D_EPOCH_S and AOI3D_TIME_SCALE")
         n = frame.camera_id
+        # a frame enters its link when it was sent: at its generation for the emulated
+        # cameras, at its receipt for real ones (the ingest's send_ms), so the emulated delay
+        # comes on top of the real link's
+        entry_ms = max(frame.generation_ms, frame.send_ms)
         link = self._links[n]
         rng = self._reseed.get(n)
-        if rng is not None and not link.in_flight(frame.generation_ms):
+        if rng is not None and not link.in_flight(entry_ms):
             link = self._links[n] = Link(link.delay, rng)
             del self._reseed[n]
-        slot = link.offer(frame.generation_ms)
+        slot = link.offer(entry_ms)
         stats = self._stats[n]
         stats.offered += 1
         if slot is None:

@@ -14,6 +14,7 @@ from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import include_site_routers, service_app
 from services.kit.bus import Bus
+from services.kit.rig import load_rig
 from services.trainer.schemas import PoolInfo, StatusResponse, pool_body, status_body
 from services.trainer.settings import Settings
 from services.trainer.state import (
@@ -175,11 +176,15 @@ def get_render(worker: Worker, site: Site) -> Response:
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                clock: SimClock | None = None, dataset: SceneDataset | None = None) -> FastAPI:
     """The trainer's app. ``dataset`` defaults to ``open_dataset(settings.common.dataset)``
-    (read when the app starts: the held-out camera, the scene box and the image size)."""
+    (read when the app starts: the held-out camera, the scene box and the image size); with a
+    rig file (``AOI3D_RIG``, real cameras) they are the rig's view, box and working size."""
     settings = settings or Settings()
     clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
 
     def build_worker(the_bus: Bus, registry) -> TrainerWorker:
+        if settings.common.rig is not None and dataset is None:  # real cameras
+            return TrainerWorker(settings, the_bus, registry, rig=load_rig(settings.common.rig),
+                                 clock=clock)
         data = dataset if dataset is not None else open_dataset(settings.common.dataset)
         return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock)
 

@@ -33,6 +33,7 @@ from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rig import Rig
 from services.kit.runtime import Loops
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
@@ -50,13 +51,20 @@ class TrainerWorker:
     """See the module docstring."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,
-                 dataset: SceneDataset, clock: SimClock) -> None:
+                 dataset: SceneDataset | None = None, clock: SimClock,
+                 rig: Rig | None = None) -> None:
         self.settings = settings
         self.bus = bus
         self.clock = clock
         self.keys = Keys(settings.common.run_id, "*")  # every site's keys
-        sizes = {(c.width, c.height) for c in dataset.cameras}
-        size = sizes.pop() if len(sizes) == 1 else None
+        if rig is not None:  # real cameras: the rig's view, box and working size
+            heldout, aabb, size = rig.view_camera(), rig.scene_box, rig.working_size
+        elif dataset is not None:
+            sizes = {(c.width, c.height) for c in dataset.cameras}
+            size = sizes.pop() if len(sizes) == 1 else None
+            heldout, aabb = dataset.cameras[dataset.heldout_id], np.asarray(dataset.aabb)
+        else:
+            raise ValueError("the trainer needs a dataset or a rig")
         self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
         self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
                                      settings.seed, cold_steps=settings.cold_steps,
@@ -65,8 +73,8 @@ class TrainerWorker:
         # the sites film the same scene (at their own phases): one camera and box for all
         self.cores = {site: TrainerCore(
             camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,
-            skew_ms=settings.common.skew_ms, heldout=dataset.cameras[dataset.heldout_id],
-            aabb=np.asarray(dataset.aabb), frames_per_camera=settings.frames_per_camera,
+            skew_ms=settings.common.skew_ms, heldout=heldout,
+            aabb=aabb, frames_per_camera=settings.frames_per_camera,
             dispatcher=self.pool, site=site) for site in settings.common.sites}
         self.sites = list(self.cores)
         self.core = self.cores[self.sites[0]]

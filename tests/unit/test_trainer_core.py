@@ -116,3 +116,29 @@ def test_a_gap_in_the_ids_received_is_told_not_received_and_bounded(
     core.on_decision(decision_payload(10**9, 300.0, []), now_ms=300.0, now_s=1.2)
     reasons = [e.reason for e in pool.drain_ended()]
     assert reasons.count("not_received") == MAX_NOT_RECEIVED
+
+
+def test_the_reconstruction_trains_on_each_frames_own_pose(dataset: SceneDataset,  # noqa: F811
+                                                            monkeypatch) -> None:
+    """Poses travel with frames (issue 31): a moving robot's frame trains with the pose it
+    carries, not the dataset rig's."""
+    from aoi3d.field.carry import Reconstruction
+    from aoi3d.scene import Camera, look_at
+    from services.kit.codec import camera_to_pb, encode_frame, encode_png
+
+    moved = Camera(c2w=look_at((0.7, -3.1, 1.9), (0.1, 0.0, 0.6)), fx=30.0, fy=31.0, cx=11.0,
+                   cy=9.0, width=dataset.width, height=dataset.height)
+    image = encode_png(np.zeros((dataset.height, dataset.width, 3), np.uint8))
+    frame = pb.Frame.FromString(encode_frame(camera_id=1, sequence=1, generation_ms=0.0,
+                                             scene_time_ms=0.0, camera=moved, image=image))
+    pose, intr = camera_to_pb(dataset.cameras[dataset.heldout_id])
+    job = pb.Job(decision=pb.Decision(decision_id=1, time_ms=0.0), frames=[frame],
+                 backend="grid", carry="fresh", render_steps=1, seed=1, pose=pose,
+                 intrinsics=intr, aabb=np.asarray(dataset.aabb).reshape(-1).tolist())
+    seen = []
+    original = Reconstruction.set_views
+    monkeypatch.setattr(Reconstruction, "set_views",
+                        lambda self, views: (seen.extend(views), original(self, views))[1])
+    ReconCore(worker_id="w", device="cpu", configs=CONFIGS).run(job)
+    assert len(seen) == 1 and seen[0].camera == moved
+    assert seen[0].camera != dataset.cameras[1]

@@ -1,0 +1,78 @@
+"""The ingest service's FastAPI app: ``GET /status`` (the cameras, their counts, clock offsets
+and the key format), plus the kit's ops routes."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, FastAPI
+from prometheus_client import CollectorRegistry
+
+from services.ingest.settings import Settings
+from services.ingest.worker import IngestWorker
+from services.kit.app import get_worker, service_app
+from services.kit.bus import Bus, ZenohBus
+from services.kit.keys import Keys
+from services.kit.rig import Rig, load_rig
+
+DESCRIPTION = """
+Real cameras in: subscribes to the rig file's ROS 2 topics on Zenoh (rmw_zenoh keys
+`<domain>/<topic>/<type>/<hash>` or zenoh-bridge-ros2dds keys `[<namespace>/]<topic>`) and
+publishes each image — resized to the working size, with the pose and intrinsics in force at
+its stamp — as the pipeline's Frame where the camera emulator would: the truth camera on
+`truth/frame`, the others on `edge/<n>/frame` delivered at their receipt (or `cam/<n>/frame`
+when emulated delay is added on top). Generation time = `header.stamp` − the clock offset in
+force. Bad samples are counted rejections with their reason. `GET /status` shows every
+camera's counts, ages and measured clock offset.
+"""
+
+WorkerDep = Annotated[IngestWorker, Depends(get_worker)]
+
+router = APIRouter(tags=["ingest"])
+
+
+@router.get("/status", summary="The rig's cameras: counts, rejections by reason, losses, "
+                               "frame ages and clock offsets; the key format and the link.")
+def get_status(worker: WorkerDep) -> dict[str, Any]:
+    return worker.status()
+
+
+def robot_bus(connect: list[str]) -> ZenohBus:
+    """A plain Zenoh client session to the robots' router (no credentials of the pipeline's
+    own: the robots' router is theirs)."""
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    return ZenohBus(conf)
+
+
+def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
+               rig: Rig | None = None, source: Bus | None = None,
+               registry: CollectorRegistry | None = None) -> FastAPI:
+    """The ingest service. ``rig`` defaults to ``load_rig(AOI3D_RIG)``; tests inject a
+    ``MemoryBus`` (and a ``source`` bus standing for the robots' router)."""
+    settings = settings or Settings()
+    common = settings.common
+    if rig is None:
+        if common.rig is None:
+            raise ValueError("the ingest service needs a rig file (AOI3D_RIG)")
+        rig = load_rig(common.rig)
+
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> IngestWorker:
+        own = source is None and bool(rig.source.connect)
+        src = robot_bus(rig.source.connect) if own else source
+        return IngestWorker(bus=the_bus, registry=the_registry, rig=rig,
+                            keys=Keys(common.run_id, common.sites[0]), epoch_s=common.epoch_s,
+                            time_scale=common.time_scale, stall_s=common.stall_s,
+                            through_network=settings.through_network,
+                            wire_encoding=settings.wire_encoding,
+                            inbox_size=settings.inbox_size, source=src, own_source=own)
+
+    app = service_app(title="aoi3d ingest", description=DESCRIPTION, settings=settings,
+                      build_worker=build_worker, bus=bus, registry=registry)
+    app.include_router(router)
+    return app

@@ -1,0 +1,335 @@
+"""A pure-Python robot: plays a dataset aoi3d reads (the turbine, a D-NeRF or DyNeRF folder) as
+ROS 2 cameras on Zenoh — images, camera info and poses, in either key format — at any rate and
+time scale. ``aoi3d ros2 publish`` runs it; users test their setup with it, the tests use it.
+
+Every period (scene ms) each camera publishes, stamped with the robot's clock (wall time plus
+``clock_offset_s``, to stand for a robot whose clock is off): its pose (``PoseStamped`` or
+``Odometry`` in the camera optical frame, when poses go on a topic), its ``CameraInfo`` (when
+intrinsics go on a topic), then its image (``Image`` rgb8/bgr8, or ``CompressedImage``
+jpeg/png). On rmw_zenoh keys each sample carries the attachment (sequence number per
+publisher, source time, a 16-byte publisher id). The held-out camera (the dataset's novel
+view) is published too, as ``cam00``: the rig's truth camera. :func:`rig_document` writes the
+rig file that reads exactly what is published.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from services.ingest import ros
+
+log = logging.getLogger(__name__)
+
+__all__ = ["IMAGE_FORMATS", "PublishConfig", "Robot", "rig_document"]
+
+IMAGE_FORMATS = ("rgb8", "bgr8", "jpeg", "png")
+DISTROS = {"jazzy": None, "humble": ros.HUMBLE_HASH}
+"""The type hash each distribution's rmw_zenoh puts in its keys (None: the type's RIHS01)."""
+_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+@dataclass
+class PublishConfig:
+    """What the robot publishes and how."""
+
+    dataset: Path
+    format: str = "rmw_zenoh"
+    domain_id: int = 0
+    distro: str = "jazzy"
+    namespace: str = ""
+    connect: list[str] = field(default_factory=lambda: ["tcp/127.0.0.1:7447"])
+    period_ms: float = 30.0
+    """Scene ms between two frames of a camera (the camera emulator's period C)."""
+    time_scale: float = 1.0
+    """Scene seconds per wall second: 0.1 plays the scene ten times slower."""
+    cameras: int | None = None
+    """Training cameras 1..N of the dataset (default all)."""
+    image: str = "rgb8"
+    intrinsics: str = "topic"
+    """``topic`` (CameraInfo) or ``file`` (values in the rig file)."""
+    pose: str = "topic"
+    """``topic`` (PoseStamped), ``odometry`` (Odometry) or ``file`` (static in the rig)."""
+    truth: bool = True
+    clock_offset_s: float = 0.0
+    duration_s: float | None = None
+    frames: int | None = None
+    """Stop after this many periods (default: run for duration_s, else until stopped)."""
+    epoch_s: float | None = None
+    """Phase-lock to a pipeline's clock (its epoch, Unix s, e.g. the ingest's GET /status
+    ``time.epoch_s``): frame k at wall epoch + k·period / time scale showing scene time
+    k·period, as the camera emulator does. Default: the robot's own start."""
+
+    def __post_init__(self) -> None:
+        checks = [(self.format in ("rmw_zenoh", "bridge"), "format: rmw_zenoh or bridge"),
+                  (self.distro in DISTROS, f"distro: one of {', '.join(DISTROS)}"),
+                  (self.image in IMAGE_FORMATS, f"image: one of {', '.join(IMAGE_FORMATS)}"),
+                  (self.intrinsics in ("topic", "file"), "intrinsics: topic or file"),
+                  (self.pose in ("topic", "odometry", "file"), "pose: topic, odometry or file"),
+                  (math.isfinite(self.period_ms) and self.period_ms >= 1, "period_ms >= 1"),
+                  (math.isfinite(self.time_scale) and 0 < self.time_scale <= 10,
+                   "time_scale in (0, 10]"),
+                  (math.isfinite(self.clock_offset_s), "clock_offset_s finite")]
+        for ok, what in checks:
+            if not ok:
+                raise ValueError(what)
+        if self.format == "rmw_zenoh" and self.namespace:
+            raise ValueError("namespace: the bridge's (rmw_zenoh keys start with the domain)")
+
+
+def _name(camera_id: int) -> str:
+    return f"cam{camera_id:02d}"
+
+
+def _topics(cfg: PublishConfig, camera_id: int) -> dict[str, str]:
+    name = _name(camera_id)
+    image = f"/{name}/image_raw" + ("/compressed" if cfg.image in ("jpeg", "png") else "")
+    return {"image": image, "camera_info": f"/{name}/camera_info",
+            "pose": f"/{name}/{'odom' if cfg.pose == 'odometry' else 'pose'}"}
+
+
+def camera_ids(cfg: PublishConfig, ds) -> list[int]:
+    """The dataset's cameras the robot publishes: the held-out one (with ``truth``), then the
+    training cameras 1..N."""
+    train = sorted(int(i) for i in ds.train_ids)
+    n = len(train) if cfg.cameras is None else cfg.cameras
+    if not 1 <= n <= len(train):
+        raise ValueError(f"cameras: 1..{len(train)} (the dataset's training cameras), got {n}")
+    return ([int(ds.heldout_id)] if cfg.truth else []) + train[:n]
+
+
+def rig_document(cfg: PublishConfig, ds) -> dict:
+    """The rig file (a plain dict, to dump as YAML or JSON) that reads what ``cfg`` publishes."""
+    source: dict = {"format": cfg.format}
+    if cfg.format == "rmw_zenoh":
+        source["domain_id"] = cfg.domain_id
+    else:
+        source["namespace"] = cfg.namespace
+    cams = []
+    for n in camera_ids(cfg, ds):
+        c = ds.cameras[n]
+        topics = _topics(cfg, n)
+        if cfg.intrinsics == "topic":
+            intr: dict = {"camera_info": topics["camera_info"]}
+        else:
+            intr = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
+                    "height": c.height}
+        is_truth = cfg.truth and n == ds.heldout_id
+        if cfg.pose == "file" or is_truth:
+            pose: dict = {"c2w": [float(x) for x in np.asarray(c.c2w).ravel()],
+                          "convention": "opengl"}
+        else:
+            pose = {"topic": topics["pose"],
+                    "type": "Odometry" if cfg.pose == "odometry" else "PoseStamped",
+                    "convention": "optical"}
+        if is_truth:  # the rendered view: static values in the file
+            intr = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
+                    "height": c.height}
+        cams.append({"name": _name(n), "image": topics["image"], "intrinsics": intr,
+                     "pose": pose})
+    doc = {"source": source, "cameras": cams,
+           "aabb": [float(x) for x in np.asarray(ds.aabb).ravel()],
+           "size": [int(ds.cameras[0].width), int(ds.cameras[0].height)],
+           "time_scale": cfg.time_scale,
+           "truth_period_ms": max(100.0, 2 * cfg.period_ms)}
+    if cfg.truth:
+        doc["truth"] = _name(int(ds.heldout_id))
+    return doc
+
+
+class _Publisher:
+    """One ROS publisher: its key, its publisher id and its sequence numbers."""
+
+    def __init__(self, fmt: ros.KeyFormat, topic: str, ros_type: str, hash_: str | None):
+        self.key = fmt.key(topic, ros_type, hash_)
+        self.ros_type = ros_type
+        self.attached = fmt.attached
+        self.gid = os.urandom(16)
+        self.seq = 0
+
+    def sample(self, msg, robot_ns: int) -> tuple[str, bytes, bytes | None]:
+        self.seq += 1
+        att = ros.build_attachment(self.seq, robot_ns, self.gid) if self.attached else None
+        return self.key, ros.encode_cdr(msg, self.ros_type), att
+
+
+class Robot:
+    """The robot: ``put(key, payload, attachment)`` publishes one sample (a Zenoh session's put,
+    or a test's bus). :meth:`run` plays until ``stop`` is set, the frames or the duration."""
+
+    def __init__(self, cfg: PublishConfig, put: Callable[[str, bytes, bytes | None], None],
+                 dataset=None, clock: Callable[[], float] = time.time) -> None:
+        from aoi3d.scene import open_dataset
+
+        self.cfg = cfg
+        self.ds = dataset if dataset is not None else open_dataset(cfg.dataset)
+        self._put = put
+        self._clock = clock
+        fmt = ros.KeyFormat(cfg.format, cfg.domain_id, cfg.namespace)
+        hash_ = DISTROS[cfg.distro]
+        image_type = ros.COMPRESSED if cfg.image in ("jpeg", "png") else ros.IMAGE
+        pose_type = ros.ODOMETRY if cfg.pose == "odometry" else ros.POSE_STAMPED
+        self.ids = camera_ids(cfg, self.ds)
+        self._pubs: dict[int, dict[str, _Publisher]] = {}
+        for n in self.ids:
+            t = _topics(cfg, n)
+            pubs = {"image": _Publisher(fmt, t["image"], image_type, hash_)}
+            if cfg.intrinsics == "topic":
+                pubs["camera_info"] = _Publisher(fmt, t["camera_info"], ros.CAMERA_INFO, hash_)
+            if cfg.pose != "file":
+                pubs["pose"] = _Publisher(fmt, t["pose"], pose_type, hash_)
+            self._pubs[n] = pubs
+        self.frames_sent = 0
+        self.periods = 0
+        self.skipped = 0
+
+    def keys(self) -> list[str]:
+        return [p.key for pubs in self._pubs.values() for p in pubs.values()]
+
+    def publish_frame(self, scene_ms: float, stamp: float) -> None:
+        """Every camera's samples of the frame shown at ``scene_ms``, stamped ``stamp``."""
+        cfg, ds = self.cfg, self.ds
+        index = ds.frame_index(scene_ms)
+        for n in self.ids:
+            c, pubs, name = ds.cameras[n], self._pubs[n], _name(n)
+            robot_ns = int((self._clock() + cfg.clock_offset_s) * 1e9)
+            if "pose" in pubs:
+                m = np.asarray(c.c2w) @ _OPTICAL
+                msg = (ros.odometry_msg(stamp, "world", name, m) if cfg.pose == "odometry"
+                       else ros.pose_stamped_msg(stamp, "world", m))
+                self._put(*pubs["pose"].sample(msg, robot_ns))
+            if "camera_info" in pubs:
+                msg = ros.camera_info_msg(stamp, name, c.fx, c.fy, c.cx, c.cy, c.width,
+                                          c.height)
+                self._put(*pubs["camera_info"].sample(msg, robot_ns))
+            rgb = ds.frame(n, index)
+            if cfg.image in ("jpeg", "png"):
+                msg = ros.compressed_msg(stamp, name, rgb, cfg.image)
+            else:
+                msg = ros.image_msg(stamp, name, rgb, cfg.image)
+            self._put(*pubs["image"].sample(msg, robot_ns))
+            self.frames_sent += 1
+
+    def run(self, stop: threading.Event | None = None) -> None:
+        """Play: frame k shows scene time k·period at wall start + k·period / time scale (a
+        robot that falls behind publishes the newest due frame, counting the skipped)."""
+        cfg = self.cfg
+        stop = stop or threading.Event()
+        period_wall_s = cfg.period_ms / 1000.0 / cfg.time_scale
+        now = self._clock()
+        if cfg.epoch_s is None:
+            start, k = now, 0
+        else:  # on the pipeline's grid: the first frame due from now on
+            start = cfg.epoch_s
+            k = max(0, math.ceil((now - start) / period_wall_s))
+        first = start + k * period_wall_s
+        while not stop.is_set():
+            if cfg.frames is not None and self.periods >= cfg.frames:
+                break
+            due = start + k * period_wall_s
+            if cfg.duration_s is not None and due - first >= cfg.duration_s:
+                break
+            wait = due - self._clock()
+            if wait > 0 and stop.wait(wait):
+                break
+            late = math.floor((self._clock() - start) / period_wall_s)
+            if late > k:
+                self.skipped += late - k
+                k = late
+                due = start + k * period_wall_s
+            self.publish_frame(k * cfg.period_ms, due + cfg.clock_offset_s)
+            self.periods += 1
+            k += 1
+
+
+def zenoh_put(connect: list[str], keys: list[str] | None = None, wait_s: float = 10.0):
+    """(put, close) on a plain Zenoh client session to ``connect``.
+
+    A new client session learns who subscribes to what from the router a moment after it
+    opens, and drops what it puts before that (seen: each camera's first pose and camera
+    info, and more on a loaded machine). So a publisher is declared for each of ``keys`` and
+    the robot waits — as a real one takes to start — until every image key has a subscriber
+    (then a moment more for the rest), or ``wait_s``."""
+    import json
+
+    import zenoh
+
+    conf = zenoh.Config()
+    conf.insert_json5("mode", json.dumps("client"))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("connect/endpoints", json.dumps(connect))
+    session = zenoh.open(conf)
+    pubs = {key: session.declare_publisher(key) for key in keys or []}
+    deadline = time.monotonic() + wait_s
+    images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
+    while time.monotonic() < deadline and not all(p.matching_status.matching for p in images):
+        time.sleep(0.05)
+    time.sleep(0.5 if pubs else 1.0)
+
+    def put(key: str, payload: bytes, attachment: bytes | None) -> None:
+        pub = pubs.get(key)
+        if pub is not None:
+            pub.put(payload, attachment=attachment)
+        else:
+            session.put(key, payload, attachment=attachment)
+
+    def close() -> None:
+        for pub in pubs.values():
+            pub.undeclare()
+        session.close()
+
+    return put, close
+
+def rtsp_camera_entry(ds, camera_id: int, url: str, *, listen: bool = True) -> dict:
+    """A rig file's entry for the dataset's camera ``camera_id`` streamed as H.264 to ``url``
+    (static pose and intrinsics: an IP camera has no topics)."""
+    c = ds.cameras[camera_id]
+    return {"name": _name(camera_id), "url": url, "listen": listen,
+            "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
+                           "height": c.height},
+            "pose": {"c2w": [float(x) for x in np.asarray(c.c2w).ravel()],
+                     "convention": "opengl"}}
+
+
+def push_rtsp(ds, camera_id: int, url: str, *, period_ms: float = 30.0,
+              time_scale: float = 1.0, stop: threading.Event | None = None,
+              frames: int | None = None, duration_s: float | None = None,
+              clock: Callable[[], float] = time.time) -> int:
+    """An IP camera: the dataset's camera ``camera_id`` as H.264 pushed over RTSP to ``url``
+    (an ingest listening there), frame k showing scene time k·period at wall start + k·period /
+    time scale; returns the frames sent."""
+    from services.ingest.video import RtspPusher
+
+    stop = stop or threading.Event()
+    c = ds.cameras[camera_id]
+    for attempt in range(20):  # a listener re-opens every few seconds: knock again
+        try:
+            pusher = RtspPusher(url, c.width, c.height)
+            break
+        except OSError:
+            if attempt == 19 or stop.wait(0.5):
+                raise
+    period_wall_s = period_ms / 1000.0 / time_scale
+    start, k, sent = clock(), 0, 0
+    try:
+        while not stop.is_set() and (frames is None or sent < frames):
+            due = start + k * period_wall_s
+            if duration_s is not None and due - start >= duration_s:
+                break
+            wait = due - clock()
+            if wait > 0 and stop.wait(wait):
+                break
+            pusher.send(ds.frame(camera_id, ds.frame_index(k * period_ms)), due)
+            sent += 1
+            k += 1
+    finally:
+        pusher.close()
+    return sent

@@ -1,0 +1,238 @@
+"""Real cameras over ROS 2 and Zenoh (issue 31): `aoi3d ros2 publish` — a pure-Python robot
+playing the generated turbine — drives `aoi3d up --rig` to Quality in both key formats, on real
+processes and a real Zenoh router on 127.0.0.1:
+
+- rmw_zenoh with Jazzy's type hash (raw Image, CameraInfo and PoseStamped topics);
+- rmw_zenoh with Humble's ``TypeHashNotSupported`` (jpeg CompressedImage, Odometry poses, the
+  emulated link's exp:60 on top of the real one);
+- zenoh-bridge-ros2dds keys under a namespace (png, intrinsics and poses in the rig file).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import threading
+import uuid
+from pathlib import Path
+
+import pytest
+
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+from tests.integration.test_pipeline import (
+    HTTP,
+    SCALE,
+    assert_clean_exit,
+    small_dataset,  # noqa: F401  (module fixture)
+    stop_pipeline,
+    wait_for,
+)
+from tests.ports import block
+
+pytestmark = [pytest.mark.integration, pytest.mark.slow]
+
+_PORTS = block("ros2")
+PORT_OFFSET = _PORTS.rest_offset
+ZENOH_PORT = _PORTS.zenoh
+TIME_SCALE = 0.5
+
+
+def url(service: str, path: str) -> str:
+    port = {"ingest": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
+            "metrics": 8105}[service] + PORT_OFFSET
+    return f"http://127.0.0.1:{port}{path}"
+
+
+def metric(service: str, name: str, default: float | None = None) -> float:
+    text = HTTP.get(url(service, "/metrics")).text
+    values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
+              if line.startswith(name) and (line[len(name):][:1] in (" ", "{"))]
+    if not values and default is None:
+        raise KeyError(name)
+    return sum(values)
+
+
+class QualityTap:
+    def __init__(self, run_id: str) -> None:
+        import zenoh
+
+        from services.kit.settings import CommonSettings, zenoh_config
+
+        self.session = zenoh.open(zenoh_config(CommonSettings(
+            zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"])))
+        self.lock = threading.Lock()
+        self.quality: list[pb.Quality] = []
+        self.sub = self.session.declare_subscriber(Keys(run_id).quality, self._on)
+
+    def _on(self, sample) -> None:
+        with self.lock:
+            self.quality.append(pb.Quality.FromString(sample.payload.to_bytes()))
+
+    def close(self) -> None:
+        self.sub.undeclare()
+        self.session.close()
+
+
+VARIANTS = {
+    "rmw_zenoh-jazzy": (["--format", "rmw_zenoh", "--distro", "jazzy", "--image", "rgb8",
+                         "--pose", "topic", "--intrinsics", "topic"], []),
+    "rmw_zenoh-humble": (["--format", "rmw_zenoh", "--distro", "humble", "--domain-id", "7",
+                          "--image", "jpeg", "--pose", "odometry", "--intrinsics", "topic"],
+                         ["--delay", "exp:60"]),
+    "bridge-namespace": (["--format", "bridge", "--namespace", "robot1", "--image", "png",
+                          "--pose", "file", "--intrinsics", "file"], []),
+}
+
+
+@pytest.mark.parametrize("variant", list(VARIANTS))
+def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: Path,  # noqa: F811
+                                                   tmp_path: Path) -> None:
+    robot_args, up_args = VARIANTS[variant]
+    rig = tmp_path / "rig.yaml"
+    common = ["--cameras", "4", "--time-scale", str(TIME_SCALE), "--connect",
+              f"tcp/127.0.0.1:{ZENOH_PORT}"]
+    made = subprocess.run([sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset),
+                           *robot_args, *common, "--write-rig", str(rig), "--rig-only"],
+                          capture_output=True, text=True, timeout=120 * SCALE)
+    assert made.returncode == 0, made.stderr
+    run_id = f"ros{uuid.uuid4().hex[:8]}"
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
+         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+         str(tmp_path / "logs"), "--quiet", *up_args],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    robot = tap = None
+    try:
+        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
+            wait_for(f"{name} /healthz",
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        tap = QualityTap(run_id)
+        robot = subprocess.Popen(
+            [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args,
+             *common], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True)
+        wait_for("frames from the robot", lambda: metric("ingest", "aoi3d_ingest_frames_total")
+                 >= 20, 60)
+        status = HTTP.get(url("ingest", "/status")).json()
+        assert status["source"]["format"] == robot_args[1]
+        assert status["truth"] == "cam00"
+        if up_args:  # exp:60 on top: the network service delays the frames
+            assert "on top" in status["link"]
+            wait_for("frames through the emulated link",
+                     lambda: metric("network", "aoi3d_frames_delivered_total") > 10)
+        else:
+            assert "steps aside" in status["link"]
+        wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 3)
+        wait_for("Quality of renders of the robot's frames", lambda: tap.quality, 120)
+        with tap.lock:
+            assert all(math.isfinite(q.psnr_db) for q in tap.quality)
+            best = max(q.psnr_db for q in tap.quality)
+        assert best > 10.0, best
+        status = HTTP.get(url("ingest", "/status")).json()
+        for cam in status["cameras"]:
+            assert cam["published"] > 0, cam
+            assert cam["rejected"] == {}, cam
+            assert cam["lost"] == 0, cam
+            assert cam["clock_offset_s"] is not None and abs(cam["clock_offset_s"]) < 1.0, cam
+        assert metric("ingest", "aoi3d_messages_rejected_total", default=0.0) == 0
+    finally:
+        if robot is not None:
+            robot.terminate()
+            try:
+                robot.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                robot.kill()
+        if tap is not None:
+            tap.close()
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)
+
+
+def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+    """IP cameras (issue 31, part 2): two of the rig's training cameras are H.264 over RTSP,
+    pushed to the ingest over loopback (`aoi3d ros2 rtsp`); the truth camera and one more are
+    ROS 2 (rmw_zenoh). With the policy `all` every render trains on the RTSP frames too, and
+    Quality comes."""
+    import yaml
+
+    from aoi3d.scene import open_dataset
+    from services.ingest.publish import rtsp_camera_entry
+
+    rig = tmp_path / "rig.yaml"
+    robot_args = ["--format", "rmw_zenoh", "--cameras", "1", "--time-scale", str(TIME_SCALE),
+                  "--connect", f"tcp/127.0.0.1:{ZENOH_PORT}"]
+    made = subprocess.run([sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset),
+                           *robot_args, "--write-rig", str(rig), "--rig-only"],
+                          capture_output=True, text=True, timeout=120 * SCALE)
+    assert made.returncode == 0, made.stderr
+    doc = yaml.safe_load(rig.read_text())
+    ds = open_dataset(small_dataset)
+    urls = {n: f"rtsp://127.0.0.1:{_PORTS.extra(i)}/cam{n:02d}" for i, n in enumerate((2, 3))}
+    doc["cameras"] += [rtsp_camera_entry(ds, n, url) for n, url in urls.items()]
+    rig.write_text(yaml.safe_dump(doc))
+    run_id = f"rtsp{uuid.uuid4().hex[:8]}"
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
+         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+         str(tmp_path / "logs"), "--quiet"],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    children: list[subprocess.Popen] = []
+    tap = None
+    try:
+        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
+            wait_for(f"{name} /healthz",
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        tap = QualityTap(run_id)
+        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "all"})
+        assert r.status_code == 200, r.text
+        children.append(subprocess.Popen(
+            [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args],
+            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+            start_new_session=True))
+        for n, address in urls.items():
+            children.append(subprocess.Popen(
+                [sys.executable, "-m", "aoi3d", "ros2", "rtsp", str(small_dataset), "--camera",
+                 str(n), "--url", address, "--time-scale", str(TIME_SCALE)],
+                stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                start_new_session=True))
+
+        def rtsp_frames() -> bool:
+            cams = {c["name"]: c for c in HTTP.get(url("ingest", "/status")).json()["cameras"]}
+            return all(cams[f"cam{n:02d}"]["published"] >= 10 for n in urls)
+
+        wait_for("frames from the RTSP cameras", rtsp_frames, 90)
+
+        def with_rtsp() -> int:
+            d = HTTP.get(url("scheduler", "/decision")).json()
+            chosen = {f["camera_id"] for f in d.get("selected", [])}
+            return d["decision_id"] if {2, 3} <= chosen else 0
+
+        first = wait_for("a decision selecting the RTSP cameras", with_rtsp, 60)
+        wait_for("Quality of renders with the RTSP cameras' frames",
+                 lambda: [q for q in tap.quality if q.decision_id >= first], 120)
+        with tap.lock:
+            assert all(math.isfinite(q.psnr_db) for q in tap.quality)
+        status = HTTP.get(url("ingest", "/status")).json()
+        for cam in status["cameras"]:
+            if cam["name"] in ("cam02", "cam03"):
+                assert cam["image_type"] == "rtsp" and cam["image"] == urls[int(cam["name"][3:])]
+                # stamps from the pusher's RTCP sender reports: a plausible age
+                assert cam["age_ms_median"] is not None and cam["age_ms_median"] < 2000, cam
+    finally:
+        for child in children:
+            child.terminate()
+            try:
+                child.communicate(timeout=20)
+            except subprocess.TimeoutExpired:
+                child.kill()
+        if tap is not None:
+            tap.close()
+        out = stop_pipeline(up)
+    assert_clean_exit(up, out, run_id)
