@@ -31,8 +31,9 @@ Model carry-over (``carry``):
   previous scored decision's model and trains ``render_steps`` steps on its own frames, a
   share of each batch drawn from the pixels that changed since (:class:`aoi3d.field.carry.
   WarmStart`); the first scored decision, or one whose previous model is more than
-  ``WarmStart.max_gap_ms`` (75 ms) older, starts cold with ``steps_per_epoch`` steps — so
-  it needs scored decisions that close (``score_every=1`` at a 30 ms period). Like
+  ``WarmStart.max_gap_ms`` (500 ms) older, starts cold with ``steps_per_epoch`` steps (the
+  closer the scored decisions, the better the warm start: ``score_every=1`` at a 30 ms
+  period is what the live pool does). Like
   ``fresh``, unscored decisions cost nothing.
 
 Compute is fixed per decision, whatever the policy selects; an empty selection trains

@@ -80,7 +80,7 @@ class WarmStart:
     """
 
     cold_steps: int = 100
-    max_gap_ms: float = 75.0
+    max_gap_ms: float = 500.0
     reset: bool = False
     focus: float = 0.5
     hold: bool = True

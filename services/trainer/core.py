@@ -51,7 +51,7 @@ class RenderSettings:
     model_epoch: int = 0
     cold_steps: int = 100
     """stream: the budget of a cold start."""
-    warm_max_gap_ms: float = 75.0
+    warm_max_gap_ms: float = 500.0
     """stream: a model whose last decision is further away (scene ms) starts cold."""
 
     def __post_init__(self) -> None:
