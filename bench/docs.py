@@ -38,6 +38,9 @@ PAGE = "measurements.md"
 #: page that reports them.
 ELSEWHERE: dict[str, str] = {
     "science": "[science.md](science.md) (written by `make science`, `bench/science.py`)",
+    "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
+                 "[experiments.md](experiments.md), \"The tradeoff at display time\" "
+                 "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",
     "ppo_arch.json": "[ppo.md](ppo.md), \"Which network\" (`python bench/ppo_arch.py`)",
     "ppo_budget.json": "[ppo.md](ppo.md), the budget trade (`python bench/ppo_budget.py`)",
     "ppo-dynamic": "[ppo.md](ppo.md), the dynamic-region reward",

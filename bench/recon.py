@@ -33,8 +33,9 @@ import numpy as np
 
 from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
 from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
-from aoi3d.quality import psnr
+from aoi3d.quality import DYNAMIC_FRAMES, dynamic_mask, dynamic_score, psnr
 from aoi3d.scene.dataset import ensure_dataset
 
 TIMES = (60, 67, 74, 81)
@@ -58,17 +59,41 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--size", type=_size, default=(EXPERIMENT_SCENE.width,
                                                         EXPERIMENT_SCENE.height),
                         help="image size WxH (default: the experiments' scene, 96x72)")
-    parser.add_argument("--steps", type=int, default=100, help="training steps per reconstruction")
+    parser.add_argument("--steps", type=int, default=100,
+                        help="training steps per reconstruction (warm: per warm start)")
+    parser.add_argument("--carry", choices=("fresh", "warm"), default="fresh",
+                        help="fresh: each reconstruction from nothing (default); warm: a "
+                             "sequence of consecutive decisions, each started from the previous "
+                             "one's model (the stream carry, aoi3d.field.carry), the first cold")
+    parser.add_argument("--gap", type=int, default=1,
+                        help="warm: frames between consecutive decisions (default 1)")
+    parser.add_argument("--cold-steps", type=int, default=100,
+                        help="warm: the budget of the first, cold, reconstruction")
+    parser.add_argument("--focus", type=float, default=WarmStart.focus,
+                        help="warm: share of each batch drawn from the changed pixels")
+    parser.add_argument("--reset", action="store_true",
+                        help="warm: reset the cells the change carve marks (a candidate that "
+                             "lost: docs/performance.md, Streaming reconstruction)")
+    parser.add_argument("--dilation", type=int, default=WarmStart.dilation_px,
+                        help="warm: dilation of the change masks, pixels")
+    parser.add_argument("--lr-scale", type=float, default=WarmStart.lr_scale,
+                        help="warm: learning rates of a warm start times this")
+    parser.add_argument("--no-hold", action="store_true",
+                        help="warm: let the carried model's schedule run on (no hold)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads")
     parser.add_argument("--views", type=int, default=6, help="training cameras, spread evenly")
-    parser.add_argument("--repeats", type=int, default=8,
-                        help=f"reconstructions (>= 5; t0 cycles through {TIMES})")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help=f"reconstructions (>= 5; fresh, default 8: t0 cycles through "
+                             f"{TIMES}; warm, default 22: warm decisions at {TIMES[0]}, "
+                             f"{TIMES[0]} + gap, ...)")
     parser.add_argument("--dataset", type=Path, default=None,
                         help="where the rotor scene at --size is (generated when missing)")
     parser.add_argument("--device", default="cpu",
                         help="torch device of the field: cpu (default), cuda or auto")
     parser.add_argument("--json", action="store_true", help="print one JSON object only")
     args = parser.parse_args(argv)
+    if args.repeats is None:
+        args.repeats = 8 if args.carry == "fresh" else 22
     if args.repeats < 5:
         parser.error("--repeats must be >= 5")
     if args.steps < 1:
@@ -88,8 +113,18 @@ def main(argv: list[str] | None = None) -> None:
         parser.error(f"--views must be in 1..{len(ids)}")
     chosen = [ids[round(float(i))] for i in np.linspace(0, len(ids) - 1, args.views)]
     heldout = ds.cameras[ds.heldout_id]
+    if args.carry == "fresh":
+        sequence = [TIMES[i % len(TIMES)] for i in range(args.repeats)]
+    else:  # the cold decision, then the warm ones
+        if args.gap < 1:
+            parser.error("--gap must be >= 1")
+        sequence = [TIMES[0] + (k - 1) * args.gap for k in range(args.repeats + 1)]
     frames = {t0: ([TrainView(ds.cameras[c], ds.frame(c, t0)) for c in chosen],
-                   ds.frame(ds.heldout_id, t0)) for t0 in TIMES}
+                   ds.frame(ds.heldout_id, t0),
+                   dynamic_mask(ds.frame(ds.heldout_id, t0),
+                                [ds.frame(ds.heldout_id, t0 - k)
+                                 for k in range(1, DYNAMIC_FRAMES + 1)]))
+              for t0 in sorted(set(sequence))}
 
     from aoi3d.device import resolve_device
 
@@ -98,35 +133,67 @@ def main(argv: list[str] | None = None) -> None:
     except ValueError as err:
         parser.error(str(err))
     trainer = FieldTrainer(field_config(args.backend), ds.aabb, device=device, seed=0)
-    seconds, scores = [], []
-    for i in range(args.repeats):
-        t0 = TIMES[i % len(TIMES)]
-        views, truth = frames[t0]
-        started = time.perf_counter()
-        trainer.reset()
-        trainer.set_views(views)
-        trainer.step(args.steps)
-        image = trainer.render(heldout)
-        seconds.append(time.perf_counter() - started)
-        scores.append(psnr(image, truth))
+    warm_start = WarmStart(cold_steps=args.cold_steps,
+                           reset=args.reset, focus=args.focus, hold=not args.no_hold,
+                           dilation_px=args.dilation, lr_scale=args.lr_scale)
+    rec = Reconstruction(trainer, "stream", args.steps, warm_start)
+    seconds, cpu_seconds, scores, dynamic, at_times, cold_seconds = [], [], [], [], [], []
+    for i, t0 in enumerate(sequence):
+        views, truth, mask = frames[t0]
+        started, cpu_started = time.perf_counter(), time.process_time()
+        if args.carry == "fresh":
+            trainer.reset()
+            trainer.set_views(views)
+            trainer.step(args.steps)
+            image = trainer.render(heldout)
+        else:
+            image = rec.render_decision(heldout, views, time_ms=t0 * 1000.0 / ds.fps).image
+        elapsed = time.perf_counter() - started
+        cpu = time.process_time() - cpu_started
+        score = psnr(image, truth)
+        dyn = dynamic_score(image, truth, mask).psnr_db
+        kind = "cold" if args.carry == "warm" and i == 0 else args.carry
+        if kind == "cold":
+            cold_seconds.append(elapsed)
+        else:
+            seconds.append(elapsed)
+            cpu_seconds.append(cpu)
+            scores.append(score)
+            dynamic.append(dyn)
+            if t0 in TIMES:
+                at_times.append((score, dyn))
         if not args.json:
-            print(f"t0 = {t0:3d}: {seconds[-1]:.3f} s, PSNR {scores[-1]:.2f} dB", flush=True)
+            print(f"t0 = {t0:3d} ({kind}): {elapsed:.3f} s, PSNR {score:.2f} dB, dynamic "
+                  f"{dyn:.2f} dB", flush=True)
     result = {
         "seconds_median": round(statistics.median(seconds), 4),
+        "cpu_seconds_median": round(statistics.median(cpu_seconds), 4),
         "psnr_db": round(float(np.mean(scores)), 3),
+        "psnr_dynamic_db": round(float(np.mean(dynamic)), 3),
         "backend": args.backend,
         "size": [width, height],
         "steps": args.steps,
         "threads": args.threads,
         "views": args.views,
         "device": device,
+        "carry": args.carry,
     }
+    if args.carry == "warm":  # the scores at the fresh mode's t0s, paired with them
+        result.update({
+            "psnr_db_at_times": round(float(np.mean([a for a, _ in at_times])), 3),
+            "psnr_dynamic_db_at_times": round(float(np.mean([b for _, b in at_times])), 3),
+            "cold_seconds": round(cold_seconds[0], 4), "cold_steps": args.cold_steps,
+            "gap_frames": args.gap, "focus": args.focus, "reset": args.reset,
+            "hold": not args.no_hold, "dilation_px": args.dilation,
+            "lr_scale": args.lr_scale,
+        })
     if args.json:
         print(json.dumps(result))
     else:
-        print(f"{args.backend}, {width}×{height}, {args.views} views, {args.steps} steps, "
-              f"{args.threads} thread(s): {result['seconds_median']:.3f} s per reconstruction "
-              f"(median of {args.repeats}), PSNR {result['psnr_db']:.2f} dB")
+        print(f"{args.backend}, {width}×{height}, {args.views} views, {args.steps} steps "
+              f"({args.carry}), {args.threads} thread(s): {result['seconds_median']:.3f} s per "
+              f"reconstruction (median of {len(seconds)}), PSNR {result['psnr_db']:.2f} dB, "
+              f"dynamic {result['psnr_dynamic_db']:.2f} dB")
 
 
 if __name__ == "__main__":

@@ -15,6 +15,10 @@ per-site bytes.
 
     python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
     python bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
+    python bench/scale.py --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
+
+A configuration may name the trainer's carry and render steps (``KxS:carry@steps``): the
+streaming warm start (``stream``) beside today's ``fresh`` in the same run (issue 33).
 
 The machine's other load is recorded (load average before and after each run).
 """
@@ -102,13 +106,31 @@ def tree_cpu_s(root: int) -> dict[str, float]:
     return out
 
 
-def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
+def parse_config(text: str) -> tuple[int, int, str | None, int | None]:
+    """``KxS`` or ``KxS:carry@steps`` (e.g. ``2x1:stream@25``): workers, sites and the
+    trainer's carry and render steps (None: the trainer's defaults)."""
+    size, _, render = text.partition(":")
+    k, _, sites = size.partition("x")
+    carry, steps = None, None
+    if render:
+        carry, _, budget = render.partition("@")
+        steps = int(budget) if budget else None
+    return int(k), int(sites), carry or None, steps
+
+
+def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | None = None,
+            render_steps: int | None = None) -> dict:
     run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
     load_before = os.getloadavg()
+    env = dict(os.environ)
+    if carry is not None:
+        env["AOI3D_TRAINER_CARRY"] = carry
+    if render_steps is not None:
+        env["AOI3D_TRAINER_RENDER_STEPS"] = str(render_steps)
     up = livebench.start_up(PORTS, run_id, log_dir, [
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
-        "--workers", str(workers), "--sites", str(sites)])
+        "--workers", str(workers), "--sites", str(sites)], env=env)
     tap = None
     try:
         livebench.wait_until(
@@ -164,10 +186,14 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
     age_n = delta("trainer", "aoi3d_pool_render_age_seconds_count")
     return {
         "workers": workers, "sites": sites, "window_s": round(dt, 1),
+        "carry": carry or "fresh (default)", "render_steps": render_steps,
         "time_scale": args.time_scale,
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,
         "fraction_rendered": rendered / taken if taken else None,
+        "fraction_warm_start": (delta("trainer", "aoi3d_renders_warm_start_total")
+                                / delta("trainer", "aoi3d_renders_total")
+                                if delta("trainer", "aoi3d_renders_total") else None),
         "scored_per_s": delta("metrics", "aoi3d_quality_total") / dt,
         "wait_s_mean": (delta("trainer", "aoi3d_pool_wait_seconds_sum") / wait_n
                         if wait_n else None),
@@ -177,6 +203,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace) -> dict:
         "lost": pool["lost"],
         "psnr_db": mean_ci95([q["psnr_db"] for q in window]).to_dict(),
         "psnr_dynamic_db": mean_ci95([q.get("psnr_dynamic_db") for q in window]).to_dict(),
+        "psnr_display_db": mean_ci95([q.get("psnr_display_db") for q in window]).to_dict(),
+        "psnr_dynamic_display_db": mean_ci95([q.get("psnr_dynamic_display_db")
+                                              for q in window]).to_dict(),
+        "display_lag_ms_mean": mean_ci95([q["display_time_ms"] - q["time_ms"] for q in window
+                                          if q.get("display_time_ms") is not None]
+                                         ).to_dict()["mean"],
         "views": mean_ci95([q["n_views"] for q in window]).to_dict(),
         "renders_per_s_by_site": {n: v / dt for n, v in by_site.items()},
         "zenoh_bytes_per_s": (bytes1 - bytes0) / dtb,
@@ -212,7 +244,8 @@ def speedups(rows: list[dict]) -> dict | None:
     """Renders/s of each configuration over ``1x1``'s: of the medians over the passes, and
     pass by pass (each pass's configurations ran back to back, so a pass shares its load)."""
     def label(r: dict) -> str:
-        return f"{r['workers']}x{r['sites']}"
+        render = f":{r['carry']}@{r['render_steps']}" if r.get("render_steps") else ""
+        return f"{r['workers']}x{r['sites']}{render}"
 
     by: dict[str, list[float]] = {}
     for r in rows:
@@ -235,7 +268,8 @@ def speedups(rows: list[dict]) -> dict | None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
-                    help="KxS: K workers, S sites; comma-separated")
+                    help="KxS: K workers, S sites, optionally :carry@steps (the trainer's "
+                         "carry and render steps, e.g. 2x1:stream@25); comma-separated")
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--settle-s", type=float, default=20.0)
     ap.add_argument("--measure-s", type=float, default=60.0)
@@ -256,19 +290,22 @@ def main() -> None:
                         args.dataset], check=True)
     elif not Path(args.dataset).is_dir():
         raise SystemExit(f"no dataset at {args.dataset} (aoi3d scene generate --out …)")
-    configs = [tuple(int(v) for v in c.split("x")) for c in args.configs.split(",")]
+    configs = [parse_config(c) for c in args.configs.split(",")]
     rows = []
     for rep in range(args.repeats):
-        for k, sites in configs:
-            row = run_one(k, sites, args)
+        for k, sites, carry, steps in configs:
+            row = run_one(k, sites, args, carry, steps)
             row["pass"] = rep + 1
             rows.append(row)
             if not args.json:
-                print(f"pass {rep + 1}, workers {k}, sites {sites}: "
+                print(f"pass {rep + 1}, workers {k}, sites {sites}, {row['carry']}"
+                      f"{'@' + str(steps) if steps else ''}: "
                       f"{row['renders_per_s']:.3f} renders/s, "
                       f"{row['fraction_rendered']:.2f} of decisions, age "
                       f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "
-                      f"{row['psnr_db']['ci95'] or 0:.2f} dB, load {row['load_after'][0]}",
+                      f"{row['psnr_db']['ci95'] or 0:.2f} dB (at display "
+                      f"{row['psnr_display_db']['mean'] or math.nan:.2f}), load "
+                      f"{row['load_after'][0]}",
                       flush=True)
     base = next((r for r in rows if r["workers"] == 1 and r["sites"] == 1), None)
     doc = {"rows": rows,

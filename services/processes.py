@@ -84,6 +84,24 @@ class UpConfig:
         return {"router": self.zenoh_port, **{name: self.port(name) for name in SERVICES}}
 
 
+def auto_workers(cores: int | None = None) -> int:
+    """The pool ``--workers auto`` starts on a machine of ``cores`` CPUs (default: this
+    process's, ``os.sched_getaffinity``): every core up to 2, one core left to the rest of the
+    pipeline beyond. A worker runs one torch thread and keeps its core busy while it has a
+    job; the router, the five services and the console took 0.2 cores together at time scale
+    0.1 (bench/results/scale.json, ``cores_by_process``), about 3× that at 0.3. On 2 cores
+    two workers beside them rendered 3.29 of 3.33 decisions/s where one rendered 2.01, so
+    both cores go to workers there; from 3 cores on, a core is kept for the services, whose
+    share grows with the renders they score and dispatch (docs/performance.md, "Streaming
+    reconstruction")."""
+    if cores is None:
+        try:
+            cores = len(os.sched_getaffinity(0))
+        except (AttributeError, OSError):
+            cores = os.cpu_count() or 1
+    return max(1, cores if cores <= 2 else cores - 1)
+
+
 def port_in_use(port: int, host: str = "127.0.0.1") -> bool:
     """Whether a server could not listen on ``host:port`` now. Binds with ``SO_REUSEADDR``, as
     uvicorn and Zenoh do, so a port held only by connections closing (TIME_WAIT) is free."""

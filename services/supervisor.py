@@ -49,6 +49,7 @@ from services.processes import (  # the run's processes; re-exported for the CLI
     WORKER,
     Child,
     UpConfig,
+    auto_workers,
     last_line,
     port_in_use,
     run_log_dir,
@@ -59,8 +60,8 @@ from services.processes import (  # the run's processes; re-exported for the CLI
 log = logging.getLogger("aoi3d.up")
 
 __all__ = ["DEFAULT_PORTS", "LATEST", "SERVICES", "STARTUP_RESTARTS", "STEADY_S", "WORKER",
-           "Child", "Supervisor", "UpConfig", "last_line", "port_in_use", "run_log_dir",
-           "site_names", "taken_ports"]
+           "Child", "Supervisor", "UpConfig", "auto_workers", "last_line", "port_in_use",
+           "run_log_dir", "site_names", "taken_ports"]
 
 
 class Supervisor:

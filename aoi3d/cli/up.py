@@ -65,13 +65,14 @@ def up(
         help="Sites (turbines) of the run: site1 … siteS, each with its own cameras (the scene "
              "at its own phase), channel, policy and quality, sharing the worker pool. Each "
              "service's REST paths address site1; /sites/<site>/… any site.")] = 1,
-    workers: Annotated[int, typer.Option(
-        min=0, max=64,
-        help="Reconstruction workers in the pool (python -m services.recon processes, 1 torch "
-             "thread each): each renders the newest decision no other worker took. More can "
-             "join from anywhere that reaches the router (see GET /workers on the trainer, "
-             "the pool's dispatcher). Not `aoi3d experiment --workers` (local processes that "
-             "run episodes).")] = 1,
+    workers: Annotated[str, typer.Option(
+        help="Reconstruction workers in the pool (python -m services.recon, 1 torch thread "
+             "each): each renders the newest decision no other worker took; 0 to 64, or auto "
+             "(default): every core up to 2, one core left to the services beyond "
+             "(docs/performance.md, Streaming reconstruction). More can join from anywhere "
+             "that reaches the router (see "
+             "GET /workers on the trainer, the pool's dispatcher). Not `aoi3d experiment "
+             "--workers` (local processes that run episodes).")] = "auto",
     zenoh_port: Annotated[int, typer.Option(
         min=1, max=65535, help="TCP port of the local Zenoh router.")] = ZENOH_PORT,
     port_offset: Annotated[int, typer.Option(
@@ -101,7 +102,7 @@ def up(
     taken port, a dataset that cannot be read or a service that does not become healthy is
     one line and exit status 1."""
     # the one import of services in aoi3d: `up` composes them (docs/architecture.md)
-    from services.supervisor import Supervisor, UpConfig, taken_ports
+    from services.supervisor import Supervisor, UpConfig, auto_workers, taken_ports
 
     if framing not in FRAMING_SCENES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
@@ -110,6 +111,16 @@ def up(
         raise typer.BadParameter(f"the REST ports {_FIRST + port_offset}.."
                                  f"{_LAST + port_offset} are not valid ports",
                                  param_hint="'--port-offset'")
+    if workers == "auto":
+        n_workers = auto_workers()
+    else:
+        try:
+            n_workers = int(workers)
+        except ValueError:
+            n_workers = -1
+        if not 0 <= n_workers <= 64:
+            raise typer.BadParameter(f"expected an integer 0..64 or auto, got {workers!r}",
+                                     param_hint="'--workers'")
     folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
     real = _read_rig(rig, sites) if rig is not None else None
     if delay is not None:
@@ -124,7 +135,7 @@ def up(
     extra_env = {}
     if real is not None:
         extra_env["AOI3D_METRICS_TRUTH_PERIOD_MS"] = repr(real.truth_period_ms)
-    cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale, workers=workers,
+    cfg = UpConfig(dataset=folder, run_id=run_id, time_scale=time_scale, workers=n_workers,
                    sites=sites, rig=rig, delay=delay, extra_env=extra_env,
                    cameras=len(real.train) if real is not None else 18,
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
@@ -176,7 +187,7 @@ def up(
                 continue
             table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
         table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
-        table.add_row(f"recon × {workers}", "no REST API (pull work over Zenoh)",
+        table.add_row(f"recon × {n_workers}", "no REST API (pull work over Zenoh)",
                       f"http://127.0.0.1:{cfg.port('trainer')}/workers")
         console.print(table)
         console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "

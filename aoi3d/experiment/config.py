@@ -26,7 +26,15 @@ Model carry-over (``carry``):
   exactly that decision's frames and renders the held-out view. Measured on the rotor scene
   it loses the tradeoff, as ``warm`` does; the live trainer renders with ``fresh``
   (docs/experiments.md, "The live carry"). :mod:`aoi3d.field.carry` is the one
-  implementation of all three modes, used here and by the trainer service.
+  implementation of these modes, used here and by the trainer service.
+- ``stream`` — the streaming warm start (issue 33): each scored decision starts from the
+  previous scored decision's model and trains ``render_steps`` steps on its own frames, a
+  share of each batch drawn from the pixels that changed since (:class:`aoi3d.field.carry.
+  WarmStart`); the first scored decision, or one whose previous model is more than
+  ``WarmStart.max_gap_ms`` (500 ms) older, starts cold with ``steps_per_epoch`` steps (the
+  closer the scored decisions, the better the warm start: ``score_every=1`` at a 30 ms
+  period is what the live pool does). Like
+  ``fresh``, unscored decisions cost nothing.
 
 Compute is fixed per decision, whatever the policy selects; an empty selection trains
 nothing (as in the live trainer) and the render shows the model as it is (fresh: untrained).
@@ -74,6 +82,12 @@ views: 31.4, 27.8, 24.7, 23.1, 21.6 dB at 0, 1, 2, 3, 5 frames old), and from th
 arc five views one frame old render the central novel view as well as eighteen (27.6 dB
 against 27.8); at 18 rpm one frame of age already cost 7 dB, so even the freshest frames were
 too stale to trade against. Measured with ``bench/staleness.py``; See docs/experiments.md."""
+COMPUTE_FIXED_MS = 16.0
+"""Wall ms of a reconstruction besides its steps (views, render of the held-out view), one
+CPU core, the grid backend at 96×72: the cost model's intercept (docs/performance.md,
+"Streaming reconstruction")."""
+COMPUTE_STEP_MS = 3.4
+"""Wall ms per training step (1024 rays, the grid, one core): the cost model's slope."""
 EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
 CAMERA_PHASES = ("sync", "random")
@@ -118,6 +132,9 @@ class EpisodeConfig:
     lpips: bool = True
     reward: RewardWeights = dc_field(default_factory=RewardWeights)
     device: str = "cpu"
+    time_scale: float = 0.1
+    compute_fixed_ms: float = COMPUTE_FIXED_MS
+    compute_step_ms: float = COMPUTE_STEP_MS
 
     def __post_init__(self) -> None:
         parse_delay(self.delay)  # raises DelaySpecError listing the accepted forms
@@ -134,16 +151,30 @@ class EpisodeConfig:
             _int_at_least("n_cameras", self.n_cameras, 1)
         check_carry(self.carry, self.steps_per_epoch if self.carry == "fresh"
                     else self.render_steps)
-        if self.carry != "fork" and self.render_steps:
-            raise ValueError(f"render_steps applies to carry 'fork' only (carry "
+        if self.carry not in ("fork", "stream") and self.render_steps:
+            raise ValueError(f"render_steps applies to carry 'fork' and 'stream' only (carry "
                              f"{self.carry!r} got render_steps={self.render_steps})")
         if self.camera_phase not in CAMERA_PHASES:
             raise ValueError(
                 f"camera_phase must be one of {CAMERA_PHASES}, got {self.camera_phase!r}")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"device must be 'cpu' or 'cuda', got {self.device!r}")
+        for name in ("time_scale", "compute_fixed_ms", "compute_step_ms"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not (
+                    math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not self.time_scale > 0:
+            raise ValueError(f"time_scale must be > 0, got {self.time_scale}")
         if self.scored_decisions < 1:
             raise ValueError("the scored span holds no decision: raise scored_ms")
+
+    def compute_ms(self, steps: int) -> float:
+        """Scene ms a reconstruction of ``steps`` training steps takes at the run's
+        ``time_scale``: (``compute_fixed_ms`` + ``compute_step_ms`` · steps) wall ms, times
+        the scale (the live clock: scene = wall × time_scale). What the virtual clock charges
+        a scored decision before its render is shown (the display time)."""
+        return (self.compute_fixed_ms + self.compute_step_ms * steps) * self.time_scale
 
     @property
     def end_ms(self) -> int:

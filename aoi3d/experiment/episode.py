@@ -40,7 +40,7 @@ from PIL import Image
 from aoi3d.channel import ChannelRun, simulate
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
-from aoi3d.field.carry import Reconstruction
+from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
 from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
@@ -246,7 +246,7 @@ def plan_episode(
     decisions = []
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
-        train = scored or cfg.carry != "fresh"  # warm and fork train at every decision
+        train = scored or cfg.carry in ("warm", "fork")  # they train at every decision
         sel = decide(pol, t, links.newest_ms)
         decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
@@ -276,7 +276,8 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "dataset": dataset_fingerprint(dataset),
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
-        **({"render_steps": cfg.render_steps} if cfg.carry == "fork" else {}),
+        **({"render_steps": cfg.render_steps} if cfg.carry in ("fork", "stream") else {}),
+        "compute": [cfg.time_scale, cfg.compute_fixed_ms, cfg.compute_step_ms],
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
                                        *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
                                          if cfg.reward.dynamic else [])],
@@ -322,6 +323,16 @@ class EpochScore:
     psnr_dynamic_db: float | None
     ssim_dynamic: float | None
     dynamic_fraction: float
+    display_ms: float
+    """When the render is shown: ``eval_ms`` plus its reconstruction's compute in scene time
+    (:meth:`EpisodeConfig.compute_ms` of the steps it trained)."""
+    psnr_display_db: float
+    """The render scored against the truth at ``display_ms`` (what a viewer sees), likewise
+    the other ``*_display`` scores."""
+    ssim_display: float
+    lpips_display: float | None
+    reward_display: float
+    psnr_dynamic_display_db: float | None
 
 
 @dataclass(frozen=True)
@@ -352,6 +363,14 @@ class EpisodeResult:
     """Mean pixel fraction of the dynamic mask over the scored decisions."""
     train_steps: int
     wall_s: float
+    compute_ms: float
+    """Mean scene ms charged for a scored decision's reconstruction (display − eval time)."""
+    psnr_display_db: float
+    """Mean PSNR against the truth at display time (``EpochScore.display_ms``)."""
+    ssim_display: float
+    lpips_display: float | None
+    reward_display: float
+    psnr_dynamic_display_db: float | None
 
     def to_dict(self) -> dict[str, Any]:
         out = {k: v for k, v in vars(self).items() if k != "epochs"}
@@ -415,11 +434,11 @@ class _Frames:
             self._views[camera_id] = held
         return held[1]
 
-    def truth(self, time_ms: int) -> np.ndarray:
+    def truth(self, time_ms: float) -> np.ndarray:
         """The held-out camera's frame at ``time_ms``: the ground truth of the novel view."""
         return self.ds.frame(self.ds.heldout_id, self.index(time_ms))
 
-    def truth_before(self, time_ms: int, period_ms: int) -> list[np.ndarray]:
+    def truth_before(self, time_ms: float, period_ms: int) -> list[np.ndarray]:
         """The truth at ``time_ms`` − k·``period_ms``, k = 1..K: what the dynamic mask
         compares the truth at ``time_ms`` with."""
         return [self.truth(time_ms - k * period_ms) for k in range(1, DYNAMIC_FRAMES + 1)]
@@ -441,7 +460,8 @@ def run_plan(
     started = time.perf_counter()
     trainer = FieldTrainer(field_config(cfg.backend, **cfg.field), dataset.aabb,
                            device=cfg.device, seed=plan.seed)
-    rec = Reconstruction(trainer, cfg.carry, _render_budget(cfg))
+    rec = Reconstruction(trainer, cfg.carry, _render_budget(cfg),
+                         WarmStart(cold_steps=cfg.steps_per_epoch))
     frames = _Frames(dataset, plan.scene_offset_ms)
     heldout = dataset.cameras[dataset.heldout_id]
     epochs: list[EpochScore] = []
@@ -454,19 +474,26 @@ def run_plan(
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
-        rendered = rec.render_decision(heldout)
+        rendered = rec.render_decision(heldout, time_ms=d.eval_ms)
         if rendered.render_steps:
             loss = rendered.loss
         image = rendered.image
         quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn,
                         previous=frames.truth_before(d.eval_ms, cfg.period_ms))
         dyn = quality.dynamic
+        # what a viewer sees: the render once its compute is done, against the truth then
+        display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
+        shown = score(image, frames.truth(display_ms), cfg.reward, lpips_fn,
+                      previous=frames.truth_before(display_ms, cfg.period_ms))
         epochs.append(EpochScore(
             decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
             aoi_used_ms=float(np.mean(d.aoi_ms)) if d.aoi_ms else math.nan,
             psnr_db=quality.psnr_db, ssim=quality.ssim, lpips=quality.lpips,
             reward=quality.reward, loss=float(loss), steps=rendered.steps,
             psnr_dynamic_db=dyn.psnr_db, ssim_dynamic=dyn.ssim, dynamic_fraction=dyn.fraction,
+            display_ms=display_ms, psnr_display_db=shown.psnr_db, ssim_display=shown.ssim,
+            lpips_display=shown.lpips, reward_display=shown.reward,
+            psnr_dynamic_display_db=shown.dynamic.psnr_db if shown.dynamic else None,
         ))
         last_image = image
         if on_render is not None:
@@ -498,23 +525,35 @@ def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str 
         dynamic_fraction=float(np.mean([e.dynamic_fraction for e in epochs])),
         train_steps=_total_steps(plan),
         wall_s=wall_s,
+        compute_ms=float(np.mean([e.display_ms - e.eval_ms for e in epochs])),
+        psnr_display_db=float(np.mean([e.psnr_display_db for e in epochs])),
+        ssim_display=float(np.mean([e.ssim_display for e in epochs])),
+        lpips_display=(float(np.mean([e.lpips_display for e in epochs]))
+                       if all(e.lpips_display is not None for e in epochs) else None),
+        reward_display=float(np.mean([e.reward_display for e in epochs])),
+        psnr_dynamic_display_db=_mean_or_none([e.psnr_dynamic_display_db for e in epochs]),
     )
 
 
 def _render_budget(cfg: EpisodeConfig) -> int:
     """Steps spent on a scored decision's own frames: ``fresh`` trains each scored decision
     ``steps_per_epoch`` steps from scratch, ``fork`` a copy of the warm model
-    ``render_steps`` steps, ``warm`` none."""
-    return {"fresh": cfg.steps_per_epoch, "fork": cfg.render_steps, "warm": 0}[cfg.carry]
+    ``render_steps`` steps, ``stream`` ``render_steps`` from the previous one's model (its
+    cold starts ``steps_per_epoch``), ``warm`` none."""
+    return {"fresh": cfg.steps_per_epoch, "fork": cfg.render_steps, "stream": cfg.render_steps,
+            "warm": 0}[cfg.carry]
 
 
 def _total_steps(plan: EpisodePlan) -> int:
     """Training steps an episode takes (background and per scored decision)."""
     cfg = plan.config
-    background = 0 if cfg.carry == "fresh" else cfg.steps_per_epoch
+    background = cfg.steps_per_epoch if cfg.carry in ("warm", "fork") else 0
     per_render = _render_budget(cfg)
-    return sum((background if d.train else 0) + (per_render if d.scored else 0)
-               for d in plan.decisions if d.cameras)
+    total = sum((background if d.train else 0) + (per_render if d.scored else 0)
+                for d in plan.decisions if d.cameras)
+    if cfg.carry == "stream" and any(d.scored and d.cameras for d in plan.decisions):
+        total += cfg.steps_per_epoch - cfg.render_steps  # the first, cold, start (at least)
+    return total
 
 
 def _png(image: np.ndarray | None) -> bytes:

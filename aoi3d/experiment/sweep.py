@@ -60,9 +60,12 @@ __all__ = [
 ]
 
 METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic",
-           "dynamic_fraction", "n_selected", "aoi_used_ms", "mean_aoi_all_ms")
+           "dynamic_fraction", "n_selected", "aoi_used_ms", "mean_aoi_all_ms",
+           "psnr_display_db", "ssim_display", "lpips_display", "reward_display",
+           "psnr_dynamic_display_db", "compute_ms")
 """The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval;
-``*_dynamic*``: over the dynamic region, see :mod:`aoi3d.quality`)."""
+``*_dynamic*``: over the dynamic region, see :mod:`aoi3d.quality`; ``*_display*``: against
+the truth at display time, the decision's time plus its compute, ``compute_ms``)."""
 
 Progress = Callable[[int, int], None]
 """``progress(done, total)`` in episodes to compute (cache hits are not counted)."""

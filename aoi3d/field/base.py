@@ -256,6 +256,12 @@ class Field(nn.Module, ABC):
         takes its autograd step."""
         return None
 
+    def forget(self, changed: Any) -> list[tuple[torch.Tensor, torch.Tensor]] | None:
+        """Hook: return the parameters where ``changed(points)`` (world points (P, 3) → bool
+        (P,)) holds to their initial values; the (parameter, rows reset) pairs, for the
+        optimizer's moments. Default: None, this field cannot forget a region."""
+        return None
+
     def reset_appearance(self, rows: torch.Tensor) -> None:
         """Hook: the trainer gave appearance ``rows`` (int64) to new images; a field with
         per-image embeddings resets them to their initial value. Default: nothing."""

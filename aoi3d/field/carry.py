@@ -33,17 +33,21 @@ on its decision's frames alone, the last loss and the number of views.
 from __future__ import annotations
 
 import math
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from aoi3d.field.trainer import FieldTrainer, TrainView
+from aoi3d.quality import dynamic_mask
 from aoi3d.scene.camera import Camera
 
-__all__ = ["CARRY_MODES", "Reconstruction", "RenderedDecision", "check_carry"]
+__all__ = ["CARRY_MODES", "Reconstruction", "RenderedDecision", "WarmStart", "changed_cells",
+           "check_carry"]
 
-CARRY_MODES = ("fork", "fresh", "warm")
+CARRY_MODES = ("fork", "fresh", "stream", "warm")
 """The carry modes, see the module docstring."""
 
 
@@ -53,9 +57,80 @@ def check_carry(carry: str, render_steps: int) -> None:
         raise ValueError(f"carry must be one of {', '.join(CARRY_MODES)}, got {carry!r}")
     if isinstance(render_steps, bool) or not isinstance(render_steps, int) or render_steps < 0:
         raise ValueError(f"render_steps must be an int >= 0, got {render_steps!r}")
-    if carry in ("fresh", "fork") and render_steps < 1:
+    if carry in ("fresh", "fork", "stream") and render_steps < 1:
         raise ValueError(f"carry {carry!r} trains each rendered decision: render_steps must "
                          f"be >= 1, got {render_steps}")
+
+
+@dataclass(frozen=True)
+class WarmStart:
+    """Settings of the ``stream`` carry (the streaming warm start, see the module).
+
+    ``cold_steps``: the budget of a cold start (no model yet, or one too old: its decision
+    more than ``max_gap_ms`` of scene time away from the new one's, either way; a decision
+    without a time is always cold). A warm start trains ``render_steps``: ``reset`` — the
+    grid's vertices the change carve marks go back to their initial values (and their Adam
+    moments to 0); ``focus`` — that share of each batch's rays comes from the changed pixels;
+    ``hold`` — the carried model's step counter is set back to ``cold_steps − render_steps``
+    first, so that its schedule (coarse-to-fine stage, ray step, empty-space skipping) stays
+    the one a fresh reconstruction ends on; ``lr_scale`` multiplies the learning rates of a
+    warm start's steps. The change of a view: its pixels whose colour moved by more than
+    ``change_tau`` since the camera's last frame this model trained on, dilated by
+    ``dilation_px`` (:func:`aoi3d.quality.dynamic_mask`).
+    """
+
+    cold_steps: int = 100
+    max_gap_ms: float = 500.0
+    reset: bool = False
+    focus: float = 0.5
+    hold: bool = True
+    change_tau: float = 8.0 / 255.0
+    dilation_px: int = 1
+    lr_scale: float = 2.0
+
+    def __post_init__(self) -> None:
+        c = self.cold_steps
+        if isinstance(c, bool) or not isinstance(c, int) or c < 1:
+            raise ValueError(f"cold_steps must be an int >= 1, got {c!r}")
+        if not (math.isfinite(self.max_gap_ms) and self.max_gap_ms >= 0):
+            raise ValueError(f"max_gap_ms must be a finite number >= 0, got {self.max_gap_ms}")
+        if not 0.0 <= self.focus <= 1.0:
+            raise ValueError(f"focus must be in [0, 1], got {self.focus}")
+        if not 0.0 <= self.change_tau < 1.0:
+            raise ValueError(f"change_tau must be in [0, 1), got {self.change_tau}")
+        if not (math.isfinite(self.lr_scale) and self.lr_scale > 0):
+            raise ValueError(f"lr_scale must be a finite number > 0, got {self.lr_scale}")
+        d = self.dilation_px
+        if isinstance(d, bool) or not isinstance(d, int) or d < 0:
+            raise ValueError(f"dilation_px must be an int >= 0, got {d!r}")
+
+
+def changed_cells(points: torch.Tensor, changes: Sequence[tuple[Camera, np.ndarray]]
+                  ) -> torch.Tensor:
+    """Which world ``points`` (P, 3) the scene may have changed at, carved from the views'
+    change masks ``changes`` ((camera, H×W bool), ...): a point changed when at least one view
+    sees it (in front of the camera, inside its image) and every view that sees it sees a
+    changed pixel there — the visual hull of the change (a point a view shows unchanged is
+    unchanged, whatever the others say). Returns bool (P,) on the points' device."""
+    pts = points.detach().cpu().numpy().astype(np.float64)
+    seen = np.zeros(len(pts), dtype=bool)
+    unchanged = np.zeros(len(pts), dtype=bool)
+    for camera, mask in changes:
+        uv, depth = camera.project(pts)
+        with np.errstate(invalid="ignore"):
+            u = np.floor(uv[:, 0])
+            v = np.floor(uv[:, 1])
+            inside = (depth > 0) & (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        ui = u[inside].astype(np.int64)
+        vi = v[inside].astype(np.int64)
+        hit = np.asarray(mask, dtype=bool)[vi, ui]
+        idx = np.flatnonzero(inside)
+        seen[idx] = True
+        unchanged[idx[~hit]] = True
+    return torch.from_numpy(seen & ~unchanged).to(points.device)
+
+
+_FRAMES_KEPT = 256  # last frames kept per camera by the stream carry (a rig of 256 cameras)
 
 
 @dataclass(frozen=True)
@@ -73,6 +148,8 @@ class RenderedDecision:
     render_steps: int
     loss: float
     n_views: int
+    warm: bool = False
+    """Started from the previous decision's model (the ``stream`` carry's warm start)."""
 
 
 class Reconstruction:
@@ -82,17 +159,23 @@ class Reconstruction:
     ``warm``).
     """
 
-    def __init__(self, trainer: FieldTrainer, carry: str, render_steps: int) -> None:
+    def __init__(self, trainer: FieldTrainer, carry: str, render_steps: int,
+                 warm_start: WarmStart | None = None) -> None:
         check_carry(carry, render_steps)
         self.trainer = trainer
         self.carry = carry
         self.render_steps = int(render_steps)
+        self.warm_start = warm_start or WarmStart()
         self._views: list[TrainView] = []
+        # the stream carry: the scene time of the model's last decision (None: no model yet)
+        # and, per camera, the last frame the model trained on
+        self._model_time_ms: float | None = None
+        self._frames: OrderedDict[Camera, np.ndarray] = OrderedDict()
 
     @property
     def trains_in_background(self) -> bool:
         """Whether :meth:`train` does anything (``warm`` and ``fork``)."""
-        return self.carry != "fresh"
+        return self.carry in ("warm", "fork")
 
     def set_views(self, views: Sequence[TrainView]) -> None:
         """A new decision is in force: its frames are what the model trains on from now on."""
@@ -107,17 +190,22 @@ class Reconstruction:
             return math.nan
         return self.trainer.step(n)
 
-    def render_decision(self, camera: Camera,
-                        views: Sequence[TrainView] | None = None) -> RenderedDecision:
+    def render_decision(self, camera: Camera, views: Sequence[TrainView] | None = None,
+                        time_ms: float | None = None) -> RenderedDecision:
         """The novel view from ``camera`` for the decision whose frames are ``views``
-        (default: the decision in force).
+        (default: the decision in force), taken at scene time ``time_ms`` (the ``stream``
+        carry's age check; the others ignore it).
 
         ``warm`` renders the model as it is; ``fresh`` resets the model and trains it
         ``render_steps`` steps on ``views``; ``fork`` trains a copy of the warm model
-        ``render_steps`` steps on ``views`` (the warm model is untouched). An empty selection
-        trains nothing: the render shows the start (untrained for ``fresh``).
+        ``render_steps`` steps on ``views`` (the warm model is untouched); ``stream`` starts
+        from its previous decision's model when it is recent enough (:class:`WarmStart`),
+        else fresh with the cold budget. An empty selection trains nothing: the render shows
+        the start (untrained for ``fresh``).
         """
         views = self._views if views is None else list(views)
+        if self.carry == "stream":
+            return self._stream(camera, views, time_ms)
         if self.carry == "warm":
             t = self.trainer
             return RenderedDecision(t.render(camera), t.steps, 0, math.nan, t.n_views)
@@ -132,9 +220,82 @@ class Reconstruction:
         return RenderedDecision(image, model.steps, self.render_steps if views else 0,
                                 float(loss), len(views))
 
+    def is_warm(self, time_ms: float | None) -> bool:
+        """Whether a ``stream`` decision at scene time ``time_ms`` starts warm: a model exists
+        and its last decision is at most ``max_gap_ms`` away."""
+        last = self._model_time_ms
+        return (last is not None and time_ms is not None and math.isfinite(time_ms)
+                and abs(time_ms - last) <= self.warm_start.max_gap_ms)
+
+    def _changes(self, views: Sequence[TrainView]) -> list[tuple[Camera, np.ndarray]]:
+        """Each view's change mask against its camera's last frame (views of a camera the
+        model has not trained on have none)."""
+        ws = self.warm_start
+        out = []
+        for v in views:
+            before = self._frames.get(v.camera)
+            if before is not None:
+                out.append((v.camera, dynamic_mask(_unit(v.image), [before], tau=ws.change_tau,
+                                                   dilation_px=ws.dilation_px)))
+        return out
+
+    def _stream(self, camera: Camera, views: list[TrainView],
+                time_ms: float | None) -> RenderedDecision:
+        ws = self.warm_start
+        model = self.trainer
+        warm = self.is_warm(time_ms) and bool(views)
+        if warm:
+            changes = self._changes(views)
+            model.set_views(views)
+            if ws.reset and changes:
+                model.forget(lambda points: changed_cells(points, changes))
+            if ws.focus > 0 and changes:
+                by_camera = dict(changes)
+                offset, parts = 0, []
+                for v in views:
+                    mask = by_camera.get(v.camera)
+                    if mask is not None:
+                        parts.append(torch.from_numpy(np.flatnonzero(mask.reshape(-1))) + offset)
+                    offset += v.camera.width * v.camera.height
+                model.set_focus(torch.cat(parts) if parts else None, ws.focus)
+            if ws.hold:
+                model.set_schedule_step(max(0, ws.cold_steps - self.render_steps))
+            budget = self.render_steps
+        else:
+            model.reset()
+            model.set_views(views)
+            self._frames.clear()
+            budget = ws.cold_steps
+        if not views:
+            loss = math.nan
+        elif warm and ws.lr_scale != 1.0:
+            with model.lr_scaled(ws.lr_scale):
+                loss = model.step(budget)
+        else:
+            loss = model.step(budget)
+        image = model.render(camera)
+        for v in views:
+            self._frames[v.camera] = _unit(v.image)
+            self._frames.move_to_end(v.camera)
+        while len(self._frames) > _FRAMES_KEPT:
+            self._frames.popitem(last=False)
+        self._model_time_ms = time_ms if views else None
+        return RenderedDecision(image, model.steps, budget if views else 0, float(loss),
+                                len(views), warm)
+
     def set_carry(self, carry: str, render_steps: int) -> None:
         """Render with ``carry`` and ``render_steps`` from now on (model and views kept);
         ``ValueError`` — nothing changed — for an unknown mode or budget."""
         check_carry(carry, render_steps)
+        if carry != self.carry:
+            self._model_time_ms = None  # the stream carry starts cold after a switch
         self.carry = carry
         self.render_steps = int(render_steps)
+
+
+def _unit(image: np.ndarray) -> np.ndarray:
+    """An image as float32 H×W×3 in [0, 1] (uint8 divided by 255)."""
+    arr = np.asarray(image)
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float32) / 255.0
+    return arr.astype(np.float32, copy=False)

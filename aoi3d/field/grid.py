@@ -42,6 +42,7 @@ torch interpolation (the fused kernel has no age input).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -124,6 +125,7 @@ class DenseGridField(CoarseToFineField):
         super().__init__()
         box = self._setup(cfg, aabb)
         raw_density = math.log(math.expm1(cfg.init_density))
+        self._raw_density_init = raw_density
         table = torch.zeros(math.prod(self.shape), 4)
         table[:, 0] = raw_density
         self.grid = nn.Parameter(table)  # (vertices, 4): raw density, raw RGB
@@ -183,6 +185,24 @@ class DenseGridField(CoarseToFineField):
         optimizer.update(self.grid, (rows, values))
         optimizer.update(self.env, grad_env)
         return mse
+
+    @torch.no_grad()
+    def forget(self, changed: Callable[[torch.Tensor], torch.Tensor]
+               ) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """The vertices where ``changed`` holds back to their initial values: density
+        ``init_density``, colour 0 (grey), no age residual (the background is kept)."""
+        axes = [torch.linspace(0.0, 1.0, n, device=self.grid.device) for n in self.shape]
+        unit = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(-1, 3)
+        points = self.aabb[0] + unit * (self.aabb[1] - self.aabb[0])
+        rows = torch.as_tensor(changed(points), device=self.grid.device).reshape(-1)
+        rows = rows.nonzero().reshape(-1)
+        self.grid[rows, 0] = self._raw_density_init
+        self.grid[rows, 1:] = 0.0
+        found = [(self.grid, rows)]
+        if self.age_grid is not None:
+            self.age_grid[rows] = 0.0
+            found.append((self.age_grid, rows))
+        return found
 
     def param_groups(self) -> list[dict[str, Any]]:
         grids = [self.grid] if self.age_grid is None else [self.grid, self.age_grid]

@@ -31,7 +31,8 @@ from __future__ import annotations
 import copy
 import math
 from collections import OrderedDict
-from collections.abc import Hashable, Sequence
+from collections.abc import Callable, Hashable, Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -132,6 +133,8 @@ class FieldTrainer:
         # origins, dirs, t_near, t_far, rgb, appearance row of every pixel of the views:
         self._rays: tuple[torch.Tensor, ...] | None = None
         self._packed: torch.Tensor | None = None  # the float columns of _rays, side by side
+        self._focus: torch.Tensor | None = None  # rows of _packed a share of each batch comes from
+        self._focus_rays = 0
         # appearance key → row, least recently used first:
         self._appearance_rows: OrderedDict[Hashable, int] = OrderedDict()
         self.reset()
@@ -208,6 +211,67 @@ class FieldTrainer:
         self._generator.set_state(doc["generator"])
         self._appearance_rows = OrderedDict(doc["appearance_rows"])
 
+    def set_schedule_step(self, step: int) -> None:
+        """Go on from training step ``step`` (model and optimizer kept): the step-driven
+        schedule — coarse to fine, the ray step, empty-space skipping — continues from there.
+        The streaming warm start (:mod:`aoi3d.field.carry`) holds a carried model at the
+        schedule of a fresh reconstruction's last steps this way, so that carrying it does not
+        upsample it or refine its ray step decision after decision. Moving into an earlier
+        coarse-to-fine stage resamples the grids down at the next step."""
+        if isinstance(step, bool) or not isinstance(step, int) or step < 0:
+            raise ValueError(f"step must be an int >= 0, got {step!r}")
+        self._steps = step
+
+    def forget(self, changed: Callable[[torch.Tensor], torch.Tensor]) -> int | None:
+        """Reset the model where ``changed`` says the scene changed: ``changed(points)`` maps
+        world points (P, 3) to a bool mask (P,); the field's parameters at those points return
+        to their initial values (:meth:`Field.forget`) and their optimizer moments to zero,
+        so what was there is neither rendered nor pulled back by momentum. Returns the rows
+        reset, None when the field cannot forget locally (it is kept as it is)."""
+        found = self._field.forget(changed)
+        if found is None:
+            return None
+        total = 0
+        for param, rows in found:
+            state = self._optimizer.state.get(param)
+            if state:
+                state["exp_avg"].index_fill_(0, rows, 0.0)
+                state["exp_avg_sq"].index_fill_(0, rows, 0.0)
+            total += int(rows.numel())
+        return total
+
+    @contextmanager
+    def lr_scaled(self, factor: float) -> Iterator[None]:
+        """Inside: every parameter group's learning rate times ``factor`` (the optimizer's
+        state kept); after: as before."""
+        if not (math.isfinite(factor) and factor > 0):
+            raise ValueError(f"factor must be a finite number > 0, got {factor}")
+        groups = self._optimizer.param_groups
+        saved = [g["lr"] for g in groups]
+        for g in groups:
+            g["lr"] *= factor
+        try:
+            yield
+        finally:
+            for g, lr in zip(self._optimizer.param_groups, saved, strict=False):
+                g["lr"] = lr
+
+    def set_focus(self, pixels: torch.Tensor | None, fraction: float) -> None:
+        """Draw ``fraction`` of each batch's rays from ``pixels`` (int64 indices into the
+        current views' pixels, concatenated in view order, row-major), the rest from all of
+        them, until the next :meth:`set_views`; None, an empty set or a fraction of 0: every
+        ray from all pixels (the default)."""
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"fraction must be in [0, 1], got {fraction}")
+        if pixels is None or pixels.numel() == 0 or fraction == 0.0 or self._packed is None:
+            self._focus, self._focus_rays = None, 0
+            return
+        pixels = pixels.to(device=self._device, dtype=torch.long).reshape(-1)
+        if int(pixels.min()) < 0 or int(pixels.max()) >= self._packed.shape[0]:
+            raise ValueError("focus pixels outside the current views")
+        self._focus = pixels
+        self._focus_rays = round(fraction * self.cfg.batch_rays)
+
     def _make_optimizer(self) -> LazyAdam:
         return LazyAdam(self._field.param_groups(), betas=(0.9, 0.99), eps=self.cfg.adam_eps)
 
@@ -279,6 +343,7 @@ class FieldTrainer:
         self._ray_cache = {c: r for c, r in self._ray_cache.items() if c in cameras}
         self._colour_cache = {id(v): (v, c) for v, c in zip(views, colours, strict=True)}
         self._views = views
+        self._focus, self._focus_rays = None, 0
         if not views:
             self._rays = self._packed = None
             return
@@ -324,8 +389,13 @@ class FieldTrainer:
             if self._field.on_step(self._steps):
                 self._optimizer = self._make_optimizer()
             batch = torch.randint(
-                n_rays, (self.cfg.batch_rays,), generator=self._generator, device=self._device
+                n_rays, (self.cfg.batch_rays - self._focus_rays,), generator=self._generator,
+                device=self._device
             )
+            if self._focus is not None:  # a share of the batch from the focus pixels
+                pick = torch.randint(self._focus.numel(), (self._focus_rays,),
+                                     generator=self._generator, device=self._device)
+                batch = torch.cat([self._focus.index_select(0, pick), batch])
             jitter = torch.rand(self.cfg.batch_rays, generator=self._generator, device=self._device)
             picked = packed.index_select(0, batch)
             rays = RayBundle(

@@ -214,6 +214,8 @@ def decode_decision(payload: bytes) -> pb.Decision:
 def decode_render(payload: bytes) -> tuple[pb.Render, Camera]:
     msg = _parse(pb.Render, payload)
     _finite("render time", msg.time_ms)
+    if msg.HasField("ready_ms"):
+        _finite("render ready time", msg.ready_ms)
     camera = camera_from_pb(msg.pose, msg.intrinsics)
     check_image(msg.image)
     if (msg.image.width, msg.image.height) != (camera.width, camera.height):

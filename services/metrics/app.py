@@ -81,6 +81,22 @@ class QualityEntry(BaseModel):
         description="Pixels in the dynamic region / pixels of the image (0 when nothing "
                     "moved); null when the earlier truth frames were missing.",
         examples=[0.148])
+    display_time_ms: float | None = Field(
+        None, description="Sim time the render was ready (decision time + compute + "
+                          "transport): the display scores are against the truth then; null "
+                          "when there was no truth frame for it.", examples=[1310.0])
+    psnr_display_db: float | None = Field(
+        None, description="PSNR in dB against the truth at display time (what a viewer "
+                          "sees).", examples=[23.9])
+    ssim_display: float | None = Field(None, description="SSIM at display time.",
+                                       examples=[0.8])
+    lpips_display: float | None = Field(None, description="LPIPS at display time.",
+                                        examples=[0.22])
+    reward_display: float | None = Field(None, description="Reward at display time.",
+                                         examples=[0.87])
+    psnr_dynamic_display_db: float | None = Field(
+        None, description="Dynamic-region PSNR at display time (the mask of the truth then).",
+        examples=[17.1])
 
     @classmethod
     def of(cls, record: QualityRecord) -> QualityEntry:
@@ -91,7 +107,11 @@ class QualityEntry(BaseModel):
                    training_step=record.training_step, n_views=record.n_views,
                    backend=record.backend, lag_ms=record.lag_ms,
                    psnr_dynamic_db=record.psnr_dynamic_db, ssim_dynamic=record.ssim_dynamic,
-                   dynamic_fraction=record.dynamic_fraction)
+                   dynamic_fraction=record.dynamic_fraction,
+                   display_time_ms=record.display_time_ms,
+                   psnr_display_db=record.psnr_display_db, ssim_display=record.ssim_display,
+                   lpips_display=record.lpips_display, reward_display=record.reward_display,
+                   psnr_dynamic_display_db=record.psnr_dynamic_display_db)
 
 
 class QualitySummary(BaseModel):
@@ -130,6 +150,11 @@ class QualitySummary(BaseModel):
     mean_dynamic_fraction: float | None = Field(
         description="Mean pixel fraction of the dynamic mask over the window's entries that "
                     "have one; null if none.", examples=[0.15])
+    mean_psnr_display_db: float | None = Field(
+        None, description="Mean PSNR at display time over the window's entries that have "
+                          "one; null if none.", examples=[23.8])
+    mean_reward_display: float | None = Field(
+        None, description="Mean reward at display time, likewise.", examples=[0.86])
     dynamic_no_history_total: int = Field(
         description="Renders scored since start without a dynamic score because the truth "
                     "frames one and two periods earlier were missing.", examples=[2])
@@ -168,6 +193,8 @@ def get_quality(
         mean_psnr_dynamic_db=mean_of_present([r.psnr_dynamic_db for r in records]),
         mean_ssim_dynamic=mean_of_present([r.ssim_dynamic for r in records]),
         mean_dynamic_fraction=mean_of_present([r.dynamic_fraction for r in records]),
+        mean_psnr_display_db=mean_of_present([r.psnr_display_db for r in records]),
+        mean_reward_display=mean_of_present([r.reward_display for r in records]),
         dynamic_no_history_total=worker.dynamic_missing("no_history"),
         dynamic_empty_mask_total=worker.dynamic_missing("empty_mask"),
     )

@@ -16,6 +16,12 @@ SSIM over it and its pixel fraction go into the Quality message. When those earl
 missing (the first two periods, a gap, a size change) the dynamic fields are absent
 (``no_history``); an empty mask (nothing moved) leaves the two scores absent (``empty_mask``).
 The full-image scores and the reward do not depend on either.
+
+Display time (issue 33): the same render is scored a second time against what it is shown
+beside — the truth at the time it was ready (``Render.ready_ms``, stamped by the worker when
+it publishes; the time it is scored when absent), paired by the same rule. PSNR, SSIM, LPIPS,
+the reward and the dynamic-region PSNR then go into the ``*_display`` fields; they are absent
+when no truth frame was generated in [display − C, display].
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights, score
+from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, QualityScore, RewardWeights, score
 from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import DEFAULT_SITE
@@ -136,6 +142,15 @@ class QualityRecord:
     """SSIM over the dynamic region; None likewise."""
     dynamic_fraction: float | None = None
     """Pixel fraction of the dynamic mask; None when the earlier truth frames were missing."""
+    display_time_ms: float | None = None
+    """Sim time the render was ready (its ``ready_ms``, else the time it was scored): the
+    display scores below are against the truth then; None for all of them when no truth
+    frame was generated in [display − C, display]."""
+    psnr_display_db: float | None = None
+    ssim_display: float | None = None
+    lpips_display: float | None = None
+    reward_display: float | None = None
+    psnr_dynamic_display_db: float | None = None
 
 
 @dataclass(frozen=True)
@@ -197,6 +212,8 @@ class MetricsCore:
         except ValueError as err:
             raise Rejected("unscorable", str(err)) from err
         dyn = q.dynamic
+        display_ms = render.ready_ms if render.HasField("ready_ms") else now_ms
+        shown, shown_truth = self._display_score(pred, display_ms, truth, q)
         msg = pb.Quality(decision_id=render.decision_id,
                          decision_incarnation=render.decision_incarnation,
                          time_ms=render.time_ms,
@@ -212,6 +229,16 @@ class MetricsCore:
                 msg.psnr_dynamic_db = dyn.psnr_db
             if dyn.ssim is not None:
                 msg.ssim_dynamic = dyn.ssim
+        if shown is not None and shown_truth is not None:
+            msg.display_time_ms = display_ms
+            msg.display_truth_time_ms = shown_truth.generation_ms
+            msg.psnr_display_db = shown.psnr_db
+            msg.ssim_display = shown.ssim
+            msg.reward_display = shown.reward
+            if shown.lpips is not None:
+                msg.lpips_display = shown.lpips
+            if shown.dynamic is not None and shown.dynamic.psnr_db is not None:
+                msg.psnr_dynamic_display_db = shown.dynamic.psnr_db
         record = QualityRecord(
             decision_id=render.decision_id, time_ms=render.time_ms,
             truth_time_ms=truth.generation_ms, scene_time_ms=truth.scene_time_ms,
@@ -220,10 +247,37 @@ class MetricsCore:
             n_views=render.n_views, backend=render.backend, lag_ms=now_ms - render.time_ms,
             psnr_dynamic_db=dyn.psnr_db if dyn else None,
             ssim_dynamic=dyn.ssim if dyn else None,
-            dynamic_fraction=dyn.fraction if dyn else None)
+            dynamic_fraction=dyn.fraction if dyn else None,
+            **({} if shown is None else dict(
+                display_time_ms=display_ms, psnr_display_db=shown.psnr_db,
+                ssim_display=shown.ssim, lpips_display=shown.lpips,
+                reward_display=shown.reward,
+                psnr_dynamic_display_db=shown.dynamic.psnr_db if shown.dynamic else None)))
         missing = ("no_history" if dyn is None else
                    "empty_mask" if dyn.psnr_db is None else None)
         return Scored(msg, record, missing)
+
+    def _display_score(self, pred: np.ndarray, display_ms: float, truth: TruthFrame,
+                       at_decision: QualityScore
+                       ) -> tuple[QualityScore | None, TruthFrame | None]:
+        """The render against the truth at ``display_ms`` (the newest generated in
+        [display − C, display]): ``at_decision`` again when that is the decision-time
+        pairing's frame (not scored twice). (None, None) when there is none, or it cannot be
+        scored."""
+        try:
+            shown = self.ring.pair(display_ms, self.period_ms)
+        except Rejected:
+            return None, None
+        if shown.generation_ms == truth.generation_ms:
+            return at_decision, shown
+        try:
+            gt = decode_image(shown.image)
+            if gt.shape != pred.shape:
+                return None, None
+            return score(pred, gt, self.weights, lpips_fn=self.lpips_fn,
+                         previous=self._previous_truth(shown, gt.shape)), shown
+        except (Rejected, ValueError):
+            return None, None
 
     def _previous_truth(self, truth: TruthFrame, shape: tuple[int, ...]
                         ) -> list[np.ndarray] | None:

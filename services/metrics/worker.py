@@ -86,6 +86,14 @@ class MetricsWorker:
                              "before the first.", registry=registry)
         self._m_reward = Gauge("aoi3d_reward", "Reward of the latest scored render; NaN before "
                                "the first.", registry=registry)
+        self._m_psnr_display = Gauge(
+            "aoi3d_render_psnr_display_db", "PSNR of the latest scored render against the "
+            "truth at the time it was ready (display time, dB); NaN when it has none.",
+            registry=registry)
+        self._m_display_lag = Histogram(
+            "aoi3d_render_display_lag_seconds", "Sim seconds from a render's decision time to "
+            "the time it was ready (compute + queue + transport).",
+            buckets=(0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0), registry=registry)
         self._m_psnr_dyn = Gauge(
             "aoi3d_render_psnr_dynamic_db", "PSNR of the latest scored render over the dynamic "
             "region, the pixels whose truth changed over the last two frame periods (dB); NaN "
@@ -273,6 +281,9 @@ class MetricsWorker:
         self._m_ssim.set(record.ssim)
         self._m_reward.set(record.reward)
         self._m_psnr_dyn.set(or_nan(record.psnr_dynamic_db))
+        self._m_psnr_display.set(or_nan(record.psnr_display_db))
+        if record.display_time_ms is not None and record.display_time_ms >= record.time_ms:
+            self._m_display_lag.observe((record.display_time_ms - record.time_ms) / 1000.0)
         self._m_ssim_dyn.set(or_nan(record.ssim_dynamic))
         self._m_dyn_fraction.set(or_nan(record.dynamic_fraction))
         if missing is not None:

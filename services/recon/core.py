@@ -17,7 +17,7 @@ import numpy as np
 
 from aoi3d.field import FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
-from aoi3d.field.carry import Reconstruction, RenderedDecision
+from aoi3d.field.carry import Reconstruction, RenderedDecision, WarmStart
 from services.kit.codec import camera_from_pb, decode_frame, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
@@ -80,14 +80,26 @@ class ReconCore:
             except (KeyError, ValueError, TypeError) as err:
                 raise JobFailed("backend", f"cannot build backend {job.backend!r}: "
                                            f"{err}") from None
-            self._rec = Reconstruction(trainer, job.carry, int(job.render_steps))
+            try:
+                self._rec = Reconstruction(trainer, job.carry, int(job.render_steps),
+                                           self._warm_start(job))
+            except ValueError as err:
+                raise JobFailed("carry", str(err)) from None
             self._model_key = key
         else:
             try:
                 self._rec.set_carry(job.carry, int(job.render_steps))
+                self._rec.warm_start = self._warm_start(job)
             except ValueError as err:
                 raise JobFailed("carry", str(err)) from None
         return self._rec
+
+    @staticmethod
+    def _warm_start(job: pb.Job) -> WarmStart:
+        """The stream carry's settings the job carries (0: the defaults)."""
+        default = WarmStart()
+        return WarmStart(cold_steps=int(job.cold_steps) or default.cold_steps,
+                         max_gap_ms=float(job.warm_max_gap_ms) or default.max_gap_ms)
 
     def run(self, job: pb.Job) -> Outcome:
         """Reconstruct the job's decision and render its camera; :class:`JobFailed` when it
@@ -114,7 +126,7 @@ class ReconCore:
             rec.set_views(views)
         except ValueError as err:
             raise JobFailed("bad_selection", str(err)) from None
-        rendered = rec.render_decision(camera)
+        rendered = rec.render_decision(camera, time_ms=float(job.decision.time_ms))
         self.jobs += 1
         d = job.decision
         render = pb.Render(
@@ -123,6 +135,7 @@ class ReconCore:
             training_step=rendered.steps, n_views=rendered.n_views, backend=job.backend,
             frame_generation_ms=gens, carry=rec.carry, render_steps=rendered.render_steps,
             worker_id=self.worker_id, site=job.site, seed=job.seed, aabb=list(job.aabb),
+            warm_start=rendered.warm,
             loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
         return Outcome(render, rendered, rejected)
 

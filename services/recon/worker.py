@@ -16,6 +16,7 @@ import socket
 import threading
 import time
 
+from aoi3d.clock import SimClock
 from services.kit.bus import Bus
 from services.kit.keys import DEFAULT_SITE, Keys, check_site
 from services.kit.observe import Rejected
@@ -41,6 +42,7 @@ class ReconWorker:
         self.bus = bus
         self.core = core
         self.keys = Keys(settings.common.run_id)
+        self.clock = SimClock(settings.common.epoch_s, settings.common.time_scale)
         self.busy_s = 0.0
         self.failed = 0
         self.rendered = 0
@@ -97,6 +99,8 @@ class ReconWorker:
         t0 = time.monotonic()
         try:
             outcome = self.core.run(job)
+            outcome.render.compute_s = time.monotonic() - t0
+            outcome.render.ready_ms = self.clock.now_ms()
             self.bus.publish(Keys(self.keys.run_id, job.site or DEFAULT_SITE).render,
                              outcome.render.SerializeToString())
             self._done = (job, True, "")

@@ -115,11 +115,14 @@ def put_backend(worker: Worker,
 class CarryRequest(BaseModel):
     """How renders are made from the next render on."""
 
-    carry: Literal["fork", "fresh", "warm"] = Field(
+    carry: Literal["fork", "fresh", "stream", "warm"] = Field(
         description="fresh: a new model trains `render_steps` steps on the rendered "
                     "decision's frames alone, then renders (the paper's per-time "
-                    "reconstruction; the default); fork: a copy of the continuously trained "
-                    "model does; warm: the continuously trained model renders as it is.",
+                    "reconstruction; the default); stream: each worker starts from its "
+                    "previous decision's model and trains `render_steps` steps, a share of "
+                    "them on the pixels that changed (cold starts: cold_steps); fork: a copy "
+                    "of the continuously trained model does; warm: the continuously trained "
+                    "model renders as it is.",
         examples=["fresh"])
     render_steps: int | None = Field(
         None, ge=1, le=100_000,
@@ -128,7 +131,7 @@ class CarryRequest(BaseModel):
 
 
 @model_router.put(
-    "/carry", summary="Change how renders are made (fresh, fork or warm).",
+    "/carry", summary="Change how renders are made (fresh, stream, fork or warm).",
     description="The experiments' carry modes (`aoi3d experiment ... --carry`), the same code "
                 "(aoi3d.field.carry). Jobs handed out from now on carry it; warm and fork "
                 "models (one per worker) are kept.",

@@ -49,6 +49,10 @@ class RenderSettings:
     render_steps: int
     seed: int
     model_epoch: int = 0
+    cold_steps: int = 100
+    """stream: the budget of a cold start."""
+    warm_max_gap_ms: float = 500.0
+    """stream: a model whose last decision is further away (scene ms) starts cold."""
 
     def __post_init__(self) -> None:
         check_backend(self.backend)
@@ -131,6 +135,8 @@ class TrainerCore:
         self.loss: float | None = None
         self.n_views = 0
         self.last_render_steps = 0
+        self.warm_starts = 0
+        """Renders whose worker started from its previous model (the stream carry)."""
         self.render_lag_ms = math.nan
         self.frames_age_ms = math.nan
 
@@ -226,6 +232,7 @@ class TrainerCore:
         pose, intrinsics = camera_to_pb(self.heldout)
         job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
                      render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
+                     cold_steps=r.cold_steps, warm_max_gap_ms=r.warm_max_gap_ms,
                      pose=pose, intrinsics=intrinsics, aabb=self._aabb,
                      assigned_unix_s=now_s, site=self.site)
         for ref in msg.selected:
@@ -268,6 +275,7 @@ class TrainerCore:
 
     def _count_render(self, msg: pb.Render, now_ms: float) -> None:
         self.renders_seen += 1
+        self.warm_starts += int(msg.warm_start)
         self.steps_total += int(msg.render_steps)
         self.loss = float(msg.loss) if math.isfinite(msg.loss) and msg.render_steps else None
         self.n_views = int(msg.n_views)

@@ -39,6 +39,7 @@ class PoolCollector:
                 sites.append((site, dict(
                     decisions=c.decisions_applied, received=c.frames_received,
                     missing=c.frames_missing, renders=c.renders_seen, steps=c.steps_total,
+                    warm=c.warm_starts,
                     loss=c.loss, views=c.n_views, render_steps=c.last_render_steps,
                     lag_s=c.render_lag_ms / 1000.0, frames_age_s=c.frames_age_ms / 1000.0,
                     age_s=latest.age_s if latest is not None else None)))
@@ -74,6 +75,10 @@ class PoolCollector:
             "aoi3d_trainer_steps", "Training steps of the renders' reconstructions (the "
             "reconstruction workers'; the trainer service trains nothing itself).",
             labels=["site"]), by_site("steps"))
+        yield each(CounterMetricFamily(
+            "aoi3d_renders_warm_start", "Renders whose worker started from its previous "
+            "decision's model (the stream carry; the others started cold).", labels=["site"]),
+            by_site("warm"))
         yield one(GaugeMetricFamily(
             "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
             f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)

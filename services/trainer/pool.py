@@ -13,8 +13,10 @@ services.recon``) pull work from it. Design (docs/architecture.md, "The worker p
   one asker, under the caller's lock — of the sites with one pending, the site served longest
   ago (round robin, so no site starves another); a worker that finds nothing pending waits
   (its query is held, up to its ``max_wait_s``), and the next decision of any site goes to
-  the worker that has waited longest (:meth:`Dispatcher.offer`). No queue grows and no render
-  is older than one that could have been done instead.
+  the worker that has waited longest (:meth:`Dispatcher.offer`) — or, with ``prefer_warm``
+  (the ``stream`` carry), to the waiting worker whose last decision of that site is the
+  newest, so that a pool with slack keeps warm-starting from one decision ago. No queue
+  grows and no render is older than one that could have been done instead.
 - **Ledger**: a handed-out decision ends ``rendered`` (the worker reports its Render
   published in its next request) or ``lost`` with a reason: ``worker_died`` (its token
   vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
@@ -67,6 +69,8 @@ class _Member:
     holding: Assignment | None = None
     busy: deque[tuple[float, float]] = field(default_factory=deque)
     """(wall s, reported busy s) samples over the window."""
+    last_ms: dict[str, float] = field(default_factory=dict)
+    """The time of the last decision handed to it, by site (how recent its model is)."""
 
 
 class Dispatcher:
@@ -78,6 +82,10 @@ class Dispatcher:
         self.job_timeout_s = float(job_timeout_s)
         self._workers: dict[str, _Member] = {}
         self._waiting: deque[str] = deque()
+        self.prefer_warm = False
+        """Give a new decision to the waiting worker whose last decision of the site is the
+        newest (its model the warmest: the ``stream`` carry starts from it) instead of the one
+        that waited longest (ties: the longest waiting)."""
         self._pending: dict[str, tuple[DecisionRef, float]] = {}
         self._served_s: dict[str, float] = {}
         """When each site last had a decision handed out (round robin between sites)."""
@@ -139,6 +147,14 @@ class Dispatcher:
         self.decisions += 1
         self._count(decision.site, "decisions")
         self._event(now_s, "decision", 1.0)
+        if self.prefer_warm:
+            free = [w for i in self._waiting
+                    if (w := self._workers.get(i)) is not None and w.holding is None]
+            if free:
+                worker = max(free, key=lambda w: w.last_ms.get(decision.site, -math.inf))
+                self._unwait(worker.worker_id)
+                return self._assign(worker, decision, now_s, now_s)
+            self._waiting.clear()
         while self._waiting:
             worker = self._workers.get(self._waiting.popleft())
             if worker is not None and worker.holding is None:
@@ -204,6 +220,7 @@ class Dispatcher:
                 now_s: float) -> Assignment:
         held = Assignment(decision, worker.worker_id, arrived_s, now_s)
         worker.holding = held
+        worker.last_ms[decision.site] = decision.time_ms
         self.assigned += 1
         self._served_s[decision.site] = now_s
         self._count(decision.site, "assigned")

@@ -29,17 +29,33 @@ class Settings(ServiceSettings):
                                              "lists them); `PUT /backend` switches it at run "
                                              "time.",
                          examples=["grid"])
-    carry: Literal["fork", "fresh", "warm"] = Field(
+    carry: Literal["fork", "fresh", "stream", "warm"] = Field(
         "fresh",
         description="How a render is made (aoi3d.field.carry, the experiments' carry modes): "
                     "fresh = the paper's per-time reconstruction, a new model trains "
-                    "render_steps steps on the rendered decision's frames alone; fork = a copy "
+                    "render_steps steps on the rendered decision's frames alone; stream = the "
+                    "streaming warm start, each worker trains its previous decision's model "
+                    "render_steps more steps on the new frames (a cold start, or a model more "
+                    "than warm_max_gap_ms of scene time old: cold_steps); fork = a copy "
                     "of the worker's continuously trained model does; warm = that model renders "
                     "as it is (fork and warm: one model per worker, carried from job to job). "
                     "`PUT /carry` changes it at run time.")
     render_steps: int = Field(
         100, ge=1, le=100_000,
-        description="Training steps spent on a rendered decision's own frames (fork, fresh).")
+        description="Training steps spent on a rendered decision's own frames (fork, fresh; "
+                    "stream: a warm start's).")
+    cold_steps: int = Field(
+        100, ge=1, le=100_000,
+        description="stream: the budget of a cold start (a worker's first job, or one after "
+                    "a model too old).")
+    warm_max_gap_ms: float = Field(
+        500.0, ge=0, le=3_600_000,
+        description="stream: a worker whose last decision is further than this from the new "
+                    "one, in scene ms, starts cold (its model is too old to start from). "
+                    "Measured on the rotor: 90 ms apart a warm start is 1.9 dB worse than a "
+                    "fresh one at its decision time, but live it is shown so much sooner "
+                    "that it wins at display time; a limit below a cold job's own duration "
+                    "(135 sim ms at time scale 0.3) never lets a pool warm up.")
     seed: int = Field(0, ge=0, description="Seed of the field's initialisation and ray sampling "
                                            "(carried by every job).")
     job_timeout_s: float = Field(

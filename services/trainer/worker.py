@@ -67,7 +67,9 @@ class TrainerWorker:
             raise ValueError("the trainer needs a dataset or a rig")
         self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
         self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
-                                     settings.seed)
+                                     settings.seed, cold_steps=settings.cold_steps,
+                                     warm_max_gap_ms=settings.warm_max_gap_ms)
+        self.pool.prefer_warm = settings.carry == "stream"
         # the sites film the same scene (at their own phases): one camera and box for all
         self.cores = {site: TrainerCore(
             camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,
@@ -263,6 +265,7 @@ class TrainerWorker:
         changed — for a mode or budget the reconstruction refuses."""
         with self._lock:
             self.render = self.render.with_carry(carry, render_steps)
+            self.pool.prefer_warm = carry == "stream"
 
     def reset(self) -> None:
         with self._lock:

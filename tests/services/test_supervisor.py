@@ -223,3 +223,20 @@ def test_the_restart_backoff_doubles_only_while_a_child_keeps_dying_young(tmp_pa
         sup._restart_dead()  # restarts it (start is a no-op; proc stays exited)
     assert waits == [1.0, 1.0, 2.0, 4.0, 1.0]
     assert child.restarts == 5 and len(child.exits) == 5
+
+
+def test_auto_workers_takes_every_core_up_to_two_then_leaves_one() -> None:
+    from services.supervisor import auto_workers
+
+    assert [auto_workers(c) for c in (1, 2, 3, 4, 16)] == [1, 2, 2, 3, 15]
+    assert auto_workers() >= 1  # this machine's
+
+
+def test_up_refuses_a_worker_count_that_is_not_auto_or_0_to_64() -> None:
+    from typer.testing import CliRunner
+
+    from aoi3d.cli import app
+
+    for bad in ("-1", "65", "many"):
+        out = CliRunner().invoke(app, ["up", "--workers", bad])
+        assert out.exit_code == 2 and "--workers" in out.output, out.output

@@ -10,7 +10,13 @@ import torch
 
 from aoi3d.experiment import EpisodeConfig, plan_episode, run_plan
 from aoi3d.field import FieldTrainer, GridConfig, TrainView
-from aoi3d.field.carry import CARRY_MODES, Reconstruction, check_carry
+from aoi3d.field.carry import (
+    CARRY_MODES,
+    Reconstruction,
+    WarmStart,
+    changed_cells,
+    check_carry,
+)
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from tests.unit.test_experiment import TINY_FIELD
 
@@ -104,8 +110,9 @@ def test_warm_renders_the_model_as_it_is(dataset: SceneDataset) -> None:
 
 
 def test_check_carry_refuses_unknown_modes_and_missing_budgets() -> None:
-    assert set(CARRY_MODES) == {"fresh", "warm", "fork"}
-    for carry, steps in (("cold", 10), ("fresh", 0), ("fork", 0), ("warm", -1), ("fork", 2.5)):
+    assert set(CARRY_MODES) == {"fresh", "warm", "fork", "stream"}
+    for carry, steps in (("cold", 10), ("fresh", 0), ("fork", 0), ("warm", -1), ("fork", 2.5),
+                         ("stream", 0)):
         with pytest.raises(ValueError):
             check_carry(carry, steps)
     check_carry("warm", 0)
@@ -160,3 +167,122 @@ def test_set_carry_changes_the_mode_in_place_or_nothing(dataset: SceneDataset) -
     with pytest.raises(ValueError):
         rec.set_carry("fork", 0)
     assert (rec.carry, rec.render_steps) == ("warm", 0)
+
+
+def test_stream_starts_cold_then_warm_from_the_previous_model(dataset: SceneDataset) -> None:
+    ws = WarmStart(cold_steps=8, max_gap_ms=100.0)
+    rec = Reconstruction(trainer(dataset), "stream", render_steps=3, warm_start=ws)
+    assert not rec.trains_in_background
+    cam = dataset.cameras[0]
+    first = rec.render_decision(cam, views(dataset, 0), time_ms=0.0)
+    assert (first.warm, first.render_steps, first.steps) == (False, 8, 8)
+    # the cold start is the fresh reconstruction with the cold budget
+    ref = trainer(dataset)
+    ref.set_views(views(dataset, 0))
+    ref.step(8)
+    np.testing.assert_array_equal(first.image, ref.render(cam))
+    # the next decision starts from that model: the schedule held at cold − warm, 3 steps more
+    before = params(rec.trainer)
+    second = rec.render_decision(cam, views(dataset, 1), time_ms=33.3)
+    assert (second.warm, second.render_steps, second.steps) == (True, 3, 8)
+    assert any(not torch.equal(a, b) for a, b in zip(before, params(rec.trainer), strict=True))
+    # and differs from a fresh 3-step model on those frames (it kept what it had learned)
+    fresh = trainer(dataset)
+    fresh.set_views(views(dataset, 1))
+    fresh.step(3)
+    assert not np.array_equal(second.image, fresh.render(cam))
+    # too old (beyond max_gap_ms, either way), no time, or an empty decision: cold again
+    assert not rec.is_warm(33.3 + 101.0) and not rec.is_warm(None)
+    assert rec.is_warm(33.3 + 99.0) and rec.is_warm(0.0)
+    third = rec.render_decision(cam, views(dataset, 2), time_ms=500.0)
+    assert (third.warm, third.render_steps) == (False, 8)
+    empty = rec.render_decision(cam, [], time_ms=530.0)
+    assert (empty.warm, empty.render_steps, empty.n_views) == (False, 0, 0)
+    assert not rec.is_warm(560.0)  # an empty decision leaves no model to start from
+
+
+def test_stream_focuses_on_the_changed_pixels(dataset: SceneDataset) -> None:
+    t = trainer(dataset)
+    t.set_views(views(dataset, 0))
+    n = 4 * dataset.width * dataset.height
+    with pytest.raises(ValueError, match="outside"):
+        t.set_focus(torch.tensor([n]), 0.5)
+    with pytest.raises(ValueError, match="fraction"):
+        t.set_focus(torch.tensor([0]), 1.5)
+    # every ray from one pixel: the step's loss is that pixel's error alone
+    t.set_focus(torch.tensor([7]), 1.0)
+    target = torch.as_tensor(views(dataset, 0)[0].image.reshape(-1, 3)[7] / 255.0)
+    seen = []
+    real_step = t.field.train_step
+
+    def spy(rays, options, tgt, optimizer):
+        seen.append(tgt.clone())
+        return real_step(rays, options, tgt, optimizer)
+
+    t.field.train_step = spy
+    t.step(2)
+    assert seen and all(torch.allclose(x, target.expand_as(x).float()) for x in seen)
+    t.set_views(views(dataset, 1))  # a new decision drops the focus
+    seen.clear()
+    t.step(1)
+    assert not torch.allclose(seen[0], seen[0][:1].expand_as(seen[0]))
+    # the stream carry's focus: the pixels that changed since the camera's last frame
+    rec = Reconstruction(trainer(dataset), "stream", 2, WarmStart(cold_steps=2, focus=1.0))
+    rec.render_decision(dataset.cameras[0], views(dataset, 0), time_ms=0.0)
+    changes = rec._changes(views(dataset, 3))
+    assert len(changes) == 4 and any(m.any() for _, m in changes)
+    assert not any(m.all() for _, m in changes)
+    same = rec._changes(views(dataset, 0))
+    assert all(not m.any() for _, m in same)  # nothing moved: nothing to focus on
+
+
+def test_changed_cells_is_the_hull_of_the_change(dataset: SceneDataset) -> None:
+    cams = [dataset.cameras[c] for c in (1, 2)]
+    h, w = dataset.height, dataset.width
+    box = np.asarray(dataset.aabb)
+    centre = torch.tensor(box.mean(axis=0), dtype=torch.float32)
+    behind = torch.tensor(cams[0].position - 10.0 * (box.mean(axis=0) - cams[0].position),
+                          dtype=torch.float32)
+    points = torch.stack([centre, behind])
+    everything = [(c, np.ones((h, w), dtype=bool)) for c in cams]
+    nothing = [(c, np.zeros((h, w), dtype=bool)) for c in cams]
+    assert changed_cells(points, everything).tolist()[0] is True
+    assert changed_cells(points, nothing).tolist() == [False, False]
+    # one view that sees it unchanged is enough to keep it
+    assert changed_cells(points, [everything[0], nothing[1]]).tolist()[0] is False
+    # a point no view sees is never marked
+    assert changed_cells(points[1:], everything[:1]).tolist() == [False]
+    assert changed_cells(points, []).tolist() == [False, False]
+
+
+def test_forget_resets_the_marked_vertices_and_their_moments(dataset: SceneDataset) -> None:
+    t = trainer(dataset)
+    t.set_views(views(dataset, 0))
+    t.step(5)
+    grid = t.field.grid.detach().clone()
+    state = t._optimizer.state[t.field.grid]
+    n = t.forget(lambda p: p[:, 0] < float(np.asarray(dataset.aabb)[:, 0].mean()))
+    after = t.field.grid.detach()
+    assert 0 < n < grid.shape[0]
+    reset = (after != grid).any(dim=1)
+    assert int(reset.sum()) <= n
+    first = after[~torch.isclose(after, grid).all(dim=1)]
+    if len(first):
+        assert torch.allclose(first[:, 1:], torch.zeros_like(first[:, 1:]))
+    rows = (after[:, 1:] == 0).all(dim=1) & torch.isclose(after[:, 0], after[0, 0])
+    assert int(rows.sum()) >= n
+    assert float(state["exp_avg"][rows].abs().sum()) == 0.0
+    assert float(state["exp_avg_sq"][rows].abs().sum()) == 0.0
+    assert t.forget(lambda p: torch.zeros(len(p), dtype=torch.bool)) == 0
+
+
+def test_episode_stream_scores_warm_decisions(dataset: SceneDataset) -> None:
+    cfg = EpisodeConfig(dataset=str(dataset.root), field=dict(TINY_FIELD), warmup_ms=90,
+                        scored_ms=90, score_every=1, steps_per_epoch=4, carry="stream",
+                        render_steps=2, lpips=False, delay="const:10")
+    plan = plan_episode(cfg, dataset, "all", seed=1)
+    assert all(d.train == d.scored for d in plan.decisions)  # nothing in the background
+    result, _ = run_plan(plan, dataset)
+    scored = [d for d in plan.decisions if d.scored and d.cameras]
+    assert result.train_steps == 2 * len(scored) + 2
+    assert len(result.epochs) == len(scored) >= 2

@@ -53,6 +53,27 @@ def test_each_decision_goes_to_exactly_one_worker_longest_waiting_first() -> Non
     assert (s.assigned, s.rendered, s.in_flight, s.superseded) == (4, 2, 2, 0)
 
 
+def test_prefer_warm_gives_a_decision_to_the_waiting_worker_with_the_newest_model() -> None:
+    pool = Dispatcher()
+    pool.prefer_warm = True
+    for w in "abc":
+        pool.joined(w, 0.0)
+    assert ask(pool, "a", 0.0) is None and ask(pool, "b", 0.0) is None
+    assert pool.offer(d(1), 1.0).worker_id == "a"  # no model anywhere: the longest waiting
+    assert pool.offer(d(2), 1.1).worker_id == "b"  # a is busy
+    assert ask(pool, "a", 1.5, done=d(1)) is None  # a waits again (model of d(1))
+    assert ask(pool, "b", 1.6, done=d(2)) is None  # b too (model of d(2), newer)
+    assert ask(pool, "c", 1.7) is None  # c never had a job
+    assert pool.offer(d(3), 2.0).worker_id == "b"  # the warmest, though a waited longer
+    assert pool.offer(d(4), 2.1).worker_id == "a"  # then the next warmest
+    # another site's decision goes by that site's models: none yet, so the longest waiting
+    other = DecisionRef(7, 5, 500.0, "north")
+    assert pool.offer(other, 2.2).worker_id == "c"
+    assert pool.offer(d(6), 2.3) is None  # nobody free: pending, as always
+    pool.prefer_warm = False
+    assert ask(pool, "b", 3.0, done=d(3)).decision == d(6)
+
+
 def test_a_worker_that_dies_loses_only_its_own_decision() -> None:
     pool = Dispatcher()
     for w in "ab":

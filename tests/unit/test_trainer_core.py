@@ -58,6 +58,31 @@ def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDatase
     assert latest.decision_id == 4 and latest.worker_id == "w" and latest.age_s == 1.0
 
 
+def test_a_stream_worker_starts_warm_from_its_last_job_and_cold_when_it_is_too_old(
+        dataset: SceneDataset) -> None:  # noqa: F811
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    pool.joined("w", 0.0)
+    recon = ReconCore(worker_id="w", device="cpu", configs=CONFIGS)
+    settings = RenderSettings("grid", "stream", 3, 3, cold_steps=7, warm_max_gap_ms=200.0)
+    outcomes, done = [], None
+    for i, t in enumerate((100.0, 130.0, 1000.0)):
+        for cam in (1, 2, 3):
+            core.on_frame(frame_payload(dataset, cam, t - 10.0), now_ms=t)
+        core.on_decision(decision_payload(i + 1, t, [(c, t - 10.0) for c in (1, 2, 3)]),
+                         now_ms=t, now_s=float(i))
+        assignment = pool.request(Report("w", done=done, rendered=done is not None,
+                                         max_wait_s=1.0), float(i) + 0.5)
+        job = pb.WorkReply.FromString(core.job(assignment, float(i) + 0.5, settings)).job
+        assert (job.cold_steps, job.warm_max_gap_ms) == (7, 200.0)
+        outcomes.append(recon.run(job).render)
+        done = assignment.decision.key
+    first, second, third = outcomes
+    assert (first.warm_start, first.render_steps, first.carry) == (False, 7, "stream")
+    assert (second.warm_start, second.render_steps) == (True, 3)  # 30 ms after the first
+    assert (third.warm_start, third.render_steps) == (False, 7)  # 870 ms: too old
+
+
 def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None:
     render = RenderSettings("grid", "fresh", 12, 3).with_backend("ngp").reset()
     assert (render.backend, render.model_epoch) == ("ngp", 2)

@@ -130,7 +130,7 @@ class Decision(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -148,6 +148,9 @@ class Render(_message.Message):
     SITE_FIELD_NUMBER: _ClassVar[int]
     SEED_FIELD_NUMBER: _ClassVar[int]
     AABB_FIELD_NUMBER: _ClassVar[int]
+    READY_MS_FIELD_NUMBER: _ClassVar[int]
+    WARM_START_FIELD_NUMBER: _ClassVar[int]
+    COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -165,10 +168,13 @@ class Render(_message.Message):
     site: str
     seed: int
     aabb: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ...) -> None: ...
+    ready_ms: float
+    warm_start: bool
+    compute_s: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ..., ready_ms: _Optional[float] = ..., warm_start: _Optional[bool] = ..., compute_s: _Optional[float] = ...) -> None: ...
 
 class Job(_message.Message):
-    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site")
+    __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site", "cold_steps", "warm_max_gap_ms")
     DECISION_FIELD_NUMBER: _ClassVar[int]
     FRAMES_FIELD_NUMBER: _ClassVar[int]
     N_MISSING_FIELD_NUMBER: _ClassVar[int]
@@ -182,6 +188,8 @@ class Job(_message.Message):
     AABB_FIELD_NUMBER: _ClassVar[int]
     ASSIGNED_UNIX_S_FIELD_NUMBER: _ClassVar[int]
     SITE_FIELD_NUMBER: _ClassVar[int]
+    COLD_STEPS_FIELD_NUMBER: _ClassVar[int]
+    WARM_MAX_GAP_MS_FIELD_NUMBER: _ClassVar[int]
     decision: Decision
     frames: _containers.RepeatedCompositeFieldContainer[Frame]
     n_missing: int
@@ -195,7 +203,9 @@ class Job(_message.Message):
     aabb: _containers.RepeatedScalarFieldContainer[float]
     assigned_unix_s: float
     site: str
-    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ..., site: _Optional[str] = ...) -> None: ...
+    cold_steps: int
+    warm_max_gap_ms: float
+    def __init__(self, decision: _Optional[_Union[Decision, _Mapping]] = ..., frames: _Optional[_Iterable[_Union[Frame, _Mapping]]] = ..., n_missing: _Optional[int] = ..., backend: _Optional[str] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., seed: _Optional[int] = ..., model_epoch: _Optional[int] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., aabb: _Optional[_Iterable[float]] = ..., assigned_unix_s: _Optional[float] = ..., site: _Optional[str] = ..., cold_steps: _Optional[int] = ..., warm_max_gap_ms: _Optional[float] = ...) -> None: ...
 
 class WorkRequest(_message.Message):
     __slots__ = ("worker_id", "done_decision_id", "done_incarnation", "done_rendered", "done_reason", "busy_s", "jobs", "max_wait_s", "device", "pid", "host", "done_site")
@@ -250,7 +260,7 @@ class Outcome(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[_Union[EndReason, str]] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site", "display_time_ms", "psnr_display_db", "ssim_display", "lpips_display", "reward_display", "psnr_dynamic_display_db", "display_truth_time_ms")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -266,6 +276,13 @@ class Quality(_message.Message):
     DYNAMIC_FRACTION_FIELD_NUMBER: _ClassVar[int]
     DECISION_INCARNATION_FIELD_NUMBER: _ClassVar[int]
     SITE_FIELD_NUMBER: _ClassVar[int]
+    DISPLAY_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    PSNR_DISPLAY_DB_FIELD_NUMBER: _ClassVar[int]
+    SSIM_DISPLAY_FIELD_NUMBER: _ClassVar[int]
+    LPIPS_DISPLAY_FIELD_NUMBER: _ClassVar[int]
+    REWARD_DISPLAY_FIELD_NUMBER: _ClassVar[int]
+    PSNR_DYNAMIC_DISPLAY_DB_FIELD_NUMBER: _ClassVar[int]
+    DISPLAY_TRUTH_TIME_MS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -281,4 +298,11 @@ class Quality(_message.Message):
     dynamic_fraction: float
     decision_incarnation: int
     site: str
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ...) -> None: ...
+    display_time_ms: float
+    psnr_display_db: float
+    ssim_display: float
+    lpips_display: float
+    reward_display: float
+    psnr_dynamic_display_db: float
+    display_truth_time_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ...) -> None: ...
