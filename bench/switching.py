@@ -53,13 +53,12 @@ CACHE = ROOT / "runs" / "experiments" / "cache"
 SEED0 = 20000
 MEANS_MS = (10, 20, 40, 60, 100, 150, 200)
 GAMMAS = (40, 70, 100, 130, 160, 220, 300)
-WINDOW_GAMMAS = (40, 70, 100, 160, 220)
+WINDOW_GAMMAS = (40, 70, 100, 160)
 # 10-s windows of the traces at the experiments' frame sizes (stored PNGs, ~4.8 kB = 4
 # packets): (trace, window start ms, one camera's mean transmission time in that window ms)
 WINDOWS = (
     ("TMobile-LTE-short.up", 120_000, 2.5),   # the trace's 10th-percentile window
     ("Verizon-LTE-short.up", 40_000, 26.3),   # 90th percentile
-    ("ATT-LTE-driving-2016.up", 0, 39.8),     # median
     ("TMobile-UMTS-driving.up", 80_000, 137.9),  # 90th percentile
 )
 SCIENCE_MAIN_ROOT = "/work/main/data/turbine-rotor"  # where make science's episodes were keyed
