@@ -28,6 +28,7 @@ from aoi3d.channel.varying import (
     StationaryChannel,
     TraceChannel,
     parse_channel,
+    trace_path_of,
     transmission_summary,
 )
 
@@ -63,5 +64,6 @@ __all__ = [
     "parse_delay",
     "simulate",
     "slot_delay_pmf",
+    "trace_path_of",
     "transmission_summary",
 ]

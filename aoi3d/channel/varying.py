@@ -77,6 +77,7 @@ __all__ = [
     "TraceChannel",
     "load_trace",
     "parse_channel",
+    "trace_path_of",
     "transmission_summary",
 ]
 
@@ -553,6 +554,15 @@ def _parse_trace(kind: str, body: str, spec: str) -> TraceChannel:
 
 
 # ---------------------------------------------------------------------------- parsing
+def trace_path_of(spec: str) -> str | None:
+    """The trace path a ``trace:`` or ``cell:`` spec names (read from the text alone, no file
+    touched: a service checks where it lies before reading it); None for the other kinds."""
+    kind, _, body = str(spec).strip().partition(":")
+    if kind.strip().lower() not in ("trace", "cell"):
+        return None
+    return body.split(",")[0].strip()
+
+
 def parse_channel(spec: str | Channel | DelayDistribution) -> Channel:
     """Parse any channel spec (a delay distribution, ``regimes:``, ``trace:``, ``cell:``);
     a channel passes through, a distribution is wrapped. Raises ``DelaySpecError``."""

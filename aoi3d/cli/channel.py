@@ -44,9 +44,9 @@ def _table(result: dict[str, Any], console: Console) -> None:
         table.add_row(
             label,
             fmt(s.get("mean_aoi_ms")),
-            fmt(s.get("p50_aoi_ms"), 0),
-            fmt(s.get("p99_aoi_ms"), 0),
-            fmt(s.get("drop_ratio"), 4),
+            fmt(s.get("p50_aoi_ms"), digits=0),
+            fmt(s.get("p99_aoi_ms"), digits=0),
+            fmt(s.get("drop_ratio"), digits=4),
             fmt(s.get("delivered_per_s")),
             fmt(s.get("offered")),
             fmt(s.get("dropped")),
