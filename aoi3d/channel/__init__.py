@@ -21,6 +21,7 @@ from aoi3d.channel.theory import ChannelTheory, aoi_cdf, aoi_pmf, channel_theory
 from aoi3d.channel.varying import (
     CHANNEL_FORMS,
     DEFAULT_FRAME_BYTES,
+    BurstChannel,
     CellChannel,
     Channel,
     ChannelSpecError,
@@ -36,6 +37,7 @@ __all__ = [
     "ACCEPTED_FORMS",
     "CHANNEL_FORMS",
     "DEFAULT_FRAME_BYTES",
+    "BurstChannel",
     "CellChannel",
     "Channel",
     "ChannelRun",

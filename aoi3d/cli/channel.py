@@ -67,6 +67,7 @@ def simulate_cmd(
         str, typer.Option(help="Delay spec: exp:MEAN, const:D, uniform:LO:HI, gamma:K:THETA, "
                           "lognormal:MU:SIGMA (ms); or a channel that changes: "
                           "regimes:SPEC@DUR,… (cycling, e.g. regimes:exp:20@10s,exp:200@10s), "
+                          "burst:GOOD,BAD[,good=DUR][,bad=DUR] (Gilbert–Elliott), "
                           "trace:PATH[,offset=MS][,spread=MS][,scale=S] (a mahimahi uplink "
                           "trace per camera), cell:PATH[,…] (the cameras share one trace's "
                           "capacity).")
