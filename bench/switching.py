@@ -216,6 +216,47 @@ def report(seeds: int) -> dict[str, Any]:
     return out
 
 
+def _pm(x: tuple[float, float], signed: bool = True) -> str:
+    m, h = x
+    text = f"{m:+.2f}" if signed else f"{m:.2f}"
+    return text + ("" if not math.isfinite(h) else f" ± {h:.2f}")
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The report's tables, as docs/experiments.md shows them."""
+    lines = ["| regimes | seeds | best single Γ | G (dB) | G, leave-one-seed-out (dB) | "
+             "per-decision oracle − single Γ (dB) | oracle − per-regime best Γ (dB) |",
+             "|---|---|---|---|---|---|---|"]
+    for name, r in result["sets"].items():
+        if "G_db" not in r:
+            continue
+        lines.append(f"| {name} | {len(r['seeds'])} | {r['best_single_gamma_ms']} | "
+                     f"{_pm(r['G_db'])} | {_pm(r['G_leave_one_seed_out_db'])} | "
+                     f"{_pm(r['oracle_minus_single_db'])} | "
+                     f"{_pm(r['oracle_minus_per_regime_best_db'])} |")
+    lines.append("")
+    for name in ("all seven delays", "trace windows"):
+        r = result["sets"].get(name, {})
+        if "per_regime" not in r:
+            continue
+        gammas = r["gammas_ms"]
+        lines += ["", f"**{name}** (PSNR in dB, mean ± 95% CI over seeds "
+                      f"{r['seeds'][0]}–{r['seeds'][-1]}; best single Γ "
+                      f"{r['best_single_gamma_ms']}):", "",
+                  "| regime | " + " | ".join(f"Γ {g}" for g in gammas)
+                  + " | best Γ | single Γ loses (dB) |",
+                  "|---|" + "---|" * (len(gammas) + 2)]
+        for lab, pr in r["per_regime"].items():
+            cells = []
+            for g in gammas:
+                m, _h = pr["curve_db"][g] if g in pr["curve_db"] else pr["curve_db"][str(g)]
+                cell = f"{m:.2f}"
+                cells.append(f"**{cell}**" if g == pr["best_gamma_ms"] else cell)
+            lines.append(f"| {lab} | " + " | ".join(cells)
+                         + f" | {pr['best_gamma_ms']} | {_pm(pr['single_loses_db'])} |")
+    return "\n".join(lines) + "\n"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("what", choices=("run", "report"))
@@ -228,6 +269,7 @@ def main() -> None:
     result = report(args.seeds)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "switching.json").write_text(json.dumps(result, indent=1, default=str))
+    (OUT / "report.md").write_text(markdown(result))
     for name, r in result["sets"].items():
         if "G_db" not in r:
             print(f"{name}: {r.get('note')}")
