@@ -228,9 +228,11 @@ def heat_map_png(render_png: bytes, truth_png: bytes) -> bytes | None:
 
 @functools.lru_cache(maxsize=64)
 def _mean_ms(spec: str) -> float | None:
-    """The mean transmission time of a spec in force (a trace's: of a 12-kB frame)."""
+    """The mean transmission time of a spec in force; None for a trace (it depends on the
+    frames' sizes: the measured delay is the one to read)."""
     try:
-        return float(parse_channel(spec).mean_ms)
+        channel = parse_channel(spec)
+        return None if channel.size_dependent else float(channel.mean_ms)
     except (ValueError, OSError):
         return None
 

@@ -62,7 +62,8 @@ class NetworkWorker:
         # the channel's changes, set over REST or by its regimes: {time_ms, spec, cause}
         self._changes: deque[dict[str, Any]] = deque(maxlen=_CHANGES_KEPT)
         self._changes.append({"time_ms": float(self.core.started_ms),
-                              "spec": self.core.regime(self.core.started_ms), "cause": "set"})
+                              "spec": self.core.regime(self.core.started_ms), "cause": "set",
+                              "delay": self.core.config.delay})
         self._changes_seen_ms = float(self.core.started_ms)
         self._recent: deque[tuple[float, float]] = deque()  # (delivery, delay) ms
         self.camera_ids = self.core.camera_ids
