@@ -80,6 +80,8 @@ __all__ = [
     "Server",
     "StationaryChannel",
     "TraceChannel",
+    "check_frame_encoding",
+    "jpeg_bytes",
     "load_trace",
     "parse_channel",
     "trace_path_of",
@@ -629,6 +631,34 @@ def _parse_trace(kind: str, body: str, spec: str) -> TraceChannel:
     except ChannelSpecError as err:
         raise ChannelSpecError(err.problem, spec) from None
     return channel
+
+
+# ---------------------------------------------------------------------------- frame sizes
+FRAME_ENCODINGS = ("png", "jpeg:Q")
+
+
+def check_frame_encoding(encoding: str) -> int | None:
+    """``png`` (the frame's PNG bytes, what the cameras send) or ``jpeg:Q`` (the frame
+    encoded as JPEG at quality Q, 1–95): how a frame's size is counted on a trace channel.
+    Returns Q (None for PNG); raises ``ValueError``."""
+    if encoding == "png":
+        return None
+    kind, _, q = str(encoding).partition(":")
+    if kind == "jpeg" and q.isdigit() and 1 <= int(q) <= 95:
+        return int(q)
+    raise ValueError(f"frame encoding must be one of {FRAME_ENCODINGS} (Q in 1..95), got "
+                     f"{encoding!r}")
+
+
+def jpeg_bytes(rgb: np.ndarray, quality: int) -> int:
+    """Bytes of an (H, W, 3) uint8 image encoded as JPEG at ``quality``."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(rgb, dtype=np.uint8)).save(buf, format="JPEG", quality=quality)
+    return buf.tell()
 
 
 # ---------------------------------------------------------------------------- parsing

@@ -45,7 +45,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from dataclasses import field as dc_field
 from typing import Any
 
-from aoi3d.channel import parse_channel
+from aoi3d.channel.varying import check_frame_encoding, parse_channel
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.quality import RewardWeights
 from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
@@ -77,20 +77,6 @@ too stale to trade against. Measured with ``bench/staleness.py``; See docs/exper
 EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
 CAMERA_PHASES = ("sync", "random")
-FRAME_ENCODINGS = ("png", "jpeg:Q")
-
-
-def check_frame_encoding(encoding: str) -> int | None:
-    """``png`` (the stored PNG bytes, what the live cameras send) or ``jpeg:Q`` (the frame
-    encoded as JPEG at quality Q, 1–95): the frame sizes a trace channel reads. Returns Q
-    (None for PNG); raises ``ValueError``."""
-    if encoding == "png":
-        return None
-    kind, _, q = str(encoding).partition(":")
-    if kind == "jpeg" and q.isdigit() and 1 <= int(q) <= 95:
-        return int(q)
-    raise ValueError(f"frame_encoding must be one of {FRAME_ENCODINGS} (Q in 1..95), got "
-                     f"{encoding!r}")
 
 
 def _int_at_least(name: str, value: Any, minimum: int) -> None:

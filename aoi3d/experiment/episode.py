@@ -38,7 +38,8 @@ import numpy as np
 from PIL import Image
 
 from aoi3d.channel import ChannelRun, parse_channel, simulate
-from aoi3d.experiment.config import EpisodeConfig, check_frame_encoding
+from aoi3d.channel.varying import check_frame_encoding, jpeg_bytes
+from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
 from aoi3d.field.process import configure_process
@@ -237,10 +238,7 @@ def frame_sizes(dataset: SceneDataset, encoding: str = "png") -> np.ndarray:
                 if quality is None:
                     out[c, f] = len(dataset.frame_png(c, f))
                 else:
-                    buf = io.BytesIO()
-                    Image.fromarray(dataset.frame(c, f)).save(buf, format="JPEG",
-                                                              quality=quality)
-                    out[c, f] = buf.tell()
+                    out[c, f] = jpeg_bytes(dataset.frame(c, f), quality)
         _FRAME_SIZES[key] = out
     return _FRAME_SIZES[key]
 

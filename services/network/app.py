@@ -160,7 +160,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id, site),
             n_cameras=common.cameras, delay=settings.delay, per_camera=settings.per_camera,
             seed=settings.seed + common.sites.index(site), max_skew_ms=settings.common.skew_ms,
-            inbox_size=settings.inbox_size)
+            inbox_size=settings.inbox_size, frame_encoding=settings.frame_encoding)
 
     app = service_app(title="aoi3d network", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, registry=registry, per_site=True)

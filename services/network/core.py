@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aoi3d.channel import Channel, Link, camera_rngs, parse_channel
+from aoi3d.channel.varying import check_frame_encoding, jpeg_bytes
 from services.kit.codec import decode_frame
 from services.kit.rejected import Rejected
 
@@ -74,10 +75,12 @@ class NetworkCore:
 
     def __init__(self, n_cameras: int, *, delay: str = "exp:60",
                  per_camera: dict[int, str] | None = None, seed: int = 1,
-                 max_skew_ms: float = 1000.0, now_ms: float = 0.0) -> None:
+                 max_skew_ms: float = 1000.0, now_ms: float = 0.0,
+                 frame_encoding: str = "png") -> None:
         self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
         self._accepted = frozenset(self.camera_ids)
         self._max_skew_ms = float(max_skew_ms)
+        self._jpeg_quality = check_frame_encoding(frame_encoding)
         self.config = self._checked(delay, per_camera or {}, seed)
         self.started_ms = int(now_ms)  # where the default channel's regimes / trace start
         rngs = camera_rngs(self.config.seed, n_cameras)
@@ -197,7 +200,10 @@ class NetworkCore:
         if rng is not None and not link.in_flight(frame.generation_ms) and not link.delay.shared:
             link = self._links[n] = Link(link.delay, rng, start_ms=link.start_ms)
             del self._reseed[n]
-        slot = link.offer(frame.generation_ms, len(frame.image.data))
+        size = len(frame.image.data)
+        if self._jpeg_quality is not None and link.delay.size_dependent:
+            size = jpeg_bytes(frame.rgb(), self._jpeg_quality)
+        slot = link.offer(frame.generation_ms, size)
         stats = self._stats[n]
         stats.offered += 1
         if slot is None:

@@ -6,6 +6,7 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.channel import parse_channel
+from aoi3d.channel.varying import check_frame_encoding
 from services.kit.settings import ServiceSettings
 
 
@@ -26,6 +27,11 @@ class Settings(ServiceSettings):
         description='Per-camera delay overrides as a JSON object, e.g. {"3": "const:40"}.')
     seed: int = Field(1, ge=0, description="Seed of the links' random streams "
                                            "(one independent stream per camera).")
+    frame_encoding: str = Field(
+        "png", description="How a frame's size is counted on a trace or cell channel: png "
+                           "(the bytes the camera sent) or jpeg:Q (the frame re-encoded as "
+                           "JPEG at quality Q, 1–95, for its size only; the edge still gets "
+                           "the PNG).")
     inbox_size: int = Field(1024, ge=1, description="Offered frames buffered between the bus "
                                                     "and the link thread (oldest dropped).")
 
@@ -33,6 +39,12 @@ class Settings(ServiceSettings):
     @classmethod
     def _canonical_delay(cls, value: str) -> str:
         return parse_channel(value).spec
+
+    @field_validator("frame_encoding")
+    @classmethod
+    def _known_encoding(cls, value: str) -> str:
+        check_frame_encoding(value)
+        return value
 
     @field_validator("per_camera")
     @classmethod

@@ -53,12 +53,14 @@ class NetworkWorker:
 
     def __init__(self, *, bus: Bus, registry: CollectorRegistry, clock: SimClock, keys: Keys,
                  n_cameras: int, delay: str = "exp:60", per_camera: dict[int, str] | None = None,
-                 seed: int = 1, max_skew_ms: float = 1000.0, inbox_size: int = 1024) -> None:
+                 seed: int = 1, max_skew_ms: float = 1000.0, inbox_size: int = 1024,
+                 frame_encoding: str = "png") -> None:
         self._bus = bus
         self._clock = clock
         self._keys = keys
         self.core = NetworkCore(n_cameras, delay=delay, per_camera=per_camera, seed=seed,
-                                max_skew_ms=max_skew_ms, now_ms=clock.now_ms())
+                                max_skew_ms=max_skew_ms, now_ms=clock.now_ms(),
+                                frame_encoding=frame_encoding)
         # the channel's changes, set over REST or by its regimes: {time_ms, spec, cause}
         self._changes: deque[dict[str, Any]] = deque(maxlen=_CHANGES_KEPT)
         self._changes.append({"time_ms": float(self.core.started_ms),

@@ -359,3 +359,29 @@ def test_a_refused_channel_changes_nothing(tmp_path) -> None:
         after = client.get("/channel").json()
         assert {k: v for k, v in after.items() if k != "in_force"} == {
             k: v for k, v in body.items() if k != "in_force"}
+
+
+def test_frames_are_sized_by_their_png_or_as_jpeg_when_configured(tmp_path) -> None:
+    from aoi3d.channel import make_links
+    from aoi3d.channel.varying import jpeg_bytes
+    from services.network.core import NetworkCore
+
+    trace = tmp_path / "t.up"  # one opportunity every 5 ms: a frame's delay is 5 ms a packet
+    trace.write_text("\n".join(str(t) for t in range(0, 1001, 5)) + "\n")
+    w, h = 64, 48
+    cam = Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=50.0, fy=50.0,
+                 cx=w / 2, cy=h / 2, width=w, height=h)
+    rgb = np.random.default_rng(0).integers(0, 256, (h, w, 3), dtype=np.uint8)
+    image = encode_png(rgb)
+    payload = encode_frame(camera_id=1, sequence=0, generation_ms=100.0, scene_time_ms=0.0,
+                           camera=cam, image=image)
+    spec = f"trace:{trace},spread=0"
+    sizes = {"png": len(image.data), "jpeg:10": jpeg_bytes(rgb, 10)}
+    assert -(-sizes["png"] // 1500) > -(-sizes["jpeg:10"] // 1500)  # different packet counts
+    for encoding, size in sizes.items():
+        core = NetworkCore(N_CAMERAS, delay=spec, frame_encoding=encoding)
+        _, pending = core.offer(KEYS.cam_frame(1), payload, now_ms=100.0)
+        expected = make_links(spec, camera_rngs(1, N_CAMERAS))[0].offer(100.0, size)
+        assert pending is not None and pending.delivery_ms == expected
+    with pytest.raises(ValueError, match="frame encoding"):
+        Settings(frame_encoding="webp")
