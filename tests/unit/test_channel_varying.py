@@ -251,3 +251,31 @@ def test_burst_links_spend_the_right_share_of_time_in_the_bad_state() -> None:
     ys = np.concatenate([d - g for g, d in zip(run.gen_ms, run.delivery_ms, strict=True)])
     assert set(np.unique(ys)) == {1, 2}
     assert np.mean(ys == 2) == pytest.approx(0.25, abs=0.03)
+
+
+def test_experiment_delay_lists_split_on_semicolons_when_a_spec_holds_commas() -> None:
+    from aoi3d.cli.experiment import _spec_list
+
+    assert _spec_list("exp:20,exp:60") == ["exp:20", "exp:60"]
+    assert _spec_list("regimes:exp:20@1s,exp:200@1s; trace:a.up,offset=5 ;") == [
+        "regimes:exp:20@1s,exp:200@1s", "trace:a.up,offset=5"]
+
+
+def test_an_episode_on_a_trace_sizes_frames_by_their_stored_png(tiny_trace: Path) -> None:
+    """The experiments' links on a trace read each frame's stored PNG size (or JPEG's)."""
+    from aoi3d.experiment.config import EpisodeConfig
+    from aoi3d.experiment.episode import episode_links, frame_sizes
+    from aoi3d.scene import open_dataset
+
+    root = Path(__file__).resolve().parents[2] / "data" / "turbine-rotor"
+    if not root.is_dir():
+        pytest.skip(f"no scene at {root} (aoi3d scene generate)")
+    ds = open_dataset(root)
+    png = frame_sizes(ds, "png")
+    assert png.shape == (len(ds.cameras), ds.n_frames) and png.min() > 0
+    cfg = EpisodeConfig(dataset=str(root), delay=f"trace:{tiny_trace},spread=0",
+                        warmup_ms=300, scored_ms=300, score_every=1)
+    links = episode_links(cfg, ds, seed=3)
+    assert links.run.delay_spec == f"trace:{tiny_trace},spread=0"
+    with pytest.raises(ValueError, match="frame encoding"):
+        EpisodeConfig(frame_encoding="jpeg:0")
