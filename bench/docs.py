@@ -37,6 +37,10 @@ PAGE = "measurements.md"
 #: Result files (paths relative to bench/results) that no section below renders, with the
 #: page that reports them.
 ELSEWHERE: dict[str, str] = {
+    "switching": "[experiments.md](experiments.md), \"A changing channel: the switching gain G\" "
+                 "(`python bench/switching.py`)",
+    "live-channel": "[channels.md](channels.md), the console on a changing channel "
+                    "(`python bench/live_channel.py`)",
     "science": "[science.md](science.md) (written by `make science`, `bench/science.py`)",
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
                  "[experiments.md](experiments.md), \"The tradeoff at display time\" "

@@ -53,7 +53,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from dataclasses import field as dc_field
 from typing import Any
 
-from aoi3d.channel import parse_delay
+from aoi3d.channel.varying import check_frame_encoding, parse_channel
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.quality import RewardWeights
 from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
@@ -117,6 +117,7 @@ class EpisodeConfig:
     backend: str = "grid"
     field: dict[str, Any] = dc_field(default_factory=dict)
     delay: str = "exp:60"
+    frame_encoding: str = "png"
     period_ms: int = 30
     n_cameras: int | None = None
     camera_phase: str = "sync"
@@ -137,7 +138,8 @@ class EpisodeConfig:
     compute_step_ms: float = COMPUTE_STEP_MS
 
     def __post_init__(self) -> None:
-        parse_delay(self.delay)  # raises DelaySpecError listing the accepted forms
+        parse_channel(self.delay)  # raises DelaySpecError listing the accepted forms
+        check_frame_encoding(self.frame_encoding)
         if isinstance(self.reward, dict):
             object.__setattr__(self, "reward", RewardWeights(**self.reward))
         if not isinstance(self.field, dict):
