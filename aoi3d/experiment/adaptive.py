@@ -8,9 +8,8 @@ planned episode — decision by decision: at each epoch the policy is told the f
 since its last decision and decides (:func:`aoi3d.policy.decide.decide`, the links'
 ``delivery_feed``); at each scored decision the one-decision plan that trains on its selection
 is run (the oracle's candidate plan, :mod:`aoi3d.experiment.oracle`: the same cache key for
-the same selection), and the score is handed to the policy (``observe_quality``, the
-``metric`` of the first epoch) before its next decision. Every seed advances in lockstep, so
-each scored epoch is one batch for ``evaluate`` (the sweep's cached ``run_plans``: local cores
+the same selection), and its scores are handed to the policy (``observe_quality``) before
+its next decision. Every seed advances in lockstep, so each scored epoch is one batch for ``evaluate`` (the sweep's cached ``run_plans``: local cores
 or Ray).
 
 It needs the ``fresh`` carry, where a scored decision's render depends on its own frames and
@@ -36,6 +35,7 @@ from aoi3d.experiment.episode import (
     planned_decision,
 )
 from aoi3d.policy import Policy, decide, parse_policy
+from aoi3d.policy.adaptive import QUALITY_METRICS
 from aoi3d.scene import SceneDataset
 
 __all__ = ["StepwiseEpisode", "run_stepwise"]
@@ -76,13 +76,12 @@ def _one_decision(base: EpisodePlan, decision: PlannedDecision) -> EpisodePlan:
 
 
 def run_stepwise(cfg: EpisodeConfig, dataset: SceneDataset, policy: str | Policy,
-                 seeds: Sequence[int], evaluate: Evaluate, *, metric: str = "psnr_db",
+                 seeds: Sequence[int], evaluate: Evaluate, *,
                  label: str | None = None) -> list[StepwiseEpisode]:
     """The policy's episodes for ``seeds``, decided step by step (see the module).
 
     ``evaluate`` runs one-decision plans (one call per scored epoch, every seed together);
-    ``metric``: the score of a render handed to ``observe_quality`` (an attribute of
-    :class:`~aoi3d.experiment.episode.EpochScore`); ``label``: the results' policy name
+    each scored render's scores go to ``observe_quality``; ``label``: the results' policy name
     (default: the policy's spec)."""
     if cfg.carry != "fresh":
         raise ValueError(f"a stepwise episode scores each decision on its own, which needs "
@@ -119,9 +118,8 @@ def run_stepwise(cfg: EpisodeConfig, dataset: SceneDataset, policy: str | Policy
             epoch = res.epochs[0]
             r.epochs.append(epoch)
             r.wall_s += res.wall_s
-            value = getattr(epoch, metric)
             r.policy.observe_quality(float(epoch.eval_ms),
-                                     float("nan") if value is None else float(value))
+                                     {m: getattr(epoch, m) for m in QUALITY_METRICS})
     out = []
     for r in runs:
         plan = replace(r.base, decisions=tuple(r.decisions))

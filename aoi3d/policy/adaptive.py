@@ -25,8 +25,8 @@ What they see, beyond the AoI vector (the two optional questions of
   decision, with the time s the decision is for and the frames delivered since the previous
   decision, each ``(camera index, generation ms, delivery ms)`` — the caller's, exactly as
   ``newest_at`` is: the simulated links on the virtual clock, the scheduler's tracker live.
-- ``observe_quality(time_ms, value)``: the quality of the render made for time ``time_ms``
-  (only for a policy whose ``wants_quality`` is true).
+- ``observe_quality(time_ms, scores)``: the scores of the render made for time ``time_ms``
+  (``psnr_db``, ``reward``, …; only for a policy whose ``wants_quality`` is true).
 
 Both are stateful: ``reset()`` starts a new episode. ``gamma_ms`` is the Γ in force, which
 the scheduler reports with each decision (the console draws it over time).
@@ -339,8 +339,9 @@ class BanditPolicy(_AdaptiveMat):
             arm = a
         return arm
 
-    def observe_quality(self, time_ms: float, value: float) -> None:
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
         arm = self.arm_at(float(time_ms))
+        value = scores.get(self.metric)
         if arm is None or value is None or not math.isfinite(value):
             return
         self.ucb.update(arm, float(value))
@@ -408,6 +409,6 @@ def _from_json(params: Mapping[str, Any]) -> BasePolicy:
     raise PolicySpecError(f'adaptive needs "mode": "plugin" or "bandit", got {mode!r}')
 
 
-KIND = PolicyKind(FAMILY, "adaptive:plugin[:<halflife_ms>] | adaptive:bandit[:<window>]",
+KIND = PolicyKind(FAMILY, "adaptive:<plugin|bandit>",
                   _from_args, _from_json)
 """The ``adaptive`` kind, registered by :mod:`aoi3d.policy`."""

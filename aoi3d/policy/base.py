@@ -28,9 +28,9 @@ Besides selecting, a policy answers the questions its callers have:
   decision with the time s the decision is for and the frames delivered since the previous
   decision, ``(camera index, generation ms, delivery ms)`` each — what an adaptive policy
   estimates the channel from (:mod:`aoi3d.policy.adaptive`);
-- ``wants_quality`` (bool, default False) and ``observe_quality(time_ms, value)`` (default:
+- ``wants_quality`` (bool, default False) and ``observe_quality(time_ms, scores)`` (default:
   ignore): a policy rewarded by the quality of its renders (the bandit over Γ) is told the
-  quality of the render made for ``time_ms`` once it is scored — on the virtual clock by the
+  scores of the render made for ``time_ms`` once it is scored — on the virtual clock by the
   stepwise episode (:func:`aoi3d.experiment.adaptive.run_stepwise`), live by the scheduler
   from the ``quality`` topic.
 
@@ -92,8 +92,9 @@ class Policy(Protocol):
         """The frames delivered since the previous decision, before deciding for ``now_ms``."""
         ...
 
-    def observe_quality(self, time_ms: float, value: float) -> None:
-        """The quality of the render made for ``time_ms``."""
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
+        """The scores of the render made for ``time_ms`` (``psnr_db``, ``ssim``, ``reward``,
+        ``psnr_dynamic_db``; None where not measured)."""
         ...
 
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
@@ -134,7 +135,7 @@ class BasePolicy:
     def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
         """Sees nothing but the AoI vector."""
 
-    def observe_quality(self, time_ms: float, value: float) -> None:
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
         """Not rewarded."""
 
     def check_fits(self, n_cameras: int) -> None:

@@ -141,15 +141,16 @@ def test_the_bandit_credits_the_arm_that_decided_and_switches_after_a_reward() -
     assert pol.gamma_ms == 40 and pol.select(aoi).tolist() == [True, False, False]
     pol.observe(30, ())  # no reward yet: the arm stays
     assert pol.gamma_ms == 40
-    pol.observe_quality(30, 20.0)  # the render for t = 30, decided by Γ 40
+    pol.observe_quality(30, {"psnr_db": 20.0})  # the render for t = 30, decided by Γ 40
     pol.observe(60, ())  # rewarded: the next arm (untried first)
     assert pol.gamma_ms == 130 and pol.select(aoi).tolist() == [True, True, False]
-    pol.observe_quality(45, 99.0)  # for a time Γ 40 was in force
-    pol.observe_quality(60, 25.0)
+    pol.observe_quality(45, {"psnr_db": 99.0, "reward": 0.5})  # for a time Γ 40 was in force
+    pol.observe_quality(60, {"psnr_db": 25.0})
     counts, means = pol.ucb.stats()
     assert counts.tolist() == [2, 1] and means.tolist() == [pytest.approx(59.5), 25.0]
-    pol.observe_quality(-5, 1.0)  # before any decision: ignored
-    pol.observe_quality(60, math.nan)  # not finite: ignored
+    pol.observe_quality(-5, {"psnr_db": 1.0})  # before any decision: ignored
+    pol.observe_quality(60, {"psnr_db": math.nan})
+    pol.observe_quality(60, {"reward": 1.0})  # not its metric  # not finite: ignored
     assert pol.ucb.t == 3
     pol.reset()
     assert pol.ucb.t == 0 and pol.gamma_ms == 40
