@@ -1,5 +1,6 @@
-"""The cameras' uplinks: delay distributions, the per-camera D/G/1/0 link, the vectorised batch
-simulation, its statistics and the exact theory they are checked against."""
+"""The cameras' uplinks: delay distributions, channels that change (regimes, traces, a
+shared cell), the per-camera D/G/1/0 link, the vectorised batch simulation, its statistics
+and the exact theory they are checked against."""
 
 from aoi3d.channel.batch import ChannelRun, simulate
 from aoi3d.channel.delay import (
@@ -14,13 +15,30 @@ from aoi3d.channel.delay import (
     delay_slots,
     parse_delay,
 )
-from aoi3d.channel.link import Link, camera_rngs
+from aoi3d.channel.link import Link, camera_rngs, make_links
 from aoi3d.channel.stats import aoi_slot_counts, channel_statistics
 from aoi3d.channel.theory import ChannelTheory, aoi_cdf, aoi_pmf, channel_theory, slot_delay_pmf
+from aoi3d.channel.varying import (
+    CHANNEL_FORMS,
+    DEFAULT_FRAME_BYTES,
+    CellChannel,
+    Channel,
+    ChannelSpecError,
+    RegimeChannel,
+    StationaryChannel,
+    TraceChannel,
+    parse_channel,
+    transmission_summary,
+)
 
 __all__ = [
     "ACCEPTED_FORMS",
+    "CHANNEL_FORMS",
+    "DEFAULT_FRAME_BYTES",
+    "CellChannel",
+    "Channel",
     "ChannelRun",
+    "ChannelSpecError",
     "ChannelTheory",
     "ConstantDelay",
     "DelayDistribution",
@@ -29,6 +47,9 @@ __all__ = [
     "GammaDelay",
     "Link",
     "LogNormalDelay",
+    "RegimeChannel",
+    "StationaryChannel",
+    "TraceChannel",
     "UniformDelay",
     "aoi_cdf",
     "aoi_pmf",
@@ -37,7 +58,10 @@ __all__ = [
     "channel_statistics",
     "channel_theory",
     "delay_slots",
+    "make_links",
+    "parse_channel",
     "parse_delay",
     "simulate",
     "slot_delay_pmf",
+    "transmission_summary",
 ]

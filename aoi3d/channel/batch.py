@@ -7,18 +7,28 @@ after that slot, i.e. K = ceil(Ys / C) periods later. So the accepted frames are
 sums of K over one Y draw per accepted frame, taken in order from the link's own stream
 (``camera_rngs``) — the same draws ``Link.offer`` makes, without a loop over frames or slots.
 
+A channel that changes (``regimes:``, ``trace:``, ``cell:``; :mod:`aoi3d.channel.varying`)
+is simulated frame by frame with the links' own servers, the ones ``Link`` uses; a ``cell:``
+channel's links take their frames in the order (generation slot, link), the order a live
+service offers frames of one slot in when the cameras publish in camera order.
+
 Link i serves the i-th training camera (camera id i + 1 of the rig; id 0 is held out).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import heapq
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from aoi3d.channel.delay import DelayDistribution, delay_slots, parse_delay
+from aoi3d.channel.delay import DelayDistribution, delay_slots
 from aoi3d.channel.link import camera_rngs
+from aoi3d.channel.varying import DEFAULT_FRAME_BYTES, Channel, parse_channel
+
+#: A frame's size in bytes: one number for every frame, or f(link index, generation slot).
+FrameBytes = int | Callable[[int, int], int]
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,24 +129,82 @@ def _positive_int(name: str, value: int) -> int:
     return int(value)
 
 
+def _frame_sizes(frame_bytes: FrameBytes | None) -> Callable[[int, int], int]:
+    if frame_bytes is None:
+        return lambda _i, _g: DEFAULT_FRAME_BYTES
+    if callable(frame_bytes):
+        return frame_bytes
+    size = _positive_int("frame_bytes", frame_bytes)
+    return lambda _i, _g: size
+
+
+def _simulate_changing(channel: Channel, period: int, n: int, duration: int, seed: int,
+                       phases: np.ndarray, offered: np.ndarray,
+                       frame_bytes: FrameBytes | None) -> tuple[list[np.ndarray],
+                                                                list[np.ndarray]]:
+    """Frame by frame, with the servers ``Link`` uses (the same draws in the same order)."""
+    rngs = camera_rngs(seed, n)
+    cell = channel.new_cell(rngs[0]) if channel.shared else None
+    servers = [channel.server(rng, cell=cell) for rng in rngs]
+    size_of = _frame_sizes(frame_bytes)
+    gens: list[list[int]] = [[] for _ in range(n)]
+    deliveries: list[list[int]] = [[] for _ in range(n)]
+    busy = [-(2**62)] * n
+    if not channel.shared:
+        for i in range(n):
+            server, g_list, d_list = servers[i], gens[i], deliveries[i]
+            g = int(phases[i])
+            while g < duration:
+                d = g + server.slots(g, size_of(i, g))
+                g_list.append(g)
+                d_list.append(d)
+                g += -(-(d - g) // period) * period  # the first frame at or after d
+    else:
+        # every link's frames in (slot, link) order through the one cell
+        heap = [(int(phases[i]), i) for i in range(n) if offered[i] > 0]
+        heapq.heapify(heap)
+        while heap:
+            g, i = heapq.heappop(heap)
+            if g >= busy[i]:
+                d = g + servers[i].slots(g, size_of(i, g))
+                busy[i] = d
+                gens[i].append(g)
+                deliveries[i].append(d)
+            if g + period < duration:
+                heapq.heappush(heap, (g + period, i))
+    return ([np.asarray(x, dtype=np.int64) for x in gens],
+            [np.asarray(x, dtype=np.int64) for x in deliveries])
+
+
 def simulate(
-    delay: DelayDistribution | str,
+    delay: Channel | DelayDistribution | str,
     period_ms: int,
     n_cameras: int,
     duration_ms: int,
     seed: int,
     phase_ms: int | Sequence[int] | np.ndarray = 0,
+    frame_bytes: FrameBytes | None = None,
 ) -> ChannelRun:
     """Simulate ``n_cameras`` links for slots [0, duration_ms); one stream per link from
-    ``camera_rngs(seed, n_cameras)``, consumed exactly as ``Link.offer`` consumes it."""
-    dist = parse_delay(delay)
+    ``camera_rngs(seed, n_cameras)``, consumed exactly as ``Link.offer`` consumes it.
+
+    ``frame_bytes``: each frame's size (only a trace channel reads it; default 12 kB), one
+    number or ``f(link index, generation slot)``."""
+    channel = parse_channel(delay)
     period = _positive_int("period_ms", period_ms)
     n = _positive_int("n_cameras", n_cameras)
     duration = _positive_int("duration_ms", duration_ms)
     phases = _phases(phase_ms, n)
     offered = np.maximum(0, -(-(duration - phases) // period))  # ceil((T − φ) / C)
-    gens: list[np.ndarray] = []
-    deliveries: list[np.ndarray] = []
+    dist = channel.stationary
+    if dist is None:
+        gens, deliveries = _simulate_changing(channel, period, n, duration, int(seed), phases,
+                                              offered, frame_bytes)
+        return ChannelRun(delay_spec=channel.spec, period_ms=period, duration_ms=duration,
+                          seed=int(seed), phase_ms=phases, offered=offered.astype(np.int64),
+                          gen_ms=tuple(gens), delivery_ms=tuple(deliveries))
+    gens = []
+    deliveries = []
     for rng, phase, n_frames in zip(camera_rngs(seed, n), phases, offered, strict=True):
         # At most one draw per offered frame is needed; only the leading ones are used, in the
         # order Link.offer would make them.

@@ -6,6 +6,11 @@ in flight (``g < busy_until``) is dropped; otherwise it draws a transmission tim
 delivered at slot ``g + delay_slots(Y)``. A frame generated exactly at the slot the previous
 one is delivered is accepted. Exactly one Y is drawn per accepted frame, in order, from the
 link's own random stream — ``simulate`` consumes the stream in the same way.
+
+The link's channel may change (:mod:`aoi3d.channel.varying`): regimes, a trace replayed at
+the link's own phase, or a cell shared with the other cameras' links (pass the same
+``cell``). The transmission time then also depends on the slot the frame enters and on its
+size in bytes.
 """
 
 from __future__ import annotations
@@ -14,7 +19,8 @@ import math
 
 import numpy as np
 
-from aoi3d.channel.delay import DelayDistribution, delay_slots, parse_delay
+from aoi3d.channel.delay import DelayDistribution
+from aoi3d.channel.varying import DEFAULT_FRAME_BYTES, CellQueue, Channel, parse_channel
 
 
 def camera_rngs(seed: int, n: int) -> list[np.random.Generator]:
@@ -27,11 +33,14 @@ def camera_rngs(seed: int, n: int) -> list[np.random.Generator]:
 class Link:
     """A camera's uplink. ``offer`` each generated frame; it returns the delivery slot or None."""
 
-    def __init__(self, delay: DelayDistribution | str, rng: np.random.Generator) -> None:
+    def __init__(self, delay: Channel | DelayDistribution | str, rng: np.random.Generator, *,
+                 start_ms: int = 0, cell: CellQueue | None = None) -> None:
         if not isinstance(rng, np.random.Generator):
             raise TypeError(f"rng must be a numpy Generator, got {type(rng).__name__}")
-        self._delay = parse_delay(delay)
         self._rng = rng
+        self._start_ms = int(start_ms)
+        self._delay = parse_channel(delay)
+        self._server = self._delay.server(rng, start_ms=self._start_ms, cell=cell)
         self._busy_until = -math.inf
         self._offered = 0
         self._dropped = 0
@@ -39,12 +48,28 @@ class Link:
         self._last_delay_ms = math.nan
 
     @property
-    def delay(self) -> DelayDistribution:
+    def delay(self) -> Channel:
+        """The channel in force (``.spec``, ``.mean_ms``)."""
         return self._delay
 
-    def set_delay(self, delay: DelayDistribution | str) -> None:
-        """Use ``delay`` for the frames accepted from now on (the frame in flight keeps its)."""
-        self._delay = parse_delay(delay)
+    @property
+    def start_ms(self) -> int:
+        """The slot the channel was started at (regimes and traces count from there)."""
+        return self._start_ms
+
+    @property
+    def rng(self) -> np.random.Generator:
+        return self._rng
+
+    def set_delay(self, delay: Channel | DelayDistribution | str, *, start_ms: int | None = None,
+                  cell: CellQueue | None = None) -> None:
+        """Use ``delay`` for the frames accepted from now on (the frame in flight keeps its).
+        ``start_ms``: where the new channel's regimes or trace start (default: unchanged)."""
+        channel = parse_channel(delay)
+        if start_ms is not None:
+            self._start_ms = int(start_ms)
+        self._server = channel.server(self._rng, start_ms=self._start_ms, cell=cell)
+        self._delay = channel
 
     @property
     def busy_until(self) -> float:
@@ -69,15 +94,17 @@ class Link:
 
     @property
     def last_delay_ms(self) -> float:
-        """The transmission time Y drawn for the last accepted frame (NaN before any)."""
+        """The transmission time Y of the last accepted frame (drawn, or from the trace; NaN
+        before any)."""
         return self._last_delay_ms
 
     def in_flight(self, t_ms: float) -> bool:
         """Whether a frame is on the link at time ``t_ms`` (its delivery slot not reached)."""
         return t_ms < self._busy_until
 
-    def offer(self, gen_ms: float) -> int | None:
-        """Offer a frame generated at ``gen_ms`` (it enters at slot ``floor(gen_ms)``).
+    def offer(self, gen_ms: float, size_bytes: int | None = None) -> int | None:
+        """Offer a frame generated at ``gen_ms`` (it enters at slot ``floor(gen_ms)``) of
+        ``size_bytes`` (default 12 kB; only a trace channel reads it).
 
         Returns its delivery slot, or None when it is dropped because the previous frame is
         still in flight.
@@ -89,11 +116,12 @@ class Link:
         if gen < self._busy_until:
             self._dropped += 1
             return None
-        y_ms = float(self._delay.sample(self._rng, 1)[0])
-        delivery_slot = math.floor(gen) + delay_slots(y_ms)
+        slot = math.floor(gen)
+        size = DEFAULT_FRAME_BYTES if size_bytes is None else int(size_bytes)
+        delivery_slot = slot + self._server.slots(slot, size)
         self._busy_until = delivery_slot
         self._delivered += 1
-        self._last_delay_ms = y_ms
+        self._last_delay_ms = self._server.last_ms
         return delivery_slot
 
     def __repr__(self) -> str:
@@ -102,3 +130,12 @@ class Link:
             f"dropped={self._dropped}, delivered={self._delivered}, "
             f"busy_until={self._busy_until})"
         )
+
+
+def make_links(delay: Channel | DelayDistribution | str, rngs: list[np.random.Generator], *,
+               start_ms: int = 0) -> list[Link]:
+    """One link per stream, on one channel; a ``cell:`` channel's links share one cell
+    (its phase drawn from the first stream, before anything else)."""
+    channel = parse_channel(delay)
+    cell = channel.new_cell(rngs[0], start_ms=start_ms) if channel.shared and rngs else None
+    return [Link(channel, rng, start_ms=start_ms, cell=cell) for rng in rngs]

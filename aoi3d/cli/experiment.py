@@ -133,12 +133,19 @@ def _int_list(text: str | None, name: str) -> tuple[int, ...] | None:
 
 
 def _delay(spec: str, name: str = "'--delay'") -> str:
-    from aoi3d.channel import DelaySpecError, parse_delay
+    from aoi3d.channel import DelaySpecError, parse_channel
 
     try:
-        return parse_delay(spec).spec
+        return parse_channel(spec).spec
     except DelaySpecError as err:
         raise typer.BadParameter(str(err), param_hint=name) from None
+
+
+def _spec_list(text: str) -> list[str]:
+    """Specs separated by ``;`` when the text holds one (a regimes schedule or a trace's
+    options hold commas), else by commas."""
+    sep = ";" if ";" in text else ","
+    return [d.strip() for d in text.split(sep) if d.strip()]
 
 
 def _shared_options(
@@ -426,7 +433,7 @@ def tradeoff(
 ) -> None:
     """Fig. 4: PSNR, SSIM and LPIPS against the MAT Γ (mean of S simulations, 95% band),
     with the cameras used and the AoI of the used frames; `all` as the reference."""
-    from aoi3d.channel import parse_delay
+    from aoi3d.channel import parse_channel
     from aoi3d.experiment.figures import plot_tradeoff
 
     setup = shared.setup("tradeoff", preset)
@@ -440,7 +447,7 @@ def tradeoff(
            {"points.csv": points + ([reference] if reference else [])},
            best_gamma_ms=best, optimum={m: o.to_dict() for m, o in optima.items()},
            points=points, reference=reference)
-    mean_y = parse_delay(delay).mean_ms
+    mean_y = parse_channel(delay).mean_ms
     plot_tradeoff(points, setup.out / "tradeoff.png", reference=reference, title=(
         f"Quality of the novel view vs MAT Γ — E[Y] = {mean_y:g} ms, "
         f"C = {setup.cfg.period_ms} ms, N = {setup.cfg.n_cameras or len(setup.dataset.train_ids)}, "
@@ -509,7 +516,9 @@ def delay_cmd(
     shared: _Shared,
     preset: PresetOpt = "quick",
     delays: Annotated[str | None, typer.Option(
-        help="Delay specs, comma-separated, e.g. exp:20,exp:60 (default: the preset's).")] = None,
+        help="Delay specs, comma-separated, e.g. exp:20,exp:60 (default: the preset's); "
+             "separated by ';' when a spec holds commas, e.g. "
+             "'trace:T.up,offset=0;trace:T.up,offset=10000'.")] = None,
     gammas: Annotated[str | None, typer.Option(
         help="Γ values searched, comma-separated ms (default: the preset's).")] = None,
     metric: Annotated[str, typer.Option(
@@ -518,7 +527,7 @@ def delay_cmd(
              "optima are written too.")] = "psnr_db",
 ) -> None:
     """Fig. 6: the optimal Γ (highest mean PSNR, or ``--metric``) against the mean delay."""
-    from aoi3d.channel import parse_delay
+    from aoi3d.channel import parse_channel
     from aoi3d.experiment import Job
     from aoi3d.experiment.figures import plot_delay
 
@@ -526,7 +535,7 @@ def delay_cmd(
     setup = shared.setup("delay", preset)
     if shared.seeds is None:
         setup.seeds = setup.preset.delay_seeds
-    delay_list = ([_delay(d.strip(), "'--delays'") for d in delays.split(",") if d.strip()]
+    delay_list = ([_delay(d, "'--delays'") for d in _spec_list(delays)]
                   if delays else list(setup.preset.delays))
     gamma_list = _int_list(gammas, "'--gammas'") or setup.preset.delay_gammas_ms
     jobs = [Job(f"mat:{g}", d, s) for s in setup.seed_list for d in delay_list
@@ -537,7 +546,7 @@ def delay_cmd(
     for d in delay_list:
         points, _ = _tradeoff_rows([r for r in outcome.results if r.delay == d])
         curves.extend(points)
-        row: dict[str, Any] = {"delay": d, "mean_delay_ms": parse_delay(d).mean_ms,
+        row: dict[str, Any] = {"delay": d, "mean_delay_ms": parse_channel(d).mean_ms,
                                "metric": metric}
         for name, opt in _optima([r for r in outcome.results if r.delay == d]).items():
             by_gamma = {p["gamma_ms"]: p for p in points}

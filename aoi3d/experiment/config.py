@@ -45,7 +45,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from dataclasses import field as dc_field
 from typing import Any
 
-from aoi3d.channel import parse_delay
+from aoi3d.channel import parse_channel
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.quality import RewardWeights
 from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
@@ -77,6 +77,20 @@ too stale to trade against. Measured with ``bench/staleness.py``; See docs/exper
 EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
 CAMERA_PHASES = ("sync", "random")
+FRAME_ENCODINGS = ("png", "jpeg:Q")
+
+
+def check_frame_encoding(encoding: str) -> int | None:
+    """``png`` (the stored PNG bytes, what the live cameras send) or ``jpeg:Q`` (the frame
+    encoded as JPEG at quality Q, 1–95): the frame sizes a trace channel reads. Returns Q
+    (None for PNG); raises ``ValueError``."""
+    if encoding == "png":
+        return None
+    kind, _, q = str(encoding).partition(":")
+    if kind == "jpeg" and q.isdigit() and 1 <= int(q) <= 95:
+        return int(q)
+    raise ValueError(f"frame_encoding must be one of {FRAME_ENCODINGS} (Q in 1..95), got "
+                     f"{encoding!r}")
 
 
 def _int_at_least(name: str, value: Any, minimum: int) -> None:
@@ -103,6 +117,7 @@ class EpisodeConfig:
     backend: str = "grid"
     field: dict[str, Any] = dc_field(default_factory=dict)
     delay: str = "exp:60"
+    frame_encoding: str = "png"
     period_ms: int = 30
     n_cameras: int | None = None
     camera_phase: str = "sync"
@@ -120,7 +135,8 @@ class EpisodeConfig:
     device: str = "cpu"
 
     def __post_init__(self) -> None:
-        parse_delay(self.delay)  # raises DelaySpecError listing the accepted forms
+        parse_channel(self.delay)  # raises DelaySpecError listing the accepted forms
+        check_frame_encoding(self.frame_encoding)
         if isinstance(self.reward, dict):
             object.__setattr__(self, "reward", RewardWeights(**self.reward))
         if not isinstance(self.field, dict):

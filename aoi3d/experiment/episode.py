@@ -37,8 +37,8 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from aoi3d.channel import ChannelRun, simulate
-from aoi3d.experiment.config import EpisodeConfig
+from aoi3d.channel import ChannelRun, parse_channel, simulate
+from aoi3d.experiment.config import EpisodeConfig, check_frame_encoding
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction
 from aoi3d.field.process import configure_process
@@ -226,9 +226,41 @@ def episode_links(cfg: EpisodeConfig, dataset: SceneDataset, seed: int, *,
               else np.zeros(n, dtype=np.int64))
     loop_ms = max(1, math.floor(dataset.duration_ms))
     offset = int(aux.integers(0, loop_ms)) if cfg.random_scene_offset else 0
-    run = simulate(cfg.delay, cfg.period_ms, n, cfg.end_ms + wait_ms + 1, seed, phase_ms=phases)
+    channel = parse_channel(cfg.delay)
+    sizes = None
+    if channel.size_dependent:  # a frame's transmission time depends on its encoded bytes
+        table = frame_sizes(dataset, cfg.frame_encoding)
+        index_ids = np.asarray(ids)
+
+        def sizes(i: int, g: int) -> int:
+            return int(table[index_ids[i], dataset.frame_index(offset + g)])
+    run = simulate(channel, cfg.period_ms, n, cfg.end_ms + wait_ms + 1, seed, phase_ms=phases,
+                   frame_bytes=sizes)
     return EpisodeLinks(seed=seed, camera_ids=tuple(ids),
                         phase_ms=tuple(int(p) for p in phases), scene_offset_ms=offset, run=run)
+
+
+_FRAME_SIZES: dict[tuple[str, str, str], np.ndarray] = {}
+
+
+def frame_sizes(dataset: SceneDataset, encoding: str = "png") -> np.ndarray:
+    """(cameras, frames) int64: each frame's encoded bytes — the stored PNG (what the live
+    cameras send) or JPEG at quality Q (``jpeg:Q``). Cached per dataset and encoding."""
+    quality = check_frame_encoding(encoding)
+    key = (str(dataset.root), dataset.config_hash, encoding)
+    if key not in _FRAME_SIZES:
+        out = np.zeros((len(dataset.cameras), dataset.n_frames), dtype=np.int64)
+        for c in range(len(dataset.cameras)):
+            for f in range(dataset.n_frames):
+                if quality is None:
+                    out[c, f] = len(dataset.frame_png(c, f))
+                else:
+                    buf = io.BytesIO()
+                    Image.fromarray(dataset.frame(c, f)).save(buf, format="JPEG",
+                                                              quality=quality)
+                    out[c, f] = buf.tell()
+        _FRAME_SIZES[key] = out
+    return _FRAME_SIZES[key]
 
 
 def planned_decision(sel: Selection, camera_ids: Sequence[int], *, train: bool,

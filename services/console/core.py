@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from aoi3d.channel import parse_delay
+from aoi3d.channel import parse_channel
 from services.kit.codec import decode_decision, decode_frame, decode_quality, decode_render
 
 __all__ = ["GAMMA_EVERY_S", "TRUTH_FRAMES", "ConsoleCore", "Pair"]
@@ -161,10 +161,11 @@ class ConsoleCore:
                 out["drop_ratio"] = (1 - (delivered - d0) / (offered - o0)
                                      if offered > o0 else None)
         self._channel_prev = (now, delivered, offered)
-        spec = str(channel.get("delay"))
+        spec = str(channel.get("in_force") or channel.get("delay"))
         try:
-            dist = parse_delay(spec)
-            out["delay_quantiles_ms"] = {q: dist.ppf(float(q)) for q in ("0.5", "0.9", "0.99")}
+            dist = parse_channel(spec).stationary
+            out["delay_quantiles_ms"] = (None if dist is None else
+                                         {q: dist.ppf(float(q)) for q in ("0.5", "0.9", "0.99")})
         except ValueError:
             out["delay_quantiles_ms"] = None
         if spec != self._last_channel:

@@ -8,7 +8,7 @@ from fastapi import APIRouter, Depends, FastAPI, HTTPException
 from prometheus_client import CollectorRegistry
 from pydantic import BaseModel, ConfigDict, Field
 
-from aoi3d.channel import ACCEPTED_FORMS
+from aoi3d.channel import ACCEPTED_FORMS, CHANNEL_FORMS
 from aoi3d.clock import SimClock
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
@@ -22,11 +22,17 @@ The cameras' uplinks: one D/G/1/0 link per training camera (single server, no wa
 A frame offered on `aoi3d/<run>/cam/<n>/frame` while camera n's previous frame is still in
 flight is dropped; otherwise it is delivered on `aoi3d/<run>/edge/<n>/frame` after a sampled
 delay (slotted, 1 ms slots), stamped with its delivery time. `GET/PUT /channel` reads and
-changes the delay distributions and the seed.
+changes the delay distributions and the seed. The channel may also change by itself:
+`regimes:exp:20@10s,exp:200@10s` cycles through regimes, `trace:PATH` replays a mahimahi
+cellular trace per camera (a frame's transmission time from its encoded bytes), `cell:PATH`
+shares one trace's capacity among the cameras; each starts playing when it is set. `changes`
+lists when the channel changed (set here, or the next regime) and `measured_delay_ms` is the
+mean delay of the frames delivered over the last few seconds.
 """
 
 WorkerDep = Annotated[NetworkWorker, Depends(get_worker)]
-_FORMS = ", ".join(ACCEPTED_FORMS)
+_ALL_FORMS = (*ACCEPTED_FORMS, *CHANNEL_FORMS)
+_FORMS = ", ".join(_ALL_FORMS)
 
 
 class LinkView(BaseModel):
@@ -42,6 +48,15 @@ class LinkView(BaseModel):
     in_flight: bool = Field(description="Whether a frame is on the link now.")
 
 
+class ChannelChange(BaseModel):
+    """One change of the channel: set over REST, or the next regime of a schedule."""
+
+    time_ms: float = Field(description="Sim time of the change (ms).")
+    spec: str = Field(description="The spec in force from then.", examples=["exp:200"])
+    cause: str = Field(description="`set` (over REST or at start) or `regime`.")
+    delay: str | None = Field(None, description="The whole spec set (for `set`).")
+
+
 class ChannelView(BaseModel):
     """The links' settings and state."""
 
@@ -52,8 +67,20 @@ class ChannelView(BaseModel):
     seed: int = Field(description="Seed of the links' random streams.", examples=[1])
     accepted_forms: list[str] = Field(description="Delay spec forms (values in ms; "
                                                   "lognormal's MU and SIGMA are of ln Y).",
-                                      examples=[list(ACCEPTED_FORMS)])
+                                      examples=[list(_ALL_FORMS)])
     links: list[LinkView] = Field(description="Every camera's link, by camera id.")
+    in_force: str = Field(description="The spec in force now on the links without an "
+                                      "override (a regimes schedule's current regime).",
+                          examples=["exp:200"])
+    started_ms: float = Field(description="Sim time (ms) the default channel was set at; its "
+                                          "regimes and trace count from there.")
+    changes: list[ChannelChange] = Field(description="The channel's recent changes, oldest "
+                                                     "first.")
+    measured_delay_ms: float | None = Field(
+        description="Mean delay (delivery − generation, ms) of the frames delivered in the "
+                    "last `measure_window_ms` of sim time; null when none was.")
+    measured_frames: int = Field(description="Frames that mean is over.")
+    measure_window_ms: float = Field(description="The window of the measured delay (ms).")
 
 
 class ChannelUpdate(BaseModel):
@@ -61,6 +88,8 @@ class ChannelUpdate(BaseModel):
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
         {"delay": "exp:60"}, {"per_camera": {"3": "const:40"}}, {"seed": 7},
+        {"delay": "regimes:exp:20@10s,exp:200@10s"},
+        {"delay": "trace:../shared/data/traces/TMobile-LTE-short.up"},
         {"delay": "uniform:20:100", "per_camera": {}, "seed": 1}]})
 
     delay: str | None = Field(None, description=f"Delay spec of every link without an "
@@ -78,8 +107,14 @@ def _view(worker: NetworkWorker, cfg: ChannelConfig) -> ChannelView:
     links = [LinkView(camera=s.camera_id, delay=s.delay.spec, mean_delay_ms=s.delay.mean_ms,
                       offered=s.offered, dropped=s.dropped, delivered=s.delivered,
                       in_flight=s.in_flight) for s in worker.link_stats()]
+    state = worker.channel_state()
     return ChannelView(delay=cfg.delay, per_camera=dict(cfg.per_camera), seed=cfg.seed,
-                       accepted_forms=list(ACCEPTED_FORMS), links=links)
+                       accepted_forms=list(_ALL_FORMS), links=links,
+                       in_force=state["in_force"], started_ms=state["started_ms"],
+                       changes=[ChannelChange(**c) for c in state["changes"]],
+                       measured_delay_ms=state["measured_delay_ms"],
+                       measured_frames=state["measured_frames"],
+                       measure_window_ms=state["measure_window_ms"])
 
 
 channel_router = APIRouter(prefix="/channel", tags=["channel"])
@@ -91,8 +126,9 @@ def get_channel(worker: WorkerDep) -> ChannelView:
 
 
 @channel_router.put("", summary="Change the delay spec, per-camera overrides or seed.",
-                    responses={422: {"description": "Bad delay spec or unknown camera; the "
-                                                    "detail lists what is accepted."}})
+                    responses={422: {"description": "Bad delay spec, unreadable trace or unknown "
+                                                    "camera (nothing changes); the detail "
+                                                    "lists what is accepted."}})
 def put_channel(update: ChannelUpdate, worker: WorkerDep) -> ChannelView:
     try:
         cfg = worker.update(delay=update.delay, per_camera=update.per_camera, seed=update.seed)

@@ -5,8 +5,10 @@ under its lock and publishes what it returns; tests drive it directly.
 
 Camera n's offered frame goes through its :class:`aoi3d.channel.link.Link` (a D/G/1/0
 queue): ``offer`` gives the frame's delivery slot, or drops it when the previous frame is still
-in flight. Accepted frames wait in a heap ordered by delivery time (then by arrival) until
-:meth:`NetworkCore.pop_due` hands them out.
+in flight. The channel may change on its own (``regimes:``, a ``trace:`` played from the time
+it was set, a ``cell:`` whose capacity the links share; :mod:`aoi3d.channel.varying`); a
+frame's size is its encoded image's bytes. Accepted frames wait in a heap ordered by
+delivery time (then by arrival) until :meth:`NetworkCore.pop_due` hands them out.
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from aoi3d.channel import DelayDistribution, Link, camera_rngs, parse_delay
+from aoi3d.channel import Channel, Link, camera_rngs, parse_channel
 from services.kit.codec import decode_frame
 from services.kit.rejected import Rejected
 
@@ -45,7 +47,7 @@ class LinkStats:
     """One link's counts since the service started (they survive a reseed)."""
 
     camera_id: int
-    delay: DelayDistribution
+    delay: Channel
     offered: int = 0
     dropped: int = 0
     delivered: int = 0
@@ -72,22 +74,47 @@ class NetworkCore:
 
     def __init__(self, n_cameras: int, *, delay: str = "exp:60",
                  per_camera: dict[int, str] | None = None, seed: int = 1,
-                 max_skew_ms: float = 1000.0) -> None:
+                 max_skew_ms: float = 1000.0, now_ms: float = 0.0) -> None:
         self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
         self._accepted = frozenset(self.camera_ids)
         self._max_skew_ms = float(max_skew_ms)
         self.config = self._checked(delay, per_camera or {}, seed)
+        self.started_ms = int(now_ms)  # where the default channel's regimes / trace start
         rngs = camera_rngs(self.config.seed, n_cameras)
-        self._links = {n: Link(self.config.spec_of(n), rngs[n - 1]) for n in self.camera_ids}
+        on_cell = self._on_cell(self.config)
+        cell = (parse_channel(self.config.delay).new_cell(rngs[on_cell[0] - 1],
+                                                          start_ms=self.started_ms)
+                if on_cell else None)
+        self._links = {n: Link(parse_channel(self.config.spec_of(n)), rngs[n - 1],
+                               start_ms=self.started_ms, cell=cell if n in on_cell else None)
+                       for n in self.camera_ids}
         self._reseed: dict[int, np.random.Generator] = {}
         self._stats = {n: LinkStats(n, self._links[n].delay) for n in self.camera_ids}
         self._heap: list[Pending] = []
         self._order = itertools.count()
 
     # ------------------------------------------------------------------ configuration
+    def _on_cell(self, cfg: ChannelConfig) -> list[int]:
+        """The cameras sharing the default channel's cell (none unless it is a ``cell:``)."""
+        if not parse_channel(cfg.delay).shared:
+            return []
+        return [n for n in self.camera_ids if n not in cfg.per_camera]
+
+    def _share_cell(self) -> None:
+        """The links on a ``cell:`` default channel share one new cell (its phase drawn from
+        the first such link's stream)."""
+        channel = parse_channel(self.config.delay)
+        on_cell = self._on_cell(self.config)
+        if not on_cell:
+            return
+        cell = channel.new_cell(self._links[on_cell[0]].rng, start_ms=self.started_ms)
+        for n in on_cell:
+            self._links[n].set_delay(channel, start_ms=self.started_ms, cell=cell)
+            self._stats[n].delay = self._links[n].delay
+
     def _checked(self, delay: str, per_camera: dict[int, str], seed: int) -> ChannelConfig:
         """Validate a full config (raises ``DelaySpecError`` / ``ChannelConfigError``)."""
-        spec = parse_delay(delay).spec
+        spec = parse_channel(delay).spec
         unknown = sorted(set(per_camera) - self._accepted)
         if unknown:
             raise ChannelConfigError(
@@ -96,35 +123,53 @@ class NetworkCore:
         overrides: dict[int, str] = {}
         for n, camera_spec in sorted(per_camera.items()):
             try:
-                overrides[n] = parse_delay(camera_spec).spec
+                channel = parse_channel(camera_spec)
             except ValueError as err:
                 raise ChannelConfigError(f"per_camera {n}: {err}") from err
+            if channel.shared:
+                raise ChannelConfigError(f"per_camera {n}: a cell: channel is shared by the "
+                                         f"cameras, so it can only be the default delay")
+            overrides[n] = channel.spec
         if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
             raise ChannelConfigError(f"seed must be an integer >= 0, got {seed!r}")
         return ChannelConfig(delay=spec, per_camera=overrides, seed=seed)
 
     def update(self, *, delay: str | None = None, per_camera: dict[int, str] | None = None,
-               seed: int | None = None) -> ChannelConfig:
+               seed: int | None = None, now_ms: float | None = None) -> ChannelConfig:
         """Partial update (``per_camera`` replaces the whole override map); nothing changes
         when it raises ``DelaySpecError`` or ``ChannelConfigError``.
 
         A new delay applies to the frames offered from now on (a frame in flight keeps its
-        delivery slot). A new seed restarts each link's random stream once its frame in
-        flight is delivered.
+        delivery slot); a channel that changes (regimes, a trace) starts at ``now_ms``. A new
+        seed restarts each link's random stream once its frame in flight is delivered.
         """
         old = self.config
         new = self._checked(old.delay if delay is None else delay,
                             old.per_camera if per_camera is None else per_camera,
                             old.seed if seed is None else seed)
+        if new.delay != old.delay and now_ms is not None:
+            self.started_ms = int(now_ms)
+        self.config = new
+        on_cell = self._on_cell(new)
         for n, link in self._links.items():
-            if link.delay.spec != new.spec_of(n):
-                link.set_delay(new.spec_of(n))
+            if n in on_cell:
+                continue
+            if link.delay.spec != new.spec_of(n) or (n not in new.per_camera
+                                                     and new.delay != old.delay):
+                start = self.started_ms if n not in new.per_camera else (
+                    int(now_ms) if now_ms is not None else link.start_ms)
+                link.set_delay(parse_channel(new.spec_of(n)), start_ms=start)
                 self._stats[n].delay = link.delay
+        if on_cell and (new.delay != old.delay or on_cell != self._on_cell(old)):
+            self._share_cell()
         if new.seed != old.seed:
             rngs = camera_rngs(new.seed, len(self.camera_ids))
             self._reseed = {n: rngs[n - 1] for n in self.camera_ids}
-        self.config = new
         return new
+
+    def regime(self, now_ms: float) -> str:
+        """The spec in force now on the links without an override (a regime's own spec)."""
+        return parse_channel(self.config.delay).regime_at(now_ms, self.started_ms)
 
     def link_stats(self, now_ms: float) -> list[LinkStats]:
         """A snapshot of every link's counts and state at ``now_ms``."""
@@ -149,10 +194,10 @@ class NetworkCore:
         n = frame.camera_id
         link = self._links[n]
         rng = self._reseed.get(n)
-        if rng is not None and not link.in_flight(frame.generation_ms):
-            link = self._links[n] = Link(link.delay, rng)
+        if rng is not None and not link.in_flight(frame.generation_ms) and not link.delay.shared:
+            link = self._links[n] = Link(link.delay, rng, start_ms=link.start_ms)
             del self._reseed[n]
-        slot = link.offer(frame.generation_ms)
+        slot = link.offer(frame.generation_ms, len(frame.image.data))
         stats = self._stats[n]
         stats.offered += 1
         if slot is None:

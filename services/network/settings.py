@@ -5,7 +5,7 @@ from __future__ import annotations
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
-from aoi3d.channel import parse_delay
+from aoi3d.channel import parse_channel
 from services.kit.settings import ServiceSettings
 
 
@@ -16,7 +16,11 @@ class Settings(ServiceSettings):
 
     port: int = Field(8102, ge=0, le=65535, description="REST API port.")
     delay: str = Field("exp:60", description="Delay spec of every link (ms): exp:MEAN, const:D, "
-                                             "uniform:LO:HI, gamma:K:THETA or lognormal:MU:SIGMA.")
+                                             "uniform:LO:HI, gamma:K:THETA or "
+                                             "lognormal:MU:SIGMA; or a channel that changes: "
+                                             "regimes:SPEC@DUR,…, "
+                                             "trace:PATH[,offset=MS][,spread=MS][,scale=S], "
+                                             "cell:PATH[,…].")
     per_camera: dict[int, str] = Field(
         default_factory=dict,
         description='Per-camera delay overrides as a JSON object, e.g. {"3": "const:40"}.')
@@ -28,9 +32,9 @@ class Settings(ServiceSettings):
     @field_validator("delay")
     @classmethod
     def _canonical_delay(cls, value: str) -> str:
-        return parse_delay(value).spec
+        return parse_channel(value).spec
 
     @field_validator("per_camera")
     @classmethod
     def _canonical_per_camera(cls, value: dict[int, str]) -> dict[int, str]:
-        return {int(n): parse_delay(spec).spec for n, spec in value.items()}
+        return {int(n): parse_channel(spec).spec for n, spec in value.items()}

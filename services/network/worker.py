@@ -15,10 +15,12 @@ from __future__ import annotations
 import logging
 import math
 import threading
+from collections import deque
+from typing import Any
 
 from prometheus_client import CollectorRegistry, Counter, Histogram
 
-from aoi3d.channel import ACCEPTED_FORMS
+from aoi3d.channel import ACCEPTED_FORMS, CHANNEL_FORMS, parse_channel
 from aoi3d.clock import SimClock
 from services.kit.bus import Bus, Inbox
 from services.kit.codec import with_delivery
@@ -39,6 +41,9 @@ log = logging.getLogger(__name__)
 DELAY_BUCKETS_S = (0.001, 0.005, 0.01, 0.02, 0.03, 0.04, 0.05, 0.06, 0.08, 0.1, 0.125, 0.15,
                    0.2, 0.3, 0.5, 1.0, 2.0)
 _POLL_S = 0.1  # longest a thread blocks before checking for stop
+#: Sim time over which the measured mean delay (delivery − generation) is taken.
+MEASURE_WINDOW_MS = 3000.0
+_CHANGES_KEPT = 200
 
 __all__ = ["ChannelConfig", "ChannelConfigError", "LinkStats", "NetworkWorker"]
 
@@ -53,7 +58,13 @@ class NetworkWorker:
         self._clock = clock
         self._keys = keys
         self.core = NetworkCore(n_cameras, delay=delay, per_camera=per_camera, seed=seed,
-                                max_skew_ms=max_skew_ms)
+                                max_skew_ms=max_skew_ms, now_ms=clock.now_ms())
+        # the channel's changes, set over REST or by its regimes: {time_ms, spec, cause}
+        self._changes: deque[dict[str, Any]] = deque(maxlen=_CHANGES_KEPT)
+        self._changes.append({"time_ms": float(self.core.started_ms),
+                              "spec": self.core.regime(self.core.started_ms), "cause": "set"})
+        self._changes_seen_ms = float(self.core.started_ms)
+        self._recent: deque[tuple[float, float]] = deque()  # (delivery, delay) ms
         self.camera_ids = self.core.camera_ids
         self._cond = threading.Condition()  # guards the core; notified on a new frame in flight
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._overflow.inc())
@@ -89,11 +100,47 @@ class NetworkWorker:
                seed: int | None = None) -> ChannelConfig:
         """Partial update (``per_camera`` replaces the whole override map); see
         :meth:`NetworkCore.update`. Raises ``DelaySpecError`` or ``ChannelConfigError``."""
+        now = self._clock.now_ms()
         with self._cond:
-            new = self.core.update(delay=delay, per_camera=per_camera, seed=seed)
+            self._note_regimes(now)
+            old = self.core.config.delay
+            new = self.core.update(delay=delay, per_camera=per_camera, seed=seed, now_ms=now)
+            if new.delay != old:
+                self._changes.append({"time_ms": float(now), "spec": self.core.regime(now),
+                                      "cause": "set", "delay": new.delay})
+                self._changes_seen_ms = float(now)
         log.info("channel: delay %s, per camera %s, seed %d", new.delay, new.per_camera,
                  new.seed)
         return new
+
+    def _note_regimes(self, now_ms: float) -> None:
+        """Log the regime changes of the default channel since the last look (under the
+        lock)."""
+        if now_ms <= self._changes_seen_ms:
+            return
+        channel = parse_channel(self.core.config.delay)
+        start = max(self._changes_seen_ms, now_ms - 60_000.0 * 10)
+        changes = channel.changes_between(start, now_ms, self.core.started_ms)
+        for t, spec in changes[-_CHANGES_KEPT:]:
+            self._changes.append({"time_ms": float(t), "spec": spec, "cause": "regime"})
+            log.info("channel: regime %s at %.0f ms", spec, t)
+        self._changes_seen_ms = now_ms
+
+    def channel_state(self) -> dict[str, Any]:
+        """The channel side of the console: the spec in force now, when the channel was set,
+        its recent changes, and the mean delay (delivery − generation) of the frames
+        delivered in the last ``MEASURE_WINDOW_MS`` of sim time."""
+        now = self._clock.now_ms()
+        with self._cond:
+            self._note_regimes(now)
+            while self._recent and self._recent[0][0] < now - MEASURE_WINDOW_MS:
+                self._recent.popleft()
+            delays = [d for _, d in self._recent]
+            return {"now_ms": now, "in_force": self.core.regime(now),
+                    "started_ms": float(self.core.started_ms),
+                    "changes": list(self._changes),
+                    "measured_delay_ms": (sum(delays) / len(delays)) if delays else None,
+                    "measured_frames": len(delays), "measure_window_ms": MEASURE_WINDOW_MS}
 
     def link_stats(self) -> list[LinkStats]:
         """A snapshot of every link's counts and state."""
@@ -103,7 +150,7 @@ class NetworkWorker:
 
     @staticmethod
     def accepted_forms() -> tuple[str, ...]:
-        return ACCEPTED_FORMS
+        return ACCEPTED_FORMS + CHANNEL_FORMS
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -172,3 +219,7 @@ class NetworkWorker:
         delay_ms = item.delivery_ms - item.generation_ms
         if math.isfinite(delay_ms):
             self._delay_s.observe(delay_ms / 1000.0)
+            with self._cond:
+                self._recent.append((item.delivery_ms, delay_ms))
+                if len(self._recent) > 100_000:
+                    self._recent.popleft()

@@ -276,3 +276,80 @@ def test_a_frame_stamped_ahead_cannot_block_a_link() -> None:
         text = client.get("/metrics").text
         assert metric(text, "aoi3d_messages_rejected_total", reason="clock_skew") == 1
         assert metric(text, "aoi3d_frames_dropped_total", camera="1") == 0
+
+
+# --- channels that change: regimes, traces (the domain's Link, live) ----------------------------
+
+
+def _expected_on(spec: str, seed: int, start_ms: int, gens: list[float],
+                 size: int) -> dict[int, list[float]]:
+    """Delivery slots of the domain's links on ``spec`` started at ``start_ms``, fed the
+    frames of every camera in (slot, camera) order — the network service's order here."""
+    from aoi3d.channel import make_links
+
+    links = make_links(spec, camera_rngs(seed, N_CAMERAS), start_ms=start_ms)
+    out: dict[int, list[float]] = {n: [] for n in range(1, N_CAMERAS + 1)}
+    for g in gens:
+        for n, link in zip(range(1, N_CAMERAS + 1), links, strict=True):
+            if (s := link.offer(g, size)) is not None:
+                out[n].append(float(s))
+    return out
+
+
+@pytest.mark.parametrize("spec", ["regimes:exp:10@300ms,exp:120@300ms",
+                                  "trace:{trace},spread=200", "cell:{trace}"])
+def test_a_changing_channel_set_over_rest_matches_the_domain_links(spec: str,
+                                                                   tmp_path) -> None:
+    trace = tmp_path / "t.up"  # one 1500-byte opportunity every 3 ms, a burst at 200
+    trace.write_text("\n".join(str(t) for t in sorted([*range(0, 400, 3), *[200] * 20, 400]))
+                     + "\n")
+    spec = spec.format(trace=trace)
+    clock = SimClock(epoch_s=time.time() - 10.0, time_scale=50.0)
+    bus = MemoryBus()
+    arrivals = Arrivals(bus)
+    with TestClient(make_app(bus, clock, delay="const:1", seed=4)) as client:
+        ok = client.put("/channel", json={"delay": spec})
+        assert ok.status_code == 200, ok.text
+        body = ok.json()
+        started = int(body["started_ms"])
+        sets = [c for c in body["changes"] if c["cause"] == "set"]
+        assert body["delay"] == spec and sets[-1]["delay"] == spec
+        assert sets[-1]["time_ms"] == pytest.approx(started, abs=1)
+        base = math.floor(started / 30) * 30 - 30 * 50  # before and after the start
+        gens = [float(base + 30 * k) for k in range(60)]
+        expected = _expected_on(spec, 4, started, gens, len(IMAGE.data))
+        for g in gens:
+            for n in range(1, N_CAMERAS + 1):
+                bus.publish(KEYS.cam_frame(n), frame(n, g))
+        got = arrivals.wait(sum(len(v) for v in expected.values()))
+        for n in range(1, N_CAMERAS + 1):
+            assert [m.delivery_ms for _, k, m in got if m.camera_id == n] == expected[n]
+        view = client.get("/channel").json()
+        if spec.startswith("regimes"):
+            assert view["in_force"] in ("exp:10", "exp:120")
+            regimes = [c for c in view["changes"] if c["cause"] == "regime"]
+            assert regimes and regimes[0]["time_ms"] == pytest.approx(started + 300, abs=1)
+            assert regimes[0]["spec"] == "exp:120"
+        assert view["measured_delay_ms"] is None or view["measured_delay_ms"] > 0
+
+
+def test_a_refused_channel_changes_nothing(tmp_path) -> None:
+    clock = SimClock(epoch_s=time.time() - 1.0, time_scale=1.0)
+    with TestClient(make_app(MemoryBus(), clock, delay="regimes:const:5@1s,const:9@1s")
+                    ) as client:
+        body = client.get("/channel").json()
+        assert body["in_force"] in ("const:5", "const:9")
+        assert any("regimes:SPEC@DUR" in f for f in body["accepted_forms"])
+        for bad, why in [("trace:/no/such.up", "cannot read trace"),
+                         ("regimes:exp:20", "lacks its duration"),
+                         (f"trace:{tmp_path}", "not a file"),
+                         ("cell:/no/such.up,spread=1", "cannot read trace")]:
+            r = client.put("/channel", json={"delay": bad})
+            assert r.status_code == 422 and why in r.json()["detail"], r.text
+        trace = tmp_path / "t.up"
+        trace.write_text("0\n5\n10\n")
+        r = client.put("/channel", json={"per_camera": {"2": f"cell:{trace}"}})
+        assert r.status_code == 422 and "default delay" in r.json()["detail"]
+        after = client.get("/channel").json()
+        assert {k: v for k, v in after.items() if k != "in_force"} == {
+            k: v for k, v in body.items() if k != "in_force"}

@@ -389,7 +389,7 @@ def test_cli_simulate_json() -> None:
     data = json.loads(result.output)
     assert data["config"] == {
         "delay": "const:40", "period_ms": 30, "n_cameras": 3, "duration_s": 6.04,
-        "duration_ms": 6040, "seed": 1, "phase_ms": 0,
+        "duration_ms": 6040, "seed": 1, "phase_ms": 0, "frame_bytes": 12000,
     }
     assert len(data["per_camera"]) == 3
     assert data["mean_aoi_ms"] == data["theory"]["mean_aoi_ms"] == 69.5
