@@ -9,8 +9,8 @@ since its last decision and decides (:func:`aoi3d.policy.decide.decide`, the lin
 ``delivery_feed``); at each scored decision the one-decision plan that trains on its selection
 is run (the oracle's candidate plan, :mod:`aoi3d.experiment.oracle`: the same cache key for
 the same selection), and its scores are handed to the policy (``observe_quality``) before
-its next decision. Every seed advances in lockstep, so each scored epoch is one batch for ``evaluate`` (the sweep's cached ``run_plans``: local cores
-or Ray).
+its next decision. Every seed advances in lockstep, so each scored epoch is one batch for
+``evaluate`` (the sweep's cached ``run_plans``: local cores or Ray).
 
 It needs the ``fresh`` carry, where a scored decision's render depends on its own frames and
 the seed alone — then the stepwise episode's numbers equal the planned episode's, and a
