@@ -277,3 +277,16 @@ def test_stepwise_episodes_equal_the_planned_ones(cfg: EpisodeConfig,
         plan_episode(cfg, dataset, "adaptive:bandit", 0)
     with pytest.raises(ValueError, match="fresh"):
         run_stepwise(replace(cfg, carry="warm"), dataset, "mat:70", seeds, evaluate)
+
+
+def test_run_jobs_takes_a_bandit_beside_planned_policies(cfg: EpisodeConfig,
+                                                         dataset: SceneDataset) -> None:
+    """The sweep runs a policy rewarded by quality step by step, in job order, beside the
+    planned ones (so `experiment compare --policy adaptive:bandit` works)."""
+    jobs = [Job(p, cfg.delay, s) for s in (0, 1) for p in ("mat:70", "adaptive:bandit:3:40/70")]
+    out = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    assert [(r.policy, r.seed) for r in out.results] == [
+        ("mat:70", 0), ("adaptive:bandit:3:40/70:1:psnr_db", 0), ("mat:70", 1),
+        ("adaptive:bandit:3:40/70:1:psnr_db", 1)]
+    assert len(out.plans) == len(out.keys) == 4
+    assert all(len(r.epochs) == 3 for r in out.results)
