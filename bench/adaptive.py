@@ -88,7 +88,7 @@ def window_delay_ms(links: Any, t_ms: int, half_ms: int = 1500) -> float:
     return float(y.mean()) if y.size else math.nan
 
 
-def main() -> int:  # noqa: C901, PLR0915
+def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--heldout", default="Verizon-LTE-short.up,Verizon-EVDO-driving.up",
                     help="trace files judged on (never used for design)")

@@ -168,7 +168,8 @@ def main() -> int:
     questions = [claims.learned_beats_best_rule(compare),
                  claims.adaptive_beats_best_rule(adaptive)]
     doc = {"seed_offset": args.seed_offset, "seeds": args.seeds,
-           "delay_seeds": args.delay_seeds, "regime_seeds": args.regime_seeds, "ppo_seed_offset": args.ppo_seed_offset,
+           "delay_seeds": args.delay_seeds, "regime_seeds": args.regime_seeds,
+           "ppo_seed_offset": args.ppo_seed_offset,
            "ppo_seeds": args.ppo_seeds, "development_seeds": DEV_SEEDS,
            "wall_s": round(wall, 1), "runs": log,
            "code_version": tradeoff["meta"]["code_version"],

@@ -21,15 +21,15 @@ from aoi3d.experiment.optimum import PairedDifference, paired_difference
 __all__ = [
     "Verdict",
     "adaptive_beats_best_rule",
-    "fixed_gamma_loses_under_changing_channel",
-    "regime_gain",
     "compare_selective_beats_all",
+    "fixed_gamma_loses_under_changing_channel",
     "gamma_label",
     "learned_beats_best_rule",
     "metric_name",
     "optimal_gamma_grows_with_delay",
     "ppo_beats_all",
     "ppo_reaches_best_mat",
+    "regime_gain",
     "scores_agree_on_the_optimum",
     "tradeoff_interior_optimum",
 ]

@@ -7,7 +7,8 @@ lock, with the wall time; tests drive it directly.
 It keeps the latest Render, the truth frame of the same simulated time (a ring by generation
 time), every Quality (a timeline of ``history_s``), the latest Decision (AoI per camera, the
 frames selected, the policy), the Γ each decision applied (a timeline too) and the services'
-polled state; a policy or channel change puts a marker on the timeline. :meth:`ConsoleCore.snapshot` is the JSON pushed to the page.
+polled state; a policy or channel change puts a marker on the timeline.
+:meth:`ConsoleCore.snapshot` is the JSON pushed to the page.
 """
 
 from __future__ import annotations
