@@ -251,6 +251,27 @@ def test_the_plugins_gamma_follows_a_change_of_the_channel(cfg: EpisodeConfig,
     assert all(a < 250 + 1e-9 for a in last.aoi_ms)
 
 
+def test_the_plugin_follows_a_regime_schedule(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
+    """The same through the channel spec `regimes:` (aoi3d.channel): on the shipped curve, Γ
+    sits low in the fast regime and high in the slow one, every time the schedule cycles."""
+    long = replace(cfg, delay="regimes:exp:20@3s,exp:200@3s", warmup_ms=150,
+                   scored_ms=11_850, score_every=1000)
+    curve = load_gamma_curve()
+    links = episode_links(long, dataset, 3)
+    pol = PluginPolicy()
+    feed = links.delivery_feed()
+    by_regime: dict[str, list[float]] = {"fast": [], "slow": []}
+    for t in long.decision_times_ms():
+        decide(pol, t, links.newest_ms, deliveries=feed)
+        phase = t % 6000
+        if 1500 <= phase < 3000:  # the second half of each regime: the estimate has settled
+            by_regime["fast"].append(pol.gamma_ms)
+        elif 4500 <= phase < 6000:
+            by_regime["slow"].append(pol.gamma_ms)
+    assert np.median(by_regime["fast"]) <= curve(40)
+    assert np.median(by_regime["slow"]) >= curve(120)
+
+
 def test_stepwise_episodes_equal_the_planned_ones(cfg: EpisodeConfig,
                                                   dataset: SceneDataset) -> None:
     seeds = [0, 1]
