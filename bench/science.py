@@ -317,7 +317,7 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
         _policy_name(m) for m in ropt["members"]) + ".", ""]
     if adaptive is not None:
         cfg = adaptive["meta"]["episode_config"]
-        lines += [f"## A changing channel: {adaptive['meta']['delay']}", "",
+        lines += [f"## A changing channel: {adaptive['meta']['args']['delay']}", "",
                   f"Issue 32: every fixed rule and the adaptive policies on the same seeds "
                   f"({_seeds_text(adaptive['meta']['seed_list'])}), "
                   f"{cfg['steps_per_epoch']} field steps per scored decision, "

@@ -285,6 +285,12 @@ def _regime_of(delay: str) -> Any:
         else None
 
 
+def _delay_of(compare: Mapping[str, Any]) -> str:
+    """The channel spec of a compare run (its ``--delay``)."""
+    return str(compare["meta"].get("args", {}).get("delay") or compare["meta"].get("delay")
+               or "")
+
+
 def _epochs(episodes: Sequence[Mapping[str, Any]], policy: str, metric: str
             ) -> dict[int, list[tuple[float, float]]]:
     """Per seed, the policy's scored decisions: (eval time, metric)."""
@@ -302,8 +308,8 @@ def regime_gain(compare: Mapping[str, Any], metric: str = "psnr_db") -> dict[str
     in force, all seeds) against the best single Γ (highest mean over every decision); per
     seed, the mean over the regimes of (its best Γ − the single Γ) on that regime's decisions;
     paired by seed. None when the run is not on a regime schedule or has no MAT rule."""
-    delay = compare["meta"].get("delay", "")
-    regime_at = _regime_of(delay)
+    delay = _delay_of(compare)
+    regime_at = _regime_of(delay) if delay else None
     mats = [r["policy"] for r in compare["policies"]
             if not r.get("bound") and str(r["policy"]).startswith("mat:")]
     if regime_at is None or not mats:
@@ -388,7 +394,7 @@ def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db"
               for s in seeds}
     to_oracle = paired_difference(oracle, seed_means[best])
     g = regime_gain(compare, metric)
-    evidence = (f"{compare['meta'].get('delay')}; best rule {best}; "
+    evidence = (f"{_delay_of(compare)}; best rule {best}; "
                 + "; ".join(f"{p} − {best}: {diffs[p].mean:+.2f} ± {diffs[p].half:.2f}"
                             for p in adaptive)
                 + f" over {d.n} seeds {_seeds(compare['meta']['seed_list'])}: {ours} "
@@ -398,7 +404,7 @@ def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db"
                 f"oracle over the rules at t − {best}: {to_oracle.mean:+.2f} ± "
                 f"{to_oracle.half:.2f}")
     numbers: dict[str, Any] = {
-        "best_rule": best, "best_adaptive": ours, "rule_means": means,
+        "best_rule": best, "best_adaptive": ours, "means": means,
         "adaptive_minus_best_rule": {p: v.to_dict() for p, v in diffs.items()},
         "oracle_rules_at_t_minus_best_rule": to_oracle.to_dict(), "G": g}
     bound = compare.get("bound", {}).get(f"oracle:rules:{metric}")

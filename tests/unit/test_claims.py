@@ -186,7 +186,7 @@ def regimes_doc(adaptive_gain: float, switching: bool = True) -> dict:
                                         for t, v in zip(times, vals, strict=True)]})
     names = list(dict.fromkeys(e["policy"] for e in episodes))
     return json.loads(json.dumps({
-        "meta": {"seed_list": list(SEEDS), "delay": REGIMES,
+        "meta": {"seed_list": list(SEEDS), "args": {"delay": REGIMES},
                  "episode_config": {"steps_per_epoch": 100}},
         "policies": [{"policy": p, "bound": False} for p in names], "episodes": episodes}))
 
@@ -200,7 +200,7 @@ def test_a_fixed_gamma_loses_when_the_regimes_want_different_ones() -> None:
     flat = claims.fixed_gamma_loses_under_changing_channel(regimes_doc(0.0, switching=False))
     assert not flat.holds and flat.numbers["G"]["G"]["mean"] == 0.0
     stationary = regimes_doc(0.0)
-    stationary["meta"]["delay"] = "exp:60"
+    stationary["meta"]["args"]["delay"] = "exp:60"
     assert not claims.fixed_gamma_loses_under_changing_channel(stationary).holds
     assert claims.regime_gain(stationary) is None
 
