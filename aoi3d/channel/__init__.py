@@ -21,6 +21,7 @@ from aoi3d.channel.theory import ChannelTheory, aoi_cdf, aoi_pmf, channel_theory
 from aoi3d.channel.varying import (
     CHANNEL_FORMS,
     DEFAULT_FRAME_BYTES,
+    BurstChannel,
     CellChannel,
     Channel,
     ChannelSpecError,
@@ -28,6 +29,7 @@ from aoi3d.channel.varying import (
     StationaryChannel,
     TraceChannel,
     parse_channel,
+    trace_path_of,
     transmission_summary,
 )
 
@@ -35,6 +37,7 @@ __all__ = [
     "ACCEPTED_FORMS",
     "CHANNEL_FORMS",
     "DEFAULT_FRAME_BYTES",
+    "BurstChannel",
     "CellChannel",
     "Channel",
     "ChannelRun",
@@ -63,5 +66,6 @@ __all__ = [
     "parse_delay",
     "simulate",
     "slot_delay_pmf",
+    "trace_path_of",
     "transmission_summary",
 ]

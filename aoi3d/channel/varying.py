@@ -15,6 +15,10 @@ is one of:
   at least one slot later. Each camera plays the trace from its own phase, ``offset`` plus a
   uniform draw in [0, ``spread``) from its own random stream (``spread`` defaults to the
   trace's length; ``spread=0`` puts every camera at ``offset``);
+- ``burst:GOOD,BAD[,good=DUR][,bad=DUR]`` — a Gilbert–Elliott channel: each link is in a
+  good or a bad state, draws Y from GOOD or BAD (delay distributions), and stays in a state
+  for an exponential time of mean ``good`` (default 5s) or ``bad`` (default 1s), drawn from
+  its own stream; every link starts good, e.g. ``burst:exp:20,exp:300,good=4s,bad=1s``;
 - ``cell:PATH[,offset=MS][,spread=MS][,scale=S]`` — the cameras share one cell's capacity:
   one trace, one FIFO of packets. A frame's packets take the next opportunities not used by
   any camera's earlier frame, in the order the frames were offered. The cell's phase is
@@ -67,6 +71,7 @@ __all__ = [
     "CHANNEL_FORMS",
     "DEFAULT_FRAME_BYTES",
     "PACKET_BYTES",
+    "BurstChannel",
     "CellChannel",
     "CellQueue",
     "Channel",
@@ -77,6 +82,7 @@ __all__ = [
     "TraceChannel",
     "load_trace",
     "parse_channel",
+    "trace_path_of",
     "transmission_summary",
 ]
 
@@ -89,6 +95,7 @@ MAX_TRACE_LINES = 20_000_000
 
 CHANNEL_FORMS: tuple[str, ...] = (
     "regimes:SPEC@DUR,SPEC@DUR,…",
+    "burst:GOOD,BAD[,good=DUR][,bad=DUR]",
     "trace:PATH[,offset=MS][,spread=MS][,scale=S]",
     "cell:PATH[,offset=MS][,spread=MS][,scale=S]",
 )
@@ -313,6 +320,78 @@ def _parse_regimes(body: str, spec: str) -> RegimeChannel:
                                    f"distribution)", spec) from None
         durations.append(_parse_duration(dur, spec))
     return RegimeChannel(tuple(dists), tuple(durations))
+
+
+# ---------------------------------------------------------------------------- bursts
+class _BurstServer(Server):
+    def __init__(self, channel: BurstChannel, rng: np.random.Generator, start_ms: int) -> None:
+        self._channel = channel
+        self._rng = rng
+        self._bad = False
+        self._until = int(start_ms) + self._sojourn()
+
+    def _sojourn(self) -> int:
+        mean = self._channel.bad_ms if self._bad else self._channel.good_ms
+        return max(1, math.ceil(float(self._rng.exponential(mean))))
+
+    def slots(self, gen_slot: int, size_bytes: int) -> int:
+        while gen_slot >= self._until:  # the states the link went through since
+            self._bad = not self._bad
+            self._until += self._sojourn()
+        dist = self._channel.bad if self._bad else self._channel.good
+        y = float(dist.sample(self._rng, 1)[0])
+        self.last_ms = y
+        return delay_slots(y)
+
+
+@dataclass(frozen=True)
+class BurstChannel(Channel):
+    """A Gilbert–Elliott good/bad channel per link (``burst:``)."""
+
+    good: DelayDistribution
+    bad: DelayDistribution
+    good_ms: int = 5000
+    bad_ms: int = 1000
+    kind: ClassVar[str] = "burst"
+
+    @property
+    def spec(self) -> str:
+        return (f"burst:{self.good.spec},{self.bad.spec},good={_format_duration(self.good_ms)},"
+                f"bad={_format_duration(self.bad_ms)}")
+
+    @property
+    def mean_ms(self) -> float:
+        """The long-run mean: the states' means weighted by their mean sojourns."""
+        return float((self.good_ms * self.good.mean_ms + self.bad_ms * self.bad.mean_ms)
+                     / (self.good_ms + self.bad_ms))
+
+    def server(self, rng: np.random.Generator, *, start_ms: int = 0,
+               cell: CellQueue | None = None) -> Server:
+        return _BurstServer(self, rng, start_ms)
+
+
+def _parse_burst(body: str, spec: str) -> BurstChannel:
+    parts = [p.strip() for p in body.split(",")]
+    if len(parts) < 2 or not parts[0] or not parts[1]:
+        raise ChannelSpecError("burst needs two delay specs, GOOD,BAD (e.g. "
+                               "burst:exp:20,exp:300,good=4s,bad=1s)", spec)
+    dists = []
+    for name, part in zip(("GOOD", "BAD"), parts[:2], strict=True):
+        try:
+            dists.append(parse_delay(part))
+        except DelaySpecError as err:
+            raise ChannelSpecError(f"burst {name} {part!r}: {err.problem}", spec) from None
+    times = {"good": 5000, "bad": 1000}
+    seen: set[str] = set()
+    for part in parts[2:]:
+        name, eq, value = part.partition("=")
+        name = name.strip().lower()
+        if not eq or name not in times or name in seen:
+            raise ChannelSpecError(f"burst option {part!r}: good=DUR and bad=DUR, once each",
+                                   spec)
+        seen.add(name)
+        times[name] = _parse_duration(value, spec)
+    return BurstChannel(dists[0], dists[1], times["good"], times["bad"])
 
 
 # ---------------------------------------------------------------------------- traces
@@ -553,6 +632,15 @@ def _parse_trace(kind: str, body: str, spec: str) -> TraceChannel:
 
 
 # ---------------------------------------------------------------------------- parsing
+def trace_path_of(spec: str) -> str | None:
+    """The trace path a ``trace:`` or ``cell:`` spec names (read from the text alone, no file
+    touched: a service checks where it lies before reading it); None for the other kinds."""
+    kind, _, body = str(spec).strip().partition(":")
+    if kind.strip().lower() not in ("trace", "cell"):
+        return None
+    return body.split(",")[0].strip()
+
+
 def parse_channel(spec: str | Channel | DelayDistribution) -> Channel:
     """Parse any channel spec (a delay distribution, ``regimes:``, ``trace:``, ``cell:``);
     a channel passes through, a distribution is wrapped. Raises ``DelaySpecError``."""
@@ -567,6 +655,8 @@ def parse_channel(spec: str | Channel | DelayDistribution) -> Channel:
     kind = kind.strip().lower()
     if kind == "regimes":
         return _parse_regimes(body, spec)
+    if kind == "burst":
+        return _parse_burst(body, spec)
     if kind in ("trace", "cell"):
         return _parse_trace(kind, body, spec)
     try:

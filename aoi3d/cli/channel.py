@@ -44,9 +44,9 @@ def _table(result: dict[str, Any], console: Console) -> None:
         table.add_row(
             label,
             fmt(s.get("mean_aoi_ms")),
-            fmt(s.get("p50_aoi_ms"), 0),
-            fmt(s.get("p99_aoi_ms"), 0),
-            fmt(s.get("drop_ratio"), 4),
+            fmt(s.get("p50_aoi_ms"), digits=0),
+            fmt(s.get("p99_aoi_ms"), digits=0),
+            fmt(s.get("drop_ratio"), digits=4),
             fmt(s.get("delivered_per_s")),
             fmt(s.get("offered")),
             fmt(s.get("dropped")),
@@ -67,6 +67,7 @@ def simulate_cmd(
         str, typer.Option(help="Delay spec: exp:MEAN, const:D, uniform:LO:HI, gamma:K:THETA, "
                           "lognormal:MU:SIGMA (ms); or a channel that changes: "
                           "regimes:SPEC@DUR,… (cycling, e.g. regimes:exp:20@10s,exp:200@10s), "
+                          "burst:GOOD,BAD[,good=DUR][,bad=DUR] (Gilbert–Elliott), "
                           "trace:PATH[,offset=MS][,spread=MS][,scale=S] (a mahimahi uplink "
                           "trace per camera), cell:PATH[,…] (the cameras share one trace's "
                           "capacity).")

@@ -494,6 +494,13 @@ def sweep(
         min=1, help="Reconstruction workers of the pipeline --up starts.")] = 1,
     sim: Annotated[bool, typer.Option(
         help="Overlay the virtual-clock curve (same scene, channel, carry, budget).")] = True,
+    delay: Annotated[str | None, typer.Option(
+        help="The channel for the sweep (PUT /channel on the network service before measuring; "
+             "the one in force is put back afterwards): a delay spec (exp:60, …) or a channel "
+             "that changes — regimes:SPEC@DUR,… (e.g. regimes:exp:20@10s,exp:200@10s), "
+             "trace:PATH[,offset=MS][,spread=MS][,scale=S] (a mahimahi uplink trace; the path "
+             "as the network service reads it), cell:PATH[,…]. Default: leave the channel as "
+             "it is.")] = None,
     sim_seeds: Annotated[int, typer.Option(
         min=1, help="Virtual-clock seeds per policy (4 scored renders each; 4 seeds proved "
                     "too few to compare with a live run, see the README).")] = 16,
@@ -519,6 +526,13 @@ def sweep(
     if len(specs) < 2:
         raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
     bodies = {s: _policy_json(s) for s in specs}
+    if delay is not None:
+        from aoi3d.channel import DelaySpecError, parse_channel
+
+        try:
+            delay = parse_channel(delay).spec
+        except DelaySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--delay'") from None
     from aoi3d.policy import parse_policy
 
     canon = {s: parse_policy(s).spec for s in specs}
@@ -531,6 +545,7 @@ def sweep(
         except ValueError as err:
             raise typer.BadParameter(str(err), param_hint="'--site'") from None
     pipe = Pipeline(url_base, port_offset, timeout_s, site)
+    previous_delay: str | None = None
     started = time.monotonic()
     try:
         if up:
@@ -541,6 +556,10 @@ def sweep(
         try:
             status0 = pipe.call("GET", "trainer", "/status")
             channel = pipe.call("GET", "network", "/channel")
+            if delay is not None and delay != channel["delay"]:
+                previous_delay = channel["delay"]
+                channel = pipe.call("PUT", "network", "/channel", json={"delay": delay})
+                console.print(f"channel: {escape(delay)} (was {escape(previous_delay)})")
         except LiveError as err:
             console.print(f"[red]error:[/] {escape(str(err))}")
             raise typer.Exit(1) from None
@@ -560,7 +579,14 @@ def sweep(
                 console.print(f"    {len(m.qualities)} renders scored, decisions "
                               f"{m.first_decision}..{m.last_decision}")
         status1 = pipe.call("GET", "trainer", "/status")
+        channel_end = pipe.call("GET", "network", "/channel")
+        channel["changes"] = channel_end.get("changes", [])
     finally:
+        if previous_delay is not None and proc is None:
+            try:
+                pipe.call("PUT", "network", "/channel", json={"delay": previous_delay})
+            except LiveError as err:
+                console.print(f"[yellow]could not put the channel back:[/] {escape(str(err))}")
         pipe.close()
         if proc is not None:
             _stop_pipeline(proc)

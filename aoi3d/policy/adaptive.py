@@ -6,8 +6,9 @@ Both apply the MAT rule (use camera n iff Δ_n < Γ) with a Γ that moves:
   transmission time E[Y] online from the (delivery − generation) time of every frame the edge
   receives (a :class:`DelayEstimator`, exponentially forgetting with the given half-life of
   channel time, default 250 ms: chosen on the design traces, ``bench/adaptive_halflife.py``),
-  and takes Γ = Γ*(Ê[Y]) from the measured curve of the best Γ against the mean delay (:class:`GammaCurve`, ``gamma_curve.json`` beside this module:
-  the ``aoi3d experiment delay`` sweep that measured it, with its command). Before the first
+  and takes Γ = Γ*(Ê[Y]) from the measured curve of the best Γ against the mean delay
+  (:class:`GammaCurve`, ``gamma_curve.json`` beside this module: the ``aoi3d experiment
+  delay`` sweep that measured it, with its command). Before the first
   delivery Γ is the curve's value at its middle point.
 - ``adaptive:bandit[:<window>]`` — a **sliding-window UCB bandit** over Γ arms
   (:class:`SlidingWindowUCB`, default arms 40, 70, 100, 130, 190, 280 ms), rewarded by the

@@ -14,6 +14,7 @@ polled state; a policy or channel change puts a marker on the timeline.
 from __future__ import annotations
 
 import bisect
+import functools
 import io
 import math
 from collections import deque
@@ -72,6 +73,9 @@ class ConsoleCore:
         self._channel_prev: tuple[float, int, int] | None = None  # wall, delivered, offered
         self._last_policy: str | None = None
         self._last_channel: str | None = None
+        self._last_in_force: str | None = None
+        # the channel over time: {wall_s, measured_delay_ms, in_force, in_force_mean_ms}
+        self._channel_series: deque[dict[str, Any]] = deque()
 
     # ------------------------------------------------------------------ the messages
     def on_truth(self, payload: bytes) -> None:
@@ -131,7 +135,7 @@ class ConsoleCore:
             self._last_policy = d.policy
 
     def trim(self, now: float) -> None:
-        for q in (self._quality, self._markers, self._gamma):
+        for q in (self._quality, self._markers, self._gamma, self._channel_series):
             while q and q[0]["wall_s"] < now - self._history_s:
                 q.popleft()
 
@@ -169,10 +173,26 @@ class ConsoleCore:
                                          {q: dist.ppf(float(q)) for q in ("0.5", "0.9", "0.99")})
         except ValueError:
             out["delay_quantiles_ms"] = None
-        if spec != self._last_channel:
+        configured = str(channel.get("delay"))
+        in_force = str(channel.get("in_force") or configured)
+        if configured != self._last_channel:
             if self._last_channel is not None:
-                self._markers.append({"wall_s": now, "text": f"delay {spec}"})
-            self._last_channel = spec
+                self._markers.append({"wall_s": now, "text": f"delay {configured}",
+                                      "kind": "channel"})
+            self._last_channel = configured
+            self._last_in_force = in_force
+        elif in_force != self._last_in_force:  # the next regime of a schedule
+            self._markers.append({"wall_s": now, "text": f"channel {in_force}",
+                                  "kind": "channel"})
+            self._last_in_force = in_force
+        in_force_mean = _mean_ms(in_force)
+        measured = channel.get("measured_delay_ms")
+        out["in_force"] = in_force
+        out["in_force_mean_ms"] = _finite(in_force_mean)
+        out["measured_delay_ms"] = _finite(measured)
+        self._channel_series.append({"wall_s": now, "in_force": in_force,
+                                     "in_force_mean_ms": _finite(in_force_mean),
+                                     "measured_delay_ms": _finite(measured)})
         return out
 
     # ------------------------------------------------------------------ for the page
@@ -202,6 +222,7 @@ class ConsoleCore:
             "quality": list(self._quality),
             "gamma": list(self._gamma),
             "markers": list(self._markers),
+            "channel_series": list(self._channel_series),
             **self._status,
         }
 
@@ -220,6 +241,15 @@ def heat_map_png(render_png: bytes, truth_png: bytes) -> bytes | None:
     buf = io.BytesIO()
     Image.fromarray((heat * 255).astype(np.uint8), "RGB").save(buf, format="PNG")
     return buf.getvalue()
+
+
+@functools.lru_cache(maxsize=64)
+def _mean_ms(spec: str) -> float | None:
+    """The mean transmission time of a spec in force (a trace's: of a 12-kB frame)."""
+    try:
+        return float(parse_channel(spec).mean_ms)
+    except (ValueError, OSError):
+        return None
 
 
 def _finite(value: Any) -> Any:

@@ -4,14 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, FastAPI, HTTPException
+from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
 from prometheus_client import CollectorRegistry
 from pydantic import BaseModel, ConfigDict, Field
 
-from aoi3d.channel import ACCEPTED_FORMS, CHANNEL_FORMS
+from aoi3d.channel import ACCEPTED_FORMS, CHANNEL_FORMS, trace_path_of
 from aoi3d.clock import SimClock
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
+from services.kit.guard import OutsideRoots, confined_path
 from services.kit.keys import Keys
 from services.network.settings import Settings
 from services.network.worker import ChannelConfig, NetworkWorker
@@ -129,7 +130,15 @@ def get_channel(worker: WorkerDep) -> ChannelView:
                     responses={422: {"description": "Bad delay spec, unreadable trace or unknown "
                                                     "camera (nothing changes); the detail "
                                                     "lists what is accepted."}})
-def put_channel(update: ChannelUpdate, worker: WorkerDep) -> ChannelView:
+def put_channel(update: ChannelUpdate, worker: WorkerDep, request: Request) -> ChannelView:
+    roots = request.app.state.settings.common.files_roots
+    try:  # a trace is read only from the folders requests may name, checked before reading
+        for spec in [update.delay, *(update.per_camera or {}).values()]:
+            path = trace_path_of(spec) if spec is not None else None
+            if path:
+                confined_path(path, roots, "a trace path")
+    except OutsideRoots as err:
+        raise HTTPException(status_code=422, detail=str(err)) from None
     try:
         cfg = worker.update(delay=update.delay, per_camera=update.per_camera, seed=update.seed)
     except ValueError as err:  # DelaySpecError, ChannelConfigError

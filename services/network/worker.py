@@ -100,6 +100,12 @@ class NetworkWorker:
                seed: int | None = None) -> ChannelConfig:
         """Partial update (``per_camera`` replaces the whole override map); see
         :meth:`NetworkCore.update`. Raises ``DelaySpecError`` or ``ChannelConfigError``."""
+        for spec in [delay, *(per_camera or {}).values()]:
+            try:  # a trace is read (and cached) here, not under the links' lock
+                if spec is not None:
+                    parse_channel(spec)
+            except ValueError:
+                pass  # the core says what is wrong, and where
         now = self._clock.now_ms()
         with self._cond:
             self._note_regimes(now)

@@ -43,8 +43,11 @@ def frame(camera_id: int, gen_ms: float, *, sequence: int = 0) -> bytes:
                         scene_time_ms=gen_ms % 1000, send_ms=gen_ms, camera=CAMERA, image=IMAGE)
 
 
-def make_app(bus: MemoryBus, clock: SimClock, **overrides):
-    settings = Settings(common=CommonSettings(run_id="t", cameras=N_CAMERAS),
+def make_app(bus: MemoryBus, clock: SimClock, files_roots: list[str] | None = None,
+             **overrides):
+    common = CommonSettings(run_id="t", cameras=N_CAMERAS,
+                            **({"files_roots": files_roots} if files_roots else {}))
+    settings = Settings(common=common,
                         **{"delay": "const:40", **overrides})
     return create_app(settings, bus=bus, clock=clock)
 
@@ -307,7 +310,8 @@ def test_a_changing_channel_set_over_rest_matches_the_domain_links(spec: str,
     clock = SimClock(epoch_s=time.time() - 10.0, time_scale=50.0)
     bus = MemoryBus()
     arrivals = Arrivals(bus)
-    with TestClient(make_app(bus, clock, delay="const:1", seed=4)) as client:
+    with TestClient(make_app(bus, clock, files_roots=[str(tmp_path)], delay="const:1",
+                             seed=4)) as client:
         ok = client.put("/channel", json={"delay": spec})
         assert ok.status_code == 200, ok.text
         body = ok.json()
@@ -335,15 +339,17 @@ def test_a_changing_channel_set_over_rest_matches_the_domain_links(spec: str,
 
 def test_a_refused_channel_changes_nothing(tmp_path) -> None:
     clock = SimClock(epoch_s=time.time() - 1.0, time_scale=1.0)
-    with TestClient(make_app(MemoryBus(), clock, delay="regimes:const:5@1s,const:9@1s")
-                    ) as client:
+    with TestClient(make_app(MemoryBus(), clock, files_roots=[str(tmp_path), "/no"],
+                             delay="regimes:const:5@1s,const:9@1s")) as client:
         body = client.get("/channel").json()
         assert body["in_force"] in ("const:5", "const:9")
         assert any("regimes:SPEC@DUR" in f for f in body["accepted_forms"])
         for bad, why in [("trace:/no/such.up", "cannot read trace"),
                          ("regimes:exp:20", "lacks its duration"),
                          (f"trace:{tmp_path}", "not a file"),
-                         ("cell:/no/such.up,spread=1", "cannot read trace")]:
+                         ("cell:/no/such.up,spread=1", "cannot read trace"),
+                         ("trace:/etc/passwd", "must lie in"),  # never read, nor said if there
+                         (f"trace:{tmp_path}/../../etc/hostname", "must lie in")]:
             r = client.put("/channel", json={"delay": bad})
             assert r.status_code == 422 and why in r.json()["detail"], r.text
         trace = tmp_path / "t.up"

@@ -107,6 +107,7 @@ def _link_run(spec: str, n: int, seed: int, period: int, duration: int, phases: 
 
 
 @pytest.mark.parametrize("spec", ["regimes:exp:20@1s,exp:200@1s",
+                                  "burst:exp:15,gamma:2:100,good=400ms,bad=200ms",
                                   "regimes:gamma:2:10@700ms,lognormal:4:0.5@300ms,const:40@1s",
                                   "trace:{tiny}", "trace:{tiny},offset=7,spread=40,scale=3",
                                   "cell:{tiny}", "cell:{tiny},spread=0,scale=0.5"])
@@ -227,3 +228,26 @@ def test_cli_simulate_on_a_trace_matches_the_readme(name: str) -> None:
     assert data["drop_ratio"] == pytest.approx(drop, abs=0.05)
     assert {"mean_aoi_ms", "p99_aoi_ms", "per_camera", "theory", "config"} <= set(data)
     assert data["config"]["frame_bytes"] == 12000
+
+
+# --- bursts (Gilbert–Elliott) ------------------------------------------------------------------
+
+
+def test_burst_spec_round_trips_and_refuses_bad_input() -> None:
+    ch = parse_channel("burst:exp:20,exp:300")
+    assert ch.spec == "burst:exp:20,exp:300,good=5s,bad=1s"
+    assert parse_channel(ch.spec) == ch
+    assert ch.mean_ms == pytest.approx((5 * 20 + 1 * 300) / 6)
+    for bad, why in [("burst:exp:20", "two delay specs"), ("burst:exp:20,nope:1", "BAD"),
+                     ("burst:exp:20,exp:30,good=1s,good=2s", "once each"),
+                     ("burst:exp:20,exp:30,ugly=1s", "good=DUR")]:
+        with pytest.raises(ChannelSpecError, match=why):
+            parse_channel(bad)
+
+
+def test_burst_links_spend_the_right_share_of_time_in_the_bad_state() -> None:
+    """const states: each delay says the state; the bad share is bad / (good + bad)."""
+    run = simulate("burst:const:1,const:2,good=300ms,bad=100ms", 10, 8, 60_000, seed=2)
+    ys = np.concatenate([d - g for g, d in zip(run.gen_ms, run.delivery_ms, strict=True)])
+    assert set(np.unique(ys)) == {1, 2}
+    assert np.mean(ys == 2) == pytest.approx(0.25, abs=0.03)

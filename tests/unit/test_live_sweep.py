@@ -92,3 +92,14 @@ def test_progress_prints_a_policy_spec_as_it_is() -> None:
     with out.capture() as cap:  # as the sweep prints its progress: user text escaped
         out.print(f"\\[3/8] {escape('mat:100')}: settle 30 s, {escape('ppo:[runs]/final.pt')}")
     assert cap.get().strip() == "[3/8] mat:100: settle 30 s, ppo:[runs]/final.pt"
+
+
+def test_sweep_refuses_a_bad_channel_before_touching_the_pipeline() -> None:
+    from typer.testing import CliRunner
+
+    from aoi3d.cli import live
+
+    result = CliRunner().invoke(live.app, ["--delay", "regimes:exp:20", "--port-offset",
+                                           "61000", "--timeout-s", "1"])
+    assert result.exit_code == 2, result.output
+    assert "lacksitsduration" in "".join(result.output.replace("│", "").split())

@@ -232,3 +232,29 @@ def test_the_console_keeps_the_gamma_each_decision_applied() -> None:
     assert snap["decision"]["gamma_ms"] is None and snap["gamma"][-1]["policy"] == "all"
     core.trim(now=100.5)
     assert [g["gamma_ms"] for g in core.snapshot(now=100.5)["gamma"]] == [None]
+
+
+def test_a_regime_change_marks_the_timeline_and_the_channel_series_keeps_the_delay() -> None:
+    core = ConsoleCore(history_s=100.0)
+    spec = "regimes:exp:20@10s,exp:200@10s"
+
+    def channel(in_force: str, measured: float | None, delivered: int) -> dict:
+        return {"delay": spec, "in_force": in_force, "measured_delay_ms": measured,
+                "links": [{"delivered": delivered, "offered": delivered, "dropped": 0}]}
+
+    core.on_status({"channel": channel("exp:20", None, 0)}, now=0.0)
+    core.on_status({"channel": channel("exp:20", 21.5, 10)}, now=5.0)
+    core.on_status({"channel": channel("exp:200", 150.0, 20)}, now=11.0)
+    snap = core.snapshot(now=11.0)
+    assert [m["text"] for m in snap["markers"]] == ["channel exp:200"]
+    assert snap["markers"][0]["kind"] == "channel"
+    series = snap["channel_series"]
+    assert [p["measured_delay_ms"] for p in series] == [None, 21.5, 150.0]
+    assert [p["in_force_mean_ms"] for p in series] == [20.0, 20.0, 200.0]
+    assert snap["channel_summary"]["in_force"] == "exp:200"
+    assert snap["channel_summary"]["delay_quantiles_ms"]["0.5"] == pytest.approx(
+        200 * math.log(2))
+    core.on_status({"channel": {**channel("exp:200", 150.0, 30), "delay": "exp:60",
+                                "in_force": "exp:60"}}, now=12.0)
+    assert [m["text"] for m in core.snapshot(now=12.0)["markers"]] == [
+        "channel exp:200", "delay exp:60"]

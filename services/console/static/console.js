@@ -119,6 +119,9 @@ function drawChannel(s) {
   const t = s.trainer || {};
   facts($("channel"), c ? [
     ["delay", c.delay],
+    ...(c.in_force && c.in_force !== c.delay ? [["in force now", c.in_force]] : []),
+    ["measured delay (mean, last 3 s)", c.measured_delay_ms === null || c.measured_delay_ms === undefined
+      ? "–" : `${fmt(c.measured_delay_ms, 1)} ms`],
     ["delivered / s", fmt(c.delivered_per_s, 1)],
     ["drop ratio", fmt(c.drop_ratio, 3)],
     ["delay p50 / p90 / p99 (configured)", c.delay_quantiles_ms
@@ -216,11 +219,62 @@ function drawGamma(s, box, W, H, x) {
   }
 }
 
+// The channel over time: the measured mean delay (delivery − generation over the network's
+// last 3 s) and the mean of the spec in force (a step at every regime change), with the
+// channel markers. Other series (an adaptive policy's Γ) can be drawn on the same axes.
+function drawChannelChart(s) {
+  const svg = $("channel-chart");
+  if (!svg) return;
+  svg.replaceChildren();
+  const pts = s.channel_series || [];
+  const W = 720, H = 110;
+  if (!pts.length) { el("text", { x: 40, y: 14 }, svg).textContent = "channel: waiting for the network"; return; }
+  const t1 = s.wall_s, t0 = Math.min(pts[0].wall_s, t1 - 60);
+  const x = (t) => 40 + ((t - t0) / (t1 - t0)) * (W - 50);
+  // the adaptive policy's Γ (its own series, from the decisions) on the same ms axis
+  const gam = (s.gamma || []).filter((g) => g.gamma_ms !== null && g.gamma_ms !== undefined && g.wall_s >= t0);
+  const vals = pts.flatMap((p) => [p.measured_delay_ms, p.in_force_mean_ms]).concat(gam.map((g) => g.gamma_ms)).filter((v) => v !== null && v !== undefined);
+  const hi = Math.max(10, ...vals) * 1.1;
+  const y = (v) => H - 6 - (v / hi) * (H - 24);
+  const last = pts[pts.length - 1];
+  el("text", { x: 40, y: 11 }, svg).textContent =
+    `delay (ms): measured ${fmt(last.measured_delay_ms, 1)} · in force ${last.in_force}`;
+  for (const v of [0, hi / 2]) el("text", { x: 0, y: y(v) + 4 }, svg).textContent = `${Math.round(v)}`;
+  const line = (key, cls, step) => {
+    const q = pts.filter((p) => p[key] !== null && p[key] !== undefined);
+    if (!q.length) return;
+    const coords = [];
+    q.forEach((p, i) => {
+      if (step && i) coords.push(`${x(p.wall_s).toFixed(1)},${y(q[i - 1][key]).toFixed(1)}`);
+      coords.push(`${x(p.wall_s).toFixed(1)},${y(p[key]).toFixed(1)}`);
+    });
+    el("polyline", { class: cls, points: coords.join(" "), "data-series": key }, svg);
+  };
+  line("in_force_mean_ms", "series regime-mean", true);
+  line("measured_delay_ms", "series measured-delay", false);
+  if (gam.length) {
+    const coords = [];
+    gam.forEach((g, i) => {
+      if (i) coords.push(`${x(g.wall_s).toFixed(1)},${y(gam[i - 1].gamma_ms).toFixed(1)}`);
+      coords.push(`${x(g.wall_s).toFixed(1)},${y(g.gamma_ms).toFixed(1)}`);
+    });
+    coords.push(`${x(t1).toFixed(1)},${y(gam[gam.length - 1].gamma_ms).toFixed(1)}`);
+    el("polyline", { class: "series gamma", stroke: "#8a5cf6", points: coords.join(" "),
+                     "data-series": "gamma_ms" }, svg);
+    el("text", { x: 420, y: 11 }, svg).textContent = `Γ ${fmt(gam[gam.length - 1].gamma_ms, 0)}`;
+  }
+  for (const m of (s.markers || []).filter((m) => m.kind === "channel")) {
+    el("line", { x1: x(m.wall_s), x2: x(m.wall_s), y1: 14, y2: H, class: "marker" }, svg);
+    el("title", {}, svg).textContent = m.text;
+  }
+}
+
 function draw(s) {
   state = s;
   drawImages(s);
   drawAoI(s);
   drawChannel(s);
+  drawChannelChart(s);
   drawCharts(s);
 }
 
