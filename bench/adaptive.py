@@ -9,10 +9,11 @@ rules that decide at t (the MAT grid and freshest:k: an oracle over the evaluate
 lower bound on ``oracle:rules``). The fixed rules run first, as one parallel batch; the
 adaptive policies then mostly hit the cache.
 
-Channels: ``trace:<file>,spread=0,offset=<ms>`` — every camera on its own subchannel of the
-same trace at the same phase (the cameras share the place and the radio conditions), the
-phase drawn per seed, so the seeds see different stretches of the trace; and optionally a
-regime schedule (``--regimes``). The traces are read from ``--traces-dir``
+Channels: ``trace:<file>,spread=<S>,offset=<ms>`` — every camera on its own subchannel of
+the same trace, within ``--spread-ms`` S of one phase (S = 0: identical links; S = 2000: the
+cameras share the slow changes of the radio conditions, not the fast ones), the phase drawn
+per seed, so the seeds see different stretches of the trace; and optionally a regime
+schedule (``--regimes``). The traces are read from ``--traces-dir``
 (``../shared/data/traces``); the script says so and stops where it is absent.
 
 Statistics (paired by seed): per channel, each policy's mean PSNR with its 95% interval; the
@@ -68,13 +69,15 @@ def trace_length_ms(path: Path) -> int:
     return int(last)
 
 
-def channel_spec(kind: str, arg: str, seed: int, span_ms: int, traces: Path) -> str:
-    """The channel of one seed: a trace at a phase drawn from the seed, or a fixed spec."""
+def channel_spec(kind: str, arg: str, seed: int, span_ms: int, traces: Path,
+                 spread_ms: int = 0) -> str:
+    """The channel of one seed: a trace at a phase drawn from the seed (each camera within
+    ``spread_ms`` after it), or a fixed spec."""
     if kind == "trace":
         path = traces / arg
         rng = np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(0xAD,)))
-        offset = int(rng.integers(0, max(1, trace_length_ms(path) - span_ms)))
-        return f"trace:{path},spread=0,offset={offset}"
+        offset = int(rng.integers(0, max(1, trace_length_ms(path) - span_ms - spread_ms)))
+        return f"trace:{path},spread={spread_ms},offset={offset}"
     return arg
 
 
@@ -94,6 +97,9 @@ def main() -> int:
                     help="trace files judged on (never used for design)")
     ap.add_argument("--regimes", default="", help="a regime schedule run beside the traces")
     ap.add_argument("--traces-dir", type=Path, default=ROOT.parent / "shared/data/traces")
+    ap.add_argument("--spread-ms", type=int, default=0,
+                    help="each camera's phase within this many ms after the seed's (0: every "
+                         "camera at the same phase: identical links)")
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--seed-offset", type=int, default=30000)
     ap.add_argument("--steps", type=int, default=100)
@@ -142,7 +148,8 @@ def main() -> int:
     setups = {}
     for label, kind, arg in channels:
         for seed in seeds:
-            cfg = base.with_(delay=channel_spec(kind, arg, seed, span, args.traces_dir))
+            cfg = base.with_(delay=channel_spec(kind, arg, seed, span, args.traces_dir,
+                                                args.spread_ms))
             setups[(label, seed)] = cfg
             for rule in rules:
                 wait = parse_policy(rule).wait_ms

@@ -161,11 +161,14 @@ def main() -> int:
         claims.compare_selective_beats_all(compare),
         claims.ppo_reaches_best_mat(evaluation),
         claims.ppo_beats_all(evaluation),
-        claims.fixed_gamma_loses_under_changing_channel(adaptive),
     ]
     # open questions: stated and tested like the claims, their verdicts reported either way;
     # the README does not make them, so they do not decide the exit status
+    # issue 32's claim that a fixed Γ loses to the per-regime best is asked, not claimed: on
+    # held-out seeds of this schedule at this budget the switching gain G was inside the
+    # noise (docs/experiments.md, "Adaptive Γ on a changing channel")
     questions = [claims.learned_beats_best_rule(compare),
+                 claims.fixed_gamma_loses_under_changing_channel(adaptive),
                  claims.adaptive_beats_best_rule(adaptive)]
     doc = {"seed_offset": args.seed_offset, "seeds": args.seeds,
            "delay_seeds": args.delay_seeds, "regime_seeds": args.regime_seeds,
