@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
@@ -237,8 +238,8 @@ def analyse(episodes: list[dict[str, Any]], channels: list[tuple[str, str, str]]
         for p in [*rules, *adaptive, "oracle"]:
             v = oracle if p == "oracle" else per[p]
             arr = np.array(list(v.values()))
-            half = (float(1.96 * arr.std(ddof=1) / math.sqrt(arr.size)) if arr.size > 1
-                    else math.nan)
+            half = (float(stats.t.ppf(0.975, arr.size - 1) * arr.std(ddof=1)
+                          / math.sqrt(arr.size)) if arr.size > 1 else math.nan)
             rows_out.append({"policy": p, "psnr_db": float(arr.mean()), "ci95": half,
                              "minus_best_rule": _d(paired_difference(v, per[best_rule]))})
         out["channels"][label] = {

@@ -25,7 +25,13 @@ each camera's pose: docs/ppo.md, "A richer state") for the open question.
 
 About 22 minutes on 2 idle cores from an empty cache (``--seeds 8 --delay-seeds 6
 --ppo-seeds 40``): 11 for the claims' commands, 11 for the compare run's oracle bound (576
-reconstructions of 300 steps).
+reconstructions of 300 steps). The adaptive run on a changing channel (issue 32,
+``--regime-seeds 6``: every fixed rule and ``adaptive:plugin`` / ``adaptive:bandit`` on
+``regimes:exp:20@3s,exp:150@3s``, 12 scored decisions of 100 field steps per episode, the
+policies sharing each selection's reconstruction) adds about 430 reconstructions of 100
+steps, estimated at 5–10 minutes (not timed on an idle machine). Its two questions — does a
+fixed Γ lose to the per-regime best, is an adaptive policy better than the best fixed rule
+in hindsight — are reported either way.
 """
 
 from __future__ import annotations

@@ -56,7 +56,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     assert "oracle over the rules at t" in adaptive["evidence"]
     assert f"{adaptive['claim']} (open question)" in res.stdout
     regimes = json.loads((tmp_path / "out/adaptive/results.json").read_text())
-    assert regimes["meta"]["delay"].startswith("regimes:")
+    assert regimes["meta"]["args"]["delay"].startswith("regimes:")
     assert {"adaptive:plugin", "adaptive:bandit"} <= {r["policy"] for r in regimes["policies"]}
     assert question["claim"] == "learned-beats-best-rule"
     assert question["numbers"]["learned"].startswith("ppo:")
