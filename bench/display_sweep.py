@@ -29,6 +29,7 @@ import numpy as np
 
 from aoi3d.experiment import ResultCache, get_preset, run_jobs
 from aoi3d.experiment.sweep import Job, mean_ci95
+from aoi3d.policy import MatPolicy
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -58,10 +59,11 @@ def main(argv: list[str] | None = None) -> None:
     cells: dict[tuple[int, int], list] = {}
     for steps in args.steps:
         cfg = base.with_(steps_per_epoch=steps)
-        jobs = [Job(f"mat:{g}", args.delay, s) for g in args.gammas for s in seeds]
+        mats = [(MatPolicy(g), s) for g in args.gammas for s in seeds]
+        jobs = [Job(mat.spec, args.delay, s) for mat, s in mats]
         out = run_jobs(cfg, jobs, cache=ResultCache(args.cache), workers=args.workers)
-        for job, result in zip(jobs, out.results, strict=True):
-            cells.setdefault((int(job.policy.split(":")[1]), steps), []).append(result)
+        for (mat, _), result in zip(mats, out.results, strict=True):
+            cells.setdefault((int(mat.gamma_ms), steps), []).append(result)
         print(f"steps {steps}: {out.computed} computed, {out.cached} cached", flush=True)
     rows = []
     for (gamma, steps), results in sorted(cells.items()):

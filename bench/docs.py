@@ -37,6 +37,14 @@ PAGE = "measurements.md"
 #: Result files (paths relative to bench/results) that no section below renders, with the
 #: page that reports them.
 ELSEWHERE: dict[str, str] = {
+    "adaptive": "[experiments.md](experiments.md), \"Adaptive Γ on a changing channel\" "
+                "(`python bench/adaptive.py`)",
+    "adaptive-spread2000": "[experiments.md](experiments.md), \"Adaptive Γ on a changing "
+                           "channel\" (cameras 2 s apart)",
+    "adaptive-gamma-curve": "[experiments.md](experiments.md), the plug-in's Γ*(E[Y]) curve "
+                            "(`bench/adaptive_curve.sh`, `bench/adaptive_curve.py`)",
+    "adaptive-halflife": "[experiments.md](experiments.md), the plug-in's half-life "
+                         "(`python bench/adaptive_halflife.py`)",
     "switching": "[experiments.md](experiments.md), \"A changing channel: the switching gain G\" "
                  "(`python bench/switching.py`)",
     "live-channel": "[channels.md](channels.md), the console on a changing channel "

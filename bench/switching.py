@@ -37,7 +37,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -45,7 +44,9 @@ sys.path.insert(0, str(ROOT))
 from aoi3d.experiment.config import get_preset  # noqa: E402
 from aoi3d.experiment.episode import EpisodeResult, plan_episode, plan_key  # noqa: E402
 from aoi3d.experiment.sweep import Job, ResultCache, lpips_available, run_jobs  # noqa: E402
+from aoi3d.policy import MatPolicy, PolicySpecError, kind_of  # noqa: E402
 from aoi3d.scene import open_dataset  # noqa: E402
+from aoi3d.stats import mean_ci95  # noqa: E402
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = ROOT / "bench" / "results" / "switching"
@@ -85,7 +86,7 @@ def seed_science(cfg, ds, cache: ResultCache) -> int:
     for path in glob.glob(str(ROOT / "bench/results/science/*/results.json")):
         doc = json.loads(Path(path).read_text())
         for ep in doc.get("episodes", []):
-            if not str(ep.get("policy", "")).startswith("mat:"):
+            if family_kind(ep.get("policy", "")) != "mat":
                 continue
             plan = plan_episode(cfg.with_(delay=ep["delay"]), ds, ep["policy"], ep["seed"])
             if plan_key(plan, main, lpips=lp) != ep["key"]:
@@ -103,7 +104,7 @@ def run(seeds: int, workers: int) -> None:
     ds = open_dataset(cfg.dataset)
     cache = ResultCache(CACHE)
     print(f"seeded {seed_science(cfg, ds, cache)} episodes from make science", flush=True)
-    jobs = [Job(f"mat:{g}", spec, s) for s in range(SEED0, SEED0 + seeds)
+    jobs = [Job(MatPolicy(g).spec, spec, s) for s in range(SEED0, SEED0 + seeds)
             for _, spec, gammas in regimes() for g in gammas]
     started = time.time()
 
@@ -115,13 +116,19 @@ def run(seeds: int, workers: int) -> None:
     print(f"done: {out.computed} computed, {out.cached} cached, {out.wall_s:.0f} s")
 
 
+def family_kind(label: str) -> str | None:
+    """The registered kind of a result's label (None for a label no kind reads)."""
+    try:
+        return kind_of(str(label)).kind
+    except PolicySpecError:
+        return None
+
+
 # ------------------------------------------------------------------------------ the report
 def ci95(x: np.ndarray) -> tuple[float, float]:
-    x = np.asarray(x, dtype=np.float64)
-    if len(x) < 2:
-        return float(x.mean()) if len(x) else math.nan, math.nan
-    half = stats.t.ppf(0.975, len(x) - 1) * x.std(ddof=1) / math.sqrt(len(x))
-    return float(x.mean()), float(half)
+    """Mean and 95% half-width (:func:`aoi3d.stats.mean_ci95`)."""
+    m = mean_ci95(np.asarray(x, dtype=np.float64).tolist())
+    return m.mean, m.half
 
 
 def collect(seeds: int, metric: str = "psnr_db") -> dict[str, Any]:
@@ -138,7 +145,7 @@ def collect(seeds: int, metric: str = "psnr_db") -> dict[str, Any]:
         for g in gammas:
             table[label][g] = {}
             for s in range(SEED0, SEED0 + seeds):
-                plan = plan_episode(cfg.with_(delay=spec), ds, f"mat:{g}", s)
+                plan = plan_episode(cfg.with_(delay=spec), ds, MatPolicy(g).spec, s)
                 hit = cache.get(plan_key(plan, ds, lpips=lp))
                 if hit is not None:
                     table[label][g][s] = hit

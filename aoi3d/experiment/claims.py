@@ -21,13 +21,16 @@ from aoi3d.stats import PairedDifference, paired_difference
 
 __all__ = [
     "Verdict",
+    "adaptive_beats_best_rule",
     "compare_selective_beats_all",
+    "fixed_gamma_loses_under_changing_channel",
     "gamma_label",
     "learned_beats_best_rule",
     "metric_name",
     "optimal_gamma_grows_with_delay",
     "ppo_beats_all",
     "ppo_reaches_best_mat",
+    "regime_gain",
     "scores_agree_on_the_optimum",
     "tradeoff_interior_optimum",
 ]
@@ -281,3 +284,143 @@ def learned_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db",
     else:
         evidence += "; no oracle bound in this run"
     return Verdict("learned-beats-best-rule", statement, holds, evidence, numbers)
+
+
+# --- changing channels (issue 32) ------------------------------------------------------------
+def _regime_of(delay: str) -> Any:
+    """``t ↦ the regime in force`` of a regime schedule (``regimes:…``); None otherwise."""
+    from aoi3d.channel import parse_channel
+
+    channel = parse_channel(delay)
+    regime_at = getattr(channel, "regime_at", None)
+    return regime_at if callable(regime_at) and len(getattr(channel, "regimes", ())) > 1 \
+        else None
+
+
+def _delay_of(compare: Mapping[str, Any]) -> str:
+    """The channel spec of a compare run (its ``--delay``)."""
+    return str(compare["meta"].get("args", {}).get("delay") or compare["meta"].get("delay")
+               or "")
+
+
+def _epochs(episodes: Sequence[Mapping[str, Any]], policy: str, metric: str
+            ) -> dict[int, list[tuple[float, float]]]:
+    """Per seed, the policy's scored decisions: (eval time, metric)."""
+    out: dict[int, list[tuple[float, float]]] = {}
+    for r in episodes:
+        if r["policy"] == policy:
+            out[int(r["seed"])] = [(float(e["eval_ms"]), float(e[metric]))
+                                   for e in r["epochs"] if e.get(metric) is not None]
+    return out
+
+
+def regime_gain(compare: Mapping[str, Any], metric: str = "psnr_db") -> dict[str, Any] | None:
+    """The switching gain G of a compare run on a regime schedule: over the MAT thresholds
+    run, the best Γ of each regime (highest mean over the scored decisions taken while it was
+    in force, all seeds) against the best single Γ (highest mean over every decision); per
+    seed, the mean over the regimes of (its best Γ − the single Γ) on that regime's decisions;
+    paired by seed. None when the run is not on a regime schedule or has no MAT rule."""
+    delay = _delay_of(compare)
+    regime_at = _regime_of(delay) if delay else None
+    mats = [r["policy"] for r in compare["policies"]
+            if not r.get("bound") and _kind(r["policy"]).kind == "mat"]
+    if regime_at is None or not mats:
+        return None
+    per = {m: _epochs(compare["episodes"], m, metric) for m in mats}
+    seeds = sorted(set.intersection(*(set(v) for v in per.values())))
+    regimes = sorted({regime_at(t) for m in mats for s in seeds for t, _ in per[m][s]})
+
+    def mean_on(m: str, regime: str | None, seed: int | None = None) -> float:
+        vals = [v for s in ([seed] if seed is not None else seeds) for t, v in per[m][s]
+                if regime is None or regime_at(t) == regime]
+        return float(np.mean(vals)) if vals else math.nan
+
+    single = max(mats, key=lambda m: mean_on(m, None))
+    best = {g: max(mats, key=lambda m: mean_on(m, g)) for g in regimes}
+    gain = {s: float(np.nanmean([mean_on(best[g], g, s) - mean_on(single, g, s)
+                                 for g in regimes])) for s in seeds}
+    d = paired_difference(gain, {s: 0.0 for s in seeds})
+    return {"delay": delay, "best_single": single, "best_per_regime": best,
+            "single_minus_best_per_regime": {
+                g: paired_difference({s: mean_on(single, g, s) for s in seeds},
+                                     {s: mean_on(best[g], g, s) for s in seeds}).to_dict()
+                for g in regimes},
+            "G": d.to_dict(), "seeds": seeds}
+
+
+def fixed_gamma_loses_under_changing_channel(compare: Mapping[str, Any],
+                                             metric: str = "psnr_db") -> Verdict:
+    """Under a channel whose regimes change, every fixed Γ is significantly worse than the
+    best Γ of each regime: the switching gain G (:func:`regime_gain`) is significantly above
+    zero, paired by seed, and the regimes' best Γ differ."""
+    g = regime_gain(compare, metric)
+    statement = (f"Under a changing channel, a fixed Γ is significantly worse in "
+                 f"{metric_name(metric)} than the best Γ of each regime (the switching gain G "
+                 "over the regimes is significantly above zero)")
+    if g is None:
+        return Verdict("fixed-gamma-loses", statement, False,
+                       "not tested: the run is not on a regime schedule with MAT rules")
+    d = g["G"]
+    apart = len(set(g["best_per_regime"].values())) > 1
+    holds = math.isfinite(d["ci95"]) and d["mean"] > d["ci95"] and apart
+    per = "; ".join(f"{r}: best {b}, {g['best_single']} − {b} "
+                    f"{_diff(g['single_minus_best_per_regime'][r])}"
+                    for r, b in g["best_per_regime"].items())
+    return Verdict("fixed-gamma-loses", statement, holds,
+                   f"{g['delay']}: best single Γ {g['best_single']}; {per}; G = {_diff(d)} dB "
+                   f"(paired, seeds {_seeds(g['seeds'])})", {"G": g})
+
+
+def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db",
+                             goal: float = 0.5) -> Verdict:
+    """On the compare run's changing channel, the best adaptive policy (``adaptive:…``, the
+    highest mean) is significantly better in ``metric`` than the best fixed rule in
+    hindsight (the MAT, freshest:k or wait:ω run beside it with the highest mean). Beside the
+    verdict: the switching gain G (:func:`regime_gain`), the oracle over the rules that
+    decide at t (per scored decision, the best of the MAT and freshest:k run: a lower bound of
+    ``oracle:rules``), the oracle bound itself when it was run, and issue 32's goal (≥ ``goal``
+    dB)."""
+    episodes = compare["episodes"]
+    names = [r["policy"] for r in compare["policies"] if not r.get("bound")]
+    adaptive = [p for p in names if _kind(p).family == "adaptive"]
+    rules = [p for p in names if _kind(p).family == "rule" and _kind(p).kind != "all"]
+    statement = (f"On a changing channel, an adaptive policy is significantly better in "
+                 f"{metric_name(metric)} than the best fixed rule in hindsight (MAT, "
+                 "freshest:k, wait:ω)")
+    if not adaptive or not rules:
+        return Verdict("adaptive-beats-best-rule", statement, False,
+                       "not tested: the compare run has no adaptive policy or no fixed rule")
+    seed_means = {p: _per_seed(episodes, p, metric) for p in [*rules, *adaptive]}
+    means = {p: float(np.mean(list(v.values()))) for p, v in seed_means.items()}
+    best = max(rules, key=lambda p: means[p])
+    ours = max(adaptive, key=lambda p: means[p])
+    diffs = {p: paired_difference(seed_means[p], seed_means[best]) for p in adaptive}
+    d = diffs[ours]
+    holds = d.significant and d.mean > 0
+    verdict = ("significantly better" if holds else "significantly worse"
+               if d.significant else "not significantly different")
+    at_t = [p for p in rules if _kind(p).kind != "wait"]
+    per = {p: _epochs(episodes, p, metric) for p in at_t}
+    seeds = sorted(set.intersection(*(set(v) for v in per.values()))) if per else []
+    oracle = {s: float(np.mean(np.max([[v for _, v in per[p][s]] for p in at_t], axis=0)))
+              for s in seeds}
+    to_oracle = paired_difference(oracle, seed_means[best])
+    g = regime_gain(compare, metric)
+    evidence = (f"{_delay_of(compare)}; best rule {best}; "
+                + "; ".join(f"{p} − {best}: {diffs[p].mean:+.2f} ± {diffs[p].half:.2f}"
+                            for p in adaptive)
+                + f" over {d.n} seeds {_seeds(compare['meta']['seed_list'])}: {ours} "
+                f"{verdict}; goal ≥ {goal:g} dB: "
+                f"{'met' if holds and d.mean >= goal else 'not met'}; "
+                f"G = {_diff(g['G']) if g else '— (not a regime schedule)'}; "
+                f"oracle over the rules at t − {best}: {to_oracle.mean:+.2f} ± "
+                f"{to_oracle.half:.2f}")
+    numbers: dict[str, Any] = {
+        "best_rule": best, "best_adaptive": ours, "means": means,
+        "adaptive_minus_best_rule": {p: v.to_dict() for p, v in diffs.items()},
+        "oracle_rules_at_t_minus_best_rule": to_oracle.to_dict(), "G": g}
+    bound = compare.get("bound", {}).get(f"oracle:rules:{metric}")
+    if bound is not None:
+        numbers["oracle_minus_best_rule"] = bound["minus"][metric][best]
+        evidence += f"; oracle:rules:{metric} − {best}: {_diff(bound['minus'][metric][best])}"
+    return Verdict("adaptive-beats-best-rule", statement, holds, evidence, numbers)

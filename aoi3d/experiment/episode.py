@@ -188,6 +188,24 @@ class EpisodeLinks:
                              f"a decision needs them at {t_ms} ms")
         return self.run.newest_ms(t_ms)
 
+    def delivery_feed(self) -> Callable[[int], list[tuple[int, float, float]]]:
+        """A fresh ``deliveries`` of :func:`aoi3d.policy.decide.decide`: each call returns
+        the frames delivered since the previous call, up to slot s — ``(camera index,
+        generation ms, delivery ms)`` in order of delivery — what an adaptive policy sees."""
+        seen = np.zeros(self.run.n_cameras, dtype=np.int64)
+
+        def deliveries(s_ms: int) -> list[tuple[int, float, float]]:
+            out: list[tuple[int, float, float]] = []
+            for i, (g, d) in enumerate(zip(self.run.gen_ms, self.run.delivery_ms,
+                                           strict=True)):
+                k = int(np.searchsorted(d, s_ms, side="right"))
+                out.extend((i, float(g[j]), float(d[j])) for j in range(seen[i], k))
+                seen[i] = max(seen[i], k)
+            out.sort(key=lambda x: x[2])
+            return out
+
+        return deliveries
+
     @property
     def drop_ratio(self) -> float:
         offered = int(self.run.offered.sum())
@@ -265,6 +283,10 @@ def plan_episode(
     the episode's links when the caller has them already (:func:`episode_links` of the same
     config, dataset and seed, simulated far enough for the policy's wait)."""
     pol = parse_policy(policy)
+    if pol.wants_quality:
+        raise ValueError(f"policy {pol.spec!r} is rewarded by the quality of its renders, so "
+                         "its decisions cannot be planned before the episode is scored: run "
+                         "it with aoi3d.experiment.adaptive.run_stepwise")
     pol.reset()
     wait = pol.wait_ms
     if links is None:
@@ -274,10 +296,11 @@ def plan_episode(
     times = cfg.decision_times_ms()
     first_scored = next(i for i, t in enumerate(times) if t >= cfg.warmup_ms)
     decisions = []
+    feed = links.delivery_feed()
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
         train = scored or cfg.carry in ("warm", "fork")  # they train at every decision
-        sel = decide(pol, t, links.newest_ms)
+        sel = decide(pol, t, links.newest_ms, deliveries=feed)
         decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
         config=cfg, policy=pol.spec, seed=links.seed, wait_ms=wait,

@@ -41,6 +41,7 @@ from aoi3d.experiment.episode import (
 )
 from aoi3d.experiment.oracle import OracleEpisode, OracleSpec, parse_oracle, search_oracle
 from aoi3d.lpips import weights_path
+from aoi3d.policy import parse_policy
 from aoi3d.scene import SceneDataset, open_dataset
 from aoi3d.stats import mean_ci95
 
@@ -220,6 +221,11 @@ def run_jobs(
     """
     started = time.perf_counter()
     ds = dataset if dataset is not None else open_dataset(cfg.dataset)
+    stepwise = [j for j in jobs if j.trainer is None and parse_policy(j.policy).wants_quality]
+    if stepwise:
+        return _run_jobs_stepwise(cfg, jobs, stepwise, ds, started, cache=cache,
+                                  workers=workers, threads_per_worker=threads_per_worker,
+                                  ray_address=ray_address, progress=progress)
     plans: list[EpisodePlan] = []
     labels: list[str] = []
     for job in jobs:
@@ -239,6 +245,51 @@ def run_jobs(
     return SweepOutcome(results=results, plans=plans, keys=outcome.keys,
                         computed=outcome.computed, cached=outcome.cached,
                         wall_s=time.perf_counter() - started)
+
+
+def _run_jobs_stepwise(cfg: EpisodeConfig, jobs: Sequence[Job], stepwise: Sequence[Job],
+                       ds: SceneDataset, started: float, **run: Any) -> SweepOutcome:
+    """:func:`run_jobs` with policies rewarded by quality (``adaptive:bandit``): those run
+    step by step (:func:`aoi3d.experiment.adaptive.run_stepwise`, every seed of a policy and
+    delay together, each scored epoch one cached batch), after the others."""
+    from aoi3d.experiment.adaptive import run_stepwise
+
+    rest = [j for j in jobs if j not in stepwise]
+    first = run_jobs(cfg, rest, dataset=ds, **run) if rest else None
+    counts = {"computed": first.computed if first else 0,
+              "cached": first.cached if first else 0}
+
+    def evaluate(plans: Sequence[EpisodePlan]) -> list[EpisodeResult]:
+        out = run_plans(plans, dataset=ds, **run)
+        counts["computed"] += out.computed
+        counts["cached"] += out.cached
+        return out.results
+
+    done: dict[tuple[str, str, int], tuple[EpisodeResult, EpisodePlan]] = {}
+    groups: dict[tuple[str, str], list[int]] = {}
+    for j in stepwise:
+        groups.setdefault((j.policy, j.delay), []).append(j.seed)
+    for (policy, delay), seeds in groups.items():
+        for ep in run_stepwise(cfg.with_(delay=delay), ds, policy, list(dict.fromkeys(seeds)),
+                               evaluate):
+            done[(policy, delay, ep.plan.seed)] = (ep.result.relabel(ep.plan.policy, delay),
+                                                   ep.plan)
+    results, plans, keys = [], [], []
+    others = iter(zip(first.results, first.plans, first.keys, strict=True)) if first else None
+    for j in jobs:
+        if j in stepwise:
+            result, plan = done[(j.policy, j.delay, j.seed)]
+            results.append(result)
+            plans.append(plan)
+            keys.append(result.key)
+        else:
+            assert others is not None
+            result, plan, key = next(others)
+            results.append(result)
+            plans.append(plan)
+            keys.append(key)
+    return SweepOutcome(results=results, plans=plans, keys=keys, computed=counts["computed"],
+                        cached=counts["cached"], wall_s=time.perf_counter() - started)
 
 
 def run_plans(

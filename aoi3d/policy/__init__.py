@@ -1,16 +1,18 @@
 """Frame-selection policies over the AoI vector, and the one decision step that applies them.
 
-Importing this package registers every policy kind (families ``rule`` and ``learned``; see
-:mod:`aoi3d.policy.base` for the families and how a new kind registers), in this order:
-``all``, ``mat:<ms>``, ``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>``
-(:mod:`~aoi3d.policy.wait`) and ``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`, the PPO
-agent's home: its acting side and its learning side; torch loads only with a checkpoint).
+Importing this package registers every policy kind (see :mod:`aoi3d.policy.base` for the
+families and how a new kind registers), in this order: ``all``, ``mat:<ms>``,
+``freshest:<k>`` (:mod:`~aoi3d.policy.rules`), ``wait:<ms>`` (:mod:`~aoi3d.policy.wait`),
+``ppo:<checkpoint>`` (:mod:`~aoi3d.policy.ppo`, the PPO agent's home: its acting side and its
+learning side; torch loads only with a checkpoint) and ``adaptive:plugin`` /
+``adaptive:bandit`` (:mod:`~aoi3d.policy.adaptive`, a Γ that follows the channel).
 :func:`~aoi3d.policy.decide.decide` is the decision step every setting uses. This package
 imports nothing from :mod:`aoi3d.rl` or :mod:`aoi3d.experiment`: they build on it (an
 import contract in pyproject.toml checks it).
 """
 
-from aoi3d.policy import ppo, rules, wait
+from aoi3d.policy import adaptive, ppo, rules, wait
+from aoi3d.policy.adaptive import BanditPolicy, PluginPolicy
 from aoi3d.policy.base import (
     ACCEPTED_FORMS,
     FAMILIES,
@@ -34,7 +36,9 @@ from aoi3d.policy.rules import AllPolicy, FreshestPolicy, MatPolicy
 from aoi3d.policy.wait import WaitPolicy
 
 # One place, one order, whatever was imported first (the error messages list the forms so).
-for _kind in (*rules.KINDS, wait.KIND, ppo.KIND):
+register_family(adaptive.FAMILY, "a rule whose parameter follows what it observes (Γ that "
+                "follows the channel)", policies=True)
+for _kind in (*rules.KINDS, wait.KIND, ppo.KIND, adaptive.KIND):
     register_policy(_kind)
 del _kind
 
@@ -43,10 +47,12 @@ __all__ = [
     "FAMILIES",
     "POLICY_FAMILIES",
     "AllPolicy",
+    "BanditPolicy",
     "BasePolicy",
     "FreshestPolicy",
     "MatPolicy",
     "PPOPolicy",
+    "PluginPolicy",
     "Policy",
     "PolicyKind",
     "PolicySpecError",

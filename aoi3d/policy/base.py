@@ -35,7 +35,16 @@ Besides selecting, a policy answers the questions its callers have:
   the rewards of its decisions (such a policy — ``ppo`` with ``learn`` — names its agent by
   ``checkpoint`` and ``device``, which :class:`aoi3d.rl.online.OnlineLearner` loads);
 - ``gamma_ms`` (float or None, default None): Γ, the maximum acceptable AoI of the rule the
-  policy applies (``mat``'s), for a caller that reports it.
+  policy applies (``mat``'s; an adaptive policy's Γ in force), for a caller that reports it;
+- ``observe(now_ms, deliveries)`` (default: ignore): called by the decision step at every
+  decision with the time s the decision is for and the frames delivered since the previous
+  decision, ``(camera index, generation ms, delivery ms)`` each — what an adaptive policy
+  estimates the channel from (:mod:`aoi3d.policy.adaptive`);
+- ``wants_quality`` (bool, default False) and ``observe_quality(time_ms, scores)`` (default:
+  ignore): a policy rewarded by the quality of its renders (the bandit over Γ) is told the
+  scores of the render made for ``time_ms`` once it is scored — on the virtual clock by the
+  stepwise episode (:func:`aoi3d.experiment.adaptive.run_stepwise`), live by the scheduler
+  from the ``quality`` topic.
 
 So a caller asks the policy, never switches on its kind: only the registry knows the kinds.
 """
@@ -86,6 +95,20 @@ class Policy(Protocol):
         """Γ of the MAT rule the policy applies (ms); None for a policy without one."""
         ...
 
+    @property
+    def wants_quality(self) -> bool:
+        """Whether the policy is to be told the quality of its renders."""
+        ...
+
+    def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
+        """The frames delivered since the previous decision, before deciding for ``now_ms``."""
+        ...
+
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
+        """The scores of the render made for ``time_ms`` (``psnr_db``, ``ssim``, ``reward``,
+        ``psnr_dynamic_db``; None where not measured)."""
+        ...
+
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         """Boolean mask over the cameras of ``aoi_ms`` (same order)."""
         ...
@@ -109,16 +132,23 @@ class Policy(Protocol):
 
 
 class BasePolicy:
-    """The answers of a policy without a wait, a model, learning or a Γ; a kind subclasses
-    it and overrides what differs (``kind``, ``spec``, ``select`` and ``to_json`` it must
-    define)."""
+    """The answers of a policy without a wait, a model, learning, a Γ or observations; a kind
+    subclasses it and overrides what differs (``kind``, ``spec``, ``select`` and ``to_json``
+    it must define)."""
 
     wait_ms: int = 0
     learns: bool = False
     gamma_ms: float | None = None
+    wants_quality: bool = False
 
     def reset(self) -> None:
         """Stateless between episodes."""
+
+    def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
+        """Sees nothing but the AoI vector."""
+
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
+        """Not rewarded."""
 
     def check_fits(self, n_cameras: int) -> None:
         """Any rig."""

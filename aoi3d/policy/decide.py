@@ -12,9 +12,13 @@ all of them. A decision taken at epoch t:
 2. reads U(s), the generation time of each camera's newest frame delivered by s (NaN: none
    yet), from the caller's ``newest_at`` — the only thing that differs between the settings;
 3. forms the AoI vector Δ(s) = s − U(s) (NaN = unknown);
-4. selects: ``policy.select(Δ(s))``, or the caller's ``act(Δ(s), s)`` when an agent acts
+4. tells the policy the time s and the frames delivered since the previous decision
+   (``policy.observe``; the caller's ``deliveries(s)``, none when the caller has no such
+   record): what an adaptive policy (:mod:`aoi3d.policy.adaptive`) estimates the channel
+   from;
+5. selects: ``policy.select(Δ(s))``, or the caller's ``act(Δ(s), s)`` when an agent acts
    in the policy's place (the env's action, the learner's sampled bits);
-5. drops every camera whose AoI is unknown, whatever was selected.
+6. drops every camera whose AoI is unknown, whatever was selected.
 
 The :class:`Selection` holds s (the time the selection is for: the render made from it is
 scored against the truth at s), the whole AoI and U vectors, and the mask; callers read the
@@ -32,11 +36,15 @@ import numpy as np
 
 from aoi3d.policy.base import Policy, as_aoi_vector
 
-__all__ = ["Act", "NewestAt", "Selection", "decide"]
+__all__ = ["Act", "Deliveries", "NewestAt", "Selection", "decide"]
 
 NewestAt = Callable[[Any], np.ndarray]
 """``newest_at(s)``: U_n(s) per camera — the generation time (ms) of camera n's newest frame
 delivered by time s; NaN where none was."""
+
+Deliveries = Callable[[Any], Sequence[tuple[int, float, float]]]
+"""``deliveries(s)``: the frames delivered since the previous call, up to time s, each
+``(camera index, generation ms, delivery ms)`` (the camera's position in the AoI vector)."""
 
 Act = Callable[[np.ndarray, Any], np.ndarray]
 """``act(aoi_ms, eval_ms)``: an agent's selection bits on the AoI vector at ``eval_ms``, in
@@ -92,13 +100,14 @@ class Selection:
 
 
 def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
-           act: Act | None = None) -> Selection:
+           act: Act | None = None, deliveries: Deliveries | None = None) -> Selection:
     """Take the decision of epoch ``decision_ms`` (see the module docstring).
 
     ``newest_at``: the caller's U(s) (the simulated links' ``newest_ms``, the scheduler's
     tracker). ``act``: an agent's selection in place of ``policy.select`` (the policy still
-    says when to select and names the decision). A selection of the wrong shape raises
-    ``ValueError``.
+    says when to select and names the decision). ``deliveries``: the caller's record of the
+    frames delivered since its previous decision (handed to ``policy.observe``). A
+    selection of the wrong shape raises ``ValueError``.
     """
     wait = policy.wait_ms
     if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
@@ -106,6 +115,7 @@ def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
     eval_ms = decision_ms + int(wait)
     newest = as_aoi_vector(newest_at(eval_ms))
     aoi = eval_ms - newest
+    policy.observe(eval_ms, deliveries(eval_ms) if deliveries is not None else ())
     bits = policy.select(aoi) if act is None else act(aoi, eval_ms)
     mask = np.asarray(bits, dtype=bool)
     if mask.shape != aoi.shape:

@@ -6,8 +6,9 @@ lock, with the wall time; tests drive it directly.
 
 It keeps the latest Render, the truth frame of the same simulated time (a ring by generation
 time), every Quality (a timeline of ``history_s``), the latest Decision (AoI per camera, the
-frames selected, the policy) and the services' polled state; a policy or channel change puts a
-marker on the timeline. :meth:`ConsoleCore.snapshot` is the JSON pushed to the page.
+frames selected, the policy), the Γ each decision applied (a timeline too) and the services'
+polled state; a policy or channel change puts a marker on the timeline.
+:meth:`ConsoleCore.snapshot` is the JSON pushed to the page.
 """
 
 from __future__ import annotations
@@ -25,10 +26,13 @@ import numpy as np
 from aoi3d.channel import parse_channel
 from services.kit.codec import decode_decision, decode_frame, decode_quality, decode_render
 
-__all__ = ["TRUTH_FRAMES", "ConsoleCore", "Pair"]
+__all__ = ["GAMMA_EVERY_S", "TRUTH_FRAMES", "ConsoleCore", "Pair"]
 
 TRUTH_FRAMES = 256
 """Truth frames kept to pair a render with the truth of its own time."""
+
+GAMMA_EVERY_S = 0.25
+"""The Γ series keeps a decision's Γ when it changed, else one every this many seconds."""
 
 
 @dataclass(frozen=True)
@@ -61,6 +65,10 @@ class ConsoleCore:
         self._quality: deque[dict[str, Any]] = deque()
         self._markers: deque[dict[str, Any]] = deque()
         self._decision: dict[str, Any] | None = None
+        # Γ in force per decision (an adaptive policy's moves with the channel), thinned to
+        # one point per GAMMA_EVERY_S unless it changed: its own series on the page, apart
+        # from the channel's
+        self._gamma: deque[dict[str, Any]] = deque()
         self._status: dict[str, Any] = {}
         self._channel_prev: tuple[float, int, int] | None = None  # wall, delivered, offered
         self._last_policy: str | None = None
@@ -113,13 +121,21 @@ class ConsoleCore:
         self._decision = {"decision_id": d.decision_id, "time_ms": d.time_ms,
                           "policy": d.policy, "camera_ids": list(d.camera_ids),
                           "aoi_ms": [_finite(a) for a in d.aoi_ms], "selected": selected}
+        gamma = d.gamma_ms if d.HasField("gamma_ms") else None
+        self._decision["gamma_ms"] = gamma
+        last = self._gamma[-1] if self._gamma else None
+        if (last is None or last["gamma_ms"] != gamma
+                or now - last["wall_s"] >= GAMMA_EVERY_S):
+            self._gamma.append({"wall_s": now, "time_ms": d.time_ms, "gamma_ms": gamma,
+                                "policy": d.policy})
+            self.trim(now)
         if d.policy != self._last_policy:
             if self._last_policy is not None:
                 self._markers.append({"wall_s": now, "text": f"policy {d.policy}"})
             self._last_policy = d.policy
 
     def trim(self, now: float) -> None:
-        for q in (self._quality, self._markers, self._channel_series):
+        for q in (self._quality, self._markers, self._gamma, self._channel_series):
             while q and q[0]["wall_s"] < now - self._history_s:
                 q.popleft()
 
@@ -204,6 +220,7 @@ class ConsoleCore:
                 "age_s": now - pair.received_wall_s},
             "decision": self._decision,
             "quality": list(self._quality),
+            "gamma": list(self._gamma),
             "markers": list(self._markers),
             "channel_series": list(self._channel_series),
             **self._status,

@@ -229,3 +229,12 @@ def decode_quality(payload: bytes) -> pb.Quality:
     if msg.HasField("dynamic_fraction") and not 0.0 <= msg.dynamic_fraction <= 1.0:
         raise Rejected("malformed", f"dynamic_fraction {msg.dynamic_fraction} is not in [0, 1]")
     return msg
+
+
+def quality_scores(msg: pb.Quality) -> dict[str, float | None]:
+    """A Quality's scores by the names the virtual clock's scores have (``psnr_db``,
+    ``ssim``, ``reward``, ``psnr_dynamic_db``; None where absent): what a policy rewarded by
+    quality is told (``policy.observe_quality``)."""
+    return {"psnr_db": msg.psnr_db, "ssim": msg.ssim, "reward": msg.reward,
+            "psnr_dynamic_db": msg.psnr_dynamic_db if msg.HasField("psnr_dynamic_db")
+            else None}

@@ -150,7 +150,7 @@ def get_decision(worker: Scheduler) -> DecisionResponse:
         selected=[FrameRefModel(camera_id=r.camera_id, sequence=r.sequence,
                                 generation_ms=r.generation_ms, aoi_ms=r.aoi_ms)
                   for r in msg.selected],
-        policy=msg.policy)
+        policy=msg.policy, gamma_ms=msg.gamma_ms if msg.HasField("gamma_ms") else None)
 
 
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,

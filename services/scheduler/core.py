@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import heapq
 import itertools
+import math
 import secrets
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -25,11 +26,14 @@ from services.kit.codec import FrameData, decode_frame
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 
-__all__ = ["MAX_AHEAD_MS", "AoISnapshot", "NewestFrame", "SchedulerCore"]
+__all__ = ["MAX_AHEAD_MS", "MAX_DELIVERED", "AoISnapshot", "NewestFrame", "SchedulerCore"]
 
 MAX_AHEAD_MS = 60_000.0
 """A frame stamped as delivered further than this in the (sim) future is rejected: the
 sender's clock (epoch/time scale) disagrees with ours."""
+
+MAX_DELIVERED = 100_000
+"""Deliveries kept for the next decision's ``policy.observe`` (the newest, past this)."""
 
 LearnerAct = Callable[[int, np.ndarray, float], np.ndarray]
 """``(decision_id, aoi_ms, time_ms) -> mask``: an online learner acting in the policy's place."""
@@ -72,6 +76,9 @@ class SchedulerCore:
         self._tie = itertools.count()
         self.decision_id = 0
         self.last_decision: pb.Decision | None = None
+        # frames applied since the last decision, (camera index, gen, delivery): what the
+        # decision step tells the policy (policy.observe)
+        self._delivered: list[tuple[int, float, float]] = []
 
     def ingest(self, payload: bytes, now_ms: float) -> FrameData:
         """Validate a delivered frame and queue it until its delivery time (a frame without a
@@ -92,7 +99,10 @@ class SchedulerCore:
     def apply_pending(self, upto_ms: float) -> None:
         """Deliver every queued frame whose delivery time is ≤ ``upto_ms`` to the tracker."""
         while self._pending and self._pending[0][0] <= upto_ms:
-            _, _, cam, seq, gen_ms = heapq.heappop(self._pending)
+            delivery_ms, _, cam, seq, gen_ms = heapq.heappop(self._pending)
+            self._delivered.append((cam - 1, gen_ms, delivery_ms))
+            if len(self._delivered) > MAX_DELIVERED:  # no decision for long: keep the newest
+                del self._delivered[: len(self._delivered) - MAX_DELIVERED]
             if self._tracker.deliver(cam, gen_ms):  # it is the camera's newest frame
                 self.newest[cam] = NewestFrame(sequence=seq, generation_ms=gen_ms)
 
@@ -100,6 +110,13 @@ class SchedulerCore:
         """U(s) from the frames delivered by ``s_ms`` (the decision step's ``newest_at``)."""
         self.apply_pending(s_ms)
         return np.asarray(self._tracker.newest_ms, dtype=np.float64).copy()
+
+    def deliveries(self, s_ms: float) -> list[tuple[int, float, float]]:
+        """The frames delivered since the previous call, up to ``s_ms`` (the decision step's
+        ``deliveries``): ``(camera index, generation ms, delivery ms)``."""
+        self.apply_pending(s_ms)
+        out, self._delivered = self._delivered, []
+        return out
 
     def aoi(self, time_ms: float) -> AoISnapshot:
         """The AoI vector at ``time_ms`` from the frames applied so far."""
@@ -114,7 +131,7 @@ class SchedulerCore:
         selection is for (t, or t + ω for a waiting policy), with the next decision id."""
         decision_id = self.decision_id + 1
         bound = None if act is None else (lambda aoi, s: act(decision_id, aoi, s))
-        sel = decide(policy, t_ms, self.newest_at, act=bound)
+        sel = decide(policy, t_ms, self.newest_at, act=bound, deliveries=self.deliveries)
         selected = [
             pb.FrameRef(camera_id=cam, sequence=self.newest[cam].sequence,
                         generation_ms=self.newest[cam].generation_ms,
@@ -126,6 +143,8 @@ class SchedulerCore:
                           time_ms=sel.eval_ms, camera_ids=list(self.camera_ids),
                           aoi_ms=[float(a) for a in sel.aoi_ms], selected=selected,
                           policy=sel.policy)
+        if policy.gamma_ms is not None and math.isfinite(policy.gamma_ms):
+            msg.gamma_ms = float(policy.gamma_ms)
         self.last_decision = msg
         return msg
 

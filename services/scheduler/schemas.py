@@ -159,3 +159,7 @@ class DecisionResponse(BaseModel):
                                        examples=[[30.0, None, 95.0]])
     selected: list[FrameRefModel] = Field(description="Frames chosen for training.")
     policy: str = Field(description="Spec of the policy that decided.", examples=["mat:51"])
+    gamma_ms: float | None = Field(
+        default=None, description="Γ of the MAT rule the policy applied: an adaptive "
+        "policy's Γ in force (it follows the channel); null for a policy without one.",
+        examples=[100.0])

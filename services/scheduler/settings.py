@@ -25,7 +25,9 @@ class Settings(ServiceSettings):
     policy: str = Field(
         "mat:70", description="Initial selection policy spec: all | mat:<mat_ms> | "
                               "freshest:<k> | wait:<ms> | ppo:<checkpoint> (deterministic, not "
-                              "learning; `PUT /policy` with learn=true learns online). mat:70 "
+                              "learning; `PUT /policy` with learn=true learns online) | "
+                              "adaptive:plugin | adaptive:bandit (a Γ that follows the "
+                              "channel). mat:70 "
                               "is the live optimum on the default scene (docs/research.md, "
                               "'The tradeoff, live').",
         examples=["mat:70", "all", "freshest:6", "ppo:models/ppo/quick/final.pt"])

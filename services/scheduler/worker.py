@@ -37,7 +37,7 @@ from aoi3d.device import check_device
 from aoi3d.policy import Policy, PolicySpecError
 from aoi3d.rl.online import LearnConfig, OnlineLearner
 from services.kit.bus import Bus, Inbox
-from services.kit.codec import decode_quality
+from services.kit.codec import decode_quality, quality_scores
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
@@ -293,5 +293,9 @@ class SchedulerWorker:
             return
         if msg.decision_incarnation != self.incarnation:
             return  # scores a decision of another scheduler process (before a restart)
+        with self._lock:
+            policy = self._policy
+            if policy.wants_quality:  # a policy rewarded by quality (adaptive:bandit)
+                policy.observe_quality(msg.time_ms, quality_scores(msg))
         if learner is not None:
             learner.reward(int(msg.decision_id), msg.time_ms, msg.reward)

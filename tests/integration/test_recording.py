@@ -63,7 +63,7 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
     cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(_PORTS.zenoh), "--port-offset",
            str(_PORTS.rest_offset), "--log-dir", str(tmp_path / "logs"), "--quiet",
-           "--time-scale", "0.1", "--record", str(first)]
+           "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
     env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0",
                AOI3D_TRAINER_RENDER_STEPS="30", AOI3D_FILES_ROOTS=str(tmp_path),
                AOI3D_SCHEDULER_POLICY="mat:70")
@@ -74,6 +74,8 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
                  ["recording"], timeout_s=120)
         wait_for("five scored renders", lambda: len(
             HTTP.get(url("metrics", "/quality")).json()["history"]) >= 5, timeout_s=180)
+        wait_for("a hundred recorded messages", lambda: HTTP.get(url("recorder", "/recording"))
+                 .json()["messages"] > 100, timeout_s=120)
         r = HTTP.post(url("recorder", "/recording/stop"))
         assert r.status_code == 200 and r.json()["state"] == "stopped", r.text
         assert r.json()["messages"] > 100

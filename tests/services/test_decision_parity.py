@@ -113,3 +113,51 @@ def test_live_ppo_policy_decides_as_the_experiment(cfg: EpisodeConfig, dataset: 
         got = h.decide_at(float(d.eval_ms))
         assert [r.camera_id for r in got.selected] == list(d.cameras), d
     assert len({d.cameras for d in plan.decisions}) > 1  # the selection follows the AoI
+
+
+def test_live_plugin_policy_decides_and_moves_gamma_as_the_experiment(
+        cfg: EpisodeConfig, dataset: SceneDataset, live) -> None:
+    """The plug-in (issue 32) sees the same deliveries live as on the virtual clock (the
+    decision step's ``deliveries``), so it takes the same Γ and selects the same frames; the
+    Decision carries its Γ."""
+    from aoi3d.policy import decide
+
+    spec = "adaptive:plugin:100"  # a short memory: Γ moves within the episode
+    plan = plan_episode(cfg, dataset, spec, 3)
+    links = episode_links(cfg, dataset, 3)
+    mine = parse_policy(spec)
+    feed = links.delivery_feed()
+    gammas = []
+    for d in plan.decisions:
+        decide(mine, d.decision_ms, links.newest_ms, deliveries=feed)
+        gammas.append(mine.gamma_ms)
+    assert len(set(gammas)) > 3
+    h = live(spec)
+    publish_trace(h, links)
+    for d, gamma in zip(plan.decisions, gammas, strict=True):
+        got = h.decide_at(float(d.eval_ms))
+        assert got.policy == spec
+        assert got.gamma_ms == pytest.approx(gamma)
+        assert [r.camera_id for r in got.selected] == list(d.cameras), d
+    assert h.client.get("/decision").json()["gamma_ms"] == pytest.approx(gammas[-1])
+
+
+def test_live_bandit_learns_from_the_quality_topic(cfg: EpisodeConfig, dataset: SceneDataset,
+                                                   live) -> None:
+    """The bandit over Γ, live: each Quality on the quality topic rewards the arm that decided
+    for its time; the next decision takes the next arm."""
+    from services.kit.pb import aoi3d_pb2 as pb
+    from tests.services.test_scheduler import wait_for
+
+    h = live("adaptive:bandit:8:40/130")
+    publish_trace(h, episode_links(cfg, dataset, 3))
+    d1 = h.decide_at(60.0)
+    assert d1.gamma_ms == 40
+    assert h.decide_at(90.0).gamma_ms == 40  # no reward yet
+    worker = h.client.app.state.worker
+    h.put(KEYS.quality, pb.Quality(decision_id=d1.decision_id, time_ms=60.0, psnr_db=21.0,
+                                   ssim=0.8, reward=0.5,
+                                   decision_incarnation=worker.incarnation).SerializeToString())
+    wait_for(lambda: worker.policy.ucb.t == 1)
+    assert worker.policy.status()["arms"][0] == {"gamma_ms": 40.0, "n": 1, "mean": 21.0}
+    assert h.decide_at(120.0).gamma_ms == 130  # rewarded: the untried arm next

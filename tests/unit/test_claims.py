@@ -152,3 +152,69 @@ def test_learned_beats_best_rule() -> None:
     doc = compare_doc(0.8)
     doc["policies"] = [r for r in doc["policies"] if not r["policy"].startswith("ppo:")]
     assert not claims.learned_beats_best_rule(doc).holds
+
+
+REGIMES = "regimes:exp:20@3s,exp:150@3s"
+
+
+def regimes_doc(adaptive_gain: float, switching: bool = True) -> dict:
+    """A compare run on a two-regime schedule: per scored decision (every 600 ms from 900 ms),
+    PSNR per MAT Γ — Γ 40 best in the fast regime, Γ 190 in the slow one (or one curve for
+    both when not ``switching``) — a freshest and a wait rule, and an adaptive policy that
+    takes each regime's best Γ plus ``adaptive_gain`` dB."""
+    rng = np.random.default_rng(5)
+    fast = {"mat:40": 27.0, "mat:100": 26.2, "mat:190": 24.0}
+    slow = {"mat:40": 20.0, "mat:100": 24.5, "mat:190": 26.0} if switching else fast
+    times = [900 + 600 * k for k in range(12)]
+    episodes = []
+    for s in SEEDS:
+        offset = rng.normal(0, 2.0)
+        rows: dict[str, list] = {p: [] for p in [*fast, "freshest:6", "wait:40",
+                                                   "adaptive:plugin"]}
+        for t in times:
+            table = fast if (t % 6000) < 3000 else slow
+            noise = rng.normal(0, 0.3)
+            for p, v in table.items():
+                rows[p].append(v + offset + noise + rng.normal(0, 0.1))
+            rows["freshest:6"].append(23.0 + offset + noise)
+            rows["wait:40"].append(22.0 + offset + noise)
+            rows["adaptive:plugin"].append(max(table.values()) + adaptive_gain + offset + noise
+                                           + rng.normal(0, 0.1))
+        for p, vals in rows.items():
+            episodes.append({"policy": p, "seed": s, "psnr_db": float(np.mean(vals)),
+                             "epochs": [{"eval_ms": t, "psnr_db": v}
+                                        for t, v in zip(times, vals, strict=True)]})
+    names = list(dict.fromkeys(e["policy"] for e in episodes))
+    return json.loads(json.dumps({
+        "meta": {"seed_list": list(SEEDS), "args": {"delay": REGIMES},
+                 "episode_config": {"steps_per_epoch": 100}},
+        "policies": [{"policy": p, "bound": False} for p in names], "episodes": episodes}))
+
+
+def test_a_fixed_gamma_loses_when_the_regimes_want_different_ones() -> None:
+    v = claims.fixed_gamma_loses_under_changing_channel(regimes_doc(0.0))
+    assert v.holds, v.evidence
+    g = v.numbers["G"]
+    assert g["best_per_regime"] == {"exp:20": "mat:40", "exp:150": "mat:190"}
+    assert g["G"]["mean"] > 1.0 and "G = +" in v.evidence
+    flat = claims.fixed_gamma_loses_under_changing_channel(regimes_doc(0.0, switching=False))
+    assert not flat.holds and flat.numbers["G"]["G"]["mean"] == 0.0
+    stationary = regimes_doc(0.0)
+    stationary["meta"]["args"]["delay"] = "exp:60"
+    assert not claims.fixed_gamma_loses_under_changing_channel(stationary).holds
+    assert claims.regime_gain(stationary) is None
+
+
+def test_the_adaptive_question_reports_g_and_the_oracle_either_way() -> None:
+    yes = claims.adaptive_beats_best_rule(regimes_doc(0.3))
+    assert yes.holds and yes.numbers["best_adaptive"] == "adaptive:plugin"
+    assert yes.numbers["best_rule"] in ("mat:100", "mat:190")
+    assert "goal ≥ 0.5 dB: met" in yes.evidence and "G = +" in yes.evidence
+    assert "oracle over the rules at t" in yes.evidence
+    assert yes.numbers["oracle_rules_at_t_minus_best_rule"]["mean"] > 1.0
+    no = claims.adaptive_beats_best_rule(regimes_doc(-3.0, switching=False))
+    assert not no.holds and "significantly worse" in no.evidence
+    assert "goal ≥ 0.5 dB: not met" in no.evidence
+    doc = regimes_doc(0.3)
+    doc["policies"] = [r for r in doc["policies"] if not r["policy"].startswith("adaptive:")]
+    assert not claims.adaptive_beats_best_rule(doc).holds

@@ -204,7 +204,8 @@ def test_importing_the_package_registers_every_kind_without_torch_or_upward_impo
             "('aoi3d.rl', 'aoi3d.experiment'))))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=60).stdout.splitlines()
-    assert out == ["['all', 'mat:<ms>', 'freshest:<k>', 'wait:<ms>', 'ppo:<checkpoint>']", "[]"]
+    assert out == ["['all', 'mat:<ms>', 'freshest:<k>', 'wait:<ms>', 'ppo:<checkpoint>', "
+                   "'adaptive:<plugin|bandit>']", "[]"]
 
 
 def test_decide_takes_the_aoi_at_t_plus_the_wait_and_never_an_unknown_camera() -> None:
@@ -266,6 +267,11 @@ def test_a_policy_missing_a_member_is_not_a_policy() -> None:
         spec = "bare"
         learns = False
         gamma_ms = None
+        wants_quality = False
+
+        def observe(self, now_ms, deliveries) -> None: ...
+
+        def observe_quality(self, time_ms, scores) -> None: ...
 
         def select(self, aoi_ms):
             return np.zeros(len(aoi_ms), bool)

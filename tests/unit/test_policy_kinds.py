@@ -55,11 +55,11 @@ def test_a_new_family_and_kind_register_in_one_step(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(registry, "FAMILIES", dict(registry.FAMILIES))
     monkeypatch.setattr(registry, "POLICY_FAMILIES", set(registry.POLICY_FAMILIES))
     monkeypatch.setattr(registry, "ACCEPTED_FORMS", list(registry.ACCEPTED_FORMS))
-    register_family("adaptive", "Γ chosen online", policies=True)
+    register_family("example", "Γ chosen online", policies=True)
     mat = kind_of("mat:1")
     register_policy(PolicyKind("plugin", "plugin:<ms>", mat.from_args, mat.from_json,
-                               family="adaptive"))
-    assert family_of("plugin:70") == "adaptive" and parse_policy("plugin:70").gamma_ms == 70
+                               family="example"))
+    assert family_of("plugin:70") == "example" and parse_policy("plugin:70").gamma_ms == 70
     with pytest.raises(ValueError, match="unknown family"):
         register_policy(PolicyKind("x", "x", mat.from_args, mat.from_json, family="nope"))
 

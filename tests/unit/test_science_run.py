@@ -31,6 +31,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
              "--extra=--set=score_every=1"]
     res = subprocess.run(
         [sys.executable, str(ROOT / "bench/science.py"), "--seeds", "2", "--delay-seeds", "2",
+         "--regime-seeds", "2",
          "--seed-offset", "31000", "--ppo-seeds", "2", "--ppo-seed-offset", "7000",
          "--ppo-compare", "mat:40,mat:70,freshest:2,all",
          "--checkpoint", str(tmp_path / "ppo/final.pt"),
@@ -48,7 +49,15 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     for c in doc["claims"]:
         assert ("PASS" if c["holds"] else "FAIL") + f"  {c['claim']}" in res.stdout
     # the open question: the agent and the oracle bound ran in compare, its answer is reported
-    [question] = doc["questions"]
+    question, fixed, adaptive = doc["questions"]
+    assert fixed["claim"] == "fixed-gamma-loses" and "G = " in fixed["evidence"]
+    assert adaptive["claim"] == "adaptive-beats-best-rule"
+    assert adaptive["numbers"]["best_adaptive"].startswith("adaptive:")
+    assert "oracle over the rules at t" in adaptive["evidence"]
+    assert f"{adaptive['claim']} (open question)" in res.stdout
+    regimes = json.loads((tmp_path / "out/adaptive/results.json").read_text())
+    assert regimes["meta"]["args"]["delay"].startswith("regimes:")
+    assert {"adaptive:plugin", "adaptive:bandit"} <= {r["policy"] for r in regimes["policies"]}
     assert question["claim"] == "learned-beats-best-rule"
     assert question["numbers"]["learned"].startswith("ppo:")
     assert "oracle_minus_learned" in question["numbers"]

@@ -208,6 +208,32 @@ def test_malformed_messages_raise_rejected_and_change_nothing() -> None:
     assert core.pair is None and core.snapshot(0.0)["quality"] == []
 
 
+def test_the_console_keeps_the_gamma_each_decision_applied() -> None:
+    """Γ over time (issue 32): its own series, one point per change or per GAMMA_EVERY_S, in
+    the history window; absent Γ (a policy without one) is kept as null."""
+    from services.console.core import GAMMA_EVERY_S
+
+    core = ConsoleCore(history_s=100.0)
+
+    def decision(t: float, gamma: float | None, policy: str = "adaptive:plugin") -> bytes:
+        msg = pb.Decision(decision_id=1, time_ms=t, camera_ids=[1], aoi_ms=[30.0],
+                          policy=policy)
+        if gamma is not None:
+            msg.gamma_ms = gamma
+        return msg.SerializeToString()
+
+    core.on_decision(decision(0.0, 55.0), now=0.0)
+    core.on_decision(decision(30.0, 55.0), now=0.03)  # unchanged, too soon: not kept
+    core.on_decision(decision(60.0, 70.0), now=0.06)  # changed: kept
+    core.on_decision(decision(90.0, 70.0), now=0.06 + GAMMA_EVERY_S)  # unchanged, due: kept
+    core.on_decision(decision(120.0, None, "all"), now=1.0)
+    snap = core.snapshot(now=1.0)
+    assert [g["gamma_ms"] for g in snap["gamma"]] == [55.0, 70.0, 70.0, None]
+    assert snap["decision"]["gamma_ms"] is None and snap["gamma"][-1]["policy"] == "all"
+    core.trim(now=100.5)
+    assert [g["gamma_ms"] for g in core.snapshot(now=100.5)["gamma"]] == [None]
+
+
 def test_a_regime_change_marks_the_timeline_and_the_channel_series_keeps_the_delay() -> None:
     core = ConsoleCore(history_s=100.0)
     spec = "regimes:exp:20@10s,exp:200@10s"

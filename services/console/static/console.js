@@ -186,6 +186,37 @@ function drawCharts(s) {
       el("title", {}, svg).textContent = m.text;
     }
   }
+  drawGamma(s, box, W, H, x);
+}
+
+// Γ in force per decision (an adaptive policy's follows the channel): its own series, apart
+// from the channel's estimated delay, on the quality charts' time axis.
+function drawGamma(s, box, W, H, x) {
+  const pts = (s.gamma || []).filter((g) => g.gamma_ms !== null && g.gamma_ms !== undefined
+                                           && g.wall_s >= s.wall_s - 600);
+  const svg = el("svg", { width: W, height: H, "data-series": "gamma_ms" }, box);
+  const now = pts.length ? pts[pts.length - 1] : null;
+  el("text", { x: 40, y: 11 }, svg).textContent =
+    `Γ in force (ms): ${now ? fmt(now.gamma_ms, 0) + " — " + now.policy : "– (the policy has no Γ)"}`;
+  if (!pts.length) return;
+  const vals = pts.map((g) => g.gamma_ms);
+  let lo = Math.min(0, ...vals), hi = Math.max(...vals);
+  if (hi - lo < 1e-9) { hi = lo + 1; }
+  const y = (v) => H - 6 - ((v - lo) / (hi - lo)) * (H - 22);
+  el("text", { x: 0, y: y(hi) + 4 }, svg).textContent = fmt(hi, 0);
+  el("text", { x: 0, y: y(lo) + 4 }, svg).textContent = fmt(lo, 0);
+  // a step line: Γ holds until the next decision that changed it
+  const xy = [];
+  pts.forEach((g, i) => {
+    if (i > 0) xy.push(`${x(g.wall_s).toFixed(1)},${y(pts[i - 1].gamma_ms).toFixed(1)}`);
+    xy.push(`${x(g.wall_s).toFixed(1)},${y(g.gamma_ms).toFixed(1)}`);
+  });
+  xy.push(`${x(s.wall_s).toFixed(1)},${y(now.gamma_ms).toFixed(1)}`);
+  el("polyline", { class: "series", stroke: "#8a5cf6", points: xy.join(" ") }, svg);
+  for (const m of s.markers) {
+    el("line", { x1: x(m.wall_s), x2: x(m.wall_s), y1: 14, y2: H, class: "marker" }, svg);
+    el("title", {}, svg).textContent = m.text;
+  }
 }
 
 // The channel over time: the measured mean delay (delivery − generation over the network's
@@ -200,7 +231,9 @@ function drawChannelChart(s) {
   if (!pts.length) { el("text", { x: 40, y: 14 }, svg).textContent = "channel: waiting for the network"; return; }
   const t1 = s.wall_s, t0 = Math.min(pts[0].wall_s, t1 - 60);
   const x = (t) => 40 + ((t - t0) / (t1 - t0)) * (W - 50);
-  const vals = pts.flatMap((p) => [p.measured_delay_ms, p.in_force_mean_ms]).filter((v) => v !== null && v !== undefined);
+  // the adaptive policy's Γ (its own series, from the decisions) on the same ms axis
+  const gam = (s.gamma || []).filter((g) => g.gamma_ms !== null && g.gamma_ms !== undefined && g.wall_s >= t0);
+  const vals = pts.flatMap((p) => [p.measured_delay_ms, p.in_force_mean_ms]).concat(gam.map((g) => g.gamma_ms)).filter((v) => v !== null && v !== undefined);
   const hi = Math.max(10, ...vals) * 1.1;
   const y = (v) => H - 6 - (v / hi) * (H - 24);
   const last = pts[pts.length - 1];
@@ -219,6 +252,17 @@ function drawChannelChart(s) {
   };
   line("in_force_mean_ms", "series regime-mean", true);
   line("measured_delay_ms", "series measured-delay", false);
+  if (gam.length) {
+    const coords = [];
+    gam.forEach((g, i) => {
+      if (i) coords.push(`${x(g.wall_s).toFixed(1)},${y(gam[i - 1].gamma_ms).toFixed(1)}`);
+      coords.push(`${x(g.wall_s).toFixed(1)},${y(g.gamma_ms).toFixed(1)}`);
+    });
+    coords.push(`${x(t1).toFixed(1)},${y(gam[gam.length - 1].gamma_ms).toFixed(1)}`);
+    el("polyline", { class: "series gamma", stroke: "#8a5cf6", points: coords.join(" "),
+                     "data-series": "gamma_ms" }, svg);
+    el("text", { x: 420, y: 11 }, svg).textContent = `Γ ${fmt(gam[gam.length - 1].gamma_ms, 0)}`;
+  }
   for (const m of (s.markers || []).filter((m) => m.kind === "channel")) {
     el("line", { x1: x(m.wall_s), x2: x(m.wall_s), y1: 14, y2: H, class: "marker" }, svg);
     el("title", {}, svg).textContent = m.text;
@@ -249,6 +293,7 @@ function policyBody() {
   if (kind === "freshest") return { kind, k: Number($("k").value) };
   if (kind === "wait") return { kind, wait_ms: Number($("wait").value) };
   if (kind === "ppo") return { kind, checkpoint: $("checkpoint").value };
+  if (kind.startsWith("adaptive:")) return { kind: "adaptive", mode: kind.slice(9) };
   return { kind };
 }
 

@@ -112,7 +112,7 @@ class FrameRef(_message.Message):
     def __init__(self, camera_id: _Optional[int] = ..., sequence: _Optional[int] = ..., generation_ms: _Optional[float] = ..., aoi_ms: _Optional[float] = ...) -> None: ...
 
 class Decision(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy", "incarnation")
+    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy", "incarnation", "gamma_ms")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
@@ -120,6 +120,7 @@ class Decision(_message.Message):
     SELECTED_FIELD_NUMBER: _ClassVar[int]
     POLICY_FIELD_NUMBER: _ClassVar[int]
     INCARNATION_FIELD_NUMBER: _ClassVar[int]
+    GAMMA_MS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     camera_ids: _containers.RepeatedScalarFieldContainer[int]
@@ -127,7 +128,8 @@ class Decision(_message.Message):
     selected: _containers.RepeatedCompositeFieldContainer[FrameRef]
     policy: str
     incarnation: int
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ...) -> None: ...
+    gamma_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ..., gamma_ms: _Optional[float] = ...) -> None: ...
 
 class Render(_message.Message):
     __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s")
