@@ -1,8 +1,9 @@
 """A live run on a changing channel (issue 32, section 5): the pipeline (`aoi3d up`) plays a
-regime schedule, then a cellular trace set over REST; the console marks every change and
-charts the measured mean delay against the regime's mean.
+regime schedule, then a cellular trace set over REST, under a policy (default the adaptive
+plug-in); the console marks every change, charts the measured mean delay against the regime's
+mean and the policy's Γ over time.
 
-    python bench/live_channel.py [--seconds 90] [--time-scale 0.1]
+    python bench/live_channel.py [--seconds 90] [--time-scale 0.1] [--policy adaptive:plugin]
 
 Writes ``bench/results/live-channel/channel.json`` (the network's GET /channel at the end:
 the changes and the measured delay), ``series.json`` (the console's channel series) and a
@@ -16,8 +17,6 @@ import argparse
 import json
 import os
 import shutil
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -25,15 +24,21 @@ from pathlib import Path
 import httpx
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "bench"))
+
+import livebench  # noqa: E402  (bench/livebench.py, a sibling)
+
+from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
+
 TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = ROOT / "bench" / "results" / "live-channel"
-OFFSET = 700
-PORTS = {"camera": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104, "metrics": 8105,
-         "console": 8106}
+PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (aoi3d/ports.py)
+WATCHED = ("camera", "network", "scheduler", "trainer", "metrics", "console")
 
 
 def url(service: str, path: str = "/") -> str:
-    return f"http://127.0.0.1:{PORTS[service] + OFFSET}{path}"
+    return PORTS.url(service, path)
 
 
 def main() -> None:
@@ -42,29 +47,26 @@ def main() -> None:
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--regimes", default="regimes:exp:20@3s,exp:200@3s")
     ap.add_argument("--trace", default=str(TRACES / "TMobile-UMTS-driving.up"))
+    ap.add_argument("--policy", default="adaptive:plugin",
+                    help="the scheduler's policy (adaptive:plugin draws its Γ on the console)")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    env = dict(os.environ, AOI3D_NETWORK_DELAY=args.regimes, AOI3D_SCHEDULER_POLICY="mat:100",
+    env = dict(os.environ, AOI3D_NETWORK_DELAY=args.regimes, AOI3D_SCHEDULER_POLICY=args.policy,
                AOI3D_FILES_ROOTS=f"runs,models,{TRACES}")
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--time-scale", str(args.time_scale),
-           "--port-offset", str(OFFSET), "--zenoh-port", "7747", "--run-id", "livechannel",
-           "--quiet"]
-    (OUT / "COMMAND").write_text(" ".join(cmd) + f"\n# AOI3D_NETWORK_DELAY={args.regimes}; "
-                                 f"then PUT /channel trace:{args.trace}\n")
-    up = subprocess.Popen(cmd, cwd=ROOT, env=env, start_new_session=True)
+    up_args = ["--time-scale", str(args.time_scale)]
+    (OUT / "COMMAND").write_text(
+        f"python bench/live_channel.py --seconds {args.seconds:g} --time-scale "
+        f"{args.time_scale:g} --regimes {args.regimes} --policy {args.policy}\n"
+        f"# aoi3d up {' '.join([*PORTS.up_args(), *up_args])} with "
+        f"AOI3D_NETWORK_DELAY={args.regimes} AOI3D_SCHEDULER_POLICY={args.policy}; "
+        f"then PUT /channel trace:{args.trace}\n")
+    up = livebench.start_up(PORTS, "livechannel", ROOT / "runs" / "bench-live-channel", up_args,
+                            env=env)
     client = httpx.Client(timeout=10.0)
     try:
-        deadline = time.monotonic() + 300
-        while True:
-            try:
-                if all(client.get(url(s, "/healthz")).status_code == 200 for s in PORTS):
-                    break
-            except httpx.HTTPError:
-                pass
-            if time.monotonic() > deadline or up.poll() is not None:
-                raise SystemExit("the pipeline did not come up")
-            time.sleep(2)
-        print("up; playing", args.regimes, flush=True)
+        livebench.wait_until("the pipeline", lambda: all(
+            client.get(url(s, "/healthz")).status_code == 200 for s in WATCHED), 300, proc=up)
+        print("up; playing", args.regimes, "under", args.policy, flush=True)
         time.sleep(args.seconds)
         r = client.put(url("network", "/channel"), json={"delay": f"trace:{args.trace}"})
         print("PUT trace:", r.status_code, r.json().get("delay", r.text)[:200], flush=True)
@@ -79,11 +81,7 @@ def main() -> None:
         print("measured delay (ms):", channel["measured_delay_ms"])
         _screenshot()
     finally:
-        os.killpg(up.pid, signal.SIGINT)
-        try:
-            up.wait(60)
-        except subprocess.TimeoutExpired:
-            os.killpg(up.pid, signal.SIGKILL)
+        livebench.stop_up(up)
 
 
 def _has(client: httpx.Client, path: str) -> bool:

@@ -8,7 +8,9 @@ cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 D=${DATASET:-data/turbine-rotor}
 OUT=${OUT:-runs/ros2-sweep}
-OFF=${PORT_OFFSET:-3500}; ZP=${ZENOH_PORT:-11647}
+# the bench's ports from the one table (aoi3d/ports.py, BENCH_BLOCKS["ros2_sweep"])
+BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
+OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
 $PY -m aoi3d scene generate --out "$D"
 $PY -m aoi3d live sweep --up --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
