@@ -72,8 +72,13 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
     try:
         wait_for("the recorder", lambda: HTTP.get(url("recorder", "/recording")).json()
                  ["recording"], timeout_s=120)
-        wait_for("five scored renders", lambda: len(
-            HTTP.get(url("metrics", "/quality")).json()["history"]) >= 5, timeout_s=180)
+        # ten renders scored while the recording runs (the metrics service may have scored
+        # some before the recorder started), so ten decisions or more are on record
+        def scored() -> int:
+            return HTTP.get(url("metrics", "/quality")).json()["summary"]["scored_total"]
+
+        before = scored()
+        wait_for("ten scored renders", lambda: scored() >= before + 10, timeout_s=180)
         wait_for("a hundred recorded messages", lambda: HTTP.get(url("recorder", "/recording"))
                  .json()["messages"] > 100, timeout_s=120)
         r = HTTP.post(url("recorder", "/recording/stop"))
@@ -108,6 +113,8 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
     assert doc["max_abs_score_diff"] is not None and doc["max_abs_score_diff"] <= 1e-3, doc
     recorded, every = doc["counterfactual"]
     assert (recorded["policy"], every["policy"]) == ("recorded", "all")
-    assert every["n"] == recorded["n"] == doc["rendered"]
+    # an epoch whose counterfactual selection names a frame delivered before the recorder
+    # subscribed cannot be rebuilt (skipped as frames_not_recorded): the pairs are a subset
+    assert 1 <= every["n"] <= recorded["n"] == doc["rendered"]
     assert every["cameras_used"] >= recorded["cameras_used"]
     assert math.isfinite(every["psnr_db"]) and every["psnr_db_vs_recorded"]["n"] == every["n"]
