@@ -509,11 +509,29 @@ def fields(results: Path) -> tuple[list[str], set[str]]:
     return lines, {"fields.json"}
 
 
+def chaos_judge(d: dict[str, Any], unit: str) -> list[str]:
+    """The chaos bench's judge as a one-row table (either target: ``unit`` is what must be
+    up at the end, a process or a container)."""
+    return table(["faults", "longest recovery (fault's end → next Quality)",
+                  "longest gap between Qualities", "stalls over 15 s", "decisions made",
+                  "counted by the ledger", "unaccounted", f"every {unit} up at the end"],
+                 [[len(d["faults"]), f"{d['max_recovery_s']} s", f"{d['max_quality_gap_s']} s",
+                   d["stalls_over_15s"], d["decisions"], d["ledger_decisions"],
+                   d["unaccounted"], "yes" if d["all_up_at_end"] else "no"]])
+
+
+def chaos_faults(d: dict[str, Any], target: str) -> list[str]:
+    """Every fault of a chaos run in a folded table."""
+    rows = [[f"{x['t_s']:.0f} s", x["kind"], x["target"],
+             "—" if x["recovery_s"] is None else f"{x['recovery_s']:.1f} s"]
+            for x in d["faults"]]
+    return ["<details><summary>The faults</summary>", "",
+            *table(["at", "fault", target, "recovery"], rows), "", "</details>"]
+
+
 def chaos(results: Path) -> tuple[list[str], set[str]]:
     d = load(results, "chaos.json")
     led = d["ledger"]["site1"]
-    faults = [[f"{x['t_s']:.0f} s", x["kind"], x["target"], f"{x['recovery_s']:.1f} s"]
-              for x in d["faults"]]
     lost = ", ".join(f"`{k}` {v}" for k, v in led["lost"].items() if v)
     lines = [
         "## Faults at random",
@@ -525,12 +543,7 @@ def chaos(results: Path) -> tuple[list[str], set[str]]:
         "",
         *redo(d["command"]),
         "",
-        *table(["faults", "longest recovery (fault's end → next Quality)",
-                "longest gap between Qualities", "stalls over 15 s", "decisions made",
-                "counted by the ledger", "unaccounted", "every process up at the end"],
-               [[len(d["faults"]), f"{d['max_recovery_s']} s", f"{d['max_quality_gap_s']} s",
-                 d["stalls_over_15s"], d["decisions"], d["ledger_decisions"], d["unaccounted"],
-                 "yes" if d["all_up_at_end"] else "no"]]),
+        *chaos_judge(d, "process"),
         "",
         f"How the decisions ended (the decision ledger): {led['scored']} scored, "
         + ", ".join(f"{v} {k}" for k, v in led["skipped"].items())
@@ -538,11 +551,7 @@ def chaos(results: Path) -> tuple[list[str], set[str]]:
         f"{led['after_close']} events after their decision had ended. Load "
         f"{d['load_1min_at_end']:.2f} at the end.",
         "",
-        "<details><summary>The faults</summary>",
-        "",
-        *table(["at", "fault", "process", "recovery"], faults),
-        "",
-        "</details>",
+        *chaos_faults(d, "process"),
         "",
     ]
     return lines, {"chaos.json"}
@@ -552,9 +561,6 @@ def chaos_multihost(results: Path) -> tuple[list[str], set[str]]:
     if not (results / "chaos-multihost.json").exists():
         return [], set()
     d = load(results, "chaos-multihost.json")
-    faults = [[f"{x['t_s']:.0f} s", x["kind"], x["target"],
-               "—" if x["recovery_s"] is None else f"{x['recovery_s']:.1f} s"]
-              for x in d["faults"]]
     lines = [
         "## Faults at random across hosts",
         "",
@@ -566,20 +572,11 @@ def chaos_multihost(results: Path) -> tuple[list[str], set[str]]:
         "",
         *redo(d["command"]),
         "",
-        *table(["faults", "longest recovery (fault's end → next Quality)",
-                "longest gap between Qualities", "stalls over 15 s", "decisions made",
-                "counted by the ledger", "unaccounted", "every container up at the end"],
-               [[len(d["faults"]), f"{d['max_recovery_s']} s", f"{d['max_quality_gap_s']} s",
-                 d["stalls_over_15s"], d["decisions"], d["ledger_decisions"], d["unaccounted"],
-                 "yes" if d["all_up_at_end"] else "no"]]),
+        *chaos_judge(d, "container"),
         "",
         f"Load {d['load_1min_at_end']:.2f} at the end.",
         "",
-        "<details><summary>The faults</summary>",
-        "",
-        *table(["at", "fault", "target", "recovery"], faults),
-        "",
-        "</details>",
+        *chaos_faults(d, "target"),
         "",
     ]
     return lines, {"chaos-multihost.json"}
