@@ -344,7 +344,11 @@ class IngestCore:
                                           f"{clock.max_age_s:g} s)")
         if age < 0:
             edge_stamp, age = receipt_s, 0.0
-        gen = self.sim_ms(edge_stamp)
+        # The model's time is slotted (1 ms): a stamp maps to its nearest slot. Unrounded, a
+        # phase-locked robot's frame of t = k·C lands at k·C + 3e-5 ms (float seconds since the
+        # epoch), "after" a decision at k·C, and the metrics service paired that decision with
+        # the truth frame one period older.
+        gen = float(round(self.sim_ms(edge_stamp)))
         if gen < 0:
             raise Rejected("stamp_before_run", f"stamped {-gen / 1000 / self.time_scale:.1f} s "
                                                "before the run's clock started")

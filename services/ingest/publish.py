@@ -139,7 +139,7 @@ def rig_document(cfg: PublishConfig, ds) -> dict:
            "aabb": [float(x) for x in np.asarray(ds.aabb).ravel()],
            "size": [int(ds.cameras[0].width), int(ds.cameras[0].height)],
            "time_scale": cfg.time_scale,
-           "truth_period_ms": max(100.0, 2 * cfg.period_ms)}
+           "truth_period_ms": cfg.period_ms}
     if cfg.truth:
         doc["truth"] = _name(int(ds.heldout_id))
     return doc

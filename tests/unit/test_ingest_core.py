@@ -562,6 +562,8 @@ def test_the_robot_phase_locks_to_the_pipelines_clock_and_its_samples_decode(fmt
         for route in [r for r, expr in routes if key_matches(expr, key)]:
             frames += core.on_sample(route, key, payload, att, now + 0.2)
     gens = sorted(decode_frame(f.payload).generation_ms for f in frames)
-    assert gens == pytest.approx([90.0, 90.0, 120.0, 120.0], abs=1e-3)  # k·C on the sim clock
+    # k·C on the sim clock, exactly: a stamp maps to its 1 ms slot, so the truth frame of a
+    # decision's time pairs with it (float noise of the epoch would make it 'after t')
+    assert gens == [90.0, 90.0, 120.0, 120.0]
     assert ds.shown == [0, 0, 1, 1]  # scene time k·C: frames of 90 and 120 ms
     assert all((a is None) == (fmt == "bridge") for _, _, a in sent)
