@@ -69,6 +69,7 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
     "online_live": PortBlock(3200, 7649),  # REST 11301…11307
     "soak": PortBlock(4000, 9467),         # REST 12101…12107
     "chaos": PortBlock(5000, 9567),        # REST 13101…13107
+    "chaos_multihost": PortBlock(5100, 9667),  # the multi-host stack's published 13203…13205
     "live_channel": PortBlock(700, 7747),  # REST 8801…8807
     "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11607 (bench/ros2_sweep.sh)
 }

@@ -260,8 +260,11 @@ def outcome(args: argparse.Namespace, faults: list[dict], made: dict, ledgers: d
 
 # ------------------------------------------------------------------ the multi-host target
 MH_FILE = ROOT / "compose.multihost.yaml"
-MH_PORTS = {"ZENOH": 9667, "SCHEDULER": 13203, "TRAINER": 13204, "METRICS": 13205}
-"""The multi-host stack's published ports: apart from `aoi3d up` above, compose-test and soak."""
+_MH = BENCH_BLOCKS["chaos_multihost"]
+MH_PORTS = {"ZENOH": _MH.zenoh, **{s.upper(): _MH.rest(s) for s in ("scheduler", "trainer",
+                                                                      "metrics")}}
+"""The multi-host stack's published ports (compose.multihost.yaml's AOI3D_PORT_<NAME>), from the
+one table: apart from `aoi3d up` above, compose-test and soak."""
 MH_HOSTS = {"worker-a": ("router-a", "recon-a"), "worker-b": ("router-b", "recon-b")}
 MH_EDGE = ("camera", "network", "scheduler", "trainer", "metrics")
 MH_ROUTERS = ("router-edge", "router-a", "router-b")
