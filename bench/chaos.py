@@ -63,6 +63,7 @@ import subprocess
 import sys
 import time
 import uuid
+from collections.abc import Callable
 from pathlib import Path
 
 import httpx
@@ -165,6 +166,28 @@ def judge(tap: Tap, sites: list[str], faults: list[dict], t_start: float,
     return stalls, max_gap
 
 
+def fault_loop(args: argparse.Namespace, rng: random.Random, inject: Callable[[], dict]
+               ) -> tuple[list[dict], float, float]:
+    """For ``--minutes``: a pause drawn from ``--every``, then one fault (``inject`` does it and
+    says what it did). Returns the faults (each with its start ``t_s`` and its ``end``), the
+    start and the end of the faults, after 5 s for the last one's recovery."""
+    faults: list[dict] = []
+    t_start = time.monotonic()
+    end = t_start + args.minutes * 60.0
+    while True:
+        pause = rng.uniform(*args.every)
+        if time.monotonic() + pause >= end:
+            time.sleep(max(0.0, end - time.monotonic()))
+            break
+        time.sleep(pause)
+        t0 = time.monotonic()
+        fault = inject()
+        faults.append({"t_s": round(t0 - t_start, 1), **fault, "end": time.monotonic()})
+    t_faults_end = time.monotonic()
+    time.sleep(5.0)  # the last fault's recovery, if it has one
+    return faults, t_start, t_faults_end
+
+
 def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     """The faults on `aoi3d up` (its processes on this machine)."""
     run_id = f"chaos{uuid.uuid4().hex[:6]}"
@@ -182,20 +205,12 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
         sites = http.get(url("metrics", "/sites")).json()["sites"]
         tap = Tap(run_id)
         wait("a Quality of every site", lambda: all(tap.quality_times(s) for s in sites), 300)
-        faults: list[dict] = []
-        t_start = time.monotonic()
-        end = t_start + args.minutes * 60.0
-        while True:
-            pause = rng.uniform(*args.every)
-            if time.monotonic() + pause >= end:
-                time.sleep(max(0.0, end - time.monotonic()))
-                break
-            time.sleep(pause)
+
+        def inject() -> dict:
             pids = children(log_dir)
             kind = rng.choice(["kill", "kill", "stop", "router_restart"])
             target = "router" if kind == "router_restart" else rng.choice(sorted(pids))
             pid = pids[target]
-            t0 = time.monotonic()
             try:
                 if kind == "stop":
                     os.kill(pid, signal.SIGSTOP)
@@ -205,10 +220,9 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
                     os.kill(pid, signal.SIGKILL if kind == "kill" else signal.SIGTERM)
             except ProcessLookupError:
                 kind += " (already gone)"
-            faults.append({"t_s": round(t0 - t_start, 1), "kind": kind, "target": target,
-                           "pid": pid, "end": time.monotonic()})
-        t_faults_end = time.monotonic()
-        time.sleep(5.0)  # the last fault's recovery, if it has one
+            return {"kind": kind, "target": target, "pid": pid}
+
+        faults, t_start, t_faults_end = fault_loop(args, rng, inject)
         stalls, max_gap = judge(tap, sites, faults, t_start, t_faults_end)
 
         # the books: no new decision while they are read, every open one given its end
@@ -406,22 +420,13 @@ def run_multihost(args: argparse.Namespace, rng: random.Random) -> dict:
         sites = http.get(mh.url("metrics", "/sites")).json()["sites"]
         tap = Tap(project, mh.common())
         wait("a Quality of every site", lambda: all(tap.quality_times(s) for s in sites), 300)
-        faults: list[dict] = []
-        t_start = time.monotonic()
-        end = t_start + args.minutes * 60.0
-        while True:
-            pause = rng.uniform(*args.every)
-            if time.monotonic() + pause >= end:
-                time.sleep(max(0.0, end - time.monotonic()))
-                break
-            time.sleep(pause)
+
+        def inject() -> dict:
             kind, target = fault_plan(rng)
-            t0 = time.monotonic()
             mh.inject(kind, target, args.cut_s)
-            faults.append({"t_s": round(t0 - t_start, 1), "kind": kind, "target": target,
-                           "end": time.monotonic()})
-        t_faults_end = time.monotonic()
-        time.sleep(5.0)
+            return {"kind": kind, "target": target}
+
+        faults, t_start, t_faults_end = fault_loop(args, rng, inject)
         stalls, max_gap = judge(tap, sites, faults, t_start, t_faults_end)
         wait("every container up, both hosts in the pool",
              lambda: all(mh.all_up(http).values()), 180)

@@ -87,3 +87,25 @@ def test_judge_counts_recoveries_and_stalls() -> None:
     assert [f["recovery_s"] for f in faults] == [17.5, None]
     assert "end" not in faults[0]
     assert stalls == 1 and longest == 18.0
+
+
+def test_fault_loop_spaces_the_faults_and_stops_at_the_end(monkeypatch) -> None:
+    """The one fault loop of both targets: pauses drawn from --every, a fault after each, none
+    that would start past --minutes; each fault stamped with its start and end."""
+    import argparse
+
+    clock = [0.0]
+    monkeypatch.setattr(chaos.time, "monotonic", lambda: clock[0])
+    monkeypatch.setattr(chaos.time, "sleep", lambda s: clock.__setitem__(0, clock[0] + s))
+    args = argparse.Namespace(minutes=1.0, every=(20.0, 20.0))
+    done = []
+
+    def inject() -> dict:
+        clock[0] += 2.0  # the fault takes 2 s
+        done.append(clock[0])
+        return {"kind": "kill", "target": "scheduler"}
+
+    faults, t_start, t_end = chaos.fault_loop(args, random.Random(0), inject)
+    assert [f["t_s"] for f in faults] == [20.0, 42.0]  # a third would start at 64 s > 60 s
+    assert [f["end"] for f in faults] == done and t_start == 0.0 and t_end == 60.0
+    assert all(f["kind"] == "kill" for f in faults)
