@@ -42,8 +42,9 @@ project and ports of its own, secrets made in a temporary folder). Its faults, e
 An override file (``multihost_override``) gives the metrics service a state folder on a volume,
 so a restarted one keeps its ledger (as ``aoi3d up`` does), and the ledger's open timeout.
 The books are read with the scheduler's container paused; "all up" is every container running
-and healthy and both worker hosts in the pool. Needs the images (``make images``) and an engine
-(``eval "$(deploy/engine.sh start)"``):
+and healthy and both worker hosts in the pool, judged once the paused scheduler has had its
+health checks again (up to 90 s: they fail while it is paused). Needs the images (``make
+images``) and an engine (``eval "$(deploy/engine.sh start)"``):
 
     python bench/chaos.py --target multihost --minutes 10 --json
 
@@ -124,6 +125,16 @@ def children(log_dir: Path) -> dict[str, int]:
 
 def wait(what: str, cond, timeout_s: float) -> None:
     livebench.wait_until(f"chaos: {what}", cond, timeout_s)
+
+
+def settle(state: Callable[[], dict[str, bool]], timeout_s: float) -> dict[str, bool]:
+    """``state()`` once all of it is true, or as it is after ``timeout_s``."""
+    end = time.monotonic() + timeout_s
+    while True:
+        now = state()
+        if all(now.values()) or time.monotonic() >= end:
+            return now
+        time.sleep(1.0)
 
 
 def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
@@ -438,7 +449,10 @@ def run_multihost(args: argparse.Namespace, rng: random.Random) -> dict:
             made = dict(tap.made)
         mh.run("docker", "unpause", mh.container("scheduler"))
         paused = False
-        up_state = mh.all_up(http)
+        # Docker's health checks fail while the container is paused (three in a row mark it
+        # unhealthy, and the pause lasts until every open decision has ended, up to
+        # LEDGER_OPEN_S): it is judged once it has had its checks again, within 90 s.
+        up_state = settle(lambda: mh.all_up(http), 90.0)
     finally:
         if tap is not None:
             tap.close()
