@@ -3,6 +3,7 @@
 # pure-Python robot on rmw_zenoh keys into `aoi3d up --rig`, exp:60 on top), same scene; the
 # results are docs/real-cameras.md's table (bench/results/ros2_sweep_*.json). About 30 minutes.
 #   bash bench/ros2_sweep.sh [--epoch]    (--epoch: the robot phase-locked to the pipeline)
+#   ROS_ONLY=1 OUT=runs/ros2-free bash bench/ros2_sweep.sh    (the ROS 2 half alone)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
@@ -13,8 +14,10 @@ BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; 
 OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
 $PY -m aoi3d scene generate --out "$D"
-$PY -m aoi3d live sweep --up --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
-  --out "$OUT/emulated" --port-offset "$OFF" --zenoh-port "$ZP" > "$OUT/emulated.json"
+if [ -z "${ROS_ONLY:-}" ]; then  # ROS_ONLY=1: the ROS 2 half alone
+  $PY -m aoi3d live sweep --up --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
+    --out "$OUT/emulated" --port-offset "$OFF" --zenoh-port "$ZP" > "$OUT/emulated.json"
+fi
 $PY -m aoi3d ros2 publish "$D" --time-scale 0.1 --connect "tcp/127.0.0.1:$ZP" \
   --write-rig "$OUT/rig.yaml" --rig-only
 $PY -m aoi3d up --rig "$OUT/rig.yaml" --delay exp:60 --port-offset "$OFF" --zenoh-port "$ZP" \
