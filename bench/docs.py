@@ -582,6 +582,16 @@ def chaos_multihost(results: Path) -> tuple[list[str], set[str]]:
     return lines, {"chaos-multihost.json"}
 
 
+def window_rates(d: dict[str, Any]) -> list[str]:
+    """The soak's render rate in each consecutive window (older runs did not record them)."""
+    rates = d.get("renders_per_s_by_window")
+    if not rates:
+        return []
+    w = d["window_min"]
+    head = [f"{i * w:.0f}–{(i + 1) * w:.0f} min" for i in range(len(rates))]
+    return [*table(["renders/s", *head], [["", *(f(r, 3) for r in rates)]]), ""]
+
+
 def soak(results: Path) -> tuple[list[str], set[str]]:
     d = load(results, "soak.json")
     procs = d["processes"]
@@ -611,6 +621,7 @@ def soak(results: Path) -> tuple[list[str], set[str]]:
         f"and {d['renders_per_s_last']} over the last (ratio {d['rate_ratio_last_first']}; "
         f"rate within the bound: {'yes' if d['rate_ok'] else 'no'}).",
         "",
+        *window_rates(d),
         *table(["site", "decisions", "scored", "skipped", "lost", "lost by reason",
                 "open when read"], ledgers),
         "",
@@ -738,9 +749,12 @@ def ros2_path(results: Path) -> tuple[list[str], set[str]]:
     rows = []
     for policy in policies:
         row: list[Any] = [f"`{policy}`"]
+        got = []
         for _, r in loaded:
             p = next(x for x in r["results"] if x["policy"] == policy)
+            got.append(p)
             row.append(f"{ci(p['psnr_db'])} ({p['n']})")
+        row.append(" / ".join(f(p["cameras_used"]["mean"], 2) for p in got))
         rows.append(row)
     s = loaded[0][1]["settings"]
     lines = [
@@ -751,14 +765,16 @@ def ros2_path(results: Path) -> tuple[list[str], set[str]]:
         "top, same scene; PSNR in dB, mean ± 95 % CI over renders (renders in brackets). "
         "What the differences mean: [real-cameras.md](real-cameras.md).",
         "",
-        *redo("bash bench/ros2_sweep.sh           # emulated, then the robot at its own phase",
-              "bash bench/ros2_sweep.sh --epoch   # the robot phase-locked to the pipeline"),
+        *redo("bash bench/ros2_sweep.sh --epoch   # emulated, then the robot phase-locked",
+              "ROS_ONLY=1 OUT=runs/ros2-free bash bench/ros2_sweep.sh   # the robot at its "
+              "own phase"),
         "",
         f"Settings: delay `{s['channel']['delay']}`, carry `{s['carry']}`, "
         f"{s['render_steps']} steps per render, {s['measure_s']:.0f} s windows × "
-        f"{s['repeats']} repeats; a machine shared with other work.",
+        f"{s['repeats']} repeats; each run had the machine to itself (2026-11-26).",
         "",
-        *table(["policy", *[label for label, _ in loaded]], rows),
+        *table(["policy", *[label for label, _ in loaded],
+                "cameras used (same order)"], rows),
         "",
     ]
     return lines, {name for _, name in runs}
