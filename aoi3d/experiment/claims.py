@@ -20,8 +20,10 @@ from aoi3d.policy import PolicyKind, kind_of
 from aoi3d.stats import PairedDifference, paired_difference
 
 __all__ = [
+    "DISPLAY_METRIC",
     "Verdict",
     "adaptive_beats_best_rule",
+    "at_display_time",
     "compare_selective_beats_all",
     "fixed_gamma_loses_under_changing_channel",
     "gamma_label",
@@ -30,6 +32,7 @@ __all__ = [
     "optimal_gamma_grows_with_delay",
     "ppo_beats_all",
     "ppo_reaches_best_mat",
+    "rederived",
     "regime_gain",
     "scores_agree_on_the_optimum",
     "tradeoff_interior_optimum",
@@ -76,7 +79,9 @@ def _diff(d: Mapping[str, Any], digits: int = 2) -> str:
     return text
 
 
-_NAMES = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR", "ssim": "SSIM",
+_NAMES = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR",
+          "psnr_display_db": "PSNR at display time",
+          "psnr_dynamic_display_db": "dynamic-region PSNR at display time", "ssim": "SSIM",
           "ssim_dynamic": "dynamic-region SSIM", "lpips": "LPIPS", "reward": "the reward"}
 
 
@@ -424,3 +429,74 @@ def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db"
         numbers["oracle_minus_best_rule"] = bound["minus"][metric][best]
         evidence += f"; oracle:rules:{metric} − {best}: {_diff(bound['minus'][metric][best])}"
     return Verdict("adaptive-beats-best-rule", statement, holds, evidence, numbers)
+
+
+def rederived(doc: Mapping[str, Any], metrics: Sequence[str], *, ordered: bool
+              ) -> dict[str, Any]:
+    """``doc`` (the ``results.json`` of ``tradeoff``, ``delay`` or ``compare``) with its optima
+    for ``metrics`` taken from its episodes by the same criterion the command applies — for a
+    metric the command does not judge, such as the display-time scores every episode carries.
+    ``ordered``: the candidates are a MAT sweep's Γ (``tradeoff``, ``delay``: Γ from the policy
+    objects, `all` at ∞), else the policies by label (``compare``; its bounds left out). A
+    ``delay`` document's rows (``optima``) each get their delay's ``optimum`` of the first
+    metric."""
+    from aoi3d.experiment.optimum import optima
+    from aoi3d.policy import PolicySpecError, parse_policy
+
+    def gamma(label: str) -> float | None:
+        try:
+            g = getattr(parse_policy(label), "gamma_ms", None)
+        except PolicySpecError:
+            return None
+        return None if g is None else float(g)
+
+    def candidate(label: str) -> Any:
+        g = gamma(label) if ordered else None
+        return label if g is None else g
+
+    bounds = {r["policy"] for r in doc.get("policies", []) if r.get("bound")}
+    episodes = [e for e in doc["episodes"] if e["policy"] not in bounds]
+
+    def judge(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+        selected: dict[Any, list[float]] = {}
+        for r in rows:
+            selected.setdefault(candidate(r["policy"]), []).append(float(r["n_selected"]))
+        position = ({candidate(r["policy"]): math.inf if gamma(r["policy"]) is None
+                     else gamma(r["policy"]) for r in rows} if ordered else None)
+        got = optima(rows, metrics, candidate=lambda r: candidate(r["policy"]),
+                     selects={c: float(np.mean(v)) for c, v in selected.items()},
+                     ordered=ordered, position=position)
+        return {m: o.to_dict() for m, o in got.items()}
+
+    out = dict(doc)
+    if "optima" in doc:  # delay: one optimum per delay
+        out["optima"] = [{**row, "optimum": judge([e for e in episodes
+                                                   if e["delay"] == row["delay"]])[metrics[0]]}
+                         for row in doc["optima"]]
+    else:
+        out["optimum"] = judge(episodes)
+    return out
+
+
+DISPLAY_METRIC = "psnr_display_db"
+"""The display-time PSNR: the render against the truth at the time it is ready (its decision
+time plus its compute, :meth:`aoi3d.experiment.config.EpisodeConfig.compute_ms`)."""
+
+
+def at_display_time(tradeoff: Mapping[str, Any], delay: Mapping[str, Any],
+                    compare: Mapping[str, Any]) -> list[Verdict]:
+    """The claims on PSNR, asked again of what a viewer sees: the same episodes judged by
+    their display-time scores (``psnr_display_db``, ``psnr_dynamic_display_db``). Each
+    verdict's id ends in ``@display``. The PPO claims are not asked: the agent learned the
+    decision-time reward."""
+    dyn = "psnr_dynamic_display_db"
+    t = rederived(tradeoff, (DISPLAY_METRIC, dyn), ordered=True)
+    verdicts = [tradeoff_interior_optimum(t, DISPLAY_METRIC),
+                tradeoff_interior_optimum(t, dyn) if dyn in t["optimum"] else None,
+                optimal_gamma_grows_with_delay(rederived(delay, (DISPLAY_METRIC,),
+                                                         ordered=True)),
+                compare_selective_beats_all(rederived(compare, (DISPLAY_METRIC,),
+                                                      ordered=False), DISPLAY_METRIC)]
+    return [Verdict(f"{v.claim}@display", v.statement if "display time" in v.statement
+                    else f"{v.statement} (at display time)", v.holds, v.evidence, v.numbers)
+            for v in verdicts if v is not None]

@@ -4,8 +4,10 @@ satisfy them and fail on data built to break them."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
+import pytest
 
 from aoi3d.experiment import claims
 from aoi3d.experiment.optimum import optimum
@@ -218,3 +220,48 @@ def test_the_adaptive_question_reports_g_and_the_oracle_either_way() -> None:
     doc = regimes_doc(0.3)
     doc["policies"] = [r for r in doc["policies"] if not r["policy"].startswith("adaptive:")]
     assert not claims.adaptive_beats_best_rule(doc).holds
+
+
+SCIENCE = Path(__file__).resolve().parents[2] / "bench/results/science"
+
+
+@pytest.mark.parametrize("name, ordered", [("tradeoff", True), ("delay", True),
+                                           ("compare", False)])
+def test_rederived_optimum_is_the_commands_own(name: str, ordered: bool) -> None:
+    """Taken again from a recorded run's episodes, the optimum of a metric the command judged
+    is exactly the command's (the bound of compare left out): so the display-time verdicts of
+    `make science` use the same criterion as the decision-time ones."""
+    doc = json.loads((SCIENCE / name / "results.json").read_text())
+    metrics = ("psnr_db", "psnr_dynamic_db")
+    again = claims.rederived(doc, metrics, ordered=ordered)
+    if name == "delay":
+        assert [r["optimum"] for r in again["optima"]] == [r["optimum"] for r in doc["optima"]]
+    else:
+        for m in metrics:
+            assert again["optimum"][m] == doc["optimum"][m], m
+
+
+def test_display_time_verdicts_use_the_display_scores() -> None:
+    """at_display_time judges psnr_display_db (here: a copy of a recorded run whose display
+    scores are its PSNR shifted per Γ so that the freshest Γ wins) and marks its verdicts."""
+    from aoi3d.policy import parse_policy
+
+    docs = {n: json.loads((SCIENCE / n / "results.json").read_text())
+            for n in ("tradeoff", "delay", "compare")}
+    for name, doc in docs.items():
+        for e in doc["episodes"]:
+            # display time: the later frames lose more; Γ = 40 ms (and in compare `all`,
+            # which the criterion must then find best) far ahead of the rest
+            best = (e["policy"] == "all" if name == "compare" else
+                    getattr(parse_policy(e["policy"]), "gamma_ms", None) == 40.0)
+            e["psnr_display_db"] = e["psnr_db"] - (0.0 if best else 10.0)
+            e["psnr_dynamic_display_db"] = e["psnr_display_db"]
+    verdicts = claims.at_display_time(docs["tradeoff"], docs["delay"], docs["compare"])
+    assert [v.claim for v in verdicts] == [
+        "interior-psnr_display_db@display", "interior-psnr_dynamic_display_db@display",
+        "gamma-grows-with-delay@display", "selective-beats-all@display"]
+    interior = verdicts[0]
+    assert interior.numbers["optimum"]["best"] == 40.0
+    assert "at display time" in interior.statement
+    assert verdicts[2].holds is False  # Γ = 40 is best at every delay: it does not grow
+    assert verdicts[3].holds is False and verdicts[3].numbers["optimum"]["best"] == "all"

@@ -46,6 +46,12 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
         "gamma-grows-with-delay", "selective-beats-all",
         "ppo-reaches-best-mat", "ppo-beats-all"]
     assert not all(c["holds"] for c in doc["claims"])
+    # the PSNR claims again at display time, from the same episodes (reported, not judged)
+    assert [c["claim"] for c in doc["display_time"]] == [
+        "interior-psnr_display_db@display", "interior-psnr_dynamic_display_db@display",
+        "gamma-grows-with-delay@display", "selective-beats-all@display"]
+    for c in doc["display_time"]:
+        assert ("HOLDS" if c["holds"] else "FAILS") + f" {c['claim']}" in res.stdout
     for c in doc["claims"]:
         assert ("PASS" if c["holds"] else "FAIL") + f"  {c['claim']}" in res.stdout
     # the open question: the agent and the oracle bound ran in compare, its answer is reported
@@ -70,5 +76,6 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     report = (tmp_path / "science.md").read_text()
     assert "Experiment seeds: 31000–31001" in report and "1007000–1007001" in report
     assert "**Open questions**" in report and "`oracle:rules:psnr_db` (bound)" in report
+    assert "**At display time**" in report
     for name in ("tradeoff.png", "delay.png", "compare.png", "views.png"):
         assert (tmp_path / "figs" / name).stat().st_size > 0
