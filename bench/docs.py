@@ -589,7 +589,7 @@ def window_rates(d: dict[str, Any]) -> list[str]:
         return []
     w = d["window_min"]
     head = [f"{i * w:.0f}–{(i + 1) * w:.0f} min" for i in range(len(rates))]
-    return [*table(["renders/s", *head], [["", *(f(r, 3) for r in rates)]]), ""]
+    return [*table(["", *head], [["renders/s", *(f(r, 3) for r in rates)]]), ""]
 
 
 def soak(results: Path) -> tuple[list[str], set[str]]:

@@ -60,6 +60,14 @@ def rate(points: list[tuple[float, int]], t0: float, t1: float) -> float:
     return (b[1] - a[1]) / (b[0] - a[0]) if b[0] > a[0] else float("nan")
 
 
+def window_rates(points: list[tuple[float, int]], window: float) -> list[float]:
+    """Renders per second in each whole window of ``window`` seconds from the start (a last,
+    partial one — the minute's sampling runs a little past the hour — is left out)."""
+    span = points[-1][0]
+    whole = int(span // window + 1e-9)
+    return [round(rate(points, i * window, (i + 1) * window), 3) for i in range(whole)]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
@@ -126,8 +134,7 @@ def main() -> int:
         "renders_per_s_first": round(first, 3), "renders_per_s_last": round(last, 3),
         "window_min": round(window / 60.0, 1),
         "rate_ratio_last_first": round(last / first, 3) if first > 0 else None,
-        "renders_per_s_by_window": [round(rate(renders, t, min(t + window, span)), 3)
-                                    for t in np.arange(0.0, span - 1e-9, window)],
+        "renders_per_s_by_window": window_rates(renders, window),
         "renders": renders[-1][1] - renders[0][1],
         "renders_series": [[round(t, 1), n] for t, n in renders],
         "load_1min_mean": round(float(np.mean(loads)), 2),
