@@ -113,12 +113,13 @@ class ReconCore:
             camera = camera_from_pb(job.pose, job.intrinsics)
         except Rejected as err:
             raise JobFailed("bad_job", f"render camera: {err.detail}") from None
-        views, gens, rejected = [], [], 0
+        views, gens, cams, rejected = [], [], [], 0
         for frame in job.frames:
             try:
                 data = decode_frame(frame.SerializeToString())
                 views.append(TrainView(camera=data.camera, image=data.rgb()))
                 gens.append(float(data.generation_ms))
+                cams.append(int(frame.camera_id))
             except (Rejected, ValueError):
                 rejected += 1
         rec = self._reconstruction(job, aabb)
@@ -133,7 +134,8 @@ class ReconCore:
             decision_id=d.decision_id, decision_incarnation=d.incarnation, time_ms=d.time_ms,
             pose=job.pose, intrinsics=job.intrinsics, image=encode_png(rendered.image),
             training_step=rendered.steps, n_views=rendered.n_views, backend=job.backend,
-            frame_generation_ms=gens, carry=rec.carry, render_steps=rendered.render_steps,
+            frame_generation_ms=gens, frame_camera_ids=cams, carry=rec.carry,
+            render_steps=rendered.render_steps,
             worker_id=self.worker_id, site=job.site, seed=job.seed, aabb=list(job.aabb),
             warm_start=rendered.warm,
             loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)

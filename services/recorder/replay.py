@@ -329,13 +329,17 @@ def _budgets(srec: SiteRecord) -> dict[tuple[int, int], int]:
 
 
 def _job_frames(selected: Sequence[tuple[int, float]], used: Sequence[float] | None,
-                arr: Arrivals) -> list[pb.Frame] | None:
+                arr: Arrivals, used_cameras: Sequence[int] = ()) -> list[pb.Frame] | None:
     """The frames of a selection (those the live job carried, when ``used`` lists their
-    generation times in selection order); None when one has no pixels in the recording."""
+    generation times in selection order, and ``used_cameras`` their cameras — a recording
+    from before Render.frame_camera_ids has generation times only, which every camera shares
+    at k·C); None when one has no pixels in the recording."""
     out, k = [], 0
+    cams = list(used_cameras) if used is not None and len(used_cameras) == len(used) else None
     for cam, g in selected:
         if used is not None:
-            if k < len(used) and abs(used[k] - g) <= _TOL_MS:
+            if (k < len(used) and abs(used[k] - g) <= _TOL_MS
+                    and (cams is None or cams[k] == cam)):
                 k += 1
             else:
                 continue  # the live trainer did not hold it
@@ -399,7 +403,7 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                 continue
             render = srec.renders[key]
             used = list(render.frame_generation_ms) if chosen is None else None
-            frames = _job_frames(selected, used, arr)
+            frames = _job_frames(selected, used, arr, render.frame_camera_ids)
             if frames is None:
                 out.skipped = "frames_not_recorded"
                 continue

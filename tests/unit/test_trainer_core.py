@@ -54,6 +54,8 @@ def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDatase
     assert (r.decision_id, r.site, r.worker_id, r.n_views, r.render_steps) == (4, "north", "w",
                                                                                2, 12)
     assert sorted(r.frame_generation_ms) == [0.0, 0.0] and math.isfinite(r.loss)
+    # which frames, exactly: the cameras beside their generation times (a replay's key)
+    assert list(r.frame_camera_ids) == [f.camera_id for f in job.frames]
     latest = core.on_render(r.SerializeToString(), now_s=2.0, now_ms=200.0)
     assert latest.decision_id == 4 and latest.worker_id == "w" and latest.age_s == 1.0
 
@@ -142,3 +144,23 @@ def test_the_reconstruction_trains_on_each_frames_own_pose(dataset: SceneDataset
     ReconCore(worker_id="w", device="cpu", configs=CONFIGS).run(job)
     assert len(seen) == 1 and seen[0].camera == moved
     assert seen[0].camera != dataset.cameras[1]
+
+
+def test_replay_rebuilds_the_job_from_the_cameras_the_render_names() -> None:
+    """Every camera generates at k·C, so a live job that held one of three frames of 870 ms
+    is named by its camera too (Render.frame_camera_ids): the replay takes that one, not the
+    first of the selection with the same generation time (the one it took before, and a
+    recording from before the field still gets)."""
+    from services.kit.pb import aoi3d_pb2 as pb
+    from services.recorder.replay import Arrival, Arrivals, _job_frames
+
+    def frame(cam: int, gen: float) -> pb.Frame:
+        return pb.Frame(camera_id=cam, generation_ms=gen,
+                        image=pb.Image(encoding=pb.IMAGE_ENCODING_PNG, data=b"png"))
+
+    selected = [(1, 840.0), (9, 870.0), (10, 870.0), (14, 870.0)]
+    arr = Arrivals([1, 9, 10, 14], [Arrival(c, g, g + 30.0, frame(c, g)) for c, g in selected])
+    got = _job_frames(selected, [870.0], arr, [10])
+    assert [(f.camera_id, f.generation_ms) for f in got] == [(10, 870.0)]
+    old = _job_frames(selected, [870.0], arr)  # generation times only: the first that fits
+    assert [(f.camera_id, f.generation_ms) for f in old] == [(9, 870.0)]

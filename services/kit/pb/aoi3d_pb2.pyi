@@ -132,7 +132,7 @@ class Decision(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ..., gamma_ms: _Optional[float] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s", "frame_camera_ids")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -153,6 +153,7 @@ class Render(_message.Message):
     READY_MS_FIELD_NUMBER: _ClassVar[int]
     WARM_START_FIELD_NUMBER: _ClassVar[int]
     COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
+    FRAME_CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -173,7 +174,8 @@ class Render(_message.Message):
     ready_ms: float
     warm_start: bool
     compute_s: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ..., ready_ms: _Optional[float] = ..., warm_start: _Optional[bool] = ..., compute_s: _Optional[float] = ...) -> None: ...
+    frame_camera_ids: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ..., ready_ms: _Optional[float] = ..., warm_start: _Optional[bool] = ..., compute_s: _Optional[float] = ..., frame_camera_ids: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class Job(_message.Message):
     __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site", "cold_steps", "warm_max_gap_ms")
