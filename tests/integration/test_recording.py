@@ -77,7 +77,8 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
         def scored() -> int:
             return HTTP.get(url("metrics", "/quality")).json()["summary"]["scored_total"]
 
-        before = scored()
+        # the recorder can be up before the metrics service on a busy machine
+        before = wait_for("the metrics service", lambda: scored() + 1, timeout_s=120) - 1
         wait_for("ten scored renders", lambda: scored() >= before + 10, timeout_s=180)
         wait_for("a hundred recorded messages", lambda: HTTP.get(url("recorder", "/recording"))
                  .json()["messages"] > 100, timeout_s=120)

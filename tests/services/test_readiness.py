@@ -20,7 +20,7 @@ from services.scheduler.settings import Settings as SchedulerSettings
 from tests.services.test_network import frame
 
 SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
-STALL_S = 0.5 * SCALE
+STALL_S = 2.0 * SCALE
 
 
 def wait_status(client: TestClient, code: int) -> dict:
@@ -38,9 +38,12 @@ def test_scheduler_without_delivered_frames_is_not_ready_then_recovers() -> None
     keys = Keys("ready")
     common = CommonSettings(run_id="ready", cameras=3, stall_s=STALL_S)
     clock = SimClock(time.time(), 1.0)
+    started = time.monotonic()
     with TestClient(scheduler_app(SchedulerSettings(common=common), bus=bus,
                                   clock=clock)) as client:
-        assert client.get("/readyz").status_code == 200  # within the grace after start
+        first = client.get("/readyz").status_code
+        if time.monotonic() - started < STALL_S:  # (a busy machine may start it later)
+            assert first == 200  # within the grace after start
         body = wait_status(client, 503)
         assert "no frame delivered" in body["reason"]
         now = clock.now_ms()
