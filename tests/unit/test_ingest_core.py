@@ -567,3 +567,37 @@ def test_the_robot_phase_locks_to_the_pipelines_clock_and_its_samples_decode(fmt
     assert gens == [90.0, 90.0, 120.0, 120.0]
     assert ds.shown == [0, 0, 1, 1]  # scene time k·C: frames of 90 and 120 ms
     assert all((a is None) == (fmt == "bridge") for _, _, a in sent)
+
+
+def test_the_robot_encodes_a_frame_before_its_time_and_sends_its_cameras_together() -> None:
+    """Encoding is the robot's cost, not the link's: a frame is encoded before it is due and all
+    its cameras go out at its time (encoding them one after another at the due time made the
+    last of 19 cameras reach the edge ~60 ms wall after its stamp)."""
+    from services.ingest import ros
+    from services.ingest.publish import PublishConfig, Robot
+
+    clock = [EPOCH + 0.13]
+
+    class _Slow(_StubDataset):
+        def frame(self, camera_id: int, index: int) -> np.ndarray:
+            clock[0] += 0.01  # reading and encoding a camera's frame takes 10 ms
+            return super().frame(camera_id, index)
+
+    class _Stop:  # a stop event whose waits advance the fake clock
+        def is_set(self) -> bool:
+            return False
+
+        def wait(self, seconds: float) -> bool:
+            clock[0] += seconds
+            return False
+
+    cfg = PublishConfig(dataset=None, period_ms=30.0, time_scale=0.5, frames=2, epoch_s=EPOCH,
+                        pose="file", intrinsics="file")
+    sent = []
+    robot = Robot(cfg, lambda k, p, a: sent.append((k, p, a)), dataset=_Slow(),
+                  clock=lambda: clock[0])
+    robot.run(_Stop())
+    sources = [ros.parse_attachment(a).source_ns / 1e9 - EPOCH for _, _, a in sent]
+    # frames k = 3 and 4 are due at 180 and 240 ms wall: both cameras at exactly that moment
+    np.testing.assert_allclose(sources, [0.18, 0.18, 0.24, 0.24], atol=1e-6)
+    assert robot.frames_sent == 4 and robot.periods == 2 and robot.skipped == 0
