@@ -742,8 +742,11 @@ def trainer_restart(results: Path) -> tuple[list[str], set[str]]:
 
 def ros2_path(results: Path) -> tuple[list[str], set[str]]:
     runs = [("emulated cameras", "ros2_sweep_emulated.json"),
+            ("ROS 2, the robot phase-locked to the pipeline", "ros2_sweep_phase_locked.json"),
             ("ROS 2, the robot at its own phase", "ros2_sweep_free_phase.json"),
-            ("ROS 2, the robot phase-locked to the pipeline", "ros2_sweep_phase_locked.json")]
+            ("emulated cameras, an earlier run", "ros2_sweep_emulated_earlier.json"),
+            ("ROS 2 phase-locked, the serial robot", "ros2_sweep_phase_locked_serial.json"),
+            ("ROS 2 at its own phase, the serial robot", "ros2_sweep_free_phase_serial.json")]
     loaded = [(label, load(results, name)) for label, name in runs]
     policies = [p["policy"] for p in loaded[0][1]["results"]]
     rows = []
@@ -771,7 +774,10 @@ def ros2_path(results: Path) -> tuple[list[str], set[str]]:
         "",
         f"Settings: delay `{s['channel']['delay']}`, carry `{s['carry']}`, "
         f"{s['render_steps']} steps per render, {s['measure_s']:.0f} s windows × "
-        f"{s['repeats']} repeats; each run had the machine to itself (2026-11-26).",
+        f"{s['repeats']} repeats (2026-11-26). The first three columns are the runs with the "
+        "robot that sends each frame's cameras together; the last three the earlier runs: the "
+        "emulated cameras, and the robot that encoded its cameras one after another (the last "
+        "~60 ms wall late).",
         "",
         *table(["policy", *[label for label, _ in loaded],
                 "cameras used (same order)"], rows),
