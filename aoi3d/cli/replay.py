@@ -72,10 +72,45 @@ def replay(
     threads: Annotated[int | None, typer.Option(
         min=1, help="Torch threads of the reconstruction (default: the recorded workers').")]
     = None,
+    live: Annotated[bool, typer.Option(
+        "--live", help="Play the recording into a running pipeline as its cameras (ROS 2 "
+                       "on Zenoh, for `aoi3d up --rig`; --write-rig writes its rig file) "
+                       "instead of re-running it on the virtual clock.")] = False,
+    connect: Annotated[str, typer.Option(
+        help="--live: Zenoh endpoint(s) to connect to, comma-separated.")]
+    = "tcp/127.0.0.1:7447",
+    time_scale: Annotated[float, typer.Option(
+        help="--live: scene seconds per wall second (give `aoi3d up --rig` the same; the rig "
+             "file says it).")] = 1.0,
+    epoch_s: Annotated[float | None, typer.Option(
+        help="--live: the pipeline's epoch (Unix s, the ingest's GET /status time.epoch_s): "
+             "keep the recording's phase on its decision grid.")] = None,
+    key_format: Annotated[str, typer.Option(
+        "--format", help="--live: rmw_zenoh or bridge keys.")] = "rmw_zenoh",
+    domain_id: Annotated[int, typer.Option(min=0, max=232, help="--live: ROS_DOMAIN_ID.")] = 0,
+    namespace: Annotated[str, typer.Option(help="--live: the bridge's namespace.")] = "",
+    write_rig: Annotated[Path | None, typer.Option(
+        help="--live: write the rig file that reads what is played.")] = None,
+    rig_only: Annotated[bool, typer.Option(
+        help="--live: write the rig file (--write-rig) and exit.")] = False,
 ) -> None:
     """Re-run a recording on the virtual clock with its recorded frames, generation and
     arrival times: under the recorded policy it must reproduce every selection and every
-    score; under --policy P the counterfactual on the same arrivals, paired by epoch."""
+    score; under --policy P the counterfactual on the same arrivals, paired by epoch.
+    With --live, play its frames into a running pipeline as its cameras instead."""
+    if live:
+        if policy or json_out or max_renders is not None or not score or threads:
+            raise typer.BadParameter("--live plays the recording's frames; --policy, --json, "
+                                     "--max-renders, --no-score and --threads are for the "
+                                     "virtual clock", param_hint="'--live'")
+        if len(site or []) > 1:
+            raise typer.BadParameter("--live plays one site", param_hint="'--site'")
+        _live(recording, (site or [None])[0], connect, time_scale, epoch_s, key_format,
+              domain_id, namespace, write_rig, rig_only)
+        return
+    if write_rig is not None or rig_only or epoch_s is not None:
+        raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
+                                 param_hint="'--live'")
     from services.recorder.replay import load, score_diffs
     from services.recorder.replay import replay as run_replay
 
@@ -154,3 +189,54 @@ def replay(
                           fmt(row["cameras_used"], digits=1),
                           fmt(row["aoi_selected_ms"], digits=0))
         console.print(table)
+
+
+def _live(recording: Path, site: str | None, connect: str, time_scale: float,
+          epoch_s: float | None, key_format: str, domain_id: int, namespace: str,
+          write_rig: Path | None, rig_only: bool) -> None:
+    """``aoi3d replay --live``: the recording's frames as ROS 2 cameras on Zenoh."""
+    import signal
+    import threading
+    import time
+
+    from aoi3d.cli.ros2 import write_rig_file
+    from services.ingest.publish import zenoh_put
+    from services.recorder.importer import recorded_streams
+    from services.recorder.player import PlayConfig, Player, rig_document
+
+    try:
+        cfg = PlayConfig(format=key_format, domain_id=domain_id, namespace=namespace,
+                         time_scale=time_scale, epoch_s=epoch_s)
+        site_name, streams, box = recorded_streams(recording, site)
+    except (FileNotFoundError, OSError, ValueError) as err:
+        fail(err)
+    frames = {n: s.frames for n, s in streams.items()}
+    if not frames or set(frames) == {0}:
+        fail(f"{recording}: site {site_name} holds no camera frame with pixels to play")
+    if box is None:
+        fail(f"{recording}: no render records the scene box the rig file needs")
+    if write_rig is not None:
+        write_rig_file(write_rig, rig_document(frames, cfg, box))
+        typer.echo(f"rig file: {write_rig} (aoi3d up --rig {write_rig})")
+    if rig_only:
+        if write_rig is None:
+            raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
+        return
+    player = Player(frames, cfg, lambda *sample: put(*sample))
+    put, close = zenoh_put([c.strip() for c in connect.split(",") if c.strip()], player.keys())
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    span = (player.order[-1][0] - player.order[0][0]) / 1000.0
+    typer.echo(f"playing {len(player.order)} frames of {len(frames)} cameras ({site_name}, "
+               f"{span:.1f} scene s) at time scale {time_scale:g} via {connect}")
+    t0 = time.monotonic()
+    try:
+        player.run(stop)
+    finally:
+        close()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    typer.echo(f"played {player.sent} frames in {time.monotonic() - t0:.1f} s"
+               + (f" (shifted {player.shift_ms:g} ms onto the pipeline's clock)"
+                  if epoch_s is not None else ""))

@@ -107,7 +107,7 @@ def publish(
     except ValueError as err:
         fail(str(err))
     if write_rig is not None:
-        _write(write_rig, doc)
+        write_rig_file(write_rig, doc)
         typer.echo(f"rig file: {write_rig} (aoi3d up --rig {write_rig})")
     if rig_only:
         if write_rig is None:
@@ -188,7 +188,7 @@ def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")
                    f"{'static' if c.pose.static else c.pose.topic}")
 
 
-def _write(path: Path, doc: dict) -> None:
+def write_rig_file(path: Path, doc: dict) -> None:
     import json
 
     from aoi3d.atomic import write_atomic
@@ -198,7 +198,8 @@ def _write(path: Path, doc: dict) -> None:
     else:
         import yaml
 
-        text = ("# aoi3d rig file (docs/real-cameras.md), written by `aoi3d ros2 publish`\n"
+        text = ("# aoi3d rig file (docs/real-cameras.md), written by `aoi3d ros2 publish` or "
+                "`aoi3d replay --live`\n"
                 + yaml.safe_dump(doc, sort_keys=False, default_flow_style=None, width=100))
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, text)

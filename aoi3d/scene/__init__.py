@@ -7,6 +7,8 @@ rig (:func:`make_rig`) is the held-out novel view; 1..N train. :func:`ensure_dat
 Datasets researchers already have — DyNeRF videos (:mod:`aoi3d.scene.dynerf`), D-NeRF /
 nerfstudio transforms (:mod:`aoi3d.scene.dnerf`) — open with :func:`open_dataset`, which
 detects the layout; every reader presents the same :class:`SceneDataset` interface.
+:func:`write_dataset` writes frames that already exist (a recording's, ``aoi3d scene
+import``) in the project's layout.
 """
 
 from aoi3d.scene.camera import Camera, look_at
@@ -19,6 +21,7 @@ from aoi3d.scene.dataset import (
     generate_command,
     generate_dataset,
     load_dataset,
+    write_dataset,
 )
 from aoi3d.scene.dnerf import DNeRFDataset, export_dnerf, load_dnerf
 from aoi3d.scene.dynerf import DyNeRFDataset, export_dynerf, load_dynerf
@@ -60,4 +63,5 @@ __all__ = [
     "make_rig",
     "open_dataset",
     "to_uint8",
+    "write_dataset",
 ]

@@ -57,6 +57,7 @@ __all__ = [
     "generate_command",
     "generate_dataset",
     "load_dataset",
+    "write_dataset",
 ]
 
 FORMAT_VERSION = 1
@@ -156,6 +157,8 @@ class SceneDataset:
     """Which on-disk layout this was read from: ``aoi3d``, ``dnerf`` or ``dynerf``."""
     camera_names: tuple[str, ...] = ()
     """The source's name of each camera (e.g. ``cam03`` in DyNeRF); empty = ``camNN``."""
+    imported: dict[str, Any] = field(default_factory=dict)
+    """Where an imported dataset's frames came from (``aoi3d scene import``); else empty."""
 
     @property
     def duration_ms(self) -> float:
@@ -331,6 +334,24 @@ def _file_problem(path: Path) -> str:
 def _transforms(
     camera_ids: Iterable[int], cameras: list[Camera], cfg: SceneConfig, aabb: np.ndarray
 ) -> dict[str, Any]:
+    return _transforms_doc(camera_ids, cameras, cfg.n_frames, {
+        "format_version": FORMAT_VERSION,
+        "scene_version": SCENE_VERSION,
+        "fps": cfg.fps,
+        "n_frames": cfg.n_frames,
+        "duration_s": cfg.duration_s,
+        "aabb": np.asarray(aabb).tolist(),
+        "heldout_id": HELDOUT_ID,
+        "n_cameras": len(cameras),
+        "config": cfg.to_dict(),
+        "config_hash": cfg.config_hash,
+    })
+
+
+def _transforms_doc(
+    camera_ids: Iterable[int], cameras: list[Camera], n_frames: int, block: dict[str, Any]
+) -> dict[str, Any]:
+    """A transforms file of ``camera_ids`` with ``n_frames`` each and the ``aoi3d`` block."""
     ids = list(camera_ids)
     ref = cameras[ids[0]]
     frames = []
@@ -344,10 +365,10 @@ def _transforms(
             ref.width,
             ref.height,
         )
-        for k in range(cfg.n_frames):
+        for k in range(n_frames):
             entry: dict[str, Any] = {
                 "file_path": _frame_relpath(cam_id, k),
-                "time": k / cfg.n_frames,
+                "time": k / n_frames,
                 "transform_matrix": cam.c2w.tolist(),
                 "camera_id": cam_id,
                 "frame_index": k,
@@ -366,18 +387,7 @@ def _transforms(
         "w": ref.width,
         "h": ref.height,
         "frames": frames,
-        "aoi3d": {
-            "format_version": FORMAT_VERSION,
-            "scene_version": SCENE_VERSION,
-            "fps": cfg.fps,
-            "n_frames": cfg.n_frames,
-            "duration_s": cfg.duration_s,
-            "aabb": np.asarray(aabb).tolist(),
-            "heldout_id": HELDOUT_ID,
-            "n_cameras": len(cameras),
-            "config": cfg.to_dict(),
-            "config_hash": cfg.config_hash,
-        },
+        "aoi3d": block,
     }
 
 
@@ -529,6 +539,59 @@ def ensure_dataset(
     return generate_dataset(path, cfg, progress, workers=workers)
 
 
+def write_dataset(
+    path: str | Path,
+    cameras: list[Camera],
+    frame_png: Callable[[int, int], bytes],
+    *,
+    fps: int,
+    n_frames: int,
+    aabb: np.ndarray,
+    extra: dict[str, Any] | None = None,
+) -> SceneDataset:
+    """Write a dataset in the project's layout from frames that already exist (camera
+    ``HELDOUT_ID`` is the held-out view; ``frame_png(camera_id, k)`` the PNG bytes of a frame,
+    written as given), atomically, replacing a dataset at ``path``. It records no scene config
+    (it was not generated); ``config_hash`` is the SHA-256 of its frames, cameras and grid, so the
+    episode cache tells two contents apart. ``extra`` goes into the ``aoi3d`` block (where the
+    frames came from)."""
+    import hashlib
+
+    path = Path(path).absolute()
+    if fps < 1 or n_frames < 1:
+        raise ValueError(f"fps and n_frames must be ≥ 1, got {fps}, {n_frames}")
+    if len(cameras) < 2:
+        raise ValueError(f"a dataset needs the held-out camera and one to train on, got "
+                         f"{len(cameras)} camera(s)")
+    _check_replaceable(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_temps(path)
+    digest = hashlib.sha256(f"{fps} {n_frames} {np.asarray(aabb).tolist()}".encode())
+    with atomic_dir(path) as tmp:
+        for cam_id, cam in enumerate(cameras):
+            cam.validate()
+            (tmp / f"frames/cam{cam_id:02d}").mkdir(parents=True)
+            digest.update(np.asarray(cam.c2w, dtype=np.float64).tobytes())
+            digest.update(f"{cam.fx} {cam.fy} {cam.cx} {cam.cy} {cam.width} {cam.height}"
+                          .encode())
+            for k in range(n_frames):
+                data = frame_png(cam_id, k)
+                problem = _png_problem(data[:8], data[-12:], len(data))
+                if problem:
+                    raise ValueError(f"camera {cam_id} frame {k}: {problem}")
+                digest.update(data)
+                (tmp / _frame_relpath(cam_id, k)).write_bytes(data)
+        block = {"format_version": FORMAT_VERSION, "fps": int(fps), "n_frames": int(n_frames),
+                 "duration_s": n_frames / fps, "aabb": np.asarray(aabb).tolist(),
+                 "heldout_id": HELDOUT_ID, "n_cameras": len(cameras), "config": {},
+                 "config_hash": digest.hexdigest()[:16], **(extra or {})}
+        train_ids = [i for i in range(len(cameras)) if i != HELDOUT_ID]
+        for name, ids in ((TRAIN_JSON, train_ids), (TEST_JSON, [HELDOUT_ID])):
+            doc = _transforms_doc(ids, cameras, n_frames, block)
+            (tmp / name).write_text(json.dumps(doc, indent=1))
+    return load_dataset(path)
+
+
 # =============================================================================================
 # Reading
 # =============================================================================================
@@ -633,4 +696,5 @@ def load_dataset(path: str | Path) -> SceneDataset:
         config=config,
         config_hash=config_hash,
         heldout_id=heldout,
+        imported=dict(meta.get("imported") or {}),
     )

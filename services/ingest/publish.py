@@ -150,6 +150,7 @@ class _Publisher:
 
     def __init__(self, fmt: ros.KeyFormat, topic: str, ros_type: str, hash_: str | None):
         self.key = fmt.key(topic, ros_type, hash_)
+        self.topic = topic
         self.ros_type = ros_type
         self.attached = fmt.attached
         self.gid = os.urandom(16)

@@ -334,6 +334,12 @@ def compressed_msg(stamp: float, frame_id: str, rgb: np.ndarray, fmt: str = "jpe
                                       data=np.frombuffer(buf.getvalue(), dtype=np.uint8))
 
 
+def compressed_bytes_msg(stamp: float, frame_id: str, data: bytes, fmt: str):
+    """A ``sensor_msgs/CompressedImage`` of image bytes already encoded as ``fmt``."""
+    return _store().types[COMPRESSED](header=header(stamp, frame_id), format=fmt,
+                                      data=np.frombuffer(data, dtype=np.uint8))
+
+
 def camera_info_msg(stamp: float, frame_id: str, fx: float, fy: float, cx: float, cy: float,
                     width: int, height: int):
     types = _store().types

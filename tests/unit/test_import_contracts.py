@@ -28,6 +28,10 @@ COMPOSITION_EDGES = [
     "aoi3d.cli.up -> services.supervisor",
     "aoi3d.cli.up -> services.kit.rig",
     "aoi3d.cli.replay -> services.recorder.replay",
+    "aoi3d.cli.replay -> services.recorder.importer",
+    "aoi3d.cli.replay -> services.recorder.player",
+    "aoi3d.cli.replay -> services.ingest.publish",
+    "aoi3d.cli.scene -> services.recorder.importer",
     "aoi3d.cli.ros2 -> services.ingest.publish",
     "aoi3d.cli.ros2 -> services.kit.rig",
 ]
@@ -45,4 +49,5 @@ def test_the_domain_imports_services_in_the_composition_root_only() -> None:
     assert contract["ignore_imports"] == COMPOSITION_EDGES
     naming = [str(p.relative_to(ROOT)) for p in (ROOT / "aoi3d").rglob("*.py")
               if re.search(r"^\s*(from|import) services\b", p.read_text(), re.M)]
-    assert sorted(naming) == ["aoi3d/cli/replay.py", "aoi3d/cli/ros2.py", "aoi3d/cli/up.py"]
+    assert sorted(naming) == ["aoi3d/cli/replay.py", "aoi3d/cli/ros2.py", "aoi3d/cli/scene.py",
+                              "aoi3d/cli/up.py"]

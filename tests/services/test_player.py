@@ -1,0 +1,80 @@
+"""``aoi3d replay --live``'s player: a recording's frames as ROS 2 cameras — each at its
+recorded time (scaled, phase-locked onto the pipeline's grid), with its own pose, its camera
+info and the recorded PNG bytes — and the rig file that reads them (pure logic: a fake clock,
+the samples decoded back by the ingest's own core)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from aoi3d.scene import Camera, look_at
+from services.ingest import ros
+from services.ingest.core import IngestCore
+from services.kit.codec import decode_frame, encode_frame, encode_png
+from services.kit.keys import Keys
+from services.kit.membus import key_matches
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rig import rig_from_dict
+from services.recorder.player import PlayConfig, Player, rig_document
+from tests.services.test_recorder import H, W, noise_image
+
+EPOCH = 1_700_000_000.0
+AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
+
+
+def _frame(cam: int, gen: float, x: float = 0.0) -> pb.Frame:
+    camera = Camera(c2w=look_at((x + cam, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
+                    cx=W / 2, cy=H / 2, width=W, height=H)
+    return pb.Frame.FromString(encode_frame(
+        camera_id=cam, sequence=int(gen // 30), generation_ms=gen, scene_time_ms=gen,
+        camera=camera, image=encode_png(noise_image(int(gen) + cam)), send_ms=gen))
+
+
+def test_the_player_sends_each_frame_at_its_recorded_time_on_the_pipelines_grid() -> None:
+    # a recording from 990 ms of its clock; camera 2 moves and lost its frame of 1050 ms
+    frames = {0: [_frame(0, 990.0 + 30 * k) for k in range(4)],
+              1: [_frame(1, 990.0 + 30 * k) for k in range(4)],
+              2: [_frame(2, 990.0 + 30 * k, x=0.1 * k) for k in (0, 1, 3)]}
+    cfg = PlayConfig(time_scale=0.5, epoch_s=EPOCH, period_ms=30.0)
+    clock = [EPOCH + 0.123]  # 61.5 ms into the pipeline's clock: its next grid time is 90
+
+    class _Stop:
+        def is_set(self) -> bool:
+            return False
+
+        def wait(self, seconds: float) -> bool:
+            clock[0] += seconds
+            return False
+
+    sent: list[tuple[str, bytes, bytes | None, float]] = []
+    player = Player(frames, cfg, lambda k, p, a: sent.append((k, p, a, clock[0])),
+                    clock=lambda: clock[0])
+    player.run(_Stop())
+    assert player.sent == 11 and player.shift_ms == 90.0 - 990.0
+    # the ingest's own core, on the rig file written for the play, takes every frame back
+    core = IngestCore(rig_from_dict(rig_document(frames, cfg, AABB)), Keys("t"),
+                      epoch_s=EPOCH, time_scale=0.5)
+    out = []
+    for key, payload, att, at in sent:
+        for route in [r for r in core.routes if key_matches(r.key_expr, key)]:
+            out += core.on_sample(route, key, payload, att, at + 0.001)
+    got = sorted(((p.camera_id, decode_frame(p.payload)) for p in out),
+                 key=lambda x: (x[0], x[1].generation_ms))
+    assert [(c, f.generation_ms) for c, f in got] == [
+        (c, 90.0 + 30 * k) for c in (0, 1, 2) for k in range(4) if (c, k) != (2, 2)]
+    for (_, f), want in zip(got, [fr for c in (0, 1, 2) for fr in frames[c]], strict=True):
+        # sent at its time (frame g at epoch + (g + shift) / 1000 / time scale) ...
+        assert f.image.data == want.image.data  # ... the recorded PNG, byte for byte ...
+        assert np.allclose(f.camera.c2w.ravel(), want.pose.c2w, atol=1e-9)  # ... its pose
+    times = sorted({at for *_, at in sent})
+    assert np.allclose(np.array(times) - EPOCH, (90.0 + 30 * np.arange(4)) / 500.0)
+    assert {ros.parse_attachment(a).sequence for k, _, a, _ in sent if "cam02/image" in k} \
+        == {1, 2, 3}
+
+
+def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
+    frames = {0: [_frame(0, 0.0)], 3: [_frame(3, 0.0)], 5: [_frame(5, 0.0)]}
+    doc = rig_document(frames, PlayConfig(format="bridge", namespace="rec"), AABB)
+    rig = rig_from_dict(doc)
+    assert rig.truth == "cam00" and [c.name for c in rig.train] == ["cam03", "cam05"]
+    assert rig.source.format == "bridge" and rig.working_size == (W, H)
