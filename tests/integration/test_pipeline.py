@@ -26,10 +26,11 @@ from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 """Every wait and timeout of the live tests is multiplied by this (a slow or busy machine:
 set AOI3D_TEST_TIMEOUT_SCALE=3)."""
 HTTP = httpx.Client(timeout=30 * SCALE)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import os
 import time
 from pathlib import Path
 
@@ -21,6 +20,7 @@ from services.kit.codec import FrameData, decode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
+from tests.timeouts import timeout_scale
 
 KEYS = Keys("t")
 N_TRAIN = 3
@@ -61,7 +61,7 @@ def frames(bus: MemoryBus, since: int = 0) -> list[tuple[str, FrameData]]:
     return out
 
 
-TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+TIMEOUT_SCALE = timeout_scale()
 
 
 def wait_for(predicate, timeout_s: float = 3.0) -> None:

@@ -15,8 +15,9 @@ import pytest
 from aoi3d.ports import SERVICE_PORTS
 from aoi3d.scene import SceneConfig, generate_dataset
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 _PORTS = block("dataset-errors-service")
 PORT_OFFSET = _PORTS.rest_offset
 SMALL = SceneConfig(width=16, height=12, fps=10, duration_s=0.5, n_train=3, spp=1,

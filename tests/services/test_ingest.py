@@ -5,7 +5,6 @@ service never stops taking good frames, and ``GET /status`` shows the cameras.""
 
 from __future__ import annotations
 
-import os
 import time
 
 import numpy as np
@@ -20,9 +19,10 @@ from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.rig import rig_from_dict
 from services.kit.settings import CommonSettings
+from tests.timeouts import timeout_scale
 from tests.unit.test_ingest_core import C2W, GID, OPTICAL, H, W, rig_doc
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 RGB = np.random.default_rng(3).integers(0, 255, (H, W, 3), dtype=np.uint8)
 KEYS = Keys("t")
 

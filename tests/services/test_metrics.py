@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import time
 from collections.abc import Callable, Iterator
 
@@ -34,12 +33,13 @@ from services.metrics.app import create_app
 from services.metrics.core import TruthFrame, TruthRing
 from services.metrics.settings import Settings
 from tests.services.series import without_site
+from tests.timeouts import timeout_scale
 
 RUN = "test-metrics"
 KEYS = Keys(RUN)
 W, H = 24, 18
 PERIOD_MS = 30.0
-TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+TIMEOUT_SCALE = timeout_scale()
 """Every wait of these tests is multiplied by it (a slow or loaded machine: set it to 3)."""
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import os
 import threading
 import time
 
@@ -22,6 +21,7 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.network.app import create_app
 from services.network.settings import Settings
+from tests.timeouts import timeout_scale
 
 N_CAMERAS = 3
 KEYS = Keys("t")
@@ -34,7 +34,7 @@ def _camera() -> Camera:
 
 
 CAMERA = _camera()
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
 
 

@@ -3,7 +3,6 @@ AOI3D_STALL_S answers 503 with the reason, and turns ready again once it works."
 
 from __future__ import annotations
 
-import os
 import time
 
 from fastapi.testclient import TestClient
@@ -18,8 +17,9 @@ from services.metrics.settings import Settings as MetricsSettings
 from services.scheduler.app import create_app as scheduler_app
 from services.scheduler.settings import Settings as SchedulerSettings
 from tests.services.test_network import frame
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 STALL_S = 2.0 * SCALE
 
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -28,6 +27,7 @@ from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
 from tests.services.series import without_site
+from tests.timeouts import timeout_scale
 
 RUN = "test-sched"
 KEYS = Keys(RUN)
@@ -68,7 +68,7 @@ def frame(camera_id: int, gen_ms: float, delivery_ms: float, *, sequence: int | 
                         send_ms=gen_ms, delivery_ms=delivery_ms)
 
 
-TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+TIMEOUT_SCALE = timeout_scale()
 """Multiplies every wait of these tests (a slow or busy machine: set it to 3)."""
 
 

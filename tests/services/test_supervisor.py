@@ -30,8 +30,9 @@ from services.supervisor import (
     taken_ports,
 )
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 _PORTS = block("supervisor")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh

@@ -31,11 +31,12 @@ from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
 from services.trainer.settings import Settings
 from tests.services.series import without_site
+from tests.timeouts import timeout_scale
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10
 KEYS = Keys("trainertest")
-TIMEOUT_SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+TIMEOUT_SCALE = timeout_scale()
 SMALL_GRID = GridConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine_from_step=0,
                         grid_sizes=(12,), upsample_steps=(), background_size=(4, 8),
                         render_chunk_rays=4096, tune_malloc=False)

@@ -5,7 +5,6 @@ with a wrong password or none."""
 from __future__ import annotations
 
 import json
-import os
 import threading
 import time
 from pathlib import Path
@@ -15,8 +14,9 @@ import pytest
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 PORT = block("zenoh-auth").zenoh
 ENDPOINT = f"tcp/127.0.0.1:{PORT}"
 

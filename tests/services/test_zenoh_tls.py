@@ -20,10 +20,11 @@ import pytest
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
 ROOT = Path(__file__).resolve().parents[2]
 SECRETS_SCRIPT = ROOT / "deploy" / "secrets.sh"
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 _PORTS = block("zenoh-tls")
 PORT = _PORTS.zenoh
 """Three ports of this file's own: PORT and the block's two extras."""

@@ -31,8 +31,8 @@ from aoi3d.policy.adaptive import (
     SlidingWindowUCB,
     load_gamma_curve,
 )
-from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from tests.unit.test_experiment import N_TRAIN, TINY_FIELD
+from aoi3d.scene import SceneDataset
+from tests.tiny import N_TRAIN, TINY_FIELD
 
 CURVE = GammaCurve((20.0, 100.0, 200.0), (40.0, 130.0, 250.0))
 
@@ -195,13 +195,6 @@ def test_the_plugin_follows_its_estimate() -> None:
 
 
 # --- the virtual clock -----------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=N_TRAIN,
-                      rotor_rpm=60.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg)
-
-
 @pytest.fixture(scope="module")
 def cfg(dataset: SceneDataset) -> EpisodeConfig:
     return EpisodeConfig(dataset=str(dataset.root), field=dict(TINY_FIELD), warmup_ms=150,

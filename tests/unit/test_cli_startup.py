@@ -10,7 +10,6 @@ AOI3D_TEST_TIMEOUT_SCALE.
 from __future__ import annotations
 
 import json
-import os
 import resource
 import socket
 import subprocess
@@ -21,8 +20,9 @@ import pytest
 from typer.testing import CliRunner
 
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 _PORTS = block("cli-startup")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh

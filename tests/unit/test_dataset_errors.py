@@ -7,7 +7,6 @@ command that reads a dataset: ``aoi3d scene info``, ``field train``, ``experimen
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -25,8 +24,9 @@ from aoi3d.scene import (
     open_dataset,
 )
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 _PORTS = block("dataset-errors")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh

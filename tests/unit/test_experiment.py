@@ -25,20 +25,8 @@ from aoi3d.experiment import (
 )
 from aoi3d.policy import PolicySpecError, parse_policy, policy_from_json
 from aoi3d.policy.wait import WaitPolicy
-from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-
-N_TRAIN = 4
-TINY_FIELD = {
-    "batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],
-    "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000,
-}
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=N_TRAIN,
-                      rotor_rpm=60.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg)
+from aoi3d.scene import SceneDataset
+from tests.tiny import N_TRAIN, TINY_FIELD
 
 
 @pytest.fixture(scope="module")

@@ -34,19 +34,12 @@ from aoi3d.experiment.oracle import (
     rule_masks,
 )
 from aoi3d.policy import FreshestPolicy, MatPolicy
-from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from tests.unit.test_experiment import N_TRAIN, TINY_FIELD  # the same tiny rig and field
+from aoi3d.scene import SceneDataset
+from tests.tiny import N_TRAIN, TINY_FIELD  # the same tiny rig and field
 
 SEEDS = [0, 1, 2]
 RULES = ["all", "mat:40", "mat:70", "mat:100", "mat:130",
          *(f"freshest:{k}" for k in range(1, N_TRAIN + 1))]
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=N_TRAIN,
-                      rotor_rpm=60.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg)
 
 
 @pytest.fixture(scope="module")

@@ -29,13 +29,8 @@ from aoi3d.rl.presets import (
     train_seed,
 )
 from aoi3d.rl.train import train
-from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-
-N_TRAIN = 4
-TINY_FIELD = {
-    "batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],
-    "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000,
-}
+from aoi3d.scene import SceneDataset
+from tests.tiny import N_TRAIN, TINY_FIELD
 
 
 @pytest.fixture(autouse=True)
@@ -44,13 +39,6 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
-
-
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=N_TRAIN,
-                      rotor_rpm=60.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg)
 
 
 @pytest.fixture(scope="module")

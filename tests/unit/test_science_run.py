@@ -9,18 +9,16 @@ import subprocess
 import sys
 from pathlib import Path
 
-from aoi3d.scene import SceneConfig, generate_dataset
+from tests import tiny
+from tests.tiny import tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY_FIELD = ('{"batch_rays": 64, "samples_coarse": 12, "samples_fine": 12, "grid_sizes": [10],'
-              ' "upsample_steps": [], "background_size": [4, 8], "occupancy_from_step": 1000}')
+TINY_FIELD = json.dumps(tiny.TINY_FIELD)
 
 
 def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     # 6 training cameras: science.py compares freshest:6, which a rig must fit (check_fits)
-    cfg = SceneConfig(width=32, height=24, fps=30, duration_s=1.0, n_train=6, rotor_rpm=60.0,
-                      spp=1)
-    ds = generate_dataset(tmp_path / "tiny", cfg)
+    ds = tiny_dataset(tmp_path / "tiny", n_train=6)
     aoi3d = str(Path(sys.executable).with_name("aoi3d"))
     subprocess.run([aoi3d, "ppo", "train", "--dataset", str(ds.root), "--episodes", "2",
                     "--batch-size", "2", "--steps-per-epoch", "2", "--no-lpips", "--workers",
