@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from services.kit.settings import ServiceSettings
@@ -32,3 +32,9 @@ class Settings(ServiceSettings):
     inbox_size: int = Field(
         4096, ge=1, description="Bus messages buffered between the bus and the writing "
                                 "thread (the oldest dropped and counted beyond).")
+
+    @field_validator("path", mode="before")
+    @classmethod
+    def _unset(cls, v: object) -> object:
+        """An empty value is unset (compose passes ``${AOI3D_RECORDER_PATH:-}``), not ``.``."""
+        return None if isinstance(v, str) and not v.strip() else v

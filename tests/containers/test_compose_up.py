@@ -2,13 +2,14 @@
 
 Real containers on a real Docker engine (``deploy/engine.sh``), from the images that
 ``deploy/build-images.sh`` built (aoi3d:0.1.0, and Prometheus from ``AOI3D_PROMETHEUS_IMAGE``).
-The stack runs as its own compose project with its own published ports, run id and secrets,
-so it does not collide with a stack a developer has up. Everything is checked through the
+The stack runs as its own compose project with its own published ports, run id and secrets, so
+it does not collide with a stack a developer has up. Everything is checked through the
 published ports, as a user would: every healthcheck passes, Quality flows, ``PUT /policy``
-changes the decisions, Prometheus scrapes every target, Zenoh is mutual TLS (a client with the
-CA and a client certificate joins and receives the run's samples; without the CA, without a
-certificate, with another CA or on plain TCP it cannot), a trainer whose process is killed is
-restarted, and ``docker compose down -v`` leaves no container, network or volume behind.
+changes the decisions, the recorder records the run into the runs volume, Prometheus scrapes
+every target, Zenoh is mutual TLS (a client with the CA and a client certificate joins and
+receives the run's samples; without the CA, without a certificate, with another CA or on plain
+TCP it cannot), a trainer whose process is killed is restarted, and ``docker compose down -v``
+leaves no container, network or volume behind.
 
 Grafana is not run (no registry has its image on this project's machines); its provisioning is
 checked statically in tests/unit/test_compose.py. Skipped unless AOI3D_COMPOSE_TEST=1 (set by
@@ -30,9 +31,10 @@ import httpx
 import pytest
 
 from tests.ports import block
+from tests.timeouts import timeout_scale
 
 ROOT = Path(__file__).resolve().parents[2]
-SCALE = float(os.environ.get("AOI3D_TEST_TIMEOUT_SCALE", "1"))
+SCALE = timeout_scale()
 """Every wait is multiplied by this (a busy machine: AOI3D_TEST_TIMEOUT_SCALE=3)."""
 HTTP = httpx.Client(timeout=30 * SCALE)
 
@@ -44,14 +46,16 @@ pytestmark = [
 ]
 
 TARGET_PORTS = {"ZENOH": 7447, "CAMERA": 8101, "NETWORK": 8102, "SCHEDULER": 8103,
-                "TRAINER": 8104, "METRICS": 8105, "CONSOLE": 8106, "PROMETHEUS": 9090,
-                "GRAFANA": 3000}
-PORTS = dict(zip(TARGET_PORTS, block("compose").ports(), strict=False))
+                "TRAINER": 8104, "METRICS": 8105, "CONSOLE": 8106, "RECORDER": 8107,
+                "PROMETHEUS": 9090, "GRAFANA": 3000}
+_BLOCK = block("compose")
+PORTS = dict(zip(TARGET_PORTS, [*_BLOCK.ports(), _BLOCK.extra(0), _BLOCK.extra(1)],
+                 strict=True))
 """Published ports of this run (compose.yaml's AOI3D_PORT_<NAME>)."""
 PROJECT = f"aoi3d-test-{os.getpid()}"
 HAS_CONSOLE = (ROOT / "services" / "console" / "__main__.py").is_file()
 SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "recon",
-            "metrics", "prometheus", *(["console"] if HAS_CONSOLE else [])]
+            "metrics", "recorder", "prometheus", *(["console"] if HAS_CONSOLE else [])]
 """What `up` starts: everything but Grafana; the console once it exists in the code."""
 
 
@@ -168,6 +172,32 @@ def test_quality_flows_through_the_published_ports(stack: Stack) -> None:
     assert all(math.isfinite(q["psnr_db"]) for q in history)
     summary = HTTP.get(url("metrics", "/quality")).json()["summary"]
     assert summary["lpips_available"], "the image carries the LPIPS weights"
+
+
+def test_the_recorder_records_the_run_into_the_runs_volume(stack: Stack, tmp_path: Path) -> None:
+    """POST /recording/start and /stop on the published port, then the file copied out of the
+    container: every message decodes with the schema stored in it, the frames as Foxglove
+    images."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    auth = {"Authorization": f"Bearer {stack.token}"}
+    r = HTTP.post(url("recorder", "/recording/start"), headers=auth,
+                  json={"path": "runs/recordings/compose.mcap"})
+    assert r.status_code == 200, r.text
+    wait_for("a decision and a frame on record", lambda: HTTP.get(
+        url("recorder", "/recording")).json()["messages"] >= 200, timeout_s=60)
+    r = HTTP.post(url("recorder", "/recording/stop"), headers=auth)
+    assert r.status_code == 200 and r.json()["state"] == "stopped", r.text
+    out = tmp_path / "compose.mcap"
+    stack.compose("cp", "recorder:/app/runs/recordings/compose.mcap", str(out))
+    topics: dict[str, str] = {}
+    with open(out, "rb") as f:
+        for schema, channel, _, _ in make_reader(
+                f, decoder_factories=[DecoderFactory()]).iter_decoded_messages():
+            topics[channel.topic] = schema.name
+    assert topics.get("/site1/cam1/image") in ("foxglove.CompressedImage", "foxglove.RawImage")
+    assert topics.get("/site1/decision") == "aoi3d.v1.Decision", topics
 
 
 def test_put_policy_changes_the_decisions(stack: Stack) -> None:

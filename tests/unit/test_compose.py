@@ -48,7 +48,7 @@ DASHBOARD_FILE = GRAFANA_DIR / "dashboards" / "aoi3d.json"
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
 """The five pipeline services; each runs as ``python -m services.<name>``."""
 
-HTTP_SERVICES = (*SERVICES, "console")
+HTTP_SERVICES = (*SERVICES, "console", "recorder")
 """Every service with a REST API in compose.yaml (the console calls the others by name)."""
 
 AWAITED: dict[str, str] = {}
@@ -1088,6 +1088,16 @@ def test_console_runs_its_module_on_its_port(compose):
     assert environment(console)["AOI3D_CONSOLE_PORT"] == "8106"
     if module_file("services.console") is not None:
         assert service_problems(compose, "console") == []
+
+
+def test_recorder_runs_its_module_on_its_port(compose):
+    recorder = compose["services"]["recorder"]
+    assert command(recorder) == ["python", "-m", "services.recorder"]
+    assert (8107, 8107) in published_ports(recorder)
+    env = environment(recorder)
+    assert env["AOI3D_RECORDER_PORT"] == "8107" and env["AOI3D_RECORDER_PATH"] == ""
+    assert "runs:/app/runs" in recorder["volumes"]  # recordings land in runs/ (files roots)
+    assert service_problems(compose, "recorder") == []
 
 
 def test_runs_volume_covers_checkpoints_and_runs(compose):

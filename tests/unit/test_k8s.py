@@ -50,7 +50,7 @@ COMPOSE_OF: dict[str, tuple[str, str]] = {
     "router": ("compose.yaml", "router"),
     "router-edge": ("compose.multihost.yaml", "router-edge"),
     **{n: ("compose.yaml", n) for n in ("camera", "network", "scheduler", "trainer",
-                                         "metrics", "console", "recon", "dataset",
+                                         "metrics", "console", "recorder", "recon", "dataset",
                                          "prometheus")},
 }
 """Kubernetes workload → the compose service whose command and limits it has."""
@@ -476,7 +476,7 @@ def allowed_flows(docs: list[dict]) -> set[tuple[str, str, int]]:
     return flows
 
 
-EDGE = ("camera", "network", "scheduler", "trainer", "metrics", "console")
+EDGE = ("camera", "network", "scheduler", "trainer", "metrics", "console", "recorder")
 EXPECTED_FLOWS = {
     # Zenoh: every client to the node routers (its own node's, through the Service)
     *((c, "router", 7447) for c in (*EDGE, "recon")),
@@ -485,7 +485,7 @@ EXPECTED_FLOWS = {
     ("router-edge", "router", 7447), ("router-edge", "router-edge", 7447),
     # REST: the console and Prometheus to the services
     *((caller, svc, port) for caller in ("console", "prometheus")
-      for svc, port in zip(EDGE, range(8101, 8107), strict=True) if caller != svc),
+      for svc, port in zip(EDGE, range(8101, 8108), strict=True) if caller != svc),
     # prometheus-adapter to Prometheus; every pod of ours to the cluster DNS
     ("adapter", "prometheus", 9090),
     *((p, "kube-dns", 53) for p in (*EDGE, "recon", "router", "router-edge", "dataset",
