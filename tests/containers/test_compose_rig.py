@@ -90,6 +90,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigStack]:
     secrets_dir = tmp_path_factory.mktemp("secrets")
     subprocess.run([str(ROOT / "deploy" / "secrets.sh"), str(secrets_dir)], check=True)
     workdir = tmp_path_factory.mktemp("rig")
+    workdir.chmod(0o777)  # the robot's container (not root) writes the rig file there
     s = RigStack(secrets_dir, workdir)
     s.run("docker", "info", timeout_s=30)
     t0 = time.monotonic()
