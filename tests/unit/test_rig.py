@@ -137,8 +137,8 @@ def test_up_with_a_rig_runs_the_ingest_in_the_cameras_slot(tmp_path: Path) -> No
 
 
 def test_the_compose_rig_override_runs_the_ingest_in_the_cameras_slot() -> None:
-    """compose.rig.yaml (no Docker engine here: checked as data against compose.yaml and the
-    settings it sets)."""
+    """compose.rig.yaml checked as data against compose.yaml and the settings it sets (`make
+    compose-test` runs it: tests/containers/test_compose_rig.py)."""
     from services.ingest.settings import Settings as IngestSettings
     from services.metrics.settings import Settings as MetricsSettings
 
