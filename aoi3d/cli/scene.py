@@ -309,6 +309,15 @@ def import_(
         table.add_row(*(str(row[k]) for k in ("id", "name", "recorded_id", "frames", "used",
                                                "dropped", "held")))
     console.print(table)
+    held = sum(r["held"] for r in report.cameras[1:])
+    grid = report.n_frames * (len(report.cameras) - 1)
+    if report.kind == "recording" and grid and held / grid > 0.1:
+        console.print(f"[yellow]{100 * held / grid:.0f} % of the training cameras' grid frames "
+                      "repeat an older frame: a recording keeps the frames that reached the "
+                      "edge, and its link lost the rest. The experiments run their own channel "
+                      "on these frames; for a dataset of every frame the cameras made, record "
+                      "them where they are made (a rosbag2 at the robot) or on a lossless "
+                      "link.[/]")
     if report.rejected:
         console.print("refused by the ingest: " + ", ".join(
             f"{k} {v}" for k, v in sorted(report.rejected.items())))

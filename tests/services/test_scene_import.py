@@ -108,6 +108,11 @@ def test_the_import_command_reports_and_refuses(tmp_path: Path) -> None:
     res = runner.invoke(app, ["scene", "import", str(tmp_path / "run.mcap"), "--out", str(out),
                               "--overwrite"])
     assert res.exit_code == 0 and "3 cameras × 19 frames at 33 fps" in res.output
+    assert "repeat an older frame" not in res.output  # 1 grid frame of 38 held
+    _record(tmp_path / "lossy.mcap", lost={(c, k) for c in (1, 2) for k in range(1, 20, 2)})
+    res = runner.invoke(app, ["scene", "import", str(tmp_path / "lossy.mcap"), "--out",
+                              str(tmp_path / "lossy")])
+    assert res.exit_code == 0 and "repeat an older frame" in res.output, res.output
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file")
     res = runner.invoke(app, ["scene", "import", str(tmp_path / "junk.mcap"), "--out",
                               str(tmp_path / "x")])
