@@ -11,13 +11,16 @@ imports neither torch nor the experiment engine (those load inside the commands)
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import inspect
 import json
 import math
 import numbers
+import signal
 import sys
-from collections.abc import Callable, Collection, Sequence
+import threading
+from collections.abc import Callable, Collection, Iterator, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
@@ -42,6 +45,7 @@ __all__ = [
     "parse_sets",
     "progress_columns",
     "short_label",
+    "stop_on_signal",
     "with_shared_options",
 ]
 
@@ -50,6 +54,20 @@ WorkersOpt = Annotated[int | None, typer.Option(
                 "pipeline's reconstruction workers (aoi3d up --workers).")]
 ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per episode process.")]
 LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
+
+
+@contextlib.contextmanager
+def stop_on_signal() -> Iterator[threading.Event]:
+    """An event that Ctrl-C or SIGTERM sets while the block runs (a long-running command's way
+    to stop cleanly); the previous handlers come back after it."""
+    stop = threading.Event()
+    previous = {sig: signal.signal(sig, lambda *_: stop.set())
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield stop
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 def parse_sets(sets: Sequence[str] | None, option: str = "--set") -> dict[str, Any]:

@@ -16,7 +16,7 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail, fmt, make_console
+from aoi3d.cli.common import fail, fmt, make_console, stop_on_signal
 
 
 def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
@@ -195,12 +195,10 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
           epoch_s: float | None, key_format: str, domain_id: int, namespace: str,
           write_rig: Path | None, rig_only: bool) -> None:
     """``aoi3d replay --live``: the recording's frames as ROS 2 cameras on Zenoh."""
-    import signal
-    import threading
     import time
 
     from aoi3d.cli.ros2 import write_rig_file
-    from services.ingest.publish import zenoh_put
+    from services.ingest.publish import zenoh_publishing
     from services.recorder.importer import recorded_streams
     from services.recorder.player import PlayConfig, Player, rig_document
 
@@ -223,20 +221,13 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
     player = Player(frames, cfg, lambda *sample: put(*sample))
-    put, close = zenoh_put([c.strip() for c in connect.split(",") if c.strip()], player.keys())
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
     span = (player.order[-1][0] - player.order[0][0]) / 1000.0
     typer.echo(f"playing {len(player.order)} frames of {len(frames)} cameras ({site_name}, "
                f"{span:.1f} scene s) at time scale {time_scale:g} via {connect}")
     t0 = time.monotonic()
-    try:
+    endpoints = [c.strip() for c in connect.split(",") if c.strip()]
+    with zenoh_publishing(endpoints, player.keys()) as put, stop_on_signal() as stop:
         player.run(stop)
-    finally:
-        close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     typer.echo(f"played {player.sent} frames in {time.monotonic() - t0:.1f} s"
                + (f" (shifted {player.shift_ms:g} ms onto the pipeline's clock)"
                   if epoch_s is not None else ""))

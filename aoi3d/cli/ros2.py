@@ -9,15 +9,13 @@ time scale, and writes the rig file that reads them (``--write-rig``), for ``aoi
 
 from __future__ import annotations
 
-import signal
-import threading
 import time
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail, fail_lines
+from aoi3d.cli.common import fail, fail_lines, stop_on_signal
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 
@@ -80,7 +78,7 @@ def publish(
 ) -> None:
     """Play DATASET as ROS 2 cameras on Zenoh: each camera's image, camera info and pose,
     stamped with the robot's clock, every period."""
-    from services.ingest.publish import PublishConfig, Robot, rig_document, zenoh_put
+    from services.ingest.publish import PublishConfig, Robot, rig_document, zenoh_publishing
 
     if period_ms is not None and rate is not None:
         raise typer.BadParameter("give --period-ms or --rate, not both", param_hint="'--rate'")
@@ -113,24 +111,16 @@ def publish(
         if write_rig is None:
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
-    # the robot knows its keys; the session waits until they are subscribed (zenoh_put)
+    # the robot knows its keys; the session waits until they are subscribed (zenoh_publishing)
     robot = Robot(cfg, lambda *sample: put(*sample), dataset=ds)
-    put, close = zenoh_put(cfg.connect, robot.keys())
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
     where = (f"rmw_zenoh keys (domain {domain_id}, {distro})" if key_format == "rmw_zenoh"
              else f"bridge keys (namespace '{namespace}')")
     typer.echo(f"publishing {len(robot.ids)} cameras of {dataset} on {where} via "
                f"{', '.join(cfg.connect)}: one frame each every {cfg.period_ms:g} scene ms at "
                f"time scale {time_scale:g}; e.g. {robot.keys()[0]}")
     t0 = time.monotonic()
-    try:
+    with zenoh_publishing(cfg.connect, robot.keys()) as put, stop_on_signal() as stop:
         robot.run(stop)
-    finally:
-        close()
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     typer.echo(f"published {robot.frames_sent} images in {robot.periods} periods over "
                f"{time.monotonic() - t0:.1f} s ({robot.skipped} periods skipped: behind)")
 
@@ -153,18 +143,13 @@ def rtsp(
     ds = open_dataset(dataset)
     if not 0 <= camera < len(ds.cameras):
         raise typer.BadParameter(f"0..{len(ds.cameras) - 1}", param_hint="'--camera'")
-    stop = threading.Event()
-    previous = {sig: signal.signal(sig, lambda *_: stop.set())
-                for sig in (signal.SIGINT, signal.SIGTERM)}
     typer.echo(f"pushing camera {camera} of {dataset} as H.264 to {url}")
-    try:
-        sent = push_rtsp(ds, camera, url, period_ms=period_ms, time_scale=time_scale,
-                         stop=stop, duration_s=duration_s)
-    except Exception as err:  # av's connection errors: one line
-        fail(f"{url}: {err}")
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
+    with stop_on_signal() as stop:
+        try:
+            sent = push_rtsp(ds, camera, url, period_ms=period_ms, time_scale=time_scale,
+                             stop=stop, duration_s=duration_s)
+        except Exception as err:  # av's connection errors: one line
+            fail(f"{url}: {err}")
     typer.echo(f"sent {sent} frames")
 
 

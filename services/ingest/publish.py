@@ -14,12 +14,13 @@ rig file that reads exactly what is published.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,7 +30,7 @@ from services.ingest import ros
 
 log = logging.getLogger(__name__)
 
-__all__ = ["IMAGE_FORMATS", "PublishConfig", "Robot", "rig_document"]
+__all__ = ["IMAGE_FORMATS", "PublishConfig", "Robot", "rig_document", "source_document"]
 
 IMAGE_FORMATS = ("rgb8", "bgr8", "jpeg", "png")
 DISTROS = {"jazzy": None, "humble": ros.HUMBLE_HASH}
@@ -106,13 +107,16 @@ def camera_ids(cfg: PublishConfig, ds) -> list[int]:
     return ([int(ds.heldout_id)] if cfg.truth else []) + train[:n]
 
 
+def source_document(fmt: str, domain_id: int, namespace: str) -> dict:
+    """A rig file's ``source``: the key format with its domain id (rmw_zenoh) or namespace
+    (the bridge)."""
+    return ({"format": fmt, "domain_id": domain_id} if fmt == "rmw_zenoh"
+            else {"format": fmt, "namespace": namespace})
+
+
 def rig_document(cfg: PublishConfig, ds) -> dict:
     """The rig file (a plain dict, to dump as YAML or JSON) that reads what ``cfg`` publishes."""
-    source: dict = {"format": cfg.format}
-    if cfg.format == "rmw_zenoh":
-        source["domain_id"] = cfg.domain_id
-    else:
-        source["namespace"] = cfg.namespace
+    source = source_document(cfg.format, cfg.domain_id, cfg.namespace)
     cams = []
     for n in camera_ids(cfg, ds):
         c = ds.cameras[n]
@@ -276,8 +280,11 @@ class Robot:
             k += 1
 
 
-def zenoh_put(connect: list[str], keys: list[str] | None = None, wait_s: float = 10.0):
-    """(put, close) on a plain Zenoh client session to ``connect``.
+@contextlib.contextmanager
+def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
+                     wait_s: float = 10.0) -> Iterator[Callable[[str, bytes, bytes | None], None]]:
+    """``put(key, payload, attachment)`` on a plain Zenoh client session to ``connect``, for
+    the block (the session closed after it).
 
     A new client session learns who subscribes to what from the router a moment after it
     opens, and drops what it puts before that (seen: each camera's first pose and camera
@@ -294,25 +301,27 @@ def zenoh_put(connect: list[str], keys: list[str] | None = None, wait_s: float =
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     session = zenoh.open(conf)
     pubs = {key: session.declare_publisher(key) for key in keys or []}
-    deadline = time.monotonic() + wait_s
-    images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
-    while time.monotonic() < deadline and not all(p.matching_status.matching for p in images):
-        time.sleep(0.05)
-    time.sleep(0.5 if pubs else 1.0)
+    try:
+        deadline = time.monotonic() + wait_s
+        images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
+        while time.monotonic() < deadline and not all(p.matching_status.matching
+                                                      for p in images):
+            time.sleep(0.05)
+        time.sleep(0.5 if pubs else 1.0)
 
-    def put(key: str, payload: bytes, attachment: bytes | None) -> None:
-        pub = pubs.get(key)
-        if pub is not None:
-            pub.put(payload, attachment=attachment)
-        else:
-            session.put(key, payload, attachment=attachment)
+        def put(key: str, payload: bytes, attachment: bytes | None) -> None:
+            pub = pubs.get(key)
+            if pub is not None:
+                pub.put(payload, attachment=attachment)
+            else:
+                session.put(key, payload, attachment=attachment)
 
-    def close() -> None:
+        yield put
+    finally:
         for pub in pubs.values():
             pub.undeclare()
         session.close()
 
-    return put, close
 
 def rtsp_camera_entry(ds, camera_id: int, url: str, *, listen: bool = True) -> dict:
     """A rig file's entry for the dataset's camera ``camera_id`` streamed as H.264 to ``url``

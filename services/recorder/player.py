@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.ingest import ros
+from services.ingest.publish import source_document
 from services.kit.codec import PNG, camera_from_pb, decode_image, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
 
@@ -78,11 +79,7 @@ def rig_document(frames: dict[int, list[pb.Frame]], cfg: PlayConfig,
                  aabb: np.ndarray) -> dict:
     """The rig file that reads what :class:`Player` publishes of ``frames`` (camera id → its
     frames; 0 is the truth camera, rendered from its first frame's pose and intrinsics)."""
-    source: dict = {"format": cfg.format}
-    if cfg.format == "rmw_zenoh":
-        source["domain_id"] = cfg.domain_id
-    else:
-        source["namespace"] = cfg.namespace
+    source = source_document(cfg.format, cfg.domain_id, cfg.namespace)
     cams = []
     for n in sorted(frames):
         topics = _topics(n)

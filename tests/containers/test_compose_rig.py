@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.containers.test_compose_up import HTTP, ROOT, SCALE, Stack, url, wait_for
+from tests.containers.test_compose_up import HTTP, ROOT, Stack, url, wait_for
 
 pytestmark = [
     pytest.mark.containers,
@@ -64,25 +64,13 @@ class RigStack(Stack):
     """The stack of compose.yaml + compose.rig.yaml + the robot's override, as PROJECT."""
 
     def __init__(self, secrets_dir: Path, workdir: Path) -> None:
-        super().__init__(secrets_dir)
-        self.override = workdir / "compose.robot.yaml"
-        self.override.write_text(yaml.safe_dump(ROBOT))
+        override = workdir / "compose.robot.yaml"
+        override.write_text(yaml.safe_dump(ROBOT))
+        super().__init__(secrets_dir, PROJECT, (ROOT / "compose.yaml",
+                                                ROOT / "compose.rig.yaml", override))
         self.rig = workdir / "rig.yaml"
-        self.env.update(COMPOSE_PROJECT_NAME=PROJECT, AOI3D_RUN_ID=PROJECT,
-                        AOI3D_RIG_FILE=str(self.rig), AOI3D_CAMERAS=str(CAMERAS),
+        self.env.update(AOI3D_RIG_FILE=str(self.rig), AOI3D_CAMERAS=str(CAMERAS),
                         AOI3D_TIME_SCALE="1", AOI3D_TRUTH_PERIOD_MS="30")
-
-    def compose(self, *args: str, timeout_s: float = 120.0,
-                check: bool = True) -> subprocess.CompletedProcess[str]:
-        return self.run("docker", "compose", "-f", str(ROOT / "compose.yaml"), "-f",
-                        str(ROOT / "compose.rig.yaml"), "-f", str(self.override), "-p",
-                        PROJECT, *args, timeout_s=timeout_s, check=check)
-
-    def leftovers(self) -> dict[str, list[str]]:
-        label = f"label=com.docker.compose.project={PROJECT}"
-        return {kind: self.run("docker", *cmd, "--filter", label, "-q").stdout.split()
-                for kind, cmd in {"containers": ["ps", "-a"], "networks": ["network", "ls"],
-                                  "volumes": ["volume", "ls"]}.items()}
 
 
 @pytest.fixture(scope="module")
@@ -102,13 +90,10 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RigStack]:
         doc = yaml.safe_load(s.rig.read_text())
         doc["source"]["connect"] = ["tcp/robot-router:7447"]  # the robots' own router
         s.rig.write_text(yaml.safe_dump(doc))
-        s.compose("up", "-d", "--no-build", "--wait", "--wait-timeout", str(int(600 * SCALE)),
-                  *SERVICES, timeout_s=660)
     except AssertionError:
-        print(s.compose("ps", "-a", check=False).stdout)
-        print(s.compose("logs", "--tail", "40", check=False).stdout[-8000:])
-        s.compose("down", "-v", "--remove-orphans", check=False)
+        s.report_and_down()
         raise
+    s.up_wait(*SERVICES)
     print(f"\ncompose rig up --wait: healthy after {time.monotonic() - t0:.0f} s")
     try:
         yield s

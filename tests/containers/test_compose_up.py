@@ -78,22 +78,44 @@ def wait_for(what: str, check: Callable[[], Any], timeout_s: float = 60.0,
 
 
 class Stack:
-    """`docker compose` on compose.yaml as project PROJECT, with this run's environment."""
+    """`docker compose` on ``files`` (compose.yaml) as ``project`` (PROJECT), with this run's
+    environment."""
 
-    def __init__(self, secrets_dir: Path) -> None:
+    def __init__(self, secrets_dir: Path, project: str = PROJECT,
+                 files: tuple[Path, ...] = (ROOT / "compose.yaml",)) -> None:
+        self.project, self.files = project, files
         self.env = {**os.environ,
                     **{f"AOI3D_PORT_{name}": str(port) for name, port in PORTS.items()},
                     "AOI3D_SECRETS_DIR": str(secrets_dir),
-                    "AOI3D_RUN_ID": PROJECT,
-                    "COMPOSE_PROJECT_NAME": PROJECT}
+                    "AOI3D_RUN_ID": project,
+                    "COMPOSE_PROJECT_NAME": project}
         self.env.setdefault("AOI3D_PROMETHEUS_IMAGE", "aoi3d-prometheus:debian")
         self.secrets_dir = secrets_dir
         self.token = (secrets_dir / "control_token").read_text(encoding="utf-8").strip()
 
     def compose(self, *args: str, timeout_s: float = 120.0,
                 check: bool = True) -> subprocess.CompletedProcess[str]:
-        return self.run("docker", "compose", "-f", str(ROOT / "compose.yaml"), "-p", PROJECT,
-                        *args, timeout_s=timeout_s, check=check)
+        files = [a for f in self.files for a in ("-f", str(f))]
+        return self.run("docker", "compose", *files, "-p", self.project, *args,
+                        timeout_s=timeout_s, check=check)
+
+    def up_wait(self, *services: str) -> float:
+        """``up -d --wait`` (every healthcheck passing); on a failure the state and the logs
+        are printed and the stack taken down. Returns the seconds it took."""
+        t0 = time.monotonic()
+        try:
+            self.compose("up", "-d", "--no-build", "--wait", "--wait-timeout",
+                         str(int(600 * SCALE)), *services, timeout_s=660)
+        except AssertionError:
+            self.report_and_down()
+            raise
+        return time.monotonic() - t0
+
+    def report_and_down(self) -> None:
+        """After a failure: print the containers' state and logs, take the stack down."""
+        print(self.compose("ps", "-a", check=False).stdout)
+        print(self.compose("logs", "--tail", "40", check=False).stdout[-8000:])
+        self.compose("down", "-v", "--remove-orphans", check=False)
 
     def run(self, *argv: str, timeout_s: float = 120.0,
             check: bool = True) -> subprocess.CompletedProcess[str]:
@@ -112,7 +134,7 @@ class Stack:
 
     def leftovers(self) -> dict[str, list[str]]:
         """Containers, networks and volumes still labelled with this project."""
-        label = f"label=com.docker.compose.project={PROJECT}"
+        label = f"label=com.docker.compose.project={self.project}"
         return {kind: self.run("docker", *cmd, "--filter", label, "-q").stdout.split()
                 for kind, cmd in {"containers": ["ps", "-a"], "networks": ["network", "ls"],
                                   "volumes": ["volume", "ls"]}.items()}
@@ -124,16 +146,7 @@ def stack(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Stack]:
     subprocess.run([str(ROOT / "deploy" / "secrets.sh"), str(secrets_dir)], check=True)
     s = Stack(secrets_dir)
     s.run("docker", "info", timeout_s=30)
-    t0 = time.monotonic()
-    try:
-        s.compose("up", "-d", "--no-build", "--wait", "--wait-timeout", str(int(600 * SCALE)),
-                  *SERVICES, timeout_s=660)
-    except AssertionError:
-        print(s.compose("ps", "-a", check=False).stdout)
-        print(s.compose("logs", "--tail", "40", check=False).stdout[-8000:])
-        s.compose("down", "-v", "--remove-orphans", check=False)
-        raise
-    s.up_s = time.monotonic() - t0
+    s.up_s = s.up_wait(*SERVICES)
     print(f"\ncompose up --wait: every healthcheck passed after {s.up_s:.0f} s")
     yield s
     # Whatever a test left: no stack survives the module (test_down_leaves_nothing checks it).

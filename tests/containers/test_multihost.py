@@ -65,11 +65,7 @@ class Hosts(Stack):
                     "AOI3D_SECRETS_DIR": str(secrets_dir), "AOI3D_RUN_ID": PROJECT,
                     "COMPOSE_PROJECT_NAME": PROJECT}
         self.secrets_dir = secrets_dir
-
-    def compose(self, *args: str, timeout_s: float = 120.0,
-                check: bool = True) -> subprocess.CompletedProcess[str]:
-        return self.run("docker", "compose", "-f", str(FILE), "-p", PROJECT, *args,
-                        timeout_s=timeout_s, check=check)
+        self.project, self.files = PROJECT, (FILE,)
 
     def workers(self) -> dict[str, Any]:
         return HTTP.get(url("trainer", "/workers")).json()
@@ -106,16 +102,7 @@ def hosts(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Hosts]:
     subprocess.run([str(ROOT / "deploy" / "secrets.sh"), str(secrets_dir)], check=True,
                    capture_output=True)
     h = Hosts(secrets_dir)
-    t0 = time.monotonic()
-    try:
-        h.compose("up", "-d", "--no-build", "--wait", "--wait-timeout", str(int(600 * SCALE)),
-                  timeout_s=660)
-    except AssertionError:
-        print(h.compose("ps", "-a", check=False).stdout)
-        print(h.compose("logs", "--tail", "40", check=False).stdout[-8000:])
-        h.compose("down", "-v", "--remove-orphans", check=False)
-        raise
-    print(f"\nmultihost up --wait: {time.monotonic() - t0:.0f} s")
+    print(f"\nmultihost up --wait: {h.up_wait():.0f} s")
     try:
         yield h
     finally:

@@ -55,6 +55,25 @@ def metric(service: str, name: str, default: float | None = None) -> float:
     return sum(values)
 
 
+def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[subprocess.Popen, str]:
+    """``aoi3d up --rig`` on this file's ports (30 steps per render), and its run id."""
+    run_id = f"{prefix}{uuid.uuid4().hex[:8]}"
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    up = subprocess.Popen(
+        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
+         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+         str(tmp_path / "logs"), "--quiet", *up_args],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        start_new_session=True)
+    return up, run_id
+
+
+def wait_healthy() -> None:
+    for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
+        wait_for(f"{name} /healthz",
+                 lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+
+
 class QualityTap:
     def __init__(self, run_id: str) -> None:
         import zenoh
@@ -98,19 +117,10 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
                            *robot_args, *common, "--write-rig", str(rig), "--rig-only"],
                           capture_output=True, text=True, timeout=120 * SCALE)
     assert made.returncode == 0, made.stderr
-    run_id = f"ros{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet", *up_args],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+    up, run_id = up_rig(rig, tmp_path, "ros", *up_args)
     robot = tap = None
     try:
-        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
-            wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        wait_healthy()
         tap = QualityTap(run_id)
         robot = subprocess.Popen(
             [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args,
@@ -179,20 +189,11 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     urls = {n: f"rtsp://127.0.0.1:{_PORTS.extra(i)}/cam{n:02d}" for i, n in enumerate((2, 3))}
     doc["cameras"] += [rtsp_camera_entry(ds, n, url) for n, url in urls.items()]
     rig.write_text(yaml.safe_dump(doc))
-    run_id = f"rtsp{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+    up, run_id = up_rig(rig, tmp_path, "rtsp")
     children: list[subprocess.Popen] = []
     tap = None
     try:
-        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
-            wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        wait_healthy()
         tap = QualityTap(run_id)
         r = HTTP.put(url("scheduler", "/policy"), json={"kind": "all"})
         assert r.status_code == 200, r.text
@@ -277,19 +278,10 @@ def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
     made = subprocess.run([*play, "--write-rig", str(rig), "--rig-only"], capture_output=True,
                           text=True, timeout=120 * SCALE)
     assert made.returncode == 0, made.stderr
-    run_id = f"play{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet"],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+    up, run_id = up_rig(rig, tmp_path, "play")
     player = tap = None
     try:
-        for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
-            wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+        wait_healthy()
         tap = QualityTap(run_id)
         epoch = HTTP.get(url("ingest", "/status")).json()["time"]["epoch_s"]
         player = subprocess.Popen([*play, "--epoch-s", str(epoch)], stdout=subprocess.PIPE,
