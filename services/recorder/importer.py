@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
-from services.kit.codec import PNG, camera_from_pb, decode_image
+from services.kit.codec import PNG, camera_from_pb, decode_image, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 
@@ -279,10 +279,10 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
     step = 1000.0 / fps
     t0 = max(s.frames[0].generation_ms for s in streams.values())
     t1 = min(s.frames[-1].generation_ms for s in streams.values())
-    n_frames = math.floor((t1 - t0) / step + 1e-9) + 1
     if t1 < t0:
         raise NotImportable(f"the cameras' frames do not overlap in time (the latest first frame "
                             f"at {t0:.0f} ms, the earliest last one at {t1:.0f} ms)")
+    n_frames = math.floor((t1 - t0) / step + 1e-9) + 1
     cameras, picks, rows = [], [], []
     for cam in order:
         s = streams[cam]
@@ -305,8 +305,6 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         fr = streams[order[camera_id]].frames[picks[camera_id][k]]
         if fr.image.encoding == PNG:
             return bytes(fr.image.data)
-        from services.kit.codec import encode_png
-
         return encode_png(decode_image(fr.image)).data
 
     report = ImportReport(source=str(path), kind=kind, site=site, out=str(out), fps=fps,

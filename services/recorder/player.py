@@ -25,6 +25,7 @@ arrivals; ``aoi3d replay`` (virtual clock) is the one that reproduces decisions 
 
 from __future__ import annotations
 
+import itertools
 import math
 import os
 import threading
@@ -172,14 +173,16 @@ class Player:
             first = g0 + math.ceil((sim_now - g0) / cfg.period_ms) * cfg.period_ms
             self.shift_ms = first - g0
             start = cfg.epoch_s + first / scale
-        for gen, n, fr in self.order:
+        for gen, group in itertools.groupby(self.order, key=lambda x: x[0]):
             due = start + (gen - g0) / scale
-            prepared = self._prepare(n, fr, due)  # encoded before its time, sent at it
+            # every camera's frame of this time encoded before it, all sent at it
+            prepared = [(n, self._prepare(n, fr, due)) for _, n, fr in group]
             wait = due - self._clock()
             if wait > 0 and stop.wait(wait):
                 return
             if stop.is_set():
                 return
-            for kind, payload in prepared:
-                self._send(n, kind, payload)
-            self.sent += 1
+            for n, samples in prepared:
+                for kind, payload in samples:
+                    self._send(n, kind, payload)
+                self.sent += 1
