@@ -5,6 +5,8 @@ the samples decoded back by the ingest's own core)."""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from aoi3d.scene import Camera, look_at
@@ -78,3 +80,31 @@ def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
     rig = rig_from_dict(doc)
     assert rig.truth == "cam00" and [c.name for c in rig.train] == ["cam03", "cam05"]
     assert rig.source.format == "bridge" and rig.working_size == (W, H)
+
+
+def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_live(tmp_path):
+    from typer.testing import CliRunner
+
+    from aoi3d.cli import app
+    from services.kit.rig import load_rig
+    from tests.services.test_scene_import import _record
+
+    _record(tmp_path / "run.mcap")
+    runner = CliRunner()
+
+    def said(res) -> str:  # the message without rich's box and its line breaks
+        return re.sub(r"[│╭╮╰╯─\s]+", " ", res.output)
+
+    rig = tmp_path / "rig.yaml"
+    res = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--live", "--write-rig",
+                              str(rig), "--rig-only", "--time-scale", "0.1"])
+    assert res.exit_code == 0, res.output
+    r = load_rig(rig)
+    assert r.truth == "cam00" and [c.name for c in r.train] == ["cam01", "cam02"]
+    assert r.time_scale == 0.1 and r.scene_box.ravel().tolist() == [-1, -1, -1, 1, 1, 1]
+    res = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--live", "--policy", "all"])
+    assert res.exit_code == 2 and "are for the virtual clock" in said(res)
+    res = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--write-rig", str(rig)])
+    assert res.exit_code == 2 and "--epoch-s are for --live" in said(res)
+    res = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--live", "--rig-only"])
+    assert res.exit_code == 2 and "needs --write-rig" in said(res)
