@@ -289,6 +289,8 @@ def import_(
         if len(box) != 6:
             raise typer.BadParameter("six numbers: xmin,ymin,zmin,xmax,ymax,zmax",
                                      param_hint="'--aabb'")
+    if out.exists() and not out.is_dir():
+        fail(f"{out} exists and is not a folder")
     if out.exists() and any(out.iterdir()) and not overwrite:
         fail(f"{out} exists and is not empty; --overwrite replaces a dataset there")
     started = time.perf_counter()

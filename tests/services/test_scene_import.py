@@ -113,6 +113,9 @@ def test_the_import_command_reports_and_refuses(tmp_path: Path) -> None:
     res = runner.invoke(app, ["scene", "import", str(tmp_path / "lossy.mcap"), "--out",
                               str(tmp_path / "lossy")])
     assert res.exit_code == 0 and "repeat an older frame" in res.output, res.output
+    res = runner.invoke(app, ["scene", "import", str(tmp_path / "run.mcap"), "--out",
+                              str(tmp_path / "run.mcap")])
+    assert res.exit_code == 1 and "is not a folder" in res.output
     (tmp_path / "junk.mcap").write_bytes(b"not an mcap file")
     res = runner.invoke(app, ["scene", "import", str(tmp_path / "junk.mcap"), "--out",
                               str(tmp_path / "x")])
