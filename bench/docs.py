@@ -786,10 +786,34 @@ def ros2_path(results: Path) -> tuple[list[str], set[str]]:
     return lines, {name for _, name in runs}
 
 
+def ingest_rate(results: Path) -> tuple[list[str], set[str]]:
+    d = load(results, "ingest_rate.json")
+    rows = [[r["cameras"], f(r["sent_per_s"], 0), f"{100 * r['published_share']:.1f} %",
+             f"{r['periods_skipped']} of {r['periods'] + r['periods_skipped']}", r["lost"],
+             r["rejected"], r["inbox_dropped"], f(r["age_ms_median"], 1)]
+            for r in d["results"]]
+    lines = [
+        "## Real cameras in real time: what the ingest takes",
+        "",
+        "The pure-Python robot at time scale 1 (every camera a raw 96×72 frame each 30 ms) into "
+        "`aoi3d up --rig`, the whole pipeline running beside it on the same 2 cores, "
+        f"{d['settings']['seconds']} s per camera count ({d['date']}; {d['machine']}). What "
+        "it means: [real-cameras.md](real-cameras.md).",
+        "",
+        *redo(d["command"]),
+        "",
+        *table(["cameras (with the truth camera)", "images sent /s", "published",
+                "robot periods skipped", "lost (sequence gaps)", "refused", "inbox drops",
+                "receipt − stamp, median ms"], rows),
+        "",
+    ]
+    return lines, {"ingest_rate.json"}
+
+
 SECTIONS: tuple[Callable[[Path], tuple[list[str], set[str]]], ...] = (
     live_sweep, live_192, scaling, reconstruction, gpu, chaos, chaos_multihost, soak, pipeline,
     fields,
-    channel, learning, staleness, dynamic_mask, trainer_restart, ros2_path,
+    channel, learning, staleness, dynamic_mask, trainer_restart, ros2_path, ingest_rate,
 )
 
 
