@@ -262,6 +262,10 @@ class Robot:
         while not stop.is_set():
             if cfg.frames is not None and self.periods >= cfg.frames:
                 break
+            late = math.floor((self._clock() - start) / period_wall_s)
+            if late > k:  # behind: on to the newest frame due, before encoding anything
+                self.skipped += late - k
+                k = late
             due = start + k * period_wall_s
             if cfg.duration_s is not None and due - first >= cfg.duration_s:
                 break
@@ -269,12 +273,6 @@ class Robot:
             wait = due - self._clock()
             if wait > 0 and stop.wait(wait):
                 break
-            late = math.floor((self._clock() - start) / period_wall_s)
-            if late > k:
-                self.skipped += late - k
-                k = late
-                due = start + k * period_wall_s
-                prepared = self.prepare_frame(k * cfg.period_ms, due + cfg.clock_offset_s)
             self.send(prepared)
             self.periods += 1
             k += 1

@@ -601,3 +601,35 @@ def test_the_robot_encodes_a_frame_before_its_time_and_sends_its_cameras_togethe
     # frames k = 3 and 4 are due at 180 and 240 ms wall: both cameras at exactly that moment
     np.testing.assert_allclose(sources, [0.18, 0.18, 0.24, 0.24], atol=1e-6)
     assert robot.frames_sent == 4 and robot.periods == 2 and robot.skipped == 0
+
+
+def test_a_robot_behind_skips_to_the_newest_frame_and_encodes_each_frame_once() -> None:
+    """Encoding a frame takes longer than a period here (2 cameras × 100 ms against 62.5 ms): the
+    robot skips to the newest frame due before it encodes, so no frame is encoded and then
+    thrown away, and it counts the periods it skipped."""
+    from services.ingest.publish import PublishConfig, Robot
+
+    clock = [EPOCH]
+
+    class _Slow(_StubDataset):
+        def frame(self, camera_id: int, index: int) -> np.ndarray:
+            clock[0] += 0.1
+            return super().frame(camera_id, index)
+
+    class _Stop:
+        def is_set(self) -> bool:
+            return False
+
+        def wait(self, seconds: float) -> bool:
+            clock[0] += seconds
+            return False
+
+    ds = _Slow()
+    cfg = PublishConfig(dataset=None, period_ms=25.0, time_scale=0.4, frames=4, epoch_s=EPOCH,
+                        pose="file", intrinsics="file")
+    robot = Robot(cfg, lambda *_: None, dataset=ds, clock=lambda: clock[0])
+    robot.run(_Stop())
+    assert robot.periods == 4 and robot.frames_sent == 8
+    assert len(ds.shown) == 8  # every camera's frame encoded once per period sent
+    # frames 0, 3, 6, 9: after each 200 ms of encoding the newest due is 3 periods on
+    assert robot.skipped == 6 and ds.shown == [0, 0, 0, 0, 1, 1, 2, 2]  # 0, 75, 150, 225 ms
