@@ -26,6 +26,13 @@ def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
     return mean_ci95([x - y for x, y in zip(a, b, strict=True)]).to_dict()
 
 
+def _scored_total(rec, sites) -> int:
+    """The decisions the live pool rendered and scored, over ``sites`` (None: all)."""
+    return sum(1 for name, srec in rec.sites.items() if sites is None or name in sites
+               for d in srec.decisions
+               if (k := (d.incarnation, d.decision_id)) in srec.renders and k in srec.qualities)
+
+
 def _summary(result, baseline) -> dict:
     """Means over the rebuilt decisions and the paired differences to ``baseline``."""
     import numpy as np
@@ -64,8 +71,9 @@ def replay(
     site: Annotated[list[str] | None, typer.Option(
         help="Replay these sites only (default: every site in the recording).")] = None,
     max_renders: Annotated[int | None, typer.Option(
-        min=0, help="Rebuild at most this many scored decisions per site (default: all; "
-                    "each is one reconstruction, about half a second on one core).")] = None,
+        min=0, help="Rebuild at most this many scored decisions per site, the first that "
+                    "every policy asked for can rebuild (default: all; each is one "
+                    "reconstruction, about half a second on one core).")] = None,
     score: Annotated[bool, typer.Option(
         help="Rebuild and score the renders (--no-score: compare the selections only).")]
     = True,
@@ -111,7 +119,7 @@ def replay(
     if write_rig is not None or rig_only or epoch_s is not None:
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
-    from services.recorder.replay import load, score_diffs
+    from services.recorder.replay import load, rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
     console = make_console(stderr=json_out)
@@ -137,8 +145,10 @@ def replay(
     kwargs = dict(sites=site, score=score, max_renders=max_renders, threads=threads,
                   scorers=scorers)
     try:
-        base = run_replay(rec, None, **kwargs)
-        others = [run_replay(rec, spec, **kwargs) for spec in specs]
+        # with counterfactuals, every policy rebuilds the same epochs: those all of them can
+        paired = rebuildable_keys(rec, [None, *specs], sites=site) if specs and score else None
+        base = run_replay(rec, None, only=paired, **kwargs)
+        others = [run_replay(rec, spec, only=paired, **kwargs) for spec in specs]
     except (ValueError, PolicySpecError) as err:
         fail(err)
     diffs = score_diffs(rec, base)
@@ -153,7 +163,9 @@ def replay(
         "aoi_vectors_equal": sum(d.aoi_equal for d in base.decisions),
         "late_arrivals": None,
         "rendered": sum(d.quality is not None for d in base.decisions),
-        "not_rebuilt": sum(d.skipped is not None for d in base.decisions),
+        "not_rebuilt": (sum(d.skipped is not None for d in base.decisions) if paired is None
+                        else _scored_total(rec, site) - len(paired)),
+        "paired_epochs": None if paired is None else len(paired),
         "max_abs_score_diff": max(diffs.values()) if diffs else None,
         "score_diffs": diffs,
         "counterfactual": [_summary(r, base) for r in [base, *others]] if score else [],

@@ -32,7 +32,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections import defaultdict
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Collection, Iterable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -233,6 +233,8 @@ class DecisionReplay:
     mean_aoi_selected_ms: float
     quality: pb.Quality | None = None
     skipped: str | None = None
+    rebuildable: bool | None = None
+    """For a decision the live pool scored: whether every frame it needs was recorded."""
 
 
 @dataclass
@@ -353,10 +355,13 @@ def _job_frames(selected: Sequence[tuple[int, float]], used: Sequence[float] | N
 def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | None = None,
            score: bool = True, max_renders: int | None = None, threads: int | None = None,
            scorers: dict[str, Scorer] | None = None,
+           only: Collection[tuple[str, tuple[int, int]]] | None = None,
            progress: Callable[[int, int], None] | None = None) -> ReplayResult:
     """Replay every recorded decision under ``policy`` (None: each decision's recorded
-    policy) and, with ``score``, rebuild and score the decisions the live pool scored (the
-    first ``max_renders`` of them)."""
+    policy) and, with ``score``, rebuild and score the decisions the live pool scored (those
+    in ``only``, (site, key) pairs, when given; the first ``max_renders`` of them that can be
+    rebuilt). Without ``score`` each scored decision still says whether it could be rebuilt
+    (``DecisionReplay.rebuildable``): :func:`rebuildable_keys` pairs policies with it."""
     results: list[DecisionReplay] = []
     cache: dict[str, Policy] = {}
     threads = threads or int(rec.metadata.get("recon_torch_threads", "1") or 1)
@@ -372,16 +377,15 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
         if not srec.decisions:
             continue
         arr = arrivals(srec)
-        scored_keys = [k for k in ((d.incarnation, d.decision_id) for d in srec.decisions)
-                       if k in srec.renders and k in srec.qualities]
-        if max_renders is not None:
-            scored_keys = scored_keys[:max_renders]
-        to_score = set(scored_keys) if score else set()
-        if to_score and any(srec.renders[k].carry != "fresh" for k in to_score):
+        scored = {k for k in ((d.incarnation, d.decision_id) for d in srec.decisions)
+                  if k in srec.renders and k in srec.qualities
+                  and (only is None or (site, k) in only)}
+        if score and any(srec.renders[k].carry != "fresh" for k in scored):
             raise ValueError("replay rebuilds renders of the fresh carry only (a warm or fork "
                              "render depends on the worker's history); give --no-score")
+        total = len(scored) if max_renders is None else min(max_renders, len(scored))
         scorer = None
-        done = 0
+        done = attempted = 0
         budgets = _budgets(srec)
         for d in srec.decisions:
             rec_policy = policy_of(d.policy)
@@ -399,14 +403,18 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                                  float(np.mean(sel.selected_aoi_ms)) if sel.mask.any()
                                  else math.nan)
             results.append(out)
-            if key not in to_score:
+            if key not in scored:
                 continue
             render = srec.renders[key]
             used = list(render.frame_generation_ms) if chosen is None else None
             frames = _job_frames(selected, used, arr, render.frame_camera_ids)
+            out.rebuildable = frames is not None
             if frames is None:
                 out.skipped = "frames_not_recorded"
                 continue
+            if not score or (max_renders is not None and attempted >= max_renders):
+                continue
+            attempted += 1
             replayed = pb.Decision(decision_id=d.decision_id, incarnation=d.incarnation,
                                    time_ms=sel.eval_ms, camera_ids=list(arr.camera_ids),
                                    aoi_ms=[float(a) for a in sel.aoi_ms], policy=p.spec)
@@ -429,8 +437,23 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                 continue
             done += 1
             if progress is not None:
-                progress(done, len(to_score))
+                progress(done, total)
     return ReplayResult(chosen.spec if chosen else "recorded", results)
+
+
+def rebuildable_keys(rec: Recorded, policies: Sequence[str | None], *,
+                     sites: Sequence[str] | None = None) -> set[tuple[str, tuple[int, int]]]:
+    """The scored decisions (site, key) that every one of ``policies`` (None: the recorded
+    one) can rebuild: pairing policies on these compares them on the same epochs. A
+    counterfactual selection that names a frame known only from before the recording (a
+    camera whose newest frame then had been delivered before the recorder subscribed) cannot
+    be rebuilt; the recorded policy, holding its older frames, often can."""
+    common: set[tuple[str, tuple[int, int]]] | None = None
+    for p in policies:
+        mine = {(d.site, d.key) for d in replay(rec, p, sites=sites, score=False).decisions
+                if d.rebuildable}
+        common = mine if common is None else common & mine
+    return common or set()
 
 
 def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:

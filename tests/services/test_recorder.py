@@ -332,6 +332,39 @@ def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Pat
     assert all(len(d.selected) == 2 for d in every.decisions)
 
 
+def test_policies_pair_on_the_epochs_every_one_can_rebuild() -> None:
+    """At the first decision camera 2's newest frame was delivered before the recording
+    (no pixels): mat:20 leaves it out and can be rebuilt, all names it and cannot. The
+    paired epochs are those both can rebuild, so --max-renders 1 with --policy all rebuilds
+    the second decision for both rather than none for all."""
+    from services.recorder.replay import Recorded, SiteRecord, rebuildable_keys, replay
+
+    site = SiteRecord()
+    site.deliveries = [pb.Frame.FromString(frame(1, 25.0, delivery_ms=28.0)),
+                       pb.Frame.FromString(frame(1, 55.0, delivery_ms=58.0)),
+                       pb.Frame.FromString(frame(2, 40.0, delivery_ms=45.0))]
+    site.decisions = [_decision(30.0, {1: 25.0, 2: -30.0}, selected=[1]),
+                      _decision(60.0, {1: 55.0, 2: 40.0}, selected=[1])]
+    for d in site.decisions:
+        d.policy = "mat:20"
+        key = (d.incarnation, d.decision_id)
+        site.renders[key] = pb.Render(decision_id=d.decision_id, carry="fresh",
+                                      frame_generation_ms=[d.selected[0].generation_ms],
+                                      frame_camera_ids=[1])
+        site.qualities[key] = pb.Quality(decision_id=d.decision_id, psnr_db=20.0)
+    rec = Recorded(Path("r.mcap"), [], {}, {"site1": site})
+    every = replay(rec, "all", score=False)
+    assert [d.rebuildable for d in every.decisions] == [False, True]
+    assert [d.skipped for d in every.decisions] == ["frames_not_recorded", None]
+    assert [len(d.selected) for d in every.decisions] == [2, 2]
+    assert [d.rebuildable for d in replay(rec, None, score=False).decisions] == [True, True]
+    assert rebuildable_keys(rec, [None]) == {("site1", (0, 30)), ("site1", (0, 60))}
+    assert rebuildable_keys(rec, [None, "all"]) == {("site1", (0, 60))}
+    # only= keeps the rest out of the rebuild: the first decision is not even looked at
+    only = replay(rec, "all", score=False, only={("site1", (0, 60))})
+    assert [d.rebuildable for d in only.decisions] == [None, True]
+
+
 def _mat10_recording(path: Path) -> None:
     """20 decisions of two cameras under mat:10, their deliveries before them."""
     rec = Recording(path)
