@@ -139,10 +139,13 @@ class IngestCore:
 
     ``epoch_s``/``time_scale``: the run's sim clock; ``through_network``: publish on the
     camera keys for the network emulator to delay (else on the edge keys, delivered at
-    receipt); ``wire_encoding``: ``png`` or ``raw`` images on the pipeline's wire."""
+    receipt); ``wire_encoding``: ``png`` or ``raw`` images on the pipeline's wire;
+    ``key_format``: the keys samples arrive on, when not the rig's source (a rosbag's topics:
+    the bridge's)."""
 
     def __init__(self, rig: Rig, keys: Keys, *, epoch_s: float, time_scale: float,
-                 through_network: bool = False, wire_encoding: str = "png") -> None:
+                 through_network: bool = False, wire_encoding: str = "png",
+                 key_format: ros.KeyFormat | None = None) -> None:
         if wire_encoding not in WIRE_ENCODINGS:
             raise ValueError(f"wire encoding {wire_encoding!r}: one of {WIRE_ENCODINGS}")
         self.rig = rig
@@ -152,7 +155,7 @@ class IngestCore:
         self.through_network = through_network
         self.wire_encoding = wire_encoding
         src = rig.source
-        self.format = ros.KeyFormat(src.format, src.domain_id, src.prefix)
+        self.format = key_format or ros.KeyFormat(src.format, src.domain_id, src.prefix)
         self.size = rig.working_size
         ids = rig.ids()
         self.cameras = {c.name: CameraState(c, ids[c.name]) for c in rig.cameras}

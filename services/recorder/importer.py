@@ -167,8 +167,6 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
         take(frames)
         rejected.update(err.reason for _name, err in refused)
 
-    bag_format = ros.KeyFormat("bridge")  # a bag has topics, not Zenoh keys or attachments
-
     def messages():
         for f in files:  # a split bag's files one after another
             with open(f, "rb") as stream:
@@ -178,9 +176,9 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
         receipt_s = message.log_time / 1e9
         if core is None:
             # the run's clock starts as early as a stamp the ingest accepts (max_age_s)
+            # a bag has topics, not Zenoh keys or attachments: the bridge's key format
             core = IngestCore(rig, Keys("import"), epoch_s=receipt_s - rig.clock.max_age_s,
-                              time_scale=1.0)
-            core.format = bag_format
+                              time_scale=1.0, key_format=ros.KeyFormat("bridge"))
             routes = {r.topic: r for r in core.routes}
         route = routes.get("/" + channel.topic.strip("/"))
         if route is None:
