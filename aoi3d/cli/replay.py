@@ -238,7 +238,8 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
                f"{span:.1f} scene s) at time scale {time_scale:g} via {connect}")
     t0 = time.monotonic()
     endpoints = [c.strip() for c in connect.split(",") if c.strip()]
-    with zenoh_publishing(endpoints, player.keys()) as put, stop_on_signal() as stop:
+    with zenoh_publishing(endpoints, player.keys(), tokens=player.tokens) as put, \
+            stop_on_signal() as stop:
         player.run(stop)
     typer.echo(f"played {player.sent} frames in {time.monotonic() - t0:.1f} s"
                + (f" (shifted {player.shift_ms:g} ms onto the pipeline's clock)"

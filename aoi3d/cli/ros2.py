@@ -119,7 +119,8 @@ def publish(
                f"{', '.join(cfg.connect)}: one frame each every {cfg.period_ms:g} scene ms at "
                f"time scale {time_scale:g}; e.g. {robot.keys()[0]}")
     t0 = time.monotonic()
-    with zenoh_publishing(cfg.connect, robot.keys()) as put, stop_on_signal() as stop:
+    with zenoh_publishing(cfg.connect, robot.keys(), tokens=robot.tokens) as put, \
+            stop_on_signal() as stop:
         robot.run(stop)
     typer.echo(f"published {robot.frames_sent} images in {robot.periods} periods over "
                f"{time.monotonic() - t0:.1f} s ({robot.skipped} periods skipped: behind)")

@@ -161,6 +161,9 @@ class IngestCore:
         self.cameras = {c.name: CameraState(c, ids[c.name]) for c in rig.cameras}
         self.routes = self._routes()
         self.expired: list[tuple[str, Rejected]] = []
+        self.graph: dict[str, ros.GraphEntity] = {}
+        """The ROS graph (rmw_zenoh's liveliness tokens of the rig's domain), by token."""
+        self.graph_unparsed = 0
 
     # ------------------------------------------------------------------ subscriptions
     def _routes(self) -> list[Route]:
@@ -182,6 +185,55 @@ class IngestCore:
                 raise ValueError(f"topic {topic} is both an {other} and a {kind} topic")
         return [Route(kind, topic, t, self.format.subscription(topic, t), tuple(names))
                 for (kind, topic, t), names in by_topic.items()]
+
+    # ------------------------------------------------------------------ the ROS graph
+    @property
+    def graph_key(self) -> str | None:
+        """The liveliness tokens to watch: the rig's domain (rmw_zenoh; the bridge has
+        none)."""
+        if self.format.format != "rmw_zenoh":
+            return None
+        return f"{ros.LIVELINESS_SPACE}/{self.format.domain_id}/**"
+
+    def on_liveliness(self, key: str, alive: bool) -> None:
+        """A token of the ROS graph appeared (``alive``) or vanished; one in another layout is
+        counted (``graph_unparsed``) and otherwise left alone."""
+        if not alive:
+            self.graph.pop(key, None)
+            return
+        try:
+            self.graph[key] = ros.parse_liveliness(key)
+        except ValueError:
+            self.graph_unparsed += 1
+
+    def topic_publishers(self) -> list[dict]:
+        """Per subscribed topic: the live publishers of the rig's type, and the types others
+        publish on it (a rig that names Image where the camera sends CompressedImage)."""
+        out = []
+        pubs = [e for e in self.graph.values() if e.kind == "publisher"]
+        for r in self.routes:
+            topic = "/" + r.topic.strip("/")
+            mine = [e for e in pubs if e.topic == topic]
+            same = [e for e in mine if e.ros_type == r.ros_type]
+            out.append({"topic": topic, "type": r.ros_type, "publishers": len(same),
+                        "nodes": sorted({e.namespace.rstrip("/") + "/" + e.node
+                                         for e in same}),
+                        "other_types": sorted({e.ros_type or "?" for e in mine} - {r.ros_type})})
+        return out
+
+    def graph_hint(self) -> str:
+        """Why no frame may have come, from the graph: the rig's image topics nobody
+        publishes (empty without a graph, or when each has a publisher)."""
+        if self.graph_key is None or not self.graph:
+            return ""
+        missing = [t for t in self.topic_publishers()
+                   if t["publishers"] == 0 and t["type"] in (ros.IMAGE, ros.COMPRESSED)]
+        if not missing:
+            return ""
+        what = ", ".join(t["topic"] + (f" (published as {', '.join(t['other_types'])})"
+                                       if t["other_types"] else "") for t in missing[:3])
+        more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+        return f"no publisher of the rig's type in the ROS graph on {what}{more}"
 
     # ------------------------------------------------------------------ time
     def sim_ms(self, wall_s: float) -> float:
@@ -479,7 +531,13 @@ class IngestCore:
             "source": {"format": self.format.format, "domain_id": self.format.domain_id,
                        "namespace": self.format.namespace,
                        "connect": list(rig.source.connect) or "the pipeline's router",
-                       "subscriptions": [r.key_expr for r in self.routes]},
+                       "subscriptions": [r.key_expr for r in self.routes],
+                       "graph": None if self.graph_key is None else {
+                           "nodes": sum(e.kind == "node" for e in self.graph.values()),
+                           "publishers": sum(e.kind == "publisher"
+                                             for e in self.graph.values()),
+                           "unparsed_tokens": self.graph_unparsed,
+                           "topics": self.topic_publishers()}},
             "time": {"time_scale": self.time_scale, "epoch_s": self.epoch_s,
                      "clock_offset": rig.clock.offset_s,
                      "future_tolerance_s": rig.clock.future_tolerance_s,

@@ -36,6 +36,8 @@ IMAGE_FORMATS = ("rgb8", "bgr8", "jpeg", "png")
 DISTROS = {"jazzy": None, "humble": ros.HUMBLE_HASH}
 """The type hash each distribution's rmw_zenoh puts in its keys (None: the type's RIHS01)."""
 _OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
+ROBOT_NODE = "aoi3d_robot"
+"""The robot's node name in the ROS graph (rmw_zenoh keys)."""
 
 
 @dataclass
@@ -204,6 +206,18 @@ class Robot:
     def keys(self) -> list[str]:
         return [p.key for pubs in self._pubs.values() for p in pubs.values()]
 
+    def tokens(self, session: str) -> list[str]:
+        """The ROS graph's liveliness tokens of the robot on rmw_zenoh keys (none for the
+        bridge, whose DDS side announces its own): its node, then each publisher, so that
+        ``ros2 node list`` / ``ros2 topic list`` on rmw_zenoh and the ingest's /status see it.
+        ``session``: the Zenoh session's id, as rmw_zenoh puts it."""
+        cfg = self.cfg
+        if cfg.format != "rmw_zenoh":
+            return []
+        return ros.node_tokens(cfg.domain_id, session, ROBOT_NODE,
+                               [(p.topic, p.ros_type) for n in self.ids
+                                for p in self._pubs[n].values()], DISTROS[cfg.distro])
+
     def prepare_frame(self, scene_ms: float, stamp: float) -> list[tuple[_Publisher, bytes]]:
         """Every camera's samples of the frame shown at ``scene_ms``, stamped ``stamp``, encoded
         (pose, camera info, then image, camera by camera) and not yet sent."""
@@ -280,9 +294,11 @@ class Robot:
 
 @contextlib.contextmanager
 def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
-                     wait_s: float = 10.0) -> Iterator[Callable[[str, bytes, bytes | None], None]]:
+                     wait_s: float = 10.0, tokens: Callable[[str], list[str]] | None = None
+                     ) -> Iterator[Callable[[str, bytes, bytes | None], None]]:
     """``put(key, payload, attachment)`` on a plain Zenoh client session to ``connect``, for
-    the block (the session closed after it).
+    the block (the session closed after it). ``tokens(session id)``: liveliness tokens to
+    hold for the block (a ROS node's graph entities, :meth:`Robot.tokens`).
 
     A new client session learns who subscribes to what from the router a moment after it
     opens, and drops what it puts before that (seen: each camera's first pose and camera
@@ -299,6 +315,8 @@ def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
     conf.insert_json5("connect/endpoints", json.dumps(connect))
     session = zenoh.open(conf)
     pubs = {key: session.declare_publisher(key) for key in keys or []}
+    held = [session.liveliness().declare_token(t)
+            for t in (tokens(str(session.zid())) if tokens else [])]
     try:
         deadline = time.monotonic() + wait_s
         images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
@@ -316,8 +334,8 @@ def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
 
         yield put
     finally:
-        for pub in pubs.values():
-            pub.undeclare()
+        for item in [*pubs.values(), *held]:
+            item.undeclare()
         session.close()
 
 

@@ -64,7 +64,14 @@ class _Collector:
                                    "receipt over the last samples).", labels=["camera"])
         in_force = GaugeMetricFamily("aoi3d_ingest_clock_offset_in_force_seconds", "The "
                                      "offset subtracted from the stamps.", labels=["camera"])
+        publishers = GaugeMetricFamily("aoi3d_ingest_ros_publishers", "Live publishers of "
+                                       "the rig's type on each subscribed topic, from the ROS "
+                                       "graph (rmw_zenoh's liveliness tokens; absent for the "
+                                       "bridge).", labels=["topic"])
         with self._worker.lock:
+            if self._worker.core.graph_key is not None:
+                for t in self._worker.core.topic_publishers():
+                    publishers.add_metric([t["topic"]], t["publishers"])
             for s in self._worker.core.cameras.values():
                 name = s.spec.name
                 for kind in ("image", "camera_info", "pose"):
@@ -77,7 +84,7 @@ class _Collector:
                 if s.offsets:
                     offset.add_metric([name], s.offset_estimate_s)
                 in_force.add_metric([name], self._worker.core.offset_in_force(s))
-        yield from (samples, frames, rejected, lost, clamped, offset, in_force)
+        yield from (samples, frames, rejected, lost, clamped, offset, in_force, publishers)
 
 
 class IngestWorker:
@@ -127,6 +134,8 @@ class IngestWorker:
         self._loops.start()
         for route in self.core.routes:
             self._source.subscribe_attached(route.key_expr, self._handler(route))
+        if self.core.graph_key is not None:  # rmw_zenoh: who publishes what, for /status
+            self._source.watch_liveliness(self.core.graph_key, self._on_token)
         log.info("ingest: %s keys, subscribed to %s", self.core.format.format,
                  ", ".join(r.key_expr for r in self.core.routes))
 
@@ -140,7 +149,9 @@ class IngestWorker:
         if why_not is not None:
             return False, why_not
         if not self._first:
-            return False, "no frame from the cameras yet"
+            with self.lock:
+                hint = self.core.graph_hint()
+            return False, "no frame from the cameras yet" + (f" ({hint})" if hint else "")
         if self._beat.stalled():
             return False, f"no frame for {self._beat.idle_s():.0f} s"
         return True, ""
@@ -150,6 +161,10 @@ class IngestWorker:
             out = self.core.status(time.time())
         out["inbox"] = {"queued": len(self._inbox), "dropped": self._inbox.dropped}
         return out
+
+    def _on_token(self, key: str, alive: bool) -> None:
+        with self.lock:
+            self.core.on_liveliness(key, alive)
 
     # ------------------------------------------------------------------ samples
     def _handler(self, route: Route):

@@ -66,6 +66,10 @@ class PlayConfig:
             raise ValueError("namespace: the bridge's (rmw_zenoh keys start with the domain)")
 
 
+PLAYER_NODE = "aoi3d_player"
+"""The player's node name in the ROS graph (rmw_zenoh keys)."""
+
+
 def _name(camera_id: int) -> str:
     return f"cam{camera_id:02d}"
 
@@ -135,6 +139,15 @@ class Player:
 
     def keys(self) -> list[str]:
         return [k for k, _ in self._keys.values()]
+
+    def tokens(self, session: str) -> list[str]:
+        """The player's node and publishers in the ROS graph (rmw_zenoh keys; none for the
+        bridge), as :meth:`services.ingest.publish.Robot.tokens`."""
+        if self.cfg.format != "rmw_zenoh":
+            return []
+        return ros.node_tokens(self.cfg.domain_id, session, PLAYER_NODE,
+                               [(_topics(n)[kind], t) for (n, kind), (_k, t)
+                                in self._keys.items()])
 
     def _send(self, n: int, kind: str, payload: bytes) -> None:
         key, _ = self._keys[(n, kind)]

@@ -131,6 +131,13 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
         status = HTTP.get(url("ingest", "/status")).json()
         assert status["source"]["format"] == robot_args[1]
         assert status["truth"] == "cam00"
+        graph = status["source"]["graph"]  # the robot's liveliness tokens, on real Zenoh
+        if robot_args[1] == "rmw_zenoh":
+            assert graph["nodes"] == 1 and graph["unparsed_tokens"] == 0, graph
+            assert all(t["publishers"] == 1 and t["nodes"] == ["/aoi3d_robot"]
+                       for t in graph["topics"]), graph
+        else:
+            assert graph is None
         if up_args:  # exp:60 on top: the network service delays the frames
             assert "on top" in status["link"]
             wait_for("frames through the emulated link",
@@ -296,6 +303,9 @@ def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
         status = HTTP.get(url("ingest", "/status")).json()
         cams = {c["name"]: c for c in status["cameras"]}
         assert sorted(cams) == ["cam00", "cam01", "cam02", "cam03", "cam04"]
+        # its tokens went with it: the player has left the ROS graph
+        wait_for("the player to leave the ROS graph", lambda: HTTP.get(url(
+            "ingest", "/status")).json()["source"]["graph"]["publishers"] == 0, 30)
         for name, cam in cams.items():
             recorded = periods - (len(lost) if name == "cam02" else 0)
             assert cam["rejected"] == {}, cam

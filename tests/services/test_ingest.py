@@ -169,3 +169,35 @@ def test_readiness_waits_for_the_first_frame() -> None:
     with TestClient(create_app(settings, bus=MemoryBus(), rig=rig)) as client:
         r = client.get("/readyz")
         assert r.status_code == 503 and "no frame" in r.json()["reason"]
+
+
+def test_the_ros_graph_tells_which_rig_topic_nobody_publishes() -> None:
+    """rmw_zenoh's liveliness tokens on the bus: a robot node whose cam1 image goes out as
+    CompressedImage (the rig says Image) and whose camera info is right. /readyz says which
+    image topics have no publisher of the rig's type, /status lists the graph, Prometheus
+    counts publishers per topic, and a robot that leaves takes its publishers along."""
+    rig = rig_from_dict(rig_doc())
+    bus = MemoryBus()
+    settings = Settings(common=CommonSettings(run_id="t", cameras=2, epoch_s=time.time() - 60))
+
+    def token(entity_id: int, topic: str, ros_type: str) -> str:
+        return ros.liveliness_key(0, "r1", 0, entity_id, "publisher", "robot", topic=topic,
+                                  ros_type=ros_type)
+
+    held = [bus.declare_token(ros.liveliness_key(0, "r1", 0, 0, "node", "robot")),
+            bus.declare_token(token(1, "/cam1/image_raw", ros.COMPRESSED))]
+    with TestClient(create_app(settings, bus=bus, rig=rig)) as client:
+        held.append(bus.declare_token(token(2, "/cam1/camera_info", ros.CAMERA_INFO)))
+        reason = client.get("/readyz").json()["reason"]
+        assert ("no publisher of the rig's type in the ROS graph on /truth/image_raw, "
+                "/cam1/image_raw (published as sensor_msgs/msg/CompressedImage)") in reason
+        graph = client.get("/status").json()["source"]["graph"]
+        assert (graph["nodes"], graph["publishers"]) == (1, 2)
+        text = client.get("/metrics").text
+        assert metric(text, "aoi3d_ingest_ros_publishers", topic="/cam1/camera_info") == 1
+        assert metric(text, "aoi3d_ingest_ros_publishers", topic="/cam1/image_raw") == 0
+        for t in held:
+            t.undeclare()
+        graph = client.get("/status").json()["source"]["graph"]
+        assert (graph["nodes"], graph["publishers"]) == (0, 0)
+        assert "ROS graph" not in client.get("/readyz").json()["reason"]

@@ -633,3 +633,71 @@ def test_a_robot_behind_skips_to_the_newest_frame_and_encodes_each_frame_once() 
     assert len(ds.shown) == 8  # every camera's frame encoded once per period sent
     # frames 0, 3, 6, 9: after each 200 ms of encoding the newest due is 3 periods on
     assert robot.skipped == 6 and ds.shown == [0, 0, 0, 0, 1, 1, 2, 2]  # 0, 75, 150, 225 ms
+
+
+# ---------------------------------------------------------------- the ROS graph
+def test_liveliness_tokens_in_rmw_zenohs_layout_read_back() -> None:
+    """The layout of rmw_zenoh's liveliness_utils.cpp (Jazzy, and its Humble backport): the
+    session, node and entity ids, NN/MP, the enclave, namespace and topic with % for /."""
+    key = ros.liveliness_key(7, "a1b2", 0, 3, "publisher", "robot", namespace="/team",
+                             topic="/cam1/image_raw", ros_type=ros.COMPRESSED,
+                             hash_=ros.HUMBLE_HASH)
+    assert key == ("@ros2_lv/7/a1b2/0/3/MP/%/%team/robot/%cam1%image_raw/"
+                   "sensor_msgs::msg::dds_::CompressedImage_/TypeHashNotSupported/::,:,:,:,,")
+    e = ros.parse_liveliness(key)
+    assert (e.kind, e.domain_id, e.session, e.node, e.namespace) == ("publisher", 7, "a1b2",
+                                                                     "robot", "/team")
+    assert (e.topic, e.ros_type, e.type_hash) == ("/cam1/image_raw", ros.COMPRESSED,
+                                                  ros.HUMBLE_HASH)
+    node = ros.parse_liveliness(ros.liveliness_key(0, "a1b2", 0, 0, "node", "robot"))
+    assert (node.kind, node.topic, node.namespace) == ("node", None, "/")
+    jazzy = ros.liveliness_key(0, "z", 0, 1, "publisher", "n", topic="t", ros_type=ros.IMAGE)
+    assert ros.parse_liveliness(jazzy).type_hash == ros.type_hash(ros.IMAGE)
+
+
+@pytest.mark.parametrize("key", [
+    "aoi3d/run/pool/worker/1",                                  # another key space
+    "@ros2_lv/0/abc/MP/_/talker/%chatter/std_msgs::msg::dds_::String_/1:2:1,10",  # pre-2024
+    "@ros2_lv/0/abc/0/0/XX/%/%/node",                           # no entity kind
+    "@ros2_lv/0/abc/0/1/MP/%/%/node/%topic",                    # a publisher cut short
+    "@ros2_lv/x/abc/0/0/NN/%/%/node",                           # no domain id
+])
+def test_a_token_in_another_layout_is_a_clear_error(key: str) -> None:
+    with pytest.raises(ValueError):
+        ros.parse_liveliness(key)
+
+
+def test_the_graph_shows_who_publishes_each_topic_and_of_what_type() -> None:
+    """The rig's cam1 image topic has a publisher of CompressedImage (the rig says Image):
+    /status shows it and the hint names it; its camera info has one of the right type; a
+    token of another layout is counted; a vanished token leaves the graph."""
+    core = make_core()
+    assert core.graph_key == "@ros2_lv/0/**" and core.graph_hint() == ""
+
+    def token(entity_id: int, topic: str, ros_type: str) -> str:
+        return ros.liveliness_key(0, "s1", 0, entity_id, "publisher", "robot", topic=topic,
+                                  ros_type=ros_type)
+
+    wrong = token(1, "/cam1/image_raw", ros.COMPRESSED)
+    info = token(2, "/cam1/camera_info", ros.CAMERA_INFO)
+    for key in (ros.liveliness_key(0, "s1", 0, 0, "node", "robot"), wrong, info,
+                "@ros2_lv/0/abc/MP/_/talker/%chatter/std_msgs::msg::dds_::String_/1:2:1,10"):
+        core.on_liveliness(key, True)
+    topics = {t["topic"]: t for t in core.topic_publishers()}
+    assert topics["/cam1/image_raw"]["publishers"] == 0
+    assert topics["/cam1/image_raw"]["other_types"] == [ros.COMPRESSED]
+    assert topics["/cam1/camera_info"]["publishers"] == 1
+    assert topics["/cam1/camera_info"]["nodes"] == ["/robot"]
+    graph = core.status(T0)["source"]["graph"]
+    assert (graph["nodes"], graph["publishers"], graph["unparsed_tokens"]) == (1, 2, 1)
+    hint = core.graph_hint()
+    assert "/cam1/image_raw (published as sensor_msgs/msg/CompressedImage)" in hint
+    assert "/truth/image_raw" in hint and "camera_info" not in hint
+    core.on_liveliness(info, False)
+    assert {t["topic"]: t for t in core.topic_publishers()}["/cam1/camera_info"][
+        "publishers"] == 0
+
+
+def test_the_bridge_has_no_graph() -> None:
+    core = make_core(source={"format": "bridge", "namespace": "r"})
+    assert core.graph_key is None and core.status(T0)["source"]["graph"] is None

@@ -83,6 +83,28 @@ def test_random_attachments_are_accepted_or_rejected(attachment: bytes) -> None:
         assert err.reason == "bad_attachment"
 
 
+_TOKEN = ros.liveliness_key(0, "s1", 0, 1, "publisher", "robot", topic="/cam1/image_raw",
+                            ros_type=ros.IMAGE)
+
+
+@SETTINGS
+@given(st.one_of(st.text(max_size=200),
+                 st.lists(st.sampled_from([*_TOKEN.split("/"), "", "%", "NN", "MP", "9"]),
+                          max_size=16).map("/".join)))
+def test_any_liveliness_token_is_read_or_counted(key: str) -> None:
+    """A token of the ROS graph in any layout (random text, and the parts of a real one in
+    any order): a GraphEntity or ValueError from the parser, and the core counts what it
+    cannot read and goes on."""
+    with contextlib.suppress(ValueError):
+        ros.parse_liveliness(key)
+    before = CORE.graph_unparsed
+    CORE.on_liveliness(key, True)
+    assert key in CORE.graph or CORE.graph_unparsed == before + 1
+    CORE.topic_publishers()
+    CORE.on_liveliness(key, False)
+    assert key not in CORE.graph
+
+
 @SETTINGS
 @given(st.sampled_from([*sorted(SAMPLES), "png", "odom"]), st.data())
 def test_mutated_real_samples_are_accepted_or_rejected(which, data) -> None:
