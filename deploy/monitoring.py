@@ -46,6 +46,10 @@ RATE = "$__rate_interval"
 
 PPO_EMPTY = ("a ppo policy learning online (PUT /policy with learn: true) fills it; empty "
              "with a fixed policy such as the default mat:70")
+RIG_EMPTY = ("real cameras (aoi3d up --rig: the ingest in the camera emulator's place) fill "
+             "it; empty with the emulated cameras")
+GRAPH_EMPTY = ("ROS 2 cameras on rmw_zenoh keys fill it (the ROS graph's liveliness tokens); "
+               "empty with the emulated cameras and with zenoh-bridge-ros2dds keys")
 
 
 def sel(*matchers: str) -> str:
@@ -150,6 +154,15 @@ ALERTS: list[dict] = [
                       "description": "More than one bus message per second rejected ({{ "
                                      "$labels.reason }}) for a minute: a misconfigured or "
                                      "hostile sender."}),
+    # real cameras on rmw_zenoh keys: a subscribed topic nobody publishes with the rig's type
+    dict(alert="AoI3DCameraTopicUnpublished", expr="aoi3d_ingest_ros_publishers == 0",
+         **{"for": "1m"}, labels={"severity": "warning"},
+         annotations={"summary": "No publisher of the rig's type on {{ $labels.topic }}",
+                      "description": "The ROS graph (rmw_zenoh's liveliness tokens) has had "
+                                     "no live publisher of the type the rig file names on "
+                                     "{{ $labels.topic }} for a minute: the robot is gone, or "
+                                     "publishes another topic or type (GET /status on the "
+                                     "ingest lists what is published there)."}),
     # the decision ledger: more than 5 % of the decisions that ended in the last 5 minutes
     # were lost, for 2 minutes; skipped-by-choice ones are not losses
     dict(alert="AoI3DDecisionsLost",
@@ -366,6 +379,42 @@ PANELS: list[Row | Panel] = [
            Q(rate("aoi3d_network_inbox_overflow_total"), "{{site}} network")],
           unit="short", min=0,
           description="Messages dropped because a worker thread fell behind its inbox."),
+
+    Row("Real cameras (the ROS 2 ingest)"),
+    Panel("timeseries", "Frames in, refused and lost per camera",
+          [Q(f"sum by (site, camera) ({rate('aoi3d_ingest_frames_total')})",
+             "{{site}} {{camera}} published", empty_at_rest=RIG_EMPTY),
+           Q(f"sum by (site, camera, reason) ({rate('aoi3d_ingest_rejected_total')})",
+             "{{site}} {{camera}} refused: {{reason}}", empty_at_rest=RIG_EMPTY),
+           Q(f"sum by (site, camera) ({rate('aoi3d_ingest_frames_lost_total')})",
+             "{{site}} {{camera}} lost", empty_at_rest=RIG_EMPTY)],
+          w=8, unit="short", min=0,
+          description="Per wall second: frames the ingest published to the pipeline, samples "
+                      "it refused (by reason: docs/real-cameras.md), and images never "
+                      "received (gaps in rmw_zenoh's sequence numbers)."),
+    Panel("timeseries", "Age at receipt",
+          [Q(f"histogram_quantile({q}, sum by (le) "
+             f"({rate('aoi3d_ingest_frame_age_seconds_bucket')}))", f"p{round(q * 100)}",
+             empty_at_rest=RIG_EMPTY) for q in (0.5, 0.99)],
+          w=8, unit="s", min=0,
+          description="Receipt at the edge − the image's stamp (wall seconds, after the clock "
+                      "offset in force): the real link's delay and the robot's own latency."),
+    Panel("timeseries", "Robot clock offset per camera",
+          [Q(f"aoi3d_ingest_clock_offset_seconds{S}", "{{site}} {{camera}} measured",
+             empty_at_rest=RIG_EMPTY),
+           Q(f"aoi3d_ingest_clock_offset_in_force_seconds{S}", "{{site}} {{camera}} in force",
+             empty_at_rest=RIG_EMPTY)],
+          w=8, unit="s",
+          description="Robot clock − edge clock as measured from the samples, and the offset "
+                      "subtracted from the stamps (the rig's clock.offset_s: 0, a number, or "
+                      "auto)."),
+    Panel("timeseries", "ROS publishers per topic",
+          [Q(f"aoi3d_ingest_ros_publishers{S}", "{{site}} {{topic}}",
+             empty_at_rest=GRAPH_EMPTY)],
+          w=24, h=6, unit="short", min=0,
+          description="Live publishers of the rig's type on each topic the ingest subscribes "
+                      "to, from the ROS graph. Alert AoI3DCameraTopicUnpublished when one has "
+                      "none for a minute."),
 
     Row("Online learning (PPO)"),
     Panel("timeseries", "Episodes learned / min",

@@ -10,8 +10,10 @@ processes and a real Zenoh router on 127.0.0.1:
 
 from __future__ import annotations
 
+import json
 import math
 import os
+import re
 import subprocess
 import sys
 import threading
@@ -22,6 +24,7 @@ import pytest
 
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
+from tests.deploy_modules import load
 from tests.integration.test_pipeline import (
     HTTP,
     SCALE,
@@ -37,6 +40,7 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 _PORTS = block("ros2")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
+MONITORING = load("monitoring")
 TIME_SCALE = 0.5
 
 
@@ -161,6 +165,16 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
             assert cam["lost"] <= max(1, cam["published"] // 10), cam
             assert cam["clock_offset_s"] is not None and abs(cam["clock_offset_s"]) < 1.0, cam
         assert metric("ingest", "aoi3d_messages_rejected_total", default=0.0) == 0
+        # every ingest series the dashboard and the alerts name is one this ingest exports
+        # (a sample's name, or a family's TYPE line: no refusal yet has no sample)
+        exported = set(re.findall(r"^(?:# TYPE )?(aoi3d_ingest_\w+)", HTTP.get(url(
+            "ingest", "/metrics")).text, re.M))
+        named = set(re.findall(r"(?<![\w:])aoi3d_ingest_\w+", json.dumps(
+            [q.expr for p in MONITORING.PANELS if isinstance(p, MONITORING.Panel)
+             for q in p.targets] + [a["expr"] for a in MONITORING.ALERTS])))
+        assert len(named) >= 6 and named - exported <= (
+            set() if robot_args[1] == "rmw_zenoh" else {"aoi3d_ingest_ros_publishers"}), (
+            named - exported)
     finally:
         if robot is not None:
             robot.terminate()

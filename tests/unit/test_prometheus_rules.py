@@ -47,7 +47,8 @@ def test_the_alerts_the_operators_asked_for_exist() -> None:
     names = {r["alert"] for r in rules() if "alert" in r}
     assert names == {"AoI3DServiceDown", "AoI3DNoQuality", "AoI3DPSNRDrop",
                      "AoI3DNoCameraSelected", "AoI3DTrainerStalled",
-                     "AoI3DRejectedMessagesRising", "AoI3DPoolEmpty", "AoI3DDecisionsLost"}
+                     "AoI3DRejectedMessagesRising", "AoI3DPoolEmpty", "AoI3DDecisionsLost",
+                     "AoI3DCameraTopicUnpublished"}
     config = yaml.safe_load((PROM / "prometheus.yml").read_text())
     assert config["rule_files"] == ["rules/*.yml"]
 
