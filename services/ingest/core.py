@@ -55,6 +55,8 @@ STREAMS_KEPT = 16
 HELD_PER_CAMERA = 8
 """Images of one camera waiting at most (an older one is then refused)."""
 _KINDS = ("image", "camera_info", "pose")
+GRAPH_MAX = 4096
+"""Entities of the ROS graph kept at most (a token beyond is counted, not kept)."""
 
 
 class _Wait(Exception):
@@ -164,6 +166,7 @@ class IngestCore:
         self.graph: dict[str, ros.GraphEntity] = {}
         """The ROS graph (rmw_zenoh's liveliness tokens of the rig's domain), by token."""
         self.graph_unparsed = 0
+        self.graph_dropped = 0
 
     # ------------------------------------------------------------------ subscriptions
     def _routes(self) -> list[Route]:
@@ -202,9 +205,14 @@ class IngestCore:
             self.graph.pop(key, None)
             return
         try:
-            self.graph[key] = ros.parse_liveliness(key)
+            entity = ros.parse_liveliness(key)
         except ValueError:
             self.graph_unparsed += 1
+            return
+        if key not in self.graph and len(self.graph) >= GRAPH_MAX:
+            self.graph_dropped += 1  # a flood of tokens cannot grow the ingest without bound
+            return
+        self.graph[key] = entity
 
     def topic_publishers(self) -> list[dict]:
         """Per subscribed topic: the live publishers of the rig's type, and the types others
@@ -537,6 +545,7 @@ class IngestCore:
                            "publishers": sum(e.kind == "publisher"
                                              for e in self.graph.values()),
                            "unparsed_tokens": self.graph_unparsed,
+                           "dropped_tokens": self.graph_dropped,
                            "topics": self.topic_publishers()}},
             "time": {"time_scale": self.time_scale, "epoch_s": self.epoch_s,
                      "clock_offset": rig.clock.offset_s,

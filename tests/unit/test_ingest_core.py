@@ -698,6 +698,19 @@ def test_the_graph_shows_who_publishes_each_topic_and_of_what_type() -> None:
         "publishers"] == 0
 
 
+def test_a_flood_of_tokens_is_counted_not_kept(monkeypatch) -> None:
+    import services.ingest.core as core_module
+
+    monkeypatch.setattr(core_module, "GRAPH_MAX", 3)
+    core = make_core()
+    keys = [ros.liveliness_key(0, f"s{i}", 0, 0, "node", "n") for i in range(5)]
+    for key in keys:
+        core.on_liveliness(key, True)
+    core.on_liveliness(keys[0], True)  # one already kept: still kept
+    assert list(core.graph) == keys[:3] and core.graph_dropped == 2
+    assert core.status(T0)["source"]["graph"]["dropped_tokens"] == 2
+
+
 def test_the_bridge_has_no_graph() -> None:
     core = make_core(source={"format": "bridge", "namespace": "r"})
     assert core.graph_key is None and core.status(T0)["source"]["graph"] is None
