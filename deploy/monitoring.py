@@ -219,6 +219,13 @@ def rate(name: str, selector: str = S) -> str:
     return f"rate({name}{selector}[{RATE}])"
 
 
+def quantiles(histogram: str, qs: tuple[float, ...],
+              empty_at_rest: str | None = None) -> list[Q]:
+    """The ``qs`` quantiles of a histogram over every series shown, legends p50, p99 …"""
+    return [Q(f"histogram_quantile({q}, sum by (le) ({rate(histogram + '_bucket')}))",
+              f"p{round(q * 100)}", empty_at_rest=empty_at_rest) for q in qs]
+
+
 PANELS: list[Row | Panel] = [
     Row("Novel view: quality"),
     Panel("stat", "PSNR", [Q(f"aoi3d_render_psnr_db{S}")], w=3, h=4, unit="dB",
@@ -292,9 +299,7 @@ PANELS: list[Row | Panel] = [
              "{{site}} cam {{camera}}")],
           unit="percentunit", min=0, max=1, description="dropped / offered per camera."),
     Panel("timeseries", "Link delay quantiles",
-          [*(Q(f"histogram_quantile({q}, sum by (le) "
-               f"({rate('aoi3d_link_delay_seconds_bucket')}))", f"p{round(q * 100)}")
-             for q in (0.5, 0.9, 0.99)),
+          [*quantiles("aoi3d_link_delay_seconds", (0.5, 0.9, 0.99)),
            Q(f"sum({rate('aoi3d_link_delay_seconds_sum')}) / "
              f"sum({rate('aoi3d_link_delay_seconds_count')})", "mean")],
           unit="s", min=0,
@@ -326,9 +331,7 @@ PANELS: list[Row | Panel] = [
           description="Novel-view renders published, decisions applied and selected frames "
                       "the trainer never received, per wall second."),
     Panel("timeseries", "Render lag",
-          [Q(f"histogram_quantile({q}, sum by (le) "
-             f"({rate('aoi3d_render_lag_seconds_bucket')}))", f"p{round(q * 100)}")
-           for q in (0.5, 0.9, 0.99)],
+          quantiles("aoi3d_render_lag_seconds", (0.5, 0.9, 0.99)),
           w=6, unit="s", min=0,
           description="Simulation seconds from a render's decision time t to its scoring by "
                       "the metrics service: how stale the novel view is when it is judged."),
@@ -393,9 +396,7 @@ PANELS: list[Row | Panel] = [
                       "it refused (by reason: docs/real-cameras.md), and images never "
                       "received (gaps in rmw_zenoh's sequence numbers)."),
     Panel("timeseries", "Age at receipt",
-          [Q(f"histogram_quantile({q}, sum by (le) "
-             f"({rate('aoi3d_ingest_frame_age_seconds_bucket')}))", f"p{round(q * 100)}",
-             empty_at_rest=RIG_EMPTY) for q in (0.5, 0.99)],
+          quantiles("aoi3d_ingest_frame_age_seconds", (0.5, 0.99), RIG_EMPTY),
           w=8, unit="s", min=0,
           description="Receipt at the edge − the image's stamp (wall seconds, after the clock "
                       "offset in force): the real link's delay and the robot's own latency."),
@@ -449,9 +450,7 @@ PANELS: list[Row | Panel] = [
                       "that never came (expired), decisions no render represented "
                       "(unscored), Quality messages ignored (by reason)."),
     Panel("timeseries", "PPO update time",
-          [Q(f"histogram_quantile({q}, sum by (le) "
-             f"({rate('aoi3d_ppo_update_seconds_bucket')}))", f"p{round(q * 100)}",
-             empty_at_rest=PPO_EMPTY) for q in (0.5, 0.99)],
+          quantiles("aoi3d_ppo_update_seconds", (0.5, 0.99), PPO_EMPTY),
           unit="s", min=0,
           description="Wall time of one online PPO update (the decision thread acts with its "
                       "own copy of the agent, so updates do not delay decisions)."),
