@@ -30,12 +30,14 @@ from services.ingest import ros
 
 log = logging.getLogger(__name__)
 
-__all__ = ["IMAGE_FORMATS", "PublishConfig", "Robot", "rig_document", "source_document"]
+__all__ = ["IMAGE_FORMATS", "OPTICAL", "PublishConfig", "Robot", "RosPublisher", "rig_document",
+           "source_document"]
 
 IMAGE_FORMATS = ("rgb8", "bgr8", "jpeg", "png")
 DISTROS = {"jazzy": None, "humble": ros.HUMBLE_HASH}
 """The type hash each distribution's rmw_zenoh puts in its keys (None: the type's RIHS01)."""
-_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
+OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
+"""OpenGL camera axes → the ROS optical frame (x right, y down, z forward)."""
 ROBOT_NODE = "aoi3d_robot"
 """The robot's node name in the ROS graph (rmw_zenoh keys)."""
 
@@ -151,8 +153,9 @@ def rig_document(cfg: PublishConfig, ds) -> dict:
     return doc
 
 
-class _Publisher:
-    """One ROS publisher: its key, its publisher id and its sequence numbers."""
+class RosPublisher:
+    """One ROS publisher: its key, its publisher id and its sequence numbers (the robot's and
+    the player's)."""
 
     def __init__(self, fmt: ros.KeyFormat, topic: str, ros_type: str, hash_: str | None):
         self.key = fmt.key(topic, ros_type, hash_)
@@ -190,14 +193,14 @@ class Robot:
         image_type = ros.COMPRESSED if cfg.image in ("jpeg", "png") else ros.IMAGE
         pose_type = ros.ODOMETRY if cfg.pose == "odometry" else ros.POSE_STAMPED
         self.ids = camera_ids(cfg, self.ds)
-        self._pubs: dict[int, dict[str, _Publisher]] = {}
+        self._pubs: dict[int, dict[str, RosPublisher]] = {}
         for n in self.ids:
             t = _topics(cfg, n)
-            pubs = {"image": _Publisher(fmt, t["image"], image_type, hash_)}
+            pubs = {"image": RosPublisher(fmt, t["image"], image_type, hash_)}
             if cfg.intrinsics == "topic":
-                pubs["camera_info"] = _Publisher(fmt, t["camera_info"], ros.CAMERA_INFO, hash_)
+                pubs["camera_info"] = RosPublisher(fmt, t["camera_info"], ros.CAMERA_INFO, hash_)
             if cfg.pose != "file":
-                pubs["pose"] = _Publisher(fmt, t["pose"], pose_type, hash_)
+                pubs["pose"] = RosPublisher(fmt, t["pose"], pose_type, hash_)
             self._pubs[n] = pubs
         self.frames_sent = 0
         self.periods = 0
@@ -218,16 +221,16 @@ class Robot:
                                [(p.topic, p.ros_type) for n in self.ids
                                 for p in self._pubs[n].values()], DISTROS[cfg.distro])
 
-    def prepare_frame(self, scene_ms: float, stamp: float) -> list[tuple[_Publisher, bytes]]:
+    def prepare_frame(self, scene_ms: float, stamp: float) -> list[tuple[RosPublisher, bytes]]:
         """Every camera's samples of the frame shown at ``scene_ms``, stamped ``stamp``, encoded
         (pose, camera info, then image, camera by camera) and not yet sent."""
         cfg, ds = self.cfg, self.ds
         index = ds.frame_index(scene_ms)
-        out: list[tuple[_Publisher, bytes]] = []
+        out: list[tuple[RosPublisher, bytes]] = []
         for n in self.ids:
             c, pubs, name = ds.cameras[n], self._pubs[n], _name(n)
             if "pose" in pubs:
-                m = np.asarray(c.c2w) @ _OPTICAL
+                m = np.asarray(c.c2w) @ OPTICAL
                 msg = (ros.odometry_msg(stamp, "world", name, m) if cfg.pose == "odometry"
                        else ros.pose_stamped_msg(stamp, "world", m))
                 out.append((pubs["pose"], pubs["pose"].encode(msg)))
@@ -243,7 +246,7 @@ class Robot:
             out.append((pubs["image"], pubs["image"].encode(msg)))
         return out
 
-    def send(self, prepared: list[tuple[_Publisher, bytes]]) -> None:
+    def send(self, prepared: list[tuple[RosPublisher, bytes]]) -> None:
         """Publish prepared samples, each with its attachment of this moment."""
         for pub, payload in prepared:
             robot_ns = int((self._clock() + self.cfg.clock_offset_s) * 1e9)

@@ -131,6 +131,13 @@ def encode_png(image: np.ndarray) -> pb.Image:
     return pb.Image(encoding=PNG, width=arr.shape[1], height=arr.shape[0], data=buf.getvalue())
 
 
+def png_bytes(img: pb.Image) -> bytes:
+    """The image as PNG file bytes: its own when it is a PNG, else encoded."""
+    if img.encoding == PNG:
+        return bytes(img.data)
+    return encode_png(decode_image(img)).data
+
+
 # ---------------------------------------------------------------- frames
 @dataclass(frozen=True)
 class FrameData:

@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
-from services.kit.codec import PNG, camera_from_pb, decode_image, encode_png
+from services.kit.codec import camera_from_pb, png_bytes
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 
@@ -300,10 +300,7 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
                             "holds one size")
 
     def frame_png(camera_id: int, k: int) -> bytes:
-        fr = streams[order[camera_id]].frames[picks[camera_id][k]]
-        if fr.image.encoding == PNG:
-            return bytes(fr.image.data)
-        return encode_png(decode_image(fr.image)).data
+        return png_bytes(streams[order[camera_id]].frames[picks[camera_id][k]].image)
 
     report = ImportReport(source=str(path), kind=kind, site=site, out=str(out), fps=fps,
                           n_frames=n_frames, t0_ms=t0, cameras=rows, rejected=dict(rejected))

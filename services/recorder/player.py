@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import os
 import threading
 import time
 from collections.abc import Callable
@@ -36,13 +35,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from services.ingest import ros
-from services.ingest.publish import source_document
-from services.kit.codec import PNG, camera_from_pb, decode_image, encode_png
+from services.ingest.publish import OPTICAL, RosPublisher, source_document
+from services.kit.codec import camera_from_pb, png_bytes
 from services.kit.pb import aoi3d_pb2 as pb
 
 __all__ = ["PlayConfig", "Player", "rig_document"]
 
-_OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 @dataclass
@@ -122,23 +120,20 @@ class Player:
         self._put = put
         self._clock = clock
         fmt = ros.KeyFormat(cfg.format, cfg.domain_id, cfg.namespace)
-        self._keys: dict[tuple[int, str], tuple[str, str]] = {}
+        self._pubs: dict[tuple[int, str], RosPublisher] = {}
         types = {"image": ros.COMPRESSED, "camera_info": ros.CAMERA_INFO,
                  "pose": ros.POSE_STAMPED}
         for n in frames:
             for kind, topic in _topics(n).items():
                 if n != 0 or kind == "image":  # the truth camera's pose and intrinsics: file
-                    self._keys[(n, kind)] = (fmt.key(topic, types[kind]), types[kind])
-        self._attached = fmt.attached
-        self._gid = {k: os.urandom(16) for k in self._keys}
-        self._seq = dict.fromkeys(self._keys, 0)
+                    self._pubs[(n, kind)] = RosPublisher(fmt, topic, types[kind], None)
         self.order = sorted(((fr.generation_ms, n, fr) for n, lst in frames.items()
                              for fr in lst), key=lambda x: (x[0], x[1]))
         self.sent = 0
         self.shift_ms = 0.0
 
     def keys(self) -> list[str]:
-        return [k for k, _ in self._keys.values()]
+        return [p.key for p in self._pubs.values()]
 
     def tokens(self, session: str) -> list[str]:
         """The player's node and publishers in the ROS graph (rmw_zenoh keys; none for the
@@ -146,31 +141,21 @@ class Player:
         if self.cfg.format != "rmw_zenoh":
             return []
         return ros.node_tokens(self.cfg.domain_id, session, PLAYER_NODE,
-                               [(_topics(n)[kind], t) for (n, kind), (_k, t)
-                                in self._keys.items()])
-
-    def _send(self, n: int, kind: str, payload: bytes) -> None:
-        key, _ = self._keys[(n, kind)]
-        self._seq[(n, kind)] += 1
-        att = (ros.build_attachment(self._seq[(n, kind)], int(self._clock() * 1e9),
-                                    self._gid[(n, kind)]) if self._attached else None)
-        self._put(key, payload, att)
+                               [(p.topic, p.ros_type) for p in self._pubs.values()])
 
     def _prepare(self, n: int, fr: pb.Frame, stamp: float) -> list[tuple[str, bytes]]:
         """The frame's samples (pose, camera info, image), CDR-encoded."""
         name = _name(n)
         out: list[tuple[str, object]] = []
-        if (n, "pose") in self._keys:
-            m = np.asarray(fr.pose.c2w, dtype=np.float64).reshape(4, 4) @ _OPTICAL
+        if (n, "pose") in self._pubs:
+            m = np.asarray(fr.pose.c2w, dtype=np.float64).reshape(4, 4) @ OPTICAL
             out.append(("pose", ros.pose_stamped_msg(stamp, "world", m)))
-        if (n, "camera_info") in self._keys:
+        if (n, "camera_info") in self._pubs:
             i = fr.intrinsics
             out.append(("camera_info", ros.camera_info_msg(stamp, name, i.fx, i.fy, i.cx, i.cy,
                                                            i.width, i.height)))
-        data = (bytes(fr.image.data) if fr.image.encoding == PNG
-                else encode_png(decode_image(fr.image)).data)
-        out.append(("image", ros.compressed_bytes_msg(stamp, name, data, "png")))
-        return [(kind, ros.encode_cdr(msg, self._keys[(n, kind)][1])) for kind, msg in out]
+        out.append(("image", ros.compressed_bytes_msg(stamp, name, png_bytes(fr.image), "png")))
+        return [(kind, self._pubs[(n, kind)].encode(msg)) for kind, msg in out]
 
     def run(self, stop: threading.Event | None = None) -> None:
         stop = stop or threading.Event()
@@ -197,5 +182,5 @@ class Player:
                 return
             for n, samples in prepared:
                 for kind, payload in samples:
-                    self._send(n, kind, payload)
+                    self._put(*self._pubs[(n, kind)].sample(payload, int(self._clock() * 1e9)))
                 self.sent += 1

@@ -18,6 +18,7 @@ from services.kit.membus import key_matches
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rig import rig_from_dict
 from services.recorder.player import PlayConfig, Player, rig_document
+from tests.fakeclock import FakeClock
 from tests.services.test_recorder import H, W, noise_image
 
 EPOCH = 1_700_000_000.0
@@ -38,20 +39,11 @@ def test_the_player_sends_each_frame_at_its_recorded_time_on_the_pipelines_grid(
               1: [_frame(1, 990.0 + 30 * k) for k in range(4)],
               2: [_frame(2, 990.0 + 30 * k, x=0.1 * k) for k in (0, 1, 3)]}
     cfg = PlayConfig(time_scale=0.5, epoch_s=EPOCH, period_ms=30.0)
-    clock = [EPOCH + 0.123]  # 61.5 ms into the pipeline's clock: its next grid time is 90
-
-    class _Stop:
-        def is_set(self) -> bool:
-            return False
-
-        def wait(self, seconds: float) -> bool:
-            clock[0] += seconds
-            return False
+    clock = FakeClock(EPOCH + 0.123)  # 61.5 ms into the pipeline's clock: its next grid time is 90
 
     sent: list[tuple[str, bytes, bytes | None, float]] = []
-    player = Player(frames, cfg, lambda k, p, a: sent.append((k, p, a, clock[0])),
-                    clock=lambda: clock[0])
-    player.run(_Stop())
+    player = Player(frames, cfg, lambda k, p, a: sent.append((k, p, a, clock())), clock=clock)
+    player.run(clock)
     assert player.sent == 11 and player.shift_ms == 90.0 - 990.0
     # the ingest's own core, on the rig file written for the play, takes every frame back
     core = IngestCore(rig_from_dict(rig_document(frames, cfg, AABB)), Keys("t"),

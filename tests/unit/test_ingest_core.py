@@ -19,6 +19,7 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 from services.kit.rig import rig_from_dict
+from tests.fakeclock import FakeClock
 
 W, H = 24, 18
 EPOCH = 1_700_000_000.0
@@ -576,27 +577,18 @@ def test_the_robot_encodes_a_frame_before_its_time_and_sends_its_cameras_togethe
     from services.ingest import ros
     from services.ingest.publish import PublishConfig, Robot
 
-    clock = [EPOCH + 0.13]
+    clock = FakeClock(EPOCH + 0.13)
 
     class _Slow(_StubDataset):
         def frame(self, camera_id: int, index: int) -> np.ndarray:
-            clock[0] += 0.01  # reading and encoding a camera's frame takes 10 ms
+            clock.advance(0.01)  # reading and encoding a camera's frame takes 10 ms
             return super().frame(camera_id, index)
-
-    class _Stop:  # a stop event whose waits advance the fake clock
-        def is_set(self) -> bool:
-            return False
-
-        def wait(self, seconds: float) -> bool:
-            clock[0] += seconds
-            return False
 
     cfg = PublishConfig(dataset=None, period_ms=30.0, time_scale=0.5, frames=2, epoch_s=EPOCH,
                         pose="file", intrinsics="file")
     sent = []
-    robot = Robot(cfg, lambda k, p, a: sent.append((k, p, a)), dataset=_Slow(),
-                  clock=lambda: clock[0])
-    robot.run(_Stop())
+    robot = Robot(cfg, lambda k, p, a: sent.append((k, p, a)), dataset=_Slow(), clock=clock)
+    robot.run(clock)
     sources = [ros.parse_attachment(a).source_ns / 1e9 - EPOCH for _, _, a in sent]
     # frames k = 3 and 4 are due at 180 and 240 ms wall: both cameras at exactly that moment
     np.testing.assert_allclose(sources, [0.18, 0.18, 0.24, 0.24], atol=1e-6)
@@ -609,26 +601,18 @@ def test_a_robot_behind_skips_to_the_newest_frame_and_encodes_each_frame_once() 
     thrown away, and it counts the periods it skipped."""
     from services.ingest.publish import PublishConfig, Robot
 
-    clock = [EPOCH]
+    clock = FakeClock(EPOCH)
 
     class _Slow(_StubDataset):
         def frame(self, camera_id: int, index: int) -> np.ndarray:
-            clock[0] += 0.1
+            clock.advance(0.1)
             return super().frame(camera_id, index)
-
-    class _Stop:
-        def is_set(self) -> bool:
-            return False
-
-        def wait(self, seconds: float) -> bool:
-            clock[0] += seconds
-            return False
 
     ds = _Slow()
     cfg = PublishConfig(dataset=None, period_ms=25.0, time_scale=0.4, frames=4, epoch_s=EPOCH,
                         pose="file", intrinsics="file")
-    robot = Robot(cfg, lambda *_: None, dataset=ds, clock=lambda: clock[0])
-    robot.run(_Stop())
+    robot = Robot(cfg, lambda *_: None, dataset=ds, clock=clock)
+    robot.run(clock)
     assert robot.periods == 4 and robot.frames_sent == 8
     assert len(ds.shown) == 8  # every camera's frame encoded once per period sent
     # frames 0, 3, 6, 9: after each 200 ms of encoding the newest due is 3 periods on
