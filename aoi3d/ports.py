@@ -2,7 +2,7 @@
 
 The one table the services' settings, ``aoi3d up`` (the supervisor), the console's upstreams,
 ``aoi3d live``, the benches and the tests' port blocks (tests/ports.py) all read. It lives in
-the domain package, below both ``aoi3d.cli`` and ``services``, because both need it and
+the domain package, below both ``aoi3d_cli`` and ``services``, because both need it and
 ``aoi3d`` never imports ``services`` (pyproject.toml's import contracts); standard library
 only, so ``aoi3d --help`` and the supervisor stay light.
 

@@ -20,8 +20,8 @@ import time
 import httpx
 import livebench  # bench/livebench.py, a sibling
 
-from aoi3d.cli.common import control_headers
 from aoi3d.ports import BENCH_BLOCKS
+from aoi3d_cli.common import control_headers
 
 ROOT = livebench.ROOT
 BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)

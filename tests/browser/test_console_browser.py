@@ -49,8 +49,8 @@ def url(service: str, path: str = "/") -> str:
 def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
     run_id = f"web{uuid.uuid4().hex[:8]}"
     up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
+        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",
+         run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
          str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1"],
         env=dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
                  AOI3D_SCHEDULER_POLICY="mat:70"),

@@ -179,7 +179,7 @@ def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"it{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1"]
     env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_TRAINER_RENDER_STEPS="30")
@@ -241,7 +241,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         # `aoi3d live sweep` measures policies on this pipeline, Quality by decision id
         scale = SCALE
         sweep = subprocess.run(
-            [sys.executable, "-m", "aoi3d", "live", "sweep", "--policies", "mat:70,all",
+            [sys.executable, "-m", "aoi3d_cli", "live", "sweep", "--policies", "mat:70,all",
              "--settle-s", "1", "--measure-s", str(10 * scale), "--port-offset",
              str(PORT_OFFSET), "--no-sim", "--json", "--out", str(tmp_path / "sweep"),
              "--dataset", str(small_dataset),

@@ -60,7 +60,7 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,  # noqa: F
                                                  tmp_path: Path) -> None:
     run_id = f"pool{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
            "--workers", "2"]

@@ -52,7 +52,7 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  
     ckpt = make_subset_checkpoint(tmp_path / "odd.pt", n_cameras=N_CAMERAS, subset=ODD)
     online = tmp_path / "odd.online.pt"
     run_id = f"ppo{uuid.uuid4().hex[:8]}"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1"]

@@ -60,7 +60,7 @@ def topics_and_schemas(path: Path) -> dict[str, str]:
 def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"rec{uuid.uuid4().hex[:8]}"
     first, second = tmp_path / "run.mcap", tmp_path / "later.mcap"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(_PORTS.zenoh), "--port-offset",
            str(_PORTS.rest_offset), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
@@ -102,7 +102,7 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
         assert topics[f"/site1/{name}"].startswith("aoi3d.v1."), topics
     assert "/site1/decision" in topics_and_schemas(second)
 
-    r = subprocess.run([sys.executable, "-m", "aoi3d", "replay", str(first), "--json",
+    r = subprocess.run([sys.executable, "-m", "aoi3d_cli", "replay", str(first), "--json",
                         "--max-renders", "4", "--policy", "all"],
                        capture_output=True, text=True, timeout=600 * SCALE)
     assert r.returncode == 0, r.stderr[-3000:]

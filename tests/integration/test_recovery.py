@@ -52,7 +52,7 @@ def test_each_process_killed_gives_new_quality_within_the_bound(
         small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
     run_id = f"rec{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet",
            "--time-scale", str(TIME_SCALE)]

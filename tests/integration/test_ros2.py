@@ -64,7 +64,7 @@ def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[subpr
     run_id = f"{prefix}{uuid.uuid4().hex[:8]}"
     env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
     up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--rig", str(rig), "--run-id", run_id,
+        [sys.executable, "-m", "aoi3d_cli", "up", "--rig", str(rig), "--run-id", run_id,
          "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
          str(tmp_path / "logs"), "--quiet", *up_args],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -117,7 +117,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
     rig = tmp_path / "rig.yaml"
     common = ["--cameras", "4", "--time-scale", str(TIME_SCALE), "--connect",
               f"tcp/127.0.0.1:{ZENOH_PORT}"]
-    made = subprocess.run([sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset),
+    made = subprocess.run([sys.executable, "-m", "aoi3d_cli", "ros2", "publish", str(small_dataset),
                            *robot_args, *common, "--write-rig", str(rig), "--rig-only"],
                           capture_output=True, text=True, timeout=120 * SCALE)
     assert made.returncode == 0, made.stderr
@@ -127,7 +127,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
         wait_healthy()
         tap = QualityTap(run_id)
         robot = subprocess.Popen(
-            [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args,
+            [sys.executable, "-m", "aoi3d_cli", "ros2", "publish", str(small_dataset), *robot_args,
              *common], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             start_new_session=True)
         wait_for("frames from the robot", lambda: metric("ingest", "aoi3d_ingest_frames_total")
@@ -201,7 +201,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     rig = tmp_path / "rig.yaml"
     robot_args = ["--format", "rmw_zenoh", "--cameras", "1", "--time-scale", str(TIME_SCALE),
                   "--connect", f"tcp/127.0.0.1:{ZENOH_PORT}"]
-    made = subprocess.run([sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset),
+    made = subprocess.run([sys.executable, "-m", "aoi3d_cli", "ros2", "publish", str(small_dataset),
                            *robot_args, "--write-rig", str(rig), "--rig-only"],
                           capture_output=True, text=True, timeout=120 * SCALE)
     assert made.returncode == 0, made.stderr
@@ -219,12 +219,12 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
         r = HTTP.put(url("scheduler", "/policy"), json={"kind": "all"})
         assert r.status_code == 200, r.text
         children.append(subprocess.Popen(
-            [sys.executable, "-m", "aoi3d", "ros2", "publish", str(small_dataset), *robot_args],
+            [sys.executable, "-m", "aoi3d_cli", "ros2", "publish", str(small_dataset), *robot_args],
             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
             start_new_session=True))
         for n, address in urls.items():
             children.append(subprocess.Popen(
-                [sys.executable, "-m", "aoi3d", "ros2", "rtsp", str(small_dataset), "--camera",
+                [sys.executable, "-m", "aoi3d_cli", "ros2", "rtsp", str(small_dataset), "--camera",
                  str(n), "--url", address, "--time-scale", str(TIME_SCALE)],
                 stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                 start_new_session=True))
@@ -294,7 +294,7 @@ def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
                                      site="site1").SerializeToString(), log_ns=periods)
     rec.close()
     rig = tmp_path / "rig.yaml"
-    play = [sys.executable, "-m", "aoi3d", "replay", str(recording), "--live", "--time-scale",
+    play = [sys.executable, "-m", "aoi3d_cli", "replay", str(recording), "--live", "--time-scale",
             str(TIME_SCALE), "--connect", f"tcp/127.0.0.1:{ZENOH_PORT}"]
     made = subprocess.run([*play, "--write-rig", str(rig), "--rig-only"], capture_output=True,
                           text=True, timeout=120 * SCALE)

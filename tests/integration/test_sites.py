@@ -76,7 +76,7 @@ class SiteTap:
 def test_two_sites_share_the_pool_and_change_policy_on_their_own(
         small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
     run_id = f"sites{uuid.uuid4().hex[:8]}"
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1", "--sites", "2", "--workers", "2"]
@@ -130,7 +130,7 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
 
         # `aoi3d live sweep --site site2` measures site2 while site1 goes on
         sweep = subprocess.run(
-            [sys.executable, "-m", "aoi3d", "live", "sweep", "--site", "site2", "--policies",
+            [sys.executable, "-m", "aoi3d_cli", "live", "sweep", "--site", "site2", "--policies",
              "mat:70,all", "--settle-s", "1", "--measure-s", str(8 * SCALE), "--repeats", "1",
              "--port-offset", str(PORT_OFFSET), "--no-sim", "--json",
              "--out", str(tmp_path / "sweep"), "--dataset", str(small_dataset),

@@ -173,7 +173,7 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
     run_id = f"prom{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
     up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d", "up", "--dataset", str(small_dataset), "--run-id",
+        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",
          run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET),
          "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
          "--workers", str(WORKERS)],

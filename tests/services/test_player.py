@@ -83,7 +83,7 @@ def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
 def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_live(tmp_path):
     from typer.testing import CliRunner
 
-    from aoi3d.cli import app
+    from aoi3d_cli import app
     from services.kit.rig import load_rig
     from tests.services.test_scene_import import _record
 

@@ -389,7 +389,7 @@ def test_replay_command_json_and_its_errors(tmp_path: Path) -> None:
 
     from typer.testing import CliRunner
 
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     _mat10_recording(tmp_path / "r.mcap")
     out = CliRunner().invoke(app, ["replay", str(tmp_path / "r.mcap"), "--json", "--no-score",

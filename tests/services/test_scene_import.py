@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from aoi3d.cli import app
 from aoi3d.scene import Camera, look_at, open_dataset
+from aoi3d_cli import app
 from services.kit.codec import camera_to_pb, encode_frame, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.core import Recording

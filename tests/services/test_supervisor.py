@@ -236,7 +236,7 @@ def test_auto_workers_takes_every_core_up_to_two_then_leaves_one() -> None:
 def test_up_refuses_a_worker_count_that_is_not_auto_or_0_to_64() -> None:
     from typer.testing import CliRunner
 
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     for bad in ("-1", "65", "many"):
         out = CliRunner().invoke(app, ["up", "--workers", bad])

@@ -378,7 +378,7 @@ def test_eighteen_cameras_for_ten_minutes_is_fast() -> None:
 def test_cli_simulate_json() -> None:
     from typer.testing import CliRunner
 
-    from aoi3d.cli import channel
+    from aoi3d_cli import channel
 
     result = CliRunner().invoke(
         channel.app,
@@ -400,7 +400,7 @@ def test_cli_simulate_json() -> None:
 def test_cli_simulate_table_and_bad_delay() -> None:
     from typer.testing import CliRunner
 
-    from aoi3d.cli import channel
+    from aoi3d_cli import channel
 
     runner = CliRunner()
     table = runner.invoke(channel.app, ["simulate", "--duration-s", "5", "--cameras", "2"])

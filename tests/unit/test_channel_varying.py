@@ -216,7 +216,7 @@ def test_one_camera_replay_matches_the_traces_readme(name: str) -> None:
 def test_cli_simulate_on_a_trace_matches_the_readme(name: str) -> None:
     from typer.testing import CliRunner
 
-    from aoi3d.cli import channel
+    from aoi3d_cli import channel
 
     mean, drop = README_TABLE[name]
     result = CliRunner().invoke(channel.app, [
@@ -254,7 +254,7 @@ def test_burst_links_spend_the_right_share_of_time_in_the_bad_state() -> None:
 
 
 def test_experiment_delay_lists_split_on_semicolons_when_a_spec_holds_commas() -> None:
-    from aoi3d.cli.experiment import _spec_list
+    from aoi3d_cli.experiment import _spec_list
 
     assert _spec_list("exp:20,exp:60") == ["exp:20", "exp:60"]
     assert _spec_list("regimes:exp:20@1s,exp:200@1s; trace:a.up,offset=5 ;") == [

@@ -10,10 +10,10 @@ import pytest
 from PIL import Image
 from typer.testing import CliRunner
 
-from aoi3d.cli import app as root_app
-from aoi3d.cli import field as field_cli
 from aoi3d.field import BACKENDS, GridConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+from aoi3d_cli import app as root_app
+from aoi3d_cli import field as field_cli
 
 runner = CliRunner()
 

@@ -1,6 +1,6 @@
 """A first run that works (issue 9 §4): a light command line, `aoi3d up`'s checks before start.
 
-`import aoi3d.cli` imports neither torch nor kornia; `aoi3d --help` and `aoi3d up --help` take
+`import aoi3d_cli` imports neither torch nor kornia; `aoi3d --help` and `aoi3d up --help` take
 well under a second of CPU; `aoi3d up` stops with one line, before starting anything, when a
 port is taken or the dataset folder does not exist (and generates only where it may). The
 processes take ports of their own (from this process's pid); CPU limits and waits scale with
@@ -32,7 +32,7 @@ HELP_CPU_LIMIT_S = 1.5
 
 
 def aoi3d(*args: str, cwd: Path = ROOT, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "aoi3d", *args], cwd=cwd, text=True,
+    return subprocess.run([sys.executable, "-m", "aoi3d_cli", *args], cwd=cwd, text=True,
                           capture_output=True, timeout=timeout * SCALE)
 
 
@@ -46,7 +46,7 @@ def cpu_seconds(*args: str) -> float:
 
 
 def test_importing_the_cli_imports_neither_torch_nor_kornia() -> None:
-    code = ("import json, sys, aoi3d.cli; print(json.dumps(sorted(m for m in "
+    code = ("import json, sys, aoi3d_cli; print(json.dumps(sorted(m for m in "
             "('torch', 'kornia', 'scipy', 'matplotlib', 'zenoh', 'fastapi') "
             "if m in sys.modules)))")
     done = subprocess.run([sys.executable, "-c", code], cwd=ROOT, text=True,
@@ -63,10 +63,10 @@ def test_help_takes_well_under_a_second_of_cpu(args: tuple[str, ...]) -> None:
 
 def test_help_texts_name_the_real_presets() -> None:
     """The preset names in --help are constants (no engine import); they must stay true."""
-    from aoi3d.cli.experiment import PRESET_NAMES
-    from aoi3d.cli.ppo import PPO_PRESET_NAMES
     from aoi3d.experiment.config import PRESETS
     from aoi3d.rl.presets import PPO_PRESETS
+    from aoi3d_cli.experiment import PRESET_NAMES
+    from aoi3d_cli.ppo import PPO_PRESET_NAMES
 
     assert tuple(PRESETS) == PRESET_NAMES
     assert tuple(PPO_PRESETS) == PPO_PRESET_NAMES
@@ -87,13 +87,13 @@ def test_the_scene_defaults_are_the_experiments() -> None:
 def test_the_live_group_is_registered() -> None:
     import typer
 
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     assert "live" in typer.main.get_command(app).commands
 
 
 def test_channel_cli_numbers_cameras_like_the_pipeline() -> None:
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     result = CliRunner().invoke(app, ["channel", "simulate", "--cameras", "3", "--duration-s",
                                       "1", "--json"])
@@ -158,9 +158,9 @@ def test_up_generates_only_in_the_framings_folder_or_when_asked(
     """Which scene `aoi3d up` generates where (generation and the pipeline are stand-ins)."""
     import aoi3d.scene
     import services.supervisor
-    from aoi3d.cli import app
     from aoi3d.scene import SceneConfig, generate_dataset
     from aoi3d.scene.framings import FRAMING_SCENES
+    from aoi3d_cli import app
 
     small = generate_dataset(tmp_path / "small", SceneConfig(width=8, height=6, fps=10,
                                                              duration_s=0.5, n_train=2, spp=1,
@@ -191,8 +191,8 @@ def test_up_reads_another_folder_as_it_is(tmp_path: Path, monkeypatch: pytest.Mo
                                           ) -> None:
     import aoi3d.scene
     import services.supervisor
-    from aoi3d.cli import app
     from aoi3d.scene import SceneConfig, generate_dataset
+    from aoi3d_cli import app
 
     generate_dataset(tmp_path / "mine", SceneConfig(width=8, height=6, fps=10, duration_s=0.5,
                                                     n_train=2, spp=1, rotor_rpm=120.0))
@@ -219,7 +219,7 @@ def test_ppo_commands_take_their_own_options_then_the_shared_ones() -> None:
     (cli.common.with_shared_options), not by copied lists."""
     import typer.main
 
-    from aoi3d.cli.ppo import app
+    from aoi3d_cli.ppo import app
 
     shared = ["dataset", "steps_per_epoch", "workers", "threads", "cache", "no_cache", "device",
               "lpips", "set_"]

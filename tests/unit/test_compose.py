@@ -952,7 +952,7 @@ def test_dataset_job_runs_a_real_cli_command(compose):
     """`aoi3d scene generate --out DIR` exists in the CLI (typer app → click command)."""
     import typer
 
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     cmd = command(compose["services"]["dataset"])
     assert project()["scripts"].get(cmd[0]), f"{cmd[0]} is not a project script"
@@ -970,11 +970,11 @@ def test_dataset_job_renders_the_rotor_scene_by_default(compose):
     (the rotor close-up at 6 rpm) where camera and trainer read it, as `aoi3d up` does."""
     import typer
 
-    from aoi3d.cli import app
-    from aoi3d.cli.scene import scene_config
     from aoi3d.experiment.config import EXPERIMENT_SCENE
     from aoi3d.scene import SceneConfig
     from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_SCENES
+    from aoi3d_cli import app
+    from aoi3d_cli.scene import scene_config
 
     cmd = command(compose["services"]["dataset"])
     generate = typer.main.get_command(app).commands["scene"].commands["generate"]
@@ -1047,7 +1047,7 @@ def test_checks_catch_a_broken_deployment(compose):
 
     ignore = ["*", "!aoi3d", "**/__pycache__"]
     assert dockerignore_excludes("services/kit/app.py", ignore)
-    assert not dockerignore_excludes("aoi3d/cli/__init__.py", ignore)
+    assert not dockerignore_excludes("aoi3d/ports.py", ignore)
     assert dockerignore_excludes("aoi3d/__pycache__", ignore)
 
 

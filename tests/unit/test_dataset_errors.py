@@ -120,12 +120,12 @@ def test_the_hint_is_the_command_that_regenerates_the_scene(intact: Path, tmp_pa
     hint = str(info.value).split("regenerate the dataset: ", 1)[1]
     assert hint == (f"aoi3d scene generate --out {root} --width 16 --height 12 --fps 10 "
                     "--duration-s 0.5 --n-train 3 --rotor-rpm 120 --spp 1 --force")
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     args = hint.split()[3:]  # what `aoi3d scene generate` would parse: the same scene
     generate = __import__("typer").main.get_command(app).commands["scene"].commands["generate"]
     params = generate.make_context("generate", args).params
-    from aoi3d.cli.scene import scene_config
+    from aoi3d_cli.scene import scene_config
 
     fields = {k: v for k, v in params.items() if k in SceneConfig.__dataclass_fields__}
     assert scene_config(**fields) == SMALL
@@ -155,7 +155,7 @@ def test_dnerf_frames_raise_dataset_errors(intact: Path, tmp_path: Path) -> None
 
 # --- the commands ------------------------------------------------------------------------------
 def invoke(*args: str):
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     return CliRunner().invoke(app, list(args), env={"COLUMNS": "80"})
 
@@ -198,7 +198,7 @@ def test_up_says_one_line_before_starting_anything(intact: Path, tmp_path: Path,
                                                    kind: str) -> None:
     root = damaged(intact, tmp_path, kind)
     done = subprocess.run(
-        [sys.executable, "-m", "aoi3d", "up", "--dataset", str(root), "--port-offset",
+        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(root), "--port-offset",
          str(PORT_OFFSET), "--zenoh-port", str(ZENOH_PORT), "--log-dir",
          str(tmp_path / "logs"), "--quiet", "--duration-s", "1"],
         text=True, capture_output=True, timeout=60 * SCALE)

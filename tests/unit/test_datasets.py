@@ -585,7 +585,7 @@ def test_media_helpers(tmp_path: Path):
 def test_cli_export_and_info_on_any_layout(synthetic: SceneDataset, tmp_path: Path):
     from typer.testing import CliRunner
 
-    from aoi3d.cli import scene as scene_cli
+    from aoi3d_cli import scene as scene_cli
 
     runner = CliRunner()
     for fmt in ("dynerf", "dnerf"):

@@ -244,7 +244,7 @@ def test_mean_ci95_and_aggregate() -> None:
 
 # --- the CLI ---------------------------------------------------------------------------------
 def _cli(args: list[str]):
-    from aoi3d.cli.experiment import app
+    from aoi3d_cli.experiment import app
 
     return CliRunner().invoke(app, args, catch_exceptions=False)
 
@@ -325,7 +325,7 @@ def test_cli_delay_and_bad_input(dataset: SceneDataset, tmp_path) -> None:
         assert o["optimum_min_ms"] <= o["best_gamma_ms"] <= o["optimum_max_ms"]
         assert o["interior"] == (o["optimum"]["members"] == [70.0])
     assert (tmp_path / "d" / "delay.png").is_file()
-    from aoi3d.cli.experiment import app
+    from aoi3d_cli.experiment import app
 
     runner = CliRunner()
     bad = runner.invoke(app, ["compare", "--policy", "bogus:1",
@@ -342,7 +342,7 @@ def test_cli_delay_and_bad_input(dataset: SceneDataset, tmp_path) -> None:
 def test_cli_commands_take_their_own_options_then_the_shared_ones() -> None:
     import typer.main
 
-    from aoi3d.cli.experiment import app
+    from aoi3d_cli.experiment import app
 
     shared = ["dataset", "out", "cache", "seeds", "seed_offset", "steps_per_epoch", "carry",
               "backend", "workers", "threads", "ray_address", "lpips", "device", "set_"]

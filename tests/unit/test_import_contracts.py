@@ -1,8 +1,8 @@
 """The import layering of pyproject.toml's ``[tool.importlinter]`` holds (what `make lint`
-checks, run here so that `make test` — CI — checks it too): ``aoi3d`` never imports
-``services`` but in `aoi3d up`, the composition root (one edge, argued in
-docs/architecture.md, "The CLI above the services"), ``aoi3d.policy`` never imports
-``aoi3d.rl``, and no package has an import cycle between its modules."""
+checks, run here so that `make test` — CI — checks it too): the commands (``aoi3d_cli``, the
+composition root) above ``services`` above the domain ``aoi3d``, with no exception;
+``aoi3d.policy`` never imports ``aoi3d.rl``; and no package has an import cycle between its
+modules."""
 
 from __future__ import annotations
 
@@ -22,32 +22,18 @@ def test_import_contracts_are_kept() -> None:
     assert " 0 broken" in proc.stdout, proc.stdout[-2000:]
 
 
-#: The composition root's edges into services (docs/architecture.md, "The CLI above the
-#: services"): `aoi3d up`, `aoi3d ros2` and `aoi3d replay`, and no other.
-COMPOSITION_EDGES = [
-    "aoi3d.cli.up -> services.supervisor",
-    "aoi3d.cli.up -> services.kit.rig",
-    "aoi3d.cli.replay -> services.recorder.replay",
-    "aoi3d.cli.replay -> services.recorder.importer",
-    "aoi3d.cli.replay -> services.recorder.player",
-    "aoi3d.cli.replay -> services.ingest.publish",
-    "aoi3d.cli.scene -> services.recorder.importer",
-    "aoi3d.cli.ros2 -> services.ingest.publish",
-    "aoi3d.cli.ros2 -> services.kit.rig",
-]
-
-
-def test_the_domain_imports_services_in_the_composition_root_only() -> None:
-    """The contract's exceptions are exactly the composition root's named edges, and no other
-    module of aoi3d names services (ports and site names come from aoi3d.ports)."""
+def test_the_domain_imports_no_services_and_no_commands() -> None:
+    """The layers contract (aoi3d_cli above services above aoi3d) carries no exception, no
+    module of aoi3d names services or the commands, and there is no CLI inside the domain."""
     import re
     import tomllib
 
     doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
-    contract = next(c for c in doc["tool"]["importlinter"]["contracts"]
-                    if c["id"] == "domain-not-services")
-    assert contract["ignore_imports"] == COMPOSITION_EDGES
+    contracts = doc["tool"]["importlinter"]["contracts"]
+    assert not any(c.get("ignore_imports") for c in contracts)
+    layers = next(c for c in contracts if c["id"] == "layers")
+    assert layers["layers"] == ["aoi3d_cli", "services", "aoi3d"]
     naming = [str(p.relative_to(ROOT)) for p in (ROOT / "aoi3d").rglob("*.py")
-              if re.search(r"^\s*(from|import) services\b", p.read_text(), re.M)]
-    assert sorted(naming) == ["aoi3d/cli/replay.py", "aoi3d/cli/ros2.py", "aoi3d/cli/scene.py",
-                              "aoi3d/cli/up.py"]
+              if re.search(r"^\s*(from|import) (services|aoi3d_cli)\b", p.read_text(), re.M)]
+    assert naming == []
+    assert not (ROOT / "aoi3d" / "cli").exists()

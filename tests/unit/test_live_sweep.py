@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from aoi3d.cli.live import Measurement, summarise
 from aoi3d.experiment.optimum import unpaired_interior_maximum
+from aoi3d_cli.live import Measurement, summarise
 
 
 def stat(mean: float | None, ci95: float | None) -> dict:
@@ -88,7 +88,7 @@ def test_progress_prints_a_policy_spec_as_it_is() -> None:
     """Rich would turn ``mat:100:`` into an emoji ("mat💯") and eat ``[...]`` as markup."""
     from rich.markup import escape
 
-    from aoi3d.cli.common import make_console
+    from aoi3d_cli.common import make_console
 
     out = make_console(width=80)  # the live sweep's console, as every command's
     with out.capture() as cap:  # as the sweep prints its progress: user text escaped
@@ -99,7 +99,7 @@ def test_progress_prints_a_policy_spec_as_it_is() -> None:
 def test_sweep_refuses_a_bad_channel_before_touching_the_pipeline() -> None:
     from typer.testing import CliRunner
 
-    from aoi3d.cli import live
+    from aoi3d_cli import live
 
     result = CliRunner().invoke(live.app, ["--delay", "regimes:exp:20", "--port-offset",
                                            "61000", "--timeout-s", "1"])

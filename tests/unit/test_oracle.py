@@ -190,7 +190,7 @@ def _args(dataset: SceneDataset, tmp_path, out: str, *extra: str) -> list[str]:
 
 
 def test_cli_compare_with_the_bound_and_the_baselines(dataset: SceneDataset, tmp_path) -> None:
-    from aoi3d.cli.experiment import app
+    from aoi3d_cli.experiment import app
 
     specs = ["all", "mat:70", "freshest:2", "wsum:50", "tembed", "oracle", "oracle:greedy"]
     res = CliRunner().invoke(app, _args(dataset, tmp_path, "c",
@@ -229,7 +229,7 @@ def test_cli_compare_with_the_bound_and_the_baselines(dataset: SceneDataset, tmp
      "needs the grid backend"),
 ])
 def test_cli_refuses_bad_new_specs(dataset: SceneDataset, tmp_path, extra, message) -> None:
-    from aoi3d.cli.experiment import app
+    from aoi3d_cli.experiment import app
 
     res = CliRunner().invoke(app, _args(dataset, tmp_path, "x", *extra))
     assert res.exit_code == 2, res.output

@@ -192,7 +192,7 @@ def test_evaluate_on_held_out_seeds(cfg: EpisodeConfig, dataset: SceneDataset,
 
 # --- CLI -------------------------------------------------------------------------------------
 def _cli(args: list[str]):
-    from aoi3d.cli import app
+    from aoi3d_cli import app
 
     return CliRunner().invoke(app, args, env={"COLUMNS": "400"})  # no wrapped messages
 

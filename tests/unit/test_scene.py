@@ -456,7 +456,7 @@ def test_generate_refuses_to_replace_a_foreign_directory(tmp_path):
 def test_cli_generate_and_info(tmp_path):
     from typer.testing import CliRunner
 
-    from aoi3d.cli import scene as scene_cli
+    from aoi3d_cli import scene as scene_cli
 
     runner = CliRunner()
     out = tmp_path / "cli"

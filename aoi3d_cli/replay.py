@@ -16,7 +16,7 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail, fmt, make_console, stop_on_signal
+from aoi3d_cli.common import fail, fmt, make_console, stop_on_signal
 
 
 def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
@@ -209,7 +209,7 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
     """``aoi3d replay --live``: the recording's frames as ROS 2 cameras on Zenoh."""
     import time
 
-    from aoi3d.cli.ros2 import write_rig_file
+    from aoi3d_cli.ros2 import write_rig_file
     from services.ingest.publish import zenoh_publishing
     from services.recorder.importer import recorded_streams
     from services.recorder.player import PlayConfig, Player, rig_document

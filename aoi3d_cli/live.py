@@ -29,8 +29,8 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from aoi3d.cli.common import fmt, make_console
 from aoi3d.ports import REST_FIRST, REST_LAST, SERVICE_PORTS, ZENOH_PORT, rest_port
+from aoi3d_cli.common import fmt, make_console
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -63,7 +63,7 @@ class Pipeline:
     def __post_init__(self) -> None:
         import httpx
 
-        from aoi3d.cli.common import control_headers
+        from aoi3d_cli.common import control_headers
 
         self.client = httpx.Client(timeout=self.timeout_s, headers=control_headers())
 
@@ -368,7 +368,7 @@ def plot_views(measurements: Sequence[Measurement], dataset: Path, path: Path,
 # --- starting a pipeline ---------------------------------------------------------------------
 def _start_pipeline(port_offset: int, zenoh_port: int, time_scale: float, run_id: str,
                     timeout_s: float, extra: Sequence[str]) -> subprocess.Popen:
-    cmd = [sys.executable, "-c", "from aoi3d.cli import main; main()", "up", "--quiet",
+    cmd = [sys.executable, "-c", "from aoi3d_cli import main; main()", "up", "--quiet",
            "--port-offset", str(port_offset), "--zenoh-port", str(zenoh_port),
            "--time-scale", str(time_scale), "--run-id", run_id, *extra]
     console.print(f"starting the pipeline: aoi3d {escape(' '.join(cmd[3:]))}")

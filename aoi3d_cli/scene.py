@@ -19,7 +19,6 @@ from rich.progress import (
 )
 from rich.table import Table
 
-from aoi3d.cli.common import fail, make_console
 from aoi3d.scene import (
     EXPORT_FORMATS,
     DatasetError,
@@ -30,6 +29,7 @@ from aoi3d.scene import (
     open_dataset,
 )
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
+from aoi3d_cli.common import fail, make_console
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = make_console()

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from aoi3d.cli.common import fmt, make_console
+from aoi3d_cli.common import fmt, make_console
 
 if TYPE_CHECKING:
     from rich.console import Console

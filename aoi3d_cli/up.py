@@ -15,11 +15,11 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail, fail_lines
 from aoi3d.ports import REST_FIRST as _FIRST
 from aoi3d.ports import REST_LAST as _LAST
 from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT, site_names
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
+from aoi3d_cli.common import fail, fail_lines
 
 HINTS = {
     "camera": "GET /config",
@@ -169,7 +169,7 @@ def up(
 
     from rich.table import Table
 
-    from aoi3d.cli.common import make_console
+    from aoi3d_cli.common import make_console
 
     console = make_console()
 
@@ -238,8 +238,8 @@ def _ensure_scene(dataset: Path, framing: str, *, generate: bool) -> None:
 
     from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from aoi3d.cli.common import make_console
     from aoi3d.scene import DatasetError, detect_layout, ensure_dataset, open_dataset
+    from aoi3d_cli.common import make_console
 
     console = make_console()
     if not generate:

@@ -2,7 +2,7 @@
 
 Each command group lives in its own module and is mounted here. The modules import only what
 their options need (typer, rich, the light scene package); torch, the experiment engine and
-the services load inside the commands that use them, so ``import aoi3d.cli`` and
+the services load inside the commands that use them, so ``import aoi3d_cli`` and
 ``aoi3d --help`` stay fast (a test checks both).
 
 A dataset that cannot be read (:class:`aoi3d.scene.DatasetError`) ends any command with one
@@ -17,9 +17,9 @@ import click
 import typer
 from typer.core import TyperGroup
 
-from aoi3d.cli import channel, experiment, field, live, ppo, replay, ros2, scene, up
-from aoi3d.cli.common import fail
 from aoi3d.scene.dataset import DatasetError
+from aoi3d_cli import channel, experiment, field, live, ppo, replay, ros2, scene, up
+from aoi3d_cli.common import fail
 
 
 class _Root(TyperGroup):

@@ -15,7 +15,7 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.cli.common import fail, fail_lines, stop_on_signal
+from aoi3d_cli.common import fail, fail_lines, stop_on_signal
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 

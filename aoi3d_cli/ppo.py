@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from rich.table import Table
 
-from aoi3d.cli.common import (
+from aoi3d.scene.framings import FRAMING_DATASETS
+from aoi3d_cli.common import (
     LpipsOpt,
     ThreadsOpt,
     WorkersOpt,
@@ -33,7 +34,6 @@ from aoi3d.cli.common import (
     short_label,
     with_shared_options,
 )
-from aoi3d.scene.framings import FRAMING_DATASETS
 
 if TYPE_CHECKING:
     from aoi3d.experiment import EpisodeConfig
@@ -84,7 +84,7 @@ def _shared_options(
     set_: SetOpt = None,
 ) -> None:
     """The options ``train`` and ``eval`` take after their own (a signature only:
-    :func:`aoi3d.cli.common.with_shared_options`)."""
+    :func:`aoi3d_cli.common.with_shared_options`)."""
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,7 @@ class _Shared:
     set_: list[str] | None
 
     def episode_config(self, base: EpisodeConfig) -> EpisodeConfig:
-        """``base`` with these options applied (:func:`aoi3d.cli.common.episode_config`)."""
+        """``base`` with these options applied (:func:`aoi3d_cli.common.episode_config`)."""
         changes: dict[str, Any] = {"lpips": self.lpips}
         if self.dataset is not None:
             changes["dataset"] = str(self.dataset)

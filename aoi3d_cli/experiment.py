@@ -23,7 +23,9 @@ import numpy as np
 import typer
 from rich.table import Table
 
-from aoi3d.cli.common import (
+from aoi3d.numbers import format_number
+from aoi3d.scene.framings import FRAMING_DATASETS
+from aoi3d_cli.common import (
     LpipsOpt,
     ThreadsOpt,
     WorkersOpt,
@@ -35,8 +37,6 @@ from aoi3d.cli.common import (
     short_label,
     with_shared_options,
 )
-from aoi3d.numbers import format_number
-from aoi3d.scene.framings import FRAMING_DATASETS
 
 if TYPE_CHECKING:
     from aoi3d.experiment import (
@@ -172,7 +172,7 @@ def _shared_options(
 def _experiment_command(*, seeds: bool = True) -> Callable[[Callable[..., None]],
                                                            Callable[..., None]]:
     """An experiment command from ``body(shared: _Shared, <its own options>)``
-    (:func:`aoi3d.cli.common.with_shared_options`; without ``--seeds`` when ``seeds`` is
+    (:func:`aoi3d_cli.common.with_shared_options`; without ``--seeds`` when ``seeds`` is
     False)."""
     return with_shared_options(_shared_options, _Shared, omit=() if seeds else ("seeds",))
 

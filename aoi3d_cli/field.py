@@ -17,9 +17,9 @@ import typer
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from aoi3d.cli.common import fail, make_console
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS
+from aoi3d_cli.common import fail, make_console
 
 if TYPE_CHECKING:
     from aoi3d.field import FieldConfig
