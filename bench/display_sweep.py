@@ -9,8 +9,8 @@ links), the quick preset's episode with the ``fresh`` carry; it writes the heat 
 metrics with their optimum, a CSV of the cells, and the paired difference (per seed) between
 the display-time optimum and the best Γ at decision time, both read at display time.
 
-    python bench/display_sweep.py                                  # the default grid
-    python bench/display_sweep.py --gammas 40,70,130 --steps 25,100 --seeds 2
+    python -m bench.display_sweep                                  # the default grid
+    python -m bench.display_sweep --gammas 40,70,130 --steps 25,100 --seeds 2
 
 Results: ``bench/results/streaming/display-sweep/`` (``cells.csv``, ``results.json``,
 ``display_sweep.png``); episodes are cached under ``runs/display-sweep-cache``.

@@ -13,8 +13,8 @@ service build it, for several thresholds τ. Reported per τ: the mask's pixel f
   at t, t − C, …, t − K·C (the blades now and where they were, which the mask covers by
   construction): pixels that neither are rotor nor border it — noise, if τ were too low.
 
-    python bench/dynamic_mask.py                               # data/turbine-rotor
-    python bench/dynamic_mask.py --png runs/dynamic_mask.png   # and an overlay figure
+    python -m bench.dynamic_mask                               # data/turbine-rotor
+    python -m bench.dynamic_mask --png runs/dynamic_mask.png   # and an overlay figure
 
 Writes ``bench/results/dynamic_mask.json``. Reads only the held-out camera's frames (≈ 10 s
 on one core for the default 300-frame scene).

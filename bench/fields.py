@@ -21,8 +21,8 @@ so figures can be read as a fraction of what the hardware does.
 Each run happens in a fresh process (``--no-isolate`` runs them in this one): peak memory
 and the allocator start clean, and one backend's threads or caches cannot slow the next.
 
-    python bench/fields.py                        # everything (≈ 15 min on 2 cores)
-    python bench/fields.py --quick --backends grid  # smoke run (< 1 min)
+    python -m bench.fields                        # everything (≈ 15 min on 2 cores)
+    python -m bench.fields --quick --backends grid  # smoke run (< 1 min)
 
 Writes ``bench/results/fields.json`` (``fields-quick.json`` with ``--quick``).
 """

@@ -7,9 +7,9 @@ t0; it renders the held-out camera 0 and is scored against camera 0's frame *at*
 is the mean over three times t0. No channel is involved: this isolates the two sides of the
 tradeoff (views against staleness) that the MAT threshold trades.
 
-    python bench/staleness.py --dataset data/turbine-rotor          # the experiments' scene
-    python bench/staleness.py --dataset data/turbine                # the default (site) scene
-    python bench/staleness.py --dataset data/turbine-rotor --cases 18:0,18:1,5:1,3:1
+    python -m bench.staleness --dataset data/turbine-rotor          # the experiments' scene
+    python -m bench.staleness --dataset data/turbine                # the default (site) scene
+    python -m bench.staleness --dataset data/turbine-rotor --cases 18:0,18:1,5:1,3:1
 
 The datasets are made by ``aoi3d scene generate`` (``--framing rotor --rotor-rpm 6
 --out data/turbine-rotor`` for the experiments' scene, which the experiment commands also
