@@ -45,23 +45,23 @@ lint: install  ## ruff and the import contracts of pyproject.toml (lint-imports;
 	$(VENV)/bin/lint-imports
 
 bench: install bench-ray  ## benchmarks (results under bench/results/; about 110 minutes)
-	$(PY) bench/channel.py
-	$(PY) bench/fields.py
-	$(PY) bench/recon.py
-	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.1 --window-s 60
-	$(PY) bench/pipeline.py --policy mat:70 --time-scale 0.3 --window-s 60
-	$(PY) bench/pipeline.py --policy mat:70 --time-scale 1 --window-s 60
-	$(PY) bench/scheduler_learning.py --seconds 20
+	$(PY) -m bench.channel
+	$(PY) -m bench.fields
+	$(PY) -m bench.recon
+	$(PY) -m bench.pipeline --policy mat:70 --time-scale 0.1 --window-s 60
+	$(PY) -m bench.pipeline --policy mat:70 --time-scale 0.3 --window-s 60
+	$(PY) -m bench.pipeline --policy mat:70 --time-scale 1 --window-s 60
+	$(PY) -m bench.scheduler_learning --seconds 20
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
-	$(PY) bench/staleness.py --dataset data/turbine-rotor
-	$(PY) bench/staleness.py --dataset data/turbine
-	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
-	$(PY) bench/chaos.py --minutes 10
-	$(PY) bench/soak.py --minutes 60
+	$(PY) -m bench.staleness --dataset data/turbine-rotor
+	$(PY) -m bench.staleness --dataset data/turbine
+	$(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 --repeats 2
+	$(PY) -m bench.chaos --minutes 10
+	$(PY) -m bench.soak --minutes 60
 
 bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)
 	eval "$$(deploy/engine.sh start)" && deploy/build-images.sh && \
-	    $(PY) bench/chaos.py --target multihost --minutes 10 --json
+	    $(PY) -m bench.chaos --target multihost --minutes 10 --json
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'
@@ -78,14 +78,14 @@ bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (
 	$(VENV)/bin/aoi3d live sweep --up --workers 2 --dataset data/turbine-rotor-192x144 \
 	    --port-offset 2000 --zenoh-port 9447 --policies mat:40,mat:70,mat:130,all \
 	    --settle-s 10 --measure-s 75 --repeats 2 --no-sim --out bench/results/live-sweep-192x144
-	$(PY) bench/scale.py --configs 1x1,2x1 --measure-s 90 --dataset data/turbine-rotor-192x144 \
+	$(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 --dataset data/turbine-rotor-192x144 \
 	    --out bench/results/scale-192x144.json
 
 science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
-	$(PY) bench/science.py $(SCIENCE_ARGS)
+	$(PY) -m bench.science $(SCIENCE_ARGS)
 
 docs: install  ## regenerate the generated pages: docs/measurements.md from bench/results (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)
-	$(PY) bench/docs.py
+	$(PY) -m bench.docs
 	$(PY) -m services.configdoc --update
 
 figures: install  ## the PPO training figure from scratch, then `make science` (the experiment figures on unseen seeds) into docs/figures/ (about 28 min)
@@ -93,7 +93,7 @@ figures: install  ## the PPO training figure from scratch, then `make science` (
 	$(VENV)/bin/aoi3d ppo train --preset quick --out runs/ppo/figures
 	mkdir -p docs/figures
 	cp runs/ppo/figures/reward.png docs/figures/ppo_reward.png
-	$(PY) bench/science.py $(SCIENCE_ARGS)
+	$(PY) -m bench.science $(SCIENCE_ARGS)
 
 lock:  ## regenerate deploy/requirements.lock (the image's dependencies, with hashes) from pyproject.toml
 	$(PY) deploy/lock.py

@@ -42,15 +42,13 @@ from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from aoi3d.experiment import ResultCache, get_preset, plan_episode, run_plans  # noqa: E402
-from aoi3d.experiment.adaptive import run_stepwise  # noqa: E402
-from aoi3d.experiment.episode import episode_links  # noqa: E402
-from aoi3d.policy import MatPolicy, kind_of, parse_policy  # noqa: E402
-from aoi3d.scene import open_dataset  # noqa: E402
-from aoi3d.stats import mean_ci95, paired_difference  # noqa: E402
+from aoi3d.experiment import ResultCache, get_preset, plan_episode, run_plans
+from aoi3d.experiment.adaptive import run_stepwise
+from aoi3d.experiment.episode import episode_links
+from aoi3d.policy import MatPolicy, kind_of, parse_policy
+from aoi3d.scene import open_dataset
+from aoi3d.stats import mean_ci95, paired_difference
+from bench.common import ROOT
 
 GAMMAS = (40, 70, 100, 130, 160, 190, 220, 250, 280)
 FRESHEST = (6, 12)

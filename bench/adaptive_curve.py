@@ -9,11 +9,15 @@ raw best Γ and its optimum set are kept beside each point.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parent.parent
+from bench import common
+
+ROOT = common.ROOT
+SWEEP = common.RESULTS / "adaptive-gamma-curve" / "results.json"
 
 
 def pool_adjacent_violators(values: list[float]) -> list[float]:
@@ -31,9 +35,18 @@ def pool_adjacent_violators(values: list[float]) -> list[float]:
     return out
 
 
-def main() -> int:
-    src = Path(sys.argv[1]) if len(sys.argv) > 1 else (
-        ROOT / "bench/results/adaptive-gamma-curve/results.json")
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("sweep", nargs="?", type=Path, default=SWEEP, metavar="RESULTS_JSON",
+                    help="the delay sweep's results.json (default: "
+                         "bench/results/adaptive-gamma-curve/results.json)")
+    common.add_json_option(ap, help="print the curve as JSON")
+    return ap
+
+
+def run(src: Path = SWEEP) -> dict:
+    """The curve from the sweep at ``src``; writes aoi3d/policy/gamma_curve.json and returns
+    it."""
     doc = json.loads(src.read_text())
     rows = sorted(doc["optima"], key=lambda o: o["mean_delay_ms"])
     raw = [float(o["best_gamma_ms"]) for o in rows]
@@ -55,12 +68,20 @@ def main() -> int:
                     "optimum_set": o["optimum"]["members"]}
                    for o, g in zip(rows, smooth, strict=True)],
     }
-    out = ROOT / "aoi3d/policy/gamma_curve.json"
-    out.write_text(json.dumps(curve, indent=1) + "\n")
+    (ROOT / "aoi3d/policy/gamma_curve.json").write_text(json.dumps(curve, indent=1) + "\n")
+    return curve
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    curve = run(args.sweep)
+    if args.json:
+        common.print_json(curve, indent=1)
+        return 0
     for p in curve["points"]:
         print(f"E[Y] {p['mean_delay_ms']:6g} ms: best Γ {p['best_gamma_ms']:g} → "
               f"{p['gamma_ms']:g} (set {p['optimum_set']})")
-    print(f"wrote {out}")
+    print(f"wrote {ROOT / 'aoi3d/policy/gamma_curve.json'}")
     return 0
 
 

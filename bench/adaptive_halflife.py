@@ -11,30 +11,37 @@ bench/adaptive.py are never read here).
 
 from __future__ import annotations
 
-import json
+import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from aoi3d.experiment import get_preset  # noqa: E402
-from aoi3d.experiment.episode import episode_links  # noqa: E402
-from aoi3d.policy import PluginPolicy, decide  # noqa: E402
-from aoi3d.policy.adaptive import load_gamma_curve  # noqa: E402
-from aoi3d.scene import open_dataset  # noqa: E402
+from aoi3d.experiment import get_preset
+from aoi3d.experiment.episode import episode_links
+from aoi3d.policy import PluginPolicy, decide
+from aoi3d.policy.adaptive import load_gamma_curve
+from aoi3d.scene import open_dataset
+from bench import common
+from bench.common import ROOT
 
 DESIGN = ("TMobile-LTE-short.up", "ATT-LTE-driving-2016.up")
 HALFLIVES = (250, 500, 1000, 2000, 3000, 5000, 10000)
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    common.add_json_option(ap)
+    return ap
+
+
+def run() -> dict | None:
+    """Every half-life on the design traces; writes
+    bench/results/adaptive-halflife/results.json and returns its document (None, and a
+    message, where the traces are absent)."""
     traces = ROOT.parent / "shared/data/traces"
     if not traces.is_dir():
         print(f"no traces at {traces}: nothing to tune")
-        return 0
+        return None
     curve = load_gamma_curve()
     base = get_preset("quick").episode.with_(warmup_ms=0, scored_ms=60_000, lpips=False)
     ds = open_dataset(base.dataset)
@@ -68,13 +75,20 @@ def main() -> int:
     mean = {h: float(np.mean([r["tracking_error_ms"] for r in rows if r["halflife_ms"] == h]))
             for h in HALFLIVES}
     best = min(HALFLIVES, key=lambda h: mean[h])
-    out = ROOT / "bench/results/adaptive-halflife"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "results.json").write_text(json.dumps({
-        "command": "python bench/adaptive_halflife.py", "design_traces": list(DESIGN),
-        "curve": curve.source, "mean_tracking_error_ms": mean, "best_halflife_ms": best,
-        "rows": rows}, indent=1) + "\n")
+    doc = {"command": "python bench/adaptive_halflife.py", "design_traces": list(DESIGN),
+           "curve": curve.source, "mean_tracking_error_ms": mean, "best_halflife_ms": best,
+           "rows": rows}
+    common.write_json(common.RESULTS / "adaptive-halflife" / "results.json", doc, indent=1)
     print({h: round(v, 1) for h, v in mean.items()}, "best", best)
+    return doc
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        doc = run()
+    if args.json:
+        common.print_json(doc, indent=1)
     return 0
 
 

@@ -10,18 +10,18 @@ C = 30 ms), five times, in two ways:
 
 Reports best and median throughput and writes ``bench/results/channel.json``; exits 1 when
 the median of either way is below :data:`TARGET` camera-slots/s (the experiments issue's bar).
-Run: ``make bench`` (or ``python bench/channel.py``).
+Run: ``make bench`` (or ``python -m bench.channel``).
 """
 
 from __future__ import annotations
 
-import json
+import argparse
 import platform
 import statistics
 import time
-from pathlib import Path
 
 from aoi3d.channel import channel_statistics, parse_delay, simulate
+from bench import common
 
 N_CAMERAS, DURATION_MS, PERIOD_MS, REPEATS = 18, 600_000, 30, 5
 TARGET = 1e7
@@ -37,7 +37,14 @@ def timed(work) -> list[float]:
     return times
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    common.add_json_option(ap)
+    return ap
+
+
+def run() -> dict:
+    """The measurement; writes ``bench/results/channel.json`` and returns its document."""
     delay = parse_delay("exp:60")
     slots = N_CAMERAS * DURATION_MS
     stats = channel_statistics(simulate(delay, PERIOD_MS, N_CAMERAS, DURATION_MS, 0))
@@ -57,19 +64,28 @@ def main() -> None:
                   for name, t in cases.items()},
         "machine": {"python": platform.python_version(), "machine": platform.machine()},
     }
-    out = Path(__file__).parent / "results" / "channel.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    for name, r in result["cases"].items():
-        print(f"channel+AoI ({name}): {slots:,} camera-slots in {r['seconds_best']:.3f} s "
-              f"(best of {REPEATS}) = {r['camera_slots_per_s_best']:.3g} camera-slots/s "
-              f"(median {r['camera_slots_per_s_median']:.3g})")
-    print(f"written to {out}")
+    common.write_json(common.RESULTS / "channel.json", result)
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        result = run()
+        slots = result["cameras"] * result["duration_ms"]
+        for name, r in result["cases"].items():
+            print(f"channel+AoI ({name}): {slots:,} camera-slots in {r['seconds_best']:.3f} s "
+                  f"(best of {REPEATS}) = {r['camera_slots_per_s_best']:.3g} camera-slots/s "
+                  f"(median {r['camera_slots_per_s_median']:.3g})")
+        print(f"written to {common.RESULTS / 'channel.json'}")
+    if args.json:
+        common.print_json(result)
     slow = [name for name, r in result["cases"].items()
             if r["camera_slots_per_s_median"] < TARGET]
     if slow:
         raise SystemExit(f"below the target of {TARGET:.0e} camera-slots/s: {', '.join(slow)}")
-    print(f"both at least {TARGET:.0e} camera-slots/s (the target)")
+    with common.progress_to_stderr(args.json):
+        print(f"both at least {TARGET:.0e} camera-slots/s (the target)")
 
 
 if __name__ == "__main__":

@@ -23,8 +23,8 @@ after ``AOI3D_METRICS_LEDGER_OPEN_S``, 30 s here), and the run is judged:
   with a reason, or open): 0 when every decision is accounted for;
 - ``all_up_at_end``: every service answers /healthz and every worker is in the pool.
 
-    python bench/chaos.py --minutes 10 --json     # docs/measurements.md's run
-    python bench/chaos.py --minutes 2             # a quick look
+    python -m bench.chaos --minutes 10 --json     # docs/measurements.md's run
+    python -m bench.chaos --minutes 2             # a quick look
 
 ``--target multihost`` runs the same judge on compose.multihost.yaml (three "hosts" on one
 Docker engine: the edge, and worker hosts a and b, joined router to router over mutual TLS; a
@@ -46,7 +46,7 @@ and healthy and both worker hosts in the pool, judged once the paused scheduler 
 health checks again (up to 90 s: they fail while it is paused). Needs the images (``make
 images``) and an engine (``eval "$(deploy/engine.sh start)"``):
 
-    python bench/chaos.py --target multihost --minutes 10 --json
+    python -m bench.chaos --target multihost --minutes 10 --json
 
 Exit status 1 when ``unaccounted`` or ``stalls_over_15s`` is not 0 or a process is down.
 """
@@ -54,6 +54,7 @@ Exit status 1 when ``unaccounted`` or ``stalls_over_15s`` is not 0 or a process 
 from __future__ import annotations
 
 import argparse
+import functools
 import itertools
 import json
 import os
@@ -69,25 +70,22 @@ from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))  # livebench, also when a test loads this file by path
+from aoi3d.ports import BENCH_BLOCKS, SERVICE_PORTS
+from bench import common
+from services.kit.keys import Keys
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.settings import CommonSettings
 
-import livebench  # noqa: E402  (bench/livebench.py, a sibling)
-
-from aoi3d.ports import BENCH_BLOCKS, SERVICE_PORTS  # noqa: E402
-from services.kit.keys import Keys  # noqa: E402
-from services.kit.pb import aoi3d_pb2 as pb  # noqa: E402
-from services.kit.settings import CommonSettings  # noqa: E402
-
+ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (aoi3d/ports.py)
+url = functools.partial(common.url, PORTS)  # url(service, path)
 ZENOH = PORTS.zenoh
 LEDGER_OPEN_S = 30.0
 JOB_TIMEOUT_S = 20.0
 STALL_S = 15.0
 
 
-class Tap(livebench.Tap):
+class Tap(common.Tap):
     """Every Quality (site, monotonic time) and the highest decision id per (site,
     incarnation) of the run, from a Zenoh session of its own."""
 
@@ -114,17 +112,13 @@ class Tap(livebench.Tap):
             return [t for s, t in self.qualities if s == site]
 
 
-def url(service: str, path: str) -> str:
-    return PORTS.url(service, path)
-
-
 def children(log_dir: Path) -> dict[str, int]:
     state = json.loads((log_dir / "latest" / "up.json").read_text())
     return {name: c["pid"] for name, c in state["children"].items() if c["pid"]}
 
 
 def wait(what: str, cond, timeout_s: float) -> None:
-    livebench.wait_until(f"chaos: {what}", cond, timeout_s)
+    common.wait_until(f"chaos: {what}", cond, timeout_s)
 
 
 def settle(state: Callable[[], dict[str, bool]], timeout_s: float) -> dict[str, bool]:
@@ -205,7 +199,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     log_dir = ROOT / "runs" / "bench-chaos"
     env = {**os.environ, "AOI3D_METRICS_LEDGER_OPEN_S": str(LEDGER_OPEN_S),
            "AOI3D_TRAINER_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S)}
-    up = livebench.start_up(PORTS, run_id, log_dir, [
+    up = common.start_up(PORTS, run_id, log_dir, [
         "--sites", str(args.sites), "--workers", str(args.workers),
         "--time-scale", str(args.time_scale)], env=env)
     http = httpx.Client(timeout=30.0)
@@ -251,7 +245,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     finally:
         if tap is not None:
             tap.close()
-        livebench.stop_up(up)
+        common.stop_up(up)
     return outcome(args, faults, made, ledgers, stalls, max_gap, up_state)
 
 
@@ -462,7 +456,7 @@ def run_multihost(args: argparse.Namespace, rng: random.Random) -> dict:
     return outcome(args, faults, made, ledgers, stalls, max_gap, up_state)
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--target", choices=("up", "multihost"), default="up",
                         help="aoi3d up on this machine, or compose.multihost.yaml on Docker")
@@ -476,20 +470,31 @@ def main() -> int:
                         help="multihost: seconds a worker host stays cut off the mesh")
     parser.add_argument("--time-scale", type=float, default=1.0)
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--json", action="store_true", help="print one JSON object")
+    common.add_json_option(parser, help="print one JSON object")
     parser.add_argument("--out", type=Path, default=None,
                         help="default bench/results/chaos.json (multihost: chaos-multihost.json)")
-    args = parser.parse_args()
-    if args.target == "multihost" and (args.sites, args.workers) != (1, 2):
-        parser.error("the multi-host stack has one site and a worker on each of two hosts")
-    out = args.out or ROOT / "bench/results" / (
+    return parser
+
+
+def run(args: argparse.Namespace) -> dict:
+    """The faults on ``args.target`` (``parser()``'s options); writes ``args.out`` (or the
+    target's default under bench/results) and returns the result document."""
+    out = args.out or common.RESULTS / (
         "chaos.json" if args.target == "up" else "chaos-multihost.json")
     rng = random.Random(args.seed)
     result = (run_up if args.target == "up" else run_multihost)(args, rng)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1) + "\n")
+    common.write_json(out, result, indent=1)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
+    args = ap.parse_args(argv)
+    if args.target == "multihost" and (args.sites, args.workers) != (1, 2):
+        ap.error("the multi-host stack has one site and a worker on each of two hosts")
+    result = run(args)
     if args.json:
-        print(json.dumps(result, indent=1))
+        common.print_json(result, indent=1)
     else:
         for f in result["faults"]:
             print(f"{f['t_s']:7.1f} s  {f['kind']:24s} {f['target']:12s} "

@@ -9,8 +9,8 @@ links), the quick preset's episode with the ``fresh`` carry; it writes the heat 
 metrics with their optimum, a CSV of the cells, and the paired difference (per seed) between
 the display-time optimum and the best Γ at decision time, both read at display time.
 
-    python bench/display_sweep.py                                  # the default grid
-    python bench/display_sweep.py --gammas 40,70,130 --steps 25,100 --seeds 2
+    python -m bench.display_sweep                                  # the default grid
+    python -m bench.display_sweep --gammas 40,70,130 --steps 25,100 --seeds 2
 
 Results: ``bench/results/streaming/display-sweep/`` (``cells.csv``, ``results.json``,
 ``display_sweep.png``); episodes are cached under ``runs/display-sweep-cache``.
@@ -30,6 +30,7 @@ import numpy as np
 from aoi3d.experiment import ResultCache, get_preset, run_jobs
 from aoi3d.experiment.sweep import Job, mean_ci95
 from aoi3d.policy import MatPolicy
+from bench import common
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -38,7 +39,7 @@ def _ints(text: str) -> list[int]:
     return [int(v) for v in text.split(",") if v.strip()]
 
 
-def main(argv: list[str] | None = None) -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--gammas", type=_ints, default=[40, 70, 100, 130, 160])
     ap.add_argument("--steps", type=_ints, default=[25, 50, 100, 200])
@@ -52,7 +53,21 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path,
                     default=ROOT / "bench" / "results" / "streaming" / "display-sweep")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "display-sweep-cache")
-    args = ap.parse_args(argv)
+    common.add_json_option(ap, help="print the whole result document (cells too) as JSON")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        doc = run(args, argv)
+    if args.json:
+        common.print_json(doc)
+
+
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict:
+    """The Γ × steps grid (``parser()``'s options; ``argv``, or this process's, is recorded
+    as the command); writes into ``args.out`` and returns the result document."""
     base = get_preset("quick").episode.with_(time_scale=args.time_scale, carry="fresh")
     seeds = list(range(args.seed_offset, args.seed_offset + args.seeds))
     started = time.perf_counter()
@@ -119,6 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     (args.out / "results.json").write_text(json.dumps(doc, indent=2) + "\n")
     figure(rows, args.gammas, args.steps, args.out / "display_sweep.png", doc)
     print(json.dumps({k: v for k, v in doc.items() if k != "cells"}, indent=2))
+    return doc
 
 
 def figure(rows: list[dict], gammas: list[int], steps: list[int], path: Path, doc: dict) -> None:

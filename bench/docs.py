@@ -13,9 +13,9 @@ Why in bench/: the generator reads what the benches write and nothing else; it i
 domain code (aoi3d/, which imports nothing of bench/) nor a service. It uses only the
 standard library, so it runs without the project installed.
 
-    python bench/docs.py            # rewrite docs/measurements.md
-    python bench/docs.py --check    # exit 1 (and say which page) when a page is stale
-    python bench/docs.py --out DIR  # write the pages under DIR instead of docs/
+    python -m bench.docs            # rewrite docs/measurements.md
+    python -m bench.docs --check    # exit 1 (and say which page) when a page is stale
+    python -m bench.docs --out DIR  # write the pages under DIR instead of docs/
 
 A result file no section renders must be listed in ``ELSEWHERE`` with the page that
 discusses it; the test fails on a file that is neither, so a new result cannot be lost.

@@ -13,8 +13,8 @@ service build it, for several thresholds τ. Reported per τ: the mask's pixel f
   at t, t − C, …, t − K·C (the blades now and where they were, which the mask covers by
   construction): pixels that neither are rotor nor border it — noise, if τ were too low.
 
-    python bench/dynamic_mask.py                               # data/turbine-rotor
-    python bench/dynamic_mask.py --png runs/dynamic_mask.png   # and an overlay figure
+    python -m bench.dynamic_mask                               # data/turbine-rotor
+    python -m bench.dynamic_mask --png runs/dynamic_mask.png   # and an overlay figure
 
 Writes ``bench/results/dynamic_mask.json``. Reads only the held-out camera's frames (≈ 10 s
 on one core for the default 300-frame scene).
@@ -33,21 +33,38 @@ from scipy import ndimage
 
 from aoi3d.quality import DYNAMIC_DILATION_PX, DYNAMIC_FRAMES, DYNAMIC_TAU, dynamic_mask
 from aoi3d.scene import open_dataset
+from bench import common
 
 TAUS_255 = (2, 4, 8, 16, 24)
 """Thresholds compared, in 8-bit levels (τ = levels / 255)."""
 
 
-def main(argv: list[str] | None = None) -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", type=Path, default=Path("data/turbine-rotor"))
     ap.add_argument("--period-ms", type=float, default=30.0, help="C, the frame period (ms).")
     ap.add_argument("--frames", type=int, default=DYNAMIC_FRAMES, help="K, earlier frames.")
     ap.add_argument("--png", type=Path, default=None, help="Also write an overlay figure.")
     ap.add_argument("--out", type=Path, default=Path("bench/results/dynamic_mask.json"))
+    common.add_json_option(ap)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = parser()
     args = ap.parse_args(argv)
     if args.period_ms <= 0 or args.frames < 1:
         ap.error("--period-ms must be > 0 and --frames >= 1")
+    with common.progress_to_stderr(args.json):
+        doc = run(args, argv)
+    if args.json:
+        common.print_json(doc, indent=1)
+    return 0
+
+
+def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict:
+    """Every threshold (``parser()``'s options; ``argv``, or this process's, is recorded as
+    the command); writes ``args.out`` (and ``args.png``) and returns the result document."""
 
     ds = open_dataset(args.dataset)
     cam = ds.heldout_id
@@ -113,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.png is not None:
         _figure(overlays, args.png)
         print(f"wrote {args.png}")
-    return 0
+    return doc
 
 
 def _moving(image: np.ndarray, empty: np.ndarray) -> np.ndarray:

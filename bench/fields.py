@@ -21,8 +21,8 @@ so figures can be read as a fraction of what the hardware does.
 Each run happens in a fresh process (``--no-isolate`` runs them in this one): peak memory
 and the allocator start clean, and one backend's threads or caches cannot slow the next.
 
-    python bench/fields.py                        # everything (≈ 15 min on 2 cores)
-    python bench/fields.py --quick --backends grid  # smoke run (< 1 min)
+    python -m bench.fields                        # everything (≈ 15 min on 2 cores)
+    python -m bench.fields --quick --backends grid  # smoke run (< 1 min)
 
 Writes ``bench/results/fields.json`` (``fields-quick.json`` with ``--quick``).
 """
@@ -50,8 +50,10 @@ from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-ROOT = Path(__file__).resolve().parents[1]
-RESULTS = ROOT / "bench" / "results"
+from bench import common
+
+ROOT = common.ROOT
+RESULTS = common.RESULTS
 REFERENCE = "nerf"
 """The reference backend: the plain positional-encoding NeRF MLP."""
 BUDGETS_S = (5.0, 15.0, 30.0, 60.0)
@@ -258,7 +260,7 @@ def _jsonable(value: Any) -> Any:
 
 def run_isolated(spec: RunSpec, report: Report | None = None) -> dict[str, Any]:
     """:func:`run_one` in a fresh Python process (JSON lines over its stdout)."""
-    cmd = [sys.executable, str(Path(__file__).resolve()), "--run-spec", json.dumps(asdict(spec))]
+    cmd = [sys.executable, "-m", "bench.fields", "--run-spec", json.dumps(asdict(spec))]
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, bufsize=1)
     result: dict[str, Any] | None = None
@@ -510,6 +512,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--out", default=None, help="JSON file (default bench/results/fields.json, "
                                                 "fields-quick.json with --quick)")
     ap.add_argument("--run-spec", help=argparse.SUPPRESS)
+    common.add_json_option(ap)
     args = ap.parse_args(argv)
     if args.threads < 1:
         ap.error("--threads must be >= 1")
@@ -517,10 +520,23 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Parses the options (``--run-spec``: one run, in the fresh process of
+    :func:`run_isolated`) and runs; returns the result document (``--json``: prints it)."""
     args = parse_args(argv)
     if args.run_spec:
         _child(args.run_spec)
         return {}
+    if not args.json:
+        return run(args)
+    with common.progress_to_stderr():
+        result = run(args)
+    common.print_json(result)
+    return result
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """Every case and backend (``parse_args``'s options); writes ``args.out`` (or the default
+    under bench/results) and returns the result document."""
     from aoi3d.field import BACKENDS, UnknownBackendError, check_backend
     from aoi3d.scene import SceneConfig, ensure_dataset, load_dataset
 

@@ -3,7 +3,7 @@ regime schedule, then a cellular trace set over REST, under a policy (default th
 plug-in); the console marks every change, charts the measured mean delay against the regime's
 mean and the policy's Γ over time.
 
-    python bench/live_channel.py [--seconds 90] [--time-scale 0.1] [--policy adaptive:plugin]
+    python -m bench.live_channel [--seconds 90] [--time-scale 0.1] [--policy adaptive:plugin]
 
 Writes ``bench/results/live-channel/channel.json`` (the network's GET /channel at the end:
 the changes and the measured delay), ``series.json`` (the console's channel series) and a
@@ -14,34 +14,27 @@ Playwright; skipped with a message otherwise). Traces come from ``../shared/data
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import shutil
-import sys
 import time
-from pathlib import Path
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "bench"))
+from aoi3d.ports import BENCH_BLOCKS
+from bench import common
 
-import livebench  # noqa: E402  (bench/livebench.py, a sibling)
-
-from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
+ROOT = common.ROOT
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
-OUT = ROOT / "bench" / "results" / "live-channel"
+OUT = common.RESULTS / "live-channel"
 PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (aoi3d/ports.py)
+url = functools.partial(common.url, PORTS)  # url(service, path="/")
 WATCHED = ("camera", "network", "scheduler", "trainer", "metrics", "console")
 
 
-def url(service: str, path: str = "/") -> str:
-    return PORTS.url(service, path)
-
-
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seconds", type=float, default=90.0, help="wall seconds per channel")
     ap.add_argument("--time-scale", type=float, default=0.1)
@@ -49,7 +42,13 @@ def main() -> None:
     ap.add_argument("--trace", default=str(TRACES / "TMobile-UMTS-driving.up"))
     ap.add_argument("--policy", default="adaptive:plugin",
                     help="the scheduler's policy (adaptive:plugin draws its Γ on the console)")
-    args = ap.parse_args()
+    common.add_json_option(ap, help="print the result document (channel.json's) as JSON")
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict:
+    """The live run (``parser()``'s options); writes under bench/results/live-channel and
+    returns the result document: the network's ``GET /channel`` at the end."""
     OUT.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, AOI3D_NETWORK_DELAY=args.regimes, AOI3D_SCHEDULER_POLICY=args.policy,
                AOI3D_FILES_ROOTS=f"runs,models,{TRACES}")
@@ -60,11 +59,11 @@ def main() -> None:
         f"# aoi3d up {' '.join([*PORTS.up_args(), *up_args])} with "
         f"AOI3D_NETWORK_DELAY={args.regimes} AOI3D_SCHEDULER_POLICY={args.policy}; "
         f"then PUT /channel trace:{args.trace}\n")
-    up = livebench.start_up(PORTS, "livechannel", ROOT / "runs" / "bench-live-channel", up_args,
-                            env=env)
+    up = common.start_up(PORTS, "livechannel", ROOT / "runs" / "bench-live-channel", up_args,
+                         env=env)
     client = httpx.Client(timeout=10.0)
     try:
-        livebench.wait_until("the pipeline", lambda: all(
+        common.wait_until("the pipeline", lambda: all(
             client.get(url(s, "/healthz")).status_code == 200 for s in WATCHED), 300, proc=up)
         print("up; playing", args.regimes, "under", args.policy, flush=True)
         time.sleep(args.seconds)
@@ -81,7 +80,16 @@ def main() -> None:
         print("measured delay (ms):", channel["measured_delay_ms"])
         _screenshot()
     finally:
-        livebench.stop_up(up)
+        common.stop_up(up)
+    return channel
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        channel = run(args)
+    if args.json:
+        common.print_json(channel, indent=1)
 
 
 def _has(client: httpx.Client, path: str) -> bool:

@@ -29,15 +29,16 @@ channels are independent draws) and ``online_live.png`` (reward and PSNR against
 a trailing mean per site), which docs/ppo.md shows. ``--from-csv`` redoes the last two from
 the first ones.
 
-    python bench/online_live.py --minutes 60          # the issue's hour
-    python bench/online_live.py --minutes 3 --out /tmp/online-smoke
-    python bench/online_live.py --from-csv           # summary and figure again
+    python -m bench.online_live --minutes 60          # the issue's hour
+    python -m bench.online_live --minutes 3 --out /tmp/online-smoke
+    python -m bench.online_live --from-csv           # summary and figure again
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import os
 import shutil
@@ -49,25 +50,19 @@ from typing import Any
 
 import httpx
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from aoi3d.ports import BENCH_BLOCKS
+from aoi3d.stats import mean_ci95, welch_ci95
+from bench import common
 
-import livebench  # noqa: E402  (bench/livebench.py, a sibling)
-
-from aoi3d.ports import BENCH_BLOCKS  # noqa: E402
-from aoi3d.stats import mean_ci95, welch_ci95  # noqa: E402
-
+ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (aoi3d/ports.py)
+url = functools.partial(common.url, PORTS)  # url(service, path, site=site)
 SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
 HTTP = httpx.Client(timeout=60)
 FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim", "lpips",
           "psnr_dynamic_db", "n_views"]
-
-
-def url(service: str, site: str, path: str) -> str:
-    return PORTS.url(service, f"/sites/{site}{path}")
 
 
 def scratch_checkpoint(path: Path, seed: int) -> None:
@@ -81,7 +76,7 @@ def scratch_checkpoint(path: Path, seed: int) -> None:
 
 
 def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
-    livebench.wait_until(
+    common.wait_until(
         "the pipeline ready (see runs/bench-online/latest/)",
         lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
         and all(HTTP.get(PORTS.url(s, "/readyz")).status_code == 200
@@ -90,7 +85,7 @@ def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
 
 
 def put_policy(site: str, body: dict[str, Any]) -> dict[str, Any]:
-    resp = HTTP.put(url("scheduler", site, "/policy"), json=body)
+    resp = HTTP.put(url("scheduler", "/policy", site=site), json=body)
     if resp.status_code >= 400:
         raise SystemExit(f"PUT {site} policy {body}: {resp.status_code} {resp.text[:300]}")
     return resp.json()
@@ -144,7 +139,7 @@ def plot(rows_by_site: dict[str, list[dict[str, Any]]], labels: dict[str, str], 
     plt.close(fig)
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=60.0, help="wall minutes to measure")
     ap.add_argument("--workers", type=int, default=2, help="reconstruction workers")
@@ -155,14 +150,19 @@ def main() -> None:
     ap.add_argument("--window-min", type=float, default=10.0)
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET)
     ap.add_argument("--ready-timeout-s", type=float, default=300.0)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "online-live")
+    ap.add_argument("--out", type=Path, default=common.RESULTS / "online-live")
     ap.add_argument("--from-csv", action="store_true",
                     help="only summarise: summary.json and the figure from --out's "
                          "qualities.csv and run.json")
-    args = ap.parse_args()
+    common.add_json_option(ap, help="print the result document (summary.json) as JSON")
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The hour (``parser()``'s options), or with ``args.from_csv`` only its summary; writes
+    into ``args.out`` and returns the result document (summary.json's)."""
     if args.from_csv:
-        summarise(args.out.resolve(), args.window_min)
-        return
+        return summarise(args.out.resolve(), args.window_min)
 
     from aoi3d.policy import parse_policy
 
@@ -184,7 +184,7 @@ def main() -> None:
 
     log_dir = ROOT / "runs" / "bench-online"
     load_before = os.getloadavg()
-    up = livebench.start_up(PORTS, "online", log_dir, [
+    up = common.start_up(PORTS, "online", log_dir, [
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
         "--workers", str(args.workers), "--sites", str(len(SITES))])
     seen: dict[str, dict[int, dict[str, Any]]] = {s: {} for s in SITES}
@@ -196,21 +196,21 @@ def main() -> None:
             put_policy(site, body)
         t0 = time.monotonic()
         for site in SITES:  # renders of decisions taken before the PUT are not counted
-            d = HTTP.get(url("scheduler", site, "/decision")).json()
+            d = HTTP.get(url("scheduler", "/decision", site=site)).json()
             first_id[site], first_ms[site] = d["decision_id"], d["time_ms"]
         print(f"policies put; measuring {args.minutes:g} min -> {out}", flush=True)
         while (now := time.monotonic() - t0) < args.minutes * 60:
             time.sleep(min(args.poll_s, max(0.1, args.minutes * 60 - now)))
             wall = time.monotonic() - t0
             for site in SITES:
-                hist = HTTP.get(url("metrics", site, "/quality"),
+                hist = HTTP.get(url("metrics", "/quality", site=site),
                                 params={"limit": 1000}).json()["history"]
                 for q in hist:
                     if q["decision_id"] > first_id[site] and q["decision_id"] not in seen[site]:
                         # the decision's epoch on the wall clock (sim ms / time scale)
                         at = (q["time_ms"] - first_ms[site]) / 1000 / args.time_scale
                         seen[site][q["decision_id"]] = {**q, "wall_s": round(at, 2)}
-                pol = HTTP.get(url("scheduler", site, "/policy")).json()
+                pol = HTTP.get(url("scheduler", "/policy", site=site)).json()
                 online = pol.get("online") or {}
                 learners.append({"site": site, "wall_s": round(wall, 1),
                                  "scored": len(seen[site]),
@@ -221,7 +221,7 @@ def main() -> None:
                 f"{s} {len(seen[s])} renders" for s in SITES), flush=True)
         pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
     finally:
-        livebench.stop_up(up, timeout_s=120)
+        common.stop_up(up, timeout_s=120)
 
     rows_by_site = {s: sorted(seen[s].values(), key=lambda q: q["decision_id"]) for s in SITES}
     with open(out / "qualities.csv", "w", newline="") as fh:
@@ -233,19 +233,27 @@ def main() -> None:
         w = csv.DictWriter(fh, fieldnames=list(learners[0]))
         w.writeheader()
         w.writerows(learners)
-    run = {"command": " ".join(["python", "bench/online_live.py", *sys.argv[1:]]),
-           "minutes": args.minutes, "workers": args.workers, "time_scale": args.time_scale,
-           "policies": {s: {"label": labels[s], **policies[s]} for s in SITES},
-           "load_before": [round(x, 2) for x in load_before],
-           "load_after": [round(x, 2) for x in os.getloadavg()],
-           "pool_lost": pool.get("lost"),
-           "last_learner": {s: next((x for x in reversed(learners) if x["site"] == s), None)
-                            for s in SITES}}
-    (out / "run.json").write_text(json.dumps(run, indent=1) + "\n")
-    summarise(out, args.window_min)
+    meta = {"command": " ".join(["python", "bench/online_live.py", *sys.argv[1:]]),
+            "minutes": args.minutes, "workers": args.workers, "time_scale": args.time_scale,
+            "policies": {s: {"label": labels[s], **policies[s]} for s in SITES},
+            "load_before": [round(x, 2) for x in load_before],
+            "load_after": [round(x, 2) for x in os.getloadavg()],
+            "pool_lost": pool.get("lost"),
+            "last_learner": {s: next((x for x in reversed(learners) if x["site"] == s), None)
+                             for s in SITES}}
+    (out / "run.json").write_text(json.dumps(meta, indent=1) + "\n")
+    return summarise(out, args.window_min)
 
 
-def summarise(out: Path, window_min: float) -> None:
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        summary = run(args)
+    if args.json:
+        common.print_json(summary, indent=1)
+
+
+def summarise(out: Path, window_min: float) -> dict[str, Any]:
     """summary.json and online_live.png from ``out``'s qualities.csv and run.json: per site
     and ``window_min`` window the mean reward ± 95 % CI; per site the first window and the
     last two against the rule's site (Welch: the sites' channels are independent draws)."""
@@ -293,6 +301,7 @@ def summarise(out: Path, window_min: float) -> None:
             m = d["minus_rule"]["last"]["reward"]
             line += f"; minus the rule {m['difference']:+.4f} ± {m['ci95']:.4f}"
         print(line)
+    return summary
 
 if __name__ == "__main__":
     main()

@@ -7,29 +7,28 @@ the quality of the renders of the window's decisions (mean ± 95% CI), and how l
 the render lag (sim ms from the time a render represents to its scoring) and the same in wall
 seconds. Writes ``bench/results/pipeline-<policy>-x<time scale>.json``.
 
-    python bench/pipeline.py --policy mat:70 --window-s 60 --time-scale 1
+    python -m bench.pipeline --policy mat:70 --window-s 60 --time-scale 1
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import time
 
 import httpx
-import livebench  # bench/livebench.py, a sibling
 
 from aoi3d.ports import BENCH_BLOCKS
 from aoi3d_cli.common import control_headers
+from bench import common
 
-ROOT = livebench.ROOT
+ROOT = common.ROOT
 BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)
 SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")  # the ones measured
 
 
 def scrape(service: str) -> dict[str, float]:
-    return livebench.scrape(httpx.Client(timeout=5), BLOCK.url(service, "/metrics"))
+    return common.scrape(httpx.Client(timeout=5), BLOCK.url(service, "/metrics"))
 
 
 def policy_body(spec: str) -> dict:
@@ -39,20 +38,25 @@ def policy_body(spec: str) -> dict:
     return parse_policy(spec).to_json()
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--policy", default="mat:70", help="all | mat:<ms> | freshest:<k>")
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--warmup-s", type=float, default=10.0)
     ap.add_argument("--window-s", type=float, default=60.0)
     ap.add_argument("--dataset", default=str(ROOT / "data" / "turbine-rotor"))
-    args = ap.parse_args()
+    common.add_json_option(ap)
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict:
+    """One measurement (``parser()``'s options); writes and returns the result document."""
 
     log_dir = ROOT / "runs" / "bench-pipeline"
-    up = livebench.start_up(BLOCK, "bench", log_dir, ["--dataset", args.dataset,
-                                                      "--time-scale", str(args.time_scale)])
+    up = common.start_up(BLOCK, "bench", log_dir, ["--dataset", args.dataset,
+                                                   "--time-scale", str(args.time_scale)])
     try:
-        livebench.wait_until(
+        common.wait_until(
             "the pipeline up (see runs/bench-pipeline/)",
             lambda: all(httpx.get(BLOCK.url(s, "/healthz"), timeout=1).status_code == 200
                         for s in SERVICES), 120, proc=up)
@@ -76,7 +80,7 @@ def main() -> None:
         history = httpx.get(BLOCK.url("metrics", "/quality"),
                             params={"limit": 100000}).json()["history"]
     finally:
-        livebench.stop_up(up, timeout_s=60)
+        common.stop_up(up, timeout_s=60)
 
     def rate(service: str, name: str) -> float:
         return (last[service].get(name, 0.0) - first[service].get(name, 0.0)) / dt
@@ -122,10 +126,13 @@ def main() -> None:
         "trainer_device": status.get("device"),
     }
     name = f"pipeline-{args.policy.replace(':', '')}-x{args.time_scale:g}.json"
-    out = ROOT / "bench" / "results" / name
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    common.write_json(common.RESULTS / name, result)
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    common.print_json(run(args))  # the document, with --json or without
 
 
 if __name__ == "__main__":

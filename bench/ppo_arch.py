@@ -10,21 +10,21 @@ Trains :class:`aoi3d.policy.ppo.learner.PPOLearner` with each actor (``mlp``, ``
 for 38 updates of 16 episodes (= ``aoi3d ppo train --preset quick``) on three seeds and
 reports the mean reward of the first and last three batches and of the trained deterministic
 policy on 300 fresh episodes. Writes ``bench/results/ppo_arch.json``. Run:
-``python bench/ppo_arch.py`` (~1 min).
+``python -m bench.ppo_arch`` (~1 min).
 """
 
 from __future__ import annotations
 
-import json
+import argparse
 import platform
 import time
-from pathlib import Path
 
 import numpy as np
 import torch
 
 from aoi3d.policy.ppo import Batch, PPOConfig
 from aoi3d.policy.ppo.learner import PPOLearner
+from bench import common
 
 N, UPDATES, BATCH, SEEDS = 18, 38, 16, 3
 HYPER = {"lr": 1e-3, "minibatch_size": 8}
@@ -42,7 +42,8 @@ def reward(aoi: np.ndarray, mask: np.ndarray, rng: np.random.Generator | None) -
     return r + (float(rng.normal(0.0, 0.04)) if rng is not None else 0.0)
 
 
-def run(arch: str, seed: int) -> dict[str, float]:
+def train_arch(arch: str, seed: int) -> dict[str, float]:
+    """One actor trained on one seed: the mean rewards reported per actor."""
     rng = np.random.default_rng(seed)
     agent = PPOLearner(PPOConfig(n_cameras=N, seed=seed, arch=arch, **HYPER))
     batches = []
@@ -67,19 +68,34 @@ def run(arch: str, seed: int) -> dict[str, float]:
             "all": float(np.mean([reward(a, np.ones(N, bool), None) for a in test]))}
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    common.add_json_option(ap)
+    return ap
+
+
+def run() -> dict:
+    """Both actors on every seed; writes ``bench/results/ppo_arch.json`` and returns its
+    document."""
     torch.set_num_threads(1)
     started = time.perf_counter()
     out: dict[str, dict[str, float]] = {}
     for arch in ("mlp", "shared"):
-        runs = [run(arch, s) for s in range(SEEDS)]
+        runs = [train_arch(arch, s) for s in range(SEEDS)]
         out[arch] = {k: float(np.mean([r[k] for r in runs])) for k in runs[0]}
         print(f"{arch:7s} " + "  ".join(f"{k} {v:.4f}" for k, v in out[arch].items()))
     doc = {"results": out, "updates": UPDATES, "batch": BATCH, "seeds": SEEDS, "hyper": HYPER,
            "wall_s": time.perf_counter() - started, "machine": platform.node()}
-    path = Path(__file__).parent / "results" / "ppo_arch.json"
-    path.parent.mkdir(exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1) + "\n")
+    common.write_json(common.RESULTS / "ppo_arch.json", doc, indent=1)
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        doc = run()
+    if args.json:
+        common.print_json(doc, indent=1)
 
 
 if __name__ == "__main__":

@@ -6,16 +6,14 @@ experiment quick preset's episode config, ``steps_per_epoch`` 100 and 300) with
 :func:`aoi3d.rl.evaluate.evaluate` on seeds 2,000,000+ (neither training nor held-out seeds), and
 reports per budget the mean reward/PSNR/SSIM/LPIPS of each policy, their ranking, the
 Spearman correlation of the two rankings, and the wall time of a computed episode.
-Writes ``bench/results/ppo_budget.json``. Run: ``python bench/ppo_budget.py [SEEDS]``
+Writes ``bench/results/ppo_budget.json``. Run: ``python -m bench.ppo_budget [SEEDS]``
 (10 seeds: about 5 minutes on 2 cores).
 """
 
 from __future__ import annotations
 
-import json
-import sys
+import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 from scipy import stats
@@ -23,14 +21,24 @@ from scipy import stats
 from aoi3d.experiment import get_preset
 from aoi3d.experiment.report import machine
 from aoi3d.rl.evaluate import evaluate
+from bench import common
 
 POLICIES = ("all", "mat:40", "mat:70", "mat:100", "mat:160", "freshest:6", "freshest:12")
 BUDGETS = (100, 300)
 SEED_BASE = 2_000_000
 
 
-def main() -> None:
-    n_seeds = int(sys.argv[1]) if len(sys.argv) > 1 else 10
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("seeds", nargs="?", type=int, default=10, metavar="SEEDS",
+                    help="episodes per policy and budget (default 10)")
+    common.add_json_option(ap)
+    return ap
+
+
+def run(n_seeds: int = 10) -> dict:
+    """Both budgets on ``n_seeds`` seeds; writes ``bench/results/ppo_budget.json`` and returns
+    its document."""
     seeds = [SEED_BASE + s for s in range(n_seeds)]
     base = get_preset("quick").episode
     doc: dict[str, object] = {"policies": POLICIES, "seeds": seeds, "machine": machine(),
@@ -52,9 +60,16 @@ def main() -> None:
     rho = float(stats.spearmanr(means[BUDGETS[0]], means[BUDGETS[1]]).statistic)
     doc["spearman_reward"] = rho
     print(f"Spearman correlation of the policies' mean rewards, {BUDGETS}: {rho:.3f}")
-    path = Path(__file__).parent / "results" / "ppo_budget.json"
-    path.parent.mkdir(exist_ok=True)
-    path.write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    common.write_json(common.RESULTS / "ppo_budget.json", doc, indent=1, default=float)
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        doc = run(args.seeds)
+    if args.json:
+        common.print_json(doc, indent=1, default=float)
 
 
 if __name__ == "__main__":

@@ -10,10 +10,10 @@ through 60, 67, 74, 81 (frame indices). The reconstructions are seeded, so each 
 same PSNR every cycle; ``seconds_median`` is the median wall time of one reconstruction (all of
 it: reset, views, training, render; not the dataset's decoding), ``psnr_db`` the mean PSNR.
 
-    python bench/recon.py                      # the default workload, a line per reconstruction
-    python bench/recon.py --json               # one JSON object
-    python bench/recon.py --backend ngp --size 192x144 --threads 2 --json
-    python bench/recon.py --backend tensorf --device cuda --json   # on a GPU
+    python -m bench.recon                      # the default workload, a line per reconstruction
+    python -m bench.recon --json               # one JSON object
+    python -m bench.recon --backend ngp --size 192x144 --threads 2 --json
+    python -m bench.recon --backend tensorf --device cuda --json   # on a GPU
 
 The dataset is generated when missing (as the experiment commands do): at 96×72 into
 ``data/turbine-rotor``, at another ``--size`` into ``data/turbine-rotor-<W>x<H>``.

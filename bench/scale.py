@@ -13,9 +13,9 @@ subscriber costs CPU), and the cores each process of the pipeline used in the wi
 ends with the arithmetic for a larger farm from the measured per-worker throughput and
 per-site bytes.
 
-    python bench/scale.py --json                  # bench/results/scale.json, and one JSON object
-    python bench/scale.py --configs 1x1,2x1 --measure-s 90 --repeats 2
-    python bench/scale.py --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
+    python -m bench.scale --json                  # bench/results/scale.json, and one JSON object
+    python -m bench.scale --configs 1x1,2x1 --measure-s 90 --repeats 2
+    python -m bench.scale --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
 
 A configuration may name the trainer's carry and render steps (``KxS:carry@steps``): the
 streaming warm start (``stream``) beside today's ``fresh`` in the same run (issue 33).
@@ -26,7 +26,6 @@ The machine's other load is recorded (load average before and after each run).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import statistics
@@ -36,12 +35,12 @@ import time
 from pathlib import Path
 
 import httpx
-import livebench  # bench/livebench.py, a sibling
 
 from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95
+from bench import common
 
-ROOT = livebench.ROOT
+ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (aoi3d/ports.py)
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
@@ -49,10 +48,10 @@ HTTP = httpx.Client(timeout=30)
 
 def scrape(service: str) -> dict[str, float]:
     """Series of a service's /metrics, summed over labels, plus each labelled sample."""
-    return livebench.scrape(HTTP, PORTS.url(service, "/metrics"))
+    return common.scrape(HTTP, PORTS.url(service, "/metrics"))
 
 
-class ByteTap(livebench.Tap):
+class ByteTap(common.Tap):
     """Counts the payload bytes of every message of the run (all keys)."""
 
     def __init__(self, run_id: str) -> None:
@@ -128,12 +127,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         env["AOI3D_TRAINER_CARRY"] = carry
     if render_steps is not None:
         env["AOI3D_TRAINER_RENDER_STEPS"] = str(render_steps)
-    up = livebench.start_up(PORTS, run_id, log_dir, [
+    up = common.start_up(PORTS, run_id, log_dir, [
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
         "--workers", str(workers), "--sites", str(sites)], env=env)
     tap = None
     try:
-        livebench.wait_until(
+        common.wait_until(
             f"the pipeline with {workers} workers up (see {log_dir}/latest/)",
             lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
             and HTTP.get(PORTS.url("metrics", "/healthz")).status_code == 200,
@@ -171,7 +170,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     finally:
         if tap is not None:
             tap.close()
-        livebench.stop_up(up)
+        common.stop_up(up)
 
     def delta(service: str, name: str) -> float:
         return last[service].get(name, 0.0) - first[service].get(name, 0.0)
@@ -265,7 +264,7 @@ def speedups(rows: list[dict]) -> dict | None:
     return out
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
                     help="KxS: K workers, S sites, optionally :carry@steps (the trainer's "
@@ -281,10 +280,15 @@ def main() -> None:
     ap.add_argument("--ready-timeout-s", type=float, default=180.0)
     ap.add_argument("--dataset", type=Path, default=DEFAULT_DATASET,
                     help="the scene (default: the live pipeline's, generated when missing)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "scale.json",
+    ap.add_argument("--out", type=Path, default=common.RESULTS / "scale.json",
                     help="the JSON file written")
-    ap.add_argument("--json", action="store_true", help="print one JSON object")
-    args = ap.parse_args()
+    common.add_json_option(ap, help="print one JSON object")
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Every configuration of ``args.configs`` (``parser()``'s options); writes ``args.out``
+    and returns the result document."""
     if Path(args.dataset) == DEFAULT_DATASET:  # generated when missing ("up to date" if not)
         subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--out",
                         args.dataset], check=True)
@@ -313,10 +317,17 @@ def main() -> None:
            "farm": farm(rows, 10, 18, args.time_scale) if base else None,
            "command": " ".join(["python", "bench/scale.py", *sys.argv[1:]]),
            "cpus": os.cpu_count()}
-    out = args.out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(doc, indent=2) + "\n")
-    print(json.dumps(doc, indent=2) if args.json else f"written: {out}")
+    common.write_json(args.out, doc)
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    doc = run(args)
+    if args.json:
+        common.print_json(doc)
+    else:
+        print(f"written: {args.out}")
 
 
 if __name__ == "__main__":

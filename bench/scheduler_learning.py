@@ -11,7 +11,7 @@ epoch), epochs skipped, the updates' wall time and the mean reward of the first 
 updates (it should rise: the toy bandit's best action is the odd cameras). Writes
 ``bench/results/scheduler-learning.json``.
 
-Run: ``python bench/scheduler_learning.py [--seconds 20] [--period-ms 30] [--batch 8]``.
+Run: ``python -m bench.scheduler_learning [--seconds 20] [--period-ms 30] [--batch 8]``.
 """
 
 from __future__ import annotations

@@ -46,10 +46,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT))
-
-from aoi3d.experiment import claims  # noqa: E402
+from aoi3d.experiment import claims
+from bench.common import ROOT
 
 DEV_SEEDS = "experiments 0–20, 1000–1015 and 9001–9003; PPO evaluation offsets 0–39"
 PPO_COMPARE = ("mat:40", "mat:70", "mat:100", "mat:130", "freshest:6", "all")

@@ -13,13 +13,14 @@ last ``--window-min`` minutes and their ratio; the restarts ``aoi3d up`` made; t
 ledger per site. The verdict: every process grew less than 10 % and the last window's render
 rate is within 5 % of the first's (exit status 1 otherwise).
 
-    python bench/soak.py --minutes 60        # docs/measurements.md (bench/results/soak.json)
-    python bench/soak.py --minutes 3 --window-min 1 --out /tmp/soak.json   # a quick look
+    python -m bench.soak --minutes 60        # docs/measurements.md (bench/results/soak.json)
+    python -m bench.soak --minutes 3 --window-min 1 --out /tmp/soak.json   # a quick look
 """
 
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import sys
@@ -28,13 +29,14 @@ import uuid
 from pathlib import Path
 
 import httpx
-import livebench  # bench/livebench.py, a sibling
 import numpy as np
 
 from aoi3d.ports import BENCH_BLOCKS
+from bench import common
 
-ROOT = livebench.ROOT
+ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (aoi3d/ports.py)
+url = functools.partial(common.url, PORTS)  # url(service, path)
 MAX_GROWTH = 0.10
 MAX_RATE_CHANGE = 0.05
 
@@ -47,10 +49,6 @@ def rss_mib(pid: int) -> float | None:
     except OSError:
         return None
     return None
-
-
-def url(service: str, path: str) -> str:
-    return PORTS.url(service, path)
 
 
 def rate(points: list[tuple[float, int]], t0: float, t1: float) -> float:
@@ -68,7 +66,7 @@ def window_rates(points: list[tuple[float, int]], window: float) -> list[float]:
     return [round(rate(points, i * window, (i + 1) * window), 3) for i in range(whole)]
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--minutes", type=float, default=60.0)
     parser.add_argument("--sites", type=int, default=2)
@@ -76,18 +74,25 @@ def main() -> int:
     parser.add_argument("--every-s", type=float, default=30.0)
     parser.add_argument("--warmup-s", type=float, default=90.0)
     parser.add_argument("--window-min", type=float, default=10.0)
-    parser.add_argument("--out", type=Path, default=ROOT / "bench/results/soak.json")
-    args = parser.parse_args()
+    parser.add_argument("--out", type=Path, default=common.RESULTS / "soak.json")
+    common.add_json_option(parser, help="print the result document as JSON (it is printed "
+                                        "anyway)")
+    return parser
+
+
+def run(args: argparse.Namespace) -> dict:
+    """The soak (``parser()``'s options); writes ``args.out`` and returns the result document
+    (its verdict: ``memory_ok`` and ``rate_ok``)."""
     log_dir = ROOT / "runs" / "bench-soak"
     run_id = f"soak{uuid.uuid4().hex[:6]}"
-    up = livebench.start_up(PORTS, run_id, log_dir, ["--sites", str(args.sites),
-                                                     "--workers", str(args.workers)])
+    up = common.start_up(PORTS, run_id, log_dir, ["--sites", str(args.sites),
+                                                  "--workers", str(args.workers)])
     http = httpx.Client(timeout=60.0)
     samples: dict[str, list[tuple[float, float]]] = {}
     renders: list[tuple[float, int]] = []
     loads: list[float] = []
     try:
-        livebench.wait_until(
+        common.wait_until(
             "soak: the pipeline rendering",
             lambda: http.get(url("trainer", "/status")).json()["pool"]["rendered"] > 0,
             600, every_s=2.0, proc=up)
@@ -110,7 +115,7 @@ def main() -> int:
         sites = http.get(url("metrics", "/sites")).json()["sites"]
         ledgers = {s: http.get(url("metrics", f"/sites/{s}/ledger")).json() for s in sites}
     finally:
-        livebench.stop_up(up)
+        common.stop_up(up)
     span = renders[-1][0]
     window = min(args.window_min * 60.0, span / 2)
     processes = {}
@@ -145,10 +150,14 @@ def main() -> int:
                    for s, led in ledgers.items()},
         "memory_ok": ok_memory, "rate_ok": ok_rate,
     }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(result, indent=1) + "\n")
-    print(json.dumps(result, indent=1))
-    return 0 if ok_memory and ok_rate else 1
+    common.write_json(args.out, result, indent=1)
+    return result
+
+
+def main(argv: list[str] | None = None) -> int:
+    result = run(parser().parse_args(argv))
+    common.print_json(result, indent=1)
+    return 0 if result["memory_ok"] and result["rate_ok"] else 1
 
 
 if __name__ == "__main__":

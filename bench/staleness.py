@@ -7,9 +7,9 @@ t0; it renders the held-out camera 0 and is scored against camera 0's frame *at*
 is the mean over three times t0. No channel is involved: this isolates the two sides of the
 tradeoff (views against staleness) that the MAT threshold trades.
 
-    python bench/staleness.py --dataset data/turbine-rotor          # the experiments' scene
-    python bench/staleness.py --dataset data/turbine                # the default (site) scene
-    python bench/staleness.py --dataset data/turbine-rotor --cases 18:0,18:1,5:1,3:1
+    python -m bench.staleness --dataset data/turbine-rotor          # the experiments' scene
+    python -m bench.staleness --dataset data/turbine                # the default (site) scene
+    python -m bench.staleness --dataset data/turbine-rotor --cases 18:0,18:1,5:1,3:1
 
 The datasets are made by ``aoi3d scene generate`` (``--framing rotor --rotor-rpm 6
 --out data/turbine-rotor`` for the experiments' scene, which the experiment commands also
@@ -19,7 +19,6 @@ generate). Writes ``bench/results/staleness-<dataset name>.json``.
 from __future__ import annotations
 
 import argparse
-import json
 import platform
 import time
 from pathlib import Path
@@ -31,6 +30,7 @@ from aoi3d.field.process import configure_process
 from aoi3d.lpips import load_lpips_fn, weights_path
 from aoi3d.quality import RewardWeights, score
 from aoi3d.scene import open_dataset
+from bench import common
 
 DEFAULT_CASES = "18:0,18:1,18:2,18:3,18:5,9:1,5:1,3:1,8:2"
 TIMES = (30, 130, 230)
@@ -45,7 +45,7 @@ def _cases(text: str) -> list[tuple[int, int]]:
     return out
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--dataset", type=Path, required=True)
     parser.add_argument("--steps", type=int, default=300, help="training steps per case")
@@ -53,7 +53,13 @@ def main() -> None:
                         help="comma-separated VIEWS:AGE (age in frame periods)")
     parser.add_argument("--backend", default="grid")
     parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+    common.add_json_option(parser)
+    return parser
+
+
+def run(args: argparse.Namespace) -> dict:
+    """Every case (``parser()``'s options); writes
+    ``bench/results/staleness-<dataset name>.json`` and returns its document."""
     configure_process(args.threads)
     ds = open_dataset(args.dataset)
     lpips_fn = load_lpips_fn() if weights_path("alex").exists() else None
@@ -79,15 +85,24 @@ def main() -> None:
                      "psnr_db": psnr, "ssim": ssim, "lpips": lpips, "train_s": train_s})
         print(f"{k:2d} views, {age} frame(s) old: PSNR {psnr:.2f} dB, SSIM {ssim:.3f}, "
               f"LPIPS {lpips:.3f}", flush=True)
-    out = Path(__file__).parent / "results" / f"staleness-{args.dataset.name}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({
+    out = common.RESULTS / f"staleness-{args.dataset.name}.json"
+    doc = {
         "benchmark": "staleness vs views", "dataset": str(args.dataset),
         "config_hash": ds.config_hash, "backend": args.backend, "steps": args.steps,
         "times": list(TIMES), "rows": rows,
         "machine": {"python": platform.python_version(), "threads": args.threads},
-    }, indent=2) + "\n")
+    }
+    common.write_json(out, doc)
     print(f"written to {out}")
+    return doc
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        doc = run(args)
+    if args.json:
+        common.print_json(doc)
 
 
 if __name__ == "__main__":

@@ -29,7 +29,7 @@ candidate) and the AoI rule's pick (the youngest frame). All of it three times: 
 round, over the first (which single camera), and over the later rounds (which camera to add
 to a selection: the regime of a policy that picks 5–9 cameras).
 
-    python bench/state_features.py          # bench/results/state-features.json, a table
+    python -m bench.state_features          # bench/results/state-features.json, a table
 """
 
 from __future__ import annotations
@@ -43,13 +43,11 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from aoi3d.experiment import ResultCache, get_preset  # noqa: E402
-from aoi3d.experiment.oracle import search_oracle  # noqa: E402
-from aoi3d.experiment.sweep import open_dataset, run_plans  # noqa: E402
-from aoi3d.policy.ppo.obs import pose_features  # noqa: E402
+from aoi3d.experiment import ResultCache, get_preset
+from aoi3d.experiment.oracle import search_oracle
+from aoi3d.experiment.sweep import open_dataset, run_plans
+from aoi3d.policy.ppo.obs import pose_features
+from bench.common import ROOT
 
 FEATURE_SETS = {
     "aoi": ("aoi",),

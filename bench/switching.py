@@ -13,9 +13,9 @@ and against the per-decision oracle over the same Γ arms (at each scored decisi
 the Γ's selections, scored with the truth — the bound of any threshold that switches per
 decision). Every paired difference is a 95% Student-t interval over the seeds.
 
-``python bench/switching.py run`` computes the missing episodes (the experiments' cache,
+``python -m bench.switching run`` computes the missing episodes (the experiments' cache,
 seed-major, so an interrupted run has covered every point with its first seeds);
-``python bench/switching.py report`` reads whatever the cache holds, uses the seeds complete
+``python -m bench.switching report`` reads whatever the cache holds, uses the seeds complete
 for every point, and writes ``bench/results/switching/switching.json``.
 
 Episodes already computed by ``make science`` (``bench/results/science/``: the delay sweep at
@@ -31,22 +31,19 @@ import dataclasses
 import glob
 import json
 import math
-import sys
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from aoi3d.experiment.config import get_preset  # noqa: E402
-from aoi3d.experiment.episode import EpisodeResult, plan_episode, plan_key  # noqa: E402
-from aoi3d.experiment.sweep import Job, ResultCache, lpips_available, run_jobs  # noqa: E402
-from aoi3d.policy import MatPolicy, PolicySpecError, kind_of  # noqa: E402
-from aoi3d.scene import open_dataset  # noqa: E402
-from aoi3d.stats import mean_ci95  # noqa: E402
+from aoi3d.experiment.config import get_preset
+from aoi3d.experiment.episode import EpisodeResult, plan_episode, plan_key
+from aoi3d.experiment.sweep import Job, ResultCache, lpips_available, run_jobs
+from aoi3d.policy import MatPolicy, PolicySpecError, kind_of
+from aoi3d.scene import open_dataset
+from aoi3d.stats import mean_ci95
+from bench.common import ROOT
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = ROOT / "bench" / "results" / "switching"

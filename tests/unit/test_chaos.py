@@ -7,31 +7,18 @@ recoveries and stalls as documented. The 10-minute run itself needs the images a
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import random
 import re
-import sys
 from pathlib import Path
 
 import jsonschema
 import yaml
 
+from bench import chaos
 from services.metrics.settings import Settings as MetricsSettings
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def _chaos():
-    if "bench_chaos" not in sys.modules:
-        spec = importlib.util.spec_from_file_location("bench_chaos", ROOT / "bench/chaos.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["bench_chaos"] = module
-        spec.loader.exec_module(module)
-    return sys.modules["bench_chaos"]
-
-
-chaos = _chaos()
 MULTIHOST = yaml.safe_load((ROOT / "compose.multihost.yaml").read_text())
 
 

@@ -5,7 +5,7 @@ script or make target that exists."""
 
 from __future__ import annotations
 
-import importlib.util
+import importlib
 import json
 import re
 import shutil
@@ -18,10 +18,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def docs():
-    spec = importlib.util.spec_from_file_location("bench_docs", ROOT / "bench" / "docs.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return importlib.import_module("bench.docs")
 
 
 def test_committed_pages_equal_their_regeneration(docs, tmp_path: Path) -> None:

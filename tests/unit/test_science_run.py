@@ -28,7 +28,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
              "--extra=--set=warmup_ms=150", "--extra=--set=scored_ms=60",
              "--extra=--set=score_every=1"]
     res = subprocess.run(
-        [sys.executable, str(ROOT / "bench/science.py"), "--seeds", "2", "--delay-seeds", "2",
+        [sys.executable, "-m", "bench.science", "--seeds", "2", "--delay-seeds", "2",
          "--regime-seeds", "2",
          "--seed-offset", "31000", "--ppo-seeds", "2", "--ppo-seed-offset", "7000",
          "--ppo-compare", "mat:40,mat:70,freshest:2,all",
@@ -36,7 +36,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
          "--compare-checkpoint", str(tmp_path / "ppo/final.pt"), "--out", str(tmp_path / "out"),
          "--cache", str(tmp_path / "cache"), "--doc", str(tmp_path / "science.md"),
          "--figures", str(tmp_path / "figs"), "--workers", "1", *extra],
-        capture_output=True, text=True)
+        capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 1, res.stdout[-3000:] + res.stderr[-3000:]
     doc = json.loads((tmp_path / "out/claims.json").read_text())
     assert [c["claim"] for c in doc["claims"]] == [

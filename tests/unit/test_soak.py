@@ -3,26 +3,12 @@ whole window (the hour's sampling runs a little past the hour: no partial last w
 
 from __future__ import annotations
 
-import importlib.util
 import math
-import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
-
-
-def _soak():
-    if "bench_soak" not in sys.modules:
-        sys.path.insert(0, str(ROOT / "bench"))  # livebench, its sibling
-        spec = importlib.util.spec_from_file_location("bench_soak", ROOT / "bench/soak.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules["bench_soak"] = module
-        spec.loader.exec_module(module)
-    return sys.modules["bench_soak"]
+from bench import soak
 
 
 def test_one_rate_per_whole_window() -> None:
-    soak = _soak()
     # 4 renders/s for 20 min, then 2/s; sampled every 30 s, a little past 40 min
     points = [(t, int(4 * min(t, 1200) + 2 * max(0.0, t - 1200))) for t in range(0, 2431, 30)]
     rates = soak.window_rates(points, 600.0)

@@ -1,32 +1,74 @@
-"""What the benches that start a live pipeline share (bench/pipeline.py, scale.py, soak.py,
-chaos.py, online_live.py): starting ``aoi3d up`` on a bench's own ports and stopping it, one
-wait loop, one ``/metrics`` scrape and one Zenoh tap of a run.
+"""What the benches share: where the results go and how a result document is written or
+printed (``--json``); and, for the benches that start a live pipeline (bench/pipeline.py,
+scale.py, soak.py, chaos.py, online_live.py, live_channel.py), a service's URL on a bench's
+own ports, starting ``aoi3d up`` there and stopping it, one wait loop, one ``/metrics``
+scrape and one Zenoh tap of a run.
 
 The ports come from :data:`aoi3d.ports.BENCH_BLOCKS` (a :class:`aoi3d.ports.PortBlock` per
-bench: its URLs and its ``aoi3d up`` options). A bench imports this module as a sibling
-(``python bench/<name>.py`` puts bench/ first on ``sys.path``); benches import nothing from
-tests/.
+bench: its URLs and its ``aoi3d up`` options). A bench is run from the repository root as
+``python -m bench.NAME`` and imports this module as ``bench.common``; benches import nothing
+from tests/.
 """
 
 from __future__ import annotations
 
+import argparse
+import contextlib
+import json
 import os
 import signal
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
+from aoi3d.ports import PortBlock
+
+__all__ = ["RESULTS", "ROOT", "Tap", "add_json_option", "print_json", "progress_to_stderr",
+           "scrape", "start_up", "stop_up", "url", "wait_until", "write_json"]
+
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # this checkout's aoi3d and services, whatever is installed
-    sys.path.insert(0, str(ROOT))
+"""The repository root (the benches read data/, models/ and write runs/ under it)."""
+RESULTS = ROOT / "bench" / "results"
+"""Where the benches write their result documents (docs/measurements.md is rendered from it)."""
 
-from aoi3d.ports import PortBlock  # noqa: E402
 
-__all__ = ["ROOT", "Tap", "scrape", "start_up", "stop_up", "wait_until"]
+def write_json(path: Path, doc: Any, *, indent: int = 2, default: Any = None) -> Path:
+    """``doc`` as JSON (``indent``, a final newline) at ``path``, its folder made first."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(doc, indent=indent, default=default) + "\n")
+    return path
+
+
+def add_json_option(parser: argparse.ArgumentParser,
+                    help: str = "print the result document as JSON") -> None:
+    """The ``--json`` flag every bench offers."""
+    parser.add_argument("--json", action="store_true", help=help)
+
+
+def print_json(doc: Any, *, indent: int | None = 2, default: Any = None) -> None:
+    """The result document on stdout (``--json``)."""
+    print(json.dumps(doc, indent=indent, default=default))
+
+
+@contextlib.contextmanager
+def progress_to_stderr(enabled: bool = True) -> Iterator[None]:
+    """While a bench runs under ``--json``, what it prints on the way goes to stderr, so that
+    stdout is the result document alone."""
+    if not enabled:
+        yield
+        return
+    with contextlib.redirect_stdout(sys.stderr):
+        yield
+
+
+def url(block: PortBlock, service: str, path: str = "/", *, site: str | None = None) -> str:
+    """``service``'s URL for ``path`` on ``block``'s ports (under ``/sites/<site>`` when
+    ``site`` is given)."""
+    return block.url(service, path if site is None else f"/sites/{site}{path}")
 
 
 def start_up(block: PortBlock, run_id: str, log_dir: Path, args: Sequence[str] = (),

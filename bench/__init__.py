@@ -1,0 +1,6 @@
+"""The benchmarks: one module per benchmark, each runnable from the repository root as
+``python -m bench.NAME`` (``--help`` for its options), with a ``run(...)`` that returns its
+result document and a ``main()`` that parses the arguments (``--json`` prints that document).
+What they share (the live pipeline's start and stop, a service's URL, JSON writing) is in
+:mod:`bench.common`; ``bench/docs.py`` renders ``bench/results`` into docs/measurements.md.
+"""
