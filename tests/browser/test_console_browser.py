@@ -24,7 +24,7 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
-from tests.ports import block
+from tests.support.ports import block
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = [

@@ -30,8 +30,8 @@ from typing import Any
 import httpx
 import pytest
 
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 ROOT = Path(__file__).resolve().parents[2]
 SCALE = timeout_scale()

@@ -33,7 +33,7 @@ from tests.containers.test_compose_up import (  # the same marks: skipped unless
     pytestmark,  # noqa: F401
     wait_for,
 )
-from tests.ports import block
+from tests.support.ports import block
 
 PORTS = dict(zip(["ZENOH", "SCHEDULER", "TRAINER", "METRICS"], block("multihost").ports(),
                  strict=False))

@@ -25,8 +25,8 @@ from aoi3d.lpips import weights_path
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

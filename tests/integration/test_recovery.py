@@ -28,7 +28,7 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
-from tests.ports import block
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

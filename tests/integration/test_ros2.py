@@ -24,7 +24,6 @@ import pytest
 
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from tests.deploy_modules import load
 from tests.integration.test_pipeline import (
     HTTP,
     SCALE,
@@ -33,7 +32,8 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
-from tests.ports import block
+from tests.support.deploy_modules import load
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

@@ -29,7 +29,6 @@ import yaml
 
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
-from tests.deploy_modules import load
 from tests.integration.test_pipeline import (
     HTTP,
     Tap,
@@ -37,7 +36,8 @@ from tests.integration.test_pipeline import (
     stop_pipeline,
     wait_for,
 )
-from tests.ports import block
+from tests.support.deploy_modules import load
+from tests.support.ports import block
 
 ROOT = Path(__file__).resolve().parents[2]
 PROMETHEUS = shutil.which("prometheus")

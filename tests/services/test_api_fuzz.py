@@ -22,7 +22,7 @@ from schemathesis.checks import not_a_server_error
 from aoi3d.scene import SceneDataset
 from tests.services.test_guard import SERVICES, build
 from tests.services.test_trainer import dataset  # noqa: F401  (module fixture)
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
 
 EXAMPLES = int(os.environ.get("AOI3D_FUZZ_EXAMPLES", "15"))
 SCALE = timeout_scale()

@@ -20,7 +20,7 @@ from services.kit.codec import FrameData, decode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
 
 KEYS = Keys("t")
 N_TRAIN = 3

@@ -19,7 +19,7 @@ from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.rig import rig_from_dict
 from services.kit.settings import CommonSettings
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
 from tests.unit.test_ingest_core import C2W, GID, OPTICAL, H, W, rig_doc
 
 SCALE = timeout_scale()

@@ -32,8 +32,8 @@ from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
 from services.metrics.core import TruthFrame, TruthRing
 from services.metrics.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
+from tests.support.series import without_site
+from tests.support.timeouts import timeout_scale
 
 RUN = "test-metrics"
 KEYS = Keys(RUN)

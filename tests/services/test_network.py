@@ -21,7 +21,7 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.network.app import create_app
 from services.network.settings import Settings
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
 
 N_CAMERAS = 3
 KEYS = Keys("t")

@@ -18,8 +18,8 @@ from services.kit.membus import key_matches
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rig import rig_from_dict
 from services.recorder.player import PlayConfig, Player, rig_document
-from tests.fakeclock import FakeClock
 from tests.services.test_recorder import H, W, noise_image
+from tests.support.fakeclock import FakeClock
 
 EPOCH = 1_700_000_000.0
 AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])

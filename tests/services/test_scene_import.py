@@ -18,7 +18,7 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.core import Recording
 from services.recorder.importer import NotImportable, import_mcap
 from tests.services.test_recorder import H, K, W, noise_image
-from tests.tiny import tiny_dataset
+from tests.support.tiny import tiny_dataset
 
 AABB = [-1.0, -1.0, -1.0, 1.0, 1.0, 1.0]
 
@@ -177,7 +177,7 @@ def test_a_rosbag2_of_ros2_cameras_becomes_a_dataset_through_the_ingest(tiny, tm
 
     # an experiment runs on it: one tiny episode, scored against the imported truth camera
     from aoi3d.experiment import EpisodeConfig, plan_episode, run_plan
-    from tests.tiny import TINY_FIELD
+    from tests.support.tiny import TINY_FIELD
 
     cfg = EpisodeConfig(dataset=str(ds.root), field=dict(TINY_FIELD), warmup_ms=90,
                         scored_ms=60, score_every=1, steps_per_epoch=2, lpips=False)

@@ -26,8 +26,8 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
+from tests.support.series import without_site
+from tests.support.timeouts import timeout_scale
 
 RUN = "test-sched"
 KEYS = Keys(RUN)

@@ -30,8 +30,8 @@ from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
 from services.trainer.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
+from tests.support.series import without_site
+from tests.support.timeouts import timeout_scale
 
 N_TRAIN = 4
 PERIOD_MS = 100.0  # one frame per period at fps = 10

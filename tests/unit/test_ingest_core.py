@@ -19,7 +19,7 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 from services.kit.rig import rig_from_dict
-from tests.fakeclock import FakeClock
+from tests.support.fakeclock import FakeClock
 
 W, H = 24, 18
 EPOCH = 1_700_000_000.0

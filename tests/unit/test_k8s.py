@@ -26,7 +26,7 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.deploy_modules import load
+from tests.support.deploy_modules import load
 from tests.unit.test_compose import command as compose_command
 from tests.unit.test_compose import environment as compose_env
 from tests.unit.test_compose import project
