@@ -9,7 +9,6 @@ import time
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from prometheus_client.parser import text_string_to_metric_families
 
 from aoi3d.channel import Link, camera_rngs
 from aoi3d.clock import SimClock
@@ -21,26 +20,19 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.network.app import create_app
 from services.network.settings import Settings
+from tests.support.metrics import metric
+from tests.support.network import CAMERA, IMAGE, W, frame
 from tests.support.timeouts import timeout_scale
 
 N_CAMERAS = 3
 KEYS = Keys("t")
-W, H = 24, 18
 
 
-def _camera() -> Camera:
-    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
-                  cx=W / 2, cy=H / 2, width=W, height=H)
 
 
-CAMERA = _camera()
 SCALE = timeout_scale()
-IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
 
 
-def frame(camera_id: int, gen_ms: float, *, sequence: int = 0) -> bytes:
-    return encode_frame(camera_id=camera_id, sequence=sequence, generation_ms=gen_ms,
-                        scene_time_ms=gen_ms % 1000, send_ms=gen_ms, camera=CAMERA, image=IMAGE)
 
 
 def make_app(bus: MemoryBus, clock: SimClock, files_roots: list[str] | None = None,
@@ -52,12 +44,6 @@ def make_app(bus: MemoryBus, clock: SimClock, files_roots: list[str] | None = No
     return create_app(settings, bus=bus, clock=clock)
 
 
-def metric(text: str, name: str, **labels: str) -> float:
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
-                return sample.value
-    raise AssertionError(f"no sample {name}{labels}")
 
 
 class Arrivals:

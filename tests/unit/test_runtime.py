@@ -9,7 +9,7 @@ import time
 import pytest
 
 from services.kit.runtime import Loops, guarded
-from tests.services.test_scheduler import wait_for
+from tests.support.waits import wait_for
 
 
 def test_loops_run_until_stopped_and_say_which_is_not_running() -> None:
