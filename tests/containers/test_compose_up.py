@@ -12,7 +12,7 @@ TCP it cannot), a trainer whose process is killed is restarted, and ``docker com
 leaves no container, network or volume behind.
 
 Grafana is not run (no registry has its image on this project's machines); its provisioning is
-checked statically in tests/unit/test_compose.py. Skipped unless AOI3D_COMPOSE_TEST=1 (set by
+checked statically in tests/deploy/test_compose.py. Skipped unless AOI3D_COMPOSE_TEST=1 (set by
 ``make compose-test``, which also starts the engine and builds the images).
 """
 
