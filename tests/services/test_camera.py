@@ -21,7 +21,7 @@ from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from tests.support.metrics import metric
 from tests.support.timeouts import timeout_scale
-from tests.support.waits import wait_for
+from tests.support.waits import settle, wait_for
 
 KEYS = Keys("t")
 N_TRAIN = 3
@@ -132,7 +132,7 @@ def test_config_rest_api(dataset_path: Path) -> None:
         assert client.put("/config", json={"paused": True}).json()["paused"] is True
         time.sleep(0.05)
         mark = len(bus.published)
-        time.sleep(0.15)
+        settle(0.3)  # several 45-ms ticks: a rig still running would publish
         assert len(bus.published) == mark, "paused rig still publishes"
         assert client.get("/readyz").json() == {"ready": True, "reason": "paused"}
         client.put("/config", json={"paused": False})

@@ -35,7 +35,7 @@ from tests.support.scheduler import (
     frame,
 )
 from tests.support.timeouts import SCALE
-from tests.support.waits import wait_for
+from tests.support.waits import settle, wait_for
 
 
 def settings(policy: str = "all", cameras: int = N_CAMERAS, period_ms: float = PERIOD_MS
@@ -155,7 +155,7 @@ def test_decisions_run_on_a_real_fast_clock_and_stop_promptly() -> None:
     assert all(b > a for a, b in itertools.pairwise(times))
     assert any(s.camera_id == 2 for s in ds[-1].selected)
     count = len(ds)
-    time.sleep(0.1)
+    settle(0.3)  # ten decision periods: a live thread would decide again
     assert len(decisions(bus)) == count  # the thread is gone
 
 

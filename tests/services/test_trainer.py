@@ -41,7 +41,7 @@ from tests.support.trainer import (
     metric,
     publish_frames,
 )
-from tests.support.waits import wait_for
+from tests.support.waits import settle, wait_for
 
 TIMEOUT_SCALE = timeout_scale()
 
@@ -236,7 +236,7 @@ def test_decisions_ended_without_a_render_are_told_to_the_ledger(
                    (5, "lost", "not_received", "", "site1"),
                    (6, "lost", "not_received", "", "site1"),
                    (3, "skipped", "superseded", "", "site1")]
-    time.sleep(0.3)  # nothing more: decision 7 is pending, not ended
+    settle(1.0)  # nothing more: decision 7 is pending, not ended (> the workers' 0.3 s wait)
     assert len(outcomes(bus)) == 6
 
 
