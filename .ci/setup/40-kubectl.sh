@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# kubectl with its built-in kustomize, for tests/unit/test_k8s.py (deploy/k8s rendered and
+# kubectl with its built-in kustomize, for tests/deploy/test_k8s.py (deploy/k8s rendered and
 # validated offline). The CI machine image carries kubectl 1.32 (kustomize 5.5); Debian's
 # kubernetes-client (1.20) is too old to render the overlays (kustomize's `labels` and
 # `replicas`). No kubectl, or one whose kustomize cannot render them, fails the run here,

@@ -5,12 +5,12 @@ read it (kustomize reads no file outside its folder, symlinks included):
     deploy/k8s/base/generated/prometheus/          prometheus.yml and the rules, copied
 
     python deploy/k8s/generate.py           (make k8s) writes them
-    python deploy/k8s/generate.py --check   exits 1 if one differs (tests/unit/test_k8s.py)
+    python deploy/k8s/generate.py --check   exits 1 if one differs (tests/deploy/test_k8s.py)
 
 One source for the environment: compose.yaml (and compose.multihost.yaml for the routers'
 mesh) says what each process gets; the Kubernetes workloads read these files through a
 ConfigMap each (kustomize's configMapGenerator, ``envFrom``) and set nothing else, so the two
-deployments cannot drift: tests/unit/test_k8s.py renders the manifests and compares every
+deployments cannot drift: tests/deploy/test_k8s.py renders the manifests and compares every
 container's environment with compose's. The names in compose's values are kept on purpose:
 the Kubernetes Services are called like compose's services (``router``, ``camera``, …), the
 secrets are mounted at /run/secrets/<compose's secret name>, the volumes at compose's paths.

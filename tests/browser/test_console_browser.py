@@ -17,14 +17,8 @@ from urllib.parse import urlsplit
 import pytest
 
 from aoi3d.ports import SERVICE_PORTS
-from tests.integration.test_pipeline import (
-    HTTP,
-    SCALE,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.pipeline import HTTP, SCALE, stop_pipeline, wait_for
+from tests.support.ports import block
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = [
@@ -46,7 +40,7 @@ def url(service: str, path: str = "/") -> str:
     return f"http://127.0.0.1:{PORTS[service] + PORT_OFFSET}{path}"
 
 
-def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"web{uuid.uuid4().hex[:8]}"
     up = subprocess.Popen(
         [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",

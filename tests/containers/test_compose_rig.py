@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from tests.containers.test_compose_up import HTTP, ROOT, SCALE, Stack, url, wait_for
+from tests.support.compose_stack import HTTP, ROOT, SCALE, Stack, url, wait_for
 
 pytestmark = [
     pytest.mark.containers,

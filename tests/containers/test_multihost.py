@@ -25,15 +25,10 @@ from typing import Any
 
 import pytest
 
-from tests.containers.test_compose_up import (  # the same marks: skipped unless compose-test
-    HTTP,
-    ROOT,
-    SCALE,
-    Stack,
-    pytestmark,  # noqa: F401
-    wait_for,
-)
-from tests.ports import block
+from tests.support.compose_stack import COMPOSE_MARKS, HTTP, ROOT, SCALE, Stack, wait_for
+from tests.support.ports import block
+
+pytestmark = COMPOSE_MARKS  # the same marks as test_compose_up.py: skipped unless compose-test
 
 PORTS = dict(zip(["ZENOH", "SCHEDULER", "TRAINER", "METRICS"], block("multihost").ports(),
                  strict=False))

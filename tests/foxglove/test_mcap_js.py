@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.services.test_recorder import K, frame, one_of_each
+from tests.support.recording import K, frame, one_of_each
 
 HERE = Path(__file__).parent
 

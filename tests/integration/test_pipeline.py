@@ -13,32 +13,29 @@ import os
 import signal
 import subprocess
 import sys
-import threading
-import time
 import uuid
 from pathlib import Path
 
-import httpx
 import pytest
 
 from aoi3d.lpips import weights_path
-from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
-from services.kit.pb import aoi3d_pb2 as pb
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.pipeline import (
+    HTTP,
+    PORT_OFFSET,
+    SCALE,
+    SERVICES,
+    ZENOH_PORT,
+    Tap,
+    assert_clean_exit,
+    metric,
+    stop_pipeline,
+    url,
+    wait_for,
+)
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-SCALE = timeout_scale()
-"""Every wait and timeout of the live tests is multiplied by this (a slow or busy machine:
-set AOI3D_TEST_TIMEOUT_SCALE=3)."""
-HTTP = httpx.Client(timeout=30 * SCALE)
-"""The tests' REST client: never httpx's default 5 s timeout."""
-_PORTS = block("pipeline")
-PORT_OFFSET = _PORTS.rest_offset
-ZENOH_PORT = _PORTS.zenoh
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
 
 # The series each service documents (docs/operations.md, "Metrics (Prometheus)"); every one
 # must be exposed.
@@ -56,124 +53,20 @@ DOCUMENTED_SERIES = {
 }
 
 
-def url(service: str, path: str) -> str:
-    port = SERVICE_PORTS[service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
 
 
-def wait_for(what: str, check, timeout_s: float = 60.0, every_s: float = 0.25):
-    """Poll ``check`` until it returns something truthy; ``timeout_s`` is scaled by SCALE."""
-    timeout_s *= SCALE
-    deadline = time.monotonic() + timeout_s
-    last = None
-    while time.monotonic() < deadline:
-        try:
-            last = check()
-            if last:
-                return last
-        except (httpx.HTTPError, KeyError, ValueError) as err:
-            last = err
-        time.sleep(every_s)
-    raise AssertionError(f"timed out waiting for {what} (last: {last!r})")
 
 
-def metric(service: str, name: str) -> float:
-    """Sum of a metric's samples (all label sets) from a service's /metrics."""
-    text = HTTP.get(url(service, "/metrics")).text
-    values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
-              if line.startswith(name) and (line[len(name):][:1] in (" ", "{"))]
-    if not values:
-        raise KeyError(name)
-    return sum(values)
 
 
-def stop_pipeline(up: subprocess.Popen) -> str:
-    """SIGTERM ``aoi3d up`` (SIGKILL its group after 40 s); returns its output. Safe in a
-    ``finally``: it asserts nothing, so a failure of the test body is not masked."""
-    up.send_signal(signal.SIGTERM)
-    try:
-        out, _ = up.communicate(timeout=40 * SCALE)
-    except subprocess.TimeoutExpired:
-        os.killpg(up.pid, signal.SIGKILL)
-        out, _ = up.communicate()
-    return out
 
 
-def assert_clean_exit(up: subprocess.Popen, out: str, run_id: str) -> None:
-    """``aoi3d up`` exited 0 and left no process of the run behind."""
-    assert up.returncode == 0, out[-3000:]
-    wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)
 
 
-def processes_of_run(run_id: str) -> list[int]:
-    """PIDs of live processes whose environment carries this run id."""
-    needle = f"AOI3D_RUN_ID={run_id}".encode()
-    pids = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit() or int(entry.name) == os.getpid():
-            continue
-        try:
-            if needle in (entry / "environ").read_bytes().split(b"\0"):
-                stat = (entry / "stat").read_text()
-                if stat.split(") ", 1)[1].split()[0] != "Z":
-                    pids.append(int(entry.name))
-        except OSError:
-            continue
-    return pids
 
 
-class Tap:
-    """A Zenoh client session that records the run's decisions and quality messages."""
-
-    def __init__(self, run_id: str, zenoh_port: int = ZENOH_PORT) -> None:
-        import zenoh
-
-        from services.kit.settings import CommonSettings, zenoh_config
-
-        keys = Keys(run_id)
-        conf = zenoh_config(CommonSettings(zenoh_connect=[f"tcp/127.0.0.1:{zenoh_port}"]))
-        self.session = zenoh.open(conf)
-        self.lock = threading.Lock()
-        self.decisions: list[tuple[float, pb.Decision]] = []
-        self.qualities: list[pb.Quality] = []
-        self.quality_times: list[float] = []  # when each Quality arrived (monotonic)
-        self.keys = keys
-        self.subs = [
-            self.session.declare_subscriber(keys.decision, self._on_decision),
-            self.session.declare_subscriber(keys.quality, self._on_quality),
-        ]
-
-    def _on_decision(self, sample) -> None:
-        msg = pb.Decision.FromString(sample.payload.to_bytes())
-        with self.lock:
-            self.decisions.append((time.monotonic(), msg))
-
-    def _on_quality(self, sample) -> None:
-        msg = pb.Quality.FromString(sample.payload.to_bytes())
-        with self.lock:
-            self.qualities.append(msg)
-            self.quality_times.append(time.monotonic())
-
-    def decisions_after(self, t: float) -> list[pb.Decision]:
-        with self.lock:
-            return [d for ts, d in self.decisions if ts > t]
-
-    def publish(self, key: str, payload: bytes) -> None:
-        self.session.put(key, payload)
-
-    def close(self) -> None:
-        for sub in self.subs:
-            sub.undeclare()
-        self.session.close()
 
 
-@pytest.fixture(scope="module")
-def small_dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from aoi3d.scene import SceneConfig, generate_dataset
-
-    path = tmp_path_factory.mktemp("scene") / "turbine"
-    generate_dataset(path, SceneConfig(width=48, height=36, duration_s=2.0, spp=2))
-    return path
 
 
 def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:

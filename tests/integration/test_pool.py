@@ -19,15 +19,8 @@ import pytest
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from tests.integration.test_pipeline import (
-    HTTP,
-    Tap,
-    assert_clean_exit,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.pipeline import HTTP, Tap, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -56,7 +49,7 @@ class RenderTap(Tap):
             self.renders.append((msg.decision_incarnation, msg.decision_id, msg.worker_id))
 
 
-def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,  # noqa: F811
+def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
                                                  tmp_path: Path) -> None:
     run_id = f"pool{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"

@@ -23,7 +23,7 @@ from pathlib import Path
 import pytest
 
 from aoi3d.policy.ppo.learner import PPOLearner
-from tests.integration.test_pipeline import (
+from tests.support.pipeline import (
     HTTP,
     PORT_OFFSET,
     SERVICES,
@@ -31,12 +31,11 @@ from tests.integration.test_pipeline import (
     Tap,
     assert_clean_exit,
     metric,
-    small_dataset,  # noqa: F401 - a fixture, used by name
     stop_pipeline,
     url,
     wait_for,
 )
-from tests.services.test_scheduler_ppo import make_subset_checkpoint
+from tests.support.ppo import make_subset_checkpoint
 
 TOKEN = "ppo-live-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
@@ -47,7 +46,7 @@ N_CAMERAS = 18  # aoi3d up's rig
 ODD = tuple(range(1, N_CAMERAS + 1, 2))
 
 
-def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,  # noqa: F811
+def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,
                                                           tmp_path: Path) -> None:
     ckpt = make_subset_checkpoint(tmp_path / "odd.pt", n_cameras=N_CAMERAS, subset=ODD)
     online = tmp_path / "odd.online.pt"

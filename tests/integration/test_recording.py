@@ -17,14 +17,8 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from tests.integration.test_pipeline import (
-    HTTP,
-    SCALE,
-    assert_clean_exit,
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 

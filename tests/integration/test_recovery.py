@@ -20,15 +20,8 @@ from pathlib import Path
 import pytest
 
 from aoi3d.ports import SERVICE_PORTS
-from tests.integration.test_pipeline import (
-    HTTP,
-    SCALE,
-    Tap,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.pipeline import HTTP, SCALE, Tap, stop_pipeline, wait_for
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -49,7 +42,7 @@ def healthy_pid(name: str) -> int | None:
 
 
 def test_each_process_killed_gives_new_quality_within_the_bound(
-        small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+        small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"rec{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
     cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),

@@ -24,16 +24,9 @@ import pytest
 
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from tests.deploy_modules import load
-from tests.integration.test_pipeline import (
-    HTTP,
-    SCALE,
-    assert_clean_exit,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.deploy_modules import load
+from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -111,7 +104,7 @@ VARIANTS = {
 
 
 @pytest.mark.parametrize("variant", list(VARIANTS))
-def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: Path,  # noqa: F811
+def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: Path,
                                                    tmp_path: Path) -> None:
     robot_args, up_args = VARIANTS[variant]
     rig = tmp_path / "rig.yaml"
@@ -188,7 +181,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
     assert_clean_exit(up, out, run_id)
 
 
-def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     """IP cameras (issue 31, part 2): two of the rig's training cameras are H.264 over RTSP,
     pushed to the ingest over loopback (`aoi3d ros2 rtsp`); the truth camera and one more are
     ROS 2 (rmw_zenoh). With the policy `all` every render trains on the RTSP frames too, and
@@ -264,7 +257,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     assert_clean_exit(up, out, run_id)
 
 
-def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,  # noqa: F811
+def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
                                                              tmp_path: Path) -> None:
     """`aoi3d replay --live` (issue 31, part 4): a recording's frames — the truth camera and
     four training cameras, two frames of one lost on the recorded link — are played as ROS 2

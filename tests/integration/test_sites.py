@@ -17,15 +17,8 @@ import pytest
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from tests.integration.test_pipeline import (
-    HTTP,
-    SCALE,
-    assert_clean_exit,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -74,7 +67,7 @@ class SiteTap:
 
 
 def test_two_sites_share_the_pool_and_change_policy_on_their_own(
-        small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+        small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"sites{uuid.uuid4().hex[:8]}"
     cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",

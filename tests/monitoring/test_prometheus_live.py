@@ -29,15 +29,9 @@ import yaml
 
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
-from tests.deploy_modules import load
-from tests.integration.test_pipeline import (
-    HTTP,
-    Tap,
-    small_dataset,  # noqa: F401  (module fixture)
-    stop_pipeline,
-    wait_for,
-)
-from tests.ports import block
+from tests.support.deploy_modules import load
+from tests.support.pipeline import HTTP, Tap, stop_pipeline, wait_for
+from tests.support.ports import block
 
 ROOT = Path(__file__).resolve().parents[2]
 PROMETHEUS = shutil.which("prometheus")
@@ -169,7 +163,7 @@ def write_config(tmp: Path) -> Path:
 
 
 def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
-        small_dataset: Path, tmp_path: Path) -> None:  # noqa: F811
+        small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"prom{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
     up = subprocess.Popen(

@@ -20,9 +20,8 @@ from hypothesis.errors import Unsatisfiable
 from schemathesis.checks import not_a_server_error
 
 from aoi3d.scene import SceneDataset
-from tests.services.test_guard import SERVICES, build
-from tests.services.test_trainer import dataset  # noqa: F401  (module fixture)
-from tests.timeouts import timeout_scale
+from tests.support.guard import SERVICES, build
+from tests.support.timeouts import timeout_scale
 
 EXAMPLES = int(os.environ.get("AOI3D_FUZZ_EXAMPLES", "15"))
 SCALE = timeout_scale()
@@ -36,7 +35,7 @@ def _free_port() -> int:
 
 @pytest.mark.parametrize("service", SERVICES)
 def test_no_operation_answers_a_server_error(service: str,
-                                             dataset: SceneDataset) -> None:  # noqa: F811
+                                             dataset: SceneDataset) -> None:
     app = build(service, dataset)
     port = _free_port()
     server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=port,

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from prometheus_client import generate_latest
-from prometheus_client.parser import text_string_to_metric_families
 
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset, load_dataset
@@ -20,7 +19,9 @@ from services.kit.codec import FrameData, decode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
-from tests.timeouts import timeout_scale
+from tests.support.metrics import metric
+from tests.support.timeouts import timeout_scale
+from tests.support.waits import settle, wait_for
 
 KEYS = Keys("t")
 N_TRAIN = 3
@@ -46,12 +47,6 @@ def make_app(bus: MemoryBus, clock: SimClock, path: Path, *, cameras: int = N_TR
     return create_app(settings, bus=bus, clock=clock, dataset=dataset)
 
 
-def metric(text: str, name: str, **labels: str) -> float:
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
-                return sample.value
-    raise AssertionError(f"no sample {name}{labels}")
 
 
 def frames(bus: MemoryBus, since: int = 0) -> list[tuple[str, FrameData]]:
@@ -64,11 +59,6 @@ def frames(bus: MemoryBus, since: int = 0) -> list[tuple[str, FrameData]]:
 TIMEOUT_SCALE = timeout_scale()
 
 
-def wait_for(predicate, timeout_s: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
-    while not predicate():
-        assert time.monotonic() < deadline, "timed out"
-        time.sleep(0.01)
 
 
 def test_frames_follow_the_dataset_on_the_tick_grid(dataset_path: Path,
@@ -142,7 +132,7 @@ def test_config_rest_api(dataset_path: Path) -> None:
         assert client.put("/config", json={"paused": True}).json()["paused"] is True
         time.sleep(0.05)
         mark = len(bus.published)
-        time.sleep(0.15)
+        settle(0.3)  # several 45-ms ticks: a rig still running would publish
         assert len(bus.published) == mark, "paused rig still publishes"
         assert client.get("/readyz").json() == {"ready": True, "reason": "paused"}
         client.put("/config", json={"paused": False})

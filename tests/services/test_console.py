@@ -14,32 +14,23 @@ from PIL import Image
 
 from services.console.app import create_app
 from services.console.settings import Settings
-from services.kit.codec import camera_to_pb, encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
-from tests.services.test_network import CAMERA
-from tests.services.test_trainer import wait_for
+from tests.support.console import render, truth
+from tests.support.network import CAMERA
+from tests.support.waits import wait_for
 
 KEYS = Keys("console")
 UPSTREAM = {n: "http://127.0.0.1:9" for n in ("camera", "network", "scheduler", "trainer",
                                                "metrics")}  # nothing listens: errors shown
 
 
-def image(value: int) -> np.ndarray:
-    return np.full((CAMERA.height, CAMERA.width, 3), value, np.uint8)
 
 
-def truth(t_ms: float, value: int) -> bytes:
-    return encode_frame(camera_id=0, sequence=int(t_ms), generation_ms=t_ms, scene_time_ms=t_ms,
-                        camera=CAMERA, image=encode_png(image(value)))
 
 
-def render(decision_id: int, t_ms: float, value: int) -> bytes:
-    pose, intr = camera_to_pb(CAMERA)
-    return pb.Render(decision_id=decision_id, time_ms=t_ms, pose=pose, intrinsics=intr,
-                     image=encode_png(image(value)), n_views=3, carry="fresh").SerializeToString()
 
 
 def test_the_console_pairs_renders_with_the_truth_of_their_time() -> None:

@@ -14,8 +14,8 @@ import pytest
 
 from aoi3d.ports import SERVICE_PORTS
 from aoi3d.scene import SceneConfig, generate_dataset
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 _PORTS = block("dataset-errors-service")

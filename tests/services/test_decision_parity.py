@@ -26,7 +26,8 @@ from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
-from tests.services.test_scheduler import KEYS, RUN, Harness, ManualWall, frame
+from tests.support.scheduler import KEYS, RUN, Harness, ManualWall, frame
+from tests.support.waits import wait_for
 
 N = 4
 
@@ -147,7 +148,6 @@ def test_live_bandit_learns_from_the_quality_topic(cfg: EpisodeConfig, dataset: 
     """The bandit over Γ, live: each Quality on the quality topic rewards the arm that decided
     for its time; the next decision takes the next arm."""
     from services.kit.pb import aoi3d_pb2 as pb
-    from tests.services.test_scheduler import wait_for
 
     h = live("adaptive:bandit:8:40/130")
     publish_trace(h, episode_links(cfg, dataset, 3))

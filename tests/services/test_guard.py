@@ -4,35 +4,16 @@ was half-applied, echoed megabytes back or was accepted from anyone before."""
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
-from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
-from services.camera.app import create_app as camera_app
-from services.camera.settings import Settings as CameraSettings
-from services.kit.membus import MemoryBus
-from services.kit.settings import CommonSettings
-from services.metrics.app import create_app as metrics_app
-from services.metrics.settings import Settings as MetricsSettings
-from services.network.app import create_app as network_app
-from services.network.settings import Settings as NetworkSettings
-from services.scheduler.app import create_app as scheduler_app
-from services.scheduler.settings import Settings as SchedulerSettings
-from services.trainer.app import create_app as trainer_app
-from tests.services.test_trainer import (
-    N_TRAIN,
-    dataset,  # noqa: F401  (module fixture)
-    make_settings,
-)
+from tests.support.guard import SERVICES, build
 
 TOKEN = "s3cret-token"
-HOSTS = ["127.0.0.1", "localhost", "testserver"]
 
 # a state-changing request each service accepts when it is well-formed
 VALID = {"camera": ("PUT", "/config", {"paused": False}),
@@ -46,27 +27,12 @@ NUMERIC = {"camera": ("PUT", "/config", "period_ms"),
            "trainer": ("PUT", "/carry", "render_steps")}
 
 
-def common(**kw) -> CommonSettings:
-    return CommonSettings(run_id="guard", cameras=N_TRAIN, allowed_hosts=HOSTS, **kw)
 
 
-def build(service: str, ds: SceneDataset, **kw) -> FastAPI:
-    bus = MemoryBus()
-    if service == "camera":
-        return camera_app(CameraSettings(common=common(dataset=ds.root, **kw)), bus=bus,
-                          clock=SimClock(time.time(), 1.0), dataset=ds)
-    if service == "network":
-        return network_app(NetworkSettings(common=common(**kw)), bus=bus)
-    if service == "scheduler":
-        return scheduler_app(SchedulerSettings(common=common(**kw)), bus=bus)
-    if service == "metrics":
-        return metrics_app(MetricsSettings(common=common(**kw)), bus=bus)
-    settings = make_settings(common=common(time_scale=10.0, epoch_s=time.time(), **kw))
-    return trainer_app(settings, bus=bus, dataset=ds)
 
 
 @pytest.fixture
-def open_app(dataset: SceneDataset) -> Iterator[Callable[[str], TestClient]]:  # noqa: F811
+def open_app(dataset: SceneDataset) -> Iterator[Callable[[str], TestClient]]:
     clients: list[TestClient] = []
 
     def make(service: str, **kw) -> TestClient:
@@ -80,7 +46,6 @@ def open_app(dataset: SceneDataset) -> Iterator[Callable[[str], TestClient]]:  #
         c.__exit__(None, None, None)
 
 
-SERVICES = ["camera", "network", "scheduler", "trainer", "metrics"]
 
 
 def _route(service: str) -> tuple[str, str]:

@@ -6,10 +6,10 @@ service never stops taking good frames, and ``GET /status`` shows the cameras.""
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 from fastapi.testclient import TestClient
-from prometheus_client.parser import text_string_to_metric_families
 
 from services.ingest import ros
 from services.ingest.app import create_app
@@ -19,31 +19,22 @@ from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.rig import rig_from_dict
 from services.kit.settings import CommonSettings
-from tests.timeouts import timeout_scale
-from tests.unit.test_ingest_core import C2W, GID, OPTICAL, H, W, rig_doc
+from tests.support.ingest import C2W, GID, OPTICAL, H, W, rig_doc
+from tests.support.metrics import total
+from tests.support.timeouts import timeout_scale
+from tests.support.waits import wait_for
 
 SCALE = timeout_scale()
 RGB = np.random.default_rng(3).integers(0, 255, (H, W, 3), dtype=np.uint8)
 KEYS = Keys("t")
 
 
-def metric(text: str, name: str, **labels: str) -> float:
-    total = 0.0
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
-                total += sample.value
-    return total
+metric = partial(total, default=0.0)
+"""The sum of a series' samples whose labels include the given ones (0 when none)."""
 
 
 def wait(check, what: str, timeout_s: float = 5.0):
-    deadline = time.monotonic() + timeout_s * SCALE
-    while time.monotonic() < deadline:
-        got = check()
-        if got:
-            return got
-        time.sleep(0.02)
-    raise AssertionError(f"timed out waiting for {what}")
+    return wait_for(check, timeout_s, what=what, every_s=0.02)
 
 
 class Robot:

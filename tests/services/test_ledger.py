@@ -21,17 +21,9 @@ from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
 from services.metrics.ledger import LOST_REASONS
 from services.metrics.settings import Settings
-from tests.services.test_metrics import (
-    KEYS,
-    PERIOD_MS,
-    RUN,
-    metric,
-    noisy,
-    render,
-    truth,
-    truth_image,
-    wait_for,
-)
+from tests.support.metrics import value
+from tests.support.quality import KEYS, PERIOD_MS, RUN, noisy, render, truth, truth_image
+from tests.support.waits import wait_for
 
 INC = 99
 
@@ -110,10 +102,10 @@ def test_each_state_and_reason_reaches_rest_and_prometheus(sites, tmp_path: Path
     assert got["decisions"] == 12 and not got["persisted"]
     text = site.client.get("/metrics").text
     for reason in LOST_REASONS:  # every reason is a series from the start
-        assert metric(text, f'aoi3d_ledger_decisions_total{{reason="{reason}",state="lost"}}'
+        assert value(text, f'aoi3d_ledger_decisions_total{{reason="{reason}",state="lost"}}'
                       ) == got["lost"][reason]
-    assert metric(text, 'aoi3d_ledger_decisions_total{reason="",state="scored"}') == 2
-    assert metric(text, "aoi3d_ledger_open") == 0
+    assert value(text, 'aoi3d_ledger_decisions_total{reason="",state="scored"}') == 2
+    assert value(text, "aoi3d_ledger_open") == 0
     # the same under the site's own path
     assert site.client.get("/sites/site1/ledger").json()["decisions"] == 12
 
@@ -131,7 +123,7 @@ def test_an_open_decision_expires_and_nonsense_is_counted_not_believed(sites) ->
     got = site.ledger()
     assert got["decisions"] == 1 and got["lost"]["expired"] == 1 and got["after_close"] == 0
     text = site.client.get("/metrics").text
-    assert metric(text, 'aoi3d_messages_rejected_total{reason="malformed"}') == 2
+    assert value(text, 'aoi3d_messages_rejected_total{reason="malformed"}') == 2
 
 
 def test_the_ledger_survives_a_restart_of_the_service(sites, tmp_path: Path) -> None:

@@ -16,81 +16,20 @@ import services.metrics.app as metrics_app
 from aoi3d.clock import SimClock
 from aoi3d.lpips import LPIPS, load_lpips
 from aoi3d.quality import dynamic_mask, dynamic_score, psnr, ssim
-from aoi3d.scene.camera import Camera, look_at
 from services.kit.codec import (
     PNG,
-    camera_to_pb,
     decode_image,
     decode_quality,
-    encode_frame,
-    encode_png,
 )
-from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app
 from services.metrics.core import TruthFrame, TruthRing
 from services.metrics.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
-
-RUN = "test-metrics"
-KEYS = Keys(RUN)
-W, H = 24, 18
-PERIOD_MS = 30.0
-TIMEOUT_SCALE = timeout_scale()
-"""Every wait of these tests is multiplied by it (a slow or loaded machine: set it to 3)."""
-
-
-def _camera(width: int = W, height: int = H) -> Camera:
-    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
-                  cx=width / 2, cy=height / 2, width=width, height=height)
-
-
-def truth_image(gen_ms: float) -> np.ndarray:
-    """A smooth image that differs from one generation time to the next."""
-    yy, xx = np.mgrid[0:H, 0:W]
-    phase = gen_ms / 100.0
-    img = np.stack([0.5 + 0.4 * np.sin(xx / 3.0 + phase), 0.5 + 0.4 * np.cos(yy / 4.0 - phase),
-                    (xx + yy) / (H + W)], axis=-1)
-    return (img * 255 + 0.5).astype(np.uint8)
-
-
-def noisy(img: np.ndarray, seed: int, sigma: float = 12.0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    return np.clip(img + rng.normal(0, sigma, img.shape), 0, 255).astype(np.uint8)
-
-
-def truth(gen_ms: float, *, camera_id: int = 0, image: np.ndarray | None = None) -> bytes:
-    img = truth_image(gen_ms) if image is None else image
-    cam = _camera(img.shape[1], img.shape[0])
-    return encode_frame(camera_id=camera_id, sequence=int(gen_ms // PERIOD_MS),
-                        generation_ms=gen_ms, scene_time_ms=gen_ms % 1000.0, camera=cam,
-                        image=encode_png(img), send_ms=gen_ms)
-
-
-def render(time_ms: float, image: np.ndarray, *, decision_id: int = 7, step: int = 1234
-           ) -> bytes:
-    pose, intr = camera_to_pb(_camera(image.shape[1], image.shape[0]))
-    return pb.Render(decision_id=decision_id, time_ms=time_ms, pose=pose, intrinsics=intr,
-                     image=encode_png(image), training_step=step, n_views=5,
-                     backend="grid").SerializeToString()
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
-
-
-def metric(text: str, name: str) -> float | None:
-    for line in text.splitlines():
-        if without_site(line).startswith(name + " "):
-            return float(line.split()[-1])
-    return None
+from tests.support.metrics import value
+from tests.support.quality import KEYS, PERIOD_MS, RUN, H, W, noisy, render, truth, truth_image
+from tests.support.waits import wait_for
 
 
 class Harness:
@@ -102,7 +41,7 @@ class Harness:
 
     def rejected(self, reason: str) -> float:
         text = self.client.get("/metrics").text
-        return metric(text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}') or 0.0
+        return value(text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}') or 0.0
 
     def flush(self) -> pb.Quality:
         """Score a probe render (t = 0, perfect); the thread handles messages in order, so
@@ -264,9 +203,9 @@ def test_dynamic_region_score_in_quality_rest_and_metrics(make_harness) -> None:
     assert summary["dynamic_no_history_total"] == 0
 
     text = h.client.get("/metrics").text
-    assert metric(text, "aoi3d_render_psnr_dynamic_db") == pytest.approx(q.psnr_dynamic_db)
-    assert metric(text, "aoi3d_render_ssim_dynamic") == pytest.approx(q.ssim_dynamic)
-    assert metric(text, "aoi3d_render_dynamic_fraction") == pytest.approx(q.dynamic_fraction)
+    assert value(text, "aoi3d_render_psnr_dynamic_db") == pytest.approx(q.psnr_dynamic_db)
+    assert value(text, "aoi3d_render_ssim_dynamic") == pytest.approx(q.ssim_dynamic)
+    assert value(text, "aoi3d_render_dynamic_fraction") == pytest.approx(q.dynamic_fraction)
 
 
 def test_the_dynamic_reward_setting_scores_the_dynamic_region(make_harness) -> None:
@@ -303,10 +242,10 @@ def test_dynamic_score_without_earlier_truth_is_null_and_counted(make_harness) -
     assert summary["mean_psnr_dynamic_db"] == pytest.approx(q.psnr_dynamic_db)
     assert summary["mean_psnr_db"] is not None
     text = h.client.get("/metrics").text
-    assert metric(text, 'aoi3d_quality_dynamic_missing_total{reason="no_history"}') == 2
-    assert metric(text, 'aoi3d_quality_dynamic_missing_total{reason="empty_mask"}') == 0
+    assert value(text, 'aoi3d_quality_dynamic_missing_total{reason="no_history"}') == 2
+    assert value(text, 'aoi3d_quality_dynamic_missing_total{reason="empty_mask"}') == 0
     h.score(0.0, truth_image(0.0))  # the latest render has no dynamic score: NaN, not stale
-    assert math.isnan(metric(h.client.get("/metrics").text, "aoi3d_render_psnr_dynamic_db"))
+    assert math.isnan(value(h.client.get("/metrics").text, "aoi3d_render_psnr_dynamic_db"))
 
 
 def test_static_view_has_an_empty_mask_and_no_dynamic_scores(make_harness) -> None:
@@ -320,7 +259,7 @@ def test_static_view_has_an_empty_mask_and_no_dynamic_scores(make_harness) -> No
     entry = h.client.get("/quality").json()["history"][-1]
     assert entry["psnr_dynamic_db"] is None and entry["dynamic_fraction"] == 0.0
     assert h.client.get("/quality").json()["summary"]["dynamic_empty_mask_total"] == 1
-    assert metric(h.client.get("/metrics").text,
+    assert value(h.client.get("/metrics").text,
                   'aoi3d_quality_dynamic_missing_total{reason="empty_mask"}') == 1
 
 
@@ -373,11 +312,11 @@ def test_quality_history_json_and_gauges(make_harness) -> None:
     assert len(h.client.get("/quality").json()["history"]) == 3
 
     text = h.client.get("/metrics").text
-    assert metric(text, "aoi3d_quality_total") == 3
-    assert metric(text, "aoi3d_render_psnr_db") == pytest.approx(scores[-1].psnr_db)
-    assert metric(text, "aoi3d_render_ssim") == pytest.approx(scores[-1].ssim)
-    assert metric(text, "aoi3d_reward") == pytest.approx(scores[-1].reward)
-    assert metric(text, "aoi3d_truth_frames_total") == 4
+    assert value(text, "aoi3d_quality_total") == 3
+    assert value(text, "aoi3d_render_psnr_db") == pytest.approx(scores[-1].psnr_db)
+    assert value(text, "aoi3d_render_ssim") == pytest.approx(scores[-1].ssim)
+    assert value(text, "aoi3d_reward") == pytest.approx(scores[-1].reward)
+    assert value(text, "aoi3d_truth_frames_total") == 4
     assert "aoi3d_render_lpips" not in text
     assert h.client.get("/readyz").status_code == 200
 
@@ -390,7 +329,7 @@ def test_lpips_when_available_is_published_and_enters_the_reward(make_harness) -
     assert q.reward == pytest.approx(0.02 * q.psnr_db + 0.5 * q.ssim - 0.25)
     entry = h.client.get("/quality").json()["history"][-1]
     assert entry["lpips"] == 0.25 and entry["reward_terms"] == ["psnr", "ssim", "lpips"]
-    assert metric(h.client.get("/metrics").text, "aoi3d_render_lpips") == 0.25
+    assert value(h.client.get("/metrics").text, "aoi3d_render_lpips") == 0.25
 
 
 def test_lpips_setting_loads_the_cached_weights(make_harness, monkeypatch) -> None:
@@ -523,9 +462,9 @@ def test_every_score_goes_into_histograms(make_harness) -> None:
     scores = [h.score(t, noisy(truth_image(t), seed=i), decision_id=i + 1)
               for i, t in enumerate((0.0, 30.0, 60.0, 90.0))]
     text = h.client.get("/metrics").text
-    assert metric(text, "aoi3d_quality_psnr_db_count") == 4
-    assert metric(text, "aoi3d_quality_psnr_db_sum") == pytest.approx(
+    assert value(text, "aoi3d_quality_psnr_db_count") == 4
+    assert value(text, "aoi3d_quality_psnr_db_sum") == pytest.approx(
         sum(q.psnr_db for q in scores))
-    assert metric(text, "aoi3d_quality_ssim_count") == 4
-    assert metric(text, "aoi3d_quality_reward_sum") == pytest.approx(sum(q.reward for q in scores))
-    assert metric(text, "aoi3d_quality_lpips_count") is None  # no LPIPS here: no series
+    assert value(text, "aoi3d_quality_ssim_count") == 4
+    assert value(text, "aoi3d_quality_reward_sum") == pytest.approx(sum(q.reward for q in scores))
+    assert value(text, "aoi3d_quality_lpips_count") is None  # no LPIPS here: no series

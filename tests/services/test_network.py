@@ -9,7 +9,6 @@ import time
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
-from prometheus_client.parser import text_string_to_metric_families
 
 from aoi3d.channel import Link, camera_rngs
 from aoi3d.clock import SimClock
@@ -21,26 +20,20 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.network.app import create_app
 from services.network.settings import Settings
-from tests.timeouts import timeout_scale
+from tests.support.metrics import metric
+from tests.support.network import CAMERA, IMAGE, W, frame
+from tests.support.timeouts import timeout_scale
+from tests.support.waits import settle
 
 N_CAMERAS = 3
 KEYS = Keys("t")
-W, H = 24, 18
 
 
-def _camera() -> Camera:
-    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
-                  cx=W / 2, cy=H / 2, width=W, height=H)
 
 
-CAMERA = _camera()
 SCALE = timeout_scale()
-IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
 
 
-def frame(camera_id: int, gen_ms: float, *, sequence: int = 0) -> bytes:
-    return encode_frame(camera_id=camera_id, sequence=sequence, generation_ms=gen_ms,
-                        scene_time_ms=gen_ms % 1000, send_ms=gen_ms, camera=CAMERA, image=IMAGE)
 
 
 def make_app(bus: MemoryBus, clock: SimClock, files_roots: list[str] | None = None,
@@ -52,12 +45,6 @@ def make_app(bus: MemoryBus, clock: SimClock, files_roots: list[str] | None = No
     return create_app(settings, bus=bus, clock=clock)
 
 
-def metric(text: str, name: str, **labels: str) -> float:
-    for family in text_string_to_metric_families(text):
-        for sample in family.samples:
-            if sample.name == name and all(sample.labels.get(k) == v for k, v in labels.items()):
-                return sample.value
-    raise AssertionError(f"no sample {name}{labels}")
 
 
 class Arrivals:
@@ -189,7 +176,7 @@ def test_bad_frames_are_counted_and_dropped_and_the_links_keep_working() -> None
         bus.publish(KEYS.cam_frame(1), frame(1, now + 1e6))  # from a clock far ahead
         bus.publish(KEYS.cam_frame(2), frame(2, now))  # a good one
         got = arrivals.wait(1)
-        time.sleep(0.05)
+        settle(0.3)  # a bad frame let through would be delivered by now (40 ms links)
         assert [m.camera_id for _, _, m in got] == [2]
         text = client.get("/metrics").text
         counts = {reason: metric(text, "aoi3d_messages_rejected_total", reason=reason)

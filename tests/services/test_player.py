@@ -18,8 +18,9 @@ from services.kit.membus import key_matches
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rig import rig_from_dict
 from services.recorder.player import PlayConfig, Player, rig_document
-from tests.fakeclock import FakeClock
-from tests.services.test_recorder import H, W, noise_image
+from tests.support.fakeclock import FakeClock
+from tests.support.recording import H, W, noise_image
+from tests.support.recording import write_recording as _record
 
 EPOCH = 1_700_000_000.0
 AABB = np.array([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0]])
@@ -85,7 +86,6 @@ def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_liv
 
     from aoi3d_cli import app
     from services.kit.rig import load_rig
-    from tests.services.test_scene_import import _record
 
     _record(tmp_path / "run.mcap")
     runner = CliRunner()

@@ -18,22 +18,21 @@ from services.kit.codec import PNG, encode_frame
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.trainer.app import create_app as trainer_app
-from tests.services.test_trainer import (
+from tests.support.trainer import (
     KEYS,
     N_TRAIN,
-    dataset,  # noqa: F401  (module fixture)
     frame_payload,
     make_settings,
     metric,
     publish_frames,
-    wait_for,
 )
+from tests.support.waits import wait_for
 
 U64_MAX = 2**64 - 1
 
 
 @pytest.fixture
-def trainer(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:  # noqa: F811
+def trainer(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:
     bus = MemoryBus()
     # the clock is 10 s into the run (time scale 10: 100 s of sim time), so the decisions
     # below are in its past; the skew is 0.5 s × 10 = 5000 sim ms
@@ -59,7 +58,7 @@ def in_force(client: TestClient) -> tuple[int, float] | None:
     return None if d is None else (d["decision_id"], d["time_ms"])
 
 
-def test_a_restarted_scheduler_is_followed_at_once(trainer, dataset: SceneDataset) -> None:  # noqa: F811
+def test_a_restarted_scheduler_is_followed_at_once(trainer, dataset: SceneDataset) -> None:
     client, bus = trainer
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(777, 3000.0, incarnation=11, refs=[(1, 0.0)]))
@@ -71,7 +70,7 @@ def test_a_restarted_scheduler_is_followed_at_once(trainer, dataset: SceneDatase
                   default=0.0) == 0.0
 
 
-def test_decision_id_u64_max_does_not_freeze_the_trainer(trainer, dataset: SceneDataset) -> None:  # noqa: F811
+def test_decision_id_u64_max_does_not_freeze_the_trainer(trainer, dataset: SceneDataset) -> None:
     client, bus = trainer
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(U64_MAX, 3000.0, incarnation=11, refs=[(1, 0.0)]))
@@ -81,7 +80,7 @@ def test_decision_id_u64_max_does_not_freeze_the_trainer(trainer, dataset: Scene
     wait_for(lambda: in_force(client) == (5, 3030.0), what="a later decision after the poison")
 
 
-def test_decisions_from_the_future_are_rejected_and_counted(trainer, dataset: SceneDataset) -> None:  # noqa: F811
+def test_decisions_from_the_future_are_rejected_and_counted(trainer, dataset: SceneDataset) -> None:
     client, bus = trainer
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(1, 1e12, incarnation=11, refs=[(1, 0.0)]))
@@ -91,7 +90,7 @@ def test_decisions_from_the_future_are_rejected_and_counted(trainer, dataset: Sc
     wait_for(lambda: in_force(client) == (2, 3000.0), what="the next real decision")
 
 
-def test_a_huge_png_is_rejected_before_it_is_decoded(trainer, dataset: SceneDataset) -> None:  # noqa: F811
+def test_a_huge_png_is_rejected_before_it_is_decoded(trainer, dataset: SceneDataset) -> None:
     client, bus = trainer
     ds = dataset
     buf = io.BytesIO()

@@ -16,8 +16,8 @@ from services.metrics.app import create_app as metrics_app
 from services.metrics.settings import Settings as MetricsSettings
 from services.scheduler.app import create_app as scheduler_app
 from services.scheduler.settings import Settings as SchedulerSettings
-from tests.services.test_network import frame
-from tests.timeouts import timeout_scale
+from tests.support.network import frame
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 STALL_S = 2.0 * SCALE

@@ -17,63 +17,15 @@ from mcap.reader import make_reader
 from mcap.stream_reader import StreamReader
 from mcap_protobuf.decoder import DecoderFactory
 
-from aoi3d.scene.camera import Camera, look_at
-from services.kit.codec import encode_frame, encode_png
-from services.kit.keys import Keys
+from services.kit.codec import encode_frame
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.recorder.app import create_app
 from services.recorder.core import Recording, segments
 from services.recorder.settings import Settings
-from tests.services.test_trainer import wait_for
-
-RUN = "rec"
-K = Keys(RUN)
-W, H = 24, 18
-
-
-def camera() -> Camera:
-    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0,
-                  cx=W / 2, cy=H / 2, width=W, height=H)
-
-
-def noise_image(seed: int) -> np.ndarray:
-    """Incompressible pixels (a PNG about as big as raw), so sizes are predictable."""
-    return np.random.default_rng(seed).integers(0, 256, (H, W, 3), dtype=np.uint8)
-
-
-def frame(cam: int, gen_ms: float, *, delivery_ms: float = 0.0, seed: int = 0) -> bytes:
-    return encode_frame(camera_id=cam, sequence=int(gen_ms // 30), generation_ms=gen_ms,
-                        scene_time_ms=gen_ms, camera=camera(),
-                        image=encode_png(noise_image(seed)), send_ms=gen_ms,
-                        delivery_ms=delivery_ms)
-
-
-def one_of_each(t_ms: float = 300.0) -> list[tuple[str, bytes]]:
-    """A delivery, a truth frame, a decision, a render, a Quality and an Outcome."""
-    cam = camera()
-    from services.kit.codec import camera_to_pb
-
-    pose, intr = camera_to_pb(cam)
-    decision = pb.Decision(decision_id=7, time_ms=t_ms, camera_ids=[1, 2],
-                           aoi_ms=[40.0, math.nan], policy="mat:70", incarnation=5,
-                           selected=[pb.FrameRef(camera_id=1, sequence=8,
-                                                 generation_ms=t_ms - 40, aoi_ms=40.0)])
-    render = pb.Render(decision_id=7, time_ms=t_ms, pose=pose, intrinsics=intr,
-                       image=encode_png(noise_image(9)), backend="grid", carry="fresh",
-                       render_steps=30, decision_incarnation=5, seed=3,
-                       aabb=[-1, -1, -1, 1, 1, 1], site="site1")
-    quality = pb.Quality(decision_id=7, time_ms=t_ms, psnr_db=21.5, ssim=0.6, reward=0.7,
-                         decision_incarnation=5, site="site1")
-    outcome = pb.Outcome(decision_id=6, incarnation=5, site="site1", state="skipped",
-                         reason=pb.END_REASON_SUPERSEDED)
-    return [(K.edge_frame(1), frame(1, t_ms - 40, delivery_ms=t_ms - 5)),
-            (K.truth, encode_frame(camera_id=0, sequence=10, generation_ms=t_ms,
-                                   scene_time_ms=t_ms, camera=cam,
-                                   image=encode_png(noise_image(1)))),
-            (K.decision, decision.SerializeToString()), (K.render, render.SerializeToString()),
-            (K.quality, quality.SerializeToString()), (K.outcome, outcome.SerializeToString())]
+from tests.support.recording import RUN, H, K, W, camera, frame, noise_image, one_of_each
+from tests.support.waits import wait_for
 
 
 def read_all(path: Path) -> list[tuple[str, str, object, int]]:

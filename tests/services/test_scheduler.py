@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import threading
 import time
 from collections.abc import Callable, Iterator
 
@@ -18,95 +17,25 @@ import pytest
 from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
-from aoi3d.scene.camera import Camera, look_at
-from services.kit.codec import decode_decision, encode_frame, encode_png
-from services.kit.keys import Keys
+from services.kit.codec import encode_png
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
-
-RUN = "test-sched"
-KEYS = Keys(RUN)
-N_CAMERAS = 4
-PERIOD_MS = 30.0
-W, H = 16, 12
-
-
-class ManualWall:
-    """A wall clock the test sets; with epoch 0 and time scale 1, sim ms = wall s × 1000."""
-
-    def __init__(self, sim_ms: float = 0.0) -> None:
-        self._lock = threading.Lock()
-        self._wall_s = sim_ms / 1000.0
-
-    def set_ms(self, sim_ms: float) -> None:
-        with self._lock:
-            self._wall_s = sim_ms / 1000.0
-
-    def __call__(self) -> float:
-        with self._lock:
-            return self._wall_s
-
-
-def _camera() -> Camera:
-    return Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0, fy=20.0, cx=W / 2,
-                  cy=H / 2, width=W, height=H)
-
-
-IMAGE = encode_png(np.full((H, W, 3), 128, dtype=np.uint8))
-
-
-def frame(camera_id: int, gen_ms: float, delivery_ms: float, *, sequence: int | None = None,
-          camera: Camera | None = None, image: pb.Image = IMAGE) -> bytes:
-    seq = int(gen_ms // PERIOD_MS) if sequence is None else sequence
-    return encode_frame(camera_id=camera_id, sequence=seq, generation_ms=gen_ms,
-                        scene_time_ms=gen_ms, camera=camera or _camera(), image=image,
-                        send_ms=gen_ms, delivery_ms=delivery_ms)
-
-
-TIMEOUT_SCALE = timeout_scale()
-"""Multiplies every wait of these tests (a slow or busy machine: set it to 3)."""
-
-
-def wait_for(cond: Callable[[], bool], timeout_s: float = 3.0) -> None:
-    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
-    while not cond():
-        if time.monotonic() > deadline:
-            raise AssertionError("condition not met in time")
-        time.sleep(0.005)
-
-
-def decisions(bus: MemoryBus) -> list[pb.Decision]:
-    return [decode_decision(p) for p in bus.messages(KEYS.decision)]
-
-
-def metric(text: str, name: str) -> float | None:
-    """The value of one sample line ``name value`` in a Prometheus exposition, else None."""
-    for line in text.splitlines():
-        if without_site(line).startswith(name + " "):
-            return float(line.split()[-1])
-    return None
-
-
-class Harness:
-    def __init__(self, client: TestClient, bus: MemoryBus, wall: ManualWall) -> None:
-        self.client, self.bus, self.wall = client, bus, wall
-
-    def decide_at(self, t_ms: float) -> pb.Decision:
-        """Move the clock to ``t_ms`` and return the decision taken there."""
-        before = len(decisions(self.bus))
-        self.wall.set_ms(t_ms)
-        wait_for(lambda: len(decisions(self.bus)) > before)
-        last = decisions(self.bus)[-1]
-        assert last.time_ms == t_ms
-        return last
-
-    def put(self, key: str, payload: bytes) -> None:
-        self.bus.publish(key, payload)
+from tests.support.metrics import value
+from tests.support.scheduler import (
+    KEYS,
+    N_CAMERAS,
+    PERIOD_MS,
+    RUN,
+    Harness,
+    ManualWall,
+    decisions,
+    frame,
+)
+from tests.support.timeouts import SCALE
+from tests.support.waits import settle, wait_for
 
 
 def settings(policy: str = "all", cameras: int = N_CAMERAS, period_ms: float = PERIOD_MS
@@ -217,7 +146,7 @@ def test_decisions_run_on_a_real_fast_clock_and_stop_promptly() -> None:
         assert client.get("/readyz").status_code == 200
         t0 = time.monotonic()
     stop_s = time.monotonic() - t0
-    assert stop_s < 2.0 * TIMEOUT_SCALE
+    assert stop_s < 2.0 * SCALE
     ds = decisions(bus)
     ids = [d.decision_id for d in ds]
     assert ids == list(range(1, len(ds) + 1))
@@ -226,7 +155,7 @@ def test_decisions_run_on_a_real_fast_clock_and_stop_promptly() -> None:
     assert all(b > a for a, b in itertools.pairwise(times))
     assert any(s.camera_id == 2 for s in ds[-1].selected)
     count = len(ds)
-    time.sleep(0.1)
+    settle(0.3)  # ten decision periods: a live thread would decide again
     assert len(decisions(bus)) == count  # the thread is gone
 
 
@@ -323,7 +252,7 @@ def test_bad_frames_are_counted_and_dropped(make_harness) -> None:
     assert aoi_list(d) == [None, None, 60.0, None]  # only the good frame counted
 
     text = h.client.get("/metrics").text
-    rejected = {reason: metric(text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}')
+    rejected = {reason: value(text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}')
                 for reason in ("malformed", "unknown_camera", "bad_pose",
                                "image_size_mismatch", "bad_time")}
     assert rejected["unknown_camera"] == 1
@@ -342,13 +271,13 @@ def test_metrics_export_aoi_selection_and_decision_count(make_harness) -> None:
     h.put(KEYS.edge_frame(2), frame(2, 30.0, 35.0))
     h.decide_at(60.0)  # AoI [60, 30, nan, nan], MAT 40 selects camera 2
     text = h.client.get("/metrics").text
-    assert metric(text, 'aoi3d_aoi_seconds{camera="1"}') == pytest.approx(0.06)
-    assert metric(text, 'aoi3d_aoi_seconds{camera="2"}') == pytest.approx(0.03)
-    assert metric(text, 'aoi3d_aoi_seconds{camera="3"}') is None  # unknown: no series
-    assert metric(text, "aoi3d_cameras_selected") == 1
-    assert metric(text, "aoi3d_camera_selections_total") == 1  # none at 30 ms, one at 60 ms
-    assert metric(text, "aoi3d_decisions_total") == 2
-    assert metric(text, 'aoi3d_frames_received_total{camera="2"}') == 1
+    assert value(text, 'aoi3d_aoi_seconds{camera="1"}') == pytest.approx(0.06)
+    assert value(text, 'aoi3d_aoi_seconds{camera="2"}') == pytest.approx(0.03)
+    assert value(text, 'aoi3d_aoi_seconds{camera="3"}') is None  # unknown: no series
+    assert value(text, "aoi3d_cameras_selected") == 1
+    assert value(text, "aoi3d_camera_selections_total") == 1  # none at 30 ms, one at 60 ms
+    assert value(text, "aoi3d_decisions_total") == 2
+    assert value(text, 'aoi3d_frames_received_total{camera="2"}') == 1
     ready = h.client.get("/readyz")
     assert ready.status_code == 200 and "2 of 4" in ready.json()["reason"]
 
@@ -357,9 +286,9 @@ def test_the_policy_in_force_is_a_series(make_harness) -> None:
     h = make_harness("mat:70")
     text = h.client.get("/metrics").text
     assert 'aoi3d_policy_info{kind="mat",site="site1",spec="mat:70"} 1.0' in text
-    assert metric(text, "aoi3d_policy_mat_seconds") == pytest.approx(0.07)
+    assert value(text, "aoi3d_policy_mat_seconds") == pytest.approx(0.07)
     assert h.client.put("/policy", json={"kind": "freshest", "k": 2}).status_code == 200
     text = h.client.get("/metrics").text
     assert 'aoi3d_policy_info{kind="freshest",site="site1",spec="freshest:2"} 1.0' in text
     assert "mat:70" not in text.split("aoi3d_policy_info")[-1].splitlines()[0]
-    assert math.isnan(metric(text, "aoi3d_policy_mat_seconds"))
+    assert math.isnan(value(text, "aoi3d_policy_mat_seconds"))

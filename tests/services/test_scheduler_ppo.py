@@ -11,7 +11,7 @@ from __future__ import annotations
 import hashlib
 import math
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -28,36 +28,15 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.scheduler.app import create_app
 from services.scheduler.settings import Settings
-from tests.services.test_scheduler import (
-    KEYS,
-    RUN,
-    Harness,
-    ManualWall,
-    decisions,
-    frame,
-    metric,
-    wait_for,
-)
+from tests.support.metrics import value
+from tests.support.ppo import make_subset_checkpoint
+from tests.support.scheduler import KEYS, RUN, Harness, ManualWall, decisions, frame
+from tests.support.waits import wait_for
 
 N = 4
 SUBSET = (1, 3)  # the cameras the test checkpoint selects (ids; vector positions 0 and 2)
 
 
-def make_subset_checkpoint(path: Path, *, n_cameras: int, subset: Sequence[int],
-                           seed: int = 0, logit: float = 8.0) -> Path:
-    """A checkpoint whose policy selects exactly the camera ids in ``subset`` whatever the
-    AoI: the actor's last layer is zeroed and its bias set to ±``logit`` (p ≈ 0.9997 at 8).
-
-    Reaches into the agent's network (``net.actor``, an ``nn.Sequential`` ending in the
-    logits layer), which is what makes the selection known in advance."""
-    agent = PPOLearner(PPOConfig(n_cameras=n_cameras, seed=seed))
-    head = agent.net.actor[-1]
-    with torch.no_grad():
-        head.weight.zero_()
-        head.bias.copy_(torch.tensor([logit if cam in subset else -logit
-                                      for cam in range(1, n_cameras + 1)]))
-    agent.save(path)
-    return path
 
 
 def quality(h: Harness, decision_id: int, time_ms: float, reward: float) -> bytes:
@@ -76,12 +55,12 @@ def ppo_metrics(h: Harness) -> dict[str, float | None]:
              "aoi3d_ppo_pending_rewards", "aoi3d_ppo_rewards_expired_total",
              "aoi3d_ppo_decisions_unscored_total", "aoi3d_ppo_checkpoints_total",
              "aoi3d_ppo_update_seconds_count")
-    out = {name: metric(text, name) for name in names}
+    out = {name: value(text, name) for name in names}
     for reason in ("unknown", "duplicate", "late", "time_mismatch"):
-        out[f"ignored_{reason}"] = metric(
+        out[f"ignored_{reason}"] = value(
             text, f'aoi3d_ppo_rewards_ignored_total{{reason="{reason}"}}')
     for reason in ("malformed", "non_finite"):
-        out[f"rejected_{reason}"] = metric(
+        out[f"rejected_{reason}"] = value(
             text, f'aoi3d_messages_rejected_total{{reason="{reason}"}}')
     return out
 

@@ -29,8 +29,8 @@ from services.supervisor import (
     run_log_dir,
     taken_ports,
 )
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 _PORTS = block("supervisor")

@@ -8,7 +8,7 @@ import math
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -17,9 +17,9 @@ from PIL import Image
 from pydantic import ValidationError
 
 from aoi3d.clock import SimClock
-from aoi3d.field import BACKENDS, GridConfig, NgpConfig
-from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from services.kit.codec import PNG, decode_image, decode_render, encode_frame
+from aoi3d.field import BACKENDS
+from aoi3d.scene import SceneDataset
+from services.kit.codec import decode_image, decode_render
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
@@ -30,38 +30,26 @@ from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
 from services.trainer.app import create_app
 from services.trainer.settings import Settings
-from tests.services.series import without_site
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
+from tests.support.trainer import (
+    CONFIGS,
+    KEYS,
+    N_TRAIN,
+    decision_payload,
+    frame_payload,
+    make_settings,
+    metric,
+    publish_frames,
+)
+from tests.support.waits import settle, wait_for
 
-N_TRAIN = 4
-PERIOD_MS = 100.0  # one frame per period at fps = 10
-KEYS = Keys("trainertest")
 TIMEOUT_SCALE = timeout_scale()
-SMALL_GRID = GridConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine_from_step=0,
-                        grid_sizes=(12,), upsample_steps=(), background_size=(4, 8),
-                        render_chunk_rays=4096, tune_malloc=False)
 
 
-TINY_NGP = NgpConfig(batch_rays=64, samples_coarse=8, samples_fine=8, fine_from_step=0,
-                     n_levels=2, features=2, log2_table_size=8, base_resolution=4,
-                     max_resolution=16, hidden=8, geo_features=3, background_size=(4, 8),
-                     occupancy_size=8, tune_malloc=False)
-CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP}
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    cfg = SceneConfig(width=24, height=18, fps=10, duration_s=1.0, n_train=N_TRAIN,
-                      rotor_rpm=20.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
 
 
-def make_settings(**overrides) -> Settings:
-    common = CommonSettings(run_id=KEYS.run_id, cameras=N_TRAIN, time_scale=10.0,
-                            epoch_s=time.time())
-    values = {"render_steps": 20, "common": common}
-    values.update(overrides)
-    return Settings(**values)
 
 
 @pytest.fixture
@@ -111,51 +99,14 @@ def pool(bus: MemoryBus) -> Iterator[Pool]:
 
 
 # ------------------------------------------------------------------------ helpers
-def frame_payload(ds: SceneDataset, camera_id: int, generation_ms: float) -> bytes:
-    idx = ds.frame_index(generation_ms)
-    image = pb.Image(encoding=PNG, width=ds.width, height=ds.height,
-                     data=ds.frame_png(camera_id, idx))
-    return encode_frame(camera_id=camera_id, sequence=int(generation_ms // PERIOD_MS),
-                        generation_ms=generation_ms, scene_time_ms=ds.scene_time_ms(generation_ms),
-                        camera=ds.cameras[camera_id], image=image, send_ms=generation_ms,
-                        delivery_ms=generation_ms + 40.0)
 
 
-def publish_frames(bus: MemoryBus, ds: SceneDataset, generation_ms: float) -> None:
-    for cam in range(1, N_TRAIN + 1):
-        bus.publish(KEYS.edge_frame(cam), frame_payload(ds, cam, generation_ms))
 
 
-def decision_payload(decision_id: int, time_ms: float, refs: list[tuple[int, float]],
-                     policy: str = "all") -> bytes:
-    ids = list(range(1, N_TRAIN + 1))
-    selected = [pb.FrameRef(camera_id=c, sequence=int(g // PERIOD_MS), generation_ms=g,
-                            aoi_ms=time_ms - g) for c, g in refs]
-    return pb.Decision(decision_id=decision_id, time_ms=time_ms, camera_ids=ids,
-                       aoi_ms=[50.0] * len(ids), selected=selected,
-                       policy=policy).SerializeToString()
 
 
-def wait_for(predicate: Callable[[], object], timeout_s: float = 10.0, what: str = "") -> object:
-    deadline = time.monotonic() + timeout_s * TIMEOUT_SCALE
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.01)
-    raise AssertionError(f"timed out waiting for {what or predicate}")
 
 
-def metric(client: TestClient, name: str, labels: str = "",
-           default: float | None = None) -> float:
-    """A series' value from /metrics; ``default`` if it is not exported (else an error)."""
-    series = f"{name}{{{labels}}}" if labels else name
-    for line in client.get("/metrics").text.splitlines():
-        if line.startswith(series + " ") or without_site(line).startswith(series + " "):
-            return float(line.split()[-1])
-    if default is not None:
-        return default
-    raise AssertionError(f"series {series} not exported")
 
 
 def renders(bus: MemoryBus) -> list[pb.Render]:
@@ -285,7 +236,7 @@ def test_decisions_ended_without_a_render_are_told_to_the_ledger(
                    (5, "lost", "not_received", "", "site1"),
                    (6, "lost", "not_received", "", "site1"),
                    (3, "skipped", "superseded", "", "site1")]
-    time.sleep(0.3)  # nothing more: decision 7 is pending, not ended
+    settle(1.0)  # nothing more: decision 7 is pending, not ended (> the workers' 0.3 s wait)
     assert len(outcomes(bus)) == 6
 
 

@@ -13,8 +13,8 @@ import pytest
 
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 PORT = block("zenoh-auth").zenoh

@@ -19,8 +19,8 @@ import pytest
 
 from services.kit.settings import CommonSettings, zenoh_config
 from services.router import RouterSettings, router_config
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 ROOT = Path(__file__).resolve().parents[2]
 SECRETS_SCRIPT = ROOT / "deploy" / "secrets.sh"

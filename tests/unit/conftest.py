@@ -1,10 +1,10 @@
-"""The unit tests' shared fixture: the tiny scene (tests/tiny.py), generated once per module
+"""The unit tests' shared fixture: the tiny scene (tests/support/tiny.py), generated once per module
 that asks for ``dataset``."""
 
 import pytest
 
 from aoi3d.scene import SceneDataset
-from tests.tiny import tiny_dataset
+from tests.support.tiny import tiny_dataset
 
 
 @pytest.fixture(scope="module")

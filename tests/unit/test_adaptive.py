@@ -32,7 +32,7 @@ from aoi3d.policy.adaptive import (
     load_gamma_curve,
 )
 from aoi3d.scene import SceneDataset
-from tests.tiny import N_TRAIN, TINY_FIELD
+from tests.support.tiny import N_TRAIN, TINY_FIELD
 
 CURVE = GammaCurve((20.0, 100.0, 200.0), (40.0, 130.0, 250.0))
 

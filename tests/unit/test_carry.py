@@ -18,7 +18,7 @@ from aoi3d.field.carry import (
     check_carry,
 )
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
-from tests.tiny import TINY_FIELD
+from tests.support.tiny import TINY_FIELD
 
 N_TRAIN = 4
 TINY = GridConfig(batch_rays=64, samples_coarse=12, samples_fine=12, fine_from_step=0,

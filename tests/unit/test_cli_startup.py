@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from typer.testing import CliRunner
 
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 _PORTS = block("cli-startup")

@@ -23,8 +23,8 @@ from aoi3d.scene import (
     generate_dataset,
     open_dataset,
 )
-from tests.ports import block
-from tests.timeouts import timeout_scale
+from tests.support.ports import block
+from tests.support.timeouts import timeout_scale
 
 SCALE = timeout_scale()
 _PORTS = block("dataset-errors")

@@ -26,7 +26,7 @@ from aoi3d.experiment import (
 from aoi3d.policy import PolicySpecError, parse_policy, policy_from_json
 from aoi3d.policy.wait import WaitPolicy
 from aoi3d.scene import SceneDataset
-from tests.tiny import N_TRAIN, TINY_FIELD
+from tests.support.tiny import N_TRAIN, TINY_FIELD
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import pytest
 
 from services.kit.observe import Rejected
 from services.metrics.core import MetricsCore
-from tests.services.test_metrics import noisy, render, truth, truth_image
+from tests.support.quality import noisy, render, truth, truth_image
 
 
 def test_a_render_is_scored_against_the_truth_of_its_time_with_the_dynamic_region() -> None:
@@ -55,13 +55,12 @@ def test_renders_that_cannot_be_scored_are_rejected_with_their_reason(setup, pay
 
 def test_a_render_is_also_scored_against_the_truth_when_it_is_ready() -> None:
     from services.kit.pb import aoi3d_pb2 as pb
-    from tests.services.test_metrics import truth_image as image
 
     core = MetricsCore(truth_period_ms=30.0)
     for t in (0.0, 30.0, 60.0, 90.0, 120.0):
         core.on_truth(truth(t), now_ms=t)
     # a render of the truth at 60 that was ready at 95: at display, the truth of 90 stands
-    msg = pb.Render.FromString(render(60.0, image(60.0)))
+    msg = pb.Render.FromString(render(60.0, truth_image(60.0)))
     msg.ready_ms = 95.0
     scored = core.score(msg.SerializeToString(), now_ms=130.0)
     q, rec = scored.message, scored.record
@@ -71,12 +70,12 @@ def test_a_render_is_also_scored_against_the_truth_when_it_is_ready() -> None:
     assert rec.psnr_display_db == q.psnr_display_db and rec.display_time_ms == 95.0
     assert q.HasField("psnr_dynamic_display_db")  # the truth of 30 and 60 were there
     # unstamped: the time it is scored is its display time
-    scored = core.score(render(60.0, image(60.0)), now_ms=61.0)
+    scored = core.score(render(60.0, truth_image(60.0)), now_ms=61.0)
     assert scored.message.display_time_ms == 61.0
     assert scored.message.display_truth_time_ms == 60.0
     assert scored.message.psnr_display_db == scored.message.psnr_db
     # no truth in [display − C, display]: the display scores are absent, the rest is there
-    late = pb.Render.FromString(render(60.0, image(60.0)))
+    late = pb.Render.FromString(render(60.0, truth_image(60.0)))
     late.ready_ms = 500.0
     scored = core.score(late.SerializeToString(), now_ms=501.0)
     assert not scored.message.HasField("psnr_display_db")

@@ -35,7 +35,7 @@ from aoi3d.experiment.oracle import (
 )
 from aoi3d.policy import FreshestPolicy, MatPolicy
 from aoi3d.scene import SceneDataset
-from tests.tiny import N_TRAIN, TINY_FIELD  # the same tiny rig and field
+from tests.support.tiny import N_TRAIN, TINY_FIELD  # the same tiny rig and field
 
 SEEDS = [0, 1, 2]
 RULES = ["all", "mat:40", "mat:70", "mat:100", "mat:130",

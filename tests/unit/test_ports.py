@@ -1,5 +1,5 @@
-"""The test port scheme (tests/ports.py): every port below the ephemeral range, blocks apart,
-and the slot probe steps around a port in use."""
+"""The test port scheme (tests/support/ports.py): every port below the ephemeral range,
+blocks apart, and the slot probe steps around a port in use."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from aoi3d.ports import SERVICE_PORTS as DEFAULT_PORTS
-from tests import ports
+from tests.support import ports
 
 
 def test_every_block_lies_below_the_ephemeral_range_and_apart() -> None:

@@ -30,7 +30,7 @@ from aoi3d.rl.presets import (
 )
 from aoi3d.rl.train import train
 from aoi3d.scene import SceneDataset
-from tests.tiny import N_TRAIN, TINY_FIELD
+from tests.support.tiny import N_TRAIN, TINY_FIELD
 
 
 @pytest.fixture(autouse=True)

@@ -9,7 +9,7 @@ import time
 import pytest
 
 from services.kit.runtime import Loops, guarded
-from tests.services.test_scheduler import wait_for
+from tests.support.waits import settle, wait_for
 
 
 def test_loops_run_until_stopped_and_say_which_is_not_running() -> None:
@@ -24,7 +24,7 @@ def test_loops_run_until_stopped_and_say_which_is_not_running() -> None:
     assert loops.not_running() is None
     assert loops.stop(timeout_s=2.0) == [] and loops.stopping
     n = len(ticks)
-    time.sleep(0.05)
+    settle(0.2)  # 20 periods of the 10-ms loop: a loop still running would tick
     assert len(ticks) == n  # stopped for good
     assert loops.not_running() == "tick thread not running"
 

@@ -10,7 +10,7 @@ import pytest
 from aoi3d.policy import parse_policy
 from services.kit.observe import Rejected
 from services.scheduler.core import MAX_AHEAD_MS, SchedulerCore
-from tests.services.test_scheduler import frame
+from tests.support.scheduler import frame
 
 
 def test_a_frame_counts_only_from_its_delivery_time() -> None:

@@ -9,8 +9,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests import tiny
-from tests.tiny import tiny_dataset
+from tests.support import tiny
+from tests.support.tiny import tiny_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
 TINY_FIELD = json.dumps(tiny.TINY_FIELD)

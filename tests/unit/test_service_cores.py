@@ -22,8 +22,8 @@ from services.kit.keys import Keys
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 from services.network.core import ChannelConfigError, NetworkCore
-from tests.services.test_console import render, truth
-from tests.services.test_network import frame
+from tests.support.console import render, truth
+from tests.support.network import frame
 
 KEYS = Keys("cores")
 

@@ -3,7 +3,7 @@ is one clear error naming the variable."""
 
 import pytest
 
-from tests.timeouts import timeout_scale
+from tests.support.timeouts import timeout_scale
 
 
 def test_the_timeout_scale_reads_one_variable() -> None:

@@ -13,13 +13,13 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed, ReconCore
 from services.trainer.core import RenderSettings, TrainerCore
 from services.trainer.pool import Dispatcher, Report
-from tests.services.test_trainer import (
-    CONFIGS,
-    N_TRAIN,
-    dataset,  # noqa: F401  (module fixture)
-    decision_payload,
-    frame_payload,
-)
+from tests.support.trainer import CONFIGS, N_TRAIN, decision_payload, frame_payload, trainer_scene
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
+    """The trainer tests' scene (not the unit tests' tiny one)."""
+    return trainer_scene(tmp_path_factory)
 
 
 def make_core(ds: SceneDataset, pool: Dispatcher) -> TrainerCore:
@@ -29,7 +29,7 @@ def make_core(ds: SceneDataset, pool: Dispatcher) -> TrainerCore:
                        frames_per_camera=4, dispatcher=pool, site="north")
 
 
-def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDataset) -> None:  # noqa: F811
+def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDataset) -> None:
     pool = Dispatcher()
     core = make_core(dataset, pool)
     for cam in (1, 2, 3):
@@ -61,7 +61,7 @@ def test_a_decision_becomes_one_job_with_exactly_its_frames(dataset: SceneDatase
 
 
 def test_a_stream_worker_starts_warm_from_its_last_job_and_cold_when_it_is_too_old(
-        dataset: SceneDataset) -> None:  # noqa: F811
+        dataset: SceneDataset) -> None:
     pool = Dispatcher()
     core = make_core(dataset, pool)
     pool.joined("w", 0.0)
@@ -103,7 +103,7 @@ def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None
 
 
 def test_a_gap_in_the_ids_received_is_told_not_received_and_bounded(
-        dataset: SceneDataset) -> None:  # noqa: F811
+        dataset: SceneDataset) -> None:
     """The first decision of a trainer's life has no gap before it; later gaps end lost
     ``not_received``, at most MAX_NOT_RECEIVED per gap (a hostile id cannot make more)."""
     from services.trainer.core import MAX_NOT_RECEIVED
@@ -120,7 +120,7 @@ def test_a_gap_in_the_ids_received_is_told_not_received_and_bounded(
     assert reasons.count("not_received") == MAX_NOT_RECEIVED
 
 
-def test_the_reconstruction_trains_on_each_frames_own_pose(dataset: SceneDataset,  # noqa: F811
+def test_the_reconstruction_trains_on_each_frames_own_pose(dataset: SceneDataset,
                                                             monkeypatch) -> None:
     """Poses travel with frames (issue 31): a moving robot's frame trains with the pose it
     carries, not the dataset rig's."""

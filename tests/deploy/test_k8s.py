@@ -26,10 +26,10 @@ from typing import Any
 import pytest
 import yaml
 
-from tests.deploy_modules import load
-from tests.unit.test_compose import command as compose_command
-from tests.unit.test_compose import environment as compose_env
-from tests.unit.test_compose import project
+from tests.support.compose_file import command as compose_command
+from tests.support.compose_file import environment as compose_env
+from tests.support.compose_file import project
+from tests.support.deploy_modules import load
 
 ROOT = Path(__file__).resolve().parents[2]
 K8S = ROOT / "deploy" / "k8s"

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.deploy_modules import load
+from tests.support.deploy_modules import load
 
 mon = load("monitoring")
 

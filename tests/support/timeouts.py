@@ -27,6 +27,4 @@ def timeout_scale(environ: dict[str, str] | None = None) -> float:
         raise ValueError(f"{VARIABLE}={raw!r}: a positive number of times longer to wait "
                          "(e.g. 3 on a busy machine), or unset for 1")
     return value
-
-
 SCALE = timeout_scale()

@@ -13,7 +13,6 @@ feed them a deliberately broken deployment and see them fail.
 
 from __future__ import annotations
 
-import ast
 import copy
 import fnmatch
 import importlib
@@ -21,20 +20,27 @@ import json
 import os
 import re
 import shlex
-import tomllib
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import jsonschema
 import pytest
-import yaml
 from pydantic_settings import BaseSettings
 
 from services.configdoc import DOMAIN_VARIABLES
 from services.kit.settings import CommonSettings, ServiceSettings
+from tests.support.compose_file import (
+    _INTERPOLATION,
+    ROOT,
+    _yaml,
+    command,
+    defined_metrics,
+    environment,
+    interpolate,
+    project,
+)
 
-ROOT = Path(__file__).resolve().parents[2]
 COMPOSE_FILE = ROOT / "compose.yaml"
 SCHEMA_FILE = ROOT / "tests" / "data" / "compose-spec.json"
 DOCKERFILE = ROOT / "deploy" / "Dockerfile"
@@ -65,14 +71,9 @@ PROMETHEUS_BUILTIN_METRICS = {"up"}
 PROMETHEUS_TARGET_LABELS = {"job", "instance", "le", "quantile", "__name__"}
 """Labels every scraped series may carry besides those our code declares."""
 
-_INTERPOLATION = re.compile(
-    r"\$\{(?P<name>[A-Za-z_][A-Za-z0-9_]*)(?:(?P<op>:?-)(?P<default>[^}]*))?\}")
 
 
 # ---------------------------------------------------------------------------------- loading
-def _yaml(path: Path) -> Any:
-    with path.open(encoding="utf-8") as f:
-        return yaml.safe_load(f)  # resolves anchors and `<<` merge keys, as Compose does
 
 
 @pytest.fixture(scope="module")
@@ -85,33 +86,10 @@ def schema() -> dict[str, Any]:
     return json.loads(SCHEMA_FILE.read_text(encoding="utf-8"))
 
 
-def interpolate(value: object) -> str:
-    """Resolve Compose ``${VAR:-default}`` with its default (never the caller's environment).
-
-    A variable without a default would make the deployment depend on the shell, so it is an
-    error here.
-    """
-    text = str(value)
-
-    def repl(m: re.Match[str]) -> str:
-        if m["op"] is None:
-            raise ValueError(f"${{{m['name']}}} has no default in {text!r}")
-        return m["default"]
-
-    return _INTERPOLATION.sub(repl, text).replace("$$", "$")
 
 
-def environment(service: dict[str, Any]) -> dict[str, str]:
-    """A service's environment (map or list form), interpolated."""
-    env = service.get("environment") or {}
-    if isinstance(env, list):
-        env = dict(item.split("=", 1) if "=" in item else (item, "") for item in env)
-    return {str(k): interpolate(v) for k, v in env.items()}
 
 
-def command(service: dict[str, Any]) -> list[str]:
-    cmd = service.get("command") or []
-    return [interpolate(c) for c in (shlex.split(cmd) if isinstance(cmd, str) else cmd)]
 
 
 def published_ports(service: dict[str, Any]) -> set[tuple[int, int]]:
@@ -549,8 +527,6 @@ def dockerignore_excludes(rel: str, patterns: list[str]) -> bool:
     return excluded
 
 
-def project() -> dict[str, Any]:
-    return tomllib.loads((ROOT / "pyproject.toml").read_text(encoding="utf-8"))["project"]
 
 
 def dockerfile_problems(doc: dict[str, Any]) -> list[str]:
@@ -757,50 +733,8 @@ def grafana_problems(doc: dict[str, Any], dashboard: dict[str, Any]) -> list[str
 
 
 # ------------------------------------------------------------------------ dashboard metrics
-METRIC_TYPES = {"Counter", "Gauge", "Histogram", "Summary", "Info", "Enum"}
-EXPOSED_SUFFIXES = {
-    "Counter": ("_total", "_created"),
-    "Gauge": ("",),
-    "Histogram": ("_bucket", "_sum", "_count", "_created"),
-    "Summary": ("", "_sum", "_count", "_created"),
-    "Info": ("_info",),
-    "Enum": ("",),
-}
 
 
-def defined_metrics(root: Path = ROOT / "services") -> dict[str, set[str]]:
-    """Exposed series names → label names, from the prometheus_client calls in ``root``.
-
-    prometheus_client strips ``_total`` from a counter's name and exposes ``<name>_total``;
-    a histogram exposes ``_bucket``/``_sum``/``_count``.
-    """
-    exposed: dict[str, set[str]] = {}
-    for path in sorted(root.rglob("*.py")):
-        if "pb" in path.relative_to(root).parts:
-            continue
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
-            if not isinstance(node, ast.Call):
-                continue
-            kind = getattr(node.func, "id", None) or getattr(node.func, "attr", None)
-            # a custom collector's families (CounterMetricFamily …) expose the same names
-            kind = kind.removesuffix("MetricFamily") if kind else kind
-            if kind not in METRIC_TYPES:
-                continue
-            kwargs = {k.arg: k.value for k in node.keywords}
-            name_node = node.args[0] if node.args else kwargs.get("name")
-            if not (isinstance(name_node, ast.Constant) and isinstance(name_node.value, str)
-                    and name_node.value.startswith("aoi3d_")):
-                continue
-            labels_node = node.args[2] if len(node.args) > 2 else (
-                kwargs.get("labelnames") or kwargs.get("labels"))
-            labels = {e.value for e in getattr(labels_node, "elts", [])
-                      if isinstance(e, ast.Constant)}
-            base = name_node.value
-            if kind == "Counter":
-                base = base.removesuffix("_total")
-            for suffix in EXPOSED_SUFFIXES[kind]:
-                exposed.setdefault(base + suffix, set()).update(labels)
-    return exposed
 
 
 def _walk(node: Any) -> Iterator[dict[str, Any]]:
