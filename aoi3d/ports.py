@@ -1,7 +1,7 @@
 """Where a live run is reached: every port of the project, and the names that address a site.
 
 The one table the services' settings, ``aoi3d up`` (the supervisor), the console's upstreams,
-``aoi3d live``, the benches and the tests' port blocks (tests/ports.py) all read. It lives in
+``aoi3d live``, the benches and the tests' port blocks (tests/support/ports.py) all read. It lives in
 the domain package, below both ``aoi3d_cli`` and ``services``, because both need it and
 ``aoi3d`` never imports ``services`` (pyproject.toml's import contracts); standard library
 only, so ``aoi3d --help`` and the supervisor stay light.
@@ -12,7 +12,7 @@ only, so ``aoi3d --help`` and the supervisor stay light.
   routers listen on it too, in their own network namespaces).
 * :data:`BENCH_BLOCKS`: the fixed ``--port-offset``/``--zenoh-port`` of each bench that starts
   a pipeline, apart from ``make up`` and from each other (:class:`PortBlock`).
-* :data:`TEST_FIRST`: the lowest port of the tests' blocks (tests/ports.py hands them out).
+* :data:`TEST_FIRST`: the lowest port of the tests' blocks (tests/support/ports.py hands them out).
 * :data:`DEFAULT_SITE`, :func:`check_site`, :func:`site_names`: a site's name, the segment
   of ``/sites/<site>/…`` and of the key space ``aoi3d/<run>/<site>/…``.
 """
@@ -77,7 +77,7 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range
 (:data:`TEST_FIRST`…); the tests step around any port in use."""
 TEST_FIRST = 12_000
-"""Lowest port of the tests' blocks (tests/ports.py): above ``make up`` (7447, 8101…) and the
+"""Lowest port of the tests' blocks (tests/support/ports.py): above ``make up`` (7447, 8101…) and the
 pipeline and scale benches, below Linux's ephemeral range."""
 
 DEFAULT_SITE = "site1"
