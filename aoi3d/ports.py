@@ -1,8 +1,8 @@
 """Where a live run is reached: every port of the project, and the names that address a site.
 
 The one table the services' settings, ``aoi3d up`` (the supervisor), the console's upstreams,
-``aoi3d live``, the benches and the tests' port blocks (tests/support/ports.py) all read. It lives in
-the domain package, below both ``aoi3d_cli`` and ``services``, because both need it and
+``aoi3d live``, the benches and the tests' port blocks (tests/support/ports.py) all read. It lives
+in the domain package, below both ``aoi3d_cli`` and ``services``, because both need it and
 ``aoi3d`` never imports ``services`` (pyproject.toml's import contracts); standard library
 only, so ``aoi3d --help`` and the supervisor stay light.
 
@@ -77,8 +77,8 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range
 (:data:`TEST_FIRST`…); the tests step around any port in use."""
 TEST_FIRST = 12_000
-"""Lowest port of the tests' blocks (tests/support/ports.py): above ``make up`` (7447, 8101…) and the
-pipeline and scale benches, below Linux's ephemeral range."""
+"""Lowest port of the tests' blocks (tests/support/ports.py): above ``make up`` (7447, 8101…)
+and the pipeline and scale benches, below Linux's ephemeral range."""
 
 DEFAULT_SITE = "site1"
 """The site of a one-site run, and the one the REST paths without ``/sites/<site>`` address."""
