@@ -36,7 +36,7 @@ from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
 from aoi3d.quality import DYNAMIC_FRAMES, dynamic_mask, dynamic_score, psnr
-from aoi3d.scene.dataset import ensure_dataset
+from aoi3d.scene.write import ensure_dataset
 
 TIMES = (60, 67, 74, 81)
 """The frame indices t0 of the reconstructions, cycled."""

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from aoi3d.experiment.optimum import rederived
 from aoi3d.policy import PolicyKind, kind_of
 from aoi3d.stats import PairedDifference, paired_difference
 
@@ -429,53 +430,6 @@ def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db"
         numbers["oracle_minus_best_rule"] = bound["minus"][metric][best]
         evidence += f"; oracle:rules:{metric} − {best}: {_diff(bound['minus'][metric][best])}"
     return Verdict("adaptive-beats-best-rule", statement, holds, evidence, numbers)
-
-
-def rederived(doc: Mapping[str, Any], metrics: Sequence[str], *, ordered: bool
-              ) -> dict[str, Any]:
-    """``doc`` (the ``results.json`` of ``tradeoff``, ``delay`` or ``compare``) with its optima
-    for ``metrics`` taken from its episodes by the same criterion the command applies — for a
-    metric the command does not judge, such as the display-time scores every episode carries.
-    ``ordered``: the candidates are a MAT sweep's Γ (``tradeoff``, ``delay``: Γ from the policy
-    objects, `all` at ∞), else the policies by label (``compare``; its bounds left out). A
-    ``delay`` document's rows (``optima``) each get their delay's ``optimum`` of the first
-    metric."""
-    from aoi3d.experiment.optimum import optima
-    from aoi3d.policy import PolicySpecError, parse_policy
-
-    def gamma(label: str) -> float | None:
-        try:
-            g = getattr(parse_policy(label), "gamma_ms", None)
-        except PolicySpecError:
-            return None
-        return None if g is None else float(g)
-
-    def candidate(label: str) -> Any:
-        g = gamma(label) if ordered else None
-        return label if g is None else g
-
-    bounds = {r["policy"] for r in doc.get("policies", []) if r.get("bound")}
-    episodes = [e for e in doc["episodes"] if e["policy"] not in bounds]
-
-    def judge(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-        selected: dict[Any, list[float]] = {}
-        for r in rows:
-            selected.setdefault(candidate(r["policy"]), []).append(float(r["n_selected"]))
-        position = ({candidate(r["policy"]): math.inf if gamma(r["policy"]) is None
-                     else gamma(r["policy"]) for r in rows} if ordered else None)
-        got = optima(rows, metrics, candidate=lambda r: candidate(r["policy"]),
-                     selects={c: float(np.mean(v)) for c, v in selected.items()},
-                     ordered=ordered, position=position)
-        return {m: o.to_dict() for m, o in got.items()}
-
-    out = dict(doc)
-    if "optima" in doc:  # delay: one optimum per delay
-        out["optima"] = [{**row, "optimum": judge([e for e in episodes
-                                                   if e["delay"] == row["delay"]])[metrics[0]]}
-                         for row in doc["optima"]]
-    else:
-        out["optimum"] = judge(episodes)
-    return out
 
 
 DISPLAY_METRIC = "psnr_display_db"

@@ -31,6 +31,9 @@ Which metrics are lower-is-better is stated here once: :data:`LOWER_IS_BETTER`.
 pipeline, not episodes paired by seed. :func:`unpaired_interior_maximum` asks the same question
 of it with Welch intervals of best − each end — the same :func:`aoi3d.stats.interior_maximum`.
 The intervals themselves live in :mod:`aoi3d.stats`.
+
+:func:`rederived` takes a results document's optima again, for metrics its command did not
+judge (the display-time scores the science check asks about).
 """
 
 from __future__ import annotations
@@ -58,6 +61,7 @@ __all__ = [
     "optima",
     "optimum",
     "paired_difference",
+    "rederived",
     "sign_of",
     "sweep_position",
     "unpaired_interior_maximum",
@@ -220,3 +224,49 @@ def unpaired_interior_maximum(results: Sequence[Mapping[str, Any]], metric: str
                                               for e in ends.values())
     return {"best": results[best]["policy"], "best_mean": stat[best]["mean"],
             "interior": interior, "beyond_ci": bool(separated), "best_minus_end": ends}
+
+
+def rederived(doc: Mapping[str, Any], metrics: Sequence[str], *, ordered: bool
+              ) -> dict[str, Any]:
+    """``doc`` (the ``results.json`` of ``tradeoff``, ``delay`` or ``compare``) with its optima
+    for ``metrics`` taken from its episodes by the same criterion the command applies — for a
+    metric the command does not judge, such as the display-time scores every episode carries.
+    ``ordered``: the candidates are a MAT sweep's Γ (``tradeoff``, ``delay``: Γ from the policy
+    objects, `all` at ∞), else the policies by label (``compare``; its bounds left out). A
+    ``delay`` document's rows (``optima``) each get their delay's ``optimum`` of the first
+    metric."""
+    from aoi3d.policy import PolicySpecError, parse_policy
+
+    def gamma(label: str) -> float | None:
+        try:
+            g = getattr(parse_policy(label), "gamma_ms", None)
+        except PolicySpecError:
+            return None
+        return None if g is None else float(g)
+
+    def candidate(label: str) -> Any:
+        g = gamma(label) if ordered else None
+        return label if g is None else g
+
+    bounds = {r["policy"] for r in doc.get("policies", []) if r.get("bound")}
+    episodes = [e for e in doc["episodes"] if e["policy"] not in bounds]
+
+    def judge(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+        selected: dict[Any, list[float]] = {}
+        for r in rows:
+            selected.setdefault(candidate(r["policy"]), []).append(float(r["n_selected"]))
+        position = ({candidate(r["policy"]): math.inf if gamma(r["policy"]) is None
+                     else gamma(r["policy"]) for r in rows} if ordered else None)
+        got = optima(rows, metrics, candidate=lambda r: candidate(r["policy"]),
+                     selects={c: float(np.mean(v)) for c, v in selected.items()},
+                     ordered=ordered, position=position)
+        return {m: o.to_dict() for m, o in got.items()}
+
+    out = dict(doc)
+    if "optima" in doc:  # delay: one optimum per delay
+        out["optima"] = [{**row, "optimum": judge([e for e in episodes
+                                                   if e["delay"] == row["delay"]])[metrics[0]]}
+                         for row in doc["optima"]]
+    else:
+        out["optimum"] = judge(episodes)
+    return out

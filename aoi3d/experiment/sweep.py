@@ -16,11 +16,9 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing
 import os
 import time
 from collections.abc import Callable, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -36,9 +34,9 @@ from aoi3d.experiment.episode import (
     EpisodeResult,
     plan_episode,
     plan_key,
-    run_plan,
     set_torch_threads,
 )
+from aoi3d.experiment.executors import DATASETS, run_pool, run_ray, work
 from aoi3d.experiment.oracle import OracleEpisode, OracleSpec, parse_oracle, search_oracle
 from aoi3d.lpips import weights_path
 from aoi3d.policy import parse_policy
@@ -160,44 +158,6 @@ def default_workers() -> int:
 def lpips_available(cfg: EpisodeConfig) -> bool:
     """Whether episodes of ``cfg`` will compute LPIPS (asked for, and weights cached)."""
     return cfg.lpips and weights_path("alex").is_file()
-
-
-# --- workers ---------------------------------------------------------------------------------
-_DATASETS: dict[str, SceneDataset] = {}
-_LPIPS: dict[str, Any] = {}
-
-
-def _dataset(path: str) -> SceneDataset:
-    ds = _DATASETS.get(path)
-    if ds is None:
-        ds = _DATASETS[path] = open_dataset(path)
-    return ds
-
-
-def _lpips_fn(device: str) -> Any:
-    if device not in _LPIPS:
-        from aoi3d.lpips import load_lpips_fn
-
-        _LPIPS[device] = load_lpips_fn(device=device)
-    return _LPIPS[device]
-
-
-def _init_worker(threads: int) -> None:
-    set_torch_threads(threads)
-
-
-def _work(plan_doc: dict[str, Any], key: str, lpips: bool,
-          threads: int | None = None) -> tuple[dict[str, Any], bytes]:
-    """Run one planned episode (any process: plain data in, plain data out)."""
-    if threads is not None:
-        set_torch_threads(threads)
-    plan = EpisodePlan.from_dict(plan_doc)
-    ds = _dataset(plan.config.dataset)
-    lpips_fn = _lpips_fn(plan.config.device) if lpips else None
-    if lpips and lpips_fn is None:
-        raise RuntimeError("LPIPS weights vanished while the sweep ran")
-    result, png = run_plan(plan, ds, key=key, lpips_fn=lpips_fn)
-    return result.to_dict(), png
 
 
 # --- the sweep -------------------------------------------------------------------------------
@@ -348,19 +308,19 @@ def run_plans(
         raise ValueError(f"workers must be >= 1, got {workers}")
     items = [(todo[k].to_dict(), k) for k in order]
     if items and ray_address is not None:
-        _run_ray(items, lpips, threads_per_worker, ray_address, done)
+        run_ray(items, lpips, threads_per_worker, ray_address, done)
     elif items and (n_workers == 1 or len(items) == 1):
         previous = torch.get_num_threads()
         set_torch_threads(threads_per_worker)
-        _DATASETS.setdefault(root, ds)
+        DATASETS.setdefault(root, ds)
         try:
             for doc, key in items:
-                result, png = _work(doc, key, lpips)
+                result, png = work(doc, key, lpips)
                 done(EpisodeResult.from_dict(result), png)
         finally:
             set_torch_threads(previous)
     elif items:
-        _run_pool(items, lpips, min(n_workers, len(items)), threads_per_worker, done)
+        run_pool(items, lpips, min(n_workers, len(items)), threads_per_worker, done)
 
     results = [found[k].relabel(p.policy, p.config.delay)
                for k, p in zip(keys, plans, strict=True)]
@@ -443,46 +403,6 @@ def run_oracle(
                              progress=on_round)
     return OracleOutcome(spec=spec.spec, episodes=episodes, computed=counts["computed"],
                          cached=counts["cached"], wall_s=time.perf_counter() - started)
-
-
-def _run_pool(items: list[tuple[dict[str, Any], str]], lpips: bool, workers: int, threads: int,
-              done: Callable[[EpisodeResult, bytes], None]) -> None:
-    ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
-                               initargs=(threads,))
-    try:
-        pending: set[Future[tuple[dict[str, Any], bytes]]] = {
-            pool.submit(_work, doc, key, lpips) for doc, key in items
-        }
-        while pending:
-            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-            for fut in finished:
-                result, png = fut.result()
-                done(EpisodeResult.from_dict(result), png)
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
-
-
-def _run_ray(items: list[tuple[dict[str, Any], str]], lpips: bool, threads: int, address: str,
-             done: Callable[[EpisodeResult, bytes], None]) -> None:
-    try:
-        import ray
-    except ImportError:
-        raise RuntimeError("--ray-address needs Ray: pip install '.[cluster]'") from None
-    if not ray.is_initialized():
-        ray.init(address=None if address == "local" else address,
-                 log_to_driver=False, include_dashboard=False)
-    remote = ray.remote(num_cpus=threads)(_work)
-    refs = [remote.remote(doc, key, lpips, threads) for doc, key in items]
-    try:
-        while refs:
-            ready, refs = ray.wait(refs, num_returns=1)
-            for ref in ready:
-                result, png = ray.get(ref)
-                done(EpisodeResult.from_dict(result), png)
-    finally:
-        for ref in refs:
-            ray.cancel(ref)
 
 
 # --- statistics ------------------------------------------------------------------------------

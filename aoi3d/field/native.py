@@ -37,13 +37,23 @@ import os
 import shutil
 import subprocess
 import tempfile
-import threading
 from pathlib import Path
 from typing import Any
 
 import torch
 
 from aoi3d.atomic import atomic_path
+from aoi3d.field.native_calls import (
+    colour_error_backward,
+    grid_backward,
+    grid_forward,
+    grid_geometry,
+    latlong_backward,
+    latlong_forward,
+    ptr,
+    volume_backward,
+    volume_forward,
+)
 
 __all__ = ["adam_dense", "available", "grid_query", "grid_step_available", "grid_training_grads",
            "latlong_background", "lazy_adam_rows", "sample_uniform", "volume_render",
@@ -147,53 +157,7 @@ def _usable(*tensors: torch.Tensor) -> bool:
     )
 
 
-def _ptr(t: torch.Tensor | None) -> int | None:
-    return None if t is None else t.data_ptr()
-
-
 # --- the grid's query ------------------------------------------------------------------------
-_WORKSPACE = threading.local()
-
-
-def _workspace(n_rows: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """This thread's zeroed scatter buffers of the grid's backward: dense (n_rows, 4) float32
-    and touched (n_rows,) uint8, kept between calls (the kernel leaves them zero)."""
-    cached = getattr(_WORKSPACE, "buffers", None)
-    if cached is None or cached[1].shape[0] != n_rows:
-        cached = (torch.zeros(n_rows, 4), torch.zeros(n_rows, dtype=torch.uint8))
-        _WORKSPACE.buffers = cached
-    return cached
-
-
-def _grid_forward(lib: ctypes.CDLL, table: torch.Tensor, points: torch.Tensor,
-                  geometry: tuple[torch.Tensor, ...]) -> tuple[torch.Tensor, ...]:
-    """σ (P,), rgb (P, 3) and dσ/d raw density (P,) of the grid's query (contiguous inputs)."""
-    lo, factor, shape = geometry
-    n = points.shape[0]
-    sigma = points.new_empty(n)
-    rgb = points.new_empty(n, 3)
-    sigma_grad = points.new_empty(n)
-    lib.grid_query_forward(table.data_ptr(), points.data_ptr(), n, lo.data_ptr(),
-                           factor.data_ptr(), shape.data_ptr(), sigma.data_ptr(),
-                           rgb.data_ptr(), sigma_grad.data_ptr())
-    return sigma, rgb, sigma_grad
-
-
-def _grid_backward(lib: ctypes.CDLL, n_rows: int, points: torch.Tensor,
-                   geometry: tuple[torch.Tensor, ...], grad_sigma: torch.Tensor | None,
-                   grad_rgb: torch.Tensor | None, rgb: torch.Tensor,
-                   sigma_grad: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """The table's row-sparse gradient: its rows (increasing) and values (rows, 4)."""
-    lo, factor, shape = geometry
-    dense, touched = _workspace(n_rows)
-    rows = torch.empty(n_rows, dtype=torch.int64)
-    values = points.new_empty(n_rows, 4)
-    count = lib.grid_query_backward(points.data_ptr(), points.shape[0], lo.data_ptr(),
-                                    factor.data_ptr(), shape.data_ptr(), _ptr(grad_sigma),
-                                    _ptr(grad_rgb), rgb.data_ptr(), sigma_grad.data_ptr(),
-                                    n_rows, dense.data_ptr(), touched.data_ptr(),
-                                    rows.data_ptr(), values.data_ptr())
-    return rows[:count], values[:count]
 
 
 class _GridQuery(torch.autograd.Function):
@@ -202,7 +166,7 @@ class _GridQuery(torch.autograd.Function):
                 factor: torch.Tensor, shape: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         lib = _lib()
         assert lib is not None
-        sigma, rgb, sigma_grad = _grid_forward(lib, table, points, (lo, factor, shape))
+        sigma, rgb, sigma_grad = grid_forward(lib, table, points, (lo, factor, shape))
         ctx.save_for_backward(points, lo, factor, shape, rgb, sigma_grad)
         ctx.n_rows = table.shape[0]
         return sigma, rgb
@@ -216,7 +180,7 @@ class _GridQuery(torch.autograd.Function):
         n_rows = ctx.n_rows
         gs = None if grad_sigma is None else grad_sigma.contiguous()
         gc = None if grad_rgb is None else grad_rgb.contiguous()
-        rows, values = _grid_backward(lib, n_rows, points, (lo, factor, shape), gs, gc, rgb,
+        rows, values = grid_backward(lib, n_rows, points, (lo, factor, shape), gs, gc, rgb,
                                       sigma_grad)
         grad = torch.sparse_coo_tensor(rows[None], values, (n_rows, 4), is_coalesced=True,
                                        check_invariants=False)
@@ -234,63 +198,10 @@ def grid_query(table: torch.Tensor, points: torch.Tensor, aabb: torch.Tensor,
     if points.requires_grad or len(shape) != 3:
         return None
     table = table if table.is_contiguous() else table.contiguous()
-    return _GridQuery.apply(table, points.contiguous(), *_grid_geometry(aabb, tuple(shape)))
-
-
-_GEOMETRY: dict[tuple[Any, ...], tuple[torch.Tensor, ...]] = {}
-
-
-def _grid_geometry(aabb: torch.Tensor, shape: tuple[int, ...]) -> tuple[torch.Tensor, ...]:
-    """The kernel's view of a grid: box corner, vertex units per world unit (as
-    :func:`aoi3d.field.encodings.vertex_coords` computes them) and shape; cached by value."""
-    box = aabb.detach()
-    key = (*box.reshape(-1).tolist(), *shape)
-    cached = _GEOMETRY.get(key)
-    if cached is None:
-        n1 = torch.tensor([n - 1 for n in shape], dtype=torch.float32)
-        cached = (box[0].clone().contiguous(), (n1 / (box[1] - box[0])).contiguous(),
-                  torch.tensor(shape, dtype=torch.int64))
-        if len(_GEOMETRY) > 64:
-            _GEOMETRY.clear()
-        _GEOMETRY[key] = cached
-    return cached
+    return _GridQuery.apply(table, points.contiguous(), *grid_geometry(aabb, tuple(shape)))
 
 
 # --- volume rendering -----------------------------------------------------------------------
-def _volume_forward(lib: ctypes.CDLL, sigma: torch.Tensor, rgb: torch.Tensor,
-                    background: torch.Tensor, deltas: torch.Tensor,
-                    ray_index: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Colour (R, 3), transmittance (R,), weights, alpha and the transmittance in front of
-    each sample (P,) of packed samples (contiguous inputs)."""
-    n, r = sigma.shape[0], background.shape[0]
-    color = sigma.new_empty(r, 3)
-    transmittance = sigma.new_empty(r)
-    weights = sigma.new_empty(n)
-    alpha = sigma.new_empty(n)
-    before = sigma.new_empty(n)
-    lib.volume_render_forward(sigma.data_ptr(), rgb.data_ptr(), deltas.data_ptr(),
-                              ray_index.data_ptr(), n, background.data_ptr(), r,
-                              color.data_ptr(), transmittance.data_ptr(), weights.data_ptr(),
-                              alpha.data_ptr(), before.data_ptr())
-    return color, transmittance, weights, alpha, before
-
-
-def _volume_backward(lib: ctypes.CDLL, saved: tuple[torch.Tensor, ...],
-                     grads: tuple[torch.Tensor | None, ...]) -> tuple[torch.Tensor, ...]:
-    """Gradients of σ (P,), rgb (P, 3) and the background (R, 3) from those of colour,
-    transmittance, weights and alpha (contiguous or None); ``saved``: rgb, deltas, ray_index,
-    background and :func:`_volume_forward`'s transmittance, weights, alpha and before."""
-    rgb, deltas, ray_index, background, transmittance, weights, alpha, before = saved
-    n, r = weights.shape[0], background.shape[0]
-    grad_sigma = weights.new_empty(n)
-    grad_rgb = weights.new_empty(n, 3)
-    grad_bg = weights.new_empty(r, 3)
-    lib.volume_render_backward(rgb.data_ptr(), deltas.data_ptr(), ray_index.data_ptr(), n,
-                               background.data_ptr(), r, transmittance.data_ptr(),
-                               weights.data_ptr(), alpha.data_ptr(), before.data_ptr(),
-                               *(_ptr(g) for g in grads), grad_sigma.data_ptr(),
-                               grad_rgb.data_ptr(), grad_bg.data_ptr())
-    return grad_sigma, grad_rgb, grad_bg
 
 
 class _VolumeRender(torch.autograd.Function):
@@ -299,7 +210,7 @@ class _VolumeRender(torch.autograd.Function):
                 deltas: torch.Tensor, ray_index: torch.Tensor) -> tuple[torch.Tensor, ...]:
         lib = _lib()
         assert lib is not None
-        color, transmittance, weights, alpha, before = _volume_forward(
+        color, transmittance, weights, alpha, before = volume_forward(
             lib, sigma, rgb, background, deltas, ray_index)
         ctx.save_for_backward(rgb, deltas, ray_index, background, transmittance, weights, alpha,
                               before)
@@ -312,7 +223,7 @@ class _VolumeRender(torch.autograd.Function):
         assert lib is not None
         grads = tuple(None if g is None else g.contiguous()
                       for g in (g_color, g_trans, g_weights, g_alpha))
-        grad_sigma, grad_rgb, grad_bg = _volume_backward(lib, ctx.saved_tensors, grads)
+        grad_sigma, grad_rgb, grad_bg = volume_backward(lib, ctx.saved_tensors, grads)
         return grad_sigma, grad_rgb, grad_bg, None, None
 
 
@@ -331,21 +242,6 @@ def volume_render(sigma: torch.Tensor, rgb: torch.Tensor, deltas: torch.Tensor,
 
 
 # --- the background ---------------------------------------------------------------------------
-def _latlong_forward(lib: ctypes.CDLL, env: torch.Tensor, dirs: torch.Tensor,
-                     up_axis: int) -> torch.Tensor:
-    rows, cols = env.shape[:2]
-    out = dirs.new_empty(dirs.shape[0], 3)
-    lib.latlong_forward(env.data_ptr(), rows, cols, dirs.data_ptr(), dirs.shape[0], up_axis,
-                        out.data_ptr())
-    return out
-
-
-def _latlong_backward(lib: ctypes.CDLL, env_shape: tuple[int, ...], dirs: torch.Tensor,
-                      up_axis: int, out: torch.Tensor, grad_out: torch.Tensor) -> torch.Tensor:
-    grad_env = out.new_zeros(env_shape)
-    lib.latlong_backward(env_shape[0], env_shape[1], dirs.data_ptr(), dirs.shape[0], up_axis,
-                         out.data_ptr(), grad_out.data_ptr(), grad_env.data_ptr())
-    return grad_env
 
 
 class _LatLong(torch.autograd.Function):
@@ -353,7 +249,7 @@ class _LatLong(torch.autograd.Function):
     def forward(ctx: Any, env: torch.Tensor, dirs: torch.Tensor, up_axis: int) -> torch.Tensor:
         lib = _lib()
         assert lib is not None
-        out = _latlong_forward(lib, env, dirs, up_axis)
+        out = latlong_forward(lib, env, dirs, up_axis)
         ctx.save_for_backward(dirs, out)
         ctx.env_shape, ctx.up_axis = tuple(env.shape), up_axis
         return out
@@ -363,7 +259,7 @@ class _LatLong(torch.autograd.Function):
         lib = _lib()
         assert lib is not None
         dirs, out = ctx.saved_tensors
-        return (_latlong_backward(lib, ctx.env_shape, dirs, ctx.up_axis, out,
+        return (latlong_backward(lib, ctx.env_shape, dirs, ctx.up_axis, out,
                                   grad_out.contiguous()), None, None)
 
 
@@ -377,16 +273,6 @@ def latlong_background(env: torch.Tensor, dirs: torch.Tensor,
 
 
 # --- the per-sample colour loss ---------------------------------------------------------------
-def _colour_error_backward(lib: ctypes.CDLL, colours: torch.Tensor, weights: torch.Tensor,
-                           target: torch.Tensor, ray_index: torch.Tensor,
-                           grad: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Gradients of the colours (P, 3) and weights (P,) of ``grad`` · Σ_i w_i ‖c_i − t‖²."""
-    grad_colours = torch.empty_like(colours)
-    grad_weights = torch.empty_like(weights)
-    lib.weighted_colour_error_backward(colours.data_ptr(), weights.data_ptr(),
-                                       ray_index.data_ptr(), colours.shape[0], target.data_ptr(),
-                                       grad, grad_colours.data_ptr(), grad_weights.data_ptr())
-    return grad_colours, grad_weights
 
 
 class _WeightedColourError(torch.autograd.Function):
@@ -406,7 +292,7 @@ class _WeightedColourError(torch.autograd.Function):
         lib = _lib()
         assert lib is not None
         colours, weights, target, ray_index = ctx.saved_tensors
-        return (*_colour_error_backward(lib, colours, weights, target, ray_index, float(grad)),
+        return (*colour_error_backward(lib, colours, weights, target, ray_index, float(grad)),
                 None, None)
 
 
@@ -486,7 +372,7 @@ def sample_uniform(origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tens
     points = o.new_empty(total, 3)
     deltas = o.new_empty(total)
     ray_index = torch.empty(total, dtype=torch.int64)
-    lib.sample_uniform_fill(o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), _ptr(jit),
+    lib.sample_uniform_fill(o.data_ptr(), d.data_ptr(), tn.data_ptr(), tf.data_ptr(), ptr(jit),
                             n_rays, step, counts.data_ptr(), points.data_ptr(),
                             deltas.data_ptr(), ray_index.data_ptr())
     return points, deltas, ray_index
@@ -523,11 +409,11 @@ def grid_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
     assert lib is not None
     table, env, points, deltas, ray_index, dirs, target = (
         t.detach().contiguous() for t in (table, env, points, deltas, ray_index, dirs, target))
-    geometry = _grid_geometry(aabb, tuple(shape))
+    geometry = grid_geometry(aabb, tuple(shape))
     n_rays = dirs.shape[0]
-    sigma, rgb, sigma_grad = _grid_forward(lib, table, points, geometry)
-    background = _latlong_forward(lib, env, dirs, up_axis)
-    color, transmittance, weights, alpha, before = _volume_forward(
+    sigma, rgb, sigma_grad = grid_forward(lib, table, points, geometry)
+    background = latlong_forward(lib, env, dirs, up_axis)
+    color, transmittance, weights, alpha, before = volume_forward(
         lib, sigma, rgb, background, deltas, ray_index)
     diff = color - target
     mse = float(torch.mean(diff * diff))
@@ -535,16 +421,16 @@ def grid_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
     g_weights = None
     g_sample_rgb = None
     if sample_rgb_loss > 0:
-        g_sample_rgb, g_weights = _colour_error_backward(lib, rgb, weights, target, ray_index,
+        g_sample_rgb, g_weights = colour_error_backward(lib, rgb, weights, target, ray_index,
                                                          sample_rgb_loss / n_rays)
     g_alpha = (weights.new_full(weights.shape, opacity_loss / n_rays) if opacity_loss > 0
                else None)
     saved = (rgb, deltas, ray_index, background, transmittance, weights, alpha, before)
-    grad_sigma, grad_rgb, grad_bg = _volume_backward(lib, saved,
+    grad_sigma, grad_rgb, grad_bg = volume_backward(lib, saved,
                                                      (g_color, None, g_weights, g_alpha))
     if g_sample_rgb is not None:
         grad_rgb += g_sample_rgb
-    grad_env = _latlong_backward(lib, tuple(env.shape), dirs, up_axis, background, grad_bg)
-    rows, values = _grid_backward(lib, table.shape[0], points, geometry, grad_sigma, grad_rgb,
+    grad_env = latlong_backward(lib, tuple(env.shape), dirs, up_axis, background, grad_bg)
+    rows, values = grid_backward(lib, table.shape[0], points, geometry, grad_sigma, grad_rgb,
                                   rgb, sigma_grad)
     return mse, rows, values, grad_env

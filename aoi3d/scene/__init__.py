@@ -17,11 +17,8 @@ from aoi3d.scene.dataset import (
     DatasetNotFound,
     Progress,
     SceneDataset,
-    ensure_dataset,
     generate_command,
-    generate_dataset,
     load_dataset,
-    write_dataset,
 )
 from aoi3d.scene.dnerf import DNeRFDataset, export_dnerf, load_dnerf
 from aoi3d.scene.dynerf import DyNeRFDataset, export_dynerf, load_dynerf
@@ -34,6 +31,7 @@ from aoi3d.scene.layouts import (
 )
 from aoi3d.scene.rig import HELDOUT_ID, make_rig
 from aoi3d.scene.turbine import SCENE_VERSION, SceneConfig, TurbineScene, to_uint8
+from aoi3d.scene.write import ensure_dataset, generate_dataset, write_dataset
 
 __all__ = [
     "EXPORT_FORMATS",

@@ -34,7 +34,6 @@ Mapping to the project's fixed rig (:class:`aoi3d.scene.SceneDataset`):
 from __future__ import annotations
 
 import json
-import logging
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -47,6 +46,13 @@ from PIL import Image
 from aoi3d.scene.camera import Camera
 from aoi3d.scene.dataset import PNG_END, DatasetError, DatasetNotFound, SceneDataset
 from aoi3d.scene.media import PngCache, encode_png, replace_dir, resize_area, target_size
+from aoi3d.scene.transforms import (
+    group_frames,
+    group_intrinsics,
+    ordered_frames,
+    parse_frames,
+    read_doc,
+)
 
 __all__ = [
     "DEFAULT_FPS",
@@ -59,8 +65,6 @@ __all__ = [
     "load_dnerf",
 ]
 
-log = logging.getLogger(__name__)
-
 LAYOUT = "dnerf"
 SPLIT_JSONS = {
     "train": "transforms_train.json",
@@ -72,7 +76,6 @@ DEFAULT_FPS = 30
 """Frame rate assumed when the files give none (D-NeRF's don't)."""
 FOCUS_HALF_SIDE = 0.375
 """Half side of :func:`focus_aabb`'s cube, as a fraction of the median camera distance."""
-_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
 
 Progress = Callable[[int, int], None]
 
@@ -157,136 +160,6 @@ class DNeRFDataset(SceneDataset):
 # =============================================================================================
 # Reading
 # =============================================================================================
-@dataclass
-class _Frame:
-    split: str
-    file_relpath: str
-    time: float | None
-    c2w: np.ndarray
-    intrinsics: dict[str, Any]
-    camera_id: int | None
-    frame_index: int | None
-
-
-@dataclass
-class _Group:
-    key: Any
-    split: str
-    frames: list[_Frame] = field(default_factory=list)
-
-
-def _read_doc(path: Path) -> dict[str, Any]:
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not valid JSON: {exc}") from exc
-    if not isinstance(doc, dict) or not isinstance(doc.get("frames"), list):
-        raise ValueError(f"{path} has no 'frames' list; not a transforms file")
-    if not doc["frames"]:
-        raise ValueError(f"{path} has no frames")
-    return doc
-
-
-_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
-                   *_DISTORTION_KEYS)
-
-
-def _resolve_file(file_path: str) -> str:
-    rel = file_path[2:] if file_path.startswith("./") else file_path
-    return rel if Path(rel).suffix else rel + ".png"
-
-
-def _parse_frames(doc: dict[str, Any], split: str, source: Path) -> list[_Frame]:
-    out = []
-    for i, entry in enumerate(doc["frames"]):
-        what = f"{source.name} frame {i}"
-        try:
-            c2w = np.asarray(entry["transform_matrix"], dtype=np.float64)
-            file_path = str(entry["file_path"])
-        except KeyError as exc:
-            raise ValueError(f"{what} lacks {exc.args[0]!r}") from exc
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{what}: transform_matrix is not a 4×4 matrix ({exc})") from exc
-        if c2w.shape != (4, 4):
-            raise ValueError(f"{what}: transform_matrix must be 4×4, got shape {c2w.shape}")
-        time = entry.get("time")
-        try:
-            time = None if time is None else float(time)
-        except (TypeError, ValueError) as exc:
-            raise ValueError(f"{what}: time must be a number, got {time!r}") from exc
-        if time is not None and not -1e-9 <= time <= 1 + 1e-9:
-            raise ValueError(f"{what}: time must be in [0, 1], got {time}")
-        intrinsics = {k: entry.get(k, doc.get(k)) for k in _INTRINSIC_KEYS}
-        out.append(_Frame(
-            split=split, file_relpath=_resolve_file(file_path),
-            time=time, c2w=c2w, intrinsics=intrinsics,
-            camera_id=None if entry.get("camera_id") is None else int(entry["camera_id"]),
-            frame_index=None if entry.get("frame_index") is None else int(entry["frame_index"]),
-        ))
-    return out
-
-
-def _pose_key(frame: _Frame) -> tuple[Any, ...]:
-    intr = tuple(frame.intrinsics[k] for k in _INTRINSIC_KEYS)
-    return (tuple(np.round(frame.c2w, 9).ravel().tolist()), intr)
-
-
-def _group(frames: list[_Frame], by_camera_id: bool) -> list[_Group]:
-    """Groups in order of first appearance; a key already seen in an earlier split is
-    dropped for later splits."""
-    groups: dict[Any, _Group] = {}
-    for frame in frames:
-        key = frame.camera_id if by_camera_id else _pose_key(frame)
-        group = groups.get(key)
-        if group is None:
-            groups[key] = _Group(key=key, split=frame.split, frames=[frame])
-        elif group.split == frame.split:
-            group.frames.append(frame)
-        else:
-            log.debug("camera %r of split %s already read from %s", key, frame.split,
-                      group.split)
-    return list(groups.values())
-
-
-def _intrinsics(group: _Group, root: Path) -> tuple[float, float, float, float, int, int]:
-    intr = group.frames[0].intrinsics
-    what = f"camera of {group.frames[0].file_relpath}"
-    distortion = {k: intr[k] for k in _DISTORTION_KEYS if intr.get(k)}
-    if distortion:
-        raise ValueError(f"{what}: lens distortion {distortion} is not supported (pinhole "
-                         "cameras only); undistort the images first")
-    w, h = intr.get("w"), intr.get("h")
-    if w is None or h is None:
-        path = root / group.frames[0].file_relpath
-        if not path.is_file():
-            raise FileNotFoundError(f"{what}: image {path} is missing (needed for its size)")
-        with Image.open(path) as img:
-            w, h = img.size
-    if intr.get("fl_x") is not None:
-        fx = float(intr["fl_x"])
-        fy = float(intr["fl_y"]) if intr.get("fl_y") is not None else fx
-    elif intr.get("camera_angle_x") is not None:
-        fx = 0.5 * float(w) / np.tan(0.5 * float(intr["camera_angle_x"]))
-        angle_y = intr.get("camera_angle_y")
-        fy = 0.5 * float(h) / np.tan(0.5 * float(angle_y)) if angle_y is not None else fx
-    else:
-        raise ValueError(f"{what}: no focal length (need fl_x or camera_angle_x)")
-    cx = float(intr["cx"]) if intr.get("cx") is not None else w / 2.0
-    cy = float(intr["cy"]) if intr.get("cy") is not None else h / 2.0
-    return fx, fy, cx, cy, int(w), int(h)
-
-
-def _ordered(group: _Group) -> list[_Frame]:
-    frames = group.frames
-    if all(f.frame_index is not None for f in frames):
-        indices = [f.frame_index for f in frames]
-        if len(set(indices)) != len(indices):
-            raise ValueError(f"camera {group.key!r}: repeated frame_index values")
-        return sorted(frames, key=lambda f: f.frame_index)
-    if all(f.time is not None for f in frames):
-        return sorted(frames, key=lambda f: f.time)
-    return frames
-
 
 def focus_aabb(cameras: Sequence[Camera], half_side_ratio: float = FOCUS_HALF_SIDE) -> (
     np.ndarray
@@ -349,10 +222,10 @@ def load_dnerf(
                                 f"{SINGLE_JSON} (D-NeRF / nerfstudio transforms)")
     if "train" not in present and "all" not in present:
         raise FileNotFoundError(f"{root}: {SPLIT_JSONS['train']} is missing")
-    docs = {split: _read_doc(p) for split, p in present.items()}
-    frames = [f for split, doc in docs.items() for f in _parse_frames(doc, split, present[split])]
+    docs = {split: read_doc(p) for split, p in present.items()}
+    frames = [f for split, doc in docs.items() for f in parse_frames(doc, split, present[split])]
     by_camera_id = all(f.camera_id is not None for f in frames)
-    groups = _group(frames, by_camera_id)
+    groups = group_frames(frames, by_camera_id)
 
     # The held-out camera and the order of the rest.
     holdout_pool = [g for g in groups if g.split == "test"] or groups
@@ -386,8 +259,8 @@ def load_dnerf(
 
     cameras, rels, times, sizes = [], [], [], []
     for group in ordered:
-        seq = _ordered(group)
-        fx, fy, cx, cy, w, h = _intrinsics(group, root)
+        seq = ordered_frames(group)
+        fx, fy, cx, cy, w, h = group_intrinsics(group, root)
         w_out, h_out = target_size(w, h, downscale=downscale, target_width=width)
         sx, sy = w_out / w, h_out / h
         for f in seq[1:]:

@@ -36,7 +36,6 @@ from __future__ import annotations
 import logging
 import math
 import re
-import subprocess
 import threading
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -47,7 +46,15 @@ import numpy as np
 
 from aoi3d.scene.camera import Camera
 from aoi3d.scene.dataset import DatasetError, DatasetNotFound, SceneDataset
+from aoi3d.scene.llff import (
+    LLFF_TO_OPENGL,
+    aabb_depth_bounds,
+    frusta_aabb,
+    llff_to_opengl,
+    opengl_to_llff,
+)
 from aoi3d.scene.media import PngCache, encode_png, replace_dir, target_size
+from aoi3d.scene.video import DEFAULT_CRF, VideoInfo, decode_video, encode_video, probe_video
 
 __all__ = [
     "DEFAULT_CRF",
@@ -79,201 +86,8 @@ DEFAULT_MAX_WIDTH = 480
 wider (a full-size DyNeRF video is 2704×2028: 4.9 GB per camera decoded at full size)."""
 DEFAULT_FPS = 30
 """Frame rate assumed when a video reports none (DyNeRF's are 30 fps)."""
-DEFAULT_CRF = 15
-"""x264 constant rate factor of :func:`export_dynerf` (0 lossless … 51 worst; 15 ≈ visually
-lossless)."""
-ROTATION_TOL = 1e-3
-
-LLFF_TO_OPENGL = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
-"""``P`` with ``R_opengl = R_llff · P``: LLFF [down, right, back] → OpenGL [right, up, back]."""
 
 Progress = Callable[[int, int], None]
-
-
-def _ffmpeg_exe() -> str:
-    try:
-        import imageio_ffmpeg
-    except ImportError as exc:  # pragma: no cover - depends on the environment
-        raise ImportError(
-            "reading or writing DyNeRF videos needs imageio-ffmpeg: pip install imageio-ffmpeg"
-        ) from exc
-    return imageio_ffmpeg.get_ffmpeg_exe()
-
-
-# =============================================================================================
-# Poses
-# =============================================================================================
-def _nearest_rotation(rot: np.ndarray, what: str) -> np.ndarray:
-    u, _, vt = np.linalg.svd(rot)
-    nearest = u @ vt
-    if np.linalg.det(nearest) < 0:
-        raise ValueError(f"{what}: rotation has determinant −1 (a reflection, not a rotation)")
-    err = float(np.max(np.abs(nearest - rot)))
-    if err > ROTATION_TOL:
-        raise ValueError(f"{what}: not a rotation (max deviation {err:.3g} > {ROTATION_TOL})")
-    return nearest
-
-
-def llff_to_opengl(pose: np.ndarray, what: str = "pose") -> np.ndarray:
-    """LLFF 3×4 (or 3×5) ``[R | t (| hwf)]`` with axes [down, right, back] → OpenGL 4×4 c2w."""
-    pose = np.asarray(pose, dtype=np.float64)
-    if pose.shape not in ((3, 4), (3, 5)):
-        raise ValueError(f"{what}: an LLFF pose is 3×4 or 3×5, got shape {pose.shape}")
-    if not np.all(np.isfinite(pose[:, :4])):
-        raise ValueError(f"{what}: pose has non-finite entries")
-    c2w = np.eye(4)
-    c2w[:3, :3] = _nearest_rotation(pose[:, :3], what) @ LLFF_TO_OPENGL
-    c2w[:3, 3] = pose[:, 3]
-    return c2w
-
-
-def opengl_to_llff(c2w: np.ndarray) -> np.ndarray:
-    """OpenGL 4×4 c2w [right, up, back] → LLFF 3×4 ``[R | t]`` with axes [down, right, back]."""
-    c2w = np.asarray(c2w, dtype=np.float64)
-    return np.concatenate([c2w[:3, :3] @ LLFF_TO_OPENGL.T, c2w[:3, 3:4]], axis=1)
-
-
-def _frustum_corners(camera: Camera, near: float, far: float) -> np.ndarray:
-    """The 8 corners (8, 3) of the camera's frustum between depths ``near`` and ``far``."""
-    u = np.array([0.0, camera.width, 0.0, camera.width])
-    v = np.array([0.0, 0.0, camera.height, camera.height])
-    cam = np.stack([(u - camera.cx) / camera.fx, -(v - camera.cy) / camera.fy, -np.ones(4)], 1)
-    world = cam @ camera.c2w[:3, :3].T  # depth 1 along the viewing axis
-    depths = np.array([near, far])[:, None, None]
-    return (camera.c2w[:3, 3] + depths * world[None]).reshape(-1, 3)
-
-
-def frusta_aabb(cameras: Sequence[Camera], near: Sequence[float], far: Sequence[float]) -> (
-    np.ndarray
-):
-    """The smallest axis-aligned box (2, 3) holding each camera's frustum between its near and
-    far depth (depth = distance along the viewing axis, as LLFF bounds are): every point a
-    camera sees within its bounds lies inside. Generous for forward-facing rigs (it includes
-    the far plane's footprint), which is what a box-bounded field with a background needs."""
-    if not (len(cameras) == len(near) == len(far)) or not cameras:
-        raise ValueError("frusta_aabb needs one near and one far bound per camera (≥ 1 camera)")
-    corners = np.concatenate(
-        [_frustum_corners(c, n, f) for c, n, f in zip(cameras, near, far, strict=True)]
-    )
-    return np.stack([corners.min(axis=0), corners.max(axis=0)])
-
-
-def aabb_depth_bounds(camera: Camera, aabb: np.ndarray) -> tuple[float, float]:
-    """LLFF ``(near, far)`` of a box seen from ``camera``: the depth range of its 8 corners,
-    with near at least 1e-3 × far (a camera inside the box)."""
-    lo, hi = np.asarray(aabb, dtype=np.float64)
-    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
-                        for z in (lo[2], hi[2])])
-    depth = (corners - camera.c2w[:3, 3]) @ -camera.c2w[:3, 2]
-    far = float(depth.max())
-    if far <= 0:
-        raise ValueError("the box is behind the camera; pass explicit bounds")
-    return max(float(depth.min()), 1e-3 * far), far
-
-
-# =============================================================================================
-# Video
-# =============================================================================================
-@dataclass(frozen=True)
-class VideoInfo:
-    """What :func:`probe_video` learns without decoding: size, frame count, frame rate."""
-
-    width: int
-    height: int
-    n_frames: int
-    fps: float
-
-
-_STREAM_RE = re.compile(r"Stream #\d+:\d+.*?: Video: (?P<rest>.*)")
-_SIZE_RE = re.compile(r" (\d+)x(\d+)[, \[]")
-_FPS_RE = re.compile(r" (\d+(?:\.\d+)?) fps")
-_COUNT_RE = re.compile(r"frame=\s*(\d+)")
-
-
-def _ffmpeg_error(stderr: bytes) -> str:
-    lines = [ln.strip() for ln in stderr.decode(errors="replace").splitlines() if ln.strip()]
-    return lines[-1] if lines else "no message"
-
-
-def probe_video(path: str | Path) -> VideoInfo:
-    """Size, exact frame count and frame rate of a video (packets copied, not decoded: fast)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"video {path} is missing")
-    proc = subprocess.run(
-        [_ffmpeg_exe(), "-hide_banner", "-nostdin", "-i", str(path), "-map", "0:v:0",
-         "-c", "copy", "-f", "null", "-"],
-        capture_output=True, check=False,
-    )
-    text = proc.stderr.decode(errors="replace")
-    stream = _STREAM_RE.search(text)
-    if proc.returncode != 0 or stream is None:
-        raise ValueError(f"{path.name} is not a readable video ({_ffmpeg_error(proc.stderr)})")
-    size, fps = _SIZE_RE.search(stream["rest"]), _FPS_RE.search(stream["rest"])
-    counts = _COUNT_RE.findall(text)
-    if size is None or not counts:
-        raise ValueError(f"{path.name}: ffmpeg reported no frame size or frame count")
-    return VideoInfo(width=int(size[1]), height=int(size[2]), n_frames=int(counts[-1]),
-                     fps=float(fps[1]) if fps else 0.0)
-
-
-def decode_video(path: str | Path, size: tuple[int, int] | None = None,
-                 n_frames: int | None = None) -> np.ndarray:
-    """Decode a video to uint8 RGB (T, H, W, 3), scaled by ffmpeg's area filter to
-    ``size = (W, H)`` (None: as stored), at most ``n_frames`` frames. The array is read-only.
-
-    One ffmpeg process writes raw RGB to a pipe that is read whole (the approach of
-    ``imageio_ffmpeg.read_frames``, minus its per-frame copies and its resize warning).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"video {path} is missing")
-    if size is None:
-        info = probe_video(path)
-        size = (info.width, info.height)
-    width, height = size
-    cmd = [_ffmpeg_exe(), "-v", "error", "-nostdin", "-i", str(path), "-map", "0:v:0",
-           "-vf", f"scale={width}:{height}:flags=area", "-pix_fmt", "rgb24", "-f", "rawvideo"]
-    if n_frames is not None:
-        cmd += ["-frames:v", str(n_frames)]
-    proc = subprocess.run([*cmd, "-"], capture_output=True, check=False)
-    if proc.returncode != 0:
-        raise ValueError(f"{path.name} could not be decoded ({_ffmpeg_error(proc.stderr)})")
-    frame_bytes = width * height * 3
-    if len(proc.stdout) % frame_bytes:
-        raise ValueError(f"{path.name}: ffmpeg returned a partial frame")
-    return np.frombuffer(proc.stdout, dtype=np.uint8).reshape(-1, height, width, 3)
-
-
-def encode_video(path: str | Path, frames: Iterable[np.ndarray], size: tuple[int, int],
-                 fps: float, crf: int = DEFAULT_CRF) -> int:
-    """Encode uint8 RGB frames of ``size = (W, H)`` as H.264 (yuv420p, like DyNeRF's videos)
-    with imageio-ffmpeg; returns the number of frames written. W and H must be even."""
-    width, height = size
-    if width % 2 or height % 2:
-        raise ValueError(f"H.264 yuv420p needs an even width and height, got {width}×{height}")
-    if not 0 <= crf <= 51:
-        raise ValueError(f"crf must be in [0, 51], got {crf}")
-    _ffmpeg_exe()
-    import imageio_ffmpeg
-
-    writer = imageio_ffmpeg.write_frames(
-        str(path), (width, height), fps=fps, codec="libx264", quality=None, macro_block_size=1,
-        pix_fmt_out="yuv420p", output_params=["-crf", str(crf), "-preset", "medium"],
-        ffmpeg_log_level="error",
-    )
-    writer.send(None)
-    count = 0
-    try:
-        for frame in frames:
-            if frame.shape != (height, width, 3) or frame.dtype != np.uint8:
-                raise ValueError(f"frame {count}: expected uint8 {(height, width, 3)}, got "
-                                 f"{frame.dtype} {frame.shape}")
-            writer.send(np.ascontiguousarray(frame))
-            count += 1
-    finally:
-        writer.close()
-    return count
 
 
 # =============================================================================================
