@@ -17,7 +17,7 @@ import logging
 import os
 from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from typing import Annotated, Literal, Protocol
+from typing import Annotated, Literal, Protocol, TypeVar
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Path, Request
 from fastapi.responses import JSONResponse, Response
@@ -197,9 +197,12 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
                 access_log=False)
 
 
-def run_service(name: str, settings_cls: Callable[[], ServiceSettings],
+_S = TypeVar("_S", bound=ServiceSettings)
+
+
+def run_service(name: str, settings_cls: Callable[[], _S],
                 create_app: Callable[..., FastAPI],
-                prepare: Callable[[ServiceSettings], None] | None = None, *,
+                prepare: Callable[[_S], None] | None = None, *,
                 dataset: Literal["frames", "metadata"] | None = None) -> None:
     """``python -m services.<name>``: settings from the environment, logging, then serve.
 

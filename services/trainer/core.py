@@ -115,10 +115,10 @@ class TrainerCore:
         self._skew_ms = skew_ms
         self.heldout = heldout
         self._aabb = [float(v) for v in np.asarray(aabb, dtype=np.float64).reshape(-1)]
-        self._frames = FrameBuffer(frames_per_camera)
+        self._frames: FrameBuffer[HeldFrame] = FrameBuffer(frames_per_camera)
         self.pool = dispatcher
         self.decision: DecisionInForce | None = None
-        self._decisions: dict[tuple[int, int], pb.Decision] = {}
+        self._decisions: dict[tuple[str, int, int], pb.Decision] = {}
         """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
         self._highest: dict[int, int] = {}
         """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
