@@ -241,11 +241,13 @@ class TrainerCore:
                 job.n_missing += 1
             else:
                 job.frames.add().MergeFromString(held.payload)
-        return pb.WorkReply(job=job).SerializeToString()
+        reply: bytes = pb.WorkReply(job=job).SerializeToString()
+        return reply
 
     @staticmethod
     def no_job(reason: str) -> bytes:
-        return pb.WorkReply(reason=reason).SerializeToString()
+        reply: bytes = pb.WorkReply(reason=reason).SerializeToString()
+        return reply
 
     # ------------------------------------------------------------------ renders
     def on_render(self, payload: bytes, now_s: float, now_ms: float) -> LatestRender:
