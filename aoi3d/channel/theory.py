@@ -139,7 +139,8 @@ def quantile_from_pmf(pmf: np.ndarray, q: float) -> float:
     if not 0.0 < q <= 1.0:
         raise ValueError(f"quantile level must be in (0, 1], got {q}")
     cdf = np.cumsum(pmf)
-    return float(min(np.searchsorted(cdf, q - _Q_TOL, side="left"), len(pmf) - 1))
+    v = int(np.searchsorted(cdf, q - _Q_TOL, side="left"))
+    return float(min(v, len(pmf) - 1))
 
 
 def channel_theory(
