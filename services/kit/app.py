@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager
 from typing import Annotated, Literal, Protocol, TypeVar
 
@@ -78,10 +78,10 @@ class SiteLabels:
     def __init__(self, registries: dict[str, CollectorRegistry]) -> None:
         self._registries = registries
 
-    def describe(self):
+    def describe(self) -> list[Metric]:
         return []
 
-    def collect(self):
+    def collect(self) -> Iterator[Metric]:
         merged: dict[str, Metric] = {}
         for site, registry in self._registries.items():
             for family in registry.collect():

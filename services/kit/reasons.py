@@ -34,7 +34,8 @@ class _Reason(StrEnum):
     @property
     def wire(self) -> pb.EndReason:
         """The reason's number on the wire (``Outcome.reason``)."""
-        return pb.EndReason.Value(_PREFIX + self.name)
+        number: pb.EndReason = pb.EndReason.Value(_PREFIX + self.name)
+        return number
 
 
 if TYPE_CHECKING:
