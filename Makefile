@@ -40,9 +40,10 @@ test-fast: install  ## everything but the integration tests
 proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 	$(PY) -m grpc_tools.protoc -Iproto --python_out=$(PROTO_OUT) --pyi_out=$(PROTO_OUT) proto/aoi3d.proto
 
-lint: install  ## ruff and the import contracts of pyproject.toml (lint-imports; make test runs them too)
+lint: install  ## ruff, the import contracts (lint-imports; make test runs them too) and the type checker (mypy), as pyproject.toml configures them
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy
 
 bench: install bench-ray  ## benchmarks (results under bench/results/; about 110 minutes)
 	$(PY) -m bench.channel

@@ -323,9 +323,9 @@ def score(
     terms: tuple[str, ...] = ("psnr", "ssim")
     lpips_value: float | None = None
     if lpips_fn is not None:
-        p = _as_unit_float(pred, "pred").astype(np.float32)
-        t = _as_unit_float(truth, "truth").astype(np.float32)
-        lpips_value = float(lpips_fn(p, t))
+        p32 = _as_unit_float(pred, "pred").astype(np.float32)
+        t32 = _as_unit_float(truth, "truth").astype(np.float32)
+        lpips_value = float(lpips_fn(p32, t32))
         if not math.isfinite(lpips_value):
             raise ValueError(f"lpips_fn returned a non-finite value: {lpips_value}")
         reward += w.lpips * lpips_value

@@ -191,6 +191,7 @@ class Supervisor:
                 child.next_start = 0.0
                 child.start(self.cfg.echo)
                 self._write_state()
+                assert child.proc is not None  # start() set it
                 log.warning("service %s restarted (pid %d)", child.name, child.proc.pid)
 
     def shutdown(self) -> None:
@@ -227,7 +228,8 @@ class Supervisor:
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while time.monotonic() < deadline and not self.stopping.is_set():
             if not child.alive():
-                self._fail(child, f"the Zenoh router exited with code {child.proc.returncode} "
+                code = child.proc.returncode if child.proc else None
+                self._fail(child, f"the Zenoh router exited with code {code} "
                            f"before it accepted connections on port {port}")
                 return False
             with contextlib.suppress(OSError), socket.create_connection(("127.0.0.1", port),
@@ -244,7 +246,7 @@ class Supervisor:
         reconstruction worker: whether the trainer's ``GET /workers`` lists its pid."""
         import urllib.request  # here: `aoi3d --help` imports this module
 
-        if not child.alive():
+        if child.proc is None or not child.alive():  # alive() is False without a process
             return False
         worker = child.name not in DEFAULT_PORTS
         port = self.cfg.port("trainer" if worker else child.name)
@@ -269,6 +271,7 @@ class Supervisor:
         while pending and time.monotonic() < deadline and not self.stopping.is_set():
             for name, child in sorted(pending.items()):
                 if self._healthy(child):
+                    assert child.proc is not None  # _healthy() is False without a process
                     del pending[name]
                     log.info("%s is up (pid %d)", name, child.proc.pid)
             self._restart_dead()

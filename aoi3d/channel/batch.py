@@ -56,7 +56,8 @@ class ChannelRun:
     @property
     def dropped(self) -> np.ndarray:
         """(N,) frames dropped because the link was busy."""
-        return self.offered - self.accepted
+        dropped: np.ndarray = self.offered - self.accepted
+        return dropped
 
     @property
     def delivered(self) -> np.ndarray:

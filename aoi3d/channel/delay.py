@@ -17,7 +17,7 @@ from __future__ import annotations
 import math
 from abc import ABC, abstractmethod
 from dataclasses import dataclass
-from typing import ClassVar, overload
+from typing import TYPE_CHECKING, ClassVar, overload
 
 import numpy as np
 from scipy import special
@@ -60,7 +60,7 @@ def delay_slots(y_ms: float | np.ndarray) -> int | np.ndarray:
     """Slots a frame spends on the link: ``min(MAX_DELAY_MS, max(1, ceil(Y)))`` (int, or an
     int64 array)."""
     if np.ndim(y_ms) == 0:
-        y = float(y_ms)  # type: ignore[arg-type]
+        y = float(y_ms)
         if not math.isfinite(y):
             raise ValueError(f"delay must be finite, got {y}")
         return int(min(MAX_DELAY_MS, max(1, math.ceil(y))))
@@ -85,8 +85,13 @@ class DelayDistribution(ABC):
         """Canonical spec, e.g. ``exp:60``; ``parse_delay(d.spec) == d``."""
         return ":".join([self.kind, *(format_number(p) for p in self.params)])
 
-    #: E[Y] in ms (a field or a property of each distribution).
-    mean_ms: float
+    if TYPE_CHECKING:
+        @property
+        def mean_ms(self) -> float:
+            """E[Y] in ms (a field or a property of each distribution)."""
+    else:
+        #: E[Y] in ms (a field or a property of each distribution).
+        mean_ms: float
 
     @abstractmethod
     def sample(self, rng: np.random.Generator, size: int = 1) -> np.ndarray:

@@ -96,13 +96,15 @@ def slot_delay_pmf(delay: DelayDistribution | str, tail: float = DEFAULT_TAIL) -
     pmf[2:] = np.diff(cdf[1:])
     pmf = np.clip(pmf, 0.0, None)
     pmf[-1] += max(0.0, 1.0 - pmf.sum())
-    return pmf / pmf.sum()
+    normed: np.ndarray = pmf / pmf.sum()
+    return normed
 
 
 def _convolve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     if len(a) * len(b) <= 20_000_000:
         return np.convolve(a, b)
-    return np.clip(signal.fftconvolve(a, b), 0.0, None)
+    conv: np.ndarray = np.clip(signal.fftconvolve(a, b), 0.0, None)
+    return conv
 
 
 def aoi_pmf(
@@ -118,7 +120,8 @@ def aoi_pmf(
     b_pmf = _convolve(kc_pmf, ys_pmf)  # law of B = K·C + Ys'
     cdf_a = np.cumsum(np.pad(ys_pmf, (0, len(b_pmf) - len(ys_pmf))))
     cdf_b = np.cumsum(b_pmf)
-    return np.clip(cdf_a - cdf_b, 0.0, None) / (period * mean_k)
+    pmf: np.ndarray = np.clip(cdf_a - cdf_b, 0.0, None) / (period * mean_k)
+    return pmf
 
 
 def aoi_cdf(
@@ -139,7 +142,8 @@ def quantile_from_pmf(pmf: np.ndarray, q: float) -> float:
     if not 0.0 < q <= 1.0:
         raise ValueError(f"quantile level must be in (0, 1], got {q}")
     cdf = np.cumsum(pmf)
-    return float(min(np.searchsorted(cdf, q - _Q_TOL, side="left"), len(pmf) - 1))
+    v = int(np.searchsorted(cdf, q - _Q_TOL, side="left"))
+    return float(min(v, len(pmf) - 1))
 
 
 def channel_theory(

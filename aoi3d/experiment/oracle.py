@@ -340,12 +340,12 @@ def search_oracle(cfg: EpisodeConfig, dataset: SceneDataset, oracle: OracleSpec 
                 if not s.active:
                     continue
                 known = ~np.isnan(s.aoi)
-                base = s.chosen if s.chosen is not None else np.zeros(len(s.aoi), dtype=bool)
-                adds = [base | np.eye(len(s.aoi), dtype=bool)[c]
-                        for c in np.flatnonzero(known & ~base)]
+                selected = s.chosen if s.chosen is not None else np.zeros(len(s.aoi), dtype=bool)
+                adds = [selected | np.eye(len(s.aoi), dtype=bool)[c]
+                        for c in np.flatnonzero(known & ~selected)]
                 if not adds:
                     if s.chosen is None:  # no camera has a frame yet
-                        adds = [base]
+                        adds = [selected]
                     else:
                         s.active = False
                         continue

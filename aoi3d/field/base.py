@@ -186,6 +186,7 @@ class Field(nn.Module, ABC):
     """
 
     cfg: FieldConfig
+    aabb: torch.Tensor  # a buffer: the box (2, 3)
     env: nn.Parameter
     view_dependent: bool = True
     """Whether :meth:`query`'s colour depends on ``dirs``; False lets the uniform renderer

@@ -175,6 +175,14 @@ class HashEncoding(nn.Module):
     Work is level-major, (…, L, P): every elementwise op runs over one long contiguous axis.
     """
 
+    # the non-persistent buffers (see __init__)
+    origin: torch.Tensor
+    scale: torch.Tensor
+    cells: torch.Tensor
+    last_base: torch.Tensor
+    multipliers: torch.Tensor
+    offsets: torch.Tensor
+
     def __init__(
         self,
         aabb: np.ndarray,

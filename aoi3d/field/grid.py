@@ -119,6 +119,7 @@ class GridConfig(CoarseToFineConfig):
 class DenseGridField(CoarseToFineField):
     """Density + RGB on a dense grid inside the box, lat-long background outside."""
 
+    cfg: GridConfig
     view_dependent = False  # colour per vertex
 
     def __init__(self, cfg: GridConfig, aabb: np.ndarray) -> None:
@@ -198,7 +199,7 @@ class DenseGridField(CoarseToFineField):
         rows = rows.nonzero().reshape(-1)
         self.grid[rows, 0] = self._raw_density_init
         self.grid[rows, 1:] = 0.0
-        found = [(self.grid, rows)]
+        found: list[tuple[torch.Tensor, torch.Tensor]] = [(self.grid, rows)]
         if self.age_grid is not None:
             self.age_grid[rows] = 0.0
             found.append((self.age_grid, rows))

@@ -75,6 +75,8 @@ def positional_encoding(x: torch.Tensor, frequencies: int) -> torch.Tensor:
 class NerfMlpField(Field):
     """Positional encoding + MLP inside the box, lat-long background outside."""
 
+    cfg: NerfMlpConfig
+
     def __init__(self, cfg: NerfMlpConfig, aabb: np.ndarray) -> None:
         super().__init__()
         self._setup(cfg, aabb)

@@ -255,12 +255,10 @@ def _outer(
     """Σ of ``env_weights`` over the envelope bins that overlap each bin [starts, ends]."""
     n_env = env_weights.shape[-1]
     cum = torch.cat([torch.zeros_like(env_weights[:, :1]), torch.cumsum(env_weights, -1)], -1)
-    lo = (torch.searchsorted(env_starts.contiguous(), starts.contiguous(), right=True) - 1).clamp(
-        0, n_env - 1
-    )
-    hi = torch.searchsorted(env_ends.contiguous(), ends.contiguous(), right=True).clamp(
-        0, n_env - 1
-    )
+    lo = torch.searchsorted(env_starts.contiguous(), starts.contiguous(), right=True) - 1
+    lo = lo.clamp(0, n_env - 1)
+    hi = torch.searchsorted(env_ends.contiguous(), ends.contiguous(), right=True)
+    hi = hi.clamp(0, n_env - 1)
     return cum[:, 1:].gather(-1, hi) - cum[:, :-1].gather(-1, lo)
 
 
@@ -314,15 +312,8 @@ class _ProposalNetwork(nn.Module):
     ) -> None:
         super().__init__()
         self.encoding = HashEncoding(
-            aabb,
-            cfg.proposal_levels,
-            cfg.proposal_features,
-            cfg.proposal_log2_table_size,
-            cfg.proposal_base_resolution,
-            max_resolution,
-            layout="aligned",
-            generator=gen,
-        )
+            aabb, cfg.proposal_levels, cfg.proposal_features, cfg.proposal_log2_table_size,
+            cfg.proposal_base_resolution, max_resolution, layout="aligned", generator=gen)
         self.mlp = _mlp(self.encoding.out_features, cfg.proposal_hidden_dim, 1, 1)
         self.log_init_density = math.log(cfg.init_density)
 
@@ -336,20 +327,16 @@ class NerfactoField(Field):
     """Hash-grid field with proposal sampling, per-image appearance and a direction-only
     background; renders its own rays (see the module)."""
 
+    cfg: NerfactoConfig
+    appearance_used: torch.Tensor  # a buffer: the appearance rows trained so far
+
     def __init__(self, cfg: NerfactoConfig, aabb: np.ndarray) -> None:
         super().__init__()
         box = self._setup(cfg, aabb)
         gen = torch.Generator().manual_seed(0)  # the module's init (torch's global RNG untouched)
         self.encoding = HashEncoding(
-            box,
-            cfg.levels,
-            cfg.features_per_level,
-            cfg.log2_table_size,
-            cfg.base_resolution,
-            cfg.max_resolution,
-            layout="aligned",
-            generator=gen,
-        )
+            box, cfg.levels, cfg.features_per_level, cfg.log2_table_size, cfg.base_resolution,
+            cfg.max_resolution, layout="aligned", generator=gen)
         self.density_mlp = _mlp(
             self.encoding.out_features, cfg.hidden_dim, 1 + cfg.geo_features, 1
         )
@@ -359,11 +346,10 @@ class NerfactoField(Field):
         )
         for mlp in (self.density_mlp, self.color_mlp):
             _init_mlp(mlp, gen)
-        self.proposals = nn.ModuleList(
-            _ProposalNetwork(cfg, box, r, gen) for r in cfg.proposal_max_resolutions
-        )
-        for p in self.proposals:
+        proposals = [_ProposalNetwork(cfg, box, r, gen) for r in cfg.proposal_max_resolutions]
+        for p in proposals:
             _init_mlp(p.mlp, gen)
+        self.proposals = nn.ModuleList(proposals)
         self.appearance = nn.Parameter(torch.zeros(cfg.appearance_slots, cfg.appearance_dim))
         self.register_buffer("appearance_used", torch.zeros(cfg.appearance_slots, dtype=torch.bool))
         self.log_init_density = math.log(cfg.init_density)

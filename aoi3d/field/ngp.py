@@ -122,6 +122,10 @@ class NgpConfig(FieldConfig):
 class NgpField(Field):
     """Hash encoding + tiny MLPs inside the box, occupancy grid, lat-long background."""
 
+    cfg: NgpConfig
+    cell_size: torch.Tensor  # buffers: the occupancy cells' edge (3,), their density estimate
+    density_estimate: torch.Tensor
+
     def __init__(self, cfg: NgpConfig, aabb: np.ndarray) -> None:
         super().__init__()
         box = self._setup(cfg, aabb)

@@ -160,7 +160,8 @@ def sample_uniform(
     n_steps = max(1, int(np.ceil(max_chord / step)))
     fused = native.sample_uniform(origins, dirs, t_near, t_far, step, n_steps, jitter)
     if fused is not None:
-        return RaySamples(*fused, n_rays)
+        points, deltas, ray_index = fused
+        return RaySamples(points, deltas, ray_index, n_rays)
     start = torch.arange(n_steps, device=origins.device, dtype=origins.dtype) * step  # (S,)
     remaining = chord[:, None] - start[None, :]  # (R, S)
     flat = (remaining > 0).view(-1).nonzero().squeeze(1)

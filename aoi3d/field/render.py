@@ -32,7 +32,11 @@ __all__ = ["RenderOptions", "RenderResult", "SampledField", "render_uniform", "s
 
 class SampledField(Protocol):
     """What :func:`render_uniform` asks of a field (every ``aoi3d.field.base.Field`` has
-    it): which sample points are occupied, density and colour at points, the background."""
+    it): which sample points are occupied, density and colour at points, the background,
+    and whether the colour depends on the direction."""
+
+    @property
+    def view_dependent(self) -> bool: ...
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor | None: ...
 

@@ -106,6 +106,8 @@ class TensorfConfig(CoarseToFineConfig):
 class TensorfField(CoarseToFineField):
     """Three plane/line pairs for density and appearance, a colour decoder, an alpha mask."""
 
+    cfg: TensorfConfig
+
     def __init__(self, cfg: TensorfConfig, aabb: np.ndarray) -> None:
         super().__init__()
         box = self._setup(cfg, aabb)

@@ -158,6 +158,9 @@ class LPIPS(nn.Module):
     to the inputs, so the module also works as a loss.
     """
 
+    shift: torch.Tensor  # buffers: the input normalisation (1, 3, 1, 1)
+    scale: torch.Tensor
+
     def __init__(self, net: str = "alex") -> None:
         super().__init__()
         self.spec = net_spec(net)

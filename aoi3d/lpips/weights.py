@@ -111,7 +111,7 @@ class _NdarrayType:
 _NDARRAY = _NdarrayType()
 
 
-def _reconstruct(subtype: object, shape: object, dtype: object) -> np.ndarray:
+def _reconstruct(subtype: object, shape: Any, dtype: object) -> np.ndarray:  # numpy checks shape
     """``numpy.core.multiarray._reconstruct`` for plain ndarrays of a numeric dtype only."""
     if subtype is not _NDARRAY:
         raise pickle.UnpicklingError("refused: _reconstruct of something other than ndarray")

@@ -231,7 +231,7 @@ class _AdaptiveMat(BasePolicy):
     _gamma: float
 
     @property
-    def gamma_ms(self) -> float:  # type: ignore[override]
+    def gamma_ms(self) -> float:
         return self._gamma
 
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
@@ -374,7 +374,9 @@ def _from_args(fields: list[str]) -> BasePolicy:
     if mode == "plugin":
         if len(rest) > 1:
             raise PolicySpecError("adaptive:plugin takes at most 1 parameter (halflife_ms)")
-        return PluginPolicy(*(number("halflife_ms", v, minimum=1.0) for v in rest))
+        if not rest:
+            return PluginPolicy()
+        return PluginPolicy(number("halflife_ms", rest[0], minimum=1.0))
     if mode == "bandit":
         if len(rest) > 4:
             raise PolicySpecError("adaptive:bandit takes at most 4 parameters "

@@ -54,7 +54,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
@@ -136,10 +136,20 @@ class BasePolicy:
     subclasses it and overrides what differs (``kind``, ``spec``, ``select`` and ``to_json``
     it must define)."""
 
-    wait_ms: int = 0
-    learns: bool = False
-    gamma_ms: float | None = None
-    wants_quality: bool = False
+    if TYPE_CHECKING:  # read-only, as in Policy: a kind may answer with a property instead
+        @property
+        def wait_ms(self) -> int: ...
+        @property
+        def learns(self) -> bool: ...
+        @property
+        def gamma_ms(self) -> float | None: ...
+        @property
+        def wants_quality(self) -> bool: ...
+    else:
+        wait_ms: int = 0
+        learns: bool = False
+        gamma_ms: float | None = None
+        wants_quality: bool = False
 
     def reset(self) -> None:
         """Stateless between episodes."""
@@ -281,7 +291,8 @@ def parse_policy(spec: str | Policy) -> Policy:
     kind, *fields = (part.strip() for part in text.split(":"))
     entry = _policy_entry(kind, spec)
     try:
-        return entry.from_args(fields)
+        policy: Policy = entry.from_args(fields)
+        return policy
     except PolicySpecError as err:
         raise PolicySpecError(err.problem, spec) from None
 
@@ -296,7 +307,8 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     entry = _policy_entry(kind, dict(data))
     params = {k: v for k, v in data.items() if k != "kind"}
     try:
-        return entry.from_json(params)
+        policy: Policy = entry.from_json(params)
+        return policy
     except PolicySpecError as err:
         raise PolicySpecError(err.problem, dict(data)) from None
 

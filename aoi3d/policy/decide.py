@@ -80,17 +80,20 @@ class Selection:
     @property
     def gen_ms(self) -> np.ndarray:
         """U_n(s) of the selected cameras: their frames' generation times."""
-        return self.newest_ms[self.mask]
+        gen: np.ndarray = self.newest_ms[self.mask]
+        return gen
 
     @property
     def selected_aoi_ms(self) -> np.ndarray:
         """Δ_n(s) of the selected cameras."""
-        return self.aoi_ms[self.mask]
+        aoi: np.ndarray = self.aoi_ms[self.mask]
+        return aoi
 
     @property
     def known(self) -> np.ndarray:
         """Cameras with some delivered frame (known AoI)."""
-        return ~np.isnan(self.aoi_ms)
+        known: np.ndarray = ~np.isnan(self.aoi_ms)
+        return known
 
     @property
     def mean_aoi_all_ms(self) -> float:

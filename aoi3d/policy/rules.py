@@ -32,7 +32,8 @@ class AllPolicy(BasePolicy):
         return "all"
 
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
-        return ~np.isnan(as_aoi_vector(aoi_ms))
+        known: np.ndarray = ~np.isnan(as_aoi_vector(aoi_ms))
+        return known
 
     def to_json(self) -> dict[str, Any]:
         return {"kind": self.kind}

@@ -88,7 +88,8 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     from the cached weights at the first step that scores; without them, no LPIPS).
     """
 
-    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 1}
+    # gymnasium documents metadata as a class attribute but types it as an instance one
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": ["rgb_array"], "render_fps": 1}  # type: ignore[misc]
 
     def __init__(
         self,
@@ -181,6 +182,7 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         images: list[np.ndarray] = []
         hit = self.cache.get(key) if self.cache is not None else None
         if hit is not None:
+            assert self.cache is not None  # a hit comes from the cache
             result = hit
             png = self.cache.render_png(key) if self.render_mode else None
             if png:

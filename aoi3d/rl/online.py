@@ -58,7 +58,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import numpy as np
 
@@ -67,6 +67,7 @@ from aoi3d.policy.ppo.batch import Batch, Episode
 
 if TYPE_CHECKING:  # torch is imported only once an agent is loaded
     from aoi3d.policy.ppo.learner import PPOLearner
+    from aoi3d.policy.ppo.policy import PPOPolicy
 
 __all__ = ["LearnConfig", "LearnerHook", "LearnerStatus", "OnlineLearner", "Outcome",
            "online_checkpoint_path"]
@@ -254,12 +255,13 @@ class OnlineLearner:
                              "online with learn: true)")
         from aoi3d.policy.ppo.learner import PPOLearner
 
-        path = online_checkpoint_path(policy.checkpoint, save_to)
+        ppo = cast("PPOPolicy", policy)  # the policy that learns (above)
+        path = online_checkpoint_path(ppo.checkpoint, save_to)
         try:
-            agent = PPOLearner.load(policy.checkpoint, device=policy.device)
+            agent = PPOLearner.load(ppo.checkpoint, device=ppo.device)
         except FileNotFoundError as err:
             raise ValueError(str(err)) from None
-        return cls(agent, source=policy.checkpoint, save_to=path, config=config, hook=hook,
+        return cls(agent, source=ppo.checkpoint, save_to=path, config=config, hook=hook,
                    wall=wall)
 
     # ------------------------------------------------------------------ the decision thread

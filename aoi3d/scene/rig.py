@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypedDict
 
 import numpy as np
 
@@ -53,11 +54,21 @@ FRAMING: dict[str, Framing] = {
     "site": Framing(arc_span_deg=170.0, radius=4.0, height=1.55, look_at=(0.0, 0.0, 1.3),
                     hfov_deg=55.0),
     "rotor": Framing(arc_span_deg=60.0, radius=4.0, height=1.6,
-                     look_at=tuple(float(x) for x in HUB_CENTRE), hfov_deg=30.0),
+                     look_at=(float(HUB_CENTRE[0]), float(HUB_CENTRE[1]), float(HUB_CENTRE[2])),
+                     hfov_deg=30.0),
 }
 
 
-def _intrinsics(cfg: SceneConfig, hfov_deg: float) -> dict[str, float | int]:
+class _Intrinsics(TypedDict):
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+def _intrinsics(cfg: SceneConfig, hfov_deg: float) -> _Intrinsics:
     focal = cfg.width / 2.0 / math.tan(math.radians(hfov_deg) / 2.0)
     return {
         "fx": focal,

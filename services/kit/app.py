@@ -15,9 +15,9 @@ from __future__ import annotations
 
 import logging
 import os
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator, Callable, Iterator
 from contextlib import asynccontextmanager
-from typing import Annotated, Literal, Protocol
+from typing import Annotated, Literal, Protocol, TypeVar
 
 from fastapi import APIRouter, Depends, FastAPI, HTTPException, Path, Request
 from fastapi.responses import JSONResponse, Response
@@ -78,10 +78,10 @@ class SiteLabels:
     def __init__(self, registries: dict[str, CollectorRegistry]) -> None:
         self._registries = registries
 
-    def describe(self):
+    def describe(self) -> list[Metric]:
         return []
 
-    def collect(self):
+    def collect(self) -> Iterator[Metric]:
         merged: dict[str, Metric] = {}
         for site, registry in self._registries.items():
             for family in registry.collect():
@@ -197,9 +197,12 @@ def serve(app: FastAPI, settings: ServiceSettings) -> None:
                 access_log=False)
 
 
-def run_service(name: str, settings_cls: Callable[[], ServiceSettings],
+_S = TypeVar("_S", bound=ServiceSettings)
+
+
+def run_service(name: str, settings_cls: Callable[[], _S],
                 create_app: Callable[..., FastAPI],
-                prepare: Callable[[ServiceSettings], None] | None = None, *,
+                prepare: Callable[[_S], None] | None = None, *,
                 dataset: Literal["frames", "metadata"] | None = None) -> None:
     """``python -m services.<name>``: settings from the environment, logging, then serve.
 

@@ -19,7 +19,7 @@ import logging
 import threading
 from collections import deque
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 log = logging.getLogger(__name__)
 
@@ -83,8 +83,8 @@ class ZenohBus:
 
         self._zenoh = zenoh
         self._session = zenoh.open(config)
-        self._publishers: dict[str, object] = {}
-        self._subscribers: list[object] = []
+        self._publishers: dict[str, Any] = {}  # zenoh's Publisher
+        self._subscribers: list[Any] = []  # zenoh's Subscriber
         self._lock = threading.Lock()
         self._closed = False
 

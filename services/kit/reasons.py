@@ -13,6 +13,7 @@ Standard library and the generated module only (a service's core may import it).
 from __future__ import annotations
 
 from enum import StrEnum
+from typing import TYPE_CHECKING
 
 from services.kit.pb import aoi3d_pb2 as pb
 
@@ -31,12 +32,30 @@ class _Reason(StrEnum):
     """A reason of proto/aoi3d.proto's EndReason; its value is its label."""
 
     @property
-    def wire(self) -> int:
+    def wire(self) -> pb.EndReason:
         """The reason's number on the wire (``Outcome.reason``)."""
-        return pb.EndReason.Value(_PREFIX + self.name)
+        number: pb.EndReason = pb.EndReason.Value(_PREFIX + self.name)
+        return number
 
 
-EndReason = _Reason("EndReason", _members(), module=__name__)
+if TYPE_CHECKING:
+    # What the type checker sees: the members the proto has today, spelled out for it alone
+    # (tests/unit/test_ledger.py checks this list against the built enum, so it cannot drift).
+    # At run time the enum is built from the generated module, below.
+    class EndReason(_Reason):
+        SUPERSEDED = "superseded"
+        WORKER_DIED = "worker_died"
+        TIMEOUT = "timeout"
+        NOT_DELIVERED = "not_delivered"
+        RENDER_FAILED = "render_failed"
+        REFUSED = "refused"
+        NOT_RECEIVED = "not_received"
+        TRUTH_MISSING = "truth_missing"
+        RENDER_REJECTED = "render_rejected"
+        UNSEEN = "unseen"
+        EXPIRED = "expired"
+else:
+    EndReason = _Reason("EndReason", _members(), module=__name__)
 
 
 def from_wire(number: int) -> EndReason:

@@ -273,7 +273,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     common = settings.common
     clock = clock or SimClock(epoch_s=common.epoch_s, time_scale=common.time_scale)
 
-    lpips = []  # one network for every site, loaded once
+    lpips: list[LpipsFn | None] = []  # one network for every site, loaded once
 
     def build_worker(the_bus: Bus, registry, site: str) -> MetricsWorker:
         if not lpips:

@@ -102,7 +102,7 @@ class LedgerKeeper:
             due = self.path is not None and changes != self._saved_changes and (
                 force or now - self._saved_s >= SAVE_EVERY_S)
             text = self.ledger.to_json() if due else None
-        if text is None:
+        if text is None or self.path is None:  # text is None unless a path is set
             return
         try:
             write_atomic(self.path, text)

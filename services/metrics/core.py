@@ -29,6 +29,7 @@ from __future__ import annotations
 import bisect
 import math
 from dataclasses import dataclass
+from typing import cast
 
 import numpy as np
 
@@ -312,4 +313,4 @@ def mean_or_none(values: list[float | None]) -> float | None:
     """The mean of ``values``, or None when empty or when any value is None."""
     if not values or any(v is None for v in values):
         return None
-    return float(np.mean(values))
+    return float(np.mean(cast("list[float]", values)))  # no None in it (above)

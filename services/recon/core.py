@@ -46,7 +46,8 @@ class Outcome:
 
 def decode_reply(payload: bytes) -> pb.WorkReply:
     try:
-        return pb.WorkReply.FromString(payload)
+        reply: pb.WorkReply = pb.WorkReply.FromString(payload)
+        return reply
     except Exception as err:
         raise Rejected("malformed", f"not a WorkReply ({err.__class__.__name__})") from None
 
@@ -63,7 +64,7 @@ class ReconCore:
         self.num_threads = num_threads
         self._configs = dict(configs or {})
         self._rec: Reconstruction | None = None
-        self._model_key: tuple | None = None
+        self._model_key: tuple[str, int, int, tuple[float, ...]] | None = None
         self.jobs = 0
 
     def _config(self, name: str) -> FieldConfig:

@@ -115,10 +115,10 @@ class TrainerCore:
         self._skew_ms = skew_ms
         self.heldout = heldout
         self._aabb = [float(v) for v in np.asarray(aabb, dtype=np.float64).reshape(-1)]
-        self._frames = FrameBuffer(frames_per_camera)
+        self._frames: FrameBuffer[HeldFrame] = FrameBuffer(frames_per_camera)
         self.pool = dispatcher
         self.decision: DecisionInForce | None = None
-        self._decisions: dict[tuple[int, int], pb.Decision] = {}
+        self._decisions: dict[tuple[str, int, int], pb.Decision] = {}
         """Decisions pending or held by a worker, by (incarnation, id), to build their job."""
         self._highest: dict[int, int] = {}
         """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
@@ -241,11 +241,13 @@ class TrainerCore:
                 job.n_missing += 1
             else:
                 job.frames.add().MergeFromString(held.payload)
-        return pb.WorkReply(job=job).SerializeToString()
+        reply: bytes = pb.WorkReply(job=job).SerializeToString()
+        return reply
 
     @staticmethod
     def no_job(reason: str) -> bytes:
-        return pb.WorkReply(reason=reason).SerializeToString()
+        reply: bytes = pb.WorkReply(reason=reason).SerializeToString()
+        return reply
 
     # ------------------------------------------------------------------ renders
     def on_render(self, payload: bytes, now_s: float, now_ms: float) -> LatestRender:

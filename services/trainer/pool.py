@@ -94,7 +94,7 @@ class Dispatcher:
         self.assigned = 0
         self.rendered = 0
         self.superseded = 0
-        self.lost: Counter[EndReason] = Counter()
+        self.lost: Counter[str] = Counter()  # EndReason keys (a str)
         """Handed-out decisions lost, by reason (:data:`POOL_LOST`)."""
         self.late_reports = 0
         self.wait_sum_s = 0.0
@@ -151,9 +151,9 @@ class Dispatcher:
             free = [w for i in self._waiting
                     if (w := self._workers.get(i)) is not None and w.holding is None]
             if free:
-                worker = max(free, key=lambda w: w.last_ms.get(decision.site, -math.inf))
-                self._unwait(worker.worker_id)
-                return self._assign(worker, decision, now_s, now_s)
+                warm = max(free, key=lambda w: w.last_ms.get(decision.site, -math.inf))
+                self._unwait(warm.worker_id)
+                return self._assign(warm, decision, now_s, now_s)
             self._waiting.clear()
         while self._waiting:
             worker = self._workers.get(self._waiting.popleft())

@@ -147,6 +147,7 @@ class StatusResponse(BaseModel):
 
 def status_body(status: TrainerStatus, site: str) -> StatusResponse:
     d = status.decision
+    assert status.pool is not None  # the worker's status always carries its pool
     return StatusResponse(
         steps=status.steps, steps_total=status.steps_total,
         steps_per_s=round(status.steps_per_s, 3), loss=status.loss, n_views=status.n_views,

@@ -57,6 +57,7 @@ class TrainerWorker:
         self.bus = bus
         self.clock = clock
         self.keys = Keys(settings.common.run_id, "*")  # every site's keys
+        size: tuple[int, int] | None  # the frames' (width, height) when they all share one
         if rig is not None:  # real cameras: the rig's view, box and working size
             heldout, aabb, size = rig.view_camera(), rig.scene_box, rig.working_size
         elif dataset is not None:

@@ -37,3 +37,18 @@ def test_the_domain_imports_no_services_and_no_commands() -> None:
               if re.search(r"^\s*(from|import) (services|aoi3d_cli)\b", p.read_text(), re.M)]
     assert naming == []
     assert not (ROOT / "aoi3d" / "cli").exists()
+
+def test_make_lint_runs_ruff_the_contracts_and_mypy_and_ci_runs_it_first() -> None:
+    """`make lint` is ruff, lint-imports, mypy (in that order; mypy's files and flags are
+    pyproject.toml's [tool.mypy]); .ci/run runs it before `make test`."""
+    import re
+
+    makefile = (ROOT / "Makefile").read_text()
+    recipe = re.search(r"^lint:.*\n((?:\t.*\n)+)", makefile, re.M)
+    assert recipe is not None, "the Makefile has no lint target"
+    tools = [line.split()[0].rsplit("/", 1)[-1] for line in recipe.group(1).splitlines()]
+    assert tools == ["ruff", "lint-imports", "mypy"]
+    ci = [line.split("#")[0].strip() for line in (ROOT / ".ci" / "run").read_text().splitlines()]
+    assert "make lint" in ci
+    assert ci.index("make lint") < next(i for i, line in enumerate(ci)
+                                        if line.startswith("make test"))

@@ -23,6 +23,22 @@ from services.metrics.ledger import (
 INC = 7
 
 
+def test_the_type_checkers_endreason_is_the_built_one() -> None:
+    """services/kit/reasons.py spells EndReason's members out for mypy (TYPE_CHECKING): the
+    same names and values as the enum built from the proto at run time."""
+    import ast
+    import inspect
+
+    from services.kit import reasons
+
+    tree = ast.parse(inspect.getsource(reasons))
+    static = next(node for node in ast.walk(tree)
+                  if isinstance(node, ast.ClassDef) and node.name == "EndReason")
+    spelled = {stmt.targets[0].id: stmt.value.value for stmt in static.body
+               if isinstance(stmt, ast.Assign)}
+    assert spelled == {r.name: r.value for r in EndReason}
+
+
 def test_a_scored_decision() -> None:
     led = Ledger()
     led.decided(INC, 1, 0.0)

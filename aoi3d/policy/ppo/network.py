@@ -59,7 +59,8 @@ class SharedCameraActor(nn.Module):
         x = obs.unflatten(-1, (self.channels, self.n)).transpose(-1, -2)
         ctx = x.mean(dim=-2, keepdim=True).expand_as(x)
         emb = self.embedding.expand(*x.shape[:-1], self.embedding.shape[-1])
-        return self.g(torch.cat([x, ctx, emb], dim=-1)).squeeze(-1) + self.bias
+        scores: torch.Tensor = self.g(torch.cat([x, ctx, emb], dim=-1)).squeeze(-1) + self.bias
+        return scores
 
 
 class ActorCritic(nn.Module):
@@ -88,10 +89,12 @@ class ActorCritic(nn.Module):
         )
 
     def logits(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.actor(obs)
+        logits: torch.Tensor = self.actor(obs)
+        return logits
 
     def value(self, obs: torch.Tensor) -> torch.Tensor:
-        return self.critic(obs).squeeze(-1)
+        value: torch.Tensor = self.critic(obs).squeeze(-1)
+        return value
 
     def evaluate(self, obs: torch.Tensor, actions: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -94,7 +94,8 @@ class PPOPolicy(BasePolicy):
             raise ValueError(f"PPO checkpoint {self.checkpoint} was trained for "
                              f"{self.n_cameras} cameras, but the AoI vector has "
                              f"{aoi.shape[0]}")
-        return self.actor.select(aoi) & ~np.isnan(aoi)
+        mask: np.ndarray = self.actor.select(aoi) & ~np.isnan(aoi)
+        return mask
 
     def check_fits(self, n_cameras: int) -> None:
         """The checkpoint must have been trained for the rig's N cameras."""
