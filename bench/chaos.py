@@ -160,7 +160,8 @@ def judge(tap: Tap, sites: list[str], faults: list[dict], t_start: float,
     for f in faults:
         end_t = f.pop("end")
         nexts = [next((t for t in tap.quality_times(s) if t > end_t), None) for s in sites]
-        f["recovery_s"] = None if None in nexts else round(max(nexts) - end_t, 1)
+        found = [t for t in nexts if t is not None]
+        f["recovery_s"] = None if len(found) < len(nexts) else round(max(found) - end_t, 1)
     stalls, max_gap = 0, 0.0
     for s in sites:
         times = [t_start] + [t for t in tap.quality_times(s) if t_start < t < t_faults_end]

@@ -24,6 +24,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -80,9 +81,9 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict:
         for (mat, _), result in zip(mats, out.results, strict=True):
             cells.setdefault((int(mat.gamma_ms), steps), []).append(result)
         print(f"steps {steps}: {out.computed} computed, {out.cached} cached", flush=True)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for (gamma, steps), results in sorted(cells.items()):
-        row = {"gamma_ms": gamma, "steps": steps, "n": len(results)}
+        row: dict[str, Any] = {"gamma_ms": gamma, "steps": steps, "n": len(results)}
         for metric in ("psnr_db", "psnr_display_db", "psnr_dynamic_db",
                        "psnr_dynamic_display_db", "reward", "reward_display", "compute_ms"):
             mean, half, _ = mean_ci95(getattr(r, metric) for r in results)
@@ -160,8 +161,8 @@ def figure(rows: list[dict], gammas: list[int], steps: list[int], path: Path, do
                 if np.isfinite(grid[i, j]):
                     ax.text(j, i, f"{grid[i, j]:.2f}", ha="center", va="center", fontsize=8,
                             color="white")
-        i, j = np.unravel_index(np.nanargmax(grid), grid.shape)
-        ax.add_patch(plt.Rectangle((j - 0.5, i - 0.5), 1, 1, fill=False, ec="red", lw=2))
+        bi, bj = np.unravel_index(np.nanargmax(grid), grid.shape)
+        ax.add_patch(plt.Rectangle((bj - 0.5, bi - 0.5), 1, 1, fill=False, ec="red", lw=2))
         fig.colorbar(im, ax=ax)
     fig.suptitle(f"Γ × steps, {doc['delay']}, time scale {doc['time_scale']}, seeds "
                  f"{doc['seeds'][0]}–{doc['seeds'][-1]} (red: the optimum)")
@@ -170,4 +171,4 @@ def figure(rows: list[dict], gammas: list[int], steps: list[int], path: Path, do
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    main()

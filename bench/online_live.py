@@ -92,7 +92,7 @@ def put_policy(site: str, body: dict[str, Any]) -> dict[str, Any]:
 
 
 def windows(rows: list[dict[str, Any]], window_s: float) -> list[dict[str, Any]]:
-    out = []
+    out: list[dict[str, Any]] = []
     if not rows:
         return out
     end = max(r["wall_s"] for r in rows)

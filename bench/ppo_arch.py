@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import platform
 import time
+from typing import Any
 
 import numpy as np
 import torch
@@ -27,7 +28,7 @@ from aoi3d.policy.ppo.learner import PPOLearner
 from bench import common
 
 N, UPDATES, BATCH, SEEDS = 18, 38, 16, 3
-HYPER = {"lr": 1e-3, "minibatch_size": 8}
+HYPER: dict[str, Any] = {"lr": 1e-3, "minibatch_size": 8}
 
 
 def sample_aoi(rng: np.random.Generator) -> np.ndarray:

@@ -27,6 +27,7 @@ import sys
 import time
 import uuid
 from pathlib import Path
+from typing import Any
 
 import httpx
 import numpy as np
@@ -118,7 +119,7 @@ def run(args: argparse.Namespace) -> dict:
         common.stop_up(up)
     span = renders[-1][0]
     window = min(args.window_min * 60.0, span / 2)
-    processes = {}
+    processes: dict[str, dict[str, Any]] = {}
     for name, points in samples.items():
         t, m = np.array(points).T
         # a worker's RSS rises and falls with each job's model: the median of each window

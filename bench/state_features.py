@@ -40,6 +40,7 @@ import math
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -106,7 +107,7 @@ def features(rows, cfg, ds) -> tuple[list[dict], list[str]]:
     by_decision: dict[tuple[int, int], list[dict]] = {}
     for r in rows:
         by_decision.setdefault((r["seed"], r["t_ms"]), []).append(r)
-    samples = []
+    samples: list[dict[str, Any]] = []
     for (seed, t), cands in by_decision.items():
         if seed not in links:
             links[seed] = episode_links(cfg, ds, seed)
@@ -125,7 +126,7 @@ def features(rows, cfg, ds) -> tuple[list[dict], list[str]]:
             group = [r for r in cands if int(r["mask"].sum()) == size]
             bases: dict[bytes, list[tuple[int, float]]] = {}
             for r in group:
-                for c in np.flatnonzero(r["mask"]):
+                for c in np.flatnonzero(r["mask"]).tolist():
                     base = r["mask"].copy()
                     base[c] = False
                     bases.setdefault(base.tobytes(), []).append((int(c), r["psnr"]))

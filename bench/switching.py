@@ -69,7 +69,8 @@ def window_spec(name: str, start_ms: int) -> str:
 
 def regimes() -> list[tuple[str, str, tuple[int, ...]]]:
     """(label, delay spec, Γ swept)."""
-    out = [(f"E[Y]={m}", f"exp:{m}", GAMMAS) for m in MEANS_MS]
+    out: list[tuple[str, str, tuple[int, ...]]] = [
+        (f"E[Y]={m}", f"exp:{m}", GAMMAS) for m in MEANS_MS]
     if TRACES.is_dir():
         out += [(f"{n}@{s // 1000}s", window_spec(n, s), WINDOW_GAMMAS) for n, s, _ in WINDOWS]
     return out

@@ -255,8 +255,9 @@ def rederived(doc: Mapping[str, Any], metrics: Sequence[str], *, ordered: bool
         selected: dict[Any, list[float]] = {}
         for r in rows:
             selected.setdefault(candidate(r["policy"]), []).append(float(r["n_selected"]))
-        position = ({candidate(r["policy"]): math.inf if gamma(r["policy"]) is None
-                     else gamma(r["policy"]) for r in rows} if ordered else None)
+        position: dict[Any, float] | None = (
+            {candidate(r["policy"]): _or_inf(gamma(r["policy"])) for r in rows}
+            if ordered else None)
         got = optima(rows, metrics, candidate=lambda r: candidate(r["policy"]),
                      selects={c: float(np.mean(v)) for c, v in selected.items()},
                      ordered=ordered, position=position)
@@ -270,3 +271,8 @@ def rederived(doc: Mapping[str, Any], metrics: Sequence[str], *, ordered: bool
     else:
         out["optimum"] = judge(episodes)
     return out
+
+
+def _or_inf(gamma: float | None) -> float:
+    """A policy's Γ as a position on the Γ axis: a policy without one (all) sits at +∞."""
+    return math.inf if gamma is None else gamma

@@ -38,7 +38,7 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from PIL import Image
@@ -299,7 +299,8 @@ def load_dnerf(
         train_ids=list(range(1, len(train) + 1)), heldout_id=0, layout=LAYOUT,
         camera_names=tuple(str(n) for n in names), file_relpaths=tuple(rels),
         times=np.asarray(times, dtype=np.float64), source_sizes=tuple(sizes),
-        splits=tuple(g.split for g in ordered), background=tuple(background),
+        splits=tuple(g.split for g in ordered),
+        background=cast(tuple[int, int, int], tuple(background)),
         png_cache=PngCache() if png_cache_bytes is None else PngCache(png_cache_bytes),
     )
 

@@ -64,9 +64,8 @@ def _frustum_corners(camera: Camera, near: float, far: float) -> np.ndarray:
     return (camera.c2w[:3, 3] + depths * world[None]).reshape(-1, 3)
 
 
-def frusta_aabb(cameras: Sequence[Camera], near: Sequence[float], far: Sequence[float]) -> (
-    np.ndarray
-):
+def frusta_aabb(cameras: Sequence[Camera], near: Sequence[float] | np.ndarray,
+                far: Sequence[float] | np.ndarray) -> np.ndarray:
     """The smallest axis-aligned box (2, 3) holding each camera's frustum between its near and
     far depth (depth = distance along the viewing axis, as LLFF bounds are): every point a
     camera sees within its bounds lies inside. Generous for forward-facing rigs (it includes

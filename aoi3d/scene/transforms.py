@@ -9,7 +9,7 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 from PIL import Image
@@ -144,7 +144,7 @@ def ordered_frames(group: Group) -> list[Frame]:
         indices = [f.frame_index for f in frames]
         if len(set(indices)) != len(indices):
             raise ValueError(f"camera {group.key!r}: repeated frame_index values")
-        return sorted(frames, key=lambda f: f.frame_index)
+        return sorted(frames, key=lambda f: cast(int, f.frame_index))
     if all(f.time is not None for f in frames):
-        return sorted(frames, key=lambda f: f.time)
+        return sorted(frames, key=lambda f: cast(float, f.time))
     return frames

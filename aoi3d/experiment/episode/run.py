@@ -32,7 +32,7 @@ class _Frames:
         self.offset_ms = offset_ms
         self._views: dict[int, tuple[int, TrainView]] = {}
 
-    def index(self, time_ms: int) -> int:
+    def index(self, time_ms: float) -> int:
         """The scene frame shown at channel time ``time_ms``."""
         return self.ds.frame_index(time_ms + self.offset_ms)
 
@@ -98,6 +98,7 @@ def run_plan(
         quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn,
                         previous=frames.truth_before(d.eval_ms, cfg.period_ms))
         dyn = quality.dynamic
+        assert dyn is not None  # score() was given the previous truth frames
         # what a viewer sees: the render once its compute is done, against the truth then
         display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
         shown = score(image, frames.truth(display_ms), cfg.reward, lpips_fn,

@@ -155,9 +155,10 @@ class Albedos:
     def nacelle(self, p: np.ndarray, n: np.ndarray) -> np.ndarray:
         axis = np.argmax(np.abs(n), axis=1)
         frac = (p / 0.06) % 1.0
-        lines = frac < 0.15
+        lines: np.ndarray = frac < 0.15
         lines[np.arange(len(p)), axis] = False
-        out = np.where(lines.any(axis=1)[:, None], np.array([0.55, 0.58, 0.62]), 0.91)
+        hit = np.asarray(lines.any(axis=1))
+        out = np.where(hit[:, None], np.array([0.55, 0.58, 0.62]), 0.91)
         side = (np.abs(n[:, 0]) > 0.5) & (p[:, 2] > 1.65) & (p[:, 2] < 1.70)
         out[side] = (0.12, 0.30, 0.72)
         rear = n[:, 1] > 0.5
