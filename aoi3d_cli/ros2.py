@@ -157,7 +157,7 @@ def rtsp(
 @app.command()
 def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")]) -> None:
     """Validate a rig file: one line per bad field, naming it; else a summary."""
-    from services.kit.rig import RigError, load_rig
+    from aoi3d.rigfile import RigError, load_rig
 
     try:
         r = load_rig(rig)

@@ -4,7 +4,7 @@ pipeline's :class:`pb.Frame` out — or :class:`Rejected` with its reason.
 No bus, no threads, no metrics library: the runtime (:mod:`services.ingest.worker`) feeds it
 from its one thread and publishes what it returns; tests drive it directly.
 
-What a camera of the rig file (:mod:`services.kit.rig`) sends:
+What a camera of the rig file (:mod:`aoi3d.rigfile`) sends:
 
 - its **image** (``sensor_msgs/Image`` raw, or ``CompressedImage`` jpeg/png) becomes a Frame:
   resized to the working size, with the pose and intrinsics in force at its stamp, published
@@ -33,12 +33,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from aoi3d.rigfile import TRUTH_ID, CameraSpec, Rig, scaled_camera
 from services.ingest import ros
 from services.kit.codec import camera_to_pb
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
-from services.kit.rig import TRUTH_ID, CameraSpec, Rig, scaled_camera
 
 __all__ = ["WIRE_ENCODINGS", "CameraState", "IngestCore", "Published", "Route"]
 

@@ -27,8 +27,8 @@ from functools import cache
 
 import numpy as np
 
+from aoi3d.rigfile import quaternion_matrix
 from services.kit.rejected import Rejected
-from services.kit.rig import quaternion_matrix
 
 __all__ = [
     "CAMERA_INFO",

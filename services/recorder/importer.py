@@ -144,10 +144,10 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
                                                       Counter]:
     from mcap.reader import make_reader
 
+    from aoi3d.rigfile import load_rig
     from services.ingest import ros
     from services.ingest.core import IngestCore
     from services.kit.keys import Keys
-    from services.kit.rig import load_rig
 
     rig = load_rig(rig_path)
     if rig.truth is None:

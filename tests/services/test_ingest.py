@@ -11,13 +11,13 @@ import numpy as np
 from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
+from aoi3d.rigfile import rig_from_dict
 from services.ingest import ros
 from services.ingest.app import create_app
 from services.ingest.settings import Settings
 from services.kit.codec import decode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
-from services.kit.rig import rig_from_dict
 from services.kit.settings import CommonSettings
 from tests.timeouts import timeout_scale
 from tests.unit.test_ingest_core import C2W, GID, OPTICAL, H, W, rig_doc

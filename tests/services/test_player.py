@@ -9,6 +9,7 @@ import re
 
 import numpy as np
 
+from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import Camera, look_at
 from services.ingest import ros
 from services.ingest.core import IngestCore
@@ -16,7 +17,6 @@ from services.kit.codec import decode_frame, encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.membus import key_matches
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rig import rig_from_dict
 from services.recorder.player import PlayConfig, Player, rig_document
 from tests.fakeclock import FakeClock
 from tests.services.test_recorder import H, W, noise_image
@@ -83,8 +83,8 @@ def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
 def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_live(tmp_path):
     from typer.testing import CliRunner
 
+    from aoi3d.rigfile import load_rig
     from aoi3d_cli import app
-    from services.kit.rig import load_rig
     from tests.services.test_scene_import import _record
 
     _record(tmp_path / "run.mcap")

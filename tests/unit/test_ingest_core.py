@@ -11,6 +11,7 @@ import math
 import numpy as np
 import pytest
 
+from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import look_at
 from services.ingest import ros
 from services.ingest.core import HOLD_S, IngestCore
@@ -18,7 +19,6 @@ from services.kit.codec import decode_frame
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
-from services.kit.rig import rig_from_dict
 from tests.fakeclock import FakeClock
 
 W, H = 24, 18
@@ -483,7 +483,7 @@ def test_url_cameras_in_the_rig() -> None:
 
 
 def errors_of(doc) -> str:
-    from services.kit.rig import RigError
+    from aoi3d.rigfile import RigError
 
     with pytest.raises(RigError) as info:
         rig_from_dict(doc)

@@ -12,11 +12,11 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from aoi3d.rigfile import rig_from_dict
 from services.ingest import ros
 from services.ingest.core import IngestCore
 from services.kit.keys import Keys
 from services.kit.rejected import Rejected
-from services.kit.rig import rig_from_dict
 from tests.unit.test_ingest_core import C2W, EPOCH, GID, OPTICAL, T0, H, W, rig_doc
 
 SETTINGS = settings(max_examples=250, deadline=None, suppress_health_check=list(HealthCheck))
