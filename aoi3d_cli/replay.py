@@ -210,9 +210,9 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
     import time
 
     from aoi3d_cli.ros2 import write_rig_file
-    from services.ingest.publish import zenoh_publishing
     from services.recorder.importer import recorded_streams
     from services.recorder.player import PlayConfig, Player, rig_document
+    from services.ros.publishing import zenoh_publishing
 
     try:
         cfg = PlayConfig(format=key_format, domain_id=domain_id, namespace=namespace,

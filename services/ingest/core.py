@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from aoi3d.rigfile import TRUTH_ID, CameraSpec, Rig, scaled_camera
-from services.ingest import ros
+from services import ros
 from services.kit.codec import camera_to_pb
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb

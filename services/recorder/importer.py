@@ -145,7 +145,7 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
     from mcap.reader import make_reader
 
     from aoi3d.rigfile import load_rig
-    from services.ingest import ros
+    from services import ros
     from services.ingest.core import IngestCore
     from services.kit.keys import Keys
 

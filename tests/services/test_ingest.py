@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 from prometheus_client.parser import text_string_to_metric_families
 
 from aoi3d.rigfile import rig_from_dict
-from services.ingest import ros
+from services import ros
 from services.ingest.app import create_app
 from services.ingest.settings import Settings
 from services.kit.codec import decode_frame

@@ -11,7 +11,7 @@ import numpy as np
 
 from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import Camera, look_at
-from services.ingest import ros
+from services import ros
 from services.ingest.core import IngestCore
 from services.kit.codec import decode_frame, encode_frame, encode_png
 from services.kit.keys import Keys

@@ -13,7 +13,7 @@ import pytest
 
 from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import look_at
-from services.ingest import ros
+from services import ros
 from services.ingest.core import HOLD_S, IngestCore
 from services.kit.codec import decode_frame
 from services.kit.keys import Keys
@@ -285,7 +285,7 @@ def test_an_image_over_the_size_limit_is_refused_before_decoding(monkeypatch) ->
     def boom(*_a, **_k):
         raise AssertionError("decoded an oversized sample")
 
-    monkeypatch.setattr(ros._store(), "deserialize_cdr", boom)
+    monkeypatch.setattr(ros.typestore(), "deserialize_cdr", boom)
     rejected(lambda: feed.image(T0, T0), "too_large")
 
 
@@ -544,7 +544,7 @@ class _StubDataset:
 
 @pytest.mark.parametrize("fmt", ["rmw_zenoh", "bridge"])
 def test_the_robot_phase_locks_to_the_pipelines_clock_and_its_samples_decode(fmt) -> None:
-    from services.ingest.publish import PublishConfig, Robot, rig_document
+    from services.ros.robot import PublishConfig, Robot, rig_document
 
     ds = _StubDataset()
     cfg = PublishConfig(dataset=None, format=fmt, namespace="r" if fmt == "bridge" else "",
@@ -574,8 +574,8 @@ def test_the_robot_encodes_a_frame_before_its_time_and_sends_its_cameras_togethe
     """Encoding is the robot's cost, not the link's: a frame is encoded before it is due and all
     its cameras go out at its time (encoding them one after another at the due time made the
     last of 19 cameras reach the edge ~60 ms wall after its stamp)."""
-    from services.ingest import ros
-    from services.ingest.publish import PublishConfig, Robot
+    from services import ros
+    from services.ros.robot import PublishConfig, Robot
 
     clock = FakeClock(EPOCH + 0.13)
 
@@ -599,7 +599,7 @@ def test_a_robot_behind_skips_to_the_newest_frame_and_encodes_each_frame_once() 
     """Encoding a frame takes longer than a period here (2 cameras × 100 ms against 62.5 ms): the
     robot skips to the newest frame due before it encodes, so no frame is encoded and then
     thrown away, and it counts the periods it skipped."""
-    from services.ingest.publish import PublishConfig, Robot
+    from services.ros.robot import PublishConfig, Robot
 
     clock = FakeClock(EPOCH)
 

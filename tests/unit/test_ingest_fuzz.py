@@ -13,7 +13,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from aoi3d.rigfile import rig_from_dict
-from services.ingest import ros
+from services import ros
 from services.ingest.core import IngestCore
 from services.kit.keys import Keys
 from services.kit.rejected import Rejected
