@@ -67,9 +67,10 @@ def test_the_player_sends_each_frame_at_its_recorded_time_on_the_pipelines_grid(
     # in the ROS graph: one node, a publisher for each topic the rig file reads
     for token in player.tokens("s1"):
         core.on_liveliness(token, True)
-    assert [e.node for e in core.graph.values() if e.kind == "node"] == ["aoi3d_player"]
+    assert [e.node for e in core.ros_graph.entities.values()
+            if e.kind == "node"] == ["aoi3d_player"]
     assert all(t["publishers"] == 1 for t in core.topic_publishers())
-    assert len(core.graph) == 1 + len(core.topic_publishers())
+    assert len(core.ros_graph.entities) == 1 + len(core.topic_publishers())
 
 
 def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:

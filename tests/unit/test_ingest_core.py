@@ -683,15 +683,15 @@ def test_the_graph_shows_who_publishes_each_topic_and_of_what_type() -> None:
 
 
 def test_a_flood_of_tokens_is_counted_not_kept(monkeypatch) -> None:
-    import services.ingest.core as core_module
+    import services.ingest.graph as graph_module
 
-    monkeypatch.setattr(core_module, "GRAPH_MAX", 3)
+    monkeypatch.setattr(graph_module, "GRAPH_MAX", 3)
     core = make_core()
     keys = [ros.liveliness_key(0, f"s{i}", 0, 0, "node", "n") for i in range(5)]
     for key in keys:
         core.on_liveliness(key, True)
     core.on_liveliness(keys[0], True)  # one already kept: still kept
-    assert list(core.graph) == keys[:3] and core.graph_dropped == 2
+    assert list(core.ros_graph.entities) == keys[:3] and core.ros_graph.dropped == 2
     assert core.status(T0)["source"]["graph"]["dropped_tokens"] == 2
 
 

@@ -97,12 +97,12 @@ def test_any_liveliness_token_is_read_or_counted(key: str) -> None:
     cannot read and goes on."""
     with contextlib.suppress(ValueError):
         ros.parse_liveliness(key)
-    before = CORE.graph_unparsed
+    before = CORE.ros_graph.unparsed
     CORE.on_liveliness(key, True)
-    assert key in CORE.graph or CORE.graph_unparsed == before + 1
+    assert key in CORE.ros_graph.entities or CORE.ros_graph.unparsed == before + 1
     CORE.topic_publishers()
     CORE.on_liveliness(key, False)
-    assert key not in CORE.graph
+    assert key not in CORE.ros_graph.entities
 
 
 @SETTINGS
