@@ -117,7 +117,7 @@ def recorded_streams(path: Path, site: str | None = None) -> tuple[str, dict[int
                                                                   np.ndarray | None]:
     """One site's frames with pixels (truth and delivered), by camera id, and the scene box
     its renders carry (None without a render); ``site`` may be left out when there is one."""
-    from services.recorder.replay import load
+    from services.recorder.recording import load
 
     rec = load(path)
     sites = sorted(rec.sites)
