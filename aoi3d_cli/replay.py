@@ -119,7 +119,8 @@ def replay(
     if write_rig is not None or rig_only or epoch_s is not None:
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
-    from services.recorder.replay import load, rebuildable_keys, score_diffs
+    from services.recorder.recording import load
+    from services.recorder.replay import rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
     console = make_console(stderr=json_out)
@@ -170,7 +171,7 @@ def replay(
         "score_diffs": diffs,
         "counterfactual": [_summary(r, base) for r in [base, *others]] if score else [],
     }
-    from services.recorder.replay import arrivals
+    from services.recorder.arrivals import arrivals
 
     doc["late_arrivals"] = sum(arrivals(rec.sites[s]).late for s in doc["sites"]
                                if rec.sites[s].decisions)
@@ -210,9 +211,9 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
     import time
 
     from aoi3d_cli.ros2 import write_rig_file
-    from services.ingest.publish import zenoh_publishing
     from services.recorder.importer import recorded_streams
     from services.recorder.player import PlayConfig, Player, rig_document
+    from services.ros.publishing import zenoh_publishing
 
     try:
         cfg = PlayConfig(format=key_format, domain_id=domain_id, namespace=namespace,

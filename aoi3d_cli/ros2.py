@@ -1,6 +1,6 @@
 """``aoi3d ros2 …``: real cameras over ROS 2 and Zenoh.
 
-``aoi3d ros2 publish DATASET`` is a pure-Python robot (:mod:`services.ingest.publish`): it
+``aoi3d ros2 publish DATASET`` is a pure-Python robot (:mod:`services.ros.robot`): it
 plays any dataset aoi3d reads as ROS 2 cameras — images, camera info and poses — on rmw_zenoh
 keys (Jazzy's type hash or Humble's placeholder) or zenoh-bridge-ros2dds keys, at any rate and
 time scale, and writes the rig file that reads them (``--write-rig``), for ``aoi3d up --rig``.
@@ -78,7 +78,8 @@ def publish(
 ) -> None:
     """Play DATASET as ROS 2 cameras on Zenoh: each camera's image, camera info and pose,
     stamped with the robot's clock, every period."""
-    from services.ingest.publish import PublishConfig, Robot, rig_document, zenoh_publishing
+    from services.ros.publishing import zenoh_publishing
+    from services.ros.robot import PublishConfig, Robot, rig_document
 
     if period_ms is not None and rate is not None:
         raise typer.BadParameter("give --period-ms or --rate, not both", param_hint="'--rate'")
@@ -139,7 +140,7 @@ def rtsp(
 ) -> None:
     """An IP camera: stream one of DATASET's cameras as H.264 over RTSP (pushed: RECORD)."""
     from aoi3d.scene import open_dataset
-    from services.ingest.publish import push_rtsp
+    from services.ros.rtsp import push_rtsp
 
     ds = open_dataset(dataset)
     if not 0 <= camera < len(ds.cameras):
@@ -157,7 +158,7 @@ def rtsp(
 @app.command()
 def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")]) -> None:
     """Validate a rig file: one line per bad field, naming it; else a summary."""
-    from services.kit.rig import RigError, load_rig
+    from aoi3d.rigfile import RigError, load_rig
 
     try:
         r = load_rig(rig)

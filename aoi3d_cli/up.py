@@ -220,7 +220,7 @@ def up(
 
 def _read_rig(path: Path, sites: int):
     """The rig file, validated (one line per bad field ends the command)."""
-    from services.kit.rig import RigError, load_rig
+    from aoi3d.rigfile import RigError, load_rig
 
     if sites != 1:
         raise typer.BadParameter("a rig is one site", param_hint="'--sites'")

@@ -4,11 +4,11 @@ environment). A rig file that cannot be used is one error per bad field and exit
 import logging
 import sys
 
+from aoi3d.rigfile import RigError, load_rig
 from services.ingest.app import create_app
 from services.ingest.settings import Settings
 from services.kit.app import serve
 from services.kit.observe import setup_logging
-from services.kit.rig import RigError, load_rig
 
 if __name__ == "__main__":
     settings = Settings()

@@ -9,12 +9,12 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, FastAPI
 from prometheus_client import CollectorRegistry
 
+from aoi3d.rigfile import Rig, load_rig
 from services.ingest.settings import Settings
 from services.ingest.worker import IngestWorker
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus, ZenohBus
 from services.kit.keys import Keys
-from services.kit.rig import Rig, load_rig
 
 DESCRIPTION = """
 Real cameras in: subscribes to the rig file's ROS 2 topics on Zenoh (rmw_zenoh keys

@@ -21,11 +21,12 @@ import time
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from services.ingest.core import IngestCore, Route
+from aoi3d.rigfile import Rig
+from services.ingest.core import IngestCore
+from services.ingest.routes import Route
 from services.kit.bus import Bus, Inbox
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
-from services.kit.rig import Rig
 from services.kit.runtime import Loops
 
 log = logging.getLogger(__name__)

@@ -117,7 +117,7 @@ def recorded_streams(path: Path, site: str | None = None) -> tuple[str, dict[int
                                                                   np.ndarray | None]:
     """One site's frames with pixels (truth and delivered), by camera id, and the scene box
     its renders carry (None without a render); ``site`` may be left out when there is one."""
-    from services.recorder.replay import load
+    from services.recorder.recording import load
 
     rec = load(path)
     sites = sorted(rec.sites)
@@ -144,10 +144,10 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
                                                       Counter]:
     from mcap.reader import make_reader
 
-    from services.ingest import ros
+    from aoi3d.rigfile import load_rig
+    from services import ros
     from services.ingest.core import IngestCore
     from services.kit.keys import Keys
-    from services.kit.rig import load_rig
 
     rig = load_rig(rig_path)
     if rig.truth is None:

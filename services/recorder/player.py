@@ -2,7 +2,7 @@
 
 The recorded frames of one site — every delivered frame and the truth frames, with their
 pixels, poses and intrinsics — go out as ROS 2 cameras on Zenoh, exactly as the test robot's
-(:mod:`services.ingest.publish`) do: per frame its ``PoseStamped`` (the frame's own pose: a
+(:mod:`services.ros.robot`) do: per frame its ``PoseStamped`` (the frame's own pose: a
 moving camera stays moving), its ``CameraInfo`` and its image as a ``CompressedImage`` holding
 the recorded PNG bytes (lossless, not re-encoded). A pipeline started with ``aoi3d up --rig``
 on the rig file :func:`rig_document` writes takes them in through its ingest, so every service
@@ -34,10 +34,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from services.ingest import ros
-from services.ingest.publish import OPTICAL, RosPublisher, source_document
+from services import ros
 from services.kit.codec import camera_from_pb, png_bytes
 from services.kit.pb import aoi3d_pb2 as pb
+from services.ros.publisher import RosPublisher
+from services.ros.robot import OPTICAL, source_document
 
 __all__ = ["PlayConfig", "Player", "rig_document"]
 
@@ -137,7 +138,7 @@ class Player:
 
     def tokens(self, session: str) -> list[str]:
         """The player's node and publishers in the ROS graph (rmw_zenoh keys; none for the
-        bridge), as :meth:`services.ingest.publish.Robot.tokens`."""
+        bridge), as :meth:`services.ros.robot.Robot.tokens`."""
         if self.cfg.format != "rmw_zenoh":
             return []
         return ros.node_tokens(self.cfg.domain_id, session, PLAYER_NODE,

@@ -13,10 +13,10 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
+from aoi3d.rigfile import load_rig
 from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import include_site_routers, service_app
 from services.kit.bus import Bus
-from services.kit.rig import load_rig
 from services.trainer.schemas import PoolInfo, StatusResponse, pool_body, status_body
 from services.trainer.settings import Settings
 from services.trainer.state import (

@@ -28,12 +28,12 @@ import numpy as np
 from prometheus_client import CollectorRegistry
 
 from aoi3d.clock import SimClock
+from aoi3d.rigfile import Rig
 from aoi3d.scene import SceneDataset
 from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rig import Rig
 from services.kit.runtime import Loops
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector

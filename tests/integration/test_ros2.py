@@ -189,7 +189,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     import yaml
 
     from aoi3d.scene import open_dataset
-    from services.ingest.publish import rtsp_camera_entry
+    from services.ros.rtsp import rtsp_camera_entry
 
     rig = tmp_path / "rig.yaml"
     robot_args = ["--format", "rmw_zenoh", "--cameras", "1", "--time-scale", str(TIME_SCALE),

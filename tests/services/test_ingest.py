@@ -11,13 +11,13 @@ from functools import partial
 import numpy as np
 from fastapi.testclient import TestClient
 
-from services.ingest import ros
+from aoi3d.rigfile import rig_from_dict
+from services import ros
 from services.ingest.app import create_app
 from services.ingest.settings import Settings
 from services.kit.codec import decode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
-from services.kit.rig import rig_from_dict
 from services.kit.settings import CommonSettings
 from tests.support.ingest import C2W, GID, OPTICAL, H, W, rig_doc
 from tests.support.metrics import total

@@ -9,14 +9,14 @@ import re
 
 import numpy as np
 
+from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import Camera, look_at
-from services.ingest import ros
+from services import ros
 from services.ingest.core import IngestCore
 from services.kit.codec import decode_frame, encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.membus import key_matches
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rig import rig_from_dict
 from services.recorder.player import PlayConfig, Player, rig_document
 from tests.support.fakeclock import FakeClock
 from tests.support.recording import H, W, noise_image
@@ -68,9 +68,10 @@ def test_the_player_sends_each_frame_at_its_recorded_time_on_the_pipelines_grid(
     # in the ROS graph: one node, a publisher for each topic the rig file reads
     for token in player.tokens("s1"):
         core.on_liveliness(token, True)
-    assert [e.node for e in core.graph.values() if e.kind == "node"] == ["aoi3d_player"]
+    assert [e.node for e in core.ros_graph.entities.values()
+            if e.kind == "node"] == ["aoi3d_player"]
     assert all(t["publishers"] == 1 for t in core.topic_publishers())
-    assert len(core.graph) == 1 + len(core.topic_publishers())
+    assert len(core.ros_graph.entities) == 1 + len(core.topic_publishers())
 
 
 def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
@@ -84,8 +85,8 @@ def test_the_rig_file_of_a_play_validates_and_names_the_truth_camera() -> None:
 def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_live(tmp_path):
     from typer.testing import CliRunner
 
+    from aoi3d.rigfile import load_rig
     from aoi3d_cli import app
-    from services.kit.rig import load_rig
 
     _record(tmp_path / "run.mcap")
     runner = CliRunner()

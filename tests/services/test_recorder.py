@@ -240,7 +240,8 @@ def _delivery(cam: int, gen: float, delivered: float) -> pb.Frame:
 def test_arrivals_follow_the_schedulers_vectors() -> None:
     """A frame counts from its delivery stamp, unless the first decision after the stamp did
     not know it (it reached the scheduler late): then from the first decision that did."""
-    from services.recorder.replay import SiteRecord, arrivals
+    from services.recorder.arrivals import arrivals
+    from services.recorder.recording import SiteRecord
 
     rec = SiteRecord()
     rec.deliveries = [_delivery(1, 0.0, 10.0), _delivery(2, 5.0, 30.0),  # 2: late, at s = 30
@@ -259,7 +260,8 @@ def test_arrivals_follow_the_schedulers_vectors() -> None:
 
 
 def test_frames_known_before_the_recording_enter_without_pixels() -> None:
-    from services.recorder.replay import SiteRecord, arrivals
+    from services.recorder.arrivals import arrivals
+    from services.recorder.recording import SiteRecord
 
     rec = SiteRecord()
     rec.deliveries = [_delivery(1, 40.0, 45.0)]
@@ -272,7 +274,8 @@ def test_frames_known_before_the_recording_enter_without_pixels() -> None:
 def test_replay_reproduces_selections_and_a_changed_policy_differs(tmp_path: Path) -> None:
     """Without scores: a recording of decisions under mat:10 replays to the same selections;
     under all, to more cameras on the same AoI vectors."""
-    from services.recorder.replay import load, replay
+    from services.recorder.recording import load
+    from services.recorder.replay import replay
 
     _mat10_recording(tmp_path / "r.mcap")
     data = load(tmp_path / "r.mcap")
@@ -289,7 +292,8 @@ def test_policies_pair_on_the_epochs_every_one_can_rebuild() -> None:
     (no pixels): mat:20 leaves it out and can be rebuilt, all names it and cannot. The
     paired epochs are those both can rebuild, so --max-renders 1 with --policy all rebuilds
     the second decision for both rather than none for all."""
-    from services.recorder.replay import Recorded, SiteRecord, rebuildable_keys, replay
+    from services.recorder.recording import Recorded, SiteRecord
+    from services.recorder.replay import rebuildable_keys, replay
 
     site = SiteRecord()
     site.deliveries = [pb.Frame.FromString(frame(1, 25.0, delivery_ms=28.0)),

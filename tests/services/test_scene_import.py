@@ -105,7 +105,7 @@ def _bag(tiny, path: Path, *, image: str = "rgb8", periods: int = 12, garble=())
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from services.ingest.publish import PublishConfig, Robot, rig_document
+    from services.ros.robot import PublishConfig, Robot, rig_document
 
     cfg = PublishConfig(dataset=tiny.root, format="bridge", period_ms=30.0, image=image)
     robot = Robot(cfg, lambda *_: None, dataset=tiny)

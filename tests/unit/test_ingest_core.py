@@ -10,14 +10,14 @@ import math
 import numpy as np
 import pytest
 
+from aoi3d.rigfile import rig_from_dict
 from aoi3d.scene import look_at
-from services.ingest import ros
+from services import ros
 from services.ingest.core import HOLD_S, IngestCore
 from services.kit.codec import decode_frame
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
-from services.kit.rig import rig_from_dict
 from tests.support.fakeclock import FakeClock
 from tests.support.ingest import C2W, EPOCH, GID, INTR, OPTICAL, T0, H, W, rig_doc
 
@@ -259,7 +259,7 @@ def test_an_image_over_the_size_limit_is_refused_before_decoding(monkeypatch) ->
     def boom(*_a, **_k):
         raise AssertionError("decoded an oversized sample")
 
-    monkeypatch.setattr(ros._store(), "deserialize_cdr", boom)
+    monkeypatch.setattr(ros.typestore(), "deserialize_cdr", boom)
     rejected(lambda: feed.image(T0, T0), "too_large")
 
 
@@ -457,7 +457,7 @@ def test_url_cameras_in_the_rig() -> None:
 
 
 def errors_of(doc) -> str:
-    from services.kit.rig import RigError
+    from aoi3d.rigfile import RigError
 
     with pytest.raises(RigError) as info:
         rig_from_dict(doc)
@@ -518,7 +518,7 @@ class _StubDataset:
 
 @pytest.mark.parametrize("fmt", ["rmw_zenoh", "bridge"])
 def test_the_robot_phase_locks_to_the_pipelines_clock_and_its_samples_decode(fmt) -> None:
-    from services.ingest.publish import PublishConfig, Robot, rig_document
+    from services.ros.robot import PublishConfig, Robot, rig_document
 
     ds = _StubDataset()
     cfg = PublishConfig(dataset=None, format=fmt, namespace="r" if fmt == "bridge" else "",
@@ -548,8 +548,8 @@ def test_the_robot_encodes_a_frame_before_its_time_and_sends_its_cameras_togethe
     """Encoding is the robot's cost, not the link's: a frame is encoded before it is due and all
     its cameras go out at its time (encoding them one after another at the due time made the
     last of 19 cameras reach the edge ~60 ms wall after its stamp)."""
-    from services.ingest import ros
-    from services.ingest.publish import PublishConfig, Robot
+    from services import ros
+    from services.ros.robot import PublishConfig, Robot
 
     clock = FakeClock(EPOCH + 0.13)
 
@@ -573,7 +573,7 @@ def test_a_robot_behind_skips_to_the_newest_frame_and_encodes_each_frame_once() 
     """Encoding a frame takes longer than a period here (2 cameras × 100 ms against 62.5 ms): the
     robot skips to the newest frame due before it encodes, so no frame is encoded and then
     thrown away, and it counts the periods it skipped."""
-    from services.ingest.publish import PublishConfig, Robot
+    from services.ros.robot import PublishConfig, Robot
 
     clock = FakeClock(EPOCH)
 
@@ -657,15 +657,15 @@ def test_the_graph_shows_who_publishes_each_topic_and_of_what_type() -> None:
 
 
 def test_a_flood_of_tokens_is_counted_not_kept(monkeypatch) -> None:
-    import services.ingest.core as core_module
+    import services.ingest.graph as graph_module
 
-    monkeypatch.setattr(core_module, "GRAPH_MAX", 3)
+    monkeypatch.setattr(graph_module, "GRAPH_MAX", 3)
     core = make_core()
     keys = [ros.liveliness_key(0, f"s{i}", 0, 0, "node", "n") for i in range(5)]
     for key in keys:
         core.on_liveliness(key, True)
     core.on_liveliness(keys[0], True)  # one already kept: still kept
-    assert list(core.graph) == keys[:3] and core.graph_dropped == 2
+    assert list(core.ros_graph.entities) == keys[:3] and core.ros_graph.dropped == 2
     assert core.status(T0)["source"]["graph"]["dropped_tokens"] == 2
 
 

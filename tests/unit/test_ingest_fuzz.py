@@ -12,11 +12,11 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from services.ingest import ros
+from aoi3d.rigfile import rig_from_dict
+from services import ros
 from services.ingest.core import IngestCore
 from services.kit.keys import Keys
 from services.kit.rejected import Rejected
-from services.kit.rig import rig_from_dict
 from tests.support.ingest import C2W, EPOCH, GID, OPTICAL, T0, H, W, rig_doc
 
 SETTINGS = settings(max_examples=250, deadline=None, suppress_health_check=list(HealthCheck))
@@ -97,12 +97,12 @@ def test_any_liveliness_token_is_read_or_counted(key: str) -> None:
     cannot read and goes on."""
     with contextlib.suppress(ValueError):
         ros.parse_liveliness(key)
-    before = CORE.graph_unparsed
+    before = CORE.ros_graph.unparsed
     CORE.on_liveliness(key, True)
-    assert key in CORE.graph or CORE.graph_unparsed == before + 1
+    assert key in CORE.ros_graph.entities or CORE.ros_graph.unparsed == before + 1
     CORE.topic_publishers()
     CORE.on_liveliness(key, False)
-    assert key not in CORE.graph
+    assert key not in CORE.ros_graph.entities
 
 
 @SETTINGS

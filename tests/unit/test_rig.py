@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import yaml
 
+from aoi3d.rigfile import RigError, convert_pose, load_rig, quaternion_matrix, rig_from_dict
 from aoi3d.scene import look_at
-from services.kit.rig import RigError, convert_pose, load_rig, quaternion_matrix, rig_from_dict
 from services.supervisor import Supervisor, UpConfig
 from tests.support.ingest import C2W, INTR, rig_doc
 

@@ -152,7 +152,7 @@ def test_replay_rebuilds_the_job_from_the_cameras_the_render_names() -> None:
     first of the selection with the same generation time (the one it took before, and a
     recording from before the field still gets)."""
     from services.kit.pb import aoi3d_pb2 as pb
-    from services.recorder.replay import Arrival, Arrivals, _job_frames
+    from services.recorder.arrivals import Arrival, Arrivals, job_frames
 
     def frame(cam: int, gen: float) -> pb.Frame:
         return pb.Frame(camera_id=cam, generation_ms=gen,
@@ -160,7 +160,7 @@ def test_replay_rebuilds_the_job_from_the_cameras_the_render_names() -> None:
 
     selected = [(1, 840.0), (9, 870.0), (10, 870.0), (14, 870.0)]
     arr = Arrivals([1, 9, 10, 14], [Arrival(c, g, g + 30.0, frame(c, g)) for c, g in selected])
-    got = _job_frames(selected, [870.0], arr, [10])
+    got = job_frames(selected, [870.0], arr, [10])
     assert [(f.camera_id, f.generation_ms) for f in got] == [(10, 870.0)]
-    old = _job_frames(selected, [870.0], arr)  # generation times only: the first that fits
+    old = job_frames(selected, [870.0], arr)  # generation times only: the first that fits
     assert [(f.camera_id, f.generation_ms) for f in old] == [(9, 870.0)]

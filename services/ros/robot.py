@@ -14,27 +14,32 @@ rig file that reads exactly what is published.
 
 from __future__ import annotations
 
-import contextlib
-import logging
 import math
-import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from services.ingest import ros
+from services.ros.encode import (
+    camera_info_msg,
+    compressed_msg,
+    image_msg,
+    odometry_msg,
+    pose_stamped_msg,
+)
+from services.ros.graph import node_tokens
+from services.ros.keys import KeyFormat
+from services.ros.publisher import RosPublisher
+from services.ros.types import CAMERA_INFO, COMPRESSED, HUMBLE_HASH, IMAGE, ODOMETRY, POSE_STAMPED
 
-log = logging.getLogger(__name__)
-
-__all__ = ["IMAGE_FORMATS", "OPTICAL", "PublishConfig", "Robot", "RosPublisher", "rig_document",
-           "source_document"]
+__all__ = ["DISTROS", "IMAGE_FORMATS", "OPTICAL", "ROBOT_NODE", "PublishConfig", "Robot",
+           "camera_ids", "camera_name", "rig_document", "source_document"]
 
 IMAGE_FORMATS = ("rgb8", "bgr8", "jpeg", "png")
-DISTROS = {"jazzy": None, "humble": ros.HUMBLE_HASH}
+DISTROS = {"jazzy": None, "humble": HUMBLE_HASH}
 """The type hash each distribution's rmw_zenoh puts in its keys (None: the type's RIHS01)."""
 OPTICAL = np.diag([1.0, -1.0, -1.0, 1.0])
 """OpenGL camera axes → the ROS optical frame (x right, y down, z forward)."""
@@ -90,12 +95,12 @@ class PublishConfig:
             raise ValueError("namespace: the bridge's (rmw_zenoh keys start with the domain)")
 
 
-def _name(camera_id: int) -> str:
+def camera_name(camera_id: int) -> str:
     return f"cam{camera_id:02d}"
 
 
 def _topics(cfg: PublishConfig, camera_id: int) -> dict[str, str]:
-    name = _name(camera_id)
+    name = camera_name(camera_id)
     image = f"/{name}/image_raw" + ("/compressed" if cfg.image in ("jpeg", "png") else "")
     return {"image": image, "camera_info": f"/{name}/camera_info",
             "pose": f"/{name}/{'odom' if cfg.pose == 'odometry' else 'pose'}"}
@@ -141,7 +146,7 @@ def rig_document(cfg: PublishConfig, ds) -> dict:
         if is_truth:  # the rendered view: static values in the file
             intr = {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
                     "height": c.height}
-        cams.append({"name": _name(n), "image": topics["image"], "intrinsics": intr,
+        cams.append({"name": camera_name(n), "image": topics["image"], "intrinsics": intr,
                      "pose": pose})
     doc = {"source": source, "cameras": cams,
            "aabb": [float(x) for x in np.asarray(ds.aabb).ravel()],
@@ -149,31 +154,8 @@ def rig_document(cfg: PublishConfig, ds) -> dict:
            "time_scale": cfg.time_scale,
            "truth_period_ms": cfg.period_ms}
     if cfg.truth:
-        doc["truth"] = _name(int(ds.heldout_id))
+        doc["truth"] = camera_name(int(ds.heldout_id))
     return doc
-
-
-class RosPublisher:
-    """One ROS publisher: its key, its publisher id and its sequence numbers (the robot's and
-    the player's)."""
-
-    def __init__(self, fmt: ros.KeyFormat, topic: str, ros_type: str, hash_: str | None):
-        self.key = fmt.key(topic, ros_type, hash_)
-        self.topic = topic
-        self.ros_type = ros_type
-        self.attached = fmt.attached
-        self.gid = os.urandom(16)
-        self.seq = 0
-
-    def encode(self, msg) -> bytes:
-        return ros.encode_cdr(msg, self.ros_type)
-
-    def sample(self, payload: bytes, robot_ns: int) -> tuple[str, bytes, bytes | None]:
-        """The sample as sent: the next sequence number and the source time go in the
-        attachment (rmw_zenoh's, at the moment of publishing)."""
-        self.seq += 1
-        att = ros.build_attachment(self.seq, robot_ns, self.gid) if self.attached else None
-        return self.key, payload, att
 
 
 class Robot:
@@ -188,17 +170,17 @@ class Robot:
         self.ds = dataset if dataset is not None else open_dataset(cfg.dataset)
         self._put = put
         self._clock = clock
-        fmt = ros.KeyFormat(cfg.format, cfg.domain_id, cfg.namespace)
+        fmt = KeyFormat(cfg.format, cfg.domain_id, cfg.namespace)
         hash_ = DISTROS[cfg.distro]
-        image_type = ros.COMPRESSED if cfg.image in ("jpeg", "png") else ros.IMAGE
-        pose_type = ros.ODOMETRY if cfg.pose == "odometry" else ros.POSE_STAMPED
+        image_type = COMPRESSED if cfg.image in ("jpeg", "png") else IMAGE
+        pose_type = ODOMETRY if cfg.pose == "odometry" else POSE_STAMPED
         self.ids = camera_ids(cfg, self.ds)
         self._pubs: dict[int, dict[str, RosPublisher]] = {}
         for n in self.ids:
             t = _topics(cfg, n)
             pubs = {"image": RosPublisher(fmt, t["image"], image_type, hash_)}
             if cfg.intrinsics == "topic":
-                pubs["camera_info"] = RosPublisher(fmt, t["camera_info"], ros.CAMERA_INFO, hash_)
+                pubs["camera_info"] = RosPublisher(fmt, t["camera_info"], CAMERA_INFO, hash_)
             if cfg.pose != "file":
                 pubs["pose"] = RosPublisher(fmt, t["pose"], pose_type, hash_)
             self._pubs[n] = pubs
@@ -217,7 +199,7 @@ class Robot:
         cfg = self.cfg
         if cfg.format != "rmw_zenoh":
             return []
-        return ros.node_tokens(cfg.domain_id, session, ROBOT_NODE,
+        return node_tokens(cfg.domain_id, session, ROBOT_NODE,
                                [(p.topic, p.ros_type) for n in self.ids
                                 for p in self._pubs[n].values()], DISTROS[cfg.distro])
 
@@ -228,21 +210,21 @@ class Robot:
         index = ds.frame_index(scene_ms)
         out: list[tuple[RosPublisher, bytes]] = []
         for n in self.ids:
-            c, pubs, name = ds.cameras[n], self._pubs[n], _name(n)
+            c, pubs, name = ds.cameras[n], self._pubs[n], camera_name(n)
             if "pose" in pubs:
                 m = np.asarray(c.c2w) @ OPTICAL
-                msg = (ros.odometry_msg(stamp, "world", name, m) if cfg.pose == "odometry"
-                       else ros.pose_stamped_msg(stamp, "world", m))
+                msg = (odometry_msg(stamp, "world", name, m) if cfg.pose == "odometry"
+                       else pose_stamped_msg(stamp, "world", m))
                 out.append((pubs["pose"], pubs["pose"].encode(msg)))
             if "camera_info" in pubs:
-                msg = ros.camera_info_msg(stamp, name, c.fx, c.fy, c.cx, c.cy, c.width,
+                msg = camera_info_msg(stamp, name, c.fx, c.fy, c.cx, c.cy, c.width,
                                           c.height)
                 out.append((pubs["camera_info"], pubs["camera_info"].encode(msg)))
             rgb = ds.frame(n, index)
             if cfg.image in ("jpeg", "png"):
-                msg = ros.compressed_msg(stamp, name, rgb, cfg.image)
+                msg = compressed_msg(stamp, name, rgb, cfg.image)
             else:
-                msg = ros.image_msg(stamp, name, rgb, cfg.image)
+                msg = image_msg(stamp, name, rgb, cfg.image)
             out.append((pubs["image"], pubs["image"].encode(msg)))
         return out
 
@@ -251,7 +233,7 @@ class Robot:
         for pub, payload in prepared:
             robot_ns = int((self._clock() + self.cfg.clock_offset_s) * 1e9)
             self._put(*pub.sample(payload, robot_ns))
-            if pub.ros_type in (ros.IMAGE, ros.COMPRESSED):
+            if pub.ros_type in (IMAGE, COMPRESSED):
                 self.frames_sent += 1
 
     def publish_frame(self, scene_ms: float, stamp: float) -> None:
@@ -293,97 +275,3 @@ class Robot:
             self.send(prepared)
             self.periods += 1
             k += 1
-
-
-@contextlib.contextmanager
-def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
-                     wait_s: float = 10.0, tokens: Callable[[str], list[str]] | None = None
-                     ) -> Iterator[Callable[[str, bytes, bytes | None], None]]:
-    """``put(key, payload, attachment)`` on a plain Zenoh client session to ``connect``, for
-    the block (the session closed after it). ``tokens(session id)``: liveliness tokens to
-    hold for the block (a ROS node's graph entities, :meth:`Robot.tokens`).
-
-    A new client session learns who subscribes to what from the router a moment after it
-    opens, and drops what it puts before that (seen: each camera's first pose and camera
-    info, and more on a loaded machine). So a publisher is declared for each of ``keys`` and
-    the robot waits — as a real one takes to start — until every image key has a subscriber
-    (then a moment more for the rest), or ``wait_s``."""
-    import json
-
-    import zenoh
-
-    conf = zenoh.Config()
-    conf.insert_json5("mode", json.dumps("client"))
-    conf.insert_json5("scouting/multicast/enabled", "false")
-    conf.insert_json5("connect/endpoints", json.dumps(connect))
-    session = zenoh.open(conf)
-    pubs = {key: session.declare_publisher(key) for key in keys or []}
-    held = [session.liveliness().declare_token(t)
-            for t in (tokens(str(session.zid())) if tokens else [])]
-    try:
-        deadline = time.monotonic() + wait_s
-        images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
-        while time.monotonic() < deadline and not all(p.matching_status.matching
-                                                      for p in images):
-            time.sleep(0.05)
-        time.sleep(0.5 if pubs else 1.0)
-
-        def put(key: str, payload: bytes, attachment: bytes | None) -> None:
-            pub = pubs.get(key)
-            if pub is not None:
-                pub.put(payload, attachment=attachment)
-            else:
-                session.put(key, payload, attachment=attachment)
-
-        yield put
-    finally:
-        for item in [*pubs.values(), *held]:
-            item.undeclare()
-        session.close()
-
-
-def rtsp_camera_entry(ds, camera_id: int, url: str, *, listen: bool = True) -> dict:
-    """A rig file's entry for the dataset's camera ``camera_id`` streamed as H.264 to ``url``
-    (static pose and intrinsics: an IP camera has no topics)."""
-    c = ds.cameras[camera_id]
-    return {"name": _name(camera_id), "url": url, "listen": listen,
-            "intrinsics": {"fx": c.fx, "fy": c.fy, "cx": c.cx, "cy": c.cy, "width": c.width,
-                           "height": c.height},
-            "pose": {"c2w": [float(x) for x in np.asarray(c.c2w).ravel()],
-                     "convention": "opengl"}}
-
-
-def push_rtsp(ds, camera_id: int, url: str, *, period_ms: float = 30.0,
-              time_scale: float = 1.0, stop: threading.Event | None = None,
-              frames: int | None = None, duration_s: float | None = None,
-              clock: Callable[[], float] = time.time) -> int:
-    """An IP camera: the dataset's camera ``camera_id`` as H.264 pushed over RTSP to ``url``
-    (an ingest listening there), frame k showing scene time k·period at wall start + k·period /
-    time scale; returns the frames sent."""
-    from services.ingest.video import RtspPusher
-
-    stop = stop or threading.Event()
-    c = ds.cameras[camera_id]
-    for attempt in range(20):  # a listener re-opens every few seconds: knock again
-        try:
-            pusher = RtspPusher(url, c.width, c.height)
-            break
-        except OSError:
-            if attempt == 19 or stop.wait(0.5):
-                raise
-    period_wall_s = period_ms / 1000.0 / time_scale
-    start, k, sent = clock(), 0, 0
-    try:
-        while not stop.is_set() and (frames is None or sent < frames):
-            due = start + k * period_wall_s
-            if duration_s is not None and due - start >= duration_s:
-                break
-            wait = due - clock()
-            if wait > 0 and stop.wait(wait):
-                break
-            pusher.send(ds.frame(camera_id, ds.frame_index(k * period_ms)), due)
-            sent += 1
-            k += 1
-    finally:
-        pusher.close()
-    return sent

@@ -1,0 +1,92 @@
+"""Scoring a replay (see :mod:`services.recorder.replay`): rebuild a decision's render with the
+live worker's code (:class:`services.recon.core.ReconCore`) and score it with the live metrics
+code (:class:`services.metrics.core.MetricsCore`); each job's budget; and the scores a replay
+compares with the recorded ones (:data:`SCORES`)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+from aoi3d.quality import RewardWeights
+from services.kit.pb import aoi3d_pb2 as pb
+from services.recorder.recording import Recorded, SiteRecord
+
+__all__ = ["SCORES", "Scorer", "job_budgets"]
+
+SCORES = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
+"""The Quality fields compared (each where both have it)."""
+
+
+class Scorer:
+    """Rebuilds renders with the live worker's code and scores them with the metrics code."""
+
+    def __init__(self, rec: Recorded, site: str, *, lpips: bool, threads: int,
+                 lpips_fn: Callable | None = None) -> None:
+        from services.metrics.core import MetricsCore
+        from services.recon.core import ReconCore
+
+        meta = rec.metadata
+        weights = RewardWeights(
+            psnr=float(meta.get("reward_psnr", RewardWeights().psnr)),
+            ssim=float(meta.get("reward_ssim", RewardWeights().ssim)),
+            lpips=float(meta.get("reward_lpips", RewardWeights().lpips)),
+            psnr_dynamic=float(meta.get("reward_psnr_dynamic", 0.0)),
+            ssim_dynamic=float(meta.get("reward_ssim_dynamic", 0.0)))
+        if lpips and lpips_fn is None:
+            from aoi3d.lpips import load_lpips_fn
+
+            lpips_fn = load_lpips_fn(meta.get("lpips_net", "alex"))
+            if lpips_fn is None:
+                raise ValueError("the recorded scores used LPIPS but its weights are not "
+                                 "cached here (python -m aoi3d.lpips fetch)")
+        truth = rec.sites[site].truth
+        self.metrics = MetricsCore(truth_period_ms=float(meta.get("truth_period_ms", 30.0)),
+                                   truth_frames=max(1, len(truth)), weights=weights,
+                                   lpips_fn=lpips_fn if lpips else None, site=site)
+        for fr in truth:
+            if fr.image.data:
+                self.metrics.on_truth(fr.SerializeToString(), math.inf)
+        self.recon = ReconCore(worker_id="replay", device="cpu", num_threads=threads)
+        self._cache: dict[tuple, pb.Quality] = {}
+
+    def score(self, decision: pb.Decision, render: pb.Render, frames: list[pb.Frame],
+              steps: int) -> pb.Quality:
+        """The Quality of ``decision`` rebuilt from ``frames`` as the job of ``render`` was
+        (``steps``: the job's budget; a render of an empty selection says 0);
+        :class:`services.recon.core.JobFailed` when the worker's code refuses it."""
+        key = (render.backend, render.carry, steps, render.seed,
+               decision.time_ms, tuple((f.camera_id, f.generation_ms) for f in frames))
+        if key in self._cache:
+            out = pb.Quality()
+            out.CopyFrom(self._cache[key])
+            out.decision_id = decision.decision_id
+            return out
+        job = pb.Job(decision=decision, backend=render.backend, carry=render.carry,
+                     render_steps=steps, seed=render.seed, model_epoch=0,
+                     pose=render.pose, intrinsics=render.intrinsics, aabb=list(render.aabb),
+                     site=render.site)
+        for f in frames:
+            job.frames.add().CopyFrom(f)
+        outcome = self.recon.run(job)
+        q = self.metrics.score(outcome.render.SerializeToString(), math.inf).message
+        self._cache[key] = q
+        return q
+
+
+def job_budgets(srec: SiteRecord) -> dict[tuple[int, int], int]:
+    """Each rendered decision's job budget (``render_steps``): its Render's, or — for a
+    render of an empty selection, which reports 0 — the nearest earlier render's that trained
+    (else the nearest later one's)."""
+    keys = [(d.incarnation, d.decision_id) for d in srec.decisions
+            if (d.incarnation, d.decision_id) in srec.renders]
+    steps = [int(srec.renders[k].render_steps) for k in keys]
+    out, last = {}, 0
+    for k, s in zip(keys, steps, strict=True):
+        last = s or last
+        out[k] = last
+    nxt = 0
+    for k, s in zip(reversed(keys), reversed(steps), strict=True):
+        nxt = s or nxt
+        out[k] = out[k] or nxt or 1
+    return out
