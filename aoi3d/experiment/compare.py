@@ -61,12 +61,15 @@ class ComparePlan:
     def resolve(self, mat_ms: float | None
                 ) -> tuple[list[tuple[str | None, str]], dict[str, dict[str, Any]]]:
         """The runs (trainer spec or None, policy spec; each once, in order) with ``mat:best``
-        at ``mat_ms``, and each label's JSON: the policy's ``to_json()``, inside its trainer
-        option's for a baseline, and the oracles' (results carry it beside the label)."""
+        at ``mat_ms`` (required when a spec is ``mat:best``), and each label's JSON: the
+        policy's ``to_json()``, inside its trainer option's for a baseline, and the oracles'
+        (results carry it beside the label)."""
         resolved: dict[tuple[str | None, str], None] = {}
         as_json: dict[str, dict[str, Any]] = {}
+        if mat_ms is None and self.needs_best_gamma:
+            raise ValueError("mat:best needs the best Γ (mat_ms)")
         for trainer, p in self.entries:
-            pol = MatPolicy(mat_ms) if p is None else p
+            pol = p if p is not None else MatPolicy(mat_ms or 0.0)
             resolved[None if trainer is None else trainer.spec, pol.spec] = None
             if trainer is None:
                 as_json[pol.spec] = pol.to_json()
