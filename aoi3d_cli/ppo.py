@@ -4,7 +4,8 @@
 ``aoi3d/FrameSelection-v0`` on a pool of env workers, one PPO update per batch, checkpoints,
 ``episodes.csv``, ``updates.csv``, ``reward.png``, ``config.json``); ``eval`` scores a
 checkpoint's deterministic policy — and, with ``--compare``, other policies on the same
-episodes — on held-out seeds, with 95% confidence intervals. ``presets`` lists the budgets.
+episodes — on held-out seeds, with 95% confidence intervals (what it writes:
+:class:`aoi3d.rl.report.EvalReport`). ``presets`` lists the budgets.
 
 Torch, the agent and the experiment engine are imported inside the commands, so that
 ``aoi3d --help`` and the other commands start without them.
@@ -271,12 +272,11 @@ def eval_cmd(
     from rich.progress import Progress
 
     from aoi3d.experiment import EpisodeConfig
-    from aoi3d.experiment.optimum import optima as optima_of
-    from aoi3d.experiment.report import code_version, machine, write_csv, write_json
     from aoi3d.policy import PolicySpecError
     from aoi3d.policy.ppo.actor import Actor
     from aoi3d.rl.evaluate import evaluate
-    from aoi3d.rl.presets import EVAL_SEED_BASE, PPO_PRESETS, eval_seeds, get_ppo_preset
+    from aoi3d.rl.presets import PPO_PRESETS, eval_seeds, get_ppo_preset
+    from aoi3d.rl.report import EvalReport
 
     started = time.time()
     try:
@@ -317,20 +317,11 @@ def eval_cmd(
         raise typer.BadParameter(str(err), param_hint="'--compare'") from None
     except ValueError as err:
         raise typer.BadParameter(str(err)) from None
-    trained = (extra.get("episode_config") or {}).get("steps_per_epoch")
-    optima = optima_of(outcome.rows, ("reward", "psnr", "ssim", "lpips"), ordered=False)
-    meta = {"command": "aoi3d ppo eval", "checkpoint": str(checkpoint),
-            "policies": specs, "seeds": seed_list, "eval_seed_base": EVAL_SEED_BASE,
-            "seed_offset": seed_offset, "trained_steps_per_epoch": trained,
-            "equal_budget": trained == episode.steps_per_epoch,
-            "episode_config": episode.to_dict(), "train_config": extra.get("train_config"),
-            "code_version": code_version(), "machine": machine(),
-            "wall_s": time.time() - started}
-    write_csv(folder / "eval.csv", outcome.rows)
-    write_csv(folder / "eval_summary.csv", outcome.summary)
-    write_json(folder / "eval.json", {"meta": meta, "summary": outcome.summary,
-                                      "optimum": {m: o.to_dict() for m, o in optima.items()},
-                                      "episodes": outcome.rows})
+    report = EvalReport.of(outcome, checkpoint=checkpoint, specs=specs, seeds=seed_list,
+                           seed_offset=seed_offset, episode=episode, extra=extra,
+                           started=started)
+    report.write(folder)
+    trained = report.trained_steps
     table = Table(title=f"held-out seeds: mean ± 95% CI over {count} episodes")
     for name in ("policy", "reward", "PSNR (dB)", "SSIM", "LPIPS", "cameras",
                  "Δ reward (PPO − this)"):
@@ -342,7 +333,7 @@ def eval_cmd(
                       fmt(r.get("first_minus_this_reward"),
                           r.get("first_minus_this_reward_ci95"), 4))
     console.print(table)
-    for metric, opt in optima.items():
+    for metric, opt in report.optima.items():
         console.print(f"{metric}: best {short_label(opt.best)}; not significantly worse "
                       f"(paired, {len(opt.seeds)} seeds): "
                       f"{', '.join(short_label(m) for m in opt.members)}")

@@ -1,5 +1,7 @@
 """What an experiment writes next to its numbers: the code version, the machine, the config,
-and the CSV/JSON files themselves (strict JSON: NaN is written as null)."""
+and the CSV/JSON files themselves (strict JSON: NaN is written as null); and one run of an
+``aoi3d experiment`` command (:class:`ExperimentRun`): its settings, the ``meta`` of its
+results document and the files every command writes."""
 
 from __future__ import annotations
 
@@ -11,14 +13,24 @@ import platform
 import subprocess
 import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 import torch
 
 import aoi3d
+from aoi3d.experiment.sweep import lpips_available
 
-__all__ = ["code_version", "machine", "to_jsonable", "write_csv", "write_json"]
+if TYPE_CHECKING:
+    from aoi3d.experiment.config import EpisodeConfig, Preset
+    from aoi3d.experiment.episode import EpisodeResult
+    from aoi3d.experiment.sweep import ResultCache, SweepOutcome
+    from aoi3d.scene import SceneDataset
+
+__all__ = ["ExperimentRun", "code_version", "episode_rows", "machine", "to_jsonable",
+           "write_csv", "write_json"]
 
 
 def code_version() -> str:
@@ -94,3 +106,77 @@ def write_csv(path: Path, rows: Sequence[dict[str, Any]]) -> Path:
         for row in rows:
             writer.writerow({k: ("" if v is None else v) for k, v in to_jsonable(row).items()})
     return path
+
+
+def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
+    """``episodes.csv``: one row per episode, without its per-decision scores."""
+    return [{k: v for k, v in r.to_dict().items() if k != "epochs"} for r in results]
+
+
+@dataclass
+class ExperimentRun:
+    """One run of an ``aoi3d experiment`` command: what it runs (preset, episode config,
+    dataset, seeds), where (workers, threads, Ray), and where it writes (``out``, the episode
+    cache)."""
+
+    command: str
+    preset: Preset
+    cfg: EpisodeConfig
+    dataset: SceneDataset
+    out: Path
+    cache: ResultCache
+    seeds: int
+    workers: int
+    threads: int
+    ray_address: str | None
+    started: float
+    seed_offset: int = 0
+
+    @property
+    def seed_list(self) -> list[int]:
+        """The seeds of every point: ``seed_offset … seed_offset + seeds − 1``."""
+        return list(range(self.seed_offset, self.seed_offset + self.seeds))
+
+    @property
+    def seed_span(self) -> str:
+        """The seeds for a title: ``first–last`` (one number for one seed)."""
+        first, last = self.seed_list[0], self.seed_list[-1]
+        return f"{first}" if first == last else f"{first}–{last}"
+
+    def meta(self, outcomes: Sequence[SweepOutcome], args: dict[str, Any]) -> dict[str, Any]:
+        """``meta`` of results.json: the command, its arguments, the preset and config, the
+        seeds, where it ran, the code version, the machine and the cost."""
+        episode_s = [r.wall_s for o in outcomes for r in o.results]
+        return {
+            "command": f"aoi3d experiment {self.command}",
+            "args": args,
+            "preset": self.preset.to_dict(),
+            "episode_config": self.cfg.to_dict(),
+            "lpips": lpips_available(self.cfg),
+            "seeds": self.seeds,
+            "seed_offset": self.seed_offset,
+            "seed_list": self.seed_list,
+            "workers": self.workers if self.ray_address is None else None,
+            "threads_per_worker": self.threads,
+            "ray_address": self.ray_address,
+            "code_version": code_version(),
+            "machine": machine(),
+            "wall_s": time.time() - self.started,
+            "episodes_computed": sum(o.computed for o in outcomes),
+            "episodes_cached": sum(o.cached for o in outcomes),
+            "episode_wall_s_mean": float(np.mean(episode_s)) if episode_s else None,
+        }
+
+    def write(self, outcomes: Sequence[SweepOutcome], args: dict[str, Any],
+              episodes: Sequence[EpisodeResult], csvs: dict[str, Sequence[dict[str, Any]]],
+              **doc: Any) -> None:
+        """What every command writes to ``out``: the CSVs in ``csvs`` (file name → rows),
+        ``episodes.csv`` (one row per episode) and ``results.json`` (``meta`` — the command,
+        its arguments, the config, the code version and the machine —, then ``doc``, then
+        the episodes with their per-decision scores)."""
+        meta = self.meta(outcomes, args)
+        for name, rows in csvs.items():
+            write_csv(self.out / name, rows)
+        write_csv(self.out / "episodes.csv", episode_rows(episodes))
+        write_json(self.out / "results.json", {"meta": meta, **doc,
+                                               "episodes": [r.to_dict() for r in episodes]})

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from aoi3d.experiment.optimum import unpaired_interior_maximum
-from aoi3d_cli.live import Measurement, summarise
+from aoi3d.live import Measurement, summarise
 
 
 def stat(mean: float | None, ci95: float | None) -> dict:
