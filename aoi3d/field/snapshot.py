@@ -9,7 +9,8 @@ Export (:meth:`ModelSnapshot.point_cloud`, :meth:`ModelSnapshot.mesh`, :func:`pl
 
 - **point cloud**: the field's density is sampled on a regular lattice over the scene box
   (``resolution`` points a side, where the field's occupancy grid allows); points whose
-  opacity over one lattice step, 1 − exp(−σ·δ), reaches ``alpha`` are kept (the densest
+  opacity over one of the renderer's fine ray steps δ, 1 − exp(−σ·δ), reaches ``alpha``
+  (the empty-space skipping's own test, :meth:`FieldConfig.density_threshold`) are kept (the densest
   ``max_points`` of them), each with the colour the field gives it seen from the box's
   centre outwards (a view-dependent field's colour is one view's). A PLY of ``x y z`` floats
   and ``red green blue`` bytes, plus the density as ``density``. What is lost: the view
@@ -25,7 +26,6 @@ from __future__ import annotations
 
 import copy
 import io
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,10 +114,9 @@ class ModelSnapshot:
             raise ValueError(f"resolution must be 8..512, got {resolution}")
         if not 0.0 < alpha < 1.0:
             raise ValueError(f"alpha must be in (0, 1), got {alpha}")
-        points, step = self._lattice(resolution)
+        points, _ = self._lattice(resolution)
         sigma, rgb = self._query(points)
-        opacity = 1.0 - np.exp(-sigma * step)
-        keep = np.flatnonzero(opacity >= alpha)
+        keep = np.flatnonzero(sigma >= self.cfg.density_threshold(self.aabb, alpha))
         if len(keep) > max_points:
             keep = keep[np.argsort(-sigma[keep], kind="stable")[:max_points]]
             keep.sort()
@@ -128,10 +127,10 @@ class ModelSnapshot:
         """The iso-surface of opacity ``alpha`` (marching cubes), vertices coloured."""
         from skimage.measure import marching_cubes
 
-        points, step = self._lattice(resolution)
+        points, _ = self._lattice(resolution)
         sigma, _ = self._query(points)
         volume = sigma.reshape(resolution, resolution, resolution)
-        level = -math.log1p(-alpha) / step
+        level = self.cfg.density_threshold(self.aabb, alpha)
         if not volume.min() < level < volume.max():
             raise ValueError("the field has no surface at this opacity (empty or all dense): "
                              "train longer or lower alpha")
