@@ -253,8 +253,23 @@ class ViewerWorker:
             client.camera.look_at = tuple(self.core.aabb.mean(axis=0))
             client.camera.up_direction = (0.0, 0.0, 1.0)
 
+    def _overview(self, client: Any) -> None:
+        """Back from the truth camera and above it, far enough to see every camera."""
+        centre = self.core.aabb.mean(axis=0)
+        t = np.asarray(self.core.truth_frustum.position)
+        reach = max(float(np.linalg.norm(np.asarray(f.position) - centre))
+                    for f in [*self.core.frustums.values(), self.core.truth_frustum])
+        away = t - centre
+        away[2] = 0.0
+        away = away / max(float(np.linalg.norm(away)), 1e-9)
+        eye = centre + away * 2.0 * reach + np.array([0.0, 0.0, 1.2 * reach])
+        with client.atomic():
+            client.camera.position = tuple(eye)
+            client.camera.look_at = tuple(centre)
+            client.camera.up_direction = (0.0, 0.0, 1.0)
+
     def _on_client(self, client: Any) -> None:
-        self._look_from_truth(client)
+        self._overview(client)
 
         @client.camera.on_update
         def _(_camera) -> None:
