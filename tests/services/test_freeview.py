@@ -235,3 +235,27 @@ def test_aoi3d_export_writes_a_ply_trimesh_reads(dataset: SceneDataset, tmp_path
             worker.close()
         server.should_exit = True
         thread.join(timeout=10 * SCALE)
+
+
+def test_a_worker_serves_the_newest_view_request_and_answers_the_older_busy() -> None:
+    from services.kit.membus import MemoryQuery
+
+    bus = MemoryBus()
+    settings = ReconSettings(worker_id="w9", common=CommonSettings(run_id=KEYS.run_id))
+    worker = ReconWorker(settings, bus, ReconCore(worker_id="w9", device="cpu",
+                                                  configs={"grid": GRID}))
+    req = pb.ViewRequest(site="site1", format="png").SerializeToString()
+    older, newer = MemoryQuery("k", req), MemoryQuery("k", req)
+    worker._on_view(older)
+    worker._on_view(newer)  # no view thread yet: the older waits, and is replaced
+    assert older.wait(1.0) and pb.ViewReply.FromString(older.answer).reason == "busy"
+    stop = threading.Event()
+    thread = threading.Thread(target=worker._serve_views, args=(stop,), daemon=True)
+    thread.start()
+    try:
+        assert newer.wait(10 * SCALE)
+        reply = pb.ViewReply.FromString(newer.answer)
+        assert reply.reason == "no_model" and "no model of site" in reply.error
+    finally:
+        stop.set()
+        thread.join(timeout=5 * SCALE)

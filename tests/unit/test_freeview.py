@@ -131,3 +131,15 @@ def test_point_cloud_and_mesh_ply_read_back_with_trimesh(trained) -> None:
     assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) > 100
     with pytest.raises(ValueError, match="resolution"):
         snap.point_cloud(resolution=4)
+
+
+def test_token_bucket_allows_bursts_then_the_rate() -> None:
+    from services.trainer.views import TokenBucket, ViewRefused
+
+    bucket = TokenBucket(rate_per_s=2.0, burst=3)
+    assert [bucket.take(0.0) for _ in range(4)] == [True, True, True, False]
+    assert not bucket.take(0.2)  # 0.4 of a token back
+    assert bucket.take(0.5)      # a whole one by now
+    assert [bucket.take(100.0) for _ in range(4)] == [True, True, True, False]  # capped
+    assert ViewRefused("rate_limited", "x").status == 429
+    assert ViewRefused("bad_request", "x").status == 422
