@@ -311,8 +311,9 @@ class ViewerWorker:
             return
         h = self.settings.render_height
         w = int(min(MAX_VIEW_SIDE, max(8, round(h * aspect))))
-        params = {"c2w": ",".join(f"{v:.7g}" for v in c2w.ravel()), "width": w, "height": h,
-                  "fov": min(179.0, max(1.0, fov_deg))}
+        params: dict[str, str | int | float] = {
+            "c2w": ",".join(f"{v:.7g}" for v in c2w.ravel()), "width": w, "height": h,
+            "fov": min(179.0, max(1.0, fov_deg))}
         url = f"{self.settings.trainer_url.rstrip('/')}/sites/{self.site}/render.png"
         self.views_asked += 1
         try:
