@@ -76,6 +76,9 @@ class ViewerWorker:
         self._loops.every("draw", settings.update_period_s, self._draw)
         self._loops.forever("views", self._serve_views)
         self._status_md: Any = None
+        self._controls: dict[str, Any] = {}
+        self._synced = False
+        """Whether the controls were set once to the policy in force (then they are yours)."""
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -169,6 +172,19 @@ class ViewerWorker:
             scene.add_label(f"/cameras/cam{c}/label",
                             f"{c}{' ✓' if st.selected else ''} {aoi}", position=(0, 0, 0))
         self._status(scene_doc)
+        self._sync_controls(scene_doc)
+
+    def _sync_controls(self, doc: dict[str, Any]) -> None:
+        """Show the policy in force in the controls, once (the first decision)."""
+        d = doc["decision"]
+        if self._synced or d is None or not self._controls:
+            return
+        self._synced = True
+        kind = str(d["policy"]).split(":", 1)[0]
+        if kind in POLICIES:
+            self._controls["kind"].value = kind
+        if d["gamma_ms"] is not None:
+            self._controls["gamma"].value = float(d["gamma_ms"])
 
     def _status(self, doc: dict[str, Any]) -> None:
         if self._status_md is None:
@@ -211,6 +227,7 @@ class ViewerWorker:
             wait = gui.add_number("ω ms (wait)", initial_value=40, min=0, max=10_000, step=1)
             apply = gui.add_button("apply")
             said = gui.add_markdown("")
+        self._controls = {"kind": kind, "gamma": gamma}
 
         @apply.on_click
         def _(_event) -> None:
