@@ -6,7 +6,7 @@ in the domain package, below both ``aoi3d_cli`` and ``services``, because both n
 ``aoi3d`` never imports ``services`` (pyproject.toml's import contracts); standard library
 only, so ``aoi3d --help`` and the supervisor stay light.
 
-* :data:`SERVICE_PORTS`: each service's REST port before ``--port-offset`` (8101…8107; with a
+* :data:`SERVICE_PORTS`: each service's REST port before ``--port-offset`` (8101…8108; with a
   rig file the ingest takes the camera emulator's).
 * :data:`ZENOH_PORT`: the local Zenoh router of ``aoi3d up`` (``--zenoh-port``; compose's
   routers listen on it too, in their own network namespaces).
@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 SERVICE_PORTS: dict[str, int] = {"camera": 8101, "network": 8102, "scheduler": 8103,
                                  "trainer": 8104, "metrics": 8105, "console": 8106,
-                                 "recorder": 8107}
+                                 "recorder": 8107, "viewer": 8108}
 """Each service's REST port before ``--port-offset``, in ``aoi3d up``'s start order."""
 ZENOH_PORT = 7447
 """TCP port of the Zenoh router (``aoi3d up --zenoh-port``, ``AOI3D_ZENOH_CONNECT``)."""
@@ -40,7 +40,8 @@ def rest_port(service: str, offset: int = 0) -> int:
 
 @dataclass(frozen=True)
 class PortBlock:
-    """The ports of one pipeline: the seven REST ports moved by ``offset`` and a Zenoh port."""
+    """The ports of one pipeline: the REST ports (8101…8108) moved by ``offset``, a Zenoh
+    port."""
 
     offset: int = 0
     zenoh: int = ZENOH_PORT

@@ -18,7 +18,7 @@ import typer
 from typer.core import TyperGroup
 
 from aoi3d.scene.dataset import DatasetError
-from aoi3d_cli import channel, experiment, field, live, ppo, replay, ros2, scene, up
+from aoi3d_cli import channel, experiment, export, field, live, ppo, replay, ros2, scene, up
 from aoi3d_cli.common import fail
 
 
@@ -50,6 +50,9 @@ app.add_typer(ros2.app, name="ros2", help="Real cameras: ROS 2 over Zenoh (a rob
                                           "dataset; rig files).")
 app.command("up", help=inspect.getdoc(up.up),
             short_help="Run the Zenoh router and the services locally until Ctrl-C.")(up.up)
+app.command("export", help=inspect.getdoc(export.export),
+            short_help="Write a site's latest reconstruction as a .ply (points or mesh).")(
+    export.export)
 app.command("replay", help=inspect.getdoc(replay.replay),
             short_help="Re-run a recording on the virtual clock under any policy.")(
     replay.replay)

@@ -29,6 +29,7 @@ HINTS = {
     "metrics": "GET /quality?limit=5",
     "console": "open / in a browser",
     "recorder": "GET /recording, POST /recording/start",
+    "viewer": "open / in a browser (3D)",
 }
 """What to try first on each service (a service without a hint shows its /docs)."""
 
@@ -192,6 +193,8 @@ def up(
         console.print(table)
         console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
                       "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
+        console.print(f"[bold]3D viewer: http://127.0.0.1:{cfg.port('viewer')}/[/bold] "
+                      "(orbit the live reconstruction; cameras coloured by AoI)", soft_wrap=True)
         sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
         if sites > 1:
             console.print(f"Sites: {', '.join(site_names(sites))} — "

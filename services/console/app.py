@@ -51,6 +51,7 @@ def config(request: Request) -> dict[str, Any]:
     return {"services": sorted(UPSTREAMS),
             "sites": list(settings.common.sites),
             "push_period_s": settings.push_period_s,
+            "viewer_port": settings.viewer_port,
             "token_required": settings.common.token() is not None}
 
 

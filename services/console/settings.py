@@ -40,6 +40,11 @@ class Settings(ServiceSettings):
     poll_period_s: float = Field(1.0, gt=0.1, le=60,
                                  description="Seconds between two polls of the services' "
                                              "status (channel, trainer, policy).")
+    viewer_port: int = Field(
+        default_factory=lambda: int(os.environ.get("AOI3D_VIEWER_PORT",
+                                                   SERVICE_PORTS["viewer"])),
+        ge=1, le=65535, json_schema_extra={"doc_default": "AOI3D_VIEWER_PORT, else 8108"},
+        description="Port of the 3D viewer the page links to, on the page's own host.")
     history_s: float = Field(300.0, gt=10, le=3600,
                              description="Wall seconds of quality timeline the page keeps.")
 

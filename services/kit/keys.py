@@ -82,6 +82,11 @@ class Keys:
         """A reconstruction worker's liveliness token: the pool's membership."""
         return f"{self.run_root}/pool/worker/{worker_id}"
 
+    def pool_view(self, worker_id: str) -> str:
+        """A reconstruction worker answers free-view and export queries here (the trainer
+        asks the worker that rendered a site's latest decision)."""
+        return f"{self.run_root}/pool/view/{worker_id}"
+
     @property
     def pool_workers(self) -> str:
         return f"{self.run_root}/pool/worker/*"

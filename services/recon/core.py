@@ -6,11 +6,20 @@ site. The model is an :class:`aoi3d.field.carry.Reconstruction` — the experime
 the default ``fresh`` carry each job is an independent reconstruction; ``warm`` and ``fork``
 carry this worker's own model from job to job (a new one when the job's backend, seed, scene
 box or model epoch changes).
+
+Free views and exports: after each job the worker keeps a snapshot of the model that rendered
+it (:class:`aoi3d.field.snapshot.ModelSnapshot`, one per site: its latest), and
+:meth:`ReconCore.view` answers a :class:`pb.ViewRequest` from it — a render from any pose
+(checked by :func:`aoi3d.freeview.check_pose`), a point cloud or a mesh as PLY — without
+touching the model the jobs train. (With the ``fork`` carry the snapshot is the continuously
+trained model the forks start from; with the others, the model that rendered the decision.)
 """
 
 from __future__ import annotations
 
 import math
+import threading
+import time
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -18,11 +27,13 @@ import numpy as np
 from aoi3d.field import FieldConfig, FieldTrainer, TrainView
 from aoi3d.field import field_config as make_field_config
 from aoi3d.field.carry import Reconstruction, RenderedDecision, WarmStart
+from aoi3d.field.snapshot import ModelSnapshot, ply_bytes
+from aoi3d.freeview import MAX_VIEW_SIDE, PoseError, check_pose, check_size
 from services.kit.codec import camera_from_pb, decode_frame, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 
-__all__ = ["JobFailed", "Outcome", "ReconCore", "decode_reply"]
+__all__ = ["JobFailed", "Latest", "Outcome", "ReconCore", "decode_reply"]
 
 MAX_FRAMES = 256
 """Frames one job may carry (a rig of up to 256 cameras)."""
@@ -42,6 +53,21 @@ class Outcome:
     render: pb.Render
     rendered: RenderedDecision
     rejected_frames: int
+
+
+@dataclass(frozen=True)
+class Latest:
+    """A site's latest model at this worker: its snapshot and the decision it rendered."""
+
+    snapshot: ModelSnapshot
+    decision_id: int
+    time_ms: float
+
+
+EXPORT_RESOLUTION = 96
+"""Lattice points a side of an export unless the request says (96³ ≈ 885 k queries)."""
+EXPORT_ALPHA = 0.1
+"""Opacity over one lattice step an exported point (or the mesh's surface) has at least."""
 
 
 def decode_reply(payload: bytes) -> pb.WorkReply:
@@ -66,6 +92,10 @@ class ReconCore:
         self._rec: Reconstruction | None = None
         self._model_key: tuple[str, int, int, tuple[float, ...]] | None = None
         self.jobs = 0
+        self.max_view_side = MAX_VIEW_SIDE
+        self._latest: dict[str, Latest] = {}
+        self._latest_lock = threading.Lock()
+        self.views = 0
 
     def _config(self, name: str) -> FieldConfig:
         cfg = self._configs.get(name) or make_field_config(name)
@@ -141,6 +171,56 @@ class ReconCore:
             warm_start=rendered.warm,
             loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
         return Outcome(render, rendered, rejected)
+
+    def keep_latest(self, job: pb.Job) -> None:
+        """Snapshot the model that just rendered ``job`` as its site's latest (call it after
+        the render is published: the copy never delays a decision's render)."""
+        if self._rec is None:
+            return
+        latest = Latest(ModelSnapshot(self._rec.trainer), int(job.decision.decision_id),
+                        float(job.decision.time_ms))
+        with self._latest_lock:
+            self._latest[job.site or "site1"] = latest
+
+    def latest(self, site: str) -> Latest | None:
+        with self._latest_lock:
+            return self._latest.get(site)
+
+    def view(self, req: pb.ViewRequest) -> pb.ViewReply:
+        """A free view (PNG) or an export (PLY) of ``req.site``'s latest model; the reply's
+        ``error``/``reason`` say why not (no model of that site yet, a bad pose or size, an
+        unknown format)."""
+        t0 = time.monotonic()
+        latest = self.latest(req.site or "site1")
+        if latest is None:
+            return pb.ViewReply(error=f"worker {self.worker_id} has no model of site "
+                                      f"{req.site!r} yet", reason="no_model",
+                                worker_id=self.worker_id)
+        snap = latest.snapshot
+        try:
+            if req.format in ("", "png"):
+                check_pose(list(req.pose.c2w), snap.aabb)
+                check_size(req.intrinsics.width, req.intrinsics.height, self.max_view_side)
+                camera = camera_from_pb(req.pose, req.intrinsics)
+                data = encode_png(snap.render(camera)).data
+            elif req.format in ("ply", "mesh"):
+                res = int(req.resolution) or EXPORT_RESOLUTION
+                alpha = float(req.alpha) or EXPORT_ALPHA
+                cloud = (snap.point_cloud(resolution=res, alpha=alpha) if req.format == "ply"
+                         else snap.mesh(resolution=res, alpha=alpha))
+                data = ply_bytes(cloud, comment=f"aoi3d {req.format} of site {req.site} "
+                                                f"decision {latest.decision_id} step "
+                                                f"{snap.steps}")
+            else:
+                return pb.ViewReply(error=f"unknown format {req.format!r}: png, ply or mesh",
+                                    reason="bad_format", worker_id=self.worker_id)
+        except (PoseError, Rejected, ValueError) as err:
+            detail = err.detail if isinstance(err, Rejected) else str(err)
+            return pb.ViewReply(error=detail, reason="bad_request", worker_id=self.worker_id)
+        self.views += 1
+        return pb.ViewReply(data=data, decision_id=latest.decision_id, time_ms=latest.time_ms,
+                            training_step=snap.steps, worker_id=self.worker_id,
+                            compute_s=time.monotonic() - t0)
 
     def train_between_jobs(self, n: int) -> float:
         """``n`` background steps of a warm or fork model on its last job's frames (no-op for

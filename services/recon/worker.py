@@ -5,6 +5,11 @@ session), then asks the trainer service for work — a query on ``aoi3d/<run>/po
 carrying a :class:`pb.WorkRequest` that reports how the previous job ended — reconstructs the
 job it is given with :class:`services.recon.core.ReconCore` and publishes the Render on
 ``aoi3d/<run>/render``. One thread does all of it: the worker never does two jobs at once.
+
+Free views and exports (``aoi3d/<run>/pool/view/<id>``, a :class:`pb.ViewRequest`) are
+answered by a second thread from the snapshot of each site's latest model
+(:meth:`ReconCore.view`), so they never hold up a job; one is done at a time and a newer
+request replaces one still waiting (answered ``busy``): no queue grows.
 """
 
 from __future__ import annotations
@@ -17,7 +22,7 @@ import threading
 import time
 
 from aoi3d.clock import SimClock
-from services.kit.bus import Bus
+from services.kit.bus import Bus, Query
 from services.kit.keys import DEFAULT_SITE, Keys, check_site
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
@@ -47,6 +52,9 @@ class ReconWorker:
         self.failed = 0
         self.rendered = 0
         self._done: tuple[pb.Job, bool, str] | None = None
+        self._view_lock = threading.Condition()
+        self._view_waiting: Query | None = None
+        self.views_superseded = 0
 
     @property
     def worker_id(self) -> str:
@@ -105,6 +113,7 @@ class ReconWorker:
                              outcome.render.SerializeToString())
             self._done = (job, True, "")
             self.rendered += 1
+            self.core.keep_latest(job)  # after the publication: never delays the render
         except JobFailed as err:
             log.warning("job for decision %d failed: %s", job.decision.decision_id, err)
             self._done = (job, False, err.reason)
@@ -117,7 +126,45 @@ class ReconWorker:
             self.busy_s += time.monotonic() - t0
         return True
 
+    # ------------------------------------------------------------------ free views
+    def _on_view(self, query: Query) -> None:
+        """Keep the newest view request (an older one still waiting is answered busy)."""
+        with self._view_lock:
+            older, self._view_waiting = self._view_waiting, query
+            self._view_lock.notify()
+        if older is not None:
+            self.views_superseded += 1
+            older.reply(pb.ViewReply(error="a newer view request replaced this one",
+                                     reason="busy", worker_id=self.worker_id
+                                     ).SerializeToString())
+
+    def _serve_views(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            with self._view_lock:
+                if self._view_waiting is None:
+                    self._view_lock.wait(0.2)
+                query, self._view_waiting = self._view_waiting, None
+            if query is None:
+                continue
+            try:
+                req = pb.ViewRequest.FromString(query.payload)
+            except Exception as err:
+                query.reply(pb.ViewReply(error=f"not a ViewRequest ({type(err).__name__})",
+                                         reason="malformed").SerializeToString())
+                continue
+            try:
+                reply = self.core.view(req)
+            except Exception as err:  # keep serving
+                log.exception("view request failed")
+                reply = pb.ViewReply(error=type(err).__name__, reason="failed",
+                                     worker_id=self.worker_id)
+            query.reply(reply.SerializeToString())
+
     def run(self, stop: threading.Event) -> None:
+        self.bus.declare_queryable(self.keys.pool_view(self.worker_id), self._on_view)
+        views = threading.Thread(target=self._serve_views, args=(stop,), name="views",
+                                 daemon=True)
+        views.start()
         token = self.bus.declare_token(self.keys.pool_worker(self.worker_id))
         log.info("worker %s joined the pool of run %s", self.worker_id,
                  self.settings.common.run_id)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import time
 from typing import Annotated, Literal
 
-from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Request
+from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Query, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
@@ -23,6 +23,7 @@ from services.trainer.state import (
     CarryError,
     UnknownBackendError,
 )
+from services.trainer.views import ViewRefused
 from services.trainer.worker import TrainerWorker
 
 
@@ -149,17 +150,59 @@ def put_carry(worker: Worker, body: CarryRequest) -> StatusResponse:
 render_router = APIRouter(tags=["render"])
 
 
+_VIEW_HEADERS = ("X-Decision-Id (the decision whose model answered), X-Time-Ms, "
+                 "X-Training-Step, X-Worker, X-Free-View: 1, X-Compute-S")
+
+
 @render_router.get(
-    "/render.png", summary="The latest render of the held-out (novel) view.",
+    "/render.png", summary="The latest render of the held-out (novel) view, or a free view "
+                           "of the latest model from any pose.",
+    description="Without `c2w`: the latest render of the held-out camera, the scored one. With "
+                "`c2w`: the site's latest model (kept by the worker that rendered its latest "
+                "decision) rendered from that pose on request — a free view, never scored "
+                "(there is no truth there) and never delaying a decision's render; rate "
+                "limited (429) and bounded in size (`AOI3D_TRAINER_VIEW_RATE_PER_S`, "
+                "`AOI3D_TRAINER_MAX_VIEW_SIDE`), every refusal counted in "
+                "`aoi3d_trainer_views_total{outcome}`.",
     response_class=Response,
     responses={200: {"content": {"image/png": {}},
                      "description": "PNG; headers X-Decision-Id, X-Time-Ms (the time it "
                                     "represents), X-Training-Step, X-Views, X-Carry, "
                                     "X-Render-Steps, X-Frames-Age-Ms (mean age of its frames "
                                     "at X-Time-Ms), X-Render-Age-S (wall s since the "
-                                    "publication)."},
-               404: {"description": "No render published yet."}})
-def get_render(worker: Worker, site: Site) -> Response:
+                                    "publication). A free view: " + _VIEW_HEADERS + "."},
+               404: {"description": "No render (or, for a free view, no model) yet."},
+               422: {"description": "A bad pose (not 16 finite numbers, not a rigid "
+                                    "transform, too far from the scene box) or size."},
+               429: {"description": "Too many free views or exports a second."},
+               503: {"description": "The worker took a newer free view instead."},
+               504: {"description": "The worker did not answer in time."}})
+def get_render(
+    worker: Worker, site: Site,
+    c2w: Annotated[str | None, Query(
+        description="A free view's camera-to-world pose: 16 numbers separated by commas, "
+                    "row-major 4x4, OpenGL axes as in transforms.json (the camera looks along "
+                    "its -z axis, y up).", max_length=2000,
+        examples=["1,0,0,0,0,0,-1,-4,0,1,0,1.5,0,0,0,1"])] = None,
+    width: Annotated[int | None, Query(
+        ge=1, le=100_000, description="A free view's width in pixels (default: the held-out "
+                                      "camera's).")] = None,
+    height: Annotated[int | None, Query(
+        ge=1, le=100_000, description="A free view's height in pixels (default: the held-out "
+                                      "camera's).")] = None,
+    fov: Annotated[float | None, Query(
+        gt=0, lt=180, description="A free view's vertical field of view in degrees (default: "
+                                  "the held-out camera's).")] = None,
+) -> Response:
+    if c2w is not None:
+        try:
+            png, reply = worker.free_view(site, c2w, width, height, fov)
+        except ViewRefused as err:
+            raise HTTPException(err.status, err.detail) from None
+        return Response(content=png, media_type="image/png",
+                        headers=_view_headers(reply))
+    if width is not None or height is not None or fov is not None:
+        raise HTTPException(422, "width, height and fov set a free view: give c2w too")
     latest = worker.latest_render(site)
     if latest is None:
         raise HTTPException(
@@ -173,6 +216,47 @@ def get_render(worker: Worker, site: Site) -> Response:
                "X-Worker": latest.worker_id,
                "Cache-Control": "no-store"}
     return Response(content=latest.png, media_type="image/png", headers=headers)
+
+
+def _view_headers(reply) -> dict[str, str]:
+    return {"X-Decision-Id": str(reply.decision_id), "X-Time-Ms": f"{reply.time_ms:g}",
+            "X-Training-Step": str(reply.training_step), "X-Worker": reply.worker_id,
+            "X-Free-View": "1", "X-Compute-S": f"{reply.compute_s:.3f}",
+            "Cache-Control": "no-store"}
+
+
+@render_router.get(
+    "/export.ply", summary="The latest model as a .ply other tools open (point cloud or mesh).",
+    description="`format=points` (default): a coloured point cloud — the field's density "
+                "sampled on a `resolution`³ lattice over the scene box where its occupancy "
+                "grid allows, the points whose opacity over one lattice step reaches `alpha`, "
+                "each with its colour seen from the box's centre (x y z, red green blue, "
+                "density). `format=mesh`: marching cubes (scikit-image) at that opacity, "
+                "vertices coloured. Lost either way: view dependence, the background, "
+                "anything finer than the lattice. Rate limited as free views "
+                "(`aoi3d_trainer_views_total{kind=\"export\"}`).",
+    response_class=Response,
+    responses={200: {"content": {"application/octet-stream": {}},
+                     "description": "A binary PLY; headers " + _VIEW_HEADERS + "."},
+               404: {"description": "No model yet."},
+               422: {"description": "A bad format, resolution or alpha."},
+               429: {"description": "Too many free views or exports a second."}})
+def get_export(
+    worker: Worker, site: Site,
+    format: Annotated[Literal["points", "mesh"], Query(
+        description="points: a coloured point cloud; mesh: a coloured triangle mesh.")]
+    = "points",
+    resolution: Annotated[int, Query(ge=8, le=256, description="Lattice points a side.")] = 96,
+    alpha: Annotated[float, Query(gt=0, lt=1, description="Opacity kept.")] = 0.1,
+) -> Response:
+    try:
+        data, reply = worker.export(site, "ply" if format == "points" else "mesh", resolution,
+                                    alpha)
+    except ViewRefused as err:
+        raise HTTPException(err.status, err.detail) from None
+    headers = _view_headers(reply)
+    headers["Content-Disposition"] = f'attachment; filename="{site}.ply"'
+    return Response(content=data, media_type="application/octet-stream", headers=headers)
 
 
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,

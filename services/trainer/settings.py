@@ -71,6 +71,22 @@ class Settings(ServiceSettings):
         description="Delivered frames kept per camera (encoded) to resolve a decision's "
                     "selection.")
 
+    view_rate_per_s: float = Field(
+        4.0, gt=0, le=1000,
+        description="Free views and exports (GET /render.png?c2w=…, GET /export.ply, the 3D "
+                    "viewer) per second, on average, over the whole run; beyond it 429 (counted "
+                    "in aoi3d_trainer_views_total{outcome=\"rate_limited\"}). They are never "
+                    "scored and never delay a decision's render (the worker answers them from "
+                    "a snapshot, on a thread of their own).")
+    view_burst: int = Field(8, ge=1, le=1000,
+                            description="Free views and exports allowed back to back.")
+    max_view_side: int = Field(1024, ge=8, le=4096,
+                               description="Largest width or height of a free view (pixels).")
+    view_timeout_s: float = Field(
+        20.0, gt=0, le=600, description="Wall seconds to wait for a worker's free view.")
+    export_timeout_s: float = Field(
+        120.0, gt=0, le=3600, description="Wall seconds to wait for a worker's export.")
+
     @field_validator("backend")
     @classmethod
     def _known_backend(cls, value: str) -> str:

@@ -63,7 +63,7 @@ def test_every_port_comes_from_the_one_table() -> None:
         assert settings.model_fields["port"].default == port, name
     assert SUPERVISED is table.SERVICE_PORTS and tuple(table.SERVICE_PORTS) == SERVICES
     assert {k: v for k, v in table.SERVICE_PORTS.items()
-            if k not in ("console", "recorder")} == UPSTREAMS
+            if k not in ("console", "recorder", "viewer")} == UPSTREAMS
     assert UpConfig().zenoh_port == table.ZENOH_PORT
     assert CommonSettings().zenoh_connect == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]
     assert RouterSettings().listen == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]

@@ -320,6 +320,8 @@ async function setup() {
     location.search = `?site=${encodeURIComponent($("site").value)}`;
   });
   $("token-row").hidden = !cfg.token_required;
+  // the 3D viewer (services/viewer) on its own port of the host the page came from
+  $("viewer-link").href = `${location.protocol}//${location.hostname}:${cfg.viewer_port}/`;
   $("token").value = localStorage.getItem("aoi3d-token") || "";
   $("token").addEventListener("change", () => localStorage.setItem("aoi3d-token", $("token").value));
   try {

@@ -310,3 +310,39 @@ class Quality(_message.Message):
     psnr_dynamic_display_db: float
     display_truth_time_ms: float
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ...) -> None: ...
+
+class ViewRequest(_message.Message):
+    __slots__ = ("site", "format", "pose", "intrinsics", "resolution", "alpha")
+    SITE_FIELD_NUMBER: _ClassVar[int]
+    FORMAT_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    INTRINSICS_FIELD_NUMBER: _ClassVar[int]
+    RESOLUTION_FIELD_NUMBER: _ClassVar[int]
+    ALPHA_FIELD_NUMBER: _ClassVar[int]
+    site: str
+    format: str
+    pose: Pose
+    intrinsics: Intrinsics
+    resolution: int
+    alpha: float
+    def __init__(self, site: _Optional[str] = ..., format: _Optional[str] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., resolution: _Optional[int] = ..., alpha: _Optional[float] = ...) -> None: ...
+
+class ViewReply(_message.Message):
+    __slots__ = ("data", "error", "reason", "decision_id", "time_ms", "training_step", "worker_id", "compute_s")
+    DATA_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    REASON_FIELD_NUMBER: _ClassVar[int]
+    DECISION_ID_FIELD_NUMBER: _ClassVar[int]
+    TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    TRAINING_STEP_FIELD_NUMBER: _ClassVar[int]
+    WORKER_ID_FIELD_NUMBER: _ClassVar[int]
+    COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
+    data: bytes
+    error: str
+    reason: str
+    decision_id: int
+    time_ms: float
+    training_step: int
+    worker_id: str
+    compute_s: float
+    def __init__(self, data: _Optional[bytes] = ..., error: _Optional[str] = ..., reason: _Optional[str] = ..., decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., training_step: _Optional[int] = ..., worker_id: _Optional[str] = ..., compute_s: _Optional[float] = ...) -> None: ...

@@ -1,0 +1,97 @@
+"""The 3D viewer service on a MemoryBus: its page is viser's client served from the wheel
+(nothing from outside), its websocket is relayed to viser, and what it draws follows the
+decision in force (AoI colours, the cameras used). Self-contained."""
+
+from __future__ import annotations
+
+import re
+import time
+from collections.abc import Iterator
+
+import pytest
+from fastapi.testclient import TestClient
+
+from aoi3d.freeview import aoi_colour
+from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+from services.kit.keys import Keys
+from services.kit.membus import MemoryBus
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.settings import CommonSettings
+from services.viewer.app import create_app
+from services.viewer.core import box_segments
+from services.viewer.settings import Settings
+from tests.support.timeouts import timeout_scale
+
+N = 4
+KEYS = Keys("viewertest")
+SCALE = timeout_scale()
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
+    cfg = SceneConfig(width=24, height=18, fps=10, duration_s=0.4, n_train=N, rotor_rpm=0.0,
+                      spp=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, workers=1)
+
+
+@pytest.fixture
+def viewer(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:
+    bus = MemoryBus()
+    settings = Settings(common=CommonSettings(run_id=KEYS.run_id, cameras=N))
+    with TestClient(create_app(settings, bus=bus, dataset=dataset),
+                    base_url="http://127.0.0.1") as client:
+        yield client, bus
+
+
+def test_the_page_is_vipers_client_and_loads_nothing_from_outside(viewer) -> None:
+    client, _ = viewer
+    r = client.get("/")
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/html")
+    html = r.text
+    assert '<div id="root">' in html
+    urls = re.findall(r'(?:src|href)\s*=\s*["\']([^"\']+)["\']', html)
+    assert all(u.startswith(("data:", "/", "#")) for u in urls), urls
+    assert client.get("/healthz").json()["status"] == "ok"
+    assert client.get("/readyz").json()["ready"] is True
+
+
+def test_the_websocket_is_relayed_to_viser(viewer) -> None:
+    import viser
+
+    client, _ = viewer
+    with client.websocket_connect("ws://127.0.0.1/",
+                                  subprotocols=[f"viser-v{viser.__version__}"]) as ws:
+        assert len(ws.receive_bytes()) > 0  # viser's first scene messages
+    with pytest.raises(Exception), client.websocket_connect(  # noqa: B017
+            "ws://127.0.0.1/", headers={"origin": "http://evil.example"}) as ws:
+        ws.receive_bytes()
+
+
+def test_what_is_drawn_follows_the_decision_in_force(viewer) -> None:
+    client, bus = viewer
+    doc = client.get("/scene.json").json()
+    assert [c["camera_id"] for c in doc["cameras"]] == list(range(1, N + 1))
+    assert all(c["colour"] == [128, 128, 128] and not c["selected"] for c in doc["cameras"])
+    aoi = [10.0, 90.0, 180.0, 400.0]
+    bus.publish(KEYS.decision, pb.Decision(
+        decision_id=3, time_ms=500.0, camera_ids=list(range(1, N + 1)), aoi_ms=aoi,
+        selected=[pb.FrameRef(camera_id=1, sequence=4, generation_ms=490.0, aoi_ms=10.0),
+                  pb.FrameRef(camera_id=2, sequence=4, generation_ms=410.0, aoi_ms=90.0)],
+        policy="mat", gamma_ms=100.0).SerializeToString())
+    deadline = time.monotonic() + 10 * SCALE
+    while client.get("/scene.json").json()["decision"] is None:
+        assert time.monotonic() < deadline
+        time.sleep(0.05)
+    doc = client.get("/scene.json").json()
+    assert doc["decision"]["selected"] == [1, 2] and doc["decision"]["gamma_ms"] == 100.0
+    for cam, a in zip(doc["cameras"], aoi, strict=True):
+        assert cam["colour"] == list(aoi_colour(a, 100.0))
+        assert cam["selected"] == (cam["camera_id"] in (1, 2))
+    assert len({tuple(c["colour"]) for c in doc["cameras"]}) == N
+    assert client.get("/scene.json", params={"site": "nosuch"}).status_code == 404
+
+
+def test_box_has_twelve_edges_along_the_axes() -> None:
+    seg = box_segments([[0, 0, 0], [1, 2, 3]])
+    assert seg.shape == (12, 2, 3)
+    assert all((abs(s[1] - s[0]) > 0).sum() == 1 for s in seg)
