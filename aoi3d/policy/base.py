@@ -44,7 +44,14 @@ Besides selecting, a policy answers the questions its callers have:
   ignore): a policy rewarded by the quality of its renders (the bandit over Γ) is told the
   scores of the render made for ``time_ms`` once it is scored — on the virtual clock by the
   stepwise episode (:func:`aoi3d.experiment.adaptive.run_stepwise`), live by the scheduler
-  from the ``quality`` topic.
+  from the ``quality`` topic;
+- ``budget_steps`` (int or None, default None) and ``budget_for(aoi_ms)`` (default: that):
+  the training steps the decision's render may take (:mod:`aoi3d.policy.budget`; None: the
+  caller's default). ``<spec>@<steps>`` gives any policy a fixed budget
+  (:class:`~aoi3d.policy.budget.Budgeted`); a policy may choose one per decision;
+- ``observe_lag(lag)`` (default: ignore): the expected lag from the decision to its display
+  (:class:`~aoi3d.policy.budget.DisplayLag`), told before it selects — what a compute-aware
+  policy (``dmat``) selects on.
 
 So a caller asks the policy, never switches on its kind: only the registry knows the kinds.
 """
@@ -58,13 +65,16 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from aoi3d.policy.budget import Budgeted, DisplayLag, split_budget
+
 
 class PolicySpecError(ValueError):
     """A policy spec or JSON form is invalid; the message lists the accepted forms."""
 
     def __init__(self, problem: str, spec: object = None) -> None:
         where = f"bad policy spec {spec!r}: " if spec is not None else "bad policy: "
-        super().__init__(f"{where}{problem}. Accepted forms: {', '.join(ACCEPTED_FORMS)}.")
+        super().__init__(f"{where}{problem}. Accepted forms: {', '.join(ACCEPTED_FORMS)}; "
+                         "any of them with '@<steps>', a training budget (mat:70@50).")
         self.problem = problem
         self.spec = spec
 
@@ -109,6 +119,19 @@ class Policy(Protocol):
         ``psnr_dynamic_db``; None where not measured)."""
         ...
 
+    @property
+    def budget_steps(self) -> int | None:
+        """The policy's fixed budget (training steps); None: the caller's default."""
+        ...
+
+    def observe_lag(self, lag: DisplayLag) -> None:
+        """The expected lag from the coming decision to its display, before it selects."""
+        ...
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int | None:
+        """The budget of the decision on ``aoi_ms`` (None: the caller's default)."""
+        ...
+
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         """Boolean mask over the cameras of ``aoi_ms`` (same order)."""
         ...
@@ -145,11 +168,14 @@ class BasePolicy:
         def gamma_ms(self) -> float | None: ...
         @property
         def wants_quality(self) -> bool: ...
+        @property
+        def budget_steps(self) -> int | None: ...
     else:
         wait_ms: int = 0
         learns: bool = False
         gamma_ms: float | None = None
         wants_quality: bool = False
+        budget_steps: int | None = None
 
     def reset(self) -> None:
         """Stateless between episodes."""
@@ -159,6 +185,13 @@ class BasePolicy:
 
     def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
         """Not rewarded."""
+
+    def observe_lag(self, lag: DisplayLag) -> None:
+        """Blind to the lag to the display."""
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int | None:
+        """Its fixed budget, if any: no per-decision choice."""
+        return self.budget_steps
 
     def check_fits(self, n_cameras: int) -> None:
         """Any rig."""
@@ -288,6 +321,12 @@ def parse_policy(spec: str | Policy) -> Policy:
     text = spec.strip()
     if not text:
         raise PolicySpecError("empty spec", spec)
+    head, budget = split_budget(text)
+    if budget is not None:
+        inner = parse_policy(head) if head else None
+        if inner is None:
+            raise PolicySpecError("nothing before the budget '@'", spec)
+        return _with_budget(inner, budget, spec)
     kind, *fields = (part.strip() for part in text.split(":"))
     entry = _policy_entry(kind, spec)
     try:
@@ -304,13 +343,36 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     kind = data.get("kind")
     if not isinstance(kind, str):
         raise PolicySpecError('missing or non-string "kind"', dict(data))
+    if data.get("budget_steps") is not None:
+        inner = policy_from_json({k: v for k, v in data.items() if k != "budget_steps"})
+        return _with_budget(inner, data["budget_steps"], dict(data))
     entry = _policy_entry(kind, dict(data))
-    params = {k: v for k, v in data.items() if k != "kind"}
+    params = {k: v for k, v in data.items() if k not in ("kind", "budget_steps")}
     try:
         policy: Policy = entry.from_json(params)
         return policy
     except PolicySpecError as err:
         raise PolicySpecError(err.problem, dict(data)) from None
+
+
+def _with_budget(inner: Policy, steps: object, spec: object) -> Policy:
+    """``inner`` with a fixed budget; ``PolicySpecError`` for a bad budget or a policy that
+    has one already."""
+    if inner.budget_steps is not None:
+        raise PolicySpecError("a policy has one budget ('@<steps>' once)", spec)
+    if getattr(inner, "chooses_budget", False):
+        raise PolicySpecError(f"{inner.kind} chooses each decision's budget itself: no "
+                              "'@<steps>'", spec)
+    if isinstance(steps, str):
+        text = steps.strip()
+        if not text.isdigit():
+            raise PolicySpecError(f"budget {text!r} after '@' is not a whole number of "
+                                  "training steps", spec)
+        steps = int(text)
+    try:
+        return Budgeted(inner, steps)  # type: ignore[arg-type]  # checked by check_budget
+    except ValueError as err:
+        raise PolicySpecError(str(err), spec) from None
 
 
 # Helpers for kinds' parsers: each raises PolicySpecError with a precise problem.
