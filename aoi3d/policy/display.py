@@ -51,7 +51,7 @@ class DisplayMatPolicy(BasePolicy):
         self.mat_ms = number("mat_ms", self.mat_ms, minimum=0.0)
 
     def __eq__(self, other: object) -> bool:
-        return type(other) is type(self) and other.spec == self.spec  # type: ignore[attr-defined]
+        return type(other) is type(self) and other.spec == self.spec
 
     def __hash__(self) -> int:
         return hash(self.spec)
