@@ -21,6 +21,7 @@ from aoi3d.policy.base import (
     FAMILIES,
     POLICY_FAMILIES,
     BasePolicy,
+    Budgeted,
     Policy,
     PolicyKind,
     PolicySpecError,
@@ -35,7 +36,6 @@ from aoi3d.policy.base import (
 )
 from aoi3d.policy.budget import (
     BUDGET_MAX_STEPS,
-    Budgeted,
     DisplayLag,
     LagEstimator,
     check_budget,

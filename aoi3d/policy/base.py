@@ -45,13 +45,11 @@ Besides selecting, a policy answers the questions its callers have:
   scores of the render made for ``time_ms`` once it is scored — on the virtual clock by the
   stepwise episode (:func:`aoi3d.experiment.adaptive.run_stepwise`), live by the scheduler
   from the ``quality`` topic;
-- ``budget_steps`` (int or None, default None) and ``budget_for(aoi_ms)`` (default: that):
-  the training steps the decision's render may take (:mod:`aoi3d.policy.budget`; None: the
-  caller's default). ``<spec>@<steps>`` gives any policy a fixed budget
-  (:class:`~aoi3d.policy.budget.Budgeted`); a policy may choose one per decision;
-- ``observe_lag(lag)`` (default: ignore): the expected lag from the decision to its display
-  (:class:`~aoi3d.policy.budget.DisplayLag`), told before it selects — what a compute-aware
-  policy (``dmat``) selects on.
+- ``budget_steps`` (default None) and ``budget_for(aoi_ms)`` (default: that): the decision's
+  training steps (None: the caller's default; :mod:`aoi3d.policy.budget`); ``<spec>@<steps>``
+  gives any policy a fixed one (:class:`Budgeted`);
+- ``observe_lag(lag)`` (default: ignore): the expected lag from the decision to its display,
+  told before it selects — what a compute-aware policy (``dmat``) selects on.
 
 So a caller asks the policy, never switches on its kind: only the registry knows the kinds.
 """
@@ -65,7 +63,7 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
-from aoi3d.policy.budget import Budgeted, DisplayLag, split_budget
+from aoi3d.policy.budget import DisplayLag, check_budget, split_budget
 
 
 class PolicySpecError(ValueError):
@@ -199,6 +197,82 @@ class BasePolicy:
     def on_device(self, device: str) -> Policy:
         """No model to place: the policy itself."""
         return self  # type: ignore[return-value]
+
+
+@dataclass(frozen=True, eq=False)
+class Budgeted:
+    """A policy with a fixed budget: ``<spec>@<steps>``. It selects, waits, learns and
+    observes as its inner policy does; its decisions train ``steps`` steps."""
+
+    inner: Policy
+    steps: int
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "steps", check_budget(self.steps))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Budgeted) and (other.steps, other.inner) == (self.steps,
+                                                                             self.inner)
+
+    def __hash__(self) -> int:
+        return hash(self.spec)
+
+    @property
+    def kind(self) -> str:
+        return self.inner.kind
+
+    @property
+    def spec(self) -> str:
+        return f"{self.inner.spec}@{self.steps}"
+
+    @property
+    def wait_ms(self) -> int:
+        return self.inner.wait_ms
+
+    @property
+    def learns(self) -> bool:
+        return self.inner.learns
+
+    @property
+    def gamma_ms(self) -> float | None:
+        return self.inner.gamma_ms
+
+    @property
+    def wants_quality(self) -> bool:
+        return self.inner.wants_quality
+
+    @property
+    def budget_steps(self) -> int:
+        return self.steps
+
+    def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
+        self.inner.observe(now_ms, deliveries)
+
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
+        self.inner.observe_quality(time_ms, scores)
+
+    def observe_lag(self, lag: DisplayLag) -> None:
+        self.inner.observe_lag(lag.at(self.steps))
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int:
+        return self.steps
+
+    def select(self, aoi_ms: np.ndarray) -> np.ndarray:
+        return self.inner.select(aoi_ms)
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.inner.to_json(), "budget_steps": self.steps}
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def check_fits(self, n_cameras: int) -> None:
+        self.inner.check_fits(n_cameras)
+
+    def on_device(self, device: str) -> Budgeted:
+        placed = self.inner.on_device(device)
+        return self if placed is self.inner else Budgeted(placed, self.steps)
+
 
 
 def as_aoi_vector(aoi_ms: np.ndarray | Sequence[float]) -> np.ndarray:

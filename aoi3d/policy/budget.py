@@ -4,7 +4,8 @@ A decision's **budget** is how many training steps the reconstruction of its fra
 (the carry's ``render_steps``: ``fresh`` trains that many steps from scratch, ``stream`` that
 many from the previous decision's model). It is part of the decision: a policy spec may
 carry one, ``mat:70@50`` (Γ = 70 ms, 50 steps), ``freshest:6@25``, ``all@100``
-(:class:`Budgeted`), and a policy may choose one per decision (:meth:`Policy.budget_for`).
+(:class:`aoi3d.policy.base.Budgeted`), and a policy may choose one per decision
+(:meth:`Policy.budget_for`).
 A decision without one is rendered at the caller's default (the experiments' config, the
 live pool's ``render_steps``). The budget travels in the ``Decision`` message, the live pool
 trains a job for it, and the virtual clock charges its compute
@@ -21,14 +22,9 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any
 
 import numpy as np
-
-if TYPE_CHECKING:
-    from aoi3d.policy.base import Policy
 
 BUDGET_MAX_STEPS = 100_000
 """The largest budget a spec, a REST body or a decision may carry."""
@@ -72,81 +68,6 @@ class DisplayLag:
     def at(self, steps: int) -> DisplayLag:
         """The same lag with ``steps`` as the budget of a decision that names none."""
         return replace(self, default_steps=int(steps))
-
-
-@dataclass(frozen=True, eq=False)
-class Budgeted:
-    """A policy with a fixed budget: ``<spec>@<steps>``. It selects, waits, learns and
-    observes as its inner policy does; its decisions train ``steps`` steps."""
-
-    inner: Policy
-    steps: int
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "steps", check_budget(self.steps))
-
-    def __eq__(self, other: object) -> bool:
-        return (isinstance(other, Budgeted) and other.steps == self.steps
-                and other.inner == self.inner)
-
-    def __hash__(self) -> int:
-        return hash((self.spec, self.steps))
-
-    @property
-    def kind(self) -> str:
-        return self.inner.kind
-
-    @property
-    def spec(self) -> str:
-        return f"{self.inner.spec}@{self.steps}"
-
-    @property
-    def wait_ms(self) -> int:
-        return self.inner.wait_ms
-
-    @property
-    def learns(self) -> bool:
-        return self.inner.learns
-
-    @property
-    def gamma_ms(self) -> float | None:
-        return self.inner.gamma_ms
-
-    @property
-    def wants_quality(self) -> bool:
-        return self.inner.wants_quality
-
-    @property
-    def budget_steps(self) -> int:
-        return self.steps
-
-    def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
-        self.inner.observe(now_ms, deliveries)
-
-    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
-        self.inner.observe_quality(time_ms, scores)
-
-    def observe_lag(self, lag: DisplayLag) -> None:
-        self.inner.observe_lag(lag.at(self.steps))
-
-    def budget_for(self, aoi_ms: np.ndarray) -> int:
-        return self.steps
-
-    def select(self, aoi_ms: np.ndarray) -> np.ndarray:
-        return self.inner.select(aoi_ms)
-
-    def to_json(self) -> dict[str, Any]:
-        return {**self.inner.to_json(), "budget_steps": self.steps}
-
-    def reset(self) -> None:
-        self.inner.reset()
-
-    def check_fits(self, n_cameras: int) -> None:
-        self.inner.check_fits(n_cameras)
-
-    def on_device(self, device: str) -> Budgeted:
-        placed = self.inner.on_device(device)
-        return self if placed is self.inner else Budgeted(placed, self.steps)
 
 
 def split_budget(text: str) -> tuple[str, str | None]:
