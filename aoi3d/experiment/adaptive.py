@@ -30,6 +30,7 @@ from aoi3d.experiment.episode import (
     EpisodeResult,
     EpochScore,
     PlannedDecision,
+    display_lag,
     episode_links,
     episode_result,
     planned_decision,
@@ -96,13 +97,14 @@ def run_stepwise(cfg: EpisodeConfig, dataset: SceneDataset, policy: str | Policy
                            wait_ms=pol.wait_ms, scene_offset_ms=links.scene_offset_ms,
                            phase_ms=links.phase_ms, decisions=(), drop_ratio=links.drop_ratio)
         runs.append(_Run(seed, pol, links, links.delivery_feed(), base, [], [], []))
+    lag = display_lag(cfg)
     times = cfg.decision_times_ms()
     first_scored = next(i for i, t in enumerate(times) if t >= cfg.warmup_ms)
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
         plans = []
         for r in runs:
-            sel = decide(r.policy, t, r.links.newest_ms, deliveries=r.feed)
+            sel = decide(r.policy, t, r.links.newest_ms, deliveries=r.feed, lag=lag)
             d = planned_decision(sel, r.links.camera_ids, train=scored, scored=scored)
             r.decisions.append(d)
             r.gammas.append(r.policy.gamma_ms)

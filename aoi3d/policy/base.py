@@ -44,7 +44,12 @@ Besides selecting, a policy answers the questions its callers have:
   ignore): a policy rewarded by the quality of its renders (the bandit over Γ) is told the
   scores of the render made for ``time_ms`` once it is scored — on the virtual clock by the
   stepwise episode (:func:`aoi3d.experiment.adaptive.run_stepwise`), live by the scheduler
-  from the ``quality`` topic.
+  from the ``quality`` topic;
+- ``budget_steps`` (default None) and ``budget_for(aoi_ms)`` (default: that): the decision's
+  training steps (None: the caller's default; :mod:`aoi3d.policy.budget`); ``<spec>@<steps>``
+  gives any policy a fixed one (:class:`Budgeted`);
+- ``observe_lag(lag)`` (default: ignore): the expected lag from the decision to its display,
+  told before it selects — what a compute-aware policy (``dmat``) selects on.
 
 So a caller asks the policy, never switches on its kind: only the registry knows the kinds.
 """
@@ -58,13 +63,16 @@ from typing import TYPE_CHECKING, Any, Protocol, runtime_checkable
 
 import numpy as np
 
+from aoi3d.policy.budget import DisplayLag, check_budget, split_budget
+
 
 class PolicySpecError(ValueError):
     """A policy spec or JSON form is invalid; the message lists the accepted forms."""
 
     def __init__(self, problem: str, spec: object = None) -> None:
         where = f"bad policy spec {spec!r}: " if spec is not None else "bad policy: "
-        super().__init__(f"{where}{problem}. Accepted forms: {', '.join(ACCEPTED_FORMS)}.")
+        super().__init__(f"{where}{problem}. Accepted forms: {', '.join(ACCEPTED_FORMS)}; "
+                         "any of them with '@<steps>', a training budget (mat:70@50).")
         self.problem = problem
         self.spec = spec
 
@@ -109,6 +117,19 @@ class Policy(Protocol):
         ``psnr_dynamic_db``; None where not measured)."""
         ...
 
+    @property
+    def budget_steps(self) -> int | None:
+        """The policy's fixed budget (training steps); None: the caller's default."""
+        ...
+
+    def observe_lag(self, lag: DisplayLag) -> None:
+        """The expected lag from the coming decision to its display, before it selects."""
+        ...
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int | None:
+        """The budget of the decision on ``aoi_ms`` (None: the caller's default)."""
+        ...
+
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         """Boolean mask over the cameras of ``aoi_ms`` (same order)."""
         ...
@@ -145,11 +166,14 @@ class BasePolicy:
         def gamma_ms(self) -> float | None: ...
         @property
         def wants_quality(self) -> bool: ...
+        @property
+        def budget_steps(self) -> int | None: ...
     else:
         wait_ms: int = 0
         learns: bool = False
         gamma_ms: float | None = None
         wants_quality: bool = False
+        budget_steps: int | None = None
 
     def reset(self) -> None:
         """Stateless between episodes."""
@@ -160,12 +184,95 @@ class BasePolicy:
     def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
         """Not rewarded."""
 
+    def observe_lag(self, lag: DisplayLag) -> None:
+        """Blind to the lag to the display."""
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int | None:
+        """Its fixed budget, if any: no per-decision choice."""
+        return self.budget_steps
+
     def check_fits(self, n_cameras: int) -> None:
         """Any rig."""
 
     def on_device(self, device: str) -> Policy:
         """No model to place: the policy itself."""
         return self  # type: ignore[return-value]
+
+
+@dataclass(frozen=True, eq=False)
+class Budgeted:
+    """A policy with a fixed budget: ``<spec>@<steps>``. It selects, waits, learns and
+    observes as its inner policy does; its decisions train ``steps`` steps."""
+
+    inner: Policy
+    steps: int
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "steps", check_budget(self.steps))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Budgeted) and (other.steps, other.inner) == (self.steps,
+                                                                             self.inner)
+
+    def __hash__(self) -> int:
+        return hash(self.spec)
+
+    @property
+    def kind(self) -> str:
+        return self.inner.kind
+
+    @property
+    def spec(self) -> str:
+        return f"{self.inner.spec}@{self.steps}"
+
+    @property
+    def wait_ms(self) -> int:
+        return self.inner.wait_ms
+
+    @property
+    def learns(self) -> bool:
+        return self.inner.learns
+
+    @property
+    def gamma_ms(self) -> float | None:
+        return self.inner.gamma_ms
+
+    @property
+    def wants_quality(self) -> bool:
+        return self.inner.wants_quality
+
+    @property
+    def budget_steps(self) -> int:
+        return self.steps
+
+    def observe(self, now_ms: float, deliveries: Sequence[tuple[int, float, float]]) -> None:
+        self.inner.observe(now_ms, deliveries)
+
+    def observe_quality(self, time_ms: float, scores: Mapping[str, float | None]) -> None:
+        self.inner.observe_quality(time_ms, scores)
+
+    def observe_lag(self, lag: DisplayLag) -> None:
+        self.inner.observe_lag(lag.at(self.steps))
+
+    def budget_for(self, aoi_ms: np.ndarray) -> int:
+        return self.steps
+
+    def select(self, aoi_ms: np.ndarray) -> np.ndarray:
+        return self.inner.select(aoi_ms)
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.inner.to_json(), "budget_steps": self.steps}
+
+    def reset(self) -> None:
+        self.inner.reset()
+
+    def check_fits(self, n_cameras: int) -> None:
+        self.inner.check_fits(n_cameras)
+
+    def on_device(self, device: str) -> Budgeted:
+        placed = self.inner.on_device(device)
+        return self if placed is self.inner else Budgeted(placed, self.steps)
+
 
 
 def as_aoi_vector(aoi_ms: np.ndarray | Sequence[float]) -> np.ndarray:
@@ -288,6 +395,12 @@ def parse_policy(spec: str | Policy) -> Policy:
     text = spec.strip()
     if not text:
         raise PolicySpecError("empty spec", spec)
+    head, budget = split_budget(text)
+    if budget is not None:
+        inner = parse_policy(head) if head else None
+        if inner is None:
+            raise PolicySpecError("nothing before the budget '@'", spec)
+        return _with_budget(inner, budget, spec)
     kind, *fields = (part.strip() for part in text.split(":"))
     entry = _policy_entry(kind, spec)
     try:
@@ -304,13 +417,36 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     kind = data.get("kind")
     if not isinstance(kind, str):
         raise PolicySpecError('missing or non-string "kind"', dict(data))
+    if data.get("budget_steps") is not None:
+        inner = policy_from_json({k: v for k, v in data.items() if k != "budget_steps"})
+        return _with_budget(inner, data["budget_steps"], dict(data))
     entry = _policy_entry(kind, dict(data))
-    params = {k: v for k, v in data.items() if k != "kind"}
+    params = {k: v for k, v in data.items() if k not in ("kind", "budget_steps")}
     try:
         policy: Policy = entry.from_json(params)
         return policy
     except PolicySpecError as err:
         raise PolicySpecError(err.problem, dict(data)) from None
+
+
+def _with_budget(inner: Policy, steps: object, spec: object) -> Policy:
+    """``inner`` with a fixed budget; ``PolicySpecError`` for a bad budget or a policy that
+    has one already."""
+    if inner.budget_steps is not None:
+        raise PolicySpecError("a policy has one budget ('@<steps>' once)", spec)
+    if getattr(inner, "chooses_budget", False):
+        raise PolicySpecError(f"{inner.kind} chooses each decision's budget itself: no "
+                              "'@<steps>'", spec)
+    if isinstance(steps, str):
+        text = steps.strip()
+        if not text.isdigit():
+            raise PolicySpecError(f"budget {text!r} after '@' is not a whole number of "
+                                  "training steps", spec)
+        steps = int(text)
+    try:
+        return Budgeted(inner, steps)  # type: ignore[arg-type]  # checked by check_budget
+    except ValueError as err:
+        raise PolicySpecError(str(err), spec) from None
 
 
 # Helpers for kinds' parsers: each raises PolicySpecError with a precise problem.

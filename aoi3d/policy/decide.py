@@ -16,13 +16,19 @@ all of them. A decision taken at epoch t:
    (``policy.observe``; the caller's ``deliveries(s)``, none when the caller has no such
    record): what an adaptive policy (:mod:`aoi3d.policy.adaptive`) estimates the channel
    from;
-5. selects: ``policy.select(Δ(s))``, or the caller's ``act(Δ(s), s)`` when an agent acts
+5. tells the policy the expected lag from the decision to its display, when the caller
+   knows it (``policy.observe_lag``; the caller's :class:`~aoi3d.policy.budget.DisplayLag`:
+   the live pool's measured queue and compute, the virtual clock's cost model);
+6. selects: ``policy.select(Δ(s))``, or the caller's ``act(Δ(s), s)`` when an agent acts
    in the policy's place (the env's action, the learner's sampled bits);
-6. drops every camera whose AoI is unknown, whatever was selected.
+7. drops every camera whose AoI is unknown, whatever was selected;
+8. asks the policy the decision's budget (``policy.budget_for(Δ(s))``: the training steps
+   its render may take; None: the caller's default) — the budget travels with the decision.
 
 The :class:`Selection` holds s (the time the selection is for: the render made from it is
-scored against the truth at s), the whole AoI and U vectors, and the mask; callers read the
-selected cameras, their generation times and their AoIs from it.
+scored against the truth at s), the whole AoI and U vectors, the mask, the budget and the
+expected lag; callers read the selected cameras, their generation times and their AoIs from
+it.
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from aoi3d.policy.base import Policy, as_aoi_vector
+from aoi3d.policy.budget import DisplayLag, check_budget
 
 __all__ = ["Act", "Deliveries", "NewestAt", "Selection", "decide"]
 
@@ -67,6 +74,11 @@ class Selection:
     newest_ms: np.ndarray
     mask: np.ndarray
     policy: str
+    budget_steps: int | None = None
+    """The training steps the decision's render may take (None: the caller's default)."""
+    lag_ms: float = math.nan
+    """The expected lag from the decision to its display at that budget (NaN: the caller
+    gave none)."""
 
     @property
     def indices(self) -> np.ndarray:
@@ -103,14 +115,17 @@ class Selection:
 
 
 def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
-           act: Act | None = None, deliveries: Deliveries | None = None) -> Selection:
+           act: Act | None = None, deliveries: Deliveries | None = None,
+           lag: DisplayLag | None = None) -> Selection:
     """Take the decision of epoch ``decision_ms`` (see the module docstring).
 
     ``newest_at``: the caller's U(s) (the simulated links' ``newest_ms``, the scheduler's
     tracker). ``act``: an agent's selection in place of ``policy.select`` (the policy still
     says when to select and names the decision). ``deliveries``: the caller's record of the
-    frames delivered since its previous decision (handed to ``policy.observe``). A
-    selection of the wrong shape raises ``ValueError``.
+    frames delivered since its previous decision (handed to ``policy.observe``). ``lag``: the
+    caller's expected lag from a decision to its display (handed to ``policy.observe_lag``;
+    its ``default_steps`` is the caller's budget of a decision that names none). A
+    selection of the wrong shape, or a budget out of range, raises ``ValueError``.
     """
     wait = policy.wait_ms
     if isinstance(wait, bool) or not isinstance(wait, int | np.integer) or wait < 0:
@@ -119,10 +134,16 @@ def decide(policy: Policy, decision_ms: Any, newest_at: NewestAt, *,
     newest = as_aoi_vector(newest_at(eval_ms))
     aoi = eval_ms - newest
     policy.observe(eval_ms, deliveries(eval_ms) if deliveries is not None else ())
+    if lag is not None:
+        policy.observe_lag(lag)
     bits = policy.select(aoi) if act is None else act(aoi, eval_ms)
     mask = np.asarray(bits, dtype=bool)
     if mask.shape != aoi.shape:
         raise ValueError(f"policy {policy.spec!r} returned a selection of shape {mask.shape}, "
                          f"expected ({aoi.shape[0]},)")
+    budget = policy.budget_for(aoi)
+    if budget is not None:
+        budget = check_budget(budget, name=f"policy {policy.spec!r}'s budget")
     return Selection(decision_ms=decision_ms, eval_ms=eval_ms, aoi_ms=aoi, newest_ms=newest,
-                     mask=mask & ~np.isnan(aoi), policy=policy.spec)
+                     mask=mask & ~np.isnan(aoi), policy=policy.spec, budget_steps=budget,
+                     lag_ms=math.nan if lag is None else lag.lag_ms(budget))

@@ -221,7 +221,8 @@ class MetricsCore:
                          scene_time_ms=truth.scene_time_ms, psnr_db=q.psnr_db, ssim=q.ssim,
                          reward=q.reward, reward_terms=list(q.reward_terms),
                          training_step=render.training_step,
-                         truth_time_ms=truth.generation_ms, site=self.site)
+                         truth_time_ms=truth.generation_ms, site=self.site,
+                         render_steps=render.render_steps, ready_ms=display_ms)
         if q.lpips is not None:
             msg.lpips = q.lpips  # proto3 optional: left unset (absent) when unavailable
         if dyn is not None:

@@ -150,7 +150,9 @@ def get_decision(worker: Scheduler) -> DecisionResponse:
         selected=[FrameRefModel(camera_id=r.camera_id, sequence=r.sequence,
                                 generation_ms=r.generation_ms, aoi_ms=r.aoi_ms)
                   for r in msg.selected],
-        policy=msg.policy, gamma_ms=msg.gamma_ms if msg.HasField("gamma_ms") else None)
+        policy=msg.policy, gamma_ms=msg.gamma_ms if msg.HasField("gamma_ms") else None,
+        budget_steps=msg.budget_steps if msg.HasField("budget_steps") else None,
+        expected_lag_ms=msg.expected_lag_ms if msg.HasField("expected_lag_ms") else None)
 
 
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
@@ -168,7 +170,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                                decision_period_ms=settings.decision_period_ms,
                                inbox_size=settings.inbox_size,
                                learn=settings.learn_config(), device=settings.device,
-                               stall_s=common.stall_s)
+                               stall_s=common.stall_s,
+                               step_ms_prior=settings.step_ms * common.time_scale)
 
     app = service_app(title="aoi3d scheduler", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, per_site=True)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aoi3d.aoi import AoITracker
-from aoi3d.policy import Policy, decide
+from aoi3d.policy import LagEstimator, Policy, decide
 from services.kit.codec import FrameData, decode_frame
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
@@ -63,7 +63,8 @@ class SchedulerCore:
     ``incarnation``: this process's random id on every Decision (a restarted scheduler gets
     a new one, so the trainer follows it at once although it numbers from 1 again)."""
 
-    def __init__(self, n_cameras: int, incarnation: int | None = None) -> None:
+    def __init__(self, n_cameras: int, incarnation: int | None = None, *,
+                 step_ms_prior: float = 0.34) -> None:
         if n_cameras < 1:
             raise ValueError(f"n_cameras must be >= 1, got {n_cameras}")
         self.camera_ids: tuple[int, ...] = tuple(range(1, n_cameras + 1))
@@ -79,6 +80,8 @@ class SchedulerCore:
         # frames applied since the last decision, (camera index, gen, delivery): what the
         # decision step tells the policy (policy.observe)
         self._delivered: list[tuple[int, float, float]] = []
+        # the lag from a decision to its display, learned from the scored renders
+        self.lag = LagEstimator(step_ms_prior)
 
     def ingest(self, payload: bytes, now_ms: float) -> FrameData:
         """Validate a delivered frame and queue it until its delivery time (a frame without a
@@ -131,7 +134,8 @@ class SchedulerCore:
         selection is for (t, or t + ω for a waiting policy), with the next decision id."""
         decision_id = self.decision_id + 1
         bound = None if act is None else (lambda aoi, s: act(decision_id, aoi, s))
-        sel = decide(policy, t_ms, self.newest_at, act=bound, deliveries=self.deliveries)
+        sel = decide(policy, t_ms, self.newest_at, act=bound, deliveries=self.deliveries,
+                     lag=self.lag.estimate())
         selected = [
             pb.FrameRef(camera_id=cam, sequence=self.newest[cam].sequence,
                         generation_ms=self.newest[cam].generation_ms,
@@ -145,8 +149,19 @@ class SchedulerCore:
                           policy=sel.policy)
         if policy.gamma_ms is not None and math.isfinite(policy.gamma_ms):
             msg.gamma_ms = float(policy.gamma_ms)
+        if sel.budget_steps is not None:
+            msg.budget_steps = sel.budget_steps
+        if math.isfinite(sel.lag_ms):
+            msg.expected_lag_ms = sel.lag_ms
         self.last_decision = msg
         return msg
+
+    def observe_render(self, quality: pb.Quality) -> bool:
+        """A scored render of this scheduler's: its steps and its lag (ready − decision time)
+        teach the lag model; False when it carries neither (an older metrics service)."""
+        if not (quality.HasField("render_steps") and quality.HasField("ready_ms")):
+            return False
+        return self.lag.observe(quality.render_steps, quality.ready_ms - quality.time_ms)
 
     @property
     def cameras_known(self) -> int:

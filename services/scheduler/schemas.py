@@ -5,9 +5,9 @@ from __future__ import annotations
 import dataclasses
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, StrictBool
+from pydantic import BaseModel, ConfigDict, Field, StrictBool, StrictInt
 
-from aoi3d.policy import ACCEPTED_FORMS, Policy
+from aoi3d.policy import ACCEPTED_FORMS, BUDGET_MAX_STEPS, Policy
 from aoi3d.rl.online import LearnerStatus
 
 
@@ -16,7 +16,8 @@ class PolicyRequest(BaseModel):
 
     model_config = ConfigDict(extra="allow")
 
-    kind: str = Field(description="Policy kind: all, mat, freshest, wait or ppo.",
+    kind: str = Field(description="Policy kind: all, mat, freshest, wait, ppo, adaptive, or "
+                                  "the compute-aware dmat and deadline.",
                       examples=["mat"])
     mat_ms: float | None = Field(
         None, description="kind mat: the maximum acceptable AoI Γ in ms (finite, >= 0); "
@@ -37,6 +38,15 @@ class PolicyRequest(BaseModel):
         None, description="kind ppo: keep learning online from the rewards of the decisions "
                           "(default false: the deterministic action, nothing learned).",
         examples=[False])
+    budget_steps: StrictInt | None = Field(
+        None, ge=1, le=BUDGET_MAX_STEPS,
+        description="Any kind but deadline: the decision's training budget, the steps its "
+                    "reconstruction takes (the spec's '@<steps>', e.g. mat:70@50); absent: "
+                    "the pool's render_steps (PUT /carry on the trainer).", examples=[50])
+    deadline_ms: float | None = Field(
+        None, description="kind deadline: the budget is the largest whose render is on screen "
+                          "within deadline_ms of its decision (queue + compute, as learned "
+                          "from the renders).", examples=[100])
     save_to: str | None = Field(
         None, description="kind ppo with learn: file the online checkpoint is written to "
                           "(default <checkpoint stem>.online.pt next to the checkpoint; the "
@@ -99,6 +109,10 @@ class PolicyResponse(BaseModel):
     checkpoint: str | None = Field(None, description="kind ppo: the checkpoint loaded.",
                                    examples=[None])
     learn: bool | None = Field(None, description="kind ppo: learning online.", examples=[None])
+    budget_steps: int | None = Field(None, description="The decision's training budget; null: "
+                                     "the pool's render_steps.", examples=[50])
+    deadline_ms: float | None = Field(None, description="kind deadline: its deadline (ms).",
+                                      examples=[None])
     save_to: str | None = Field(None, description="kind ppo, learning: the online checkpoint.",
                                 examples=[None])
     spec: str = Field(description="The policy's text spec (as in the Decision messages).",
@@ -163,3 +177,10 @@ class DecisionResponse(BaseModel):
         default=None, description="Γ of the MAT rule the policy applied: an adaptive "
         "policy's Γ in force (it follows the channel); null for a policy without one.",
         examples=[100.0])
+    budget_steps: int | None = Field(
+        default=None, description="The decision's training budget (steps); null: the pool's "
+        "render_steps.", examples=[50])
+    expected_lag_ms: float | None = Field(
+        default=None, description="The scheduler's expected lag from the decision to its "
+        "display (sim ms), learned from the scored renders; null before any.",
+        examples=[35.6])

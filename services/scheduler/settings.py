@@ -56,6 +56,13 @@ class Settings(ServiceSettings):
         description="Torch CPU threads of this process (ppo policies); 0 keeps torch's "
                     "default.")
 
+    step_ms: float = Field(
+        3.4, ge=0, le=60_000, allow_inf_nan=False,
+        description="Wall ms per training step of the pool: the slope of the lag model "
+                    "(decision → display) until renders of two budgets teach it its own; "
+                    "what compute-aware policies (dmat, deadline) read, with the queue and "
+                    "fixed cost learned from the renders (aoi3d.policy.budget.LagEstimator).")
+
     @field_validator("policy")
     @classmethod
     def _valid_policy(cls, value: str) -> str:

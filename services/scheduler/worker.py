@@ -65,7 +65,7 @@ class SchedulerWorker:
                  clock: SimClock, policy: Policy, decision_period_ms: float = 30.0,
                  inbox_size: int = 1024, learn: LearnConfig | None = None,
                  device: str = "cpu", quality_inbox_size: int = 256,
-                 stall_s: float = 30.0) -> None:
+                 stall_s: float = 30.0, step_ms_prior: float = 0.34) -> None:
         if not (math.isfinite(decision_period_ms) and decision_period_ms > 0):
             raise ValueError(f"decision_period_ms must be > 0, got {decision_period_ms}")
         check_device(device)  # fail on a bad name now, not at the first policy with a model
@@ -77,7 +77,7 @@ class SchedulerWorker:
         self._period_ms = float(decision_period_ms)
         self._learn_cfg = learn or LearnConfig()
         self._device = device
-        self.core = SchedulerCore(n_cameras)
+        self.core = SchedulerCore(n_cameras, step_ms_prior=step_ms_prior)
         self.camera_ids = self.core.camera_ids
         self.incarnation = self.core.incarnation
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m.inbox_dropped.inc())
@@ -294,6 +294,7 @@ class SchedulerWorker:
         if msg.decision_incarnation != self.incarnation:
             return  # scores a decision of another scheduler process (before a restart)
         with self._lock:
+            self.core.observe_render(msg)  # the lag model learns the decision → display lag
             policy = self._policy
             if policy.wants_quality:  # a policy rewarded by quality (adaptive:bandit)
                 policy.observe_quality(msg.time_ms, quality_scores(msg))

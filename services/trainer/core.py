@@ -230,8 +230,10 @@ class TrainerCore:
         with the render settings ``r``."""
         msg = self._decisions[assignment.decision.key]
         pose, intrinsics = camera_to_pb(self.heldout)
+        # the decision's own budget (a policy's "@<steps>") wins over the pool's render_steps
+        steps = msg.budget_steps if msg.HasField("budget_steps") else r.render_steps
         job = pb.Job(decision=msg, backend=r.backend, carry=r.carry,
-                     render_steps=r.render_steps, seed=r.seed, model_epoch=r.model_epoch,
+                     render_steps=steps, seed=r.seed, model_epoch=r.model_epoch,
                      cold_steps=r.cold_steps, warm_max_gap_ms=r.warm_max_gap_ms,
                      pose=pose, intrinsics=intrinsics, aabb=self._aabb,
                      assigned_unix_s=now_s, site=self.site)

@@ -79,9 +79,12 @@ def publish_trace(h: Harness, links: EpisodeLinks) -> int:
 
 
 @pytest.mark.parametrize(("spec", "seed"), [("all", 3), ("mat:70", 3), ("freshest:2", 8),
-                                            ("wait:45", 3), ("wait:20", 8)])
+                                            ("wait:45", 3), ("wait:20", 8), ("mat:70@50", 3),
+                                            ("freshest:2@25", 8), ("all@100", 3)])
 def test_live_scheduler_decides_as_the_experiment(spec: str, seed: int, cfg: EpisodeConfig,
                                                    dataset: SceneDataset, live) -> None:
+    if parse_policy(spec).budget_steps is not None:  # a budget needs a carry that spends one
+        cfg = cfg.with_(carry="fresh")
     plan = plan_episode(cfg, dataset, spec, seed)
     links = episode_links(cfg, dataset, seed, wait_ms=parse_policy(spec).wait_ms)
     assert links.camera_ids == tuple(range(1, N + 1))  # the scheduler's camera ids
@@ -97,6 +100,8 @@ def test_live_scheduler_decides_as_the_experiment(spec: str, seed: int, cfg: Epi
         assert [r.aoi_ms for r in got.selected] == list(d.aoi_ms), d
         known = [a for a in got.aoi_ms if a == a]
         assert len(known) == d.n_known
+        # the budget travels in the decision, the same live and offline
+        assert (got.budget_steps if got.HasField("budget_steps") else None) == d.budget_steps
 
 
 def test_live_ppo_policy_decides_as_the_experiment(cfg: EpisodeConfig, dataset: SceneDataset,

@@ -194,7 +194,7 @@ def test_a_new_kind_plugs_in_through_the_registry() -> None:
 
 # --- the registry and the decision step ------------------------------------------------------
 def test_importing_the_package_registers_every_kind_without_torch_or_upward_imports() -> None:
-    """A fresh interpreter: ``import aoi3d.policy`` alone knows all five kinds, in one order,
+    """A fresh interpreter: ``import aoi3d.policy`` alone knows every policy kind, in one order,
     and loads neither torch nor aoi3d.rl nor aoi3d.experiment."""
     import subprocess
     import sys
@@ -205,7 +205,8 @@ def test_importing_the_package_registers_every_kind_without_torch_or_upward_impo
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, timeout=60).stdout.splitlines()
     assert out == ["['all', 'mat:<ms>', 'freshest:<k>', 'wait:<ms>', 'ppo:<checkpoint>', "
-                   "'adaptive:<plugin|bandit>']", "[]"]
+                   "'adaptive:<plugin|bandit>', 'dmat:<ms>', 'deadline:<ms>:<deadline_ms>']",
+                   "[]"]
 
 
 def test_decide_takes_the_aoi_at_t_plus_the_wait_and_never_an_unknown_camera() -> None:
@@ -285,6 +286,13 @@ def test_a_policy_missing_a_member_is_not_a_policy() -> None:
 
         def on_device(self, device: str):
             return self
+
+        budget_steps = None
+
+        def observe_lag(self, lag) -> None: ...
+
+        def budget_for(self, aoi_ms):
+            return None
 
     assert not isinstance(Bare(), Policy)
     Bare.wait_ms = 0

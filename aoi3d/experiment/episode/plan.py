@@ -14,7 +14,7 @@ import numpy as np
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.experiment.episode.links import EpisodeLinks, episode_links
 from aoi3d.field import field_config
-from aoi3d.policy import Policy, Selection, decide, parse_policy
+from aoi3d.policy import DisplayLag, Policy, Selection, decide, parse_policy
 from aoi3d.scene import SceneDataset
 
 ENGINE_VERSION = 1
@@ -28,7 +28,8 @@ class PlannedDecision:
     ``cameras``: the selected camera ids; ``gen_ms``: the generation slot U_n(eval_ms) of each
     one's newest delivered frame; ``aoi_ms``: their AoI at ``eval_ms``. ``n_known``: cameras
     with some delivered frame. ``train``: the model trains on this selection; ``scored``: the
-    novel view is rendered and scored after it.
+    novel view is rendered and scored after it. ``budget_steps``: the decision's budget
+    (:mod:`aoi3d.policy.budget`; None: the config's, :func:`render_budget`).
     """
 
     decision_ms: int
@@ -40,14 +41,18 @@ class PlannedDecision:
     mean_aoi_all_ms: float
     train: bool
     scored: bool
+    budget_steps: int | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {
+        doc: dict[str, Any] = {
             "decision_ms": self.decision_ms, "eval_ms": self.eval_ms,
             "cameras": list(self.cameras), "gen_ms": list(self.gen_ms),
             "aoi_ms": list(self.aoi_ms), "n_known": self.n_known,
             "mean_aoi_all_ms": self.mean_aoi_all_ms, "train": self.train, "scored": self.scored,
         }
+        if self.budget_steps is not None:  # absent: the config's (older plans read the same)
+            doc["budget_steps"] = self.budget_steps
+        return doc
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> PlannedDecision:
@@ -57,6 +62,7 @@ class PlannedDecision:
             aoi_ms=tuple(float(a) for a in d["aoi_ms"]), n_known=int(d["n_known"]),
             mean_aoi_all_ms=float(d["mean_aoi_all_ms"]), train=bool(d["train"]),
             scored=bool(d["scored"]),
+            budget_steps=None if d.get("budget_steps") is None else int(d["budget_steps"]),
         )
 
 
@@ -106,7 +112,7 @@ def planned_decision(sel: Selection, camera_ids: Sequence[int], *, train: bool,
         gen_ms=tuple(int(g) for g in sel.gen_ms),
         aoi_ms=tuple(float(a) for a in sel.selected_aoi_ms),
         n_known=int(sel.known.sum()), mean_aoi_all_ms=sel.mean_aoi_all_ms,
-        train=train, scored=scored,
+        train=train, scored=scored, budget_steps=sel.budget_steps,
     )
 
 
@@ -129,6 +135,9 @@ def plan_episode(
         links = episode_links(cfg, dataset, seed, wait_ms=wait)
     elif links.seed != seed:
         raise ValueError(f"links of seed {links.seed} given for episode seed {seed}")
+    if pol.budget_steps is not None or getattr(pol, "chooses_budget", False):
+        check_budget_applies(cfg)
+    lag = display_lag(cfg)
     times = cfg.decision_times_ms()
     first_scored = next(i for i, t in enumerate(times) if t >= cfg.warmup_ms)
     decisions = []
@@ -136,7 +145,7 @@ def plan_episode(
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
         train = scored or cfg.carry in ("warm", "fork")  # they train at every decision
-        sel = decide(pol, t, links.newest_ms, deliveries=feed)
+        sel = decide(pol, t, links.newest_ms, deliveries=feed, lag=lag)
         decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
         config=cfg, policy=pol.spec, seed=links.seed, wait_ms=wait,
@@ -172,8 +181,9 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
                                          if cfg.reward.dynamic else [])],
         "seed": plan.seed, "scene_offset_ms": plan.scene_offset_ms,
         "decisions": [
-            [d.eval_ms, d.cameras, d.gen_ms, d.train, d.scored] for d in plan.decisions
-            if d.train or d.scored
+            [d.eval_ms, d.cameras, d.gen_ms, d.train, d.scored,
+             *([] if d.budget_steps is None else [d.budget_steps])]
+            for d in plan.decisions if d.train or d.scored
         ],
     }
     text = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str)
@@ -194,6 +204,29 @@ def _field_dict(cfg: EpisodeConfig) -> dict[str, Any]:
     return {"backend": cfg.backend, "type": type(fc).__name__, **out}
 
 
+def display_lag(cfg: EpisodeConfig) -> DisplayLag:
+    """The virtual clock's lag from a decision to its display: the cost model of the config
+    (:meth:`EpisodeConfig.compute_ms`: fixed + per step, at its time scale), no queue; the
+    default budget :func:`render_budget`."""
+    scale = cfg.time_scale
+    return DisplayLag(fixed_ms=cfg.compute_fixed_ms * scale, step_ms=cfg.compute_step_ms * scale,
+                      default_steps=render_budget(cfg))
+
+
+def check_budget_applies(cfg: EpisodeConfig) -> None:
+    """``ValueError`` unless the config's carry spends a budget per rendered decision (the
+    ``warm`` carry renders its continuously trained model as it is)."""
+    if cfg.carry == "warm":
+        raise ValueError("a decision's budget ('@<steps>') applies to the fresh, stream and "
+                         "fork carries; the warm carry renders its model as it is")
+
+
+def decision_budget(cfg: EpisodeConfig, d: PlannedDecision) -> int:
+    """The steps spent on a scored decision's own frames: its own budget, else the
+    config's (:func:`render_budget`)."""
+    return render_budget(cfg) if d.budget_steps is None else d.budget_steps
+
+
 def render_budget(cfg: EpisodeConfig) -> int:
     """Steps spent on a scored decision's own frames: ``fresh`` trains each scored decision
     ``steps_per_epoch`` steps from scratch, ``fork`` a copy of the warm model
@@ -207,8 +240,7 @@ def total_steps(plan: EpisodePlan) -> int:
     """Training steps an episode takes (background and per scored decision)."""
     cfg = plan.config
     background = cfg.steps_per_epoch if cfg.carry in ("warm", "fork") else 0
-    per_render = render_budget(cfg)
-    total = sum((background if d.train else 0) + (per_render if d.scored else 0)
+    total = sum((background if d.train else 0) + (decision_budget(cfg, d) if d.scored else 0)
                 for d in plan.decisions if d.cameras)
     if cfg.carry == "stream" and any(d.scored and d.cameras for d in plan.decisions):
         total += cfg.steps_per_epoch - cfg.render_steps  # the first, cold, start (at least)

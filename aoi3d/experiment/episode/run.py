@@ -11,7 +11,12 @@ from dataclasses import replace
 import numpy as np
 from PIL import Image
 
-from aoi3d.experiment.episode.plan import EpisodePlan, PlannedDecision, render_budget
+from aoi3d.experiment.episode.plan import (
+    EpisodePlan,
+    PlannedDecision,
+    decision_budget,
+    render_budget,
+)
 from aoi3d.experiment.episode.result import EpisodeResult, EpochScore, episode_result
 from aoi3d.field import FieldTrainer, TrainView, field_config
 from aoi3d.field.carry import Reconstruction, WarmStart
@@ -91,6 +96,9 @@ def run_plan(
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
+        budget = decision_budget(cfg, d)
+        if budget != rec.render_steps:
+            rec.set_carry(cfg.carry, budget)
         rendered = rec.render_decision(heldout, time_ms=d.eval_ms)
         if rendered.render_steps:
             loss = rendered.loss

@@ -112,7 +112,7 @@ class FrameRef(_message.Message):
     def __init__(self, camera_id: _Optional[int] = ..., sequence: _Optional[int] = ..., generation_ms: _Optional[float] = ..., aoi_ms: _Optional[float] = ...) -> None: ...
 
 class Decision(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy", "incarnation", "gamma_ms")
+    __slots__ = ("decision_id", "time_ms", "camera_ids", "aoi_ms", "selected", "policy", "incarnation", "gamma_ms", "budget_steps", "expected_lag_ms")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
@@ -121,6 +121,8 @@ class Decision(_message.Message):
     POLICY_FIELD_NUMBER: _ClassVar[int]
     INCARNATION_FIELD_NUMBER: _ClassVar[int]
     GAMMA_MS_FIELD_NUMBER: _ClassVar[int]
+    BUDGET_STEPS_FIELD_NUMBER: _ClassVar[int]
+    EXPECTED_LAG_MS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     camera_ids: _containers.RepeatedScalarFieldContainer[int]
@@ -129,7 +131,9 @@ class Decision(_message.Message):
     policy: str
     incarnation: int
     gamma_ms: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ..., gamma_ms: _Optional[float] = ...) -> None: ...
+    budget_steps: int
+    expected_lag_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ..., gamma_ms: _Optional[float] = ..., budget_steps: _Optional[int] = ..., expected_lag_ms: _Optional[float] = ...) -> None: ...
 
 class Render(_message.Message):
     __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s", "frame_camera_ids")
@@ -264,7 +268,7 @@ class Outcome(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[_Union[EndReason, str]] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site", "display_time_ms", "psnr_display_db", "ssim_display", "lpips_display", "reward_display", "psnr_dynamic_display_db", "display_truth_time_ms")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site", "display_time_ms", "psnr_display_db", "ssim_display", "lpips_display", "reward_display", "psnr_dynamic_display_db", "display_truth_time_ms", "render_steps", "ready_ms")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -287,6 +291,8 @@ class Quality(_message.Message):
     REWARD_DISPLAY_FIELD_NUMBER: _ClassVar[int]
     PSNR_DYNAMIC_DISPLAY_DB_FIELD_NUMBER: _ClassVar[int]
     DISPLAY_TRUTH_TIME_MS_FIELD_NUMBER: _ClassVar[int]
+    RENDER_STEPS_FIELD_NUMBER: _ClassVar[int]
+    READY_MS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -309,7 +315,9 @@ class Quality(_message.Message):
     reward_display: float
     psnr_dynamic_display_db: float
     display_truth_time_ms: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ...) -> None: ...
+    render_steps: int
+    ready_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ..., render_steps: _Optional[int] = ..., ready_ms: _Optional[float] = ...) -> None: ...
 
 class ViewRequest(_message.Message):
     __slots__ = ("site", "format", "pose", "intrinsics", "resolution", "alpha")
