@@ -37,17 +37,20 @@ def _summary(result, baseline) -> dict:
     """Means over the rebuilt decisions and the paired differences to ``baseline``."""
     import numpy as np
 
+    from aoi3d.metric import SCORES
+
     def quality(r):
         return {(d.site, d.key): d for d in r.decisions if d.quality is not None}
 
     mine, base = quality(result), quality(baseline)
     keys = [k for k in mine if k in base]
     out: dict = {"policy": result.policy, "n": len(keys)}
-    for name in ("psnr_db", "ssim", "lpips", "reward"):
+    for metric in SCORES:
+        name = metric.name
         vals = [getattr(mine[k].quality, name) for k in keys
-                if name != "lpips" or mine[k].quality.HasField("lpips")]
+                if not metric.optional or mine[k].quality.HasField(name)]
         out[name] = float(np.mean(vals)) if vals else None
-        if name != "lpips" or (vals and len(vals) == len(keys)):
+        if not metric.optional or (vals and len(vals) == len(keys)):
             out[f"{name}_vs_recorded"] = _paired(
                 [getattr(mine[k].quality, name) for k in keys],
                 [getattr(base[k].quality, name) for k in keys])

@@ -17,6 +17,15 @@ from typing import Any
 import numpy as np
 
 from aoi3d.experiment.optimum import rederived
+from aoi3d.metric import (
+    BY_NAME,
+    LPIPS,
+    PSNR_DISPLAY,
+    PSNR_DYNAMIC_DISPLAY,
+    REWARD,
+    SSIM,
+    names_of,
+)
 from aoi3d.policy import PolicyKind, kind_of
 from aoi3d.stats import PairedDifference, paired_difference
 
@@ -80,15 +89,13 @@ def _diff(d: Mapping[str, Any], digits: int = 2) -> str:
     return text
 
 
-_NAMES = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR",
-          "psnr_display_db": "PSNR at display time",
-          "psnr_dynamic_display_db": "dynamic-region PSNR at display time", "ssim": "SSIM",
-          "ssim_dynamic": "dynamic-region SSIM", "lpips": "LPIPS", "reward": "the reward"}
-
-
 def metric_name(metric: str) -> str:
-    """A metric's name in words (``psnr_dynamic_db`` → ``dynamic-region PSNR``)."""
-    return _NAMES.get(metric, metric)
+    """A metric's name in words (``psnr_dynamic_db`` → ``dynamic-region PSNR``: its label in
+    :mod:`aoi3d.metric`; ``the reward`` in a sentence); a name that is not a metric's as it is."""
+    found = BY_NAME.get(metric)
+    if found is None:
+        return metric
+    return f"the {found.label}" if found is REWARD else found.label
 
 
 def _seeds(seeds: Sequence[int]) -> str:
@@ -118,7 +125,7 @@ def tradeoff_interior_optimum(tradeoff: Mapping[str, Any], metric: str = "psnr_d
 
 
 def scores_agree_on_the_optimum(tradeoff: Mapping[str, Any],
-                                metrics: Sequence[str] = ("ssim", "lpips", "reward")
+                                metrics: Sequence[str] = names_of((SSIM, LPIPS, REWARD))
                                 ) -> Verdict:
     """SSIM, LPIPS and the reward each have an interior optimum, and each one's best Γ lies
     in the PSNR optimum set."""
@@ -432,7 +439,7 @@ def adaptive_beats_best_rule(compare: Mapping[str, Any], metric: str = "psnr_db"
     return Verdict("adaptive-beats-best-rule", statement, holds, evidence, numbers)
 
 
-DISPLAY_METRIC = "psnr_display_db"
+DISPLAY_METRIC = PSNR_DISPLAY.name
 """The display-time PSNR: the render against the truth at the time it is ready (its decision
 time plus its compute, :meth:`aoi3d.experiment.config.EpisodeConfig.compute_ms`)."""
 
@@ -443,7 +450,7 @@ def at_display_time(tradeoff: Mapping[str, Any], delay: Mapping[str, Any],
     their display-time scores (``psnr_display_db``, ``psnr_dynamic_display_db``). Each
     verdict's id ends in ``@display``. The PPO claims are not asked: the agent learned the
     decision-time reward."""
-    dyn = "psnr_dynamic_display_db"
+    dyn = PSNR_DYNAMIC_DISPLAY.name
     t = rederived(tradeoff, (DISPLAY_METRIC, dyn), ordered=True)
     verdicts = [tradeoff_interior_optimum(t, DISPLAY_METRIC),
                 tradeoff_interior_optimum(t, dyn) if dyn in t["optimum"] else None,

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from aoi3d.metric import BY_NAME
 from aoi3d.policy import Policy, decide, parse_policy
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed
@@ -193,7 +194,7 @@ def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:
             continue
         live = rec.sites[d.site].qualities[d.key]
         for name in SCORES:
-            if name in ("lpips", "psnr_dynamic_db", "ssim_dynamic") and not (
+            if BY_NAME[name].optional and not (
                     live.HasField(name) and d.quality.HasField(name)):
                 continue
             diff = abs(getattr(d.quality, name) - getattr(live, name))
