@@ -6,13 +6,14 @@ model reset, backend switch and the latest novel-view render."""
 from __future__ import annotations
 
 import time
-from typing import Annotated, Literal
+from typing import Annotated
 
 from fastapi import APIRouter, Body, Depends, FastAPI, HTTPException, Request
 from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
+from aoi3d.field.carry import CarryMode
 from aoi3d.rigfile import load_rig
 from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import include_site_routers, service_app
@@ -115,7 +116,7 @@ def put_backend(worker: Worker,
 class CarryRequest(BaseModel):
     """How renders are made from the next render on."""
 
-    carry: Literal["fork", "fresh", "stream", "warm"] = Field(
+    carry: CarryMode = Field(
         description="fresh: a new model trains `render_steps` steps on the rendered "
                     "decision's frames alone, then renders (the paper's per-time "
                     "reconstruction; the default); stream: each worker starts from its "
