@@ -70,6 +70,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from aoi3d.metric import LPIPS, PSNR, PSNR_DYNAMIC, REWARD_TERMS, SSIM, SSIM_DYNAMIC
+
 __all__ = [
     "DYNAMIC_DILATION_PX",
     "DYNAMIC_FRAMES",
@@ -251,6 +253,7 @@ class RewardWeights:
     :data:`DYNAMIC_REWARD` weights what moves instead: the dynamic region's PSNR and SSIM in
     place of the full image's (see :func:`score` for a render with nothing moving)."""
 
+    # The fields are :data:`aoi3d.metric.REWARD_TERMS`, in their order (tests/unit/test_metric.py).
     psnr: float = 0.02
     ssim: float = 0.5
     lpips: float = -1.0
@@ -258,7 +261,7 @@ class RewardWeights:
     ssim_dynamic: float = 0.0
 
     def __post_init__(self) -> None:
-        for name in ("psnr", "ssim", "lpips", "psnr_dynamic", "ssim_dynamic"):
+        for name in REWARD_TERMS:
             if not math.isfinite(getattr(self, name)):
                 raise ValueError(f"reward weight {name} must be finite, got {getattr(self, name)}")
 
@@ -270,8 +273,8 @@ class RewardWeights:
     def terms(self, lpips: bool) -> tuple[str, ...]:
         """The terms a reward with these weights is built from (those weighed, not 0), LPIPS
         only where it is available (``lpips``)."""
-        names = ("psnr", "ssim", *(("lpips",) if lpips else ()), "psnr_dynamic", "ssim_dynamic")
-        return tuple(n for n in names if getattr(self, n) != 0.0)
+        return tuple(n for n in REWARD_TERMS
+                     if getattr(self, n) != 0.0 and (lpips or n != LPIPS.short))
 
 
 DYNAMIC_REWARD = RewardWeights(psnr=0.0, ssim=0.0, lpips=-1.0, psnr_dynamic=0.02,
@@ -320,7 +323,7 @@ def score(
     if previous is not None and len(previous) > 0:
         dynamic = _dynamic(p, t, dynamic_mask(truth, previous), ssim_map)
     reward = w.psnr * psnr_db + w.ssim * ssim_value
-    terms: tuple[str, ...] = ("psnr", "ssim")
+    terms: tuple[str, ...] = (PSNR.short, SSIM.short)
     lpips_value: float | None = None
     if lpips_fn is not None:
         p32 = _as_unit_float(pred, "pred").astype(np.float32)
@@ -329,14 +332,14 @@ def score(
         if not math.isfinite(lpips_value):
             raise ValueError(f"lpips_fn returned a non-finite value: {lpips_value}")
         reward += w.lpips * lpips_value
-        terms = (*terms, "lpips")
+        terms = (*terms, LPIPS.short)
     if w.dynamic:
         if dynamic is None:
             raise ValueError("the reward weighs the dynamic region (psnr_dynamic, "
                              "ssim_dynamic) but no earlier truth frames were given")
-        for name, weight, value, full in (("psnr_dynamic", w.psnr_dynamic, dynamic.psnr_db,
+        for name, weight, value, full in ((PSNR_DYNAMIC.short, w.psnr_dynamic, dynamic.psnr_db,
                                            psnr_db),
-                                          ("ssim_dynamic", w.ssim_dynamic, dynamic.ssim,
+                                          (SSIM_DYNAMIC.short, w.ssim_dynamic, dynamic.ssim,
                                            ssim_value)):
             if weight == 0.0:
                 continue

@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Any
 
 from rich.table import Table
 
+from aoi3d.metric import BY_NAME, LIVE, PSNR, PSNR_DYNAMIC, REWARD
 from aoi3d_cli.common import fmt, short_label
 from aoi3d_cli.experiment_shared import console
 
@@ -22,10 +23,8 @@ def print_rows(rows: Sequence[dict[str, Any]], first: str, title: str) -> None:
                  "cameras", "AoI used (ms)"):
         table.add_column(name, justify="right")
     for r in rows:
-        table.add_row(str(r[first]), str(r["n"]), fmt(r["psnr_db"], r["psnr_db_ci95"]),
-                      fmt(r["psnr_dynamic_db"], r["psnr_dynamic_db_ci95"]),
-                      fmt(r["ssim"], r["ssim_ci95"], 3), fmt(r["lpips"], r["lpips_ci95"], 3),
-                      fmt(r["reward"], r["reward_ci95"], 3),
+        table.add_row(str(r[first]), str(r["n"]),
+                      *(fmt(r[m], r[f"{m}_ci95"], BY_NAME[m].digits) for m in LIVE),
                       fmt(r["n_selected"], None, 1), fmt(r["aoi_used_ms"], None, 0))
     console.print(table)
 
@@ -74,11 +73,11 @@ def print_bound(spec: str, doc: dict[str, Any]) -> None:
         f"{cost['compute_s']:.0f} s of compute")
     table = Table(title=f"{spec} − policy (paired; positive: the bound is better)")
     table.add_column("policy")
-    for name in ("psnr_db", "psnr_dynamic_db", "reward"):
-        table.add_column(name, justify="right")
-    for p in doc["minus"]["psnr_db"]:
-        table.add_row(short_label(p), *(fmt(doc["minus"][m][p]["mean"],
-                                             doc["minus"][m][p]["ci95"],
-                                             3 if m == "reward" else 2)
-                                         for m in ("psnr_db", "psnr_dynamic_db", "reward")))
+    shown = (PSNR, PSNR_DYNAMIC, REWARD)
+    for m in shown:
+        table.add_column(m.name, justify="right")
+    for p in doc["minus"][PSNR.name]:
+        table.add_row(short_label(p), *(fmt(doc["minus"][m.name][p]["mean"],
+                                             doc["minus"][m.name][p]["ci95"], m.digits)
+                                         for m in shown))
     console.print(table)

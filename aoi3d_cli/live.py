@@ -28,6 +28,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from aoi3d.metric import BY_NAME, LIVE
 from aoi3d.ports import REST_FIRST, REST_LAST, ZENOH_PORT
 from aoi3d_cli.common import fmt, make_console
 
@@ -200,9 +201,9 @@ def _table(result: LiveSweep) -> Table:
         return fmt(stat.get("mean"), stat.get("ci95"), digits)
 
     for r in result.results:
-        cells = [escape(r["policy"]), str(r["n"]), cell(r["psnr_db"], 2),
-                 cell(r["psnr_dynamic_db"], 2), cell(r["ssim"], 3), cell(r["lpips"], 3),
-                 cell(r["reward"], 3), cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
+        cells = [escape(r["policy"]), str(r["n"]),
+                 *(cell(r[m], BY_NAME[m].digits) for m in LIVE),
+                 cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
         if result.sim is not None:
             s = result.sim.get(r["policy"], {}).get("psnr_db", {}).get("mean")
             live = r["psnr_db"]["mean"]

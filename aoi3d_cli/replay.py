@@ -10,20 +10,13 @@ epoch with the recorded policy's replayed scores (docs/recording.md).
 from __future__ import annotations
 
 import json
-import math
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from aoi3d.metric import PSNR, REWARD, SSIM
 from aoi3d_cli.common import fail, fmt, make_console, stop_on_signal
-
-
-def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
-    """Mean of a − b and its Student-t 95% half-width (None below two pairs)."""
-    from aoi3d.stats import mean_ci95
-
-    return mean_ci95([x - y for x, y in zip(a, b, strict=True)]).to_dict()
 
 
 def _scored_total(rec, sites) -> int:
@@ -31,32 +24,6 @@ def _scored_total(rec, sites) -> int:
     return sum(1 for name, srec in rec.sites.items() if sites is None or name in sites
                for d in srec.decisions
                if (k := (d.incarnation, d.decision_id)) in srec.renders and k in srec.qualities)
-
-
-def _summary(result, baseline) -> dict:
-    """Means over the rebuilt decisions and the paired differences to ``baseline``."""
-    import numpy as np
-
-    def quality(r):
-        return {(d.site, d.key): d for d in r.decisions if d.quality is not None}
-
-    mine, base = quality(result), quality(baseline)
-    keys = [k for k in mine if k in base]
-    out: dict = {"policy": result.policy, "n": len(keys)}
-    for name in ("psnr_db", "ssim", "lpips", "reward"):
-        vals = [getattr(mine[k].quality, name) for k in keys
-                if name != "lpips" or mine[k].quality.HasField("lpips")]
-        out[name] = float(np.mean(vals)) if vals else None
-        if name != "lpips" or (vals and len(vals) == len(keys)):
-            out[f"{name}_vs_recorded"] = _paired(
-                [getattr(mine[k].quality, name) for k in keys],
-                [getattr(base[k].quality, name) for k in keys])
-    out["cameras_used"] = float(np.mean([len(mine[k].selected) for k in keys])) if keys \
-        else None
-    aoi = [mine[k].mean_aoi_selected_ms for k in keys
-           if math.isfinite(mine[k].mean_aoi_selected_ms)]
-    out["aoi_selected_ms"] = float(np.mean(aoi)) if aoi else None
-    return out
 
 
 def replay(
@@ -120,7 +87,7 @@ def replay(
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
     from services.recorder.recording import load
-    from services.recorder.replay import rebuildable_keys, score_diffs
+    from services.recorder.replay import Counterfactual, rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
     console = make_console(stderr=json_out)
@@ -153,6 +120,7 @@ def replay(
     except (ValueError, PolicySpecError) as err:
         fail(err)
     diffs = score_diffs(rec, base)
+    rows = [Counterfactual.of(r, base) for r in [base, *others]] if score else []
     doc = {
         "recording": str(recording), "files": [str(f) for f in rec.files],
         "sites": sorted(site or rec.sites),
@@ -169,7 +137,7 @@ def replay(
         "paired_epochs": None if paired is None else len(paired),
         "max_abs_score_diff": max(diffs.values()) if diffs else None,
         "score_diffs": diffs,
-        "counterfactual": [_summary(r, base) for r in [base, *others]] if score else [],
+        "counterfactual": [row.to_dict() for row in rows],
     }
     from services.recorder.arrivals import arrivals
 
@@ -186,7 +154,7 @@ def replay(
     if diffs:
         console.print("max |replayed − recorded|: " + ", ".join(
             f"{k} {v:.2e}" for k, v in diffs.items()))
-    if doc["counterfactual"]:
+    if rows:
         from rich.table import Table
 
         table = Table(title="the same arrivals, paired by decision epoch (Δ: − recorded, "
@@ -194,13 +162,13 @@ def replay(
         for col in ("policy", "n", "PSNR dB", "Δ PSNR", "SSIM", "Δ SSIM", "reward",
                     "cameras", "AoI used ms"):
             table.add_column(col)
-        for row in doc["counterfactual"]:
-            dp, ds = row["psnr_db_vs_recorded"], row["ssim_vs_recorded"]
-            table.add_row(row["policy"], str(row["n"]), fmt(row["psnr_db"]),
-                          fmt(dp["mean"], dp["ci95"]), fmt(row["ssim"], digits=3),
-                          fmt(ds["mean"], ds["ci95"], digits=3), fmt(row["reward"], digits=3),
-                          fmt(row["cameras_used"], digits=1),
-                          fmt(row["aoi_selected_ms"], digits=0))
+        for row in rows:
+            dp, ds = row.vs_recorded[PSNR.name], row.vs_recorded[SSIM.name]
+            table.add_row(row.policy, str(row.n), fmt(row.means[PSNR.name]),
+                          fmt(dp.mean, dp.half), fmt(row.means[SSIM.name], digits=3),
+                          fmt(ds.mean, ds.half, digits=3),
+                          fmt(row.means[REWARD.name], digits=3),
+                          fmt(row.cameras_used, digits=1), fmt(row.aoi_selected_ms, digits=0))
         console.print(table)
 
 

@@ -30,6 +30,15 @@ import numpy as np
 
 from aoi3d.experiment import ResultCache, get_preset, run_jobs
 from aoi3d.experiment.sweep import Job, mean_ci95
+from aoi3d.metric import (
+    PSNR,
+    PSNR_DISPLAY,
+    PSNR_DYNAMIC,
+    PSNR_DYNAMIC_DISPLAY,
+    REWARD,
+    REWARD_DISPLAY,
+    names_of,
+)
 from aoi3d.policy import MatPolicy
 from bench import common
 
@@ -84,8 +93,8 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict:
     rows: list[dict[str, Any]] = []
     for (gamma, steps), results in sorted(cells.items()):
         row: dict[str, Any] = {"gamma_ms": gamma, "steps": steps, "n": len(results)}
-        for metric in ("psnr_db", "psnr_display_db", "psnr_dynamic_db",
-                       "psnr_dynamic_display_db", "reward", "reward_display", "compute_ms"):
+        for metric in (*names_of((PSNR, PSNR_DISPLAY, PSNR_DYNAMIC, PSNR_DYNAMIC_DISPLAY, REWARD,
+                               REWARD_DISPLAY)), "compute_ms"):
             mean, half, _ = mean_ci95(getattr(r, metric) for r in results)
             row[metric], row[f"{metric}_ci95"] = mean, half
         rows.append(row)

@@ -30,6 +30,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from aoi3d.metric import BY_NAME
+
 ROOT = Path(__file__).resolve().parent.parent
 RESULTS = ROOT / "bench" / "results"
 PAGE = "measurements.md"
@@ -178,16 +180,15 @@ def live_sweep(results: Path) -> tuple[list[str], set[str]]:
 
 
 def interior_lines(im: dict[str, Any]) -> list[str]:
-    names = {"psnr_db": "PSNR", "psnr_dynamic_db": "dynamic-region PSNR", "ssim": "SSIM",
-             "lpips": "LPIPS", "reward": "reward"}
     out = []
     for metric, m in im.items():
         verdict = ("interior maximum beyond its interval" if m["interior"] and m["beyond_ci"]
                    else "interior, within its interval" if m["interior"] else "not interior")
-        digits = 3 if metric in ("ssim", "lpips", "reward") else 2
-        ends = "; ".join(f"best − `{end}` {diff(d, digits)}"
+        known = BY_NAME.get(metric)
+        ends = "; ".join(f"best − `{end}` {diff(d, known.digits if known else 2)}"
                          for end, d in m["best_minus_end"].items())
-        out.append(f"- {names.get(metric, metric)}: best `{m['best']}`, {verdict} ({ends}).")
+        out.append(f"- {known.label if known else metric}: best `{m['best']}`, {verdict} "
+                   f"({ends}).")
     return out
 
 

@@ -50,6 +50,7 @@ from typing import Any
 
 import httpx
 
+from aoi3d.metric import LPIPS, PSNR, PSNR_DYNAMIC, REWARD, SSIM, names_of
 from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95, welch_ci95
 from bench import common
@@ -61,8 +62,10 @@ SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
 HTTP = httpx.Client(timeout=60)
-FIELDS = ["site", "wall_s", "decision_id", "time_ms", "reward", "psnr_db", "ssim", "lpips",
-          "psnr_dynamic_db", "n_views"]
+FIELDS = ["site", "wall_s", "decision_id", "time_ms",
+          *names_of((REWARD, PSNR, SSIM, LPIPS, PSNR_DYNAMIC)), "n_views"]
+PLOTTED = names_of((REWARD, PSNR))
+COMPARED = names_of((REWARD, PSNR, PSNR_DYNAMIC))
 
 
 def scratch_checkpoint(path: Path, seed: int) -> None:
@@ -120,7 +123,7 @@ def plot(rows_by_site: dict[str, list[dict[str, Any]]], labels: dict[str, str], 
         if not rows:
             continue
         t = np.array([r["wall_s"] for r in rows]) / 60.0
-        for ax, key in zip(axes, ("reward", "psnr_db"), strict=True):
+        for ax, key in zip(axes, PLOTTED, strict=True):
             v = np.array([r[key] for r in rows])
             ax.scatter(t, v, s=2, alpha=0.12, color=colour)
             mean = np.array([v[(t >= ti - smooth_s / 60) & (t <= ti)].mean() for ti in t])
@@ -129,7 +132,7 @@ def plot(rows_by_site: dict[str, list[dict[str, Any]]], labels: dict[str, str], 
     axes[1].set_ylabel("PSNR (dB)")
     axes[1].set_xlabel("wall time since the policies were put (min)")
     axes[0].set_title(f"Online learning, live (lines: mean over the last {smooth_s / 60:g} min)")
-    for ax, key in zip(axes, ("reward", "psnr_db"), strict=True):
+    for ax, key in zip(axes, PLOTTED, strict=True):
         ax.grid(alpha=0.3)
         vals = np.concatenate([[r[key] for r in rs] for rs in rows_by_site.values() if rs])
         ax.set_ylim(np.percentile(vals, 1), np.percentile(vals, 99.5))
@@ -271,7 +274,7 @@ def summarise(out: Path, window_min: float) -> dict[str, Any]:
     def stats(rows: list[dict[str, Any]], lo: float, hi: float) -> dict[str, Any]:
         sel = [r for r in rows if lo <= r["wall_s"] < hi]
         return {key: mean_ci95([r[key] for r in sel]).to_dict()
-                for key in ("reward", "psnr_db", "psnr_dynamic_db", "n_views")}
+                for key in (*COMPARED, "n_views")}
 
     rule = SITES[-1]
     sites = {}
@@ -279,7 +282,7 @@ def summarise(out: Path, window_min: float) -> dict[str, Any]:
         spans_s = {name: stats(rows, lo, hi) for name, (lo, hi) in spans.items()}
         against = {name: {key: {"difference": v[key]["mean"] - spans_rule[key]["mean"],
                                 "ci95": welch_ci95(v[key], spans_rule[key])}
-                          for key in ("reward", "psnr_db", "psnr_dynamic_db")}
+                          for key in COMPARED}
                    for name, v in spans_s.items()
                    for spans_rule in [stats(rows_by_site[rule], *spans[name])]}
         sites[s] = {"label": run["policies"][s]["label"], "renders": len(rows),

@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from aoi3d.experiment import claims
+from aoi3d.metric import PSNR, PSNR_DYNAMIC, names_of
 from bench.common import ROOT
 
 DEV_SEEDS = "experiments 0–20, 1000–1015 and 9001–9003; PPO evaluation offsets 0–39"
@@ -302,7 +303,7 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
             f"{'yes' if g in members else ('selects nothing' if p['n_selected'] == 0 else '')}"
             " |")
     lines += [""]
-    for metric in ("psnr_db", "psnr_dynamic_db"):
+    for metric in names_of((PSNR, PSNR_DYNAMIC)):
         opt = tradeoff["optimum"].get(metric)
         if opt is None:
             continue

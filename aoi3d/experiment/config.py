@@ -54,7 +54,7 @@ from dataclasses import field as dc_field
 from typing import Any
 
 from aoi3d.channel.varying import check_frame_encoding, parse_channel
-from aoi3d.field.carry import CARRY_MODES, check_carry
+from aoi3d.field.carry import CARRY_MODES, FINETUNE_MODES, CarryMode, check_carry
 from aoi3d.quality import RewardWeights
 from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
 
@@ -127,7 +127,7 @@ class EpisodeConfig:
     scored_ms: int = 1500
     score_every: int = 5
     steps_per_epoch: int = 10
-    carry: str = "warm"
+    carry: CarryMode = "warm"
     render_steps: int = 0
     random_scene_offset: bool = True
     lpips: bool = True
@@ -153,7 +153,7 @@ class EpisodeConfig:
             _int_at_least("n_cameras", self.n_cameras, 1)
         check_carry(self.carry, self.steps_per_epoch if self.carry == "fresh"
                     else self.render_steps)
-        if self.carry not in ("fork", "stream") and self.render_steps:
+        if self.carry not in FINETUNE_MODES and self.render_steps:
             raise ValueError(f"render_steps applies to carry 'fork' and 'stream' only (carry "
                              f"{self.carry!r} got render_steps={self.render_steps})")
         if self.camera_phase not in CAMERA_PHASES:

@@ -17,20 +17,19 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
+from aoi3d.metric import LPIPS, METRICS, PSNR, PSNR_DYNAMIC, SSIM, names_of
+
 __all__ = ["plot_compare", "plot_delay", "plot_tradeoff", "plot_views"]
 
 _PANELS = (
-    ("psnr_db", "PSNR (dB)"),
-    ("ssim", "SSIM"),
-    ("lpips", "LPIPS (lower is better)"),
-    ("reward", "reward"),
-    ("psnr_dynamic_db", "dynamic-region PSNR (dB)"),
-    ("ssim_dynamic", "dynamic-region SSIM"),
+    *((m.name, m.axis_label) for m in METRICS if not m.display),
     ("n_selected", "cameras used"),
     ("aoi_used_ms", "AoI of the used frames (ms)"),
 )
-"""The tradeoff figure's panels, in order (two rows of four); ``dynamic-region``: over the
-pixels that moved (:func:`aoi3d.quality.dynamic_mask`)."""
+"""The tradeoff figure's panels, in order (two rows of four): the scores at the decision's
+time (:data:`aoi3d.metric.AT_DECISION`; ``dynamic-region``: over the pixels that moved,
+:func:`aoi3d.quality.dynamic_mask`), then what the episodes selected."""
+_PSNRS = names_of((PSNR, PSNR_DYNAMIC))
 
 
 def _values(rows: Sequence[dict[str, Any]], metric: str) -> tuple[np.ndarray, np.ndarray]:
@@ -68,13 +67,13 @@ def plot_tradeoff(rows: Sequence[dict[str, Any]], path: Path, *, title: str,
             value = float(reference[metric])
             if math.isfinite(value):
                 ax.axhline(value, ls="--", color="grey", lw=1, label=reference.get("policy", ""))
-        if metric in ("psnr_db", "psnr_dynamic_db") and np.isfinite(mean).any():
+        if metric in _PSNRS and np.isfinite(mean).any():
             best = int(np.nanargmax(mean))
             ax.axvline(x[best], ls=":", color="k", lw=1, label=f"best Γ = {x[best]:g} ms")
         ax.set_xlabel("MAT Γ (ms)")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)
-        if metric in ("psnr_db", "psnr_dynamic_db"):
+        if metric in _PSNRS:
             ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.savefig(path, dpi=120)
@@ -140,7 +139,7 @@ def plot_compare(rows: Sequence[dict[str, Any]], path: Path, *, title: str) -> P
     """The policies side by side: mean and 95% interval of each metric."""
     names = [r["policy"] for r in rows]
     fig, axes = plt.subplots(1, 6, figsize=(19, 3.8), constrained_layout=True)
-    panels = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "n_selected", "aoi_used_ms")
+    panels = (*names_of((PSNR, PSNR_DYNAMIC, SSIM, LPIPS)), "n_selected", "aoi_used_ms")
     labels = dict(_PANELS)
     for ax, metric in zip(axes, panels, strict=True):
         mean, half = _values(rows, metric)
@@ -154,7 +153,7 @@ def plot_compare(rows: Sequence[dict[str, Any]], path: Path, *, title: str) -> P
         ax.set_xticks(range(len(names)), names, rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(labels[metric])
         finite = mean[np.isfinite(mean)]
-        if metric in ("psnr_db", "psnr_dynamic_db", "ssim") and finite.size:
+        if metric in (*_PSNRS, SSIM.name) and finite.size:
             span = float(finite.max() - finite.min()) or 1.0
             ax.set_ylim(float(finite.min()) - span, float(finite.max()) + span)
         else:

@@ -25,7 +25,8 @@ the set is every candidate and the optimum is never interior.
 
 Pure numpy/scipy: used by ``aoi3d experiment tradeoff``, ``delay``, ``compare``, ``aoi3d ppo
 eval`` (all through :func:`optima`) and the science check (``bench/science.py``) alike.
-Which metrics are lower-is-better is stated here once: :data:`LOWER_IS_BETTER`.
+Which metrics are lower-is-better comes from the metrics' table (:mod:`aoi3d.metric`):
+:data:`LOWER_IS_BETTER`, :func:`sign_of`.
 
 ``aoi3d live sweep`` cannot pair: its measurement windows are different renders of a running
 pipeline, not episodes paired by seed. :func:`unpaired_interior_maximum` asks the same question
@@ -45,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from aoi3d.metric import METRICS, lower_is_better
 from aoi3d.stats import (
     LEVEL,
     PairedDifference,
@@ -67,14 +69,15 @@ __all__ = [
     "unpaired_interior_maximum",
 ]
 
-LOWER_IS_BETTER = frozenset({"lpips"})
-"""The metrics whose better direction is down (LPIPS, a distance); every other metric — PSNR,
-SSIM, their dynamic-region forms, the reward — is higher-is-better."""
+LOWER_IS_BETTER = frozenset(m.name for m in METRICS if not m.higher_is_better)
+"""The metrics whose better direction is down (LPIPS, a distance, at either time); every other
+metric — PSNR, SSIM, their dynamic-region forms, the reward — is higher-is-better."""
 
 
 def sign_of(metric: str) -> float:
-    """+1 for a higher-is-better metric, −1 for one of :data:`LOWER_IS_BETTER`."""
-    return -1.0 if metric in LOWER_IS_BETTER else 1.0
+    """+1 for a higher-is-better metric (or a name that is not a metric's), −1 for a
+    lower-is-better one (:func:`aoi3d.metric.lower_is_better`)."""
+    return -1.0 if lower_is_better(metric) else 1.0
 
 
 @dataclass(frozen=True)
@@ -131,14 +134,14 @@ def optimum(values: Mapping[Any, Mapping[int, float]], *, metric: str = "psnr_db
 
     ``values[c][seed]``: the per-seed (episode mean) metric of candidate ``c`` — a Γ in ms,
     ``"all"`` or any policy label —; ``lower_is_better``: the metric's direction (default:
-    ``metric in LOWER_IS_BETTER``); ``selects[c]``: its mean count of selected cameras
+    :func:`sign_of` ``metric``); ``selects[c]``: its mean count of selected cameras
     (candidates with 0 are excluded; None: all eligible); ``ordered``: the candidates are
     points of a sweep in Γ (their order defines the ends, so ``interior`` is judged), else
     policies without an order (``interior`` is False, ``ends`` empty, no range);
     ``position[c]``: where ``c`` lies along the sweep (the caller's Γ of each candidate;
     default :func:`sweep_position`)."""
     if lower_is_better is None:
-        lower_is_better = metric in LOWER_IS_BETTER
+        lower_is_better = sign_of(metric) < 0
     if not values:
         raise ValueError("no candidates")
     excluded = tuple(c for c in values
@@ -205,7 +208,7 @@ def unpaired_interior_maximum(results: Sequence[Mapping[str, Any]], metric: str
     the ends), each with its ``policy`` and ``{"mean", "ci95", "n"}`` per metric. The maximum
     is *interior* when the best mean is neither end's, and *beyond its confidence interval*
     when :func:`aoi3d.stats.interior_maximum` holds on the Welch intervals of best − each end
-    (:data:`LOWER_IS_BETTER` says which side is better). None when the metric is missing or
+    (:func:`sign_of` says which side is better). None when the metric is missing or
     fewer than three policies were measured.
     """
     sign = sign_of(metric)

@@ -64,6 +64,7 @@ from aoi3d.experiment.episode import (
     plan_key,
     planned_decision,
 )
+from aoi3d.metric import AT_DECISION, REWARD, lower_is_better
 from aoi3d.policy import (
     AllPolicy,
     FreshestPolicy,
@@ -91,8 +92,9 @@ __all__ = [
 ]
 
 SEARCHES = ("rules", "greedy")
-ORACLE_METRICS = ("reward", "psnr_db", "ssim", "lpips", "psnr_dynamic_db", "ssim_dynamic")
-"""What an oracle may maximise (LPIPS: minimise), per scored decision."""
+ORACLE_METRICS = (REWARD.name, *(m for m in AT_DECISION if m != REWARD.name))
+"""What an oracle may maximise (LPIPS: minimise), per scored decision: the scores at the
+decision's time (:data:`aoi3d.metric.AT_DECISION`), the reward (the default) first."""
 ORACLE_FORMS = ("oracle", "oracle:<search>", "oracle:<search>:<metric>")
 
 Evaluate = Callable[[Sequence[EpisodePlan]], Sequence[EpisodeResult]]
@@ -130,7 +132,7 @@ class OracleSpec:
     @property
     def sign(self) -> float:
         """+1 where the metric is maximised, −1 for LPIPS."""
-        return -1.0 if self.metric == "lpips" else 1.0
+        return -1.0 if lower_is_better(self.metric) else 1.0
 
     kind = "oracle"
 

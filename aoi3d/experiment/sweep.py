@@ -39,6 +39,7 @@ from aoi3d.experiment.episode import (
 from aoi3d.experiment.executors import DATASETS, run_pool, run_ray, work
 from aoi3d.experiment.oracle import OracleEpisode, OracleSpec, parse_oracle, search_oracle
 from aoi3d.lpips import weights_path
+from aoi3d.metric import AT_DECISION, AT_DISPLAY
 from aoi3d.policy import parse_policy
 from aoi3d.scene import SceneDataset, open_dataset
 from aoi3d.stats import mean_ci95
@@ -58,13 +59,13 @@ __all__ = [
     "run_plans",
 ]
 
-METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic",
-           "dynamic_fraction", "n_selected", "aoi_used_ms", "mean_aoi_all_ms",
-           "psnr_display_db", "ssim_display", "lpips_display", "reward_display",
-           "psnr_dynamic_display_db", "compute_ms")
-"""The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval;
-``*_dynamic*``: over the dynamic region, see :mod:`aoi3d.quality`; ``*_display*``: against
-the truth at display time, the decision's time plus its compute, ``compute_ms``)."""
+METRICS = (*AT_DECISION, "dynamic_fraction", "n_selected", "aoi_used_ms", "mean_aoi_all_ms",
+           *AT_DISPLAY, "compute_ms")
+"""The per-episode numbers :func:`aggregate` summarises (mean and 95% confidence interval),
+in the order of the summaries' columns: the scores at the decision's time
+(:data:`aoi3d.metric.AT_DECISION`; ``*_dynamic*``: over the dynamic region, see
+:mod:`aoi3d.quality`), what the episode selected, the scores at display time (the decision's
+time plus its compute, ``compute_ms``)."""
 
 Progress = Callable[[int, int], None]
 """``progress(done, total)`` in episodes to compute (cache hits are not counted)."""

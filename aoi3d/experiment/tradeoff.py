@@ -18,6 +18,7 @@ from PIL import Image
 from aoi3d.experiment.episode import EpisodeResult
 from aoi3d.experiment.optimum import Optimum, optima, sign_of
 from aoi3d.experiment.sweep import Job, ResultCache, SweepOutcome, aggregate
+from aoi3d.metric import AT_DECISION
 from aoi3d.numbers import format_number
 from aoi3d.policy import AllPolicy, MatPolicy, Policy
 from aoi3d.scene import SceneDataset
@@ -25,10 +26,10 @@ from aoi3d.scene import SceneDataset
 __all__ = ["OPTIMUM_METRICS", "MatSweep", "best_gamma", "delay_optimum_row", "sweep_optima",
            "tradeoff_rows", "view_grid"]
 
-OPTIMUM_METRICS = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
-"""Metrics an optimum can be taken over (their direction:
-:data:`aoi3d.experiment.optimum.LOWER_IS_BETTER`); ``*_dynamic*``: over the dynamic region
-(:mod:`aoi3d.quality`)."""
+OPTIMUM_METRICS = AT_DECISION
+"""Metrics an optimum can be taken over: the scores at the decision's time,
+:data:`aoi3d.metric.AT_DECISION` (their direction: :mod:`aoi3d.metric`); ``*_dynamic*``: over
+the dynamic region (:mod:`aoi3d.quality`)."""
 
 
 @dataclass(frozen=True)

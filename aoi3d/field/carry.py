@@ -36,6 +36,7 @@ import math
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 import torch
@@ -44,22 +45,34 @@ from aoi3d.field.trainer import FieldTrainer, TrainView
 from aoi3d.quality import dynamic_mask
 from aoi3d.scene.camera import Camera
 
-__all__ = ["CARRY_MODES", "Reconstruction", "RenderedDecision", "WarmStart", "changed_cells",
-           "check_carry"]
+__all__ = ["BACKGROUND_MODES", "CARRY_MODES", "FINETUNE_MODES", "CarryMode", "Reconstruction",
+           "RenderedDecision", "WarmStart", "changed_cells", "check_carry"]
 
-CARRY_MODES = ("fork", "fresh", "stream", "warm")
-"""The carry modes, see the module docstring."""
+CarryMode = Literal["fork", "fresh", "stream", "warm"]
+"""A carry mode (see the module docstring): the one spelling of the four. :data:`CARRY_MODES`,
+the experiments' config and the trainer service's setting and ``PUT /carry`` take them from
+here."""
+CARRY_MODES: tuple[CarryMode, ...] = get_args(CarryMode)
+"""The carry modes, in the order they are listed."""
+BACKGROUND_MODES: frozenset[CarryMode] = frozenset({"fork", "warm"})
+"""The modes with one model per worker, trained on the decision in force between decisions
+(:meth:`Reconstruction.train`) and carried from job to job."""
+FINETUNE_MODES: frozenset[CarryMode] = frozenset({"fork", "stream"})
+"""The modes whose render starts from a carried model and trains it ``render_steps`` more
+steps on its decision's frames (``fresh`` trains a new model; ``warm`` trains none)."""
 
 
-def check_carry(carry: str, render_steps: int) -> None:
-    """Raise ``ValueError`` for an unknown mode, or a render budget the mode needs but lacks."""
+def check_carry(carry: str, render_steps: int) -> CarryMode:
+    """``carry`` as a :data:`CarryMode`; ``ValueError`` for an unknown mode, or a render budget
+    the mode needs but lacks."""
     if carry not in CARRY_MODES:
         raise ValueError(f"carry must be one of {', '.join(CARRY_MODES)}, got {carry!r}")
     if isinstance(render_steps, bool) or not isinstance(render_steps, int) or render_steps < 0:
         raise ValueError(f"render_steps must be an int >= 0, got {render_steps!r}")
-    if carry in ("fresh", "fork", "stream") and render_steps < 1:
+    if carry != "warm" and render_steps < 1:
         raise ValueError(f"carry {carry!r} trains each rendered decision: render_steps must "
                          f"be >= 1, got {render_steps}")
+    return carry  # narrowed to a CarryMode by the membership test above
 
 
 @dataclass(frozen=True)
@@ -161,9 +174,8 @@ class Reconstruction:
 
     def __init__(self, trainer: FieldTrainer, carry: str, render_steps: int,
                  warm_start: WarmStart | None = None) -> None:
-        check_carry(carry, render_steps)
+        self.carry = check_carry(carry, render_steps)
         self.trainer = trainer
-        self.carry = carry
         self.render_steps = int(render_steps)
         self.warm_start = warm_start or WarmStart()
         self._views: list[TrainView] = []
@@ -175,7 +187,7 @@ class Reconstruction:
     @property
     def trains_in_background(self) -> bool:
         """Whether :meth:`train` does anything (``warm`` and ``fork``)."""
-        return self.carry in ("warm", "fork")
+        return self.carry in BACKGROUND_MODES
 
     def set_views(self, views: Sequence[TrainView]) -> None:
         """A new decision is in force: its frames are what the model trains on from now on."""
@@ -286,10 +298,10 @@ class Reconstruction:
     def set_carry(self, carry: str, render_steps: int) -> None:
         """Render with ``carry`` and ``render_steps`` from now on (model and views kept);
         ``ValueError`` — nothing changed — for an unknown mode or budget."""
-        check_carry(carry, render_steps)
-        if carry != self.carry:
+        mode = check_carry(carry, render_steps)
+        if mode != self.carry:
             self._model_time_ms = None  # the stream carry starts cold after a switch
-        self.carry = carry
+        self.carry = mode
         self.render_steps = int(render_steps)
 
 

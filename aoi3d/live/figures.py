@@ -18,6 +18,7 @@ import numpy as np
 from PIL import Image
 
 from aoi3d.live.summary import Measurement
+from aoi3d.metric import BY_NAME, LIVE
 
 if TYPE_CHECKING:
     from aoi3d.scene import SceneDataset
@@ -32,9 +33,7 @@ def plot(results: Sequence[dict[str, Any]], sim: Mapping[str, Any] | None, path:
          title: str) -> Path:
     """PSNR (full and dynamic), SSIM, LPIPS, reward and cameras used per policy, live with
     95% CIs, the virtual clock's curve beside it."""
-    panels = [("psnr_db", "PSNR (dB)"), ("psnr_dynamic_db", "dynamic-region PSNR (dB)"),
-              ("ssim", "SSIM"), ("lpips", "LPIPS (lower is better)"), ("reward", "reward"),
-              ("cameras_used", "cameras used")]
+    panels = [*((m, BY_NAME[m].axis_label) for m in LIVE), ("cameras_used", "cameras used")]
     x = list(range(len(results)))
     labels = [r["policy"] for r in results]
     fig, axes = plt.subplots(2, 3, figsize=(13, 7), constrained_layout=True)

@@ -13,13 +13,15 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from aoi3d.metric import LIVE
 from aoi3d.stats import mean_ci95
 
 __all__ = ["METRICS", "Measurement", "measurement_doc", "points_rows", "render_latency_s",
            "render_rows", "steps_per_decision", "summarise", "with_sim"]
 
-METRICS = ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward")
-"""Per-render quality fields summarised per policy (absent ones are reported as null)."""
+METRICS = LIVE
+"""Per-render quality fields summarised per policy (absent ones are reported as null):
+:data:`aoi3d.metric.LIVE`."""
 
 
 @dataclass

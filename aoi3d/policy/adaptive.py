@@ -45,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from aoi3d.metric import PSNR, PSNR_DYNAMIC, REWARD, SSIM, names_of
 from aoi3d.numbers import format_number
 from aoi3d.policy.base import (
     BasePolicy,
@@ -78,7 +79,9 @@ DEFAULT_WINDOW = 24
 DEFAULT_ARMS_MS: tuple[float, ...] = (40.0, 70.0, 100.0, 130.0, 190.0, 280.0)
 DEFAULT_EXPLORE = 1.0
 """UCB exploration constant, in units of the reward (dB of PSNR by default)."""
-QUALITY_METRICS = ("psnr_db", "reward", "ssim", "psnr_dynamic_db")
+QUALITY_METRICS = names_of((PSNR, REWARD, SSIM, PSNR_DYNAMIC))
+"""What a bandit may maximise (all higher-is-better): the scores a live Quality carries for a
+decision (:mod:`aoi3d.metric`)."""
 
 Delivery = tuple[int, float, float]
 """``(camera index, generation ms, delivery ms)`` of one delivered frame."""

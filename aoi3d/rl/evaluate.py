@@ -11,14 +11,18 @@ from typing import Any
 import numpy as np
 
 from aoi3d.experiment import EpisodeConfig, mean_ci95
+from aoi3d.metric import LPIPS, PSNR, REWARD, SSIM
 from aoi3d.policy import Policy, parse_policy
 from aoi3d.rl.env import FrameSelectionEnv
 from aoi3d.rl.pool import EnvPool
 from aoi3d.scene import SceneDataset, open_dataset
 
-__all__ = ["EVAL_METRICS", "EvalOutcome", "evaluate"]
+__all__ = ["EVAL_METRICS", "EVAL_SCORES", "EvalOutcome", "evaluate"]
 
-EVAL_METRICS = ("reward", "psnr", "ssim", "lpips", "n_selected", "aoi_used_ms")
+EVAL_SCORES = tuple(m.short for m in (REWARD, PSNR, SSIM, LPIPS))
+"""``reward, psnr, ssim, lpips``: the scores of a PPO episode, under the names the env reports
+them (:attr:`aoi3d.metric.Metric.short`), the reward first."""
+EVAL_METRICS = (*EVAL_SCORES, "n_selected", "aoi_used_ms")
 
 
 @dataclass

@@ -9,9 +9,11 @@ from typing import Any
 
 import numpy as np
 
+from aoi3d.metric import LPIPS, PSNR, REWARD, SSIM
+
 __all__ = ["EPISODE_COLUMNS", "moving_average", "plot_rewards", "read_rows"]
 
-EPISODE_COLUMNS = ("episode", "seed", "update", "reward", "psnr", "ssim", "lpips",
+EPISODE_COLUMNS = ("episode", "seed", "update", *(m.short for m in (REWARD, PSNR, SSIM, LPIPS)),
                    "n_selected", "n_known", "aoi_used_ms", "mean_aoi_ms", "eval_ms",
                    "selected", "p_mean", "value", "logp", "entropy", "cached", "wall_s")
 

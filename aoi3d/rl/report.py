@@ -13,7 +13,7 @@ from typing import Any
 from aoi3d.experiment import EpisodeConfig
 from aoi3d.experiment.optimum import Optimum, optima
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
-from aoi3d.rl.evaluate import EvalOutcome
+from aoi3d.rl.evaluate import EVAL_SCORES, EvalOutcome
 from aoi3d.rl.presets import EVAL_SEED_BASE
 
 __all__ = ["EvalReport"]
@@ -34,7 +34,7 @@ class EvalReport:
            extra: Mapping[str, Any], started: float) -> EvalReport:
         """``extra``: what the checkpoint carries besides the weights (its training's episode
         and train config); ``started``: ``time.time()`` when the command began."""
-        best = optima(outcome.rows, ("reward", "psnr", "ssim", "lpips"), ordered=False)
+        best = optima(outcome.rows, EVAL_SCORES, ordered=False)
         trained = (extra.get("episode_config") or {}).get("steps_per_epoch")
         meta = {"command": "aoi3d ppo eval", "checkpoint": str(checkpoint),
                 "policies": list(specs), "seeds": list(seeds), "eval_seed_base": EVAL_SEED_BASE,

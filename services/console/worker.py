@@ -22,6 +22,7 @@ from services.console.core import TRUTH_FRAMES, ConsoleCore, Pair
 from services.kit.bus import Bus
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Rejected, Rejections
+from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
 
 log = logging.getLogger(__name__)
@@ -86,7 +87,7 @@ class ConsoleWorker:
                 self.rejections.reject(err, key)
             except Exception as err:  # a bug must not stop the subscriber
                 log.exception("console failed on %s", key)
-                self.rejections.reject(Rejected("internal_error", repr(err)), key)
+                self.rejections.reject(Rejected(RejectReason.INTERNAL_ERROR, repr(err)), key)
         return wrapped
 
     def _on_render(self, payload: bytes) -> None:

@@ -14,7 +14,7 @@ import numpy as np
 
 from aoi3d.rigfile import TRUTH_ID, CameraSpec
 from services import ros
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["OFFSET_WINDOW", "POSES_KEPT", "STREAMS_KEPT", "CameraState", "Wait"]
 
@@ -83,8 +83,8 @@ class CameraState:
         stream = (topic, att.gid)
         last = self.last_seq.get(stream)
         if last is not None and att.sequence <= last:
-            raise Rejected("sequence_replayed", f"sequence {att.sequence} after {last} "
-                                                f"on {topic} (duplicate or reordered)")
+            raise Rejected(RejectReason.SEQUENCE_REPLAYED, f"sequence {att.sequence} after {last} "
+                                                           f"on {topic} (duplicate or reordered)")
         if last is not None and att.sequence > last + 1:
             self.lost += att.sequence - last - 1
         self.last_seq[stream] = att.sequence
@@ -111,7 +111,7 @@ class CameraState:
         if best is None or best_dt > tol:
             what = ("no pose received yet on " + spec.topic if best is None else
                     f"the nearest pose on {spec.topic} is {best_dt:.3f} s away")
-            raise Rejected("no_pose", f"{what} (tolerance {tol:g} s)")
+            raise Rejected(RejectReason.NO_POSE, f"{what} (tolerance {tol:g} s)")
         return best
 
     def intrinsics_in_force(self, final: bool) -> ros.Intrinsics:
@@ -123,7 +123,8 @@ class CameraState:
         if self.intrinsics is None and not final:
             raise Wait
         if self.intrinsics is None:
-            raise Rejected("no_intrinsics", f"no CameraInfo received yet on {spec.camera_info}")
+            raise Rejected(RejectReason.NO_INTRINSICS,
+                           f"no CameraInfo received yet on {spec.camera_info}")
         return self.intrinsics
 
     def status(self, now_s: float, offset_in_force: float) -> dict:

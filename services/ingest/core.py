@@ -37,7 +37,7 @@ from services.ingest.stamps import Stamps
 from services.kit.codec import camera_to_pb, encode_png
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["WIRE_ENCODINGS", "IngestCore", "Published", "Route"]
 
@@ -143,7 +143,8 @@ class IngestCore:
         msg = ros.decode_cdr(payload, route.ros_type, cap)
         stamp = ros.stamp_s(msg.header)
         if not stamp > 0:
-            raise Rejected("stamp_invalid", f"stamp {stamp} (a publisher that does not stamp)")
+            raise Rejected(RejectReason.STAMP_INVALID,
+                           f"stamp {stamp} (a publisher that does not stamp)")
         robot_now = att.source_ns * 1e-9 if att is not None and att.source_ns > 0 else stamp
         for s in states:  # measured from every sample, whatever becomes of it
             s.offsets.append(robot_now - receipt_s)
@@ -172,13 +173,13 @@ class IngestCore:
         s.received["image"] += 1
         try:
             if not (math.isfinite(stamp_s) and stamp_s > 0):
-                raise Rejected("stamp_invalid", f"stamp {stamp_s}")
+                raise Rejected(RejectReason.STAMP_INVALID, f"stamp {stamp_s}")
             s.offsets.append(stamp_s - receipt_s)
             self.stamps.stamp_ms(s, stamp_s, receipt_s)
             h, w = rgb.shape[:2]
             if w * h > self.rig.max_image_pixels:
-                raise Rejected("too_large", f"a {w}x{h} frame exceeds "
-                                            f"{self.rig.max_image_pixels} pixels")
+                raise Rejected(RejectReason.TOO_LARGE, f"a {w}x{h} frame exceeds "
+                                                       f"{self.rig.max_image_pixels} pixels")
             return self._images([s], rgb, stamp_s, None, receipt_s)
         except Rejected as err:
             s.rejected[err.reason] += 1
@@ -193,10 +194,10 @@ class IngestCore:
             except Wait:
                 if len(s.held) >= HELD_PER_CAMERA:
                     s.held.pop(0)
-                    s.rejected["no_pose"] += 1
+                    s.rejected[RejectReason.NO_POSE] += 1
                     self.expired.append((s.spec.name, Rejected(
-                        "no_pose", f"{s.spec.name}: more than {HELD_PER_CAMERA} images wait "
-                                   "for their pose or intrinsics")))
+                        RejectReason.NO_POSE, f"{s.spec.name}: more than {HELD_PER_CAMERA} "
+                                              "images wait for their pose or intrinsics")))
                 s.held.append((receipt_s + HOLD_S, rgb, stamp, att, receipt_s))
         return out
 
@@ -250,13 +251,14 @@ class IngestCore:
         c2w = s.pose_at(stamp, final, self.rig.pose_tolerance_s)
         h, w = rgb.shape[:2]
         if (w, h) != (intr.width, intr.height):
-            raise Rejected("image_mismatch", f"a {w}x{h} image, but its intrinsics are for "
-                                             f"{intr.width}x{intr.height}")
+            raise Rejected(RejectReason.IMAGE_MISMATCH,
+                           f"a {w}x{h} image, but its intrinsics are for "
+                           f"{intr.width}x{intr.height}")
         camera = scaled_camera(c2w, intr.fx, intr.fy, intr.cx, intr.cy, (w, h), self.size)
         try:
             camera.validate()
         except ValueError as err:
-            raise Rejected("bad_pose", str(err)) from None
+            raise Rejected(RejectReason.BAD_POSE, str(err)) from None
         image = self._wire_image(rgb)
         if att is not None:
             seq = att.sequence

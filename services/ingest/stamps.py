@@ -14,7 +14,7 @@ import math
 
 from aoi3d.rigfile import ClockSpec
 from services.ingest.camera import CameraState
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["Stamps"]
 
@@ -45,14 +45,15 @@ class Stamps:
         edge_stamp = stamp - self.offset_in_force(s)
         age = receipt_s - edge_stamp
         if age < -clock.future_tolerance_s:
-            raise Rejected("stamp_future",
+            raise Rejected(RejectReason.STAMP_FUTURE,
                            f"stamped {-age:.3f} s after its receipt (tolerance "
                            f"{clock.future_tolerance_s:g} s; robot clock − edge clock "
                            f"measured {s.offset_estimate_s:+.3f} s, in force "
                            f"{self.offset_in_force(s):+.3f} s)")
         if age > clock.max_age_s:
-            raise Rejected("stamp_stale", f"stamped {age:.1f} s before its receipt (limit "
-                                          f"{clock.max_age_s:g} s)")
+            raise Rejected(RejectReason.STAMP_STALE,
+                           f"stamped {age:.1f} s before its receipt (limit "
+                           f"{clock.max_age_s:g} s)")
         if age < 0:
             edge_stamp, age = receipt_s, 0.0
         # The model's time is slotted (1 ms): a stamp maps to its nearest slot. Unrounded, a
@@ -61,6 +62,7 @@ class Stamps:
         # the truth frame one period older.
         gen = float(round(self.sim_ms(edge_stamp)))
         if gen < 0:
-            raise Rejected("stamp_before_run", f"stamped {-gen / 1000 / self.time_scale:.1f} s "
-                                               "before the run's clock started")
+            raise Rejected(RejectReason.STAMP_BEFORE_RUN,
+                           f"stamped {-gen / 1000 / self.time_scale:.1f} s "
+                           "before the run's clock started")
         return gen, age

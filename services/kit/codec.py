@@ -17,7 +17,7 @@ from google.protobuf.message import DecodeError
 from aoi3d.scene import to_uint8
 from aoi3d.scene.camera import Camera
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 PNG = pb.IMAGE_ENCODING_PNG
 RAW = pb.IMAGE_ENCODING_RAW_RGB8
@@ -34,20 +34,22 @@ _IMAGE_SLACK_BYTES = 64 * 1024
 # ---------------------------------------------------------------- parsing
 def _parse(cls, payload: bytes):
     if len(payload) > MAX_MESSAGE_BYTES:
-        raise Rejected("too_large", f"{cls.__name__} message of {len(payload)} bytes exceeds "
-                                    f"{MAX_MESSAGE_BYTES} bytes")
+        raise Rejected(RejectReason.TOO_LARGE,
+                       f"{cls.__name__} message of {len(payload)} bytes exceeds "
+                       f"{MAX_MESSAGE_BYTES} bytes")
     msg = cls()
     try:
         msg.ParseFromString(payload)
     except (DecodeError, ValueError, RuntimeError) as err:
-        raise Rejected("malformed", f"not a valid {cls.__name__} message ({err})") from err
+        raise Rejected(RejectReason.MALFORMED,
+                       f"not a valid {cls.__name__} message ({err})") from err
     return msg
 
 
 def _finite(name: str, *values: float) -> None:
     for v in values:
         if not math.isfinite(v):
-            raise Rejected("non_finite", f"{name} is not finite ({v})")
+            raise Rejected(RejectReason.NON_FINITE, f"{name} is not finite ({v})")
 
 
 # ---------------------------------------------------------------- cameras
@@ -60,13 +62,13 @@ def camera_to_pb(camera: Camera) -> tuple[pb.Pose, pb.Intrinsics]:
 
 def camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
     if len(pose.c2w) != 16:
-        raise Rejected("bad_pose", f"pose has {len(pose.c2w)} values, expected 16 (4x4)")
+        raise Rejected(RejectReason.BAD_POSE, f"pose has {len(pose.c2w)} values, expected 16 (4x4)")
     c2w = np.asarray(pose.c2w, dtype=np.float64).reshape(4, 4)
     if not np.all(np.isfinite(c2w)):
-        raise Rejected("bad_pose", "pose contains NaN or infinity")
+        raise Rejected(RejectReason.BAD_POSE, "pose contains NaN or infinity")
     _finite("intrinsics", intr.fx, intr.fy, intr.cx, intr.cy)
     if intr.width == 0 or intr.height == 0 or intr.fx <= 0 or intr.fy <= 0:
-        raise Rejected("bad_intrinsics",
+        raise Rejected(RejectReason.BAD_INTRINSICS,
                        f"need positive focal and size, got {intr.fx}x{intr.fy} "
                        f"{intr.width}x{intr.height}")
     camera = Camera(c2w=c2w, fx=intr.fx, fy=intr.fy, cx=intr.cx, cy=intr.cy,
@@ -74,7 +76,7 @@ def camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
     try:
         camera.validate()
     except ValueError as err:
-        raise Rejected("bad_pose", str(err)) from err
+        raise Rejected(RejectReason.BAD_POSE, str(err)) from err
     return camera
 
 
@@ -82,7 +84,7 @@ def camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
 def png_size(data: bytes) -> tuple[int, int]:
     """(width, height) from a PNG's IHDR chunk, without decoding the image."""
     if len(data) < 24 or not data.startswith(_PNG_SIGNATURE) or data[12:16] != b"IHDR":
-        raise Rejected("bad_image", "image bytes are not a PNG")
+        raise Rejected(RejectReason.BAD_IMAGE, "image bytes are not a PNG")
     return struct.unpack(">II", data[16:24])
 
 
@@ -90,20 +92,20 @@ def check_image(img: pb.Image) -> None:
     """Cheap structural check: the encoded size matches the declared one, which is at most
     :data:`MAX_IMAGE_PIXELS` (before anything is decoded)."""
     if img.width * img.height > MAX_IMAGE_PIXELS:
-        raise Rejected("too_large", f"a {img.width}x{img.height} image exceeds "
-                                    f"{MAX_IMAGE_PIXELS} pixels")
+        raise Rejected(RejectReason.TOO_LARGE, f"a {img.width}x{img.height} image exceeds "
+                                               f"{MAX_IMAGE_PIXELS} pixels")
     if img.encoding == PNG:
         w, h = png_size(img.data)
     elif img.encoding == RAW:
         if len(img.data) != img.width * img.height * 3:
-            raise Rejected("image_size_mismatch",
+            raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                            f"raw image has {len(img.data)} bytes, expected "
                            f"{img.width}x{img.height}x3")
         w, h = img.width, img.height
     else:
-        raise Rejected("bad_image", f"unsupported image encoding {img.encoding}")
+        raise Rejected(RejectReason.BAD_IMAGE, f"unsupported image encoding {img.encoding}")
     if (w, h) != (img.width, img.height):
-        raise Rejected("image_size_mismatch",
+        raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                        f"image is {w}x{h} but the message says {img.width}x{img.height}")
 
 
@@ -118,7 +120,7 @@ def decode_image(img: pb.Image) -> np.ndarray:
         with PILImage.open(io.BytesIO(img.data)) as im:
             arr = np.asarray(im.convert("RGB"))
     except Exception as err:  # truncated/corrupt PNG
-        raise Rejected("bad_image", f"PNG could not be decoded ({err})") from err
+        raise Rejected(RejectReason.BAD_IMAGE, f"PNG could not be decoded ({err})") from err
     return arr
 
 
@@ -171,10 +173,10 @@ def check_size(img: pb.Image, size: tuple[int, int]) -> None:
     in a small envelope would otherwise cost gigabytes once decoded)."""
     w, h = size
     if (img.width, img.height) != (w, h):
-        raise Rejected("image_size_mismatch",
+        raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                        f"image is {img.width}x{img.height} but the scene's is {w}x{h}")
     if len(img.data) > w * h * 3 + _IMAGE_SLACK_BYTES:
-        raise Rejected("too_large", f"a {w}x{h} image of {len(img.data)} bytes")
+        raise Rejected(RejectReason.TOO_LARGE, f"a {w}x{h} image of {len(img.data)} bytes")
 
 
 def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = None,
@@ -183,16 +185,17 @@ def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = 
     = (width, height), when given, is the only accepted image size (:func:`check_size`)."""
     msg = _parse(pb.Frame, payload)
     if camera_ids is not None and msg.camera_id not in camera_ids:
-        raise Rejected("unknown_camera", f"camera id {msg.camera_id} is not part of this rig")
+        raise Rejected(RejectReason.UNKNOWN_CAMERA,
+                       f"camera id {msg.camera_id} is not part of this rig")
     _finite("frame time", msg.generation_ms, msg.scene_time_ms, msg.send_ms, msg.delivery_ms)
     if not msg.HasField("pose") or not msg.HasField("intrinsics") or not msg.HasField("image"):
-        raise Rejected("malformed", "frame lacks pose, intrinsics or image")
+        raise Rejected(RejectReason.MALFORMED, "frame lacks pose, intrinsics or image")
     if size is not None:
         check_size(msg.image, size)
     camera = camera_from_pb(msg.pose, msg.intrinsics)
     check_image(msg.image)
     if (msg.image.width, msg.image.height) != (camera.width, camera.height):
-        raise Rejected("image_size_mismatch",
+        raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                        f"image is {msg.image.width}x{msg.image.height} but the intrinsics say "
                        f"{camera.width}x{camera.height}")
     return FrameData(camera_id=msg.camera_id, sequence=msg.sequence,
@@ -213,8 +216,8 @@ def decode_decision(payload: bytes) -> pb.Decision:
     msg = _parse(pb.Decision, payload)
     _finite("decision time", msg.time_ms)
     if len(msg.aoi_ms) != len(msg.camera_ids):
-        raise Rejected("malformed", f"{len(msg.aoi_ms)} AoI values for "
-                                    f"{len(msg.camera_ids)} cameras")
+        raise Rejected(RejectReason.MALFORMED, f"{len(msg.aoi_ms)} AoI values for "
+                                               f"{len(msg.camera_ids)} cameras")
     return msg
 
 
@@ -226,7 +229,7 @@ def decode_render(payload: bytes) -> tuple[pb.Render, Camera]:
     camera = camera_from_pb(msg.pose, msg.intrinsics)
     check_image(msg.image)
     if (msg.image.width, msg.image.height) != (camera.width, camera.height):
-        raise Rejected("image_size_mismatch", "render size differs from its intrinsics")
+        raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH, "render size differs from its intrinsics")
     return msg, camera
 
 
@@ -234,7 +237,8 @@ def decode_quality(payload: bytes) -> pb.Quality:
     msg = _parse(pb.Quality, payload)
     _finite("quality time", msg.time_ms)
     if msg.HasField("dynamic_fraction") and not 0.0 <= msg.dynamic_fraction <= 1.0:
-        raise Rejected("malformed", f"dynamic_fraction {msg.dynamic_fraction} is not in [0, 1]")
+        raise Rejected(RejectReason.MALFORMED,
+                       f"dynamic_fraction {msg.dynamic_fraction} is not in [0, 1]")
     return msg
 
 

@@ -26,6 +26,7 @@ from aoi3d.atomic import write_atomic
 from services.kit.codec import decode_decision
 from services.kit.observe import Rejected
 from services.kit.reasons import EndReason
+from services.kit.rejected import RejectReason
 from services.metrics.ledger import (
     LOST_REASONS,
     SKIPPED_REASONS,
@@ -86,8 +87,9 @@ class LedgerKeeper:
         render was unreadable expires)."""
         if ids is None:
             return
+        truth_missing = rejected is not None and rejected.reason == RejectReason.NO_TRUTH
         state, reason = (("scored", "") if rejected is None else
-                         ("lost", str(EndReason.TRUTH_MISSING if rejected.reason == "no_truth"
+                         ("lost", str(EndReason.TRUTH_MISSING if truth_missing
                                       else EndReason.RENDER_REJECTED)))
         with self._lock:
             self.ledger.closed(*ids, state, reason, time.time())

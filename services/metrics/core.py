@@ -38,7 +38,7 @@ from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera o
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import DEFAULT_SITE
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = [
     "MetricsCore",
@@ -91,7 +91,7 @@ class TruthRing:
 
     def pair(self, time_ms: float, period_ms: float) -> TruthFrame:
         """The frame generated at ``time_ms``, else the newest in [time_ms − period_ms,
-        time_ms]; raises ``Rejected("no_truth")`` when there is none."""
+        time_ms]; raises ``Rejected(RejectReason.NO_TRUTH)`` when there is none."""
         exact = self._frames.get(time_ms)
         if exact is not None:
             return exact
@@ -100,8 +100,9 @@ class TruthRing:
             return self._frames[self._times[i]]
         held = (f"holding {len(self)} frame(s) generated in [{self._times[0]:g}, "
                 f"{self._times[-1]:g}] ms" if self._times else "holding no frame")
-        raise Rejected("no_truth", f"no ground-truth frame generated at t = {time_ms:g} ms or "
-                                   f"within {period_ms:g} ms before it ({held})")
+        raise Rejected(RejectReason.NO_TRUTH,
+                       f"no ground-truth frame generated at t = {time_ms:g} ms or "
+                       f"within {period_ms:g} ms before it ({held})")
 
     def before(self, generation_ms: float, period_ms: float, count: int
                ) -> list[TruthFrame] | None:
@@ -183,8 +184,8 @@ class MetricsCore:
         """Reject a message stamped ahead of this clock by more than the skew: 512 truth
         frames from the future would otherwise push every real one out of the ring."""
         if time_ms > now_ms + self.skew_ms:
-            raise Rejected("clock_skew", f"{what} at {time_ms:g} ms but this clock says "
-                                         f"{now_ms:g} ms")
+            raise Rejected(RejectReason.CLOCK_SKEW, f"{what} at {time_ms:g} ms but this clock says "
+                                                    f"{now_ms:g} ms")
 
     def on_truth(self, payload: bytes, now_ms: float) -> TruthFrame:
         """Keep a truth frame; :class:`Rejected` when it is invalid or from the future."""
@@ -204,14 +205,14 @@ class MetricsCore:
         pred = decode_image(render.image)
         gt = decode_image(truth.image)
         if pred.shape != gt.shape:
-            raise Rejected("image_size_mismatch",
+            raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                            f"render is {pred.shape[1]}x{pred.shape[0]} but the ground truth is "
                            f"{gt.shape[1]}x{gt.shape[0]}")
         previous = self._previous_truth(truth, gt.shape)
         try:
             q = score(pred, gt, self.weights, lpips_fn=self.lpips_fn, previous=previous)
         except ValueError as err:
-            raise Rejected("unscorable", str(err)) from err
+            raise Rejected(RejectReason.UNSCORABLE, str(err)) from err
         dyn = q.dynamic
         display_ms = render.ready_ms if render.HasField("ready_ms") else now_ms
         shown, shown_truth = self._display_score(pred, display_ms, truth, q)

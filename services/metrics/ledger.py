@@ -36,7 +36,7 @@ from dataclasses import dataclass
 from services.kit import reasons
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.reasons import EndReason
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["LOST_REASONS", "SKIPPED_REASONS", "STATES", "Ledger", "LedgerSummary", "Outcome",
            "decode_outcome", "render_header"]
@@ -159,13 +159,13 @@ class Ledger:
         """Open the decision if it is newer than every one seen of its incarnation (counting
         the ids in between ``unseen``); False when it is not (seen, so counted already)."""
         if decision_id < 1:
-            raise Rejected("malformed", f"decision id {decision_id} (ids start at 1)")
+            raise Rejected(RejectReason.MALFORMED, f"decision id {decision_id} (ids start at 1)")
         high = self._high.get(incarnation, 0)
         if decision_id <= high:
             return False
         gap = decision_id - high - 1
         if gap > MAX_GAP:
-            raise Rejected("implausible_decision_id",
+            raise Rejected(RejectReason.IMPLAUSIBLE_DECISION_ID,
                            f"decision {decision_id} of incarnation {incarnation} would skip "
                            f"{gap} ids (at most {MAX_GAP} are believed)")
         if gap:
@@ -183,7 +183,8 @@ class Ledger:
     def _check(state: str, reason: str) -> None:
         ok = {"scored": ("",), "skipped": SKIPPED_REASONS, "lost": LOST_REASONS}
         if reason not in ok.get(state, ()):
-            raise Rejected("malformed", f"no decision ends {state!r} with reason {reason!r}")
+            raise Rejected(RejectReason.MALFORMED,
+                           f"no decision ends {state!r} with reason {reason!r}")
 
 
 @dataclass(frozen=True)
@@ -203,18 +204,22 @@ def decode_outcome(payload: bytes, site: str) -> Outcome:
     try:
         msg = pb.Outcome.FromString(payload)
     except Exception as err:  # protobuf raises DecodeError and others
-        raise Rejected("malformed", f"not an Outcome ({err.__class__.__name__})") from None
+        raise Rejected(RejectReason.MALFORMED,
+                       f"not an Outcome ({err.__class__.__name__})") from None
     if msg.site and msg.site != site:
-        raise Rejected("wrong_site", f"an Outcome of site {msg.site!r} on site {site!r}'s key")
+        raise Rejected(RejectReason.WRONG_SITE,
+                       f"an Outcome of site {msg.site!r} on site {site!r}'s key")
     if msg.state not in ("skipped", "lost"):
-        raise Rejected("malformed", f"an Outcome's state is skipped or lost, not {msg.state!r}")
+        raise Rejected(RejectReason.MALFORMED,
+                       f"an Outcome's state is skipped or lost, not {msg.state!r}")
     try:
         reason = reasons.from_wire(msg.reason)
     except ValueError as err:
-        raise Rejected("malformed", f"an Outcome's reason: {err}") from None
+        raise Rejected(RejectReason.MALFORMED, f"an Outcome's reason: {err}") from None
     if msg.state == "lost" and reason not in reasons.TRAINER_LOST:
-        raise Rejected("malformed", f"the trainer does not lose a decision for {reason!s} "
-                                    f"(its reasons: {', '.join(TRAINER_LOST)})")
+        raise Rejected(RejectReason.MALFORMED,
+                       f"the trainer does not lose a decision for {reason!s} "
+                       f"(its reasons: {', '.join(TRAINER_LOST)})")
     Ledger._check(msg.state, str(reason))
     return Outcome(msg.decision_id, msg.incarnation, msg.site, msg.state, reason, msg.detail)
 

@@ -24,6 +24,7 @@ from aoi3d.quality import LpipsFn, RewardWeights
 from services.kit.bus import Bus, Inbox
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
+from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
 from services.metrics.bookkeeping import LedgerKeeper
 from services.metrics.core import (
@@ -224,7 +225,7 @@ class MetricsWorker:
             self.rejections.reject(err, key)
         except Exception as err:  # a bug must not kill the thread; count and go on
             log.exception("failed to handle a message on %s", key)
-            self.rejections.reject(Rejected("internal_error", repr(err)), key)
+            self.rejections.reject(Rejected(RejectReason.INTERNAL_ERROR, repr(err)), key)
 
     def _ahead_of_truth(self, payload: bytes, t: float) -> bool:
         """Hold the render at ``t`` (True) when ``t`` is past every truth frame received and
@@ -262,7 +263,7 @@ class MetricsWorker:
             scored = self.core.score(payload, self._clock.now_ms())
         except Rejected as err:
             header = render_header(payload)  # parsed once, only when scoring failed
-            if (may_wait and err.reason == "no_truth" and header is not None
+            if (may_wait and err.reason == RejectReason.NO_TRUTH and header is not None
                     and self._ahead_of_truth(payload, header[2])):
                 return  # held: its truth frame may still come
             ids = None if header is None or not header[1] else header[:2]

@@ -24,7 +24,7 @@ import numpy as np
 from aoi3d.channel import Channel, Link, camera_rngs, parse_channel
 from aoi3d.channel.varying import check_frame_encoding, jpeg_bytes
 from services.kit.codec import decode_frame
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["ChannelConfig", "ChannelConfigError", "LinkStats", "NetworkCore", "Pending"]
 
@@ -190,10 +190,11 @@ class NetworkCore:
         frame = decode_frame(payload, self._accepted)
         key_camera = key.rsplit("/", 2)[-2]
         if key_camera != str(frame.camera_id):
-            raise Rejected("key_mismatch", f"frame of camera {frame.camera_id} published on "
-                                           f"{key}")
+            raise Rejected(RejectReason.KEY_MISMATCH,
+                           f"frame of camera {frame.camera_id} published on "
+                           f"{key}")
         if frame.generation_ms > now_ms + self._max_skew_ms:
-            raise Rejected("clock_skew",
+            raise Rejected(RejectReason.CLOCK_SKEW,
                            f"frame generated at {frame.generation_ms:.0f} ms but the clock "
                            f"says {now_ms:.0f} ms; check AOI3D_EPOCH_S and AOI3D_TIME_SCALE")
         n = frame.camera_id

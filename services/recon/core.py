@@ -31,7 +31,7 @@ from aoi3d.field.snapshot import ModelSnapshot, ply_bytes
 from aoi3d.freeview import MAX_VIEW_SIDE, PoseError, check_pose, check_size
 from services.kit.codec import camera_from_pb, decode_frame, encode_png
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["JobFailed", "Latest", "Outcome", "ReconCore", "decode_reply"]
 
@@ -75,7 +75,8 @@ def decode_reply(payload: bytes) -> pb.WorkReply:
         reply: pb.WorkReply = pb.WorkReply.FromString(payload)
         return reply
     except Exception as err:
-        raise Rejected("malformed", f"not a WorkReply ({err.__class__.__name__})") from None
+        raise Rejected(RejectReason.MALFORMED,
+                       f"not a WorkReply ({err.__class__.__name__})") from None
 
 
 class ReconCore:

@@ -64,7 +64,7 @@ from mcap_protobuf.writer import Writer
 from services.kit.codec import PNG, FrameData, decode_decision, decode_frame, decode_quality
 from services.kit.codec import decode_render as _decode_render
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["COMPRESSIONS", "Recording", "RecordingStatus", "Written", "entries",
            "segment_path", "segments", "sim_ms_of", "sim_ns"]
@@ -152,13 +152,13 @@ def entries(key: str, payload: bytes) -> list[tuple[str, Any, float]]:
     refuses (the decoders every service uses)."""
     m = _KEY.match(key)
     if m is None:
-        raise Rejected("unknown_key", f"not a recorded key: {key[:200]}")
+        raise Rejected(RejectReason.UNKNOWN_KEY, f"not a recorded key: {key[:200]}")
     site = m["site"]
     if m["edge"]:
         frame = decode_frame(payload)
         if frame.camera_id != int(m["cam"]):
-            raise Rejected("unknown_camera", f"camera {frame.camera_id} on camera "
-                                             f"{m['cam']}'s key")
+            raise Rejected(RejectReason.UNKNOWN_CAMERA, f"camera {frame.camera_id} on camera "
+                                                        f"{m['cam']}'s key")
         msg = pb.Frame.FromString(payload)
         t = frame.generation_ms
         return [(topic, x, t) for topic, x in
@@ -189,7 +189,7 @@ def entries(key: str, payload: bytes) -> list[tuple[str, Any, float]]:
     try:
         o = pb.Outcome.FromString(payload)
     except Exception as err:
-        raise Rejected("malformed", f"not a valid Outcome message ({err})") from None
+        raise Rejected(RejectReason.MALFORMED, f"not a valid Outcome message ({err})") from None
     return [(f"/{site}/outcome", o, math.nan)]
 
 
@@ -295,7 +295,7 @@ class Recording:
         for a message the recorder does not take; nothing happens once the recording ended
         (the caller checks :attr:`active`)."""
         if not self.active:
-            raise Rejected("not_recording", f"the recording is {self.status.state}")
+            raise Rejected(RejectReason.NOT_RECORDING, f"the recording is {self.status.state}")
         items = entries(key, payload)
         try:
             for topic, msg, t_ms in items:

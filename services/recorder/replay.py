@@ -34,17 +34,22 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
+from aoi3d.metric import BY_NAME
+from aoi3d.metric import SCORES as QUALITY
 from aoi3d.policy import Policy, decide, parse_policy
+from aoi3d.stats import MeanCI, mean_ci95
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed
 from services.recorder.arrivals import TOL_MS, arrivals, job_frames
 from services.recorder.recording import Recorded
 from services.recorder.scoring import SCORES, Scorer, job_budgets
 
-__all__ = ["DecisionReplay", "ReplayResult", "rebuildable_keys", "replay", "score_diffs"]
+__all__ = ["Counterfactual", "DecisionReplay", "ReplayResult", "rebuildable_keys", "replay",
+           "score_diffs"]
 
 
 @dataclass
@@ -193,9 +198,64 @@ def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:
             continue
         live = rec.sites[d.site].qualities[d.key]
         for name in SCORES:
-            if name in ("lpips", "psnr_dynamic_db", "ssim_dynamic") and not (
+            if BY_NAME[name].optional and not (
                     live.HasField(name) and d.quality.HasField(name)):
                 continue
             diff = abs(getattr(d.quality, name) - getattr(live, name))
             diffs[name] = max(diffs.get(name, 0.0), diff)
     return diffs
+
+
+@dataclass(frozen=True)
+class Counterfactual:
+    """One policy's row of a replay's counterfactual table (``aoi3d replay --policy``): over
+    the decisions it rebuilt that the baseline (the recorded policy, replayed) rebuilt too,
+    ``n`` of them, the mean of each score of :data:`aoi3d.metric.SCORES` (None where none has
+    it), each score's paired difference to the baseline (``vs_recorded``; an optional score,
+    LPIPS, only where every decision has it), the cameras used and the mean AoI of the frames
+    used."""
+
+    policy: str
+    n: int
+    means: dict[str, float | None]
+    vs_recorded: dict[str, MeanCI]
+    cameras_used: float | None
+    aoi_selected_ms: float | None
+
+    @classmethod
+    def of(cls, result: ReplayResult, baseline: ReplayResult) -> Counterfactual:
+        def scored(r: ReplayResult) -> dict[tuple[str, tuple[int, int]], DecisionReplay]:
+            return {(d.site, d.key): d for d in r.decisions if d.quality is not None}
+
+        mine, base = scored(result), scored(baseline)
+        keys = [k for k in mine if k in base]
+        mq = {k: q for k in keys if (q := mine[k].quality) is not None}
+        bq = {k: q for k in keys if (q := base[k].quality) is not None}
+        means: dict[str, float | None] = {}
+        vs: dict[str, MeanCI] = {}
+        for metric in QUALITY:
+            name = metric.name
+            vals = [getattr(mq[k], name) for k in keys
+                    if not metric.optional or mq[k].HasField(name)]
+            means[name] = float(np.mean(vals)) if vals else None
+            if not metric.optional or (vals and len(vals) == len(keys)):
+                vs[name] = mean_ci95([getattr(mq[k], name) - getattr(bq[k], name)
+                                      for k in keys])
+        aoi = [mine[k].mean_aoi_selected_ms for k in keys
+               if math.isfinite(mine[k].mean_aoi_selected_ms)]
+        return cls(result.policy, len(keys), means, vs,
+                   float(np.mean([len(mine[k].selected) for k in keys])) if keys else None,
+                   float(np.mean(aoi)) if aoi else None)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The row as ``--json`` writes it: ``policy``, ``n``, per score its mean and
+        ``<score>_vs_recorded`` (``{"mean", "ci95", "n"}``), ``cameras_used``,
+        ``aoi_selected_ms``."""
+        out: dict[str, Any] = {"policy": self.policy, "n": self.n}
+        for name, mean in self.means.items():
+            out[name] = mean
+            if name in self.vs_recorded:
+                out[f"{name}_vs_recorded"] = self.vs_recorded[name].to_dict()
+        out["cameras_used"] = self.cameras_used
+        out["aoi_selected_ms"] = self.aoi_selected_ms
+        return out

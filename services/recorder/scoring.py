@@ -8,14 +8,16 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+from aoi3d.metric import AT_DECISION
 from aoi3d.quality import RewardWeights
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.recording import Recorded, SiteRecord
 
 __all__ = ["SCORES", "Scorer", "job_budgets"]
 
-SCORES = ("psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
-"""The Quality fields compared (each where both have it)."""
+SCORES = AT_DECISION
+"""The Quality fields compared (each where both have it): the scores at the decision's time,
+:data:`aoi3d.metric.AT_DECISION`."""
 
 
 class Scorer:

@@ -6,7 +6,7 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["Attachment", "build_attachment", "parse_attachment"]
 
@@ -45,7 +45,7 @@ def parse_attachment(raw: bytes | None) -> Attachment:
     id) or the earlier one with a name before each field (``sequence_number``, …).
     :class:`Rejected` (``bad_attachment``) otherwise."""
     if raw is None:
-        raise Rejected("bad_attachment", "an rmw_zenoh sample without its attachment")
+        raise Rejected(RejectReason.BAD_ATTACHMENT, "an rmw_zenoh sample without its attachment")
     raw = bytes(raw)
     try:
         if raw.startswith(b"\x0fsequence_number"):  # rmw_zenoh before 0.2: named fields
@@ -69,6 +69,7 @@ def parse_attachment(raw: bytes | None) -> Attachment:
         if len(gid) != n or pos + n != len(raw) or not 1 <= n <= 64:
             raise ValueError(f"publisher id of {n} bytes in {len(raw)}")
     except (struct.error, ValueError) as err:
-        raise Rejected("bad_attachment", f"{len(raw)}-byte attachment is not rmw_zenoh's "
-                                         f"({err})") from None
+        raise Rejected(RejectReason.BAD_ATTACHMENT,
+                       f"{len(raw)}-byte attachment is not rmw_zenoh's "
+                       f"({err})") from None
     return Attachment(int(seq), int(ts), bytes(gid))

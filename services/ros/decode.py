@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from aoi3d.rigfile import quaternion_matrix
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 from services.ros.types import IMAGE, POSE_STAMPED
 
 __all__ = ["ENCODINGS", "Intrinsics", "camera_info", "image_rgb", "pose_matrix", "stamp_s"]
@@ -24,7 +24,7 @@ def stamp_s(header) -> float:
     """A ``std_msgs/Header``'s stamp in seconds; ``stamp_invalid`` when nanosec ≥ 10⁹."""
     sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
     if not 0 <= nsec < 1_000_000_000:
-        raise Rejected("stamp_invalid", f"nanosec {nsec} is not in [0, 1e9)")
+        raise Rejected(RejectReason.STAMP_INVALID, f"nanosec {nsec} is not in [0, 1e9)")
     return sec + nsec * 1e-9
 
 
@@ -32,19 +32,22 @@ def _raw_rgb(msg, max_pixels: int) -> np.ndarray:
     enc = str(msg.encoding).lower()
     bpp = ENCODINGS.get(enc)
     if bpp is None:
-        raise Rejected("unknown_encoding", f"raw image encoding {str(msg.encoding)[:40]!r} "
-                                           f"(accepted: {', '.join(ENCODINGS)})")
+        raise Rejected(RejectReason.UNKNOWN_ENCODING,
+                       f"raw image encoding {str(msg.encoding)[:40]!r} "
+                       f"(accepted: {', '.join(ENCODINGS)})")
     w, h, step = int(msg.width), int(msg.height), int(msg.step)
     if w < 1 or h < 1:
-        raise Rejected("image_mismatch", f"a {w}x{h} image")
+        raise Rejected(RejectReason.IMAGE_MISMATCH, f"a {w}x{h} image")
     if w * h > max_pixels:
-        raise Rejected("too_large", f"a {w}x{h} image exceeds {max_pixels} pixels")
+        raise Rejected(RejectReason.TOO_LARGE, f"a {w}x{h} image exceeds {max_pixels} pixels")
     if step < w * bpp:
-        raise Rejected("image_mismatch", f"step {step} < width {w} × {bpp} bytes ({enc})")
+        raise Rejected(RejectReason.IMAGE_MISMATCH,
+                       f"step {step} < width {w} × {bpp} bytes ({enc})")
     data = msg.data
     if len(data) != step * h:
-        raise Rejected("image_mismatch", f"{len(data)} data bytes, but step {step} × height "
-                                         f"{h} = {step * h}")
+        raise Rejected(RejectReason.IMAGE_MISMATCH,
+                       f"{len(data)} data bytes, but step {step} × height "
+                       f"{h} = {step * h}")
     rows = np.asarray(data, dtype=np.uint8).reshape(h, step)[:, :w * bpp]
     if bpp == 2:
         order = ">u2" if msg.is_bigendian else "<u2"
@@ -66,24 +69,28 @@ def _compressed_rgb(msg, max_pixels: int) -> np.ndarray:
     elif "png" in fmt:
         kind, magic = "PNG", b"\x89PNG\r\n\x1a\n"
     else:
-        raise Rejected("unknown_encoding", f"compressed format {str(msg.format)[:40]!r} (accepted: "
-                                           "jpeg, png)")
+        raise Rejected(RejectReason.UNKNOWN_ENCODING,
+                       f"compressed format {str(msg.format)[:40]!r} (accepted: "
+                       "jpeg, png)")
     if not data.startswith(magic):
-        raise Rejected("bad_image", f"the data is not {kind} (format says {msg.format[:40]!r})")
+        raise Rejected(RejectReason.BAD_IMAGE,
+                       f"the data is not {kind} (format says {msg.format[:40]!r})")
     from PIL import Image as PILImage
 
     try:
         im = PILImage.open(io.BytesIO(data), formats=[kind])
         w, h = im.size  # the header only: nothing is decoded yet
     except Exception as err:
-        raise Rejected("bad_image", f"{kind} header unreadable ({type(err).__name__})") from None
+        raise Rejected(RejectReason.BAD_IMAGE,
+                       f"{kind} header unreadable ({type(err).__name__})") from None
     if w * h > max_pixels:
-        raise Rejected("too_large", f"a {w}x{h} {kind} exceeds {max_pixels} pixels")
+        raise Rejected(RejectReason.TOO_LARGE, f"a {w}x{h} {kind} exceeds {max_pixels} pixels")
     try:
         with im:
             return np.asarray(im.convert("RGB"))
     except Exception as err:  # truncated or corrupt data
-        raise Rejected("bad_image", f"{kind} could not be decoded ({type(err).__name__})") \
+        raise Rejected(RejectReason.BAD_IMAGE,
+                       f"{kind} could not be decoded ({type(err).__name__})") \
             from None
 
 
@@ -101,11 +108,11 @@ def pose_matrix(msg, ros_type: str) -> np.ndarray:
     p, q = pose.position, pose.orientation
     values = [p.x, p.y, p.z, q.x, q.y, q.z, q.w]
     if not np.all(np.isfinite(values)):
-        raise Rejected("bad_pose", "pose has NaN or infinity")
+        raise Rejected(RejectReason.BAD_POSE, "pose has NaN or infinity")
     try:
         return quaternion_matrix([p.x, p.y, p.z], [q.x, q.y, q.z, q.w])
     except ValueError as err:
-        raise Rejected("bad_pose", str(err)) from None
+        raise Rejected(RejectReason.BAD_POSE, str(err)) from None
 
 
 @dataclass(frozen=True)
@@ -124,5 +131,5 @@ def camera_info(msg) -> Intrinsics:
     w, h = int(msg.width), int(msg.height)
     if k.shape != (9,) or not np.all(np.isfinite(k)) or k[0] <= 0 or k[4] <= 0 or w < 1 \
             or h < 1:
-        raise Rejected("bad_intrinsics", f"CameraInfo K {k.tolist()[:9]} size {w}x{h}")
+        raise Rejected(RejectReason.BAD_INTRINSICS, f"CameraInfo K {k.tolist()[:9]} size {w}x{h}")
     return Intrinsics(float(k[0]), float(k[4]), float(k[2]), float(k[5]), w, h)

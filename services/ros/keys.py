@@ -6,7 +6,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 from services.ros.types import HUMBLE_HASH, dds_type, type_hash
 
 __all__ = ["KeyFormat"]
@@ -58,6 +58,6 @@ class KeyFormat:
         if got == HUMBLE_HASH or got == type_hash(ros_type):
             return
         what = "another definition of the type" if _HASH_RE.match(got) else "not a type hash"
-        raise Rejected("type_hash_mismatch",
+        raise Rejected(RejectReason.TYPE_HASH_MISMATCH,
                        f"{key}: {got[:80]!r} is {what} (expected {type_hash(ros_type)} or "
                        f"{HUMBLE_HASH})")

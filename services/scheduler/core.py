@@ -24,7 +24,7 @@ from aoi3d.aoi import AoITracker
 from aoi3d.policy import LagEstimator, Policy, decide
 from services.kit.codec import FrameData, decode_frame
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 
 __all__ = ["MAX_AHEAD_MS", "MAX_DELIVERED", "AoISnapshot", "NewestFrame", "SchedulerCore"]
 
@@ -89,10 +89,11 @@ class SchedulerCore:
         frame = decode_frame(payload, self._accepted)
         delivery_ms = frame.delivery_ms if frame.delivery_ms > 0 else now_ms
         if frame.generation_ms > delivery_ms:
-            raise Rejected("bad_time", f"frame generated at {frame.generation_ms:g} ms but "
-                                       f"delivered at {delivery_ms:g} ms")
+            raise Rejected(RejectReason.BAD_TIME,
+                           f"frame generated at {frame.generation_ms:g} ms but "
+                           f"delivered at {delivery_ms:g} ms")
         if delivery_ms > now_ms + MAX_AHEAD_MS:
-            raise Rejected("future_delivery",
+            raise Rejected(RejectReason.FUTURE_DELIVERY,
                            f"delivery at {delivery_ms:g} ms is more than {MAX_AHEAD_MS:g} ms "
                            f"ahead of this clock ({now_ms:g} ms): epoch/time scale differ?")
         heapq.heappush(self._pending, (delivery_ms, next(self._tie), frame.camera_id,

@@ -41,6 +41,7 @@ from services.kit.codec import decode_quality, quality_scores
 from services.kit.keys import DEFAULT_SITE, Keys
 from services.kit.observe import Heartbeat, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops, guarded
 from services.scheduler.core import MAX_AHEAD_MS, AoISnapshot, NewestFrame, SchedulerCore
 from services.scheduler.metrics import DecisionMetrics, LearnerMetrics
@@ -245,7 +246,7 @@ class SchedulerWorker:
             return
         except Exception as err:
             log.exception("failed to decode a frame on %s", key)
-            self.rejections.reject(Rejected("internal_error", repr(err)), key)
+            self.rejections.reject(Rejected(RejectReason.INTERNAL_ERROR, repr(err)), key)
             return
         self._m.frames.labels(camera=str(frame.camera_id)).inc()
         self._frames_beat.beat()
@@ -287,7 +288,8 @@ class SchedulerWorker:
         try:
             msg = decode_quality(payload)
             if not math.isfinite(msg.reward):
-                raise Rejected("non_finite", f"quality reward is not finite ({msg.reward})")
+                raise Rejected(RejectReason.NON_FINITE,
+                               f"quality reward is not finite ({msg.reward})")
         except Rejected as err:
             self.rejections.reject(err, key)
             return

@@ -13,6 +13,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, Field
 
 from aoi3d.clock import SimClock
+from aoi3d.field.carry import CarryMode
 from aoi3d.rigfile import load_rig
 from aoi3d.scene import SceneDataset, open_dataset
 from services.kit.app import include_site_routers, service_app
@@ -116,7 +117,7 @@ def put_backend(worker: Worker,
 class CarryRequest(BaseModel):
     """How renders are made from the next render on."""
 
-    carry: Literal["fork", "fresh", "stream", "warm"] = Field(
+    carry: CarryMode = Field(
         description="fresh: a new model trains `render_steps` steps on the rendered "
                     "decision's frames alone, then renders (the paper's per-time "
                     "reconstruction; the default); stream: each worker starts from its "

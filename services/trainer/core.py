@@ -24,7 +24,7 @@ from aoi3d.scene.camera import Camera
 from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
 from services.kit.keys import DEFAULT_SITE
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected
+from services.kit.rejected import Rejected, RejectReason
 from services.trainer.frames import FrameBuffer
 from services.trainer.pool import Assignment, DecisionRef, Dispatcher, Report
 from services.trainer.state import CarryError, DecisionInForce, LatestRender, check_backend
@@ -87,13 +87,16 @@ def decode_request(payload: bytes) -> Report:
     try:
         msg = pb.WorkRequest.FromString(payload)
     except Exception as err:  # protobuf's DecodeError and friends
-        raise Rejected("malformed", f"not a WorkRequest ({err.__class__.__name__})") from None
+        raise Rejected(RejectReason.MALFORMED,
+                       f"not a WorkRequest ({err.__class__.__name__})") from None
     if not msg.worker_id or len(msg.worker_id) > 128 or "/" in msg.worker_id:
-        raise Rejected("malformed", "a WorkRequest needs a worker_id of 1-128 characters "
-                                    "without '/'")
+        raise Rejected(RejectReason.MALFORMED,
+                       "a WorkRequest needs a worker_id of 1-128 characters "
+                       "without '/'")
     values = (msg.busy_s, msg.max_wait_s)
     if not all(math.isfinite(v) and v >= 0 for v in values) or msg.max_wait_s > 3600:
-        raise Rejected("malformed", "busy_s and max_wait_s must be finite, >= 0 (wait <= 1 h)")
+        raise Rejected(RejectReason.MALFORMED,
+                       "busy_s and max_wait_s must be finite, >= 0 (wait <= 1 h)")
     done = ((msg.done_site or DEFAULT_SITE, int(msg.done_incarnation),
              int(msg.done_decision_id)) if msg.done_decision_id else None)
     return Report(worker_id=msg.worker_id, done=done, rendered=msg.done_rendered,
@@ -145,8 +148,9 @@ class TrainerCore:
         """Keep a delivered frame; :class:`Rejected` when it is invalid or from the future."""
         frame = decode_frame(payload, self._camera_ids, self._size)
         if frame.generation_ms > now_ms + self._skew_ms:
-            raise Rejected("clock_skew", f"frame generated at {frame.generation_ms:g} ms, "
-                                         f"ahead of this clock")
+            raise Rejected(RejectReason.CLOCK_SKEW,
+                           f"frame generated at {frame.generation_ms:g} ms, "
+                           f"ahead of this clock")
         self._frames.add(HeldFrame(frame.camera_id, frame.generation_ms, payload))
         self.frames_received += 1
 
@@ -206,13 +210,14 @@ class TrainerCore:
         skew are rejected, so no message — not even one with id 2^64−1 — can hold the pool
         for longer than the skew."""
         if msg.time_ms > now_ms + self._skew_ms:
-            raise Rejected("clock_skew", f"decision for {msg.time_ms:g} ms but this clock says "
-                                         f"{now_ms:g} ms")
+            raise Rejected(RejectReason.CLOCK_SKEW,
+                           f"decision for {msg.time_ms:g} ms but this clock says "
+                           f"{now_ms:g} ms")
         d = self.decision
         if d is None or msg.incarnation != d.incarnation:
             return
         if (msg.time_ms, msg.decision_id) <= (d.time_ms, d.decision_id):
-            raise Rejected("stale_decision",
+            raise Rejected(RejectReason.STALE_DECISION,
                            f"decision {msg.decision_id} for {msg.time_ms:g} ms is not newer "
                            f"than decision {d.decision_id} for {d.time_ms:g} ms")
 
@@ -256,7 +261,8 @@ class TrainerCore:
         """A worker's Render: the latest image and the render statistics."""
         msg, _camera = decode_render(payload)
         if msg.time_ms > now_ms + self._skew_ms:
-            raise Rejected("clock_skew", f"render for {msg.time_ms:g} ms, ahead of this clock")
+            raise Rejected(RejectReason.CLOCK_SKEW,
+                           f"render for {msg.time_ms:g} ms, ahead of this clock")
         if self.latest is not None and msg.time_ms < self.latest.time_ms \
                 and msg.decision_incarnation == self._latest_incarnation:
             # an older decision finished after a newer one (several workers): counted, not shown

@@ -6,12 +6,11 @@ that maps a backend name to its config; ``PUT /backend`` switches it at run time
 
 from __future__ import annotations
 
-from typing import Literal
-
 from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.field import check_backend
+from aoi3d.field.carry import CarryMode
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
@@ -29,7 +28,7 @@ class Settings(ServiceSettings):
                                              "lists them); `PUT /backend` switches it at run "
                                              "time.",
                          examples=["grid"])
-    carry: Literal["fork", "fresh", "stream", "warm"] = Field(
+    carry: CarryMode = Field(
         "fresh",
         description="How a render is made (aoi3d.field.carry, the experiments' carry modes): "
                     "fresh = the paper's per-time reconstruction, a new model trains "

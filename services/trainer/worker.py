@@ -36,6 +36,7 @@ from services.kit.codec import camera_to_pb
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
@@ -150,8 +151,8 @@ class TrainerWorker:
     def _site(self, key: str) -> TrainerCore:
         core = self.cores.get(Keys.site_of(key))
         if core is None:
-            raise Rejected("unknown_site", f"{key}: not a site of this run "
-                                           f"({', '.join(self.sites)})")
+            raise Rejected(RejectReason.UNKNOWN_SITE, f"{key}: not a site of this run "
+                                                      f"({', '.join(self.sites)})")
         return core
 
     def _on_frame(self, key: str, payload: bytes) -> None:

@@ -33,6 +33,7 @@ from aoi3d.scene.camera import Camera
 from services.kit.bus import Bus
 from services.kit.keys import Keys
 from services.kit.observe import Rejected, Rejections
+from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
 from services.viewer.core import ViewerCore, box_segments
 from services.viewer.settings import Settings
@@ -130,7 +131,7 @@ class ViewerWorker:
     def _site_of(self, key: str) -> str:
         site = Keys.site_of(key)
         if site not in self.core.sites:
-            raise Rejected("unknown_site", f"{key}: not a site of this run")
+            raise Rejected(RejectReason.UNKNOWN_SITE, f"{key}: not a site of this run")
         return site
 
     # ------------------------------------------------------------------ drawing

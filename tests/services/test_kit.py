@@ -18,6 +18,7 @@ from services.kit.keys import Keys
 from services.kit.membus import MemoryBus, key_matches
 from services.kit.observe import Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import RejectReason
 from services.kit.settings import CommonSettings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -113,7 +114,7 @@ def test_rejections_count_by_reason() -> None:
     reg = CollectorRegistry()
     rej = Rejections(reg, log_interval_s=60)
     for _ in range(3):
-        rej.reject(Rejected("malformed", "x"), "k")
+        rej.reject(Rejected(RejectReason.MALFORMED, "x"), "k")
     assert rej.total("malformed") == 3
     text = generate_latest(reg).decode()
     assert 'aoi3d_messages_rejected_total{reason="malformed"} 3.0' in text

@@ -340,6 +340,32 @@ def _mat10_recording(path: Path) -> None:
     rec.close()
 
 
+def test_the_counterfactual_rows_pair_by_epoch_and_keep_their_columns() -> None:
+    """A counterfactual row (typed: Counterfactual) pairs the decisions both replays scored;
+    LPIPS is compared only where every one has it; --json writes the columns it always did."""
+    from services.recorder.replay import Counterfactual, DecisionReplay, ReplayResult
+
+    def result(policy: str, psnr: list[float | None], lpips_from: int = 0) -> ReplayResult:
+        out = []
+        for i, p in enumerate(psnr):
+            q = None if p is None else pb.Quality(psnr_db=p, ssim=0.5, reward=1.0 + i)
+            if q is not None and i >= lpips_from:
+                q.lpips = 0.1
+            out.append(DecisionReplay("site1", (1, i), 30.0 * i, ((i, 0.0),) * i, (), True,
+                                      math.nan if i == 0 else 10.0, q))
+        return ReplayResult(policy, out)
+
+    base = result("mat:70", [20.0, 21.0, 22.0])
+    row = Counterfactual.of(result("all", [21.0, None, 23.0], lpips_from=1), base)
+    assert (row.n, row.means["psnr_db"], row.cameras_used, row.aoi_selected_ms) == (
+        2, 22.0, 1.0, 10.0)
+    assert row.vs_recorded["psnr_db"].mean == 1.0 and "lpips" not in row.vs_recorded
+    assert list(row.to_dict()) == [
+        "policy", "n", "psnr_db", "psnr_db_vs_recorded", "ssim", "ssim_vs_recorded", "lpips",
+        "reward", "reward_vs_recorded", "cameras_used", "aoi_selected_ms"]
+    assert row.to_dict()["psnr_db_vs_recorded"] == {"mean": 1.0, "ci95": 0.0, "n": 2}
+
+
 def test_replay_command_json_and_its_errors(tmp_path: Path) -> None:
     import json
 

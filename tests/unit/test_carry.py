@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +13,9 @@ import torch
 from aoi3d.experiment import EpisodeConfig, plan_episode, run_plan
 from aoi3d.field import FieldTrainer, GridConfig, TrainView
 from aoi3d.field.carry import (
+    BACKGROUND_MODES,
     CARRY_MODES,
+    FINETUNE_MODES,
     Reconstruction,
     WarmStart,
     changed_cells,
@@ -20,6 +24,7 @@ from aoi3d.field.carry import (
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from tests.support.tiny import TINY_FIELD
 
+ROOT = Path(__file__).resolve().parents[2]
 N_TRAIN = 4
 TINY = GridConfig(batch_rays=64, samples_coarse=12, samples_fine=12, fine_from_step=0,
                   grid_sizes=(10,), upsample_steps=(), background_size=(4, 8),
@@ -115,7 +120,25 @@ def test_check_carry_refuses_unknown_modes_and_missing_budgets() -> None:
                          ("stream", 0)):
         with pytest.raises(ValueError):
             check_carry(carry, steps)
-    check_carry("warm", 0)
+    assert check_carry("warm", 0) == "warm" and check_carry("stream", 5) == "stream"
+
+
+def test_the_modes_are_spelled_once() -> None:
+    # the one definition (CarryMode), what every list and every API schema takes
+    assert CARRY_MODES == ("fork", "fresh", "stream", "warm")
+    assert {"fork", "warm"} == BACKGROUND_MODES and {"fork", "stream"} == FINETUNE_MODES
+    from services.trainer.app import CarryRequest
+    from services.trainer.settings import Settings
+
+    for model in (CarryRequest, Settings):
+        assert model.model_json_schema()["properties"]["carry"]["enum"] == list(CARRY_MODES)
+    spelled = []
+    for package in ("aoi3d", "aoi3d_cli", "services", "bench"):
+        for path in (ROOT / package).rglob("*.py"):
+            text = path.read_text()
+            if re.search(r'"fork",\s*"fresh"|"fresh",\s*"fork"|"warm",\s*"fork"', text):
+                spelled.append(path.relative_to(ROOT).as_posix())
+    assert spelled == ["aoi3d/field/carry.py"]
 
 
 def test_episode_fork_trains_every_decision_and_each_scored_copy(

@@ -265,3 +265,36 @@ def test_display_time_verdicts_use_the_display_scores() -> None:
     assert "at display time" in interior.statement
     assert verdicts[2].holds is False  # Γ = 40 is best at every delay: it does not grow
     assert verdicts[3].holds is False and verdicts[3].numbers["optimum"]["best"] == "all"
+
+
+def test_the_claims_read_a_typed_view_parsed_once() -> None:
+    """A document is parsed once (aoi3d.experiment.results); a claim given the view or the
+    dict says the same, and quotes the document's own numbers back."""
+    import math
+
+    from aoi3d.experiment.results import Difference, Results
+
+    tradeoff = tradeoff_doc({"psnr_db": (PEAK, 1.0), "ssim": (PEAK, 0.03),
+                             "lpips": (PEAK, -0.01), "reward": (PEAK, 0.03)})
+    view = Results.parse(tradeoff)
+    assert Results.parse(view) is view
+    assert view.meta.delay == "exp:60" and view.optimum["psnr_db"].raw is tradeoff["optimum"][
+        "psnr_db"]
+    assert view.optimum["psnr_db"].best == 100.0 and view.optimum["psnr_db"].excluded == (0.0,)
+    assert view.episodes == () and view.policies == () and view.optima == ()
+    for claim in (claims.tradeoff_interior_optimum, claims.scores_agree_on_the_optimum):
+        assert claim(view) == claim(tradeoff)
+    compare = compare_doc(0.8, oracle=1.0)
+    parsed = Results.parse(compare)
+    assert parsed.per_seed("all", "psnr_db") == {
+        e["seed"]: e["psnr_db"] for e in compare["episodes"] if e["policy"] == "all"}
+    assert parsed.bound["oracle:rules:psnr_db"]["psnr_db"]["all"].ci95 == 0.1
+    assert claims.learned_beats_best_rule(parsed) == claims.learned_beats_best_rule(compare)
+    evaluation = eval_doc(0.0)
+    assert claims.ppo_reaches_best_mat(Results.parse(evaluation)) == \
+        claims.ppo_reaches_best_mat(evaluation)
+    delay = delay_doc({20: 40, 60: 70, 100: 130})
+    assert [o.mean_delay_ms for o in Results.parse(delay).optima] == [20, 60, 100]
+    assert math.isnan(Difference.parse({"mean": None, "ci95": None}).mean)
+    with pytest.raises(KeyError):
+        _ = Results.parse({"meta": {}}).meta.seed_list

@@ -83,7 +83,9 @@ def test_lower_is_better_and_unordered_policies() -> None:
 
 
 def test_the_direction_is_stated_once_and_optima_applies_it_per_metric() -> None:
-    assert {"lpips"} == LOWER_IS_BETTER and sign_of("lpips") == -1.0 and sign_of("ssim") == 1.0
+    # stated once, in aoi3d/metric.py's table: LPIPS at the decision's and at display time
+    assert {"lpips", "lpips_display"} == LOWER_IS_BETTER
+    assert sign_of("lpips") == sign_of("lpips_display") == -1.0 and sign_of("ssim") == 1.0
     means = (("all", 20.0, 0.30), ("mat:70", 22.0, 0.20), ("wait:40", 21.0, 0.25))
     rows = [{"policy": p, "seed": s, "psnr": psnr + 0.1 * s, "lpips": lp + 0.01 * s, "ssim": None}
             for s in range(3) for p, psnr, lp in means]

@@ -14,6 +14,7 @@ import numpy as np
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.experiment.episode.links import EpisodeLinks, episode_links
 from aoi3d.field import field_config
+from aoi3d.field.carry import BACKGROUND_MODES, FINETUNE_MODES
 from aoi3d.policy import DisplayLag, Policy, Selection, decide, parse_policy
 from aoi3d.scene import SceneDataset
 
@@ -144,7 +145,7 @@ def plan_episode(
     feed = links.delivery_feed()
     for i, t in enumerate(times):
         scored = i >= first_scored and (i - first_scored) % cfg.score_every == 0
-        train = scored or cfg.carry in ("warm", "fork")  # they train at every decision
+        train = scored or cfg.carry in BACKGROUND_MODES  # they train at every decision
         sel = decide(pol, t, links.newest_ms, deliveries=feed, lag=lag)
         decisions.append(planned_decision(sel, links.camera_ids, train=train, scored=scored))
     return EpisodePlan(
@@ -174,7 +175,7 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "dataset": dataset_fingerprint(dataset),
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
-        **({"render_steps": cfg.render_steps} if cfg.carry in ("fork", "stream") else {}),
+        **({"render_steps": cfg.render_steps} if cfg.carry in FINETUNE_MODES else {}),
         "compute": [cfg.time_scale, cfg.compute_fixed_ms, cfg.compute_step_ms],
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
                                        *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
@@ -239,7 +240,7 @@ def render_budget(cfg: EpisodeConfig) -> int:
 def total_steps(plan: EpisodePlan) -> int:
     """Training steps an episode takes (background and per scored decision)."""
     cfg = plan.config
-    background = cfg.steps_per_epoch if cfg.carry in ("warm", "fork") else 0
+    background = cfg.steps_per_epoch if cfg.carry in BACKGROUND_MODES else 0
     total = sum((background if d.train else 0) + (decision_budget(cfg, d) if d.scored else 0)
                 for d in plan.decisions if d.cameras)
     if cfg.carry == "stream" and any(d.scored and d.cameras for d in plan.decisions):
