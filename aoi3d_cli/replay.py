@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 
@@ -113,7 +113,7 @@ def replay(
                                      "virtual clock", param_hint="'--live'")
         if len(site or []) > 1:
             raise typer.BadParameter("--live plays one site", param_hint="'--site'")
-        _live(recording, (site or [None])[0], connect, time_scale, epoch_s, key_format,
+        _live(recording, site[0] if site else None, connect, time_scale, epoch_s, key_format,
               domain_id, namespace, write_rig, rig_only)
         return
     if write_rig is not None or rig_only or epoch_s is not None:
@@ -143,7 +143,7 @@ def replay(
         fail(f"no site {', '.join(missing)} in the recording; it holds "
              f"{', '.join(sorted(rec.sites)) or 'none'}")
     scorers: dict = {}
-    kwargs = dict(sites=site, score=score, max_renders=max_renders, threads=threads,
+    kwargs: dict[str, Any] = dict(sites=site, score=score, max_renders=max_renders, threads=threads,
                   scorers=scorers)
     try:
         # with counterfactuals, every policy rebuilds the same epochs: those all of them can
@@ -153,7 +153,7 @@ def replay(
     except (ValueError, PolicySpecError) as err:
         fail(err)
     diffs = score_diffs(rec, base)
-    doc = {
+    doc: dict[str, Any] = {
         "recording": str(recording), "files": [str(f) for f in rec.files],
         "sites": sorted(site or rec.sites),
         "recorded_policies": sorted({d.policy for s in rec.sites.values()

@@ -120,7 +120,7 @@ class PoseSpec(Strict):
                              "(static), or topic (PoseStamped/Odometry)")
         if forms[1] and (self.position is None or self.orientation is None):
             raise ValueError("position and orientation go together")
-        if forms[1]:
+        if self.position is not None and self.orientation is not None:  # forms[1], checked
             try:
                 quaternion_matrix(self.position, self.orientation)
             except ValueError as err:
@@ -148,6 +148,7 @@ class PoseSpec(Strict):
     def static_c2w(self) -> np.ndarray:
         if self.c2w is not None:
             return self.to_gl(np.asarray(self.c2w).reshape(4, 4))
+        assert self.position is not None and self.orientation is not None, "a static pose"
         return self.to_gl(quaternion_matrix(self.position, self.orientation))
 
 
@@ -205,6 +206,7 @@ class CameraSpec(Strict):
     def kind(self) -> str:
         if self.url is not None:
             return "rtsp" if self.is_rtsp else "video"
+        assert self.image is not None, "_source: an image topic when no url"
         return self.image_type or ("compressed" if self.image.endswith("/compressed") else "raw")
 
 

@@ -109,7 +109,7 @@ class CameraState:
         if (best is None or best_dt > tol) and not final and newest < stamp + tol:
             raise Wait  # a pose within the tolerance may still come
         if best is None or best_dt > tol:
-            what = ("no pose received yet on " + spec.topic if best is None else
+            what = (f"no pose received yet on {spec.topic}" if best is None else
                     f"the nearest pose on {spec.topic} is {best_dt:.3f} s away")
             raise Rejected("no_pose", f"{what} (tolerance {tol:g} s)")
         return best
@@ -119,6 +119,9 @@ class CameraState:
         (unless ``final``)."""
         spec = self.spec.intrinsics
         if spec.static:
+            assert (spec.fx is not None and spec.fy is not None and spec.cx is not None
+                    and spec.cy is not None and spec.width is not None
+                    and spec.height is not None), "static: all six values (validated)"
             return ros.Intrinsics(spec.fx, spec.fy, spec.cx, spec.cy, spec.width, spec.height)
         if self.intrinsics is None and not final:
             raise Wait

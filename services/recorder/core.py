@@ -297,15 +297,17 @@ class Recording:
         if not self.active:
             raise Rejected("not_recording", f"the recording is {self.status.state}")
         items = entries(key, payload)
+        writer, f = self._writer, self._file
+        assert writer is not None and f is not None, "active: a segment is open"
         try:
             for topic, msg, t_ms in items:
-                self._writer.write_message(topic, msg, log_time=log_ns,
-                                           publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
-                                           else log_ns)
+                writer.write_message(topic, msg, log_time=log_ns,
+                                     publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
+                                     else log_ns)
             self.status.messages += 1
             self.status.mcap_messages += len(items)
             self._update_bytes()
-            if self.max_bytes and self._file.tell() >= self.max_bytes:
+            if self.max_bytes and f.tell() >= self.max_bytes:
                 self._finish()
                 self._open_next()
         except OSError as err:

@@ -163,6 +163,7 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
             streams.setdefault(fr.camera_id, _Stream(p.camera)).frames.append(fr)
 
     def expire(now_s: float) -> None:
+        assert core is not None, "after the first message"
         frames, refused = core.expire(now_s)
         take(frames)
         rejected.update(err.reason for _name, err in refused)
@@ -281,7 +282,9 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         raise NotImportable(f"the cameras' frames do not overlap in time (the latest first frame "
                             f"at {t0:.0f} ms, the earliest last one at {t1:.0f} ms)")
     n_frames = math.floor((t1 - t0) / step + 1e-9) + 1
-    cameras, picks, rows = [], [], []
+    cameras: list[Camera] = []
+    picks: list[list[int]] = []
+    rows: list[dict] = []
     for cam in order:
         s = streams[cam]
         cameras.append(_fixed_camera(s))

@@ -3,6 +3,8 @@ store: a message → bytes, and bytes → a message, checked (size, header, exac
 
 from __future__ import annotations
 
+from typing import Any
+
 from services.kit.rejected import Rejected
 from services.ros.types import CDR_LE, typestore
 
@@ -13,7 +15,7 @@ def encode_cdr(msg: object, ros_type: str) -> bytes:
     return bytes(typestore().serialize_cdr(msg, ros_type))
 
 
-def decode_cdr(payload: bytes, ros_type: str, max_bytes: int) -> object:
+def decode_cdr(payload: bytes, ros_type: str, max_bytes: int) -> Any:  # rosbags': untyped
     """A CDR payload → the message (rosbags' dataclass). Refused before parsing when larger
     than ``max_bytes`` (``too_large``); ``bad_cdr`` when it is not a little-endian CDR
     encoding of ``ros_type`` (truncated, garbled, trailing bytes)."""
