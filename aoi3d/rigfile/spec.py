@@ -97,7 +97,7 @@ class PoseSpec(Strict):
 
     @field_validator("c2w", "extrinsic")
     @classmethod
-    def _matrix(cls, v):
+    def _matrix(cls, v: list[float] | list[list[float]] | None) -> list[float] | None:
         if v is None:
             return None
         flat = [float(x) for row in v for x in (row if isinstance(row, list) else [row])]
@@ -257,8 +257,8 @@ class ClockSpec(Strict):
 
     @field_validator("offset_s")
     @classmethod
-    def _finite(cls, v):
-        if v != "auto" and not (math.isfinite(v) and abs(v) < 10 * 365 * 86400):
+    def _finite(cls, v: float | Literal["auto"]) -> float | Literal["auto"]:
+        if not isinstance(v, str) and not (math.isfinite(v) and abs(v) < 10 * 365 * 86400):
             raise ValueError("a finite number of seconds, or auto")
         return v
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -37,15 +38,15 @@ class CameraState:
     spec: CameraSpec
     camera_id: int
     intrinsics: ros.Intrinsics | None = None
-    poses: deque = field(default_factory=lambda: deque(maxlen=POSES_KEPT))
-    offsets: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
+    poses: deque[tuple[float, np.ndarray]] = field(default_factory=lambda: deque(maxlen=POSES_KEPT))
+    offsets: deque[float] = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
     last_seq: OrderedDict[tuple[str, bytes], int] = field(default_factory=OrderedDict)
     """The last sequence number of each publisher (topic, id): at most :data:`STREAMS_KEPT`,
     the least recently heard forgotten (a sender inventing ids cannot grow it)."""
     own_seq: int = 0
-    received: Counter = field(default_factory=Counter)
+    received: Counter[str] = field(default_factory=Counter)
     """Samples received by kind."""
-    rejected: Counter = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
     """Samples rejected by reason."""
     published: int = 0
     lost: int = 0
@@ -58,8 +59,9 @@ class CameraState:
     publish_delay_s: float = math.nan
     """Source time (the rmw_zenoh attachment) − stamp of the last image: the robot's own
     delay between capture and publish."""
-    ages: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
-    held: list = field(default_factory=list)
+    ages: deque[float] = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
+    held: list[tuple[float, np.ndarray, float, ros.Attachment | None, float]] = field(
+        default_factory=list)
     """Images waiting for their pose or intrinsics: (deadline wall s, RGB, stamp, attachment,
     receipt wall s)."""
 
@@ -129,7 +131,7 @@ class CameraState:
             raise Rejected("no_intrinsics", f"no CameraInfo received yet on {spec.camera_info}")
         return self.intrinsics
 
-    def status(self, now_s: float, offset_in_force: float) -> dict:
+    def status(self, now_s: float, offset_in_force: float) -> dict[str, Any]:
         """Its row of the status route (plain JSON values)."""
         spec = self.spec
         ages = sorted(self.ages)
@@ -151,5 +153,5 @@ class CameraState:
         }
 
 
-def _num(x: float, scale: float = 1.0, nd: int = 3):
+def _num(x: float | None, scale: float = 1.0, nd: int = 3) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x * scale, nd)

@@ -84,7 +84,8 @@ def sim_ns(ms: float) -> int:
 
 
 def sim_ms_of(ts: Timestamp) -> float:
-    return (ts.seconds * 1_000_000_000 + ts.nanos) / 1e6
+    ms: float = (ts.seconds * 1_000_000_000 + ts.nanos) / 1e6  # (protobuf: untyped)
+    return ms
 
 
 def _stamp(ms: float) -> Timestamp:
@@ -264,7 +265,7 @@ class Recording:
         writer, f = self._writer, self._file
         self._writer = self._file = None
         if writer is not None:
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]  # mcap_protobuf: unannotated
         if f is not None:
             self._done_bytes += f.tell()
             f.close()

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from aoi3d.policy import Policy, decide, parse_policy
+from aoi3d.policy import Policy, Selection, decide, parse_policy
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed
 from services.recorder.arrivals import TOL_MS, arrivals, job_frames
@@ -72,7 +72,7 @@ class ReplayResult:
         return sum(d.selected == d.recorded for d in self.decisions)
 
 
-def _selection(sel, camera_ids) -> tuple[tuple[int, float], ...]:
+def _selection(sel: Selection, camera_ids: Sequence[int]) -> tuple[tuple[int, float], ...]:
     return tuple((int(c), float(g)) for c, g in zip(sel.cameras(camera_ids), sel.gen_ms,
                                                     strict=True))
 
