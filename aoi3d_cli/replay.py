@@ -12,11 +12,17 @@ from __future__ import annotations
 import json
 import math
 from pathlib import Path
-from typing import Annotated, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from aoi3d_cli.common import fail, fmt, make_console, stop_on_signal
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from services.recorder.recording import Recorded
+    from services.recorder.replay import ReplayResult
 
 
 def _paired(a: list[float], b: list[float]) -> dict[str, float | int | None]:
@@ -119,11 +125,41 @@ def replay(
     if write_rig is not None or rig_only or epoch_s is not None:
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
-    from services.recorder.recording import load
+    _virtual(recording, policy, json_out, site, max_renders, score, threads)
+
+
+def _virtual(recording: Path, policy: list[str] | None, json_out: bool, site: list[str] | None,
+             max_renders: int | None, score: bool, threads: int | None) -> None:
+    """``aoi3d replay`` on the virtual clock: the recorded policy, then each --policy on the
+    same arrivals."""
     from services.recorder.replay import rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
     console = make_console(stderr=json_out)
+    specs = _policies(policy)
+    from aoi3d.policy import PolicySpecError
+
+    rec = _load(recording, site)
+    scorers: dict = {}
+    kwargs: dict[str, Any] = dict(sites=site, score=score, max_renders=max_renders,
+                                  threads=threads, scorers=scorers)
+    try:
+        # with counterfactuals, every policy rebuilds the same epochs: those all of them can
+        paired = rebuildable_keys(rec, [None, *specs], sites=site) if specs and score else None
+        base = run_replay(rec, None, only=paired, **kwargs)
+        others = [run_replay(rec, spec, only=paired, **kwargs) for spec in specs]
+    except (ValueError, PolicySpecError) as err:
+        fail(err)
+    diffs = score_diffs(rec, base)
+    doc = _document(recording, rec, site, base, others, paired, diffs, score)
+    if json_out:
+        print(json.dumps(doc, allow_nan=False, default=lambda x: None))
+        return
+    _print_report(console, recording, doc, diffs)
+
+
+def _policies(policy: list[str] | None) -> list[str]:
+    """--policy's specs (repeated or comma lists), each checked."""
     specs = [s.strip() for p in (policy or []) for s in p.split(",") if s.strip()]
     from aoi3d.policy import PolicySpecError, parse_policy
 
@@ -132,6 +168,13 @@ def replay(
             parse_policy(spec)
         except PolicySpecError as err:
             raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+    return specs
+
+
+def _load(recording: Path, site: list[str] | None) -> Recorded:
+    """The recording, holding every site of --site; else one line and exit status 1."""
+    from services.recorder.recording import load
+
     try:
         rec = load(recording)
     except (FileNotFoundError, OSError) as err:
@@ -142,17 +185,13 @@ def replay(
     if missing:
         fail(f"no site {', '.join(missing)} in the recording; it holds "
              f"{', '.join(sorted(rec.sites)) or 'none'}")
-    scorers: dict = {}
-    kwargs: dict[str, Any] = dict(sites=site, score=score, max_renders=max_renders, threads=threads,
-                  scorers=scorers)
-    try:
-        # with counterfactuals, every policy rebuilds the same epochs: those all of them can
-        paired = rebuildable_keys(rec, [None, *specs], sites=site) if specs and score else None
-        base = run_replay(rec, None, only=paired, **kwargs)
-        others = [run_replay(rec, spec, only=paired, **kwargs) for spec in specs]
-    except (ValueError, PolicySpecError) as err:
-        fail(err)
-    diffs = score_diffs(rec, base)
+    return rec
+
+
+def _document(recording: Path, rec: Recorded, site: list[str] | None, base: ReplayResult,
+              others: list[ReplayResult], paired: set[tuple[str, tuple[int, int]]] | None,
+              diffs: dict[str, float], score: bool) -> dict[str, Any]:
+    """What ``--json`` prints (and the tables show)."""
     doc: dict[str, Any] = {
         "recording": str(recording), "files": [str(f) for f in rec.files],
         "sites": sorted(site or rec.sites),
@@ -175,9 +214,12 @@ def replay(
 
     doc["late_arrivals"] = sum(arrivals(rec.sites[s]).late for s in doc["sites"]
                                if rec.sites[s].decisions)
-    if json_out:
-        print(json.dumps(doc, allow_nan=False, default=lambda x: None))
-        return
+    return doc
+
+
+def _print_report(console: Console, recording: Path, doc: dict[str, Any],
+                  diffs: dict[str, float]) -> None:
+    """The report as text: what was replayed, how it agrees, the counterfactual table."""
     console.print(f"{recording}: {doc['decisions']} decisions ({', '.join(doc['sites'])}), "
                   f"policies {', '.join(doc['recorded_policies'])}")
     console.print(f"selections equal: {doc['selections_equal']}/{doc['decisions']} · AoI "
