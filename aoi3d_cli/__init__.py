@@ -12,8 +12,8 @@ line, ``error: <file>: <what>; <what to do>``, and exit status 1.
 from __future__ import annotations
 
 import inspect
+from typing import Any
 
-import click
 import typer
 from typer.core import TyperGroup
 
@@ -25,7 +25,8 @@ from aoi3d_cli.common import fail
 class _Root(TyperGroup):
     """The ``aoi3d`` group: every command's :class:`DatasetError` becomes one line."""
 
-    def invoke(self, ctx: click.Context):  # type: ignore[override]
+    # typer.Context: the context typer makes (public), narrower than the base's parameter
+    def invoke(self, ctx: typer.Context) -> Any:  # type: ignore[override]
         try:
             return super().invoke(ctx)
         except DatasetError as err:

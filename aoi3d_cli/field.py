@@ -22,8 +22,9 @@ from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS
 from aoi3d_cli.common import fail, make_console
 
 if TYPE_CHECKING:
-    from aoi3d.field import FieldConfig
+    from aoi3d.field import FieldConfig, FieldTrainer
     from aoi3d.quality import LpipsFn
+    from aoi3d.scene import Camera
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 console = make_console()
@@ -93,48 +94,12 @@ def backends() -> None:
     console.print(table)
 
 
-@app.command()
-def train(
-    backend: Annotated[str, typer.Option(help="Backend name (see `aoi3d field backends`).")] = (
-        "grid"
-    ),
-    dataset: Annotated[Path, typer.Option(help="Dataset folder (aoi3d, D-NeRF or DyNeRF).")] = (
-        Path(FRAMING_DATASETS[DEFAULT_FRAMING])
-    ),
-    cameras: Annotated[
-        str | None, typer.Option(help="Training cameras, e.g. 1-18 or 1,4,8 (default: all "
-                                      "training cameras).")
-    ] = None,
-    frame: Annotated[int, typer.Option(help="Frame index: the instant to reconstruct.")] = 0,
-    seconds: Annotated[
-        float, typer.Option(help="Training time budget (rendering and scoring not counted).")
-    ] = 30.0,
-    every: Annotated[
-        float, typer.Option(help="Score the novel view every this many training seconds.")
-    ] = 5.0,
-    out: Annotated[
-        Path | None, typer.Option(help="Write the final novel view here (PNG).")
-    ] = None,
-    device: Annotated[str, typer.Option(help="auto (CUDA when available), cpu or cuda.")] = (
-        "auto"
-    ),
-    threads: Annotated[
-        int | None, typer.Option(help="Torch CPU threads (default: torch's).")
-    ] = None,
-    seed: Annotated[int, typer.Option(help="Seed of the initialisation and ray sampling.")] = 0,
-) -> None:
-    """Train a backend on one instant and score the held-out novel view as it goes."""
-
+def _checked(backend: str, seconds: float, every: float, threads: int | None,
+             device: str) -> str:
+    """The options that need no dataset, checked (a bad one is a usage error naming it); the
+    torch device --device stands for."""
     from aoi3d.device import resolve_device
-    from aoi3d.field import (
-        FieldTrainer,
-        TrainView,
-        UnknownBackendError,
-        check_backend,
-        field_config,
-    )
-    from aoi3d.lpips import load_lpips_fn
-    from aoi3d.quality import psnr, ssim
+    from aoi3d.field import UnknownBackendError, check_backend
 
     try:
         check_backend(backend)
@@ -147,34 +112,18 @@ def train(
     if threads is not None and threads < 1:
         raise typer.BadParameter(f"must be >= 1, got {threads}", param_hint="--threads")
     try:
-        torch_device = resolve_device(device)
+        return resolve_device(device)
     except ValueError as err:
         raise typer.BadParameter(str(err), param_hint="--device") from None
-    try:
-        ds = open_dataset(dataset)
-    except (FileNotFoundError, ValueError, ImportError) as exc:
-        fail(exc)
-    try:
-        ids = parse_cameras(cameras, ds) if cameras is not None else list(ds.train_ids)
-    except ValueError as exc:
-        raise typer.BadParameter(str(exc), param_hint="--cameras") from exc
-    if not 0 <= frame < ds.n_frames:
-        raise typer.BadParameter(f"must be in 0..{ds.n_frames - 1}, got {frame}",
-                                 param_hint="--frame")
 
-    lpips_fn = load_lpips_fn()
-    views = [TrainView(ds.cameras[c], ds.frame(c, frame)) for c in ids]
-    camera = ds.cameras[ds.heldout_id]
-    truth = ds.frame(ds.heldout_id, frame)
-    cfg = field_config(backend) if threads is None else field_config(backend, num_threads=threads)
-    from aoi3d.field.process import configure_process
 
-    configure_process(cfg.num_threads, malloc=cfg.tune_malloc)
-    trainer = FieldTrainer(cfg, ds.aabb, device=torch_device, seed=seed)
-    trainer.set_views(views)
-    console.print(f"[bold]{backend}[/] on {trainer.device}: {len(ids)} cameras {ids} at frame "
-                  f"{frame}, novel view = camera {ds.heldout_id}, {ds.width}×{ds.height}, "
-                  f"{seconds:g} s of training")
+def _train_scoring(trainer: FieldTrainer, camera: Camera, truth: np.ndarray,
+                   lpips_fn: LpipsFn | None, seconds: float, every: float
+                   ) -> tuple[np.ndarray, float, str]:
+    """Train for ``seconds`` of training time, rendering and scoring the novel view every
+    ``every`` s and at the end (a line each): the last render, the training time, and why
+    LPIPS is missing ("" when it is not)."""
+    from aoi3d.quality import psnr, ssim
 
     train_s = 0.0
     next_score_s = min(every, seconds)
@@ -207,7 +156,74 @@ def train(
             while next_score_s <= train_s:
                 next_score_s += every
             next_score_s = min(next_score_s, seconds)
+    return image, train_s, lpips_note
 
+
+@app.command()
+def train(
+    backend: Annotated[str, typer.Option(help="Backend name (see `aoi3d field backends`).")] = (
+        "grid"
+    ),
+    dataset: Annotated[Path, typer.Option(help="Dataset folder (aoi3d, D-NeRF or DyNeRF).")] = (
+        Path(FRAMING_DATASETS[DEFAULT_FRAMING])
+    ),
+    cameras: Annotated[
+        str | None, typer.Option(help="Training cameras, e.g. 1-18 or 1,4,8 (default: all "
+                                      "training cameras).")
+    ] = None,
+    frame: Annotated[int, typer.Option(help="Frame index: the instant to reconstruct.")] = 0,
+    seconds: Annotated[
+        float, typer.Option(help="Training time budget (rendering and scoring not counted).")
+    ] = 30.0,
+    every: Annotated[
+        float, typer.Option(help="Score the novel view every this many training seconds.")
+    ] = 5.0,
+    out: Annotated[
+        Path | None, typer.Option(help="Write the final novel view here (PNG).")
+    ] = None,
+    device: Annotated[str, typer.Option(help="auto (CUDA when available), cpu or cuda.")] = (
+        "auto"
+    ),
+    threads: Annotated[
+        int | None, typer.Option(help="Torch CPU threads (default: torch's).")
+    ] = None,
+    seed: Annotated[int, typer.Option(help="Seed of the initialisation and ray sampling.")] = 0,
+) -> None:
+    """Train a backend on one instant and score the held-out novel view as it goes."""
+
+    from aoi3d.field import FieldTrainer, TrainView, field_config
+    from aoi3d.lpips import load_lpips_fn
+    from aoi3d.quality import psnr, ssim
+
+    torch_device = _checked(backend, seconds, every, threads, device)
+    try:
+        ds = open_dataset(dataset)
+    except (FileNotFoundError, ValueError, ImportError) as exc:
+        fail(exc)
+    try:
+        ids = parse_cameras(cameras, ds) if cameras is not None else list(ds.train_ids)
+    except ValueError as exc:
+        raise typer.BadParameter(str(exc), param_hint="--cameras") from exc
+    if not 0 <= frame < ds.n_frames:
+        raise typer.BadParameter(f"must be in 0..{ds.n_frames - 1}, got {frame}",
+                                 param_hint="--frame")
+
+    lpips_fn = load_lpips_fn()
+    views = [TrainView(ds.cameras[c], ds.frame(c, frame)) for c in ids]
+    camera = ds.cameras[ds.heldout_id]
+    truth = ds.frame(ds.heldout_id, frame)
+    cfg = field_config(backend) if threads is None else field_config(backend, num_threads=threads)
+    from aoi3d.field.process import configure_process
+
+    configure_process(cfg.num_threads, malloc=cfg.tune_malloc)
+    trainer = FieldTrainer(cfg, ds.aabb, device=torch_device, seed=seed)
+    trainer.set_views(views)
+    console.print(f"[bold]{backend}[/] on {trainer.device}: {len(ids)} cameras {ids} at frame "
+                  f"{frame}, novel view = camera {ds.heldout_id}, {ds.width}×{ds.height}, "
+                  f"{seconds:g} s of training")
+
+    image, train_s, lpips_note = _train_scoring(trainer, camera, truth, lpips_fn, seconds,
+                                                every)
     rays_per_s = trainer.steps * cfg.batch_rays / train_s
     lp, _ = _lpips(image, truth, lpips_fn)
     console.print(f"[bold]novel view after {train_s:.1f} s[/] ({trainer.steps} steps, "

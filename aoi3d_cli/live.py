@@ -34,6 +34,7 @@ from aoi3d_cli.common import fmt, make_console
 
 if TYPE_CHECKING:
     from aoi3d.live.report import LiveSweep
+    from aoi3d.live.summary import Measurement
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -105,33 +106,11 @@ def sweep(
     Reports, per metric, whether the best policy is an interior maximum beyond its 95%
     confidence interval: neither end of --policies, and the Welch (unpaired: the windows are
     different renders, not seeds) 95% CI of best − each end above zero."""
-    specs = [s.strip() for s in policies.split(",") if s.strip()]
-    if len(specs) < 2:
-        raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
-    from aoi3d.channel import DelaySpecError, parse_channel
-    from aoi3d.policy import parse_policy
-    from aoi3d.ports import check_site
-
-    try:
-        bodies = {s: parse_policy(s).to_json() for s in specs}
-    except ValueError as err:
-        raise typer.BadParameter(str(err), param_hint="'--policies'") from None
-    if delay is not None:
-        try:
-            delay = parse_channel(delay).spec
-        except DelaySpecError as err:
-            raise typer.BadParameter(str(err), param_hint="'--delay'") from None
-    canon = {s: parse_policy(s).spec for s in specs}
-    if site is not None:
-        try:
-            check_site(site)
-        except ValueError as err:
-            raise typer.BadParameter(str(err), param_hint="'--site'") from None
+    specs, bodies, canon, delay = _checked(policies, delay, site)
     from aoi3d.live import steps_per_decision
-    from aoi3d.live.figures import plot, plot_views, view_pairs
+    from aoi3d.live.figures import plot
     from aoi3d.live.report import LiveSweep
     from aoi3d.live.sim import simulate
-    from aoi3d.scene import open_dataset
     from aoi3d_cli.livehttp import LiveSession, Pipeline
 
     started = time.monotonic()
@@ -166,7 +145,54 @@ def sweep(
     plot(result.results, sim_doc, out / "live_sweep.png",
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
          f"decision, {steps_per_s:.0f} trainer steps/s, {measure_s:g} s × {repeats} per policy")
-    pairs = view_pairs(windows.measurements)
+    _views_figure(windows.measurements, dataset, out)
+    if json_:
+        print(json.dumps({k: doc[k] for k in ("results", "unpaired_interior_maximum",
+                                               "settings", "wall_s")}, default=str))
+    else:
+        stdout = make_console(width=160)
+        stdout.print(_table(result))
+        for v in result.verdicts():
+            stdout.print(f"{v.metric}: best {escape(v.best)} ({v.best_mean:.3f}): {v.text}")
+        stdout.print(f"results in {escape(str(out))}")
+
+
+def _checked(policies: str, delay: str | None, site: str | None
+             ) -> tuple[list[str], dict[str, Any], dict[str, str], str | None]:
+    """--policies (at least two: each one's PUT body and canonical spec), --delay (its
+    canonical spec) and --site checked; a bad one is a usage error naming it."""
+    specs = [s.strip() for s in policies.split(",") if s.strip()]
+    if len(specs) < 2:
+        raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
+    from aoi3d.channel import DelaySpecError, parse_channel
+    from aoi3d.policy import parse_policy
+    from aoi3d.ports import check_site
+
+    try:
+        bodies = {s: parse_policy(s).to_json() for s in specs}
+    except ValueError as err:
+        raise typer.BadParameter(str(err), param_hint="'--policies'") from None
+    if delay is not None:
+        try:
+            delay = parse_channel(delay).spec
+        except DelaySpecError as err:
+            raise typer.BadParameter(str(err), param_hint="'--delay'") from None
+    canon = {s: parse_policy(s).spec for s in specs}
+    if site is not None:
+        try:
+            check_site(site)
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--site'") from None
+    return specs, bodies, canon, delay
+
+
+def _views_figure(measurements: list[Measurement], dataset: Path, out: Path) -> None:
+    """live_views.png: each policy's last render beside the truth of its time (when the
+    dataset can be read for the truth; else a line says so and the sweep goes on)."""
+    from aoi3d.live.figures import plot_views, view_pairs
+    from aoi3d.scene import open_dataset
+
+    pairs = view_pairs(measurements)
     if pairs:
         try:
             ds = open_dataset(dataset)
@@ -177,15 +203,6 @@ def sweep(
             plot_views(pairs, ds, out / "live_views.png",
                        "Live renders (top) and the truth of the same time (bottom), the last "
                        "render of each policy")
-    if json_:
-        print(json.dumps({k: doc[k] for k in ("results", "unpaired_interior_maximum",
-                                               "settings", "wall_s")}, default=str))
-    else:
-        stdout = make_console(width=160)
-        stdout.print(_table(result))
-        for v in result.verdicts():
-            stdout.print(f"{v.metric}: best {escape(v.best)} ({v.best_mean:.3f}): {v.text}")
-        stdout.print(f"results in {escape(str(out))}")
 
 
 def _table(result: LiveSweep) -> Table:

@@ -38,7 +38,10 @@ from aoi3d_cli.common import (
 
 if TYPE_CHECKING:
     from aoi3d.experiment import EpisodeConfig
-    from aoi3d.rl.train import TrainProgress
+    from aoi3d.rl.presets import PPOPreset, TrainConfig
+    from aoi3d.rl.report import EvalReport
+    from aoi3d.rl.train import TrainProgress, TrainSummary
+    from aoi3d.scene import SceneDataset
 
 PPO_PRESET_NAMES = ("quick", "paper")
 """The names of :data:`aoi3d.rl.presets.PPO_PRESETS`, for ``--help`` without importing torch
@@ -174,11 +177,8 @@ def train_cmd(
                            "vector alone.")] = None,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
-    from rich.progress import Progress
-
     from aoi3d.policy.ppo import PPOConfig
     from aoi3d.rl.presets import TrainConfig, get_ppo_preset
-    from aoi3d.rl.train import train
 
     try:
         chosen = get_ppo_preset(preset)
@@ -192,17 +192,7 @@ def train_cmd(
         if value is not None:
             hyper[key] = value
     if features:
-        from aoi3d.experiment.episode import train_ids
-        from aoi3d.policy.ppo.obs import CAMERA_FEATURES
-        from aoi3d.rl.train import camera_feature_values
-
-        unknown = sorted(set(features) - set(CAMERA_FEATURES))
-        if unknown:
-            raise typer.BadParameter(f"unknown camera feature(s) {unknown}; known: "
-                                     f"{sorted(CAMERA_FEATURES)}", param_hint="'--features'")
-        hyper["features"] = tuple(dict.fromkeys(features))
-        hyper["camera_features"] = camera_feature_values(hyper["features"], ds,
-                                                         train_ids(episode, ds))
+        hyper.update(_camera_features(features, episode, ds))
     try:
         ppo_cfg = PPOConfig.from_dict({**hyper, "n_cameras": n})
         cfg = TrainConfig(episode=episode, ppo=ppo_cfg,
@@ -218,6 +208,38 @@ def train_cmd(
                   f"{cfg.batch_size}, {episode.steps_per_epoch} field steps each, on "
                   f"{n_workers} worker(s) × {threads} thread(s); out {folder}; cache "
                   f"{cache_dir or 'off'}")
+    summary = _train_with_progress(cfg, folder, ds, n_workers, threads, cache_dir, resume)
+    console.print(
+        f"{summary.episodes} episodes, {summary.updates} updates in {summary.wall_s:.0f} s "
+        f"({summary.computed} computed, {summary.cached} from the cache); mean reward "
+        f"{summary.reward_first:.4f} (first episodes) → {summary.reward_last:.4f} (last)")
+    console.print(f"files in {folder}: {', '.join(summary.files)}")
+
+
+def _camera_features(features: list[str], episode: EpisodeConfig, ds: SceneDataset
+                     ) -> dict[str, Any]:
+    """--features (known ones, each once) and their values for this rig's cameras."""
+    from aoi3d.experiment.episode import train_ids
+    from aoi3d.policy.ppo.obs import CAMERA_FEATURES
+    from aoi3d.rl.train import camera_feature_values
+
+    unknown = sorted(set(features) - set(CAMERA_FEATURES))
+    if unknown:
+        raise typer.BadParameter(f"unknown camera feature(s) {unknown}; known: "
+                                 f"{sorted(CAMERA_FEATURES)}", param_hint="'--features'")
+    names = tuple(dict.fromkeys(features))
+    return {"features": names,
+            "camera_features": camera_feature_values(names, ds, train_ids(episode, ds))}
+
+
+def _train_with_progress(cfg: TrainConfig, folder: Path, ds: SceneDataset, n_workers: int,
+                         threads: int, cache_dir: Path | None, resume: bool) -> TrainSummary:
+    """:func:`aoi3d.rl.train.train` with a progress bar; its refusals as usage errors, and
+    Ctrl-C says where the last checkpoint is (exit status 130)."""
+    from rich.progress import Progress
+
+    from aoi3d.rl.train import train
+
     try:
         with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task("episodes", total=cfg.episodes)
@@ -228,8 +250,8 @@ def train_cmd(
                     text += f", reward (moving avg) {p.moving_reward:.3f}"
                 bar.update(task, completed=p.done, description=text)
 
-            summary = train(cfg, folder, dataset=ds, workers=n_workers, threads=threads,
-                            cache=cache_dir, resume=resume, progress=report)
+            return train(cfg, folder, dataset=ds, workers=n_workers, threads=threads,
+                         cache=cache_dir, resume=resume, progress=report)
     except FileExistsError as err:
         raise typer.BadParameter(f"{err}", param_hint="'--out' / '--resume'") from None
     except FileNotFoundError as err:
@@ -240,11 +262,6 @@ def train_cmd(
         console.print(f"[yellow]interrupted[/]: the last checkpoint is in {folder}; run the "
                       "same command with --resume to continue")
         raise typer.Exit(130) from None
-    console.print(
-        f"{summary.episodes} episodes, {summary.updates} updates in {summary.wall_s:.0f} s "
-        f"({summary.computed} computed, {summary.cached} from the cache); mean reward "
-        f"{summary.reward_first:.4f} (first episodes) → {summary.reward_last:.4f} (last)")
-    console.print(f"files in {folder}: {', '.join(summary.files)}")
 
 
 @app.command("eval")
@@ -271,11 +288,10 @@ def eval_cmd(
     held-out seeds; writes eval.csv, eval_summary.csv and eval.json."""
     from rich.progress import Progress
 
-    from aoi3d.experiment import EpisodeConfig
     from aoi3d.policy import PolicySpecError
     from aoi3d.policy.ppo.actor import Actor
     from aoi3d.rl.evaluate import evaluate
-    from aoi3d.rl.presets import PPO_PRESETS, eval_seeds, get_ppo_preset
+    from aoi3d.rl.presets import eval_seeds
     from aoi3d.rl.report import EvalReport
 
     started = time.time()
@@ -283,17 +299,7 @@ def eval_cmd(
         agent, extra = Actor.load_with_extra(checkpoint)
     except (FileNotFoundError, ValueError) as err:
         raise typer.BadParameter(str(err), param_hint="'--checkpoint'") from None
-    chosen = None
-    if preset is not None or "episode_config" not in extra:
-        try:
-            chosen = get_ppo_preset(preset or "quick")
-        except ValueError as err:
-            raise typer.BadParameter(str(err), param_hint="'--preset'") from None
-        base = chosen.episode
-    else:
-        base = EpisodeConfig.from_dict(dict(extra["episode_config"]))
-        name = extra.get("preset")
-        chosen = PPO_PRESETS.get(name) if isinstance(name, str) else None
+    base, chosen = _eval_base(preset, extra)
     episode = shared.episode_config(base)
     count = seeds if seeds is not None else (chosen.eval_seeds if chosen else 40)
     seed_list = eval_seeds(count, seed_offset)
@@ -321,12 +327,41 @@ def eval_cmd(
                            seed_offset=seed_offset, episode=episode, extra=extra,
                            started=started)
     report.write(folder)
+    _print_eval(report, outcome.summary, count, episode.steps_per_epoch)
+    console.print(f"results in {folder}")
+
+
+def _eval_base(preset: str | None, extra: dict[str, Any]
+               ) -> tuple[EpisodeConfig, PPOPreset | None]:
+    """The episode config to evaluate on — --preset's, else the checkpoint's (else the quick
+    preset's) — and the preset it came from, if any (its number of held-out seeds)."""
+    from aoi3d.experiment import EpisodeConfig
+    from aoi3d.rl.presets import PPO_PRESETS, get_ppo_preset
+
+    chosen = None
+    if preset is not None or "episode_config" not in extra:
+        try:
+            chosen = get_ppo_preset(preset or "quick")
+        except ValueError as err:
+            raise typer.BadParameter(str(err), param_hint="'--preset'") from None
+        base = chosen.episode
+    else:
+        base = EpisodeConfig.from_dict(dict(extra["episode_config"]))
+        name = extra.get("preset")
+        chosen = PPO_PRESETS.get(name) if isinstance(name, str) else None
+    return base, chosen
+
+
+def _print_eval(report: EvalReport, summary: list[dict[str, Any]], count: int,
+                steps_per_epoch: int) -> None:
+    """The evaluation's table, each metric's optimum set and a note when the agent is scored
+    at another budget than it was trained at."""
     trained = report.trained_steps
     table = Table(title=f"held-out seeds: mean ± 95% CI over {count} episodes")
     for name in ("policy", "reward", "PSNR (dB)", "SSIM", "LPIPS", "cameras",
                  "Δ reward (PPO − this)"):
         table.add_column(name, justify="right")
-    for r in outcome.summary:
+    for r in summary:
         table.add_row(short_label(r["policy"]), fmt(r["reward"], r["reward_ci95"], 4),
                       fmt(r["psnr"], r["psnr_ci95"], 2), fmt(r["ssim"], r["ssim_ci95"], 3),
                       fmt(r["lpips"], r["lpips_ci95"], 3), fmt(r["n_selected"], None, 1),
@@ -337,8 +372,7 @@ def eval_cmd(
         console.print(f"{metric}: best {short_label(opt.best)}; not significantly worse "
                       f"(paired, {len(opt.seeds)} seeds): "
                       f"{', '.join(short_label(m) for m in opt.members)}")
-    if trained is not None and trained != episode.steps_per_epoch:
+    if trained is not None and trained != steps_per_epoch:
         console.print(f"[yellow]note[/]: the agent was trained at {trained} field steps per "
-                      f"episode and is scored at {episode.steps_per_epoch}; compare policies "
+                      f"episode and is scored at {steps_per_epoch}; compare policies "
                       "at the budget the agent was trained for")
-    console.print(f"results in {folder}")

@@ -11,12 +11,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
-from aoi3d.metric import PSNR, REWARD, SSIM
 from aoi3d_cli.common import fail, fmt, make_console, stop_on_signal
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from services.recorder.recording import Recorded
+    from services.recorder.replay import ReplayResult
 
 
 def _scored_total(rec, sites) -> int:
@@ -80,17 +85,47 @@ def replay(
                                      "virtual clock", param_hint="'--live'")
         if len(site or []) > 1:
             raise typer.BadParameter("--live plays one site", param_hint="'--site'")
-        _live(recording, (site or [None])[0], connect, time_scale, epoch_s, key_format,
+        _live(recording, site[0] if site else None, connect, time_scale, epoch_s, key_format,
               domain_id, namespace, write_rig, rig_only)
         return
     if write_rig is not None or rig_only or epoch_s is not None:
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
-    from services.recorder.recording import load
-    from services.recorder.replay import Counterfactual, rebuildable_keys, score_diffs
+    _virtual(recording, policy, json_out, site, max_renders, score, threads)
+
+
+def _virtual(recording: Path, policy: list[str] | None, json_out: bool, site: list[str] | None,
+             max_renders: int | None, score: bool, threads: int | None) -> None:
+    """``aoi3d replay`` on the virtual clock: the recorded policy, then each --policy on the
+    same arrivals."""
+    from services.recorder.replay import rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
     console = make_console(stderr=json_out)
+    specs = _policies(policy)
+    from aoi3d.policy import PolicySpecError
+
+    rec = _load(recording, site)
+    scorers: dict = {}
+    kwargs: dict[str, Any] = dict(sites=site, score=score, max_renders=max_renders,
+                                  threads=threads, scorers=scorers)
+    try:
+        # with counterfactuals, every policy rebuilds the same epochs: those all of them can
+        paired = rebuildable_keys(rec, [None, *specs], sites=site) if specs and score else None
+        base = run_replay(rec, None, only=paired, **kwargs)
+        others = [run_replay(rec, spec, only=paired, **kwargs) for spec in specs]
+    except (ValueError, PolicySpecError) as err:
+        fail(err)
+    diffs = score_diffs(rec, base)
+    doc = _document(recording, rec, site, base, others, paired, diffs, score)
+    if json_out:
+        print(json.dumps(doc, allow_nan=False, default=lambda x: None))
+        return
+    _print_report(console, recording, doc, diffs)
+
+
+def _policies(policy: list[str] | None) -> list[str]:
+    """--policy's specs (repeated or comma lists), each checked."""
     specs = [s.strip() for p in (policy or []) for s in p.split(",") if s.strip()]
     from aoi3d.policy import PolicySpecError, parse_policy
 
@@ -99,6 +134,13 @@ def replay(
             parse_policy(spec)
         except PolicySpecError as err:
             raise typer.BadParameter(str(err), param_hint="'--policy'") from None
+    return specs
+
+
+def _load(recording: Path, site: list[str] | None) -> Recorded:
+    """The recording, holding every site of --site; else one line and exit status 1."""
+    from services.recorder.recording import load
+
     try:
         rec = load(recording)
     except (FileNotFoundError, OSError) as err:
@@ -109,19 +151,16 @@ def replay(
     if missing:
         fail(f"no site {', '.join(missing)} in the recording; it holds "
              f"{', '.join(sorted(rec.sites)) or 'none'}")
-    scorers: dict = {}
-    kwargs = dict(sites=site, score=score, max_renders=max_renders, threads=threads,
-                  scorers=scorers)
-    try:
-        # with counterfactuals, every policy rebuilds the same epochs: those all of them can
-        paired = rebuildable_keys(rec, [None, *specs], sites=site) if specs and score else None
-        base = run_replay(rec, None, only=paired, **kwargs)
-        others = [run_replay(rec, spec, only=paired, **kwargs) for spec in specs]
-    except (ValueError, PolicySpecError) as err:
-        fail(err)
-    diffs = score_diffs(rec, base)
-    rows = [Counterfactual.of(r, base) for r in [base, *others]] if score else []
-    doc = {
+    return rec
+
+
+def _document(recording: Path, rec: Recorded, site: list[str] | None, base: ReplayResult,
+              others: list[ReplayResult], paired: set[tuple[str, tuple[int, int]]] | None,
+              diffs: dict[str, float], score: bool) -> dict[str, Any]:
+    """What ``--json`` prints (and the tables show)."""
+    from services.recorder.replay import Counterfactual
+
+    doc: dict[str, Any] = {
         "recording": str(recording), "files": [str(f) for f in rec.files],
         "sites": sorted(site or rec.sites),
         "recorded_policies": sorted({d.policy for s in rec.sites.values()
@@ -137,15 +176,19 @@ def replay(
         "paired_epochs": None if paired is None else len(paired),
         "max_abs_score_diff": max(diffs.values()) if diffs else None,
         "score_diffs": diffs,
-        "counterfactual": [row.to_dict() for row in rows],
+        "counterfactual": ([Counterfactual.of(r, base).to_dict() for r in [base, *others]]
+                           if score else []),
     }
     from services.recorder.arrivals import arrivals
 
     doc["late_arrivals"] = sum(arrivals(rec.sites[s]).late for s in doc["sites"]
                                if rec.sites[s].decisions)
-    if json_out:
-        print(json.dumps(doc, allow_nan=False, default=lambda x: None))
-        return
+    return doc
+
+
+def _print_report(console: Console, recording: Path, doc: dict[str, Any],
+                  diffs: dict[str, float]) -> None:
+    """The report as text: what was replayed, how it agrees, the counterfactual table."""
     console.print(f"{recording}: {doc['decisions']} decisions ({', '.join(doc['sites'])}), "
                   f"policies {', '.join(doc['recorded_policies'])}")
     console.print(f"selections equal: {doc['selections_equal']}/{doc['decisions']} · AoI "
@@ -154,7 +197,7 @@ def replay(
     if diffs:
         console.print("max |replayed − recorded|: " + ", ".join(
             f"{k} {v:.2e}" for k, v in diffs.items()))
-    if rows:
+    if doc["counterfactual"]:
         from rich.table import Table
 
         table = Table(title="the same arrivals, paired by decision epoch (Δ: − recorded, "
@@ -162,13 +205,13 @@ def replay(
         for col in ("policy", "n", "PSNR dB", "Δ PSNR", "SSIM", "Δ SSIM", "reward",
                     "cameras", "AoI used ms"):
             table.add_column(col)
-        for row in rows:
-            dp, ds = row.vs_recorded[PSNR.name], row.vs_recorded[SSIM.name]
-            table.add_row(row.policy, str(row.n), fmt(row.means[PSNR.name]),
-                          fmt(dp.mean, dp.half), fmt(row.means[SSIM.name], digits=3),
-                          fmt(ds.mean, ds.half, digits=3),
-                          fmt(row.means[REWARD.name], digits=3),
-                          fmt(row.cameras_used, digits=1), fmt(row.aoi_selected_ms, digits=0))
+        for row in doc["counterfactual"]:
+            dp, ds = row["psnr_db_vs_recorded"], row["ssim_vs_recorded"]
+            table.add_row(row["policy"], str(row["n"]), fmt(row["psnr_db"]),
+                          fmt(dp["mean"], dp["ci95"]), fmt(row["ssim"], digits=3),
+                          fmt(ds["mean"], ds["ci95"], digits=3), fmt(row["reward"], digits=3),
+                          fmt(row["cameras_used"], digits=1),
+                          fmt(row["aoi_selected_ms"], digits=0))
         console.print(table)
 
 

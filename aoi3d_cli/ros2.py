@@ -11,11 +11,15 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated, Any
 
 import typer
 
 from aoi3d_cli.common import fail, fail_lines, stop_on_signal
+
+if TYPE_CHECKING:
+    from aoi3d.scene import SceneDataset
+    from services.ros.robot import PublishConfig
 
 app = typer.Typer(no_args_is_help=True, add_completion=False)
 
@@ -78,15 +82,9 @@ def publish(
 ) -> None:
     """Play DATASET as ROS 2 cameras on Zenoh: each camera's image, camera info and pose,
     stamped with the robot's clock, every period."""
-    from services.ros.publishing import zenoh_publishing
-    from services.ros.robot import PublishConfig, Robot, rig_document
+    from services.ros.robot import PublishConfig
 
-    if period_ms is not None and rate is not None:
-        raise typer.BadParameter("give --period-ms or --rate, not both", param_hint="'--rate'")
-    if rate is not None:
-        if not rate > 0:
-            raise typer.BadParameter("must be > 0", param_hint="'--rate'")
-        period_ms = 1000.0 / rate
+    period_ms = _period_ms(period_ms, rate)
     try:
         cfg = PublishConfig(dataset=dataset, format=key_format, distro=distro,
                             domain_id=domain_id, namespace=namespace,
@@ -98,13 +96,7 @@ def publish(
                             epoch_s=epoch_s)
     except ValueError as err:
         fail(str(err))
-    from aoi3d.scene import open_dataset
-
-    ds = open_dataset(dataset)
-    try:
-        doc = rig_document(cfg, ds)
-    except ValueError as err:
-        fail(str(err))
+    ds, doc = _dataset_and_rig(cfg)
     if write_rig is not None:
         write_rig_file(write_rig, doc)
         typer.echo(f"rig file: {write_rig} (aoi3d up --rig {write_rig})")
@@ -112,13 +104,45 @@ def publish(
         if write_rig is None:
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
+    _play(cfg, ds)
+
+
+def _period_ms(period_ms: float | None, rate: float | None) -> float | None:
+    """--period-ms, or the period --rate stands for (not both)."""
+    if period_ms is not None and rate is not None:
+        raise typer.BadParameter("give --period-ms or --rate, not both", param_hint="'--rate'")
+    if rate is not None:
+        if not rate > 0:
+            raise typer.BadParameter("must be > 0", param_hint="'--rate'")
+        period_ms = 1000.0 / rate
+    return period_ms
+
+
+def _dataset_and_rig(cfg: PublishConfig) -> tuple[SceneDataset, dict[str, Any]]:
+    """The dataset played and the rig file that reads what is published."""
+    from aoi3d.scene import open_dataset
+    from services.ros.robot import rig_document
+
+    ds = open_dataset(cfg.dataset)
+    try:
+        doc = rig_document(cfg, ds)
+    except ValueError as err:
+        fail(str(err))
+    return ds, doc
+
+
+def _play(cfg: PublishConfig, ds: SceneDataset) -> None:
+    """Publish as the robot until Ctrl-C (or cfg.duration_s), a line before and after."""
+    from services.ros.publishing import zenoh_publishing
+    from services.ros.robot import Robot
+
     # the robot knows its keys; the session waits until they are subscribed (zenoh_publishing)
     robot = Robot(cfg, lambda *sample: put(*sample), dataset=ds)
-    where = (f"rmw_zenoh keys (domain {domain_id}, {distro})" if key_format == "rmw_zenoh"
-             else f"bridge keys (namespace '{namespace}')")
-    typer.echo(f"publishing {len(robot.ids)} cameras of {dataset} on {where} via "
+    where = (f"rmw_zenoh keys (domain {cfg.domain_id}, {cfg.distro})"
+             if cfg.format == "rmw_zenoh" else f"bridge keys (namespace '{cfg.namespace}')")
+    typer.echo(f"publishing {len(robot.ids)} cameras of {cfg.dataset} on {where} via "
                f"{', '.join(cfg.connect)}: one frame each every {cfg.period_ms:g} scene ms at "
-               f"time scale {time_scale:g}; e.g. {robot.keys()[0]}")
+               f"time scale {cfg.time_scale:g}; e.g. {robot.keys()[0]}")
     t0 = time.monotonic()
     with zenoh_publishing(cfg.connect, robot.keys(), tokens=robot.tokens) as put, \
             stop_on_signal() as stop:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 import typer
@@ -43,7 +43,7 @@ def scene() -> None:
     """Generate and inspect the synthetic dynamic scene (a wind turbine)."""
 
 
-def scene_config(framing: str, **options: object) -> SceneConfig:
+def scene_config(framing: str, **options: Any) -> SceneConfig:
     """The scene ``aoi3d scene generate`` renders: the framing's
     (:data:`~aoi3d.scene.framings.FRAMING_SCENES`) with the given options (``None``: the
     framing's value). Bad values raise ``typer.BadParameter``."""

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
@@ -20,6 +20,12 @@ from aoi3d.ports import REST_LAST as _LAST
 from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT, site_names
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
 from aoi3d_cli.common import fail, fail_lines
+
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from aoi3d.rigfile import Rig
+    from services.supervisor import Supervisor, UpConfig
 
 HINTS = {
     "camera": "GET /config",
@@ -103,7 +109,7 @@ def up(
     taken port, a dataset that cannot be read or a service that does not become healthy is
     one line and exit status 1."""
     # the one import of services in aoi3d: `up` composes them (docs/architecture.md)
-    from services.supervisor import Supervisor, UpConfig, auto_workers, taken_ports
+    from services.supervisor import Supervisor, UpConfig, auto_workers
 
     if framing not in FRAMING_SCENES:
         raise typer.BadParameter(f"expected one of {', '.join(FRAMING_SCENES)}, got "
@@ -112,16 +118,7 @@ def up(
         raise typer.BadParameter(f"the REST ports {_FIRST + port_offset}.."
                                  f"{_LAST + port_offset} are not valid ports",
                                  param_hint="'--port-offset'")
-    if workers == "auto":
-        n_workers = auto_workers()
-    else:
-        try:
-            n_workers = int(workers)
-        except ValueError:
-            n_workers = -1
-        if not 0 <= n_workers <= 64:
-            raise typer.BadParameter(f"expected an integer 0..64 or auto, got {workers!r}",
-                                     param_hint="'--workers'")
+    n_workers = auto_workers() if workers == "auto" else _n_workers(workers)
     folder = dataset if dataset is not None else Path(FRAMING_DATASETS[framing])
     real = _read_rig(rig, sites) if rig is not None else None
     if delay is not None:
@@ -142,19 +139,56 @@ def up(
                    zenoh_port=zenoh_port, port_offset=port_offset, log_dir=log_dir,
                    duration_s=duration_s, echo=not quiet, ready_timeout_s=ready_timeout_s)
     if record is not None:
-        if record.is_dir():
-            raise typer.BadParameter(f"{record} is a folder; give a file such as "
-                                     f"{record / 'run.mcap'}", param_hint="'--record'")
-        import os
+        cfg.extra_env.update(_recorder_env(record, record_max_mb))
+    _check_ports(cfg)
+    if real is None:
+        own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
+        _ensure_scene(folder, framing, generate=generate or own)
 
-        try:
-            record.resolve().parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            fail(f"cannot make the folder of --record {record}: {err}")
-        if not os.access(record.resolve().parent, os.W_OK):
-            fail(f"cannot write --record {record}: its folder is not writable")
-        cfg.extra_env.update({"AOI3D_RECORDER_PATH": str(record.resolve()),
-                              "AOI3D_RECORDER_MAX_BYTES": str(int(record_max_mb * 2**20))})
+    from aoi3d_cli.common import make_console
+
+    console = make_console()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s: %(message)s")
+    sup = Supervisor(cfg, on_ready=lambda sup: _show_where(console, cfg, real, sup))
+    code = sup.run()
+    if code and sup.failure:
+        fail(f"the pipeline did not start: {sup.failure}", code)
+    raise typer.Exit(code)
+
+
+def _n_workers(workers: str) -> int:
+    """--workers as a number of workers (not auto): 0..64."""
+    try:
+        n_workers = int(workers)
+    except ValueError:
+        n_workers = -1
+    if not 0 <= n_workers <= 64:
+        raise typer.BadParameter(f"expected an integer 0..64 or auto, got {workers!r}",
+                                 param_hint="'--workers'")
+    return n_workers
+
+
+def _recorder_env(record: Path, record_max_mb: float) -> dict[str, str]:
+    """The recorder's settings for --record (its folder made and writable)."""
+    if record.is_dir():
+        raise typer.BadParameter(f"{record} is a folder; give a file such as "
+                                 f"{record / 'run.mcap'}", param_hint="'--record'")
+    import os
+
+    try:
+        record.resolve().parent.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        fail(f"cannot make the folder of --record {record}: {err}")
+    if not os.access(record.resolve().parent, os.W_OK):
+        fail(f"cannot write --record {record}: its folder is not writable")
+    return {"AOI3D_RECORDER_PATH": str(record.resolve()),
+            "AOI3D_RECORDER_MAX_BYTES": str(int(record_max_mb * 2**20))}
+
+
+def _check_ports(cfg: UpConfig) -> None:
+    """Every port of the run is free, or one line names the first taken and its option."""
+    from services.supervisor import taken_ports
+
     taken = taken_ports(cfg)
     if taken:
         name, port = taken[0]
@@ -164,61 +198,49 @@ def up(
         others = f" (also taken: {', '.join(str(p) for _, p in taken[1:])})" if taken[1:] else ""
         fail(f"port {port} for {what} is in use{others} — is another pipeline running? "
              f"Choose another with {option}.")
-    if real is None:
-        own = folder.absolute() == Path(FRAMING_DATASETS[framing]).absolute()
-        _ensure_scene(folder, framing, generate=generate or own)
 
+
+def _show_where(console: Console, cfg: UpConfig, real: Rig | None, sup: Supervisor) -> None:
+    """Once every service is healthy: where each one is, what to try, where the logs go."""
     from rich.table import Table
 
-    from aoi3d_cli.common import make_console
-
-    console = make_console()
-
-    def show_where(sup: Supervisor) -> None:
-        table = Table(title=f"aoi3d pipeline up (run '{run_id}', time scale {time_scale})")
-        for col in ("service", "REST API (docs at /docs)", "try"):
-            table.add_column(col, no_wrap=True)
-        for name in SERVICE_PORTS:
-            if name == "camera" and real is not None:
-                src = real.source
-                where = (f"rmw_zenoh, domain {src.domain_id}" if src.format == "rmw_zenoh"
-                         else f"bridge, namespace '{src.prefix}'")
-                table.add_row(f"ingest ({where})", f"http://127.0.0.1:{cfg.port(name)}",
-                              "GET /status")
-                continue
-            table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
-        table.add_row("router", f"tcp/127.0.0.1:{zenoh_port}", "Zenoh, multicast off")
-        table.add_row(f"recon × {n_workers}", "no REST API (pull work over Zenoh)",
-                      f"http://127.0.0.1:{cfg.port('trainer')}/workers")
-        console.print(table)
-        console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
-                      "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
-        console.print(f"[bold]3D viewer: http://127.0.0.1:{cfg.port('viewer')}/[/bold] "
-                      "(orbit the live reconstruction; cameras coloured by AoI)", soft_wrap=True)
-        sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
-        if sites > 1:
-            console.print(f"Sites: {', '.join(site_names(sites))} — "
-                          f"e.g. http://127.0.0.1:{cfg.port('scheduler')}/sites/site2/policy",
-                          soft_wrap=True)
-        console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
-                      """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)
-        if real is not None:
-            link = (f"the emulated link ({delay}) adds its delay on top of the real one"
-                    if delay else "the link is real: frames are delivered at their receipt "
+    table = Table(title=f"aoi3d pipeline up (run '{cfg.run_id}', time scale {cfg.time_scale})")
+    for col in ("service", "REST API (docs at /docs)", "try"):
+        table.add_column(col, no_wrap=True)
+    for name in SERVICE_PORTS:
+        if name == "camera" and real is not None:
+            src = real.source
+            where = (f"rmw_zenoh, domain {src.domain_id}" if src.format == "rmw_zenoh"
+                     else f"bridge, namespace '{src.prefix}'")
+            table.add_row(f"ingest ({where})", f"http://127.0.0.1:{cfg.port(name)}",
+                          "GET /status")
+            continue
+        table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
+    table.add_row("router", f"tcp/127.0.0.1:{cfg.zenoh_port}", "Zenoh, multicast off")
+    table.add_row(f"recon × {cfg.workers}", "no REST API (pull work over Zenoh)",
+                  f"http://127.0.0.1:{cfg.port('trainer')}/workers")
+    console.print(table)
+    console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
+                  "(the novel view, AoI, quality over time, controls)", soft_wrap=True)
+    console.print(f"[bold]3D viewer: http://127.0.0.1:{cfg.port('viewer')}/[/bold] "
+                  "(orbit the live reconstruction; cameras coloured by AoI)", soft_wrap=True)
+    sched = f"http://127.0.0.1:{cfg.port('scheduler')}/policy"
+    if cfg.sites > 1:
+        console.print(f"Sites: {', '.join(site_names(cfg.sites))} — "
+                      f"e.g. http://127.0.0.1:{cfg.port('scheduler')}/sites/site2/policy",
+                      soft_wrap=True)
+    console.print(f"Change MAT: curl -X PUT {sched} -H 'content-type: application/json' "
+                  """-d '{"kind":"mat","mat_ms":130}'""", soft_wrap=True)
+    if real is not None:
+        link = (f"the emulated link ({cfg.delay}) adds its delay on top of the real one"
+                if cfg.delay else "the link is real: frames are delivered at their receipt "
                                   "(the network emulator steps aside)")
-            score = (f"truth camera {real.truth} scores every render" if real.truth else
-                     "no truth camera in the rig: renders are made but cannot be scored")
-            console.print(f"Real cameras ({rig}): {len(real.train)} training cameras; {link}; "
-                          f"{score}.", soft_wrap=True)
-        console.print(f"Logs: {sup.log_dir}/<service>.log ({log_dir}/latest) · Prometheus "
-                      "metrics: <service>/metrics · stop with Ctrl-C", soft_wrap=True)
-
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s up %(levelname)s: %(message)s")
-    sup = Supervisor(cfg, on_ready=show_where)
-    code = sup.run()
-    if code and sup.failure:
-        fail(f"the pipeline did not start: {sup.failure}", code)
-    raise typer.Exit(code)
+        score = (f"truth camera {real.truth} scores every render" if real.truth else
+                 "no truth camera in the rig: renders are made but cannot be scored")
+        console.print(f"Real cameras ({cfg.rig}): {len(real.train)} training cameras; {link}; "
+                      f"{score}.", soft_wrap=True)
+    console.print(f"Logs: {sup.log_dir}/<service>.log ({cfg.log_dir}/latest) · Prometheus "
+                  "metrics: <service>/metrics · stop with Ctrl-C", soft_wrap=True)
 
 
 def _read_rig(path: Path, sites: int):

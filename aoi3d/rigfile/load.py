@@ -17,7 +17,7 @@ class RigError(ValueError):
     """A rig file that cannot be used: one line per problem, each naming its field."""
 
 
-def _where(loc: tuple) -> str:
+def _where(loc: tuple[int | str, ...]) -> str:
     out = ""
     for part in loc:
         if isinstance(part, int):

@@ -142,11 +142,15 @@ class Rig(Strict):
         if self.size is not None:
             return int(self.size[0]), int(self.size[1])
         intr, _ = self._view_spec()
+        assert intr.width is not None and intr.height is not None, "the view is static"
         return int(intr.width), int(intr.height)
 
     def view_camera(self) -> Camera:
         """The rendered (held-out) camera at the working size."""
         intr, pose = self._view_spec()
+        assert (intr.fx is not None and intr.fy is not None and intr.cx is not None
+                and intr.cy is not None and intr.width is not None
+                and intr.height is not None), "the view is static (validated)"
         return scaled_camera(pose.static_c2w(), intr.fx, intr.fy, intr.cx, intr.cy,
                              (intr.width, intr.height), self.working_size)
 

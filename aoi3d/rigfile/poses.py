@@ -17,7 +17,7 @@ _OPTICAL_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 _BODY_TO_GL = np.array([[0.0, 0.0, -1.0, 0.0],
                         [-1.0, 0.0, 0.0, 0.0],
                         [0.0, 1.0, 0.0, 0.0],
-                        [0.0, 0.0, 0.0, 1.0]])
+                        [0.0, 0.0, 0.0, 1.0]], dtype=np.float64)
 
 
 def convert_pose(c2w: np.ndarray, convention: str) -> np.ndarray:

@@ -97,7 +97,7 @@ class PoseSpec(Strict):
 
     @field_validator("c2w", "extrinsic")
     @classmethod
-    def _matrix(cls, v):
+    def _matrix(cls, v: list[float] | list[list[float]] | None) -> list[float] | None:
         if v is None:
             return None
         flat = [float(x) for row in v for x in (row if isinstance(row, list) else [row])]
@@ -120,7 +120,7 @@ class PoseSpec(Strict):
                              "(static), or topic (PoseStamped/Odometry)")
         if forms[1] and (self.position is None or self.orientation is None):
             raise ValueError("position and orientation go together")
-        if forms[1]:
+        if self.position is not None and self.orientation is not None:  # forms[1], checked
             try:
                 quaternion_matrix(self.position, self.orientation)
             except ValueError as err:
@@ -148,6 +148,7 @@ class PoseSpec(Strict):
     def static_c2w(self) -> np.ndarray:
         if self.c2w is not None:
             return self.to_gl(np.asarray(self.c2w).reshape(4, 4))
+        assert self.position is not None and self.orientation is not None, "a static pose"
         return self.to_gl(quaternion_matrix(self.position, self.orientation))
 
 
@@ -205,6 +206,7 @@ class CameraSpec(Strict):
     def kind(self) -> str:
         if self.url is not None:
             return "rtsp" if self.is_rtsp else "video"
+        assert self.image is not None, "_source: an image topic when no url"
         return self.image_type or ("compressed" if self.image.endswith("/compressed") else "raw")
 
 
@@ -255,8 +257,8 @@ class ClockSpec(Strict):
 
     @field_validator("offset_s")
     @classmethod
-    def _finite(cls, v):
-        if v != "auto" and not (math.isfinite(v) and abs(v) < 10 * 365 * 86400):
+    def _finite(cls, v: float | Literal["auto"]) -> float | Literal["auto"]:
+        if not isinstance(v, str) and not (math.isfinite(v) and abs(v) < 10 * 365 * 86400):
             raise ValueError("a finite number of seconds, or auto")
         return v
 

@@ -26,7 +26,7 @@ import numpy as np
 from aoi3d.experiment.episode import dataset_fingerprint
 from aoi3d.experiment.report import code_version, machine, write_csv, write_json
 from aoi3d.policy.ppo.batch import Batch, Episode
-from aoi3d.policy.ppo.learner import PPOLearner
+from aoi3d.policy.ppo.learner import PPOLearner, Sample
 from aoi3d.policy.ppo.obs import pose_features
 from aoi3d.rl.env import FrameSelectionEnv
 from aoi3d.rl.pool import EnvPool
@@ -102,46 +102,10 @@ def train(
     ds = dataset if dataset is not None else open_dataset(cfg.episode.dataset)
     env = FrameSelectionEnv(cfg.episode, ds, aoi_scale_ms=cfg.ppo.aoi_scale_ms)
     cfg = replace(cfg, episode=env.config)  # carry=fresh, dataset path as opened
-    if env.n_cameras != cfg.ppo.n_cameras:
-        raise ValueError(f"the PPO config has n_cameras={cfg.ppo.n_cameras} but the "
-                         f"environment has {env.n_cameras} cameras")
-    if cfg.ppo.camera_features != camera_feature_values(cfg.ppo.features, ds, env.camera_ids):
-        raise ValueError(f"the agent's camera_features are not those of this rig's cameras "
-                         f"for features {list(cfg.ppo.features)} (see camera_feature_values)")
-    rows: list[dict[str, Any]] = []
-    update_rows: list[dict[str, Any]] = []
-    if resume:
-        if not ckpt.is_file():
-            raise FileNotFoundError(f"nothing to resume: no {ckpt}")
-        agent, extra = PPOLearner.load_with_extra(ckpt)
-        saved = TrainConfig.from_dict(extra["train_config"])
-        if replace(saved, episodes=cfg.episodes) != cfg:
-            raise ValueError(f"{ckpt} was trained with another config; resume with the same "
-                             f"options (only --episodes may change), or use another --out")
-        start = int(extra["next_episode"])
-        if cfg.episodes < start:
-            raise ValueError(f"{ckpt} has already learned from {start} episodes; ask for at "
-                             f"least as many (got {cfg.episodes})")
-        rows = read_rows(out / "episodes.csv", start)
-        update_rows = [dict(r) for r in extra.get("updates", [])]
-        if len(rows) != start:
-            raise ValueError(f"{out / 'episodes.csv'} holds {len(rows)} of the {start} "
-                             "episodes the checkpoint learned from")
-    else:
-        if ckpt.exists():
-            raise FileExistsError(f"{ckpt} exists: pass resume to continue it, or use "
-                                  "another output folder")
-        agent = PPOLearner(cfg.ppo)
-        start = 0
-    meta = {
-        "command": "aoi3d ppo train", "train_config": cfg.to_dict(),
-        "seeds": {"train": f"{TRAIN_SEED_BASE + cfg.seed_offset} + episode",
-                  "eval_base": EVAL_SEED_BASE},
-        "dataset": dataset_fingerprint(ds), "lpips": env.lpips, "workers": workers,
-        "threads_per_worker": threads, "cache": None if cache is None else str(cache),
-        "resumed_at_episode": start if resume else None, "code_version": code_version(),
-        "machine": machine(),
-    }
+    _check_rig(cfg, env, ds)
+    agent, start, rows, update_rows = _resume_or_start(cfg, out, ckpt, resume)
+    meta = _meta(cfg, ds, env, workers=workers, threads=threads, cache=cache,
+                 resumed_at=start if resume else None)
     write_json(out / "config.json", meta)
     window = max(10, min(50, cfg.episodes // 12))
     title = (f"PPO training — {cfg.preset} preset, {cfg.episode.delay}, "
@@ -151,10 +115,7 @@ def train(
     last_batch: float | None = None
 
     def checkpoint(next_episode: int) -> None:
-        extra = {"train_config": cfg.to_dict(), "next_episode": next_episode,
-                 "episode_config": cfg.episode.to_dict(), "updates": update_rows,
-                 "preset": cfg.preset}
-        agent.save(ckpt, extra=extra)
+        agent.save(ckpt, extra=_extra(cfg, next_episode, update_rows))
         write_csv(out / "episodes.csv", rows)
         write_csv(out / "updates.csv", update_rows)
         if rows:
@@ -172,31 +133,14 @@ def train(
                  workers=workers, threads=threads) as pool:
         for first in range(start, total, cfg.batch_size):
             batch = list(range(first, min(first + cfg.batch_size, total)))
-            obs, acts = [], []
-            for e in batch:
-                # the agent observes the AoI vector its own way (and its rig's features)
-                _, info = env.reset(seed=train_seed(e, cfg.seed_offset))
-                o = agent.observe(info["aoi"])
-                obs.append(o)
-                acts.append(agent.sample(o))
+            obs, acts = _observe_and_sample(env, agent, batch, cfg.seed_offset)
             results: dict[int, dict[str, Any]] = {}
             for i, outcome in pool.run([(train_seed(e, cfg.seed_offset), a.action)
                                         for e, a in zip(batch, acts, strict=True)]):
                 results[i] = outcome
                 computed += not outcome["cached"]
                 cached += bool(outcome["cached"])
-                a = acts[i]
-                rows.append({
-                    "episode": batch[i], "seed": outcome["seed"], "update": agent.updates,
-                    "reward": outcome["reward"], "psnr": outcome["psnr"],
-                    "ssim": outcome["ssim"], "lpips": outcome["lpips"],
-                    "n_selected": outcome["n_selected"], "n_known": outcome["n_known"],
-                    "aoi_used_ms": outcome["aoi_used_ms"],
-                    "mean_aoi_ms": outcome["mean_aoi_ms"], "eval_ms": outcome["eval_ms"],
-                    "selected": outcome["selected"], "p_mean": float(a.probs.mean()),
-                    "value": a.value, "logp": a.logp, "entropy": a.entropy,
-                    "cached": outcome["cached"], "wall_s": outcome["wall_s"],
-                })
+                rows.append(_episode_row(batch[i], outcome, acts[i], agent.updates))
                 report()
             rows.sort(key=lambda r: r["episode"])
             episodes = [Episode(obs=o, action=a.action, logp=a.logp,
@@ -209,18 +153,111 @@ def train(
             report()
             if agent.updates % cfg.checkpoint_every == 0 or batch[-1] == total - 1:
                 checkpoint(batch[-1] + 1)
-    agent.save(out / "final.pt", extra={"train_config": cfg.to_dict(), "next_episode": total,
-                                        "episode_config": cfg.episode.to_dict(),
-                                        "updates": update_rows, "preset": cfg.preset})
+    agent.save(out / "final.pt", extra=_extra(cfg, total, update_rows))
     wall = time.perf_counter() - started
     meta.update({"wall_s": wall, "episodes_computed": computed, "episodes_cached": cached,
                  "machine_at_end": machine()})
     write_json(out / "config.json", meta)
+    return _summary(out, rows, agent.updates, computed=computed, cached=cached, wall_s=wall,
+                    window=window)
+
+
+def _check_rig(cfg: TrainConfig, env: FrameSelectionEnv, ds: SceneDataset) -> None:
+    """The agent's config fits the environment's rig: its camera count and features."""
+    if env.n_cameras != cfg.ppo.n_cameras:
+        raise ValueError(f"the PPO config has n_cameras={cfg.ppo.n_cameras} but the "
+                         f"environment has {env.n_cameras} cameras")
+    if cfg.ppo.camera_features != camera_feature_values(cfg.ppo.features, ds, env.camera_ids):
+        raise ValueError(f"the agent's camera_features are not those of this rig's cameras "
+                         f"for features {list(cfg.ppo.features)} (see camera_feature_values)")
+
+
+def _resume_or_start(cfg: TrainConfig, out: Path, ckpt: Path, resume: bool
+                     ) -> tuple[PPOLearner, int, list[dict[str, Any]], list[dict[str, Any]]]:
+    """The agent, the first episode to run, and the episode and update rows so far: from
+    ``ckpt`` (checked against ``cfg`` and ``out/episodes.csv``) or a new agent."""
+    if not resume:
+        if ckpt.exists():
+            raise FileExistsError(f"{ckpt} exists: pass resume to continue it, or use "
+                                  "another output folder")
+        return PPOLearner(cfg.ppo), 0, [], []
+    if not ckpt.is_file():
+        raise FileNotFoundError(f"nothing to resume: no {ckpt}")
+    agent, extra = PPOLearner.load_with_extra(ckpt)
+    saved = TrainConfig.from_dict(extra["train_config"])
+    if replace(saved, episodes=cfg.episodes) != cfg:
+        raise ValueError(f"{ckpt} was trained with another config; resume with the same "
+                         f"options (only --episodes may change), or use another --out")
+    start = int(extra["next_episode"])
+    if cfg.episodes < start:
+        raise ValueError(f"{ckpt} has already learned from {start} episodes; ask for at "
+                         f"least as many (got {cfg.episodes})")
+    rows = read_rows(out / "episodes.csv", start)
+    update_rows = [dict(r) for r in extra.get("updates", [])]
+    if len(rows) != start:
+        raise ValueError(f"{out / 'episodes.csv'} holds {len(rows)} of the {start} "
+                         "episodes the checkpoint learned from")
+    return agent, start, rows, update_rows
+
+
+def _meta(cfg: TrainConfig, ds: SceneDataset, env: FrameSelectionEnv, *, workers: int | None,
+          threads: int, cache: str | Path | None, resumed_at: int | None) -> dict[str, Any]:
+    """``config.json``: the run's config, seeds, dataset, code and machine."""
+    return {
+        "command": "aoi3d ppo train", "train_config": cfg.to_dict(),
+        "seeds": {"train": f"{TRAIN_SEED_BASE + cfg.seed_offset} + episode",
+                  "eval_base": EVAL_SEED_BASE},
+        "dataset": dataset_fingerprint(ds), "lpips": env.lpips, "workers": workers,
+        "threads_per_worker": threads, "cache": None if cache is None else str(cache),
+        "resumed_at_episode": resumed_at, "code_version": code_version(),
+        "machine": machine(),
+    }
+
+
+def _summary(out: Path, rows: list[dict[str, Any]], updates: int, *, computed: int,
+             cached: int, wall_s: float, window: int) -> TrainSummary:
     rewards_all = [r["reward"] for r in rows]
     k = min(window, len(rewards_all))
     return TrainSummary(
-        out=out, episodes=len(rows), updates=agent.updates, computed=computed, cached=cached,
-        wall_s=wall, reward_first=float(np.mean(rewards_all[:k])),
+        out=out, episodes=len(rows), updates=updates, computed=computed, cached=cached,
+        wall_s=wall_s, reward_first=float(np.mean(rewards_all[:k])),
         reward_last=float(np.mean(rewards_all[-k:])),
         files=sorted(p.name for p in out.iterdir() if p.is_file()),
     )
+
+
+def _extra(cfg: TrainConfig, next_episode: int, update_rows: list[dict[str, Any]]
+           ) -> dict[str, Any]:
+    """What a checkpoint (and ``final.pt``) stores beside the agent."""
+    return {"train_config": cfg.to_dict(), "next_episode": next_episode,
+            "episode_config": cfg.episode.to_dict(), "updates": update_rows,
+            "preset": cfg.preset}
+
+
+def _observe_and_sample(env: FrameSelectionEnv, agent: PPOLearner, batch: list[int],
+                        seed_offset: int) -> tuple[list[np.ndarray], list[Sample]]:
+    """Each episode of ``batch``: its observation and the agent's sampled action."""
+    obs, acts = [], []
+    for e in batch:
+        # the agent observes the AoI vector its own way (and its rig's features)
+        _, info = env.reset(seed=train_seed(e, seed_offset))
+        o = agent.observe(info["aoi"])
+        obs.append(o)
+        acts.append(agent.sample(o))
+    return obs, acts
+
+
+def _episode_row(episode: int, outcome: dict[str, Any], a: Sample, update: int
+                 ) -> dict[str, Any]:
+    """The ``episodes.csv`` row of one episode's outcome and the action that made it."""
+    return {
+        "episode": episode, "seed": outcome["seed"], "update": update,
+        "reward": outcome["reward"], "psnr": outcome["psnr"],
+        "ssim": outcome["ssim"], "lpips": outcome["lpips"],
+        "n_selected": outcome["n_selected"], "n_known": outcome["n_known"],
+        "aoi_used_ms": outcome["aoi_used_ms"],
+        "mean_aoi_ms": outcome["mean_aoi_ms"], "eval_ms": outcome["eval_ms"],
+        "selected": outcome["selected"], "p_mean": float(a.probs.mean()),
+        "value": a.value, "logp": a.logp, "entropy": a.entropy,
+        "cached": outcome["cached"], "wall_s": outcome["wall_s"],
+    }

@@ -47,6 +47,8 @@ from aoi3d.scene.camera import Camera
 from aoi3d.scene.dataset import PNG_END, DatasetError, DatasetNotFound, SceneDataset
 from aoi3d.scene.media import PngCache, encode_png, replace_dir, resize_area, target_size
 from aoi3d.scene.transforms import (
+    Frame,
+    Group,
     group_frames,
     group_intrinsics,
     ordered_frames,
@@ -193,6 +195,70 @@ def _aabb_of(docs: list[dict[str, Any]], override: Any, cameras: list[Camera]) -
     return box
 
 
+def _transforms_files(root: Path) -> dict[str, Path]:
+    """The split → transforms JSON of the folder ``root`` (``all``: a single transforms.json)."""
+    if not root.is_dir():
+        raise FileNotFoundError(f"no D-NeRF dataset here: {root} is not a directory")
+    present = {s: root / name for s, name in SPLIT_JSONS.items() if (root / name).is_file()}
+    if not present and (root / SINGLE_JSON).is_file():
+        present = {"all": root / SINGLE_JSON}
+    if not present:
+        raise FileNotFoundError(f"{root}: no {', '.join(SPLIT_JSONS.values())} or "
+                                f"{SINGLE_JSON} (D-NeRF / nerfstudio transforms)")
+    if "train" not in present and "all" not in present:
+        raise FileNotFoundError(f"{root}: {SPLIT_JSONS['train']} is missing")
+    return present
+
+
+def _rig_order(root: Path, groups: list[Group], by_camera_id: bool, heldout: int | None
+               ) -> tuple[list[Group], list[Group]]:
+    """The cameras in the dataset's order — the held-out one, the training ones, the rest —
+    and the training ones."""
+    holdout_pool = [g for g in groups if g.split == "test"] or groups
+    if by_camera_id:
+        holdout_pool = sorted(holdout_pool, key=lambda g: g.key)
+        wanted = heldout if heldout is not None else holdout_pool[0].key
+        chosen = next((g for g in groups if g.key == wanted), None)
+        if chosen is None:
+            raise ValueError(f"{root}: held-out camera_id {wanted} not found (have "
+                             f"{sorted(g.key for g in groups)})")
+    else:
+        index = 0 if heldout is None else heldout
+        if not 0 <= index < len(holdout_pool):
+            raise ValueError(f"{root}: heldout={index} but the test split has "
+                             f"{len(holdout_pool)} cameras")
+        chosen = holdout_pool[index]
+    train = [g for g in groups if g is not chosen and g.split in ("train", "all")]
+    if by_camera_id:
+        train.sort(key=lambda g: g.key)
+    others = [g for g in groups if g is not chosen and g not in train]
+    if not train:
+        raise ValueError(f"{root}: no training cameras besides the held-out one")
+    return [chosen, *train, *others], train
+
+
+def _fixed_camera(root: Path, group: Group, downscale: float | None, width: int | None
+                  ) -> tuple[Camera, list[Frame], tuple[int, int]]:
+    """A camera's pose (the same in every frame) and intrinsics at the output size, its
+    frames in time order, and its images' own size."""
+    seq = ordered_frames(group)
+    fx, fy, cx, cy, w, h = group_intrinsics(group, root)
+    w_out, h_out = target_size(w, h, downscale=downscale, target_width=width)
+    sx, sy = w_out / w, h_out / h
+    for f in seq[1:]:
+        if not np.allclose(f.c2w, seq[0].c2w, atol=1e-9):
+            raise ValueError(f"camera {group.key!r}: frames have different poses "
+                             f"({seq[0].file_relpath}, {f.file_relpath}); a camera_id "
+                             "must name a fixed camera")
+    camera = Camera(c2w=seq[0].c2w, fx=fx * sx, fy=fy * sy, cx=cx * sx, cy=cy * sy,
+                    width=w_out, height=h_out)
+    try:
+        camera.validate()
+    except ValueError as exc:
+        raise ValueError(f"{root}: camera of {seq[0].file_relpath}: {exc}") from exc
+    return camera, seq, (w, h)
+
+
 def load_dnerf(
     path: str | Path,
     *,
@@ -212,44 +278,12 @@ def load_dnerf(
     malformed ones.
     """
     root = Path(path).absolute()
-    if not root.is_dir():
-        raise FileNotFoundError(f"no D-NeRF dataset here: {root} is not a directory")
-    present = {s: root / name for s, name in SPLIT_JSONS.items() if (root / name).is_file()}
-    if not present and (root / SINGLE_JSON).is_file():
-        present = {"all": root / SINGLE_JSON}
-    if not present:
-        raise FileNotFoundError(f"{root}: no {', '.join(SPLIT_JSONS.values())} or "
-                                f"{SINGLE_JSON} (D-NeRF / nerfstudio transforms)")
-    if "train" not in present and "all" not in present:
-        raise FileNotFoundError(f"{root}: {SPLIT_JSONS['train']} is missing")
+    present = _transforms_files(root)
     docs = {split: read_doc(p) for split, p in present.items()}
     frames = [f for split, doc in docs.items() for f in parse_frames(doc, split, present[split])]
     by_camera_id = all(f.camera_id is not None for f in frames)
     groups = group_frames(frames, by_camera_id)
-
-    # The held-out camera and the order of the rest.
-    holdout_pool = [g for g in groups if g.split == "test"] or groups
-    if by_camera_id:
-        holdout_pool = sorted(holdout_pool, key=lambda g: g.key)
-        wanted = heldout if heldout is not None else holdout_pool[0].key
-        chosen = next((g for g in groups if g.key == wanted), None)
-        if chosen is None:
-            raise ValueError(f"{root}: held-out camera_id {wanted} not found (have "
-                             f"{sorted(g.key for g in groups)})")
-    else:
-        index = 0 if heldout is None else heldout
-        if not 0 <= index < len(holdout_pool):
-            raise ValueError(f"{root}: heldout={index} but the test split has "
-                             f"{len(holdout_pool)} cameras")
-        chosen = holdout_pool[index]
-    train = [g for g in groups if g is not chosen and g.split in ("train", "all")]
-    if by_camera_id:
-        train.sort(key=lambda g: g.key)
-    others = [g for g in groups if g is not chosen and g not in train]
-    ordered = [chosen, *train, *others]
-    if not train:
-        raise ValueError(f"{root}: no training cameras besides the held-out one")
-
+    ordered, train = _rig_order(root, groups, by_camera_id, heldout)
     counts = {g.key if by_camera_id else i: len(g.frames) for i, g in enumerate(ordered)}
     if len(set(counts.values())) != 1:
         raise ValueError(
@@ -259,21 +293,7 @@ def load_dnerf(
 
     cameras, rels, times, sizes = [], [], [], []
     for group in ordered:
-        seq = ordered_frames(group)
-        fx, fy, cx, cy, w, h = group_intrinsics(group, root)
-        w_out, h_out = target_size(w, h, downscale=downscale, target_width=width)
-        sx, sy = w_out / w, h_out / h
-        for f in seq[1:]:
-            if not np.allclose(f.c2w, seq[0].c2w, atol=1e-9):
-                raise ValueError(f"camera {group.key!r}: frames have different poses "
-                                 f"({seq[0].file_relpath}, {f.file_relpath}); a camera_id "
-                                 "must name a fixed camera")
-        camera = Camera(c2w=seq[0].c2w, fx=fx * sx, fy=fy * sy, cx=cx * sx, cy=cy * sy,
-                        width=w_out, height=h_out)
-        try:
-            camera.validate()
-        except ValueError as exc:
-            raise ValueError(f"{root}: camera of {seq[0].file_relpath}: {exc}") from exc
+        camera, seq, (w, h) = _fixed_camera(root, group, downscale, width)
         cameras.append(camera)
         rels.append(tuple(f.file_relpath for f in seq))
         times.append([f.time if f.time is not None else k / n_frames for k, f in enumerate(seq)])

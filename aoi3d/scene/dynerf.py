@@ -231,6 +231,55 @@ def _read_poses_bounds(path: Path, n_videos: int, names: list[str]) -> np.ndarra
     return arr.astype(np.float64)
 
 
+def _frames_and_fps(root: Path, names: list[str], infos: list[VideoInfo],
+                    n_frames: int | None) -> tuple[int, int]:
+    """The frames used of each video (the shortest's count unless ``n_frames``) and the
+    dataset's (integer) frame rate; the videos must agree on theirs."""
+    counts = {name: info.n_frames for name, info in zip(names, infos, strict=True)}
+    shortest = min(counts.values())
+    if shortest < 1:
+        raise ValueError(f"{root}: a video has no frames ({counts})")
+    if len(set(counts.values())) > 1:
+        log.warning("%s: videos differ in length %s; using the first %d frames of each",
+                    root, counts, shortest)
+    if n_frames is None:
+        n_frames = shortest
+    elif not 1 <= n_frames <= shortest:
+        raise ValueError(f"n_frames must be in [1, {shortest}] (the shortest video), "
+                         f"got {n_frames}")
+    rates = {name: info.fps for name, info in zip(names, infos, strict=True)}
+    if max(rates.values()) - min(rates.values()) > 1e-3:
+        raise ValueError(f"{root}: videos differ in frame rate {rates}")
+    fps = round(infos[0].fps) if infos[0].fps > 0 else DEFAULT_FPS
+    if abs(fps - infos[0].fps) > 1e-3:
+        log.warning("%s: %.3f fps rounded to %d (the dataset's fps is an integer)", root,
+                    infos[0].fps, fps)
+    return n_frames, fps
+
+
+def _llff_camera(name: str, info: VideoInfo, row: np.ndarray, downscale: float | None,
+                 width: int | None) -> Camera:
+    """The camera of video ``name`` from its row of poses_bounds.npy, at the decoded size."""
+    pose = row[:15].reshape(3, 5)
+    h_pose, w_pose, focal = pose[:, 4]
+    if not (h_pose > 0 and w_pose > 0 and focal > 0):
+        raise ValueError(f"{POSES_BOUNDS} row of {name}: H, W, focal must be > 0, "
+                         f"got {h_pose}, {w_pose}, {focal}")
+    if abs(info.width / info.height - w_pose / h_pose) > 0.01 * w_pose / h_pose:
+        raise ValueError(f"{name} is {info.width}×{info.height} but {POSES_BOUNDS} says "
+                         f"{w_pose:g}×{h_pose:g} (W×H): the aspect ratios differ")
+    if downscale is None and width is None and info.width > DEFAULT_MAX_WIDTH:
+        w_out, h_out = target_size(info.width, info.height, target_width=DEFAULT_MAX_WIDTH)
+    else:
+        w_out, h_out = target_size(info.width, info.height, downscale=downscale,
+                                   target_width=width)
+    camera = Camera(c2w=llff_to_opengl(pose, f"{POSES_BOUNDS} row of {name}"),
+                    fx=focal * w_out / w_pose, fy=focal * h_out / h_pose,
+                    cx=w_out / 2.0, cy=h_out / 2.0, width=w_out, height=h_out)
+    camera.validate()
+    return camera
+
+
 def load_dynerf(
     path: str | Path,
     *,
@@ -266,46 +315,9 @@ def load_dynerf(
                          f"{', '.join(names)}); choose another with heldout=NN")
 
     infos = [probe_video(root / name) for name in names]
-    counts = {name: info.n_frames for name, info in zip(names, infos, strict=True)}
-    shortest = min(counts.values())
-    if shortest < 1:
-        raise ValueError(f"{root}: a video has no frames ({counts})")
-    if len(set(counts.values())) > 1:
-        log.warning("%s: videos differ in length %s; using the first %d frames of each",
-                    root, counts, shortest)
-    if n_frames is None:
-        n_frames = shortest
-    elif not 1 <= n_frames <= shortest:
-        raise ValueError(f"n_frames must be in [1, {shortest}] (the shortest video), "
-                         f"got {n_frames}")
-    rates = {name: info.fps for name, info in zip(names, infos, strict=True)}
-    if max(rates.values()) - min(rates.values()) > 1e-3:
-        raise ValueError(f"{root}: videos differ in frame rate {rates}")
-    fps = round(infos[0].fps) if infos[0].fps > 0 else DEFAULT_FPS
-    if abs(fps - infos[0].fps) > 1e-3:
-        log.warning("%s: %.3f fps rounded to %d (the dataset's fps is an integer)", root,
-                    infos[0].fps, fps)
-
-    cameras: list[Camera] = []
-    for name, info, row in zip(names, infos, rows, strict=True):
-        pose = row[:15].reshape(3, 5)
-        h_pose, w_pose, focal = pose[:, 4]
-        if not (h_pose > 0 and w_pose > 0 and focal > 0):
-            raise ValueError(f"{POSES_BOUNDS} row of {name}: H, W, focal must be > 0, "
-                             f"got {h_pose}, {w_pose}, {focal}")
-        if abs(info.width / info.height - w_pose / h_pose) > 0.01 * w_pose / h_pose:
-            raise ValueError(f"{name} is {info.width}×{info.height} but {POSES_BOUNDS} says "
-                             f"{w_pose:g}×{h_pose:g} (W×H): the aspect ratios differ")
-        if downscale is None and width is None and info.width > DEFAULT_MAX_WIDTH:
-            w_out, h_out = target_size(info.width, info.height, target_width=DEFAULT_MAX_WIDTH)
-        else:
-            w_out, h_out = target_size(info.width, info.height, downscale=downscale,
-                                       target_width=width)
-        camera = Camera(c2w=llff_to_opengl(pose, f"{POSES_BOUNDS} row of {name}"),
-                        fx=focal * w_out / w_pose, fy=focal * h_out / h_pose,
-                        cx=w_out / 2.0, cy=h_out / 2.0, width=w_out, height=h_out)
-        camera.validate()
-        cameras.append(camera)
+    n_frames, fps = _frames_and_fps(root, names, infos, n_frames)
+    cameras = [_llff_camera(name, info, row, downscale, width)
+               for name, info, row in zip(names, infos, rows, strict=True)]
     near, far = rows[:, 15], rows[:, 16]
     if np.any(near <= 0) or np.any(far <= near):
         raise ValueError(f"{POSES_BOUNDS}: bounds need 0 < near < far, got near {near.tolist()}"

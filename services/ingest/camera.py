@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from collections import Counter, OrderedDict, deque
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -37,15 +38,15 @@ class CameraState:
     spec: CameraSpec
     camera_id: int
     intrinsics: ros.Intrinsics | None = None
-    poses: deque = field(default_factory=lambda: deque(maxlen=POSES_KEPT))
-    offsets: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
+    poses: deque[tuple[float, np.ndarray]] = field(default_factory=lambda: deque(maxlen=POSES_KEPT))
+    offsets: deque[float] = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
     last_seq: OrderedDict[tuple[str, bytes], int] = field(default_factory=OrderedDict)
     """The last sequence number of each publisher (topic, id): at most :data:`STREAMS_KEPT`,
     the least recently heard forgotten (a sender inventing ids cannot grow it)."""
     own_seq: int = 0
-    received: Counter = field(default_factory=Counter)
+    received: Counter[str] = field(default_factory=Counter)
     """Samples received by kind."""
-    rejected: Counter = field(default_factory=Counter)
+    rejected: Counter[str] = field(default_factory=Counter)
     """Samples rejected by reason."""
     published: int = 0
     lost: int = 0
@@ -58,8 +59,9 @@ class CameraState:
     publish_delay_s: float = math.nan
     """Source time (the rmw_zenoh attachment) − stamp of the last image: the robot's own
     delay between capture and publish."""
-    ages: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
-    held: list = field(default_factory=list)
+    ages: deque[float] = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
+    held: list[tuple[float, np.ndarray, float, ros.Attachment | None, float]] = field(
+        default_factory=list)
     """Images waiting for their pose or intrinsics: (deadline wall s, RGB, stamp, attachment,
     receipt wall s)."""
 
@@ -109,7 +111,7 @@ class CameraState:
         if (best is None or best_dt > tol) and not final and newest < stamp + tol:
             raise Wait  # a pose within the tolerance may still come
         if best is None or best_dt > tol:
-            what = ("no pose received yet on " + spec.topic if best is None else
+            what = (f"no pose received yet on {spec.topic}" if best is None else
                     f"the nearest pose on {spec.topic} is {best_dt:.3f} s away")
             raise Rejected(RejectReason.NO_POSE, f"{what} (tolerance {tol:g} s)")
         return best
@@ -119,6 +121,9 @@ class CameraState:
         (unless ``final``)."""
         spec = self.spec.intrinsics
         if spec.static:
+            assert (spec.fx is not None and spec.fy is not None and spec.cx is not None
+                    and spec.cy is not None and spec.width is not None
+                    and spec.height is not None), "static: all six values (validated)"
             return ros.Intrinsics(spec.fx, spec.fy, spec.cx, spec.cy, spec.width, spec.height)
         if self.intrinsics is None and not final:
             raise Wait
@@ -127,7 +132,7 @@ class CameraState:
                            f"no CameraInfo received yet on {spec.camera_info}")
         return self.intrinsics
 
-    def status(self, now_s: float, offset_in_force: float) -> dict:
+    def status(self, now_s: float, offset_in_force: float) -> dict[str, Any]:
         """Its row of the status route (plain JSON values)."""
         spec = self.spec
         ages = sorted(self.ages)
@@ -149,5 +154,5 @@ class CameraState:
         }
 
 
-def _num(x: float, scale: float = 1.0, nd: int = 3):
+def _num(x: float | None, scale: float = 1.0, nd: int = 3) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x * scale, nd)

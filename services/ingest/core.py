@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -103,7 +104,7 @@ class IngestCore:
     def on_liveliness(self, key: str, alive: bool) -> None:
         self.ros_graph.on_token(key, alive)
 
-    def topic_publishers(self) -> list[dict]:
+    def topic_publishers(self) -> list[dict[str, Any]]:
         return self.ros_graph.topic_publishers(self.routes)
 
     def graph_hint(self) -> str:
@@ -299,7 +300,7 @@ class IngestCore:
         return encode_png(np.ascontiguousarray(rgb))  # (compress level 1)
 
     # ------------------------------------------------------------------ status
-    def status(self, now_s: float) -> dict:
+    def status(self, now_s: float) -> dict[str, Any]:
         """What the status route shows (plain JSON values)."""
 
         cams = [s.status(now_s, self.offset_in_force(s)) for s in self.cameras.values()]

@@ -8,6 +8,7 @@ Pure: the runtime watches the tokens (:mod:`services.ingest.worker`) and hands e
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import Any
 
 from services import ros
 from services.ingest.routes import Route
@@ -52,7 +53,7 @@ class RosGraph:
             return
         self.entities[key] = entity
 
-    def topic_publishers(self, routes: Iterable[Route]) -> list[dict]:
+    def topic_publishers(self, routes: Iterable[Route]) -> list[dict[str, Any]]:
         """Per subscribed topic: the live publishers of the rig's type, and the types others
         publish on it (a rig that names Image where the camera sends CompressedImage)."""
         out = []
@@ -81,7 +82,7 @@ class RosGraph:
         more = f" and {len(missing) - 3} more" if len(missing) > 3 else ""
         return f"no publisher of the rig's type in the ROS graph on {what}{more}"
 
-    def status(self, routes: Iterable[Route]) -> dict | None:
+    def status(self, routes: Iterable[Route]) -> dict[str, Any] | None:
         """The status route's ``source.graph`` (None for the bridge)."""
         if self.key is None:
             return None

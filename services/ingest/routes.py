@@ -36,7 +36,7 @@ def subscriptions(rig: Rig, fmt: ros.KeyFormat) -> list[Route]:
         if c.pose.topic is not None:
             pose_type = ros.POSE_STAMPED if c.pose.type == "PoseStamped" else ros.ODOMETRY
             by_topic.setdefault(("pose", c.pose.topic, pose_type), []).append(c.name)
-    kinds = {}
+    kinds: dict[str, str] = {}
     for (kind, topic, _), _names in by_topic.items():
         other = kinds.setdefault(topic, kind)
         if other != kind:

@@ -14,6 +14,7 @@ robots' router (``source.connect``) — from a second session connected there.
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
@@ -21,7 +22,7 @@ import time
 from prometheus_client import CollectorRegistry, Counter, Histogram
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
-from aoi3d.rigfile import Rig
+from aoi3d.rigfile import CameraSpec, Rig
 from services.ingest.core import IngestCore
 from services.ingest.routes import Route
 from services.kit.bus import Bus, Inbox
@@ -127,8 +128,7 @@ class IngestWorker:
         for spec in rig.cameras:
             if spec.url is not None:
                 self._stream_errors.labels(camera=spec.name)
-                self._loops.thread(f"video-{spec.name}",
-                                   lambda stop, spec=spec: self._video(spec, stop))
+                self._loops.thread(f"video-{spec.name}", functools.partial(self._video, spec))
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -191,16 +191,18 @@ class IngestWorker:
             return
         self._publish(out)
 
-    def _video(self, spec, stop: threading.Event) -> None:
+    def _video(self, spec: CameraSpec, stop: threading.Event) -> None:
         """Read a url camera until the worker stops, opening it again (after 0.5, 1, 2 … 10 s)
         whenever it fails or ends; an RTSP listener just waits for its camera again."""
         from services.ingest.video import StreamEnded, read_video
 
+        url = spec.url
+        assert url is not None, "started for url cameras only"
         backoff = 0.5
         while not stop.is_set():
             got = False
             try:
-                for frame in read_video(spec.url, listen=spec.listen, stamps=spec.stamps,
+                for frame in read_video(url, listen=spec.listen, stamps=spec.stamps,
                                         time_scale=self._time_scale,
                                         max_pixels=self.core.rig.max_image_pixels,
                                         stop=stop.is_set):
@@ -210,7 +212,7 @@ class IngestWorker:
                             out = self.core.on_video(spec.name, frame.rgb, frame.stamp_s,
                                                      frame.receipt_s)
                     except Rejected as err:
-                        self.rejections.reject(err, spec.url)
+                        self.rejections.reject(err, url)
                         continue
                     self._publish(out)
                 if stop.is_set():

@@ -148,6 +148,12 @@ def service_app(
     guard_app(app, allowed_hosts=common.allowed_hosts, token=common.token(),
               max_body_bytes=common.max_body_bytes)
 
+    _ops_routes(app, registry, sites if per_site else None)
+    return app
+
+
+def _ops_routes(app: FastAPI, registry: CollectorRegistry, sites: list[str] | None) -> None:
+    """/healthz, /readyz, /sites (a service run per site: ``sites``) and /metrics."""
     @app.get("/healthz", tags=["ops"], summary="Liveness: the process serves requests.",
              description="`pid` is the serving process's id: `aoi3d up` checks that its own "
                          "child answers, not another pipeline on the same port.")
@@ -168,7 +174,7 @@ def service_app(
             why = "; ".join(f"{site}: {w}" for site, (_, w) in answers.items())
         return JSONResponse({"ready": ok, "reason": why}, status_code=200 if ok else 503)
 
-    if per_site:
+    if sites is not None:
         @app.get("/sites", tags=["ops"], summary="The run's sites (AOI3D_SITES).",
                  description="Each site has its own cameras, channel, policy and quality; "
                              "`/sites/<site>/…` addresses one, the paths without it the "
@@ -179,8 +185,6 @@ def service_app(
     @app.get("/metrics", tags=["ops"], summary="Prometheus metrics of this service.")
     def metrics() -> Response:
         return Response(generate_latest(registry), media_type=CONTENT_TYPE_LATEST)
-
-    return app
 
 
 def serve(app: FastAPI, settings: ServiceSettings) -> None:

@@ -74,6 +74,11 @@ class MetricsWorker:
         self.rejections = Rejections(registry)
         self.ledger = LedgerKeeper(registry, run_id=run_id, site=site,
                                    open_bound_s=ledger_open_s, state_dir=state_dir)
+        self._declare_series(registry, lpips_fn)
+
+    def _declare_series(self, registry: CollectorRegistry, lpips_fn: LpipsFn | None) -> None:
+        """The scoring's Prometheus series (the last-value gauges NaN until a render is
+        scored; LPIPS's only with ``lpips_fn``)."""
         self._m_quality = Counter("aoi3d_quality", "Renders scored against their ground truth.",
                                   registry=registry)
         self._m_truth = Counter("aoi3d_truth_frames", "Ground-truth frames received.",

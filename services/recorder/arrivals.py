@@ -103,9 +103,9 @@ def arrivals(rec: SiteRecord) -> Arrivals:
             arrival = math.inf  # no later decision knew it: it never counted
         items.append(Arrival(cam, g, arrival, fr))
     # what the scheduler knew at the first decision without a recorded frame behind it
-    first = known[0]
+    initial = known[0]
     recorded = {(fr.camera_id, fr.generation_ms) for fr in rec.deliveries}
-    for cam, g in first.items():
+    for cam, g in initial.items():
         if (cam, g) not in recorded:
             items.append(Arrival(cam, g, -math.inf, None))
     out = Arrivals(camera_ids, items)

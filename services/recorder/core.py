@@ -84,7 +84,8 @@ def sim_ns(ms: float) -> int:
 
 
 def sim_ms_of(ts: Timestamp) -> float:
-    return (ts.seconds * 1_000_000_000 + ts.nanos) / 1e6
+    ms: float = (ts.seconds * 1_000_000_000 + ts.nanos) / 1e6  # (protobuf: untyped)
+    return ms
 
 
 def _stamp(ms: float) -> Timestamp:
@@ -264,7 +265,7 @@ class Recording:
         writer, f = self._writer, self._file
         self._writer = self._file = None
         if writer is not None:
-            writer.finish()
+            writer.finish()  # type: ignore[no-untyped-call]  # mcap_protobuf: unannotated
         if f is not None:
             self._done_bytes += f.tell()
             f.close()
@@ -297,15 +298,17 @@ class Recording:
         if not self.active:
             raise Rejected(RejectReason.NOT_RECORDING, f"the recording is {self.status.state}")
         items = entries(key, payload)
+        writer, f = self._writer, self._file
+        assert writer is not None and f is not None, "active: a segment is open"
         try:
             for topic, msg, t_ms in items:
-                self._writer.write_message(topic, msg, log_time=log_ns,
-                                           publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
-                                           else log_ns)
+                writer.write_message(topic, msg, log_time=log_ns,
+                                     publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
+                                     else log_ns)
             self.status.messages += 1
             self.status.mcap_messages += len(items)
             self._update_bytes()
-            if self.max_bytes and self._file.tell() >= self.max_bytes:
+            if self.max_bytes and f.tell() >= self.max_bytes:
                 self._finish()
                 self._open_next()
         except OSError as err:

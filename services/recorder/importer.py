@@ -163,6 +163,7 @@ def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream],
             streams.setdefault(fr.camera_id, _Stream(p.camera)).frames.append(fr)
 
     def expire(now_s: float) -> None:
+        assert core is not None, "after the first message"
         frames, refused = core.expire(now_s)
         take(frames)
         rejected.update(err.reason for _name, err in refused)
@@ -223,19 +224,47 @@ def _fixed_camera(stream: _Stream) -> Camera:
         raise NotImportable(f"camera {stream.name}: {err.detail}") from None
 
 
-def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
-                rig: str | Path | None = None, fps: int | None = None,
-                aabb: list[float] | None = None) -> tuple[SceneDataset, ImportReport]:
-    """Write the dataset ``out`` from the MCAP file ``path`` (see the module docstring)."""
-    path = Path(path)
+def _mcap_files(path: Path) -> list[Path]:
+    """The file ``path``, or a rosbag2 folder's .mcap files (split or not) in order."""
     files = [path]
-    if path.is_dir():  # a rosbag2 folder (metadata.yaml and its .mcap files, split or not)
+    if path.is_dir():
         files = sorted(path.glob("*.mcap"), key=lambda f: [int(t) if t.isdigit() else t for t
                                                            in re.split(r"(\d+)", f.name)])
         if not files:
             raise NotImportable(f"{path} is a folder without an .mcap file")
     elif not path.is_file():
         raise NotImportable(f"no file at {path}")
+    return files
+
+
+def _on_the_grid(streams: dict[int, _Stream], order: list[int], t0: float, t1: float,
+                 step: float, n_frames: int
+                 ) -> tuple[list[Camera], list[list[int]], list[dict]]:
+    """Per camera: its camera, its frame at each t0 + k·step (the newest), its report row."""
+    cameras: list[Camera] = []
+    picks: list[list[int]] = []
+    rows: list[dict] = []
+    for cam in order:
+        s = streams[cam]
+        cameras.append(_fixed_camera(s))
+        gens = [f.generation_ms for f in s.frames]
+        pick = [bisect.bisect_right(gens, t0 + k * step + _TOL_MS) - 1 for k in range(n_frames)]
+        used = set(pick)
+        in_span = [i for i, g in enumerate(gens) if t0 - _TOL_MS <= g <= t1 + _TOL_MS]
+        held = sum(1 for k, i in enumerate(pick) if t0 + k * step - gens[i] >= step - _TOL_MS)
+        rows.append({"id": len(rows), "name": s.name, "recorded_id": cam,
+                     "frames": len(s.frames), "used": len(used),
+                     "dropped": len([i for i in in_span if i not in used]), "held": held})
+        picks.append(pick)
+    return cameras, picks, rows
+
+
+def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
+                rig: str | Path | None = None, fps: int | None = None,
+                aabb: list[float] | None = None) -> tuple[SceneDataset, ImportReport]:
+    """Write the dataset ``out`` from the MCAP file ``path`` (see the module docstring)."""
+    path = Path(path)
+    files = _mcap_files(path)
     kind = kind_of(files[0])
     if kind == "recording" and path.is_dir():
         raise NotImportable(f"{path}: give an aoi3d recording's .mcap file (its .partN "
@@ -281,19 +310,7 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         raise NotImportable(f"the cameras' frames do not overlap in time (the latest first frame "
                             f"at {t0:.0f} ms, the earliest last one at {t1:.0f} ms)")
     n_frames = math.floor((t1 - t0) / step + 1e-9) + 1
-    cameras, picks, rows = [], [], []
-    for cam in order:
-        s = streams[cam]
-        cameras.append(_fixed_camera(s))
-        gens = [f.generation_ms for f in s.frames]
-        pick = [bisect.bisect_right(gens, t0 + k * step + _TOL_MS) - 1 for k in range(n_frames)]
-        used = set(pick)
-        in_span = [i for i, g in enumerate(gens) if t0 - _TOL_MS <= g <= t1 + _TOL_MS]
-        held = sum(1 for k, i in enumerate(pick) if t0 + k * step - gens[i] >= step - _TOL_MS)
-        rows.append({"id": len(rows), "name": s.name, "recorded_id": cam,
-                     "frames": len(s.frames), "used": len(used),
-                     "dropped": len([i for i in in_span if i not in used]), "held": held})
-        picks.append(pick)
+    cameras, picks, rows = _on_the_grid(streams, order, t0, t1, step, n_frames)
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise NotImportable(f"the cameras' images differ in size ({sorted(sizes)}): the layout "

@@ -61,6 +61,7 @@ def load(path: Path) -> Recorded:
                 if topic == "/tf" or parts[-1] == "calibration":
                     continue
                 site, what = parts[0], "/".join(parts[1:])
+                assert schema is not None, "mcap decodes no message without its schema"
                 if schema.name.startswith("aoi3d."):  # decoded with the file's schema; as
                     msg = _CLASSES[schema.name].FromString(msg.SerializeToString())  # ours
                 if what.endswith("image"):

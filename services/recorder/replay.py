@@ -40,7 +40,7 @@ import numpy as np
 
 from aoi3d.metric import BY_NAME
 from aoi3d.metric import SCORES as QUALITY
-from aoi3d.policy import Policy, decide, parse_policy
+from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.stats import MeanCI, mean_ci95
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed
@@ -77,13 +77,37 @@ class ReplayResult:
         return sum(d.selected == d.recorded for d in self.decisions)
 
 
-def _selection(sel, camera_ids) -> tuple[tuple[int, float], ...]:
+def _selection(sel: Selection, camera_ids: Sequence[int]) -> tuple[tuple[int, float], ...]:
     return tuple((int(c), float(g)) for c, g in zip(sel.cameras(camera_ids), sel.gen_ms,
                                                     strict=True))
 
 
 def _recorded_selection(d: pb.Decision) -> tuple[tuple[int, float], ...]:
     return tuple((int(r.camera_id), float(r.generation_ms)) for r in d.selected)
+
+
+def _replayed_decision(d: pb.Decision, sel: Selection, camera_ids: Sequence[int],
+                       selected: tuple[tuple[int, float], ...], spec: str) -> pb.Decision:
+    """The Decision the replayed policy took in place of ``d`` (the job's input)."""
+    replayed = pb.Decision(decision_id=d.decision_id, incarnation=d.incarnation,
+                           time_ms=sel.eval_ms, camera_ids=list(camera_ids),
+                           aoi_ms=[float(a) for a in sel.aoi_ms], policy=spec)
+    for cam, g in selected:
+        replayed.selected.add(camera_id=cam, generation_ms=g,
+                              aoi_ms=float(sel.eval_ms - g))
+    return replayed
+
+
+def _site_scorer(rec: Recorded, site: str, q0: pb.Quality, scorers: dict[str, Scorer] | None,
+                 threads: int) -> Scorer:
+    """The site's scorer: the caller's (``scorers``, kept there when made here) or a new one
+    with LPIPS when the site's first scored Quality has it."""
+    if scorers is not None and site in scorers:
+        return scorers[site]
+    scorer = Scorer(rec, site, lpips="lpips" in q0.reward_terms, threads=threads)
+    if scorers is not None:
+        scorers[site] = scorer
+    return scorer
 
 
 def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | None = None,
@@ -149,21 +173,9 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
             if not score or (max_renders is not None and attempted >= max_renders):
                 continue
             attempted += 1
-            replayed = pb.Decision(decision_id=d.decision_id, incarnation=d.incarnation,
-                                   time_ms=sel.eval_ms, camera_ids=list(arr.camera_ids),
-                                   aoi_ms=[float(a) for a in sel.aoi_ms], policy=p.spec)
-            for cam, g in selected:
-                replayed.selected.add(camera_id=cam, generation_ms=g,
-                                      aoi_ms=float(sel.eval_ms - g))
+            replayed = _replayed_decision(d, sel, arr.camera_ids, selected, p.spec)
             if scorer is None:
-                if scorers is not None and site in scorers:
-                    scorer = scorers[site]
-                else:
-                    q0 = srec.qualities[key]
-                    scorer = Scorer(rec, site, lpips="lpips" in q0.reward_terms,
-                                    threads=threads)
-                    if scorers is not None:
-                        scorers[site] = scorer
+                scorer = _site_scorer(rec, site, srec.qualities[key], scorers, threads)
             try:
                 out.quality = scorer.score(replayed, render, frames, budgets[key])
             except JobFailed as err:

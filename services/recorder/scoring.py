@@ -6,10 +6,9 @@ compares with the recorded ones (:data:`SCORES`)."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 
 from aoi3d.metric import AT_DECISION
-from aoi3d.quality import RewardWeights
+from aoi3d.quality import LpipsFn, RewardWeights
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.recording import Recorded, SiteRecord
 
@@ -24,7 +23,7 @@ class Scorer:
     """Rebuilds renders with the live worker's code and scores them with the metrics code."""
 
     def __init__(self, rec: Recorded, site: str, *, lpips: bool, threads: int,
-                 lpips_fn: Callable | None = None) -> None:
+                 lpips_fn: LpipsFn | None = None) -> None:
         from services.metrics.core import MetricsCore
         from services.recon.core import ReconCore
 
@@ -50,7 +49,7 @@ class Scorer:
             if fr.image.data:
                 self.metrics.on_truth(fr.SerializeToString(), math.inf)
         self.recon = ReconCore(worker_id="replay", device="cpu", num_threads=threads)
-        self._cache: dict[tuple, pb.Quality] = {}
+        self._cache: dict[tuple[object, ...], pb.Quality] = {}
 
     def score(self, decision: pb.Decision, render: pb.Render, frames: list[pb.Frame],
               steps: int) -> pb.Quality:

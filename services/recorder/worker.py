@@ -113,7 +113,9 @@ class RecorderWorker:
                 if self._last is not None:
                     return self._last
                 raise RecordingError("no recording was started")
-            return self._close_locked()
+            status = self._close_locked()
+            assert status is not None, "a recording was open"
+            return status
 
     def _close_locked(self) -> RecordingStatus | None:
         rec, self._recording = self._recording, None

@@ -4,16 +4,16 @@ store: a message → bytes, and bytes → a message, checked (size, header, exac
 from __future__ import annotations
 
 from services.kit.rejected import Rejected, RejectReason
-from services.ros.types import CDR_LE, typestore
+from services.ros.types import CDR_LE, Message, typestore
 
 __all__ = ["decode_cdr", "encode_cdr"]
 
 
-def encode_cdr(msg: object, ros_type: str) -> bytes:
+def encode_cdr(msg: Message, ros_type: str) -> bytes:
     return bytes(typestore().serialize_cdr(msg, ros_type))
 
 
-def decode_cdr(payload: bytes, ros_type: str, max_bytes: int) -> object:
+def decode_cdr(payload: bytes, ros_type: str, max_bytes: int) -> Message:
     """A CDR payload → the message (rosbags' dataclass). Refused before parsing when larger
     than ``max_bytes`` (``too_large``); ``bad_cdr`` when it is not a little-endian CDR
     encoding of ``ros_type`` (truncated, garbled, trailing bytes)."""

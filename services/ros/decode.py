@@ -11,7 +11,7 @@ import numpy as np
 
 from aoi3d.rigfile import quaternion_matrix
 from services.kit.rejected import Rejected, RejectReason
-from services.ros.types import IMAGE, POSE_STAMPED
+from services.ros.types import IMAGE, POSE_STAMPED, Message
 
 __all__ = ["ENCODINGS", "Intrinsics", "camera_info", "image_rgb", "pose_matrix", "stamp_s"]
 
@@ -20,7 +20,7 @@ ENCODINGS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8uc1": 1
              "mono16": 2, "16uc1": 2}
 
 
-def stamp_s(header) -> float:
+def stamp_s(header: Message) -> float:
     """A ``std_msgs/Header``'s stamp in seconds; ``stamp_invalid`` when nanosec ≥ 10⁹."""
     sec, nsec = int(header.stamp.sec), int(header.stamp.nanosec)
     if not 0 <= nsec < 1_000_000_000:
@@ -28,7 +28,7 @@ def stamp_s(header) -> float:
     return sec + nsec * 1e-9
 
 
-def _raw_rgb(msg, max_pixels: int) -> np.ndarray:
+def _raw_rgb(msg: Message, max_pixels: int) -> np.ndarray:
     enc = str(msg.encoding).lower()
     bpp = ENCODINGS.get(enc)
     if bpp is None:
@@ -61,7 +61,7 @@ def _raw_rgb(msg, max_pixels: int) -> np.ndarray:
     return np.ascontiguousarray(px[:, :, :3])
 
 
-def _compressed_rgb(msg, max_pixels: int) -> np.ndarray:
+def _compressed_rgb(msg: Message, max_pixels: int) -> np.ndarray:
     fmt = str(msg.format).lower()
     data = bytes(msg.data)
     if "jpeg" in fmt or "jpg" in fmt:
@@ -94,14 +94,14 @@ def _compressed_rgb(msg, max_pixels: int) -> np.ndarray:
             from None
 
 
-def image_rgb(msg, ros_type: str, max_pixels: int) -> np.ndarray:
+def image_rgb(msg: Message, ros_type: str, max_pixels: int) -> np.ndarray:
     """An ``Image`` or ``CompressedImage`` → uint8 H×W×3 RGB (checked before decoding)."""
     if ros_type == IMAGE:
         return _raw_rgb(msg, max_pixels)
     return _compressed_rgb(msg, max_pixels)
 
 
-def pose_matrix(msg, ros_type: str) -> np.ndarray:
+def pose_matrix(msg: Message, ros_type: str) -> np.ndarray:
     """A ``PoseStamped`` or ``Odometry`` → 4×4 (``bad_pose`` when not finite or not a
     rotation)."""
     pose = msg.pose if ros_type == POSE_STAMPED else msg.pose.pose
@@ -125,7 +125,7 @@ class Intrinsics:
     height: int
 
 
-def camera_info(msg) -> Intrinsics:
+def camera_info(msg: Message) -> Intrinsics:
     """A ``CameraInfo``'s pinhole intrinsics (``bad_intrinsics`` when unusable)."""
     k = np.asarray(msg.k, dtype=np.float64)
     w, h = int(msg.width), int(msg.height)

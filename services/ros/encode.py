@@ -8,13 +8,21 @@ import io
 
 import numpy as np
 
-from services.ros.types import CAMERA_INFO, COMPRESSED, IMAGE, ODOMETRY, POSE_STAMPED, typestore
+from services.ros.types import (
+    CAMERA_INFO,
+    COMPRESSED,
+    IMAGE,
+    ODOMETRY,
+    POSE_STAMPED,
+    Message,
+    typestore,
+)
 
 __all__ = ["camera_info_msg", "compressed_bytes_msg", "compressed_msg", "header", "image_msg",
            "odometry_msg", "pose_stamped_msg"]
 
 
-def header(stamp: float, frame_id: str):
+def header(stamp: float, frame_id: str) -> Message:
     types = typestore().types
     sec = int(np.floor(stamp))
     nsec = min(round((stamp - sec) * 1e9), 999_999_999)
@@ -22,7 +30,7 @@ def header(stamp: float, frame_id: str):
         stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec), frame_id=frame_id)
 
 
-def image_msg(stamp: float, frame_id: str, rgb: np.ndarray, encoding: str = "rgb8"):
+def image_msg(stamp: float, frame_id: str, rgb: np.ndarray, encoding: str = "rgb8") -> Message:
     """A ``sensor_msgs/Image`` of an RGB uint8 image (``rgb8`` or ``bgr8``)."""
     arr = np.ascontiguousarray(rgb[:, :, ::-1] if encoding == "bgr8" else rgb, dtype=np.uint8)
     h, w = arr.shape[:2]
@@ -31,7 +39,7 @@ def image_msg(stamp: float, frame_id: str, rgb: np.ndarray, encoding: str = "rgb
                                  data=arr.reshape(-1))
 
 
-def compressed_msg(stamp: float, frame_id: str, rgb: np.ndarray, fmt: str = "jpeg"):
+def compressed_msg(stamp: float, frame_id: str, rgb: np.ndarray, fmt: str = "jpeg") -> Message:
     """A ``sensor_msgs/CompressedImage`` (``jpeg`` quality 95, or ``png``)."""
     from PIL import Image as PILImage
 
@@ -45,14 +53,14 @@ def compressed_msg(stamp: float, frame_id: str, rgb: np.ndarray, fmt: str = "jpe
                                       data=np.frombuffer(buf.getvalue(), dtype=np.uint8))
 
 
-def compressed_bytes_msg(stamp: float, frame_id: str, data: bytes, fmt: str):
+def compressed_bytes_msg(stamp: float, frame_id: str, data: bytes, fmt: str) -> Message:
     """A ``sensor_msgs/CompressedImage`` of image bytes already encoded as ``fmt``."""
     return typestore().types[COMPRESSED](header=header(stamp, frame_id), format=fmt,
                                       data=np.frombuffer(data, dtype=np.uint8))
 
 
 def camera_info_msg(stamp: float, frame_id: str, fx: float, fy: float, cx: float, cy: float,
-                    width: int, height: int):
+                    width: int, height: int) -> Message:
     types = typestore().types
     k = np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1], dtype=np.float64)
     p = np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0], dtype=np.float64)
@@ -63,7 +71,7 @@ def camera_info_msg(stamp: float, frame_id: str, fx: float, fy: float, cx: float
                               r=np.eye(3).reshape(-1), p=p, binning_x=0, binning_y=0, roi=roi)
 
 
-def _pose(m: np.ndarray):
+def _pose(m: np.ndarray) -> Message:
     from scipy.spatial.transform import Rotation
 
     types = typestore().types
@@ -75,11 +83,11 @@ def _pose(m: np.ndarray):
                                                           w=float(w)))
 
 
-def pose_stamped_msg(stamp: float, frame_id: str, m: np.ndarray):
+def pose_stamped_msg(stamp: float, frame_id: str, m: np.ndarray) -> Message:
     return typestore().types[POSE_STAMPED](header=header(stamp, frame_id), pose=_pose(m))
 
 
-def odometry_msg(stamp: float, frame_id: str, child: str, m: np.ndarray):
+def odometry_msg(stamp: float, frame_id: str, child: str, m: np.ndarray) -> Message:
     types = typestore().types
     cov = np.zeros(36)
     vec = types["geometry_msgs/msg/Vector3"]

@@ -38,8 +38,9 @@ def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
     try:
         deadline = time.monotonic() + wait_s
         images = [p for k, p in pubs.items() if "image" in k] or list(pubs.values())
-        while time.monotonic() < deadline and not all(p.matching_status.matching
-                                                      for p in images):
+        # zenoh's stub says matching_status is a bool; it is a MatchingStatus (1.x runtime)
+        while time.monotonic() < deadline and not all(
+                p.matching_status.matching for p in images):  # type: ignore[attr-defined]
             time.sleep(0.05)
         time.sleep(0.5 if pubs else 1.0)
 
@@ -52,6 +53,8 @@ def zenoh_publishing(connect: list[str], keys: list[str] | None = None,
 
         yield put
     finally:
-        for item in [*pubs.values(), *held]:
-            item.undeclare()
+        for pub in pubs.values():
+            pub.undeclare()
+        for token in held:
+            token.undeclare()
         session.close()

@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import re
 from functools import cache
+from typing import Any
 
 __all__ = ["CAMERA_INFO", "CDR_LE", "COMPRESSED", "HUMBLE_HASH", "IMAGE", "ODOMETRY",
-           "POSE_STAMPED", "TYPES", "dds_type", "ros_type_of", "type_hash", "typestore"]
+           "POSE_STAMPED", "TYPES", "Message", "dds_type", "ros_type_of", "type_hash",
+           "typestore"]
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -19,10 +21,12 @@ HUMBLE_HASH = "TypeHashNotSupported"
 """What Humble's rmw_zenoh puts in a key where Jazzy and later put the type hash."""
 CDR_LE = b"\x00\x01\x00\x00"
 _DDS_RE = re.compile(r"^([A-Za-z0-9_]+)::(msg|srv|action)::dds_::([A-Za-z0-9_]+)_$")
+Message = Any
+"""A ROS message: rosbags' dataclass of its type (rosbags ships no type information)."""
 
 
 @cache
-def typestore():
+def typestore() -> Any:  # rosbags' Typestore (untyped)
     """rosbags' type store of ROS 2 Jazzy (the messages' definitions, CDR both ways)."""
     from rosbags.typesys import Stores, get_typestore
 
@@ -38,7 +42,8 @@ def dds_type(ros_type: str) -> str:
 @cache
 def type_hash(ros_type: str) -> str:
     """The type's RIHS01 hash (Jazzy and later; the same for these types through Lyrical)."""
-    return typestore().hash_rihs01(ros_type)
+    digest: str = typestore().hash_rihs01(ros_type)
+    return digest
 
 
 def ros_type_of(dds: str) -> str:

@@ -52,3 +52,23 @@ def test_make_lint_runs_ruff_the_contracts_and_mypy_and_ci_runs_it_first() -> No
     assert "make lint" in ci
     assert ci.index("make lint") < next(i for i, line in enumerate(ci)
                                         if line.startswith("make test"))
+
+
+def test_mypy_checks_every_module_and_its_strict_list_names_real_modules() -> None:
+    """No ``[[tool.mypy.overrides]]`` turns the checker off (``ignore_errors``,
+    ``follow_imports = skip``) for any module of ours, and every module the strict list names
+    exists (a stale name would hide that a module left it)."""
+    import tomllib
+
+    mypy = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["mypy"]
+    ours = ("aoi3d", "aoi3d_cli", "services", "bench")
+    for override in mypy.get("overrides", []):
+        modules = override["module"]
+        modules = [modules] if isinstance(modules, str) else modules
+        if any(m.split(".")[0] in ours for m in modules):
+            assert not override.get("ignore_errors"), modules
+            assert override.get("follow_imports") not in ("skip", "silent"), modules
+        for m in modules:
+            if m.split(".")[0] in ours:
+                base = ROOT / m.removesuffix(".*").replace(".", "/")
+                assert base.with_suffix(".py").is_file() or (base / "__init__.py").is_file(), m
