@@ -50,6 +50,29 @@ def robot_bus(connect: list[str]) -> ZenohBus:
     return ZenohBus(conf)
 
 
+def ros_outputs(settings: Settings, rig: Rig, bus: Bus, source, keys: Keys):
+    """aoi3d's outputs in ROS on the rig's source (services.ingest.outputs), or None when off."""
+    dds = rig.source.format == "dds"
+    if settings.ros_outputs == "off" or (settings.ros_outputs == "auto" and not dds):
+        return None
+    from services.ingest.outputs import OutputTopics, RosOutputs, dds_sender, zenoh_sender
+
+    common = settings.common
+    topics = OutputTopics(settings.ros_render_topic, settings.ros_camera_info_topic,
+                          settings.ros_decision_topic, settings.ros_quality_topic)
+    tokens: list = []
+    if dds:
+        sender = dds_sender(source)
+    else:
+        from services.ingest.ros import KeyFormat
+
+        src = rig.source
+        sender = zenoh_sender(source, KeyFormat(src.format, src.domain_id, src.prefix), tokens)
+    return RosOutputs(bus=bus, keys=keys, rig=rig, epoch_s=common.epoch_s,
+                      time_scale=common.time_scale, sender=sender, topics=topics,
+                      on_stop=lambda: [t.undeclare() for t in tokens])
+
+
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                rig: Rig | None = None, source: Bus | None = None,
                registry: CollectorRegistry | None = None) -> FastAPI:
@@ -63,14 +86,22 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
         rig = load_rig(common.rig)
 
     def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> IngestWorker:
-        own = source is None and bool(rig.source.connect)
-        src = robot_bus(rig.source.connect) if own else source
+        dds = rig.source.format == "dds"
+        own = source is None and (bool(rig.source.connect) or dds)
+        if own and dds:  # straight from DDS: the ingest's own ROS 2 node
+            from services.ingest.dds import DdsSource
+
+            src = DdsSource(rig.source)
+        else:
+            src = robot_bus(rig.source.connect) if own else source
+        keys = Keys(common.run_id, common.sites[0])
         return IngestWorker(bus=the_bus, registry=the_registry, rig=rig,
-                            keys=Keys(common.run_id, common.sites[0]), epoch_s=common.epoch_s,
+                            keys=keys, epoch_s=common.epoch_s,
                             time_scale=common.time_scale, stall_s=common.stall_s,
                             through_network=settings.through_network,
                             wire_encoding=settings.wire_encoding,
-                            inbox_size=settings.inbox_size, source=src, own_source=own)
+                            inbox_size=settings.inbox_size, source=src, own_source=own,
+                            outputs=ros_outputs(settings, rig, the_bus, src or the_bus, keys))
 
     app = service_app(title="aoi3d ingest", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, registry=registry)

@@ -95,11 +95,15 @@ class IngestWorker:
                  epoch_s: float, time_scale: float, stall_s: float,
                  through_network: bool = False, wire_encoding: str = "png",
                  inbox_size: int = 512, source: Bus | None = None,
-                 own_source: bool = False) -> None:
+                 own_source: bool = False, outputs=None) -> None:
         self._bus = bus
         self._source = source or bus
         self._own_source = own_source and source is not None
-        self.core = IngestCore(rig, keys, epoch_s=epoch_s, time_scale=time_scale,
+        self._outputs = outputs  # aoi3d's outputs in ROS (services.ingest.outputs), or None
+        core_class = IngestCore
+        if rig.source.format == "dds":  # straight from DDS (services.ingest.dds)
+            from services.ingest.dds import DdsIngestCore as core_class
+        self.core = core_class(rig, keys, epoch_s=epoch_s, time_scale=time_scale,
                                through_network=through_network, wire_encoding=wire_encoding)
         self.lock = threading.Lock()
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._overflow.inc())
@@ -138,9 +142,13 @@ class IngestWorker:
             self._source.watch_liveliness(self.core.graph_key, self._on_token)
         log.info("ingest: %s keys, subscribed to %s", self.core.format.format,
                  ", ".join(r.key_expr for r in self.core.routes))
+        if self._outputs is not None:
+            self._outputs.start()
 
     def stop(self) -> None:
         self._loops.stop(timeout_s=2.0)
+        if self._outputs is not None:
+            self._outputs.stop()
         if self._own_source:
             self._source.close()
 
