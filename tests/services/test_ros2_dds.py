@@ -393,3 +393,36 @@ def test_the_outputs_reach_rclpy_subscribers(dds) -> None:
         sub.destroy_node()
         out.stop()
         source.close()
+
+
+def test_the_outputs_on_rmw_zenoh_keys() -> None:
+    """Without DDS: with ``AOI3D_INGEST_ROS_OUTPUTS=on`` on an rmw_zenoh rig, the render goes
+    out on rmw_zenoh's key with its attachment, and node ``/aoi3d`` announces its publishers
+    in the ROS graph's tokens (off by default on Zenoh keys: nothing goes out)."""
+    from services.ingest.outputs import NODE
+
+    rig = rig_from_dict(rig_doc(source={"format": "rmw_zenoh", "domain_id": 3}))
+    keys = Keys("t")
+    view = np.random.default_rng(5).integers(0, 255, (H, W, 3), dtype=np.uint8)
+    render = pb.Render(decision_id=1, time_ms=0.0, image=encode_png(view),
+                       intrinsics=pb.Intrinsics(fx=20, fy=20, cx=W / 2, cy=H / 2, width=W,
+                                                height=H)).SerializeToString()
+    for outputs, expect in (("auto", 0), ("on", 1)):
+        bus, seen = MemoryBus(), []
+        bus.subscribe_attached("3/aoi3d/render/**",
+                               lambda k, p, a, seen=seen: seen.append((k, p, a)))
+        settings = Settings(ros_outputs=outputs,
+                            common=CommonSettings(run_id="t", cameras=3, epoch_s=time.time()))
+        with TestClient(create_app(settings, bus=bus, rig=rig)):
+            tokens = [k for k in bus._tokens if k.split("/")[8] == NODE]
+            bus.publish(keys.render, render)
+        assert len(seen) == expect, seen
+        if expect:
+            key, payload, att = seen[0]
+            assert key == ros.KeyFormat("rmw_zenoh", 3).key("/aoi3d/render", ros.IMAGE)
+            assert ros.parse_attachment(att).sequence == 1
+            img = ros.decode_cdr(payload, ros.IMAGE, 10**7)
+            assert np.array_equal(ros.image_rgb(img, ros.IMAGE, 10**7), view)
+            graph = [ros.parse_liveliness(t) for t in tokens]
+            assert {(e.kind, e.topic) for e in graph} >= {("node", None),
+                                                          ("publisher", "/aoi3d/render")}
