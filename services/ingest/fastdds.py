@@ -12,7 +12,9 @@ import tempfile
 from collections.abc import MutableMapping
 from pathlib import Path
 
-__all__ = ["LOOPBACK_PEERS", "configure_fastdds", "fastdds_profile"]
+from aoi3d.atomic import write_atomic
+
+__all__ = ["LOOPBACK_PEERS", "configure_fastdds", "fastdds_profile", "profile_folder"]
 
 _PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
 <!-- aoi3d: Fast DDS on {what} (services/ingest/fastdds.py) -->
@@ -61,19 +63,34 @@ def fastdds_profile(interface: str) -> str | None:
                            peers=4, name="interface", builtin="")
 
 
+def profile_folder() -> Path:
+    """Where the profiles go by default: one folder of this user's under the temporary
+    directory (the same file for every process: its content depends on the interface only),
+    or a fresh temporary folder when someone else owns that one."""
+    folder = Path(tempfile.gettempdir()) / f"aoi3d-fastdds-{os.getuid()}"
+    try:
+        folder.mkdir(mode=0o700, exist_ok=True)
+        if folder.is_symlink() or folder.stat().st_uid != os.getuid():
+            raise PermissionError(folder)
+    except OSError:
+        return Path(tempfile.mkdtemp(prefix="aoi3d-fastdds-"))
+    return folder
+
+
 def configure_fastdds(interface: str, directory: str | Path | None = None,
                       environ: MutableMapping[str, str] | None = None) -> dict[str, str]:
     """Set (in ``environ``, default this process's environment) what makes the next DDS
-    participant use ``interface``: Fast DDS as the middleware and its profile (written under
-    ``directory``, default a temporary folder). Returns the variables set. Must run before
-    rclpy's first participant of the process."""
+    participant use ``interface``: Fast DDS as the middleware and its profile (written,
+    atomically, under ``directory``, default :func:`profile_folder`). Returns the variables
+    set. Must run before rclpy's first participant of the process."""
     env = os.environ if environ is None else environ
     out = {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
     xml = fastdds_profile(interface)
     if xml is not None:
-        folder = Path(directory or tempfile.mkdtemp(prefix="aoi3d-fastdds-"))
-        path = folder / f"fastdds-{'loopback' if interface == 'loopback' else 'interface'}.xml"
-        path.write_text(xml)
+        folder = Path(directory) if directory is not None else profile_folder()
+        name = "loopback" if interface == "loopback" else f"interface-{interface}"
+        path = folder / f"fastdds-{name}.xml"
+        write_atomic(path, xml)
         out |= {"FASTDDS_DEFAULT_PROFILES_FILE": str(path),
                 "ROS_AUTOMATIC_DISCOVERY_RANGE": "SYSTEM_DEFAULT"}
     env.update(out)

@@ -16,6 +16,7 @@ import io
 import threading
 import time
 import xml.etree.ElementTree as ET
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,7 +27,7 @@ from aoi3d.rigfile import RigError, rig_from_dict
 from services import ros
 from services.ingest.app import create_app
 from services.ingest.dds import DdsKeyFormat, parse_subscription
-from services.ingest.fastdds import fastdds_profile
+from services.ingest.fastdds import configure_fastdds, fastdds_profile, profile_folder
 from services.ingest.settings import Settings
 from services.kit.codec import decode_frame, encode_png
 from services.kit.keys import Keys
@@ -72,6 +73,23 @@ def test_the_loopback_profile_keeps_dds_on_127_0_0_1() -> None:
     assert "Multicast" not in text and "<ns0:useBuiltinTransports>false" in text
     assert fastdds_profile("all") is None
     assert "192.168.1.7" in fastdds_profile("192.168.1.7")
+
+
+def test_configure_fastdds_sets_the_environment_once_per_profile(tmp_path) -> None:
+    """The profile is a file of the user's (the same for every process: nothing left behind
+    per start), named by its interface; ``all`` sets only the middleware."""
+    env: dict[str, str] = {}
+    out = configure_fastdds("loopback", environ=env)
+    path = Path(out["FASTDDS_DEFAULT_PROFILES_FILE"])
+    assert env == out and env["RMW_IMPLEMENTATION"] == "rmw_fastrtps_cpp"
+    assert env["ROS_AUTOMATIC_DISCOVERY_RANGE"] == "SYSTEM_DEFAULT"
+    assert path.parent == profile_folder() and path.read_text() == fastdds_profile("loopback")
+    assert configure_fastdds("loopback", environ={}) == out  # the same file again
+    lan = configure_fastdds("192.168.1.7", tmp_path, environ={})
+    assert Path(lan["FASTDDS_DEFAULT_PROFILES_FILE"]).parent == tmp_path
+    assert "192.168.1.7" in Path(lan["FASTDDS_DEFAULT_PROFILES_FILE"]).read_text()
+    assert configure_fastdds("all", environ={}) == {"RMW_IMPLEMENTATION": "rmw_fastrtps_cpp"}
+    assert not list(tmp_path.glob(".*.tmp"))
 
 
 # ---------------------------------------------------------------- rclpy's messages

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import socket
-import tempfile
 
 import pytest
 
@@ -54,4 +53,4 @@ def free_domain(start: int | None = None) -> int:
 
 def loopback_env(environ: dict | None = None) -> dict[str, str]:
     """Fast DDS on 127.0.0.1 only (this process's environment, or ``environ``)."""
-    return configure_fastdds("loopback", tempfile.mkdtemp(prefix="aoi3d-test-dds-"), environ)
+    return configure_fastdds("loopback", environ=environ)
