@@ -18,10 +18,12 @@ import re
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 
 import pytest
 
+from tests.support.metrics import samples
 from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
 from tests.support.rigpipe import QualityTap, metric, up_rig, url, wait_healthy
 from tests.support.ros2_dds import free_domain, loopback_env, need_rclpy
@@ -30,6 +32,8 @@ pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
 TIME_SCALE = 0.5
 CAMERAS = 4
+LINK_REFUSALS = {"no_pose", "no_intrinsics"}
+"""The refusals a lossy DDS link causes (a pose or CameraInfo not received)."""
 
 
 def descendants(pid: int) -> set[int]:
@@ -117,10 +121,24 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
         status = HTTP.get(url("ingest", "/status")).json()
         src = status["source"]
         assert src["format"] == "dds" and src["domain_id"] == domain
-        graph = src["graph"]
-        topics = {t["topic"]: t for t in graph["topics"]}
-        assert all(t["publishers"] == 1 and t["nodes"] == ["/dds_robot"]
-                   for t in topics.values()), topics
+        # The ROS graph trails the data: the ingest polls DDS discovery every 0.5 s, and rclpy
+        # names a discovered endpoint's node only once the robot's ros_discovery_info has come
+        # (_NODE_NAME_UNKNOWN_ until then, ~0.1 s here). Frames can flow before /status shows
+        # the robot (seen: publishers 0 on /cam00/image_raw with 20 frames in): wait for it.
+        graph: dict = {}
+
+        def robot_in_graph() -> bool:
+            graph["topics"] = {t["topic"]: t for t in HTTP.get(url(
+                "ingest", "/status")).json()["source"]["graph"]["topics"]}
+            return all(t["publishers"] == 1 and t["nodes"] == ["/dds_robot"]
+                       for t in graph["topics"].values())
+
+        waited = time.monotonic()
+        try:
+            wait_for("the robot's publishers in /status's ROS graph", robot_in_graph, 30)
+        except AssertionError as err:
+            raise AssertionError(f"{err}: {graph.get('topics')}") from None
+        print(f"the robot complete in the graph after {time.monotonic() - waited:.2f} s more")
         kinds = {c["image_type"] for c in status["cameras"]}
         assert kinds == {"raw", "compressed"}, kinds
         wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 3)
@@ -135,11 +153,24 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
             got.width, got.height, status["working_size"])
         assert got.encoding == "rgb8" and len(got.data) == got.width * got.height * 3
         status = HTTP.get(url("ingest", "/status")).json()
+        print("refused:", {c["name"]: c["rejected"] for c in status["cameras"]},
+              "published:", {c["name"]: c["published"] for c in status["cameras"]})
         for cam in status["cameras"]:
             assert cam["published"] > 0, cam
-            assert cam["rejected"] == {}, cam
+            # Refused: only what a lossy link causes. The robot's publishers match the
+            # ingest's subscriptions one by one as DDS discovery goes, and a sensor-data
+            # subscription is best effort, keep last 5: an image can come whose pose or
+            # CameraInfo of its stamp was published before that topic matched, or dropped on
+            # a busy machine. The ingest refuses that image (seen in 2 runs of 15: no_pose,
+            # "the nearest pose on /cam04/odom is 0.060 s away", the next period's). Any
+            # other reason, or more than one image in ten, is a fault of ours.
+            assert set(cam["rejected"]) <= LINK_REFUSALS, cam
+            assert sum(cam["rejected"].values()) <= max(2, cam["published"] // 10), cam
             assert cam["clock_offset_s"] is not None and abs(cam["clock_offset_s"]) < 1.0, cam
-        assert metric("ingest", "aoi3d_messages_rejected_total", default=0.0) == 0
+        text = HTTP.get(url("ingest", "/metrics")).text
+        reasons = {labels.get("reason") for name, labels, n in samples(text)
+                   if name == "aoi3d_messages_rejected_total" and n > 0}
+        assert reasons <= LINK_REFUSALS, reasons
     finally:
         stop.set()
         spinner.join(timeout=2)
