@@ -22,7 +22,7 @@ $(STAMP): pyproject.toml
 	@echo "==> [2/4] pip"
 	$(PY) -m pip install -q --upgrade pip
 	@echo "==> [3/4] aoi3d and its dependencies (torch, zenoh, fastapi, ...; minutes on a fresh venv)"
-	$(PY) -m pip install --progress-bar on -e '.[dev]'
+	$(PY) -m pip install --progress-bar on -e '.[dev,ros2]'
 	@echo "==> [4/4] LPIPS weights"
 	$(PY) -m aoi3d.lpips fetch
 	@touch $@

@@ -4,7 +4,7 @@
 plays any dataset aoi3d reads as ROS 2 cameras — images, camera info and poses — on rmw_zenoh
 keys (Jazzy's type hash or Humble's placeholder) or zenoh-bridge-ros2dds keys, at any rate and
 time scale, and writes the rig file that reads them (``--write-rig``), for ``aoi3d up --rig``.
-``aoi3d ros2 check RIG`` validates a rig file.
+``aoi3d ros2 check RIG`` validates a rig file (any source: rmw_zenoh, bridge or dds).
 """
 
 from __future__ import annotations
@@ -189,8 +189,11 @@ def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")
     except RigError as err:
         fail_lines(err)
     ids = r.ids()
+    src = r.source
+    source = (f"DDS straight (domain {src.domain_id}, {src.interface})" if src.format == "dds"
+              else f"{src.format} keys")
     typer.echo(f"{rig}: {len(r.train)} training cameras, truth "
-               f"{r.truth or '(none: renders cannot be scored)'}, {r.source.format} keys, "
+               f"{r.truth or '(none: renders cannot be scored)'}, {source}, "
                f"working size {r.working_size[0]}x{r.working_size[1]}, time scale "
                f"{r.time_scale:g}")
     for c in r.cameras:

@@ -210,8 +210,9 @@ def _show_where(console: Console, cfg: UpConfig, real: Rig | None, sup: Supervis
     for name in SERVICE_PORTS:
         if name == "camera" and real is not None:
             src = real.source
-            where = (f"rmw_zenoh, domain {src.domain_id}" if src.format == "rmw_zenoh"
-                     else f"bridge, namespace '{src.prefix}'")
+            where = {"rmw_zenoh": f"rmw_zenoh, domain {src.domain_id}",
+                     "dds": f"DDS, domain {src.domain_id}, {src.interface}"}.get(
+                src.format, f"bridge, namespace '{src.prefix}'")
             table.add_row(f"ingest ({where})", f"http://127.0.0.1:{cfg.port(name)}",
                           "GET /status")
             continue

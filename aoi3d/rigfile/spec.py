@@ -221,10 +221,22 @@ class ViewSpec(Strict):
 class SourceSpec(Strict):
     """Where the ROS 2 topics are on Zenoh: ``rmw_zenoh`` keys (``<domain>/<topic>/<type>/<type
     hash>``, with an attachment per sample) or ``bridge`` keys (``zenoh-bridge-ros2dds``:
-    ``[<namespace>/]<topic>``, no attachment)."""
+    ``[<namespace>/]<topic>``, no attachment) — or straight on DDS (``dds``: a ROS 2 node of
+    the ingest's own, rclpy on Fast DDS, in domain ``domain_id``; ``pip install
+    'aoi3d[ros2]'``)."""
 
-    format: Literal["rmw_zenoh", "bridge"] = "rmw_zenoh"
-    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh).")
+    format: Literal["rmw_zenoh", "bridge", "dds"] = "rmw_zenoh"
+    domain_id: int = Field(0, ge=0, le=232, description="ROS_DOMAIN_ID (rmw_zenoh, dds).")
+    qos: Literal["sensor_data", "reliable"] = Field(
+        "sensor_data", description="dds: the subscriptions' QoS — sensor_data (best effort, "
+                                   "keep last, what camera drivers publish with; it also "
+                                   "matches reliable publishers) or reliable.")
+    depth: int = Field(5, ge=1, le=1000, description="dds: the subscriptions' keep-last depth.")
+    interface: str = Field(
+        "loopback", pattern=r"^(loopback|all|[0-9]{1,3}(\.[0-9]{1,3}){3})$",
+        description="dds: where DDS discovery and data go — loopback (127.0.0.1 only: a robot "
+                    "on this host), all (Fast DDS's defaults: every interface, multicast "
+                    "discovery) or one interface's IPv4 address.")
     namespace: str = Field("", pattern=r"^[A-Za-z0-9_/-]{0,128}$",
                            description="The bridge's namespace (its -n option), a key prefix.")
     connect: list[str] = Field(
@@ -236,6 +248,12 @@ class SourceSpec(Strict):
     def _fits(self) -> SourceSpec:
         if self.format == "rmw_zenoh" and self.namespace:
             raise ValueError("namespace is the bridge's; rmw_zenoh keys start with domain_id")
+        if self.format == "dds" and (self.namespace or self.connect):
+            raise ValueError("dds reads the topics straight from DDS: no namespace, no connect "
+                             "(domain_id and interface say where)")
+        dds_only = {"qos", "depth", "interface"} & self.model_fields_set
+        if self.format != "dds" and dds_only:
+            raise ValueError(f"{', '.join(sorted(dds_only))}: for format dds only")
         return self
 
     @property

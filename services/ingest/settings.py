@@ -12,8 +12,9 @@ from services.kit.settings import ServiceSettings
 
 
 class Settings(ServiceSettings):
-    """Real cameras in: ROS 2 images (rmw_zenoh or zenoh-bridge-ros2dds keys) with their poses
-    and intrinsics, as the pipeline's frames."""
+    """Real cameras in: ROS 2 images (rmw_zenoh or zenoh-bridge-ros2dds keys, or straight from
+    DDS) with their poses and intrinsics, as the pipeline's frames; and aoi3d's outputs back in
+    ROS (services.ingest.outputs)."""
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_INGEST_", extra="ignore")
 
@@ -31,3 +32,18 @@ class Settings(ServiceSettings):
     inbox_size: int = Field(512, ge=1, le=65536,
                             description="Samples buffered between Zenoh and the decoding "
                                         "thread (the oldest dropped, counted).")
+    ros_outputs: Literal["auto", "on", "off"] = Field(
+        "auto", description="Publish the render, its camera info, the decision (AoI per camera) "
+                            "and Quality as ROS 2 topics on the rig's source "
+                            "(services.ingest.outputs): on, off, or auto (on for a dds source, "
+                            "off on Zenoh keys).")
+    ros_render_topic: str = Field("/aoi3d/render", pattern=r"^/[A-Za-z0-9_/]+$",
+                                  description="The render's topic (sensor_msgs/Image rgb8).")
+    ros_camera_info_topic: str = Field("/aoi3d/camera_info", pattern=r"^/[A-Za-z0-9_/]+$",
+                                       description="The render's sensor_msgs/CameraInfo.")
+    ros_decision_topic: str = Field("/aoi3d/decision", pattern=r"^/[A-Za-z0-9_/]+$",
+                                    description="The decision and each camera's AoI "
+                                                "(diagnostic_msgs/DiagnosticArray).")
+    ros_quality_topic: str = Field("/aoi3d/quality", pattern=r"^/[A-Za-z0-9_/]+$",
+                                   description="Quality: PSNR at decision and display time "
+                                               "(diagnostic_msgs/DiagnosticArray).")

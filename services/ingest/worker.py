@@ -9,7 +9,9 @@ frames it returns. A bad sample is a counted rejection with its reason
 reason}``), never an exception out of the loop.
 
 The ROS topics are read from the pipeline's own Zenoh session, or — when the rig names the
-robots' router (``source.connect``) — from a second session connected there.
+robots' router (``source.connect``) — from a second session connected there, or straight from
+DDS (``source.format: dds``: the ingest's own ROS 2 node, :mod:`services.ingest.dds`).
+aoi3d's outputs in ROS (:mod:`services.ingest.outputs`) start and stop with the worker.
 """
 
 from __future__ import annotations
@@ -24,6 +26,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 from aoi3d.rigfile import CameraSpec, Rig
 from services.ingest.core import IngestCore
+from services.ingest.dds import DdsIngestCore
+from services.ingest.outputs import RosOutputs
 from services.ingest.routes import Route
 from services.kit.bus import Bus, Inbox
 from services.kit.keys import Keys
@@ -97,11 +101,13 @@ class IngestWorker:
                  epoch_s: float, time_scale: float, stall_s: float,
                  through_network: bool = False, wire_encoding: str = "png",
                  inbox_size: int = 512, source: Bus | None = None,
-                 own_source: bool = False) -> None:
+                 own_source: bool = False, outputs: RosOutputs | None = None) -> None:
         self._bus = bus
         self._source = source or bus
         self._own_source = own_source and source is not None
-        self.core = IngestCore(rig, keys, epoch_s=epoch_s, time_scale=time_scale,
+        self._outputs = outputs  # aoi3d's outputs in ROS (services.ingest.outputs), or None
+        core_class = DdsIngestCore if rig.source.format == "dds" else IngestCore
+        self.core = core_class(rig, keys, epoch_s=epoch_s, time_scale=time_scale,
                                through_network=through_network, wire_encoding=wire_encoding)
         self.lock = threading.Lock()
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._overflow.inc())
@@ -139,9 +145,13 @@ class IngestWorker:
             self._source.watch_liveliness(self.core.graph_key, self._on_token)
         log.info("ingest: %s keys, subscribed to %s", self.core.format.format,
                  ", ".join(r.key_expr for r in self.core.routes))
+        if self._outputs is not None:
+            self._outputs.start()
 
     def stop(self) -> None:
         self._loops.stop(timeout_s=2.0)
+        if self._outputs is not None:
+            self._outputs.stop()
         if self._own_source:
             self._source.close()
 

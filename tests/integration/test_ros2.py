@@ -12,12 +12,9 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import re
 import subprocess
 import sys
-import threading
-import uuid
 from pathlib import Path
 
 import pytest
@@ -26,71 +23,12 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.support.deploy_modules import load
 from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
-from tests.support.ports import block
+from tests.support.rigpipe import PORTS, ZENOH_PORT, QualityTap, metric, up_rig, url, wait_healthy
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
-_PORTS = block("ros2")
-PORT_OFFSET = _PORTS.rest_offset
-ZENOH_PORT = _PORTS.zenoh
 MONITORING = load("monitoring")
 TIME_SCALE = 0.5
-
-
-def url(service: str, path: str) -> str:
-    port = {"ingest": 8101, "network": 8102, "scheduler": 8103, "trainer": 8104,
-            "metrics": 8105}[service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
-
-
-def metric(service: str, name: str, default: float | None = None) -> float:
-    text = HTTP.get(url(service, "/metrics")).text
-    values = [float(line.rsplit(" ", 1)[1]) for line in text.splitlines()
-              if line.startswith(name) and (line[len(name):][:1] in (" ", "{"))]
-    if not values and default is None:
-        raise KeyError(name)
-    return sum(values)
-
-
-def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[subprocess.Popen, str]:
-    """``aoi3d up --rig`` on this file's ports (30 steps per render), and its run id."""
-    run_id = f"{prefix}{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d_cli", "up", "--rig", str(rig), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet", *up_args],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
-    return up, run_id
-
-
-def wait_healthy() -> None:
-    for name in ("ingest", "network", "scheduler", "trainer", "metrics"):
-        wait_for(f"{name} /healthz",
-                 lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
-
-
-class QualityTap:
-    def __init__(self, run_id: str) -> None:
-        import zenoh
-
-        from services.kit.settings import CommonSettings, zenoh_config
-
-        self.session = zenoh.open(zenoh_config(CommonSettings(
-            zenoh_connect=[f"tcp/127.0.0.1:{ZENOH_PORT}"])))
-        self.lock = threading.Lock()
-        self.quality: list[pb.Quality] = []
-        self.sub = self.session.declare_subscriber(Keys(run_id).quality, self._on)
-
-    def _on(self, sample) -> None:
-        with self.lock:
-            self.quality.append(pb.Quality.FromString(sample.payload.to_bytes()))
-
-    def close(self) -> None:
-        self.sub.undeclare()
-        self.session.close()
-
 
 VARIANTS = {
     "rmw_zenoh-jazzy": (["--format", "rmw_zenoh", "--distro", "jazzy", "--image", "rgb8",
@@ -200,7 +138,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     assert made.returncode == 0, made.stderr
     doc = yaml.safe_load(rig.read_text())
     ds = open_dataset(small_dataset)
-    urls = {n: f"rtsp://127.0.0.1:{_PORTS.extra(i)}/cam{n:02d}" for i, n in enumerate((2, 3))}
+    urls = {n: f"rtsp://127.0.0.1:{PORTS.extra(i)}/cam{n:02d}" for i, n in enumerate((2, 3))}
     doc["cameras"] += [rtsp_camera_entry(ds, n, url) for n, url in urls.items()]
     rig.write_text(yaml.safe_dump(doc))
     up, run_id = up_rig(rig, tmp_path, "rtsp")

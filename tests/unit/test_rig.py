@@ -63,7 +63,7 @@ def test_yaml_and_json_files_load(tmp_path: Path) -> None:
     (lambda d: d.update(truth="cam1"), "truth: the truth camera"),
     (lambda d: d.update(aabb=[0, 0, 0, 1, 1]), "aabb"),
     (lambda d: d.update(aabb=[0, 0, 0, 1, -1, 1]), "aabb"),
-    (lambda d: d.update(source={"format": "dds"}), "source.format"),
+    (lambda d: d.update(source={"format": "ros1"}), "source.format"),
     (lambda d: d.update(source={"format": "rmw_zenoh", "namespace": "x"}), "source"),
     (lambda d: d.update(clock={"offset_s": "sometimes"}), "clock.offset_s"),
     (lambda d: d.update(time_scale=0), "time_scale"),
