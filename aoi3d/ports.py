@@ -65,14 +65,14 @@ class PortBlock:
 UP = PortBlock()
 """``aoi3d up`` / ``make up`` with its defaults."""
 BENCH_BLOCKS: dict[str, PortBlock] = {
-    "pipeline": PortBlock(1000, 7547),     # REST 9101…9107
-    "scale": PortBlock(3000, 7647),        # REST 11101…11107
-    "online_live": PortBlock(3200, 7649),  # REST 11301…11307
-    "soak": PortBlock(4000, 9467),         # REST 12101…12107
-    "chaos": PortBlock(5000, 9567),        # REST 13101…13107
+    "pipeline": PortBlock(1000, 7547),     # REST 9101…9108
+    "scale": PortBlock(3000, 7647),        # REST 11101…11108
+    "online_live": PortBlock(3200, 7649),  # REST 11301…11308
+    "soak": PortBlock(4000, 9467),         # REST 12101…12108
+    "chaos": PortBlock(5000, 9567),        # REST 13101…13108
     "chaos_multihost": PortBlock(5100, 9667),  # the multi-host stack's published 13203…13205
-    "live_channel": PortBlock(700, 7747),  # REST 8801…8807
-    "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11607 (bench/ros2_sweep.sh)
+    "live_channel": PortBlock(700, 7747),  # REST 8801…8808
+    "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11608 (bench/ros2_sweep.sh)
 }
 """The ports of each bench that starts its own pipeline (bench/<name>.py), so that a running
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range

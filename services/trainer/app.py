@@ -197,7 +197,7 @@ def get_render(
 ) -> Response:
     if c2w is not None:
         try:
-            png, reply = worker.free_view(site, c2w, width, height, fov)
+            png, reply = worker.views.free_view(site, c2w, width, height, fov)
         except ViewRefused as err:
             raise HTTPException(err.status, err.detail) from None
         return Response(content=png, media_type="image/png",
@@ -251,7 +251,7 @@ def get_export(
     alpha: Annotated[float, Query(gt=0, lt=1, description="Opacity kept.")] = 0.1,
 ) -> Response:
     try:
-        data, reply = worker.export(site, "ply" if format == "points" else "mesh", resolution,
+        data, reply = worker.views.export(site, "ply" if format == "points" else "mesh", resolution,
                                     alpha)
     except ViewRefused as err:
         raise HTTPException(err.status, err.detail) from None

@@ -4,7 +4,8 @@ viser (the viewer library nerfstudio's viewer is built on) serves its web client
 wheel and talks to the browser over a websocket; here it listens on a loopback port of its own
 and the service's port (:mod:`services.viewer.app`) serves the client and relays the
 websocket, beside ``/healthz``, ``/metrics`` and ``/scene.json``. What is drawn is the core's
-(:class:`services.viewer.core.ViewerCore`):
+(:class:`services.viewer.core.ViewerCore`), put on viser's scene by
+:mod:`services.viewer.drawing`:
 
 - decisions and delivered frames of every site (subscriptions) go to the core under a lock;
 - a drawing loop redraws the frustums (colour: AoI at the decision in force; thicker and
@@ -28,14 +29,14 @@ import httpx
 import numpy as np
 from prometheus_client import CollectorRegistry, Counter
 
-from aoi3d.freeview import MAX_VIEW_SIDE, c2w_from_viser
 from aoi3d.scene.camera import Camera
 from services.kit.bus import Bus
 from services.kit.keys import Keys
 from services.kit.observe import Rejected, Rejections
 from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
-from services.viewer.core import ViewerCore, box_segments
+from services.viewer import drawing
+from services.viewer.core import ViewerCore
 from services.viewer.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -89,7 +90,7 @@ class ViewerWorker:
                                         verbose=False)
         self.viser_port = self.server.get_port()
         self.server.scene.set_up_direction("+z")
-        self._draw_static()
+        drawing.draw_static(self.server.scene, self.core)
         self._gui()
         self.server.on_client_connect(self._on_client)
         self.server.on_client_disconnect(self._on_client_gone)
@@ -135,18 +136,6 @@ class ViewerWorker:
         return site
 
     # ------------------------------------------------------------------ drawing
-    def _draw_static(self) -> None:
-        scene = self.server.scene
-        box = box_segments(self.core.aabb)
-        scene.add_line_segments("/box", box, (200, 200, 200), thickness=2.0,
-                                thickness_units="screen")
-        t = self.core.truth_frustum
-        scene.add_camera_frustum("/truth", fov=t.fov, aspect=t.aspect,
-                                 scale=self.core.frustum_scale * 1.3, color=(60, 140, 255),
-                                 wxyz=t.wxyz, position=t.position, thickness=3.0,
-                                 thickness_units="screen")
-        scene.add_label("/truth/label", "truth", position=(0.0, 0.0, 0.0))
-
     def _draw(self) -> None:
         """Redraw the frustums of the site shown when a decision came since the last time."""
         if self.server is None:
@@ -161,18 +150,9 @@ class ViewerWorker:
                       if self.settings.thumbnails else {})
             scene_doc = self.core.scene(site)
         self._drawn = {site: version}
-        scene = self.server.scene
-        scale = self.core.frustum_scale
-        for c, st in states.items():
-            f = self.core.frustums[c]
-            scene.add_camera_frustum(
-                f"/cameras/cam{c}", fov=f.fov, aspect=f.aspect, scale=scale, color=st.colour,
-                wxyz=f.wxyz, position=f.position, image=thumbs.get(c),
-                thickness=5.0 if st.selected else 2.0, thickness_units="screen")
-            aoi = "?" if np.isnan(st.aoi_ms) else f"{st.aoi_ms:.0f} ms"
-            scene.add_label(f"/cameras/cam{c}/label",
-                            f"{c}{' ✓' if st.selected else ''} {aoi}", position=(0, 0, 0))
-        self._status(scene_doc)
+        drawing.draw_cameras(self.server.scene, self.core, states, thumbs)
+        if self._status_md is not None:
+            self._status_md.content = drawing.status_text(scene_doc, self.last_view)
         self._sync_controls(scene_doc)
 
     def _sync_controls(self, doc: dict[str, Any]) -> None:
@@ -186,22 +166,6 @@ class ViewerWorker:
             self._controls["kind"].value = kind
         if d["gamma_ms"] is not None:
             self._controls["gamma"].value = float(d["gamma_ms"])
-
-    def _status(self, doc: dict[str, Any]) -> None:
-        if self._status_md is None:
-            return
-        d = doc["decision"]
-        if d is None:
-            text = f"**{doc['site']}**: waiting for the first decision"
-        else:
-            gamma = "—" if d["gamma_ms"] is None else f"{d['gamma_ms']:.0f} ms"
-            text = (f"**{doc['site']}** decision {d['decision_id']} ({d['policy']}, "
-                    f"Γ {gamma}): {len(d['selected'])} of {len(doc['cameras'])} cameras used")
-        view = self.last_view
-        if view:
-            text += (f"  \nview: decision {view.get('decision_id')}, step "
-                     f"{view.get('training_step')}, worker {view.get('worker')}")
-        self._status_md.content = text
 
     # ------------------------------------------------------------------ controls
     def _gui(self) -> None:
@@ -246,7 +210,7 @@ class ViewerWorker:
         @reset.on_click
         def _(event) -> None:
             if event.client is not None:
-                self._look_from_truth(event.client)
+                drawing.look_from_truth(event.client, self.core)
 
     def put_policy(self, body: dict[str, Any]) -> str:
         """PUT the scheduler's policy of the site shown; one line saying how it went."""
@@ -264,30 +228,8 @@ class ViewerWorker:
         return f"policy {body['kind']} in force from the next decision"
 
     # ------------------------------------------------------------------ free views
-    def _look_from_truth(self, client: Any) -> None:
-        t = self.core.truth_frustum
-        with client.atomic():
-            client.camera.position = t.position
-            client.camera.look_at = tuple(self.core.aabb.mean(axis=0))
-            client.camera.up_direction = (0.0, 0.0, 1.0)
-
-    def _overview(self, client: Any) -> None:
-        """Back from the truth camera and above it, far enough to see every camera."""
-        centre = self.core.aabb.mean(axis=0)
-        t = np.asarray(self.core.truth_frustum.position)
-        reach = max(float(np.linalg.norm(np.asarray(f.position) - centre))
-                    for f in [*self.core.frustums.values(), self.core.truth_frustum])
-        away = t - centre
-        away[2] = 0.0
-        away = away / max(float(np.linalg.norm(away)), 1e-9)
-        eye = centre + away * 2.0 * reach + np.array([0.0, 0.0, 1.2 * reach])
-        with client.atomic():
-            client.camera.position = tuple(eye)
-            client.camera.look_at = tuple(centre)
-            client.camera.up_direction = (0.0, 0.0, 1.0)
-
     def _on_client(self, client: Any) -> None:
-        self._overview(client)
+        drawing.overview(client, self.core)
 
         @client.camera.on_update
         def _(_camera) -> None:
@@ -320,18 +262,9 @@ class ViewerWorker:
             self._render_for(client)
 
     def _render_for(self, client: Any) -> None:
-        cam = client.camera
-        try:
-            c2w = c2w_from_viser(cam.wxyz, cam.position)
-            aspect = float(cam.aspect) if cam.aspect and np.isfinite(cam.aspect) else 4 / 3
-            fov_deg = float(np.degrees(cam.fov))
-        except Exception:  # the client's camera is not known yet
+        params = drawing.view_params(client.camera, self.settings.render_height)
+        if params is None:
             return
-        h = self.settings.render_height
-        w = int(min(MAX_VIEW_SIDE, max(8, round(h * aspect))))
-        params: dict[str, str | int | float] = {
-            "c2w": ",".join(f"{v:.7g}" for v in c2w.ravel()), "width": w, "height": h,
-            "fov": min(179.0, max(1.0, fov_deg))}
         url = f"{self.settings.trainer_url.rstrip('/')}/sites/{self.site}/render.png"
         self.views_asked += 1
         try:
@@ -352,7 +285,7 @@ class ViewerWorker:
         self.last_view = {"decision_id": r.headers.get("x-decision-id"),
                           "training_step": r.headers.get("x-training-step"),
                           "worker": r.headers.get("x-worker"), "c2w": params["c2w"],
-                          "size": [w, h]}
+                          "size": [params["width"], params["height"]]}
 
     # ------------------------------------------------------------------ REST
     def scene_doc(self, site: str | None = None) -> dict[str, Any]:

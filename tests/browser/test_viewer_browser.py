@@ -2,9 +2,10 @@
 pipeline on loopback (issue 42): the page loads from the viewer itself (no request leaves
 127.0.0.1, no CDN), it draws a frustum per camera in the AoI colours of the decision in force,
 and orbiting the viewer's camera changes the rendered view (the pool renders the new pose).
-Self-contained: its own free ports, its own scene; every wait scales with
-AOI3D_TEST_TIMEOUT_SCALE. The screenshot goes to the test's folder (and to
-$AOI3D_VIEWER_SCREENSHOT if set: docs/figures/viewer.png is one)."""
+Its own free ports and scene; every wait is tests/support/waits.py's (through
+tests/support/pipeline.py), scaled by AOI3D_TEST_TIMEOUT_SCALE, with budgets for a loaded 2-core
+machine, and waits for what it checks (no fixed sleeps). The screenshot goes to the test's
+folder (and to $AOI3D_VIEWER_SCREENSHOT if set: docs/figures/viewer.png is one)."""
 
 from __future__ import annotations
 
@@ -17,18 +18,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 import uuid
-from collections.abc import Callable
 from pathlib import Path
 from urllib.parse import urlsplit
 
-import httpx
 import numpy as np
 import pytest
 
 from aoi3d.ports import SERVICE_PORTS
-from tests.support.timeouts import timeout_scale
+from tests.support.pipeline import HTTP, SCALE, wait_for
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
 pytestmark = [
@@ -38,11 +36,9 @@ pytestmark = [
 ]
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
 
-SCALE = timeout_scale()
 ARGS = ["--no-sandbox", "--disable-background-networking", "--disable-component-update",
         "--disable-sync", "--no-first-run", "--disable-quic", "--use-angle=swiftshader",
         "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"]
-HTTP = httpx.Client(timeout=10.0)
 
 
 def _free(port: int) -> bool:
@@ -64,19 +60,6 @@ def free_block() -> tuple[int, int]:
         if all(_free(p) for p in ports):
             return base - first, ports[-1]
     raise RuntimeError("no free block of ports")
-
-
-def wait_for(what: str, check: Callable[[], object], timeout_s: float) -> object:
-    deadline = time.monotonic() + timeout_s * SCALE
-    while time.monotonic() < deadline:
-        try:
-            value = check()
-        except httpx.HTTPError:
-            value = None
-        if value:
-            return value
-        time.sleep(0.25)
-    raise AssertionError(f"timed out waiting for {what}")
 
 
 def colour_pixels(png: bytes, colour: list[int], tol: int = 30) -> int:
@@ -113,11 +96,11 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
     try:
         for name in SERVICE_PORTS:
             wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 180)
+                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 240)
         wait_for("a render", lambda: HTTP.get(url("trainer", "/render.png")).status_code == 200,
-                 180)
+                 300)
         wait_for("a decision at the viewer",
-                 lambda: HTTP.get(url("viewer", "/scene.json")).json()["decision"], 60)
+                 lambda: HTTP.get(url("viewer", "/scene.json")).json()["decision"], 120)
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
             page = browser.new_page(viewport={"width": 1280, "height": 800})
@@ -129,30 +112,32 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
             page.wait_for_selector("canvas")
             # software WebGL (no GPU here): viser says so in a notification; close it
             with contextlib.suppress(sync_api.Error):
-                page.locator(".mantine-Notification-closeButton").first.click(timeout=5000)
+                page.locator(".mantine-Notification-closeButton").first.click(timeout=5000 * SCALE)
 
             # the viewer asks the pool for its camera's view and shows it
-            shown = wait_for("a free view shown", lambda: (
-                d := HTTP.get(url("viewer", "/scene.json")).json())["views"]["shown"] >= 1
-                and d, 90)
-            page.wait_for_timeout(3000 * SCALE)  # the frustums' redraw, the image's decode
-            before_c2w = HTTP.get(url("viewer", "/scene.json")).json()["views"]["last"]["c2w"]
-            first = page.screenshot()
+            wait_for("a free view shown", lambda: HTTP.get(url("viewer", "/scene.json")).json()[
+                "views"]["shown"] >= 1, 180)
 
-            # a frustum per camera, in the AoI colours of the decision in force
-            doc = shown
+            # a frustum per camera, in the AoI colours of the decision in force (drawn by the
+            # viewer's loop, then by the browser: screenshots until they show)
+            def drawn() -> tuple[dict, bytes] | None:
+                doc = HTTP.get(url("viewer", "/scene.json")).json()
+                png = page.screenshot()
+                colours = {tuple(c["colour"]) for c in doc["cameras"] if c["aoi_ms"] is not None}
+                shown = colours and all(colour_pixels(png, list(c)) >= 3 for c in colours)
+                return (doc, png) if shown else None
+
+            doc, first = wait_for("the frustums in the decision's AoI colours", drawn, 120,
+                                  every_s=1.0)
             cameras = doc["cameras"]
             from aoi3d.scene import open_dataset
 
             ds = open_dataset(scene)
             assert [c["camera_id"] for c in cameras] == [
                 i for i in range(1, min(18, len(ds.cameras) - 1) + 1) if i != ds.heldout_id]
-            colours = {tuple(c["colour"]) for c in cameras if c["aoi_ms"] is not None}
-            assert colours, doc
-            for colour in colours:
-                assert colour_pixels(first, list(colour)) >= 3, (colour, doc["cameras"])
             assert doc["decision"]["selected"] == sorted(
                 c["camera_id"] for c in cameras if c["selected"])
+            before_c2w = HTTP.get(url("viewer", "/scene.json")).json()["views"]["last"]["c2w"]
 
             # orbit: drag across the canvas; the pool renders the new pose, the view changes
             box = page.locator("canvas").first.bounding_box()
@@ -170,14 +155,17 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
                 b = np.array(before_c2w.split(","), float).reshape(4, 4)
                 return bool(np.linalg.norm(a[:3, 3] - b[:3, 3]) > 0.5)  # not a refresh
 
-            wait_for("a free view of the new pose", moved, 60)
-            page.wait_for_timeout(3000 * SCALE)
-            second = page.screenshot()
+            wait_for("a free view of the new pose", moved, 120)
             from PIL import Image
 
             a = np.asarray(Image.open(io.BytesIO(first)).convert("RGB"), dtype=np.int16)
-            b = np.asarray(Image.open(io.BytesIO(second)).convert("RGB"), dtype=np.int16)
-            assert np.abs(a - b).mean() > 1.0
+
+            def changed() -> bytes | None:
+                png = page.screenshot()
+                b = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=np.int16)
+                return png if np.abs(a - b).mean() > 1.0 else None
+
+            second = wait_for("the new view on screen", changed, 60, every_s=1.0)
             (tmp_path / "viewer.png").write_bytes(second)
             target = os.environ.get("AOI3D_VIEWER_SCREENSHOT")
             if target:

@@ -1,17 +1,19 @@
 """The 3D viewer service on a MemoryBus: its page is viser's client served from the wheel
 (nothing from outside), its websocket is relayed to viser, and what it draws follows the
-decision in force (AoI colours, the cameras used). Self-contained."""
+decision in force (AoI colours, the cameras used); a browser's camera becomes the trainer's
+free-view query, and the status line says what is shown. Waits: tests/support/waits.py."""
 
 from __future__ import annotations
 
+import math
 import re
-import time
 from collections.abc import Iterator
+from types import SimpleNamespace
 
 import pytest
 from fastapi.testclient import TestClient
 
-from aoi3d.freeview import aoi_colour
+from aoi3d.freeview import MAX_VIEW_SIDE, aoi_colour, c2w_from_viser
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
@@ -19,12 +21,12 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.viewer.app import create_app
 from services.viewer.core import box_segments
+from services.viewer.drawing import status_text, view_params
 from services.viewer.settings import Settings
-from tests.support.timeouts import timeout_scale
+from tests.support.waits import wait_for
 
 N = 4
 KEYS = Keys("viewertest")
-SCALE = timeout_scale()
 
 
 @pytest.fixture(scope="module")
@@ -78,11 +80,8 @@ def test_what_is_drawn_follows_the_decision_in_force(viewer) -> None:
         selected=[pb.FrameRef(camera_id=1, sequence=4, generation_ms=490.0, aoi_ms=10.0),
                   pb.FrameRef(camera_id=2, sequence=4, generation_ms=410.0, aoi_ms=90.0)],
         policy="mat", gamma_ms=100.0).SerializeToString())
-    deadline = time.monotonic() + 10 * SCALE
-    while client.get("/scene.json").json()["decision"] is None:
-        assert time.monotonic() < deadline
-        time.sleep(0.05)
-    doc = client.get("/scene.json").json()
+    doc = wait_for(lambda: (d := client.get("/scene.json").json())["decision"] and d, 30.0,
+                   what="the decision at the viewer", every_s=0.05)
     assert doc["decision"]["selected"] == [1, 2] and doc["decision"]["gamma_ms"] == 100.0
     for cam, a in zip(doc["cameras"], aoi, strict=True):
         assert cam["colour"] == list(aoi_colour(a, 100.0))
@@ -95,3 +94,27 @@ def test_box_has_twelve_edges_along_the_axes() -> None:
     seg = box_segments([[0, 0, 0], [1, 2, 3]])
     assert seg.shape == (12, 2, 3)
     assert all((abs(s[1] - s[0]) > 0).sum() == 1 for s in seg)
+
+
+def test_a_browsers_camera_becomes_the_trainers_free_view_query() -> None:
+    cam = SimpleNamespace(wxyz=(1.0, 0.0, 0.0, 0.0), position=(0.5, -4.0, 1.5), aspect=2.0,
+                          fov=math.radians(60.0))
+    p = view_params(cam, 120)
+    assert p is not None and (p["width"], p["height"]) == (240, 120)
+    assert p["fov"] == pytest.approx(60.0)
+    c2w = [float(v) for v in str(p["c2w"]).split(",")]
+    assert c2w == pytest.approx(c2w_from_viser(cam.wxyz, cam.position).ravel().tolist())
+    assert view_params(SimpleNamespace(**{**vars(cam), "aspect": math.nan}), 120)["width"] == 160
+    assert view_params(SimpleNamespace(**{**vars(cam), "aspect": 50.0}), 120)["width"] == (
+        MAX_VIEW_SIDE)
+    assert view_params(SimpleNamespace(**{**vars(cam), "fov": 3.14}), 120)["fov"] == 179.0
+    assert view_params(SimpleNamespace(**{**vars(cam), "wxyz": None}), 120) is None  # unknown
+
+
+def test_the_status_line_names_the_decision_and_the_model_shown() -> None:
+    doc = {"site": "site1", "decision": None, "cameras": [{}] * 3}
+    assert status_text(doc, {}) == "**site1**: waiting for the first decision"
+    doc["decision"] = {"decision_id": 7, "policy": "mat", "gamma_ms": 70.0, "selected": [1, 3]}
+    text = status_text(doc, {"decision_id": "6", "training_step": "30", "worker": "w1"})
+    assert text.startswith("**site1** decision 7 (mat, Γ 70 ms): 2 of 3 cameras used")
+    assert text.endswith("view: decision 6, step 30, worker w1")

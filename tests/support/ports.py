@@ -11,7 +11,7 @@ A pytest process takes one *slot* (one block per name in :data:`NAMES`): the fir
 from ``pid % slots``, whose every port can be bound on 127.0.0.1 right now — so two suites side by
 side, or a pipeline left running, are stepped around instead of collided with.
 
-A block is :data:`SIZE` ports: the seven REST ports of ``aoi3d up`` (8101…8107 moved by
+A block is :data:`SIZE` ports: the eight REST ports of ``aoi3d up`` (8101…8108 moved by
 :attr:`Block.rest_offset`), then the Zenoh port, then extras (:meth:`Block.extra`)."""
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ class Block:
 
     @property
     def rest_offset(self) -> int:
-        """``aoi3d up --port-offset``: puts 8101…8107 at ``first``…``first + 6``."""
+        """``aoi3d up --port-offset``: puts 8101…8108 at ``first``…``first + 7``."""
         return self.first - _REST_FIRST
 
     @property

@@ -75,3 +75,18 @@ def test_every_port_comes_from_the_one_table() -> None:
     assert table.UP.url("trainer", "/status") == "http://127.0.0.1:8104/status"
     assert table.BENCH_BLOCKS["pipeline"].up_args() == ["--port-offset", "1000",
                                                         "--zenoh-port", "7547"]
+
+
+def test_the_bench_blocks_comments_say_their_rest_ports() -> None:
+    """Each ``# REST first…last`` beside a bench's block in aoi3d/ports.py is its REST ports
+    (a service added to the table moves ``last``: 8108 since the viewer)."""
+    import re
+
+    from aoi3d import ports as table
+
+    said = re.findall(r'"(\w+)": PortBlock\([^)]*\),\s*# REST (\d+)…(\d+)',
+                      Path(table.__file__).read_text())
+    assert len(said) >= 5, said
+    for name, first, last in said:
+        rest = table.BENCH_BLOCKS[name].ports()[:-1]
+        assert (int(first), int(last)) == (rest[0], rest[-1]), name
