@@ -49,3 +49,10 @@ def test_the_check_names_every_offender_and_skips_the_generated(tmp_path: Path) 
     write("aoi3d/notes.txt", 900)  # not Python
     assert oversized(tmp_path) == ["services/a/worker.py: 331 lines (limit 330)",
                                    "aoi3d/field/big.py: 501 lines (limit 500)"]
+
+
+def test_the_architecture_page_stays_short() -> None:
+    """docs/architecture.md is the layers, the flow of one decision, the contracts and where to
+    start reading: at most 300 lines; history goes to docs/decisions/."""
+    lines = len((ROOT / "docs" / "architecture.md").read_text().splitlines())
+    assert lines <= 300, f"docs/architecture.md has {lines} lines (limit 300)"
