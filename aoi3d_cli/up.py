@@ -225,7 +225,7 @@ def _read_rig(path: Path, sites: int):
     if sites != 1:
         raise typer.BadParameter("a rig is one site", param_hint="'--sites'")
     try:
-        return load_rig(path)
+        return load_rig(path, videos=True)
     except RigError as err:
         fail_lines(err)
 

@@ -75,6 +75,8 @@ def _compressed_rgb(msg, max_pixels: int) -> np.ndarray:
     try:
         im = PILImage.open(io.BytesIO(data), formats=[kind])
         w, h = im.size  # the header only: nothing is decoded yet
+    except PILImage.DecompressionBombError as err:  # declared over PIL's own limit
+        raise Rejected("too_large", f"a {kind} whose header says {err}"[:200]) from None
     except Exception as err:
         raise Rejected("bad_image", f"{kind} header unreadable ({type(err).__name__})") from None
     if w * h > max_pixels:
