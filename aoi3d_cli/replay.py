@@ -119,7 +119,7 @@ def replay(
     if write_rig is not None or rig_only or epoch_s is not None:
         raise typer.BadParameter("--write-rig, --rig-only and --epoch-s are for --live",
                                  param_hint="'--live'")
-    from services.recorder.recording import load
+    from services.recorder.recording import McapFileError, load
     from services.recorder.replay import rebuildable_keys, score_diffs
     from services.recorder.replay import replay as run_replay
 
@@ -136,8 +136,13 @@ def replay(
         rec = load(recording)
     except (FileNotFoundError, OSError) as err:
         fail(err)
-    except Exception as err:  # a damaged file: the mcap reader's own errors
+    except McapFileError as err:  # not MCAP, a record over the caps, a corrupt chunk
         fail(f"{recording} cannot be read as an MCAP recording: {err}")
+    for note in rec.cut_short:  # read up to the cut: say so, on stderr
+        typer.echo(f"note: {note}", err=True)
+    if rec.refused:
+        typer.echo("note: messages not read: " + ", ".join(
+            f"{k} {v}" for k, v in sorted(rec.refused.items())), err=True)
     missing = [s for s in (site or []) if s not in rec.sites]
     if missing:
         fail(f"no site {', '.join(missing)} in the recording; it holds "
@@ -233,7 +238,8 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
         if write_rig is None:
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
-    player = Player(frames, cfg, lambda *sample: put(*sample))
+    player = Player(frames, cfg, lambda *sample: put(*sample),
+                    pixels=lambda n, fr: streams[n].pixels(fr))
     span = (player.order[-1][0] - player.order[0][0]) / 1000.0
     typer.echo(f"playing {len(player.order)} frames of {len(frames)} cameras ({site_name}, "
                f"{span:.1f} scene s) at time scale {time_scale:g} via {connect}")

@@ -136,7 +136,8 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                 continue
             render = srec.renders[key]
             used = list(render.frame_generation_ms) if chosen is None else None
-            frames = job_frames(selected, used, arr, render.frame_camera_ids)
+            frames = job_frames(selected, used, arr, render.frame_camera_ids,
+                                lambda f, site=site: rec.has_pixels(site, f))
             out.rebuildable = frames is not None
             if frames is None:
                 out.skipped = "frames_not_recorded"
