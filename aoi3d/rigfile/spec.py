@@ -112,7 +112,9 @@ class PoseSpec(Strict):
         if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
             raise ValueError("the last row of a rigid transform is 0 0 0 1")
         r = m[:3, :3]
-        if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+        with np.errstate(all="ignore"):  # 1e300 entries overflow: not a rotation either
+            rotation = np.allclose(r.T @ r, np.eye(3), atol=1e-4) and np.linalg.det(r) >= 0
+        if not rotation:
             raise ValueError("its rotation part is not a rotation (orthonormal, det +1)")
         return flat
 

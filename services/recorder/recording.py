@@ -128,6 +128,21 @@ class Recorded:
         return out
 
 
+def _valid(msg) -> bool:
+    """What the recorder checked when it wrote a message (times finite, an AoI per camera),
+    checked again: a damaged file's message that decodes but cannot be used is refused."""
+    times = {pb.Frame: ("generation_ms", "delivery_ms", "send_ms"),
+             pb.Decision: ("time_ms",), pb.Render: ("time_ms",), pb.Quality: ("time_ms",)}
+    if not all(np.isfinite(getattr(msg, t)) for t in times.get(type(msg), ())):
+        return False
+    if isinstance(msg, pb.Decision):
+        return len(msg.aoi_ms) == len(msg.camera_ids) and all(
+            np.isfinite(r.generation_ms) for r in msg.selected)
+    if isinstance(msg, pb.Render):
+        return all(np.isfinite(g) for g in msg.frame_generation_ms)
+    return True
+
+
 def load(path: Path) -> Recorded:
     """Every message of ``path`` and its segments but the pixels (see the module
     docstring); :class:`FileNotFoundError` without a file, :class:`McapFileError` for one
@@ -173,6 +188,9 @@ def load(path: Path) -> Recorded:
         try:
             msg = want.FromString(m.message.data)
         except Exception:
+            refused["bad_message"] += 1
+            continue
+        if not _valid(msg):
             refused["bad_message"] += 1
             continue
         rec = sites[site]

@@ -1,6 +1,7 @@
-"""A refused change changes nothing (issue 44): for every PUT endpoint of every service, a
-request answered with a 4xx leaves the resource's GET exactly as it was — bad values, a
-valid field beside an invalid one, a trace whose times overflow, paths outside the roots.
+"""A refused change changes nothing (issue 44): for every PUT endpoint of every service (and
+the recorder's start, a POST), a request answered with a 4xx leaves the resource's GET
+exactly as it was — bad values, a valid field beside an invalid one, a trace whose times
+overflow, paths outside the roots or that cannot be resolved.
 The apps are the real ones on a MemoryBus (tests/support/guard.py)."""
 
 from __future__ import annotations
@@ -61,6 +62,10 @@ def _bodies(tmp: Path, *, write: bool = True) -> dict[tuple[str, str, str], list
             {"kind": "ppo", "checkpoint": "models/no-such.pt", "learn": True},
             "not json"],
         ("trainer", "/backend", "/status"): [{"backend": "nope"}, {"backend": 3}, "not json"],
+        ("recorder", "/recording/start", "/recording"): [  # a POST: the one state change
+            {"path": "/etc/aoi3d.mcap"}, {"path": ""}, {"path": "~nobody-here/x.mcap"},
+            {"path": str(tmp / "x.mcap"), "max_bytes": -1}, {"path": "a\u0000b"},
+            {"path": str(tmp / "x.mcap"), "extra": 1}, "not json"],
         ("trainer", "/carry", "/status"): [
             {"carry": "nope"}, {"carry": "stream", "render_steps": 0},
             {"carry": "fresh", "render_steps": 10**9}, "not json"],
@@ -87,14 +92,16 @@ def test_a_4xx_on_any_put_leaves_the_resource_as_it_was(
         case: tuple[str, str, str], dataset: SceneDataset, tmp_path: Path) -> None:
     service, put, get = case
     bodies = _bodies(tmp_path)[case]
-    app = build(service, dataset, files_roots=[str(tmp_path), "runs", "models"])
+    roots = [str(tmp_path), "runs", "models"] if service != "recorder" else [str(tmp_path)]
+    app = build(service, dataset, files_roots=roots)
     with TestClient(app) as client:
         for prefix in ("", "/sites/site1"):  # the default site's routes and the per-site ones
             if client.get(prefix + get).status_code == 404:
                 continue
             before = _state(client, prefix + get)
             for body in bodies:
-                send: Callable[..., Any] = client.put
+                send: Callable[..., Any] = client.post if service == "recorder" \
+                    else client.put
                 r = (send(prefix + put, content=body, headers={"content-type":
                                                                 "application/json"})
                      if isinstance(body, str) else send(prefix + put, json=body))
