@@ -3,10 +3,14 @@ are predictable), frames, and one message of every kind the recorder keeps."""
 
 from __future__ import annotations
 
+import contextlib
 import math
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.codec import camera_to_pb, encode_frame, encode_png
@@ -128,3 +132,18 @@ def write_long_recording(path: Path, *, steps: int, size: tuple[int, int] = (24,
                        backend="grid", carry="fresh", aabb=AABB, site="site1")
     rec.write(K.render, render.SerializeToString(), log_ns=3 * steps + 4)
     return rec.close().bytes_written
+
+
+@contextlib.contextmanager
+def small_disk(tmp_path: Path, size_kib: int) -> Iterator[Path]:
+    """A real filesystem of ``size_kib`` KiB (tmpfs; the tests run as root)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs", str(mnt)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (not root?): {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
