@@ -138,6 +138,9 @@ def replay(
         fail(err)
     except McapFileError as err:  # not MCAP, a record over the caps, a corrupt chunk
         fail(f"{recording} cannot be read as an MCAP recording: {err}")
+    if not any(s.decisions for s in rec.sites.values()):
+        fail(f"{recording} holds no decision to replay"
+             + (f" ({rec.cut_short[0]})" if rec.cut_short else ""))
     for note in rec.cut_short:  # read up to the cut: say so, on stderr
         typer.echo(f"note: {note}", err=True)
     if rec.refused:

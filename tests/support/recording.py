@@ -102,7 +102,7 @@ def write_recording(path: Path, *, lost=((2, 7),), moving: int | None = None, tr
 
 
 def write_long_recording(path: Path, *, steps: int, size: tuple[int, int] = (24, 18),
-                         compression: str = "zstd") -> int:
+                         compression: str = "zstd", chunk_bytes: int = 1 << 20) -> int:
     """A recording of ``steps`` decision epochs 30 ms apart: truth camera 0 and cameras 1, 2
     delivering a ``size`` frame of noise each (incompressible: the file is about
     3 × steps × w × h × 3 bytes), and a ``mat:70`` decision after them. Its size in bytes."""
@@ -111,7 +111,7 @@ def write_long_recording(path: Path, *, steps: int, size: tuple[int, int] = (24,
     cams = {c: Camera(c2w=look_at((float(c), -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0 * w / W,
                       fy=20.0 * w / W, cx=w / 2, cy=h / 2, width=w, height=h)
             for c in (0, 1, 2)}
-    rec = Recording(path, compression=compression)
+    rec = Recording(path, compression=compression, chunk_bytes=chunk_bytes)
     for k in range(1, steps + 1):
         s = 30.0 * k
         for c in (0, 1, 2):
