@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast proto lint bench bench-ray bench-live bench-192 bench-multihost figures science docs clean help \
+.PHONY: install up test test-fast fuzz proto lint bench bench-ray bench-live bench-192 bench-multihost figures science docs clean help \
         lock wheelhouse secrets images compose-test monitoring k8s
 
 help:  ## list the targets
@@ -36,6 +36,13 @@ test: install  ## the whole test suite (unit, services, integration)
 
 test-fast: install  ## everything but the integration tests
 	$(PY) -m pytest -m "not integration" $(PYTEST_ARGS)
+
+FUZZ_TESTS := tests/unit/test_file_fuzz.py tests/unit/test_ingest_fuzz.py \
+              tests/services/test_mcap_fuzz.py tests/services/test_codec_props.py \
+              tests/services/test_api_fuzz.py
+
+fuzz: install  ## the fuzz tests of every input surface 20x deeper than make test runs them (rig and trace files, MCAP, the ROS wire, the codec, every REST operation)
+	AOI3D_FUZZ_DEPTH=20 AOI3D_FUZZ_EXAMPLES=300 $(PY) -m pytest -q $(FUZZ_TESTS) $(PYTEST_ARGS)
 
 proto: install  ## regenerate the Python protobuf module from proto/aoi3d.proto
 	$(PY) -m grpc_tools.protoc -Iproto --python_out=$(PROTO_OUT) --pyi_out=$(PROTO_OUT) proto/aoi3d.proto

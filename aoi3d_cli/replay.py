@@ -139,14 +139,22 @@ def _policies(policy: list[str] | None) -> list[str]:
 
 def _load(recording: Path, site: list[str] | None) -> Recorded:
     """The recording, holding every site of --site; else one line and exit status 1."""
-    from services.recorder.recording import load
+    from services.recorder.recording import McapFileError, load
 
     try:
         rec = load(recording)
     except (FileNotFoundError, OSError) as err:
         fail(err)
-    except Exception as err:  # a damaged file: the mcap reader's own errors
+    except McapFileError as err:  # not MCAP, a record over the caps, a corrupt chunk
         fail(f"{recording} cannot be read as an MCAP recording: {err}")
+    if not any(s.decisions for s in rec.sites.values()):
+        fail(f"{recording} holds no decision to replay"
+             + (f" ({rec.cut_short[0]})" if rec.cut_short else ""))
+    for note in rec.cut_short:  # read up to the cut: say so, on stderr
+        typer.echo(f"note: {note}", err=True)
+    if rec.refused:
+        typer.echo("note: messages not read: " + ", ".join(
+            f"{k} {v}" for k, v in sorted(rec.refused.items())), err=True)
     missing = [s for s in (site or []) if s not in rec.sites]
     if missing:
         fail(f"no site {', '.join(missing)} in the recording; it holds "
@@ -244,7 +252,8 @@ def _live(recording: Path, site: str | None, connect: str, time_scale: float,
         if write_rig is None:
             raise typer.BadParameter("needs --write-rig", param_hint="'--rig-only'")
         return
-    player = Player(frames, cfg, lambda *sample: put(*sample))
+    player = Player(frames, cfg, lambda *sample: put(*sample),
+                    pixels=lambda n, fr: streams[n].pixels(fr))
     span = (player.order[-1][0] - player.order[0][0]) / 1000.0
     typer.echo(f"playing {len(player.order)} frames of {len(frames)} cameras ({site_name}, "
                f"{span:.1f} scene s) at time scale {time_scale:g} via {connect}")

@@ -181,11 +181,12 @@ def rtsp(
 
 @app.command()
 def check(rig: Annotated[Path, typer.Argument(help="A rig file (YAML or JSON).")]) -> None:
-    """Validate a rig file: one line per bad field, naming it; else a summary."""
+    """Validate a rig file: one line per bad field, naming it (and each video file that is not
+    there); else a summary."""
     from aoi3d.rigfile import RigError, load_rig
 
     try:
-        r = load_rig(rig)
+        r = load_rig(rig, videos=True)
     except RigError as err:
         fail_lines(err)
     ids = r.ids()

@@ -262,8 +262,9 @@ def import_(
         help="A rosbag2's rig file (the one `aoi3d up --rig` runs it with): which topic is "
              "which camera, which is the truth.")] = None,
     fps: Annotated[int | None, typer.Option(
-        min=1, help="Frames per second of the dataset's grid (default: the truth camera's "
-                    "rate, rounded).")] = None,
+        min=1, max=1000, help="Frames per second of the dataset's grid (default: the truth "
+                              "camera's rate, rounded); the grid may hold 2,000,000 frames "
+                              "(frames × cameras) at most.")] = None,
     aabb: Annotated[str | None, typer.Option(
         help="Scene box 'xmin,ymin,zmin,xmax,ymax,zmax' (default: the recording's renders' "
              "box, or the rig file's).")] = None,
@@ -321,5 +322,5 @@ def import_(
                       "them where they are made (a rosbag2 at the robot) or on a lossless "
                       "link.[/]")
     if report.rejected:
-        console.print("refused by the ingest: " + ", ".join(
+        console.print("refused by the ingest (cut_short: a file read up to a cut): " + ", ".join(
             f"{k} {v}" for k, v in sorted(report.rejected.items())))

@@ -163,6 +163,15 @@ ALERTS: list[dict] = [
                                      "{{ $labels.topic }} for a minute: the robot is gone, or "
                                      "publishes another topic or type (GET /status on the "
                                      "ingest lists what is published there)."}),
+    # the recorder stopped on a write error (a full disk): the pipeline goes on, unrecorded
+    dict(alert="AoI3DRecordingFailed", expr="aoi3d_recorder_failed > 0", **{"for": "0s"},
+         labels={"severity": "warning"},
+         annotations={"summary": "The recording stopped: {{ $labels.instance }} could not "
+                                 "write",
+                      "description": "The recorder's latest recording ended on a write error "
+                                     "(a full disk); the pipeline runs on unrecorded. GET "
+                                     "/status on the recorder says which file, why, and "
+                                     "whether it was finished whole (docs/recording.md)."}),
     # the decision ledger: more than 5 % of the decisions that ended in the last 5 minutes
     # were lost, for 2 minutes; skipped-by-choice ones are not losses
     dict(alert="AoI3DDecisionsLost",

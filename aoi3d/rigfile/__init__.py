@@ -16,7 +16,15 @@ source, intrinsics, pose; the source and the clock), :mod:`.model` (the whole fi
 :class:`Rig`, and what it derives) and :mod:`.load` (reading and validating, :class:`RigError`).
 """
 
-from aoi3d.rigfile.load import RigError, load_rig, rig_from_dict
+from aoi3d.rigfile.load import (
+    MAX_RIG_BYTES,
+    MAX_RIG_CAMERAS,
+    MAX_RIG_VALUES,
+    RigError,
+    load_rig,
+    missing_videos,
+    rig_from_dict,
+)
 from aoi3d.rigfile.model import TRUTH_ID, Rig, scaled_camera
 from aoi3d.rigfile.poses import CONVENTIONS, convert_pose, quaternion_matrix
 from aoi3d.rigfile.spec import (
@@ -28,6 +36,24 @@ from aoi3d.rigfile.spec import (
     ViewSpec,
 )
 
-__all__ = ["CONVENTIONS", "TRUTH_ID", "CameraSpec", "ClockSpec", "IntrinsicsSpec", "PoseSpec",
-           "Rig", "RigError", "SourceSpec", "ViewSpec", "convert_pose", "load_rig",
-           "quaternion_matrix", "rig_from_dict", "scaled_camera"]
+__all__ = [
+    "CONVENTIONS",
+    "MAX_RIG_BYTES",
+    "MAX_RIG_CAMERAS",
+    "MAX_RIG_VALUES",
+    "TRUTH_ID",
+    "CameraSpec",
+    "ClockSpec",
+    "IntrinsicsSpec",
+    "PoseSpec",
+    "Rig",
+    "RigError",
+    "SourceSpec",
+    "ViewSpec",
+    "convert_pose",
+    "load_rig",
+    "missing_videos",
+    "quaternion_matrix",
+    "rig_from_dict",
+    "scaled_camera",
+]

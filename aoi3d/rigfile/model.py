@@ -5,6 +5,7 @@ wire, the working size, the rendered camera)."""
 from __future__ import annotations
 
 import math
+from typing import Annotated
 
 import numpy as np
 from pydantic import Field, field_validator, model_validator
@@ -62,6 +63,11 @@ class Rig(Strict):
     max_image_pixels: int = Field(2048 * 2048, ge=1, le=8192 * 8192,
                                   description="Larger images (width × height, as declared) are "
                                               "refused before decoding.")
+    url_protocols: list[Annotated[str, Field(pattern=r"^[a-z][a-z0-9+.-]{0,31}$")]] = Field(
+        default_factory=list, max_length=16,
+        description="FFmpeg protocols a camera's url may use besides rtsp and rtsps (e.g. "
+                    "[http, https, srt]); a url of any other protocol (concat:, file:, …) is "
+                    "refused.")
 
     @field_validator("aabb")
     @classmethod
@@ -83,6 +89,12 @@ class Rig(Strict):
         dupes = sorted({n for n in names if names.count(n) > 1})
         if dupes:
             raise ValueError(f"cameras: names must differ ({', '.join(dupes)} repeated)")
+        accepted = {"rtsp", "rtsps", *self.url_protocols}
+        for i, c in enumerate(self.cameras):
+            if c.protocol is not None and c.protocol not in accepted:
+                raise ValueError(
+                    f"cameras[{i}].url: the {c.protocol}: protocol is not accepted (rtsp://, "
+                    f"rtsps:// or a video file; name it in url_protocols to allow it)")
         topics = [c.image or c.url for c in self.cameras]
         if len(set(topics)) != len(topics):
             raise ValueError("cameras: two cameras share an image topic or url")

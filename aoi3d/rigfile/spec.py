@@ -5,6 +5,7 @@ field."""
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Literal
 
 import numpy as np
@@ -26,12 +27,16 @@ def _topic(value: str) -> str:
 
 
 Topic = Annotated[str, Field(min_length=1, max_length=256)]
+_PROTOCOL = re.compile(r"^([A-Za-z][A-Za-z0-9+.-]*):")
+"""FFmpeg reads ``NAME:rest`` as protocol NAME when NAME has no ``/`` (``concat:a|b``,
+``http://…``, ``file:…``); anything else is a file path."""
 
 
 class Strict(BaseModel):
-    """A part of the rig file: unknown fields are errors; frozen once read."""
+    """A part of the rig file: unknown fields are errors, every number finite (NaN and ±inf
+    are refused where they are read, not at run time); frozen once read."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class IntrinsicsSpec(Strict):
@@ -107,7 +112,9 @@ class PoseSpec(Strict):
         if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-6):
             raise ValueError("the last row of a rigid transform is 0 0 0 1")
         r = m[:3, :3]
-        if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+        with np.errstate(all="ignore"):  # 1e300 entries overflow: not a rotation either
+            rotation = np.allclose(r.T @ r, np.eye(3), atol=1e-4) and np.linalg.det(r) >= 0
+        if not rotation:
             raise ValueError("its rotation part is not a rotation (orthonormal, det +1)")
         return flat
 
@@ -164,9 +171,10 @@ class CameraSpec(Strict):
                           "when the topic ends in /compressed, else raw.")
     url: str | None = Field(
         None, min_length=1, max_length=1024,
-        description="An IP camera or a video instead of a topic: rtsp://host:port/path (H.264 "
-                    "and whatever else FFmpeg decodes), or a video file (played in a loop at "
-                    "its own rate).")
+        description="An IP camera or a video instead of a topic: rtsp://host:port/path or "
+                    "rtsps:// (H.264 and whatever else FFmpeg decodes), or an existing video "
+                    "file (played in a loop at its own rate); another FFmpeg protocol only "
+                    "where the rig's url_protocols names it.")
     listen: bool = Field(False, description="rtsp:// only: wait for the camera to push its "
                                             "stream to this URL (RTSP RECORD) instead of "
                                             "pulling from it.")
@@ -186,8 +194,8 @@ class CameraSpec(Strict):
     @model_validator(mode="after")
     def _source(self) -> CameraSpec:
         if (self.image is None) == (self.url is None):
-            raise ValueError("give exactly one of image (a ROS topic) or url (rtsp:// or a "
-                             "video file)")
+            raise ValueError("give exactly one of image (a ROS topic) or url (rtsp://, "
+                             "rtsps:// or a video file)")
         if self.url is not None:
             if self.image_type is not None:
                 raise ValueError("image_type is for image topics")
@@ -196,11 +204,22 @@ class CameraSpec(Strict):
                                  "cy, width, height): it has no CameraInfo topic")
             if not self.is_rtsp and (self.listen or self.stamps != "rtcp"):
                 raise ValueError("listen and stamps are for rtsp:// urls")
+            if any(ord(c) < 32 for c in self.url):
+                raise ValueError("url: no control characters")
         return self
 
     @property
+    def protocol(self) -> str | None:
+        """The url's FFmpeg protocol (``rtsp``, ``http``, ``concat``, …), lower case; None
+        for a file path (and for an image topic)."""
+        if self.url is None:
+            return None
+        m = _PROTOCOL.match(self.url)
+        return m.group(1).lower() if m else None
+
+    @property
     def is_rtsp(self) -> bool:
-        return self.url is not None and self.url.lower().startswith("rtsp://")
+        return self.protocol in ("rtsp", "rtsps")
 
     @property
     def kind(self) -> str:

@@ -51,7 +51,7 @@ class VideoFrame:
 def _open(url: str, listen: bool, timeout_s: float):
     import av
 
-    if url.lower().startswith("rtsp://"):
+    if url.lower().startswith(("rtsp://", "rtsps://")):
         options = dict(RTSP_OPTIONS)
         if listen:  # (PyAV's own timeout hangs a listener: FFmpeg's listen_timeout only)
             options |= {"rtsp_flags": "listen", "listen_timeout": str(LISTEN_TIMEOUT_S)}
@@ -70,7 +70,7 @@ def read_video(url: str, *, listen: bool = False, stamps: str = "rtcp",
     converted; the stream's declared size is checked when it opens)."""
     import av
 
-    rtsp = url.lower().startswith("rtsp://")
+    rtsp = url.lower().startswith(("rtsp://", "rtsps://"))
     try:
         container = _open(url, listen, timeout_s)
     except (av.error.FFmpegError, OSError) as err:

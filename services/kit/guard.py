@@ -212,8 +212,13 @@ class OutsideRoots(ValueError):
 def confined_path(text: str, roots: list[str], what: str) -> Path:
     """``text`` as a path (relative ones from the working directory, symlinks resolved) that
     lies in one of ``roots`` (``AOI3D_FILES_ROOTS``); else :class:`OutsideRoots`, whose
-    message never says whether the path exists."""
-    path = Path(text).expanduser().resolve()
+    message never says whether the path exists. A path that cannot even be resolved (``~x``
+    of no such user, a NUL byte, a symlink loop, too long a name) is outside too."""
+    try:
+        path = Path(text).expanduser().resolve()
+    except (RuntimeError, ValueError, OSError):
+        raise OutsideRoots(f"{what} must lie in {' or '.join(f'{r}/' for r in roots)} "
+                           f"(AOI3D_FILES_ROOTS)") from None
     for root in roots:
         if path.is_relative_to(Path(root).expanduser().resolve()):
             return path

@@ -142,7 +142,9 @@ class NetworkCore:
     def update(self, *, delay: str | None = None, per_camera: dict[int, str] | None = None,
                seed: int | None = None, now_ms: float | None = None) -> ChannelConfig:
         """Partial update (``per_camera`` replaces the whole override map); nothing changes
-        when it raises ``DelaySpecError`` or ``ChannelConfigError``.
+        when it raises ``DelaySpecError`` or ``ChannelConfigError``: the new config is
+        checked and every link's new channel built on a scratch random stream first, and
+        only then swapped in.
 
         A new delay applies to the frames offered from now on (a frame in flight keeps its
         delivery slot); a channel that changes (regimes, a trace) starts at ``now_ms``. A new
@@ -152,25 +154,46 @@ class NetworkCore:
         new = self._checked(old.delay if delay is None else delay,
                             old.per_camera if per_camera is None else per_camera,
                             old.seed if seed is None else seed)
-        if new.delay != old.delay and now_ms is not None:
-            self.started_ms = int(now_ms)
-        self.config = new
+        started_ms = (int(now_ms) if new.delay != old.delay and now_ms is not None
+                      else self.started_ms)
         on_cell = self._on_cell(new)
+        changes: dict[int, tuple[Channel, int]] = {}
         for n, link in self._links.items():
             if n in on_cell:
                 continue
             if link.delay.spec != new.spec_of(n) or (n not in new.per_camera
                                                      and new.delay != old.delay):
-                start = self.started_ms if n not in new.per_camera else (
+                start = started_ms if n not in new.per_camera else (
                     int(now_ms) if now_ms is not None else link.start_ms)
-                link.set_delay(parse_channel(new.spec_of(n)), start_ms=start)
-                self._stats[n].delay = link.delay
-        if on_cell and (new.delay != old.delay or on_cell != self._on_cell(old)):
+                changes[n] = (parse_channel(new.spec_of(n)), start)
+        share = bool(on_cell) and (new.delay != old.delay or on_cell != self._on_cell(old))
+        self._try_build(changes, parse_channel(new.delay) if share else None, started_ms)
+        # nothing below can fail: the swap
+        self.config, self.started_ms = new, started_ms
+        for n, (channel, start) in changes.items():
+            self._links[n].set_delay(channel, start_ms=start)
+            self._stats[n].delay = self._links[n].delay
+        if share:
             self._share_cell()
         if new.seed != old.seed:
             rngs = camera_rngs(new.seed, len(self.camera_ids))
             self._reseed = {n: rngs[n - 1] for n in self.camera_ids}
         return new
+
+    @staticmethod
+    def _try_build(changes: dict[int, tuple[Channel, int]], cell: Channel | None,
+                   started_ms: int) -> None:
+        """Build each new server (and the shared cell) on a scratch stream, so a channel
+        that cannot start (a phase out of range, ...) is refused before anything changes."""
+        scratch = np.random.default_rng(0)
+        try:
+            for channel, start in changes.values():
+                channel.server(scratch, start_ms=start)
+            if cell is not None:
+                queue = cell.new_cell(scratch, start_ms=started_ms)
+                cell.server(scratch, start_ms=started_ms, cell=queue)
+        except (ValueError, OverflowError) as err:
+            raise ChannelConfigError(f"the channel cannot start: {err}") from None
 
     def regime(self, now_ms: float) -> str:
         """The spec in force now on the links without an override (a regime's own spec)."""

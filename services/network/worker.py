@@ -104,9 +104,9 @@ class NetworkWorker:
         """Partial update (``per_camera`` replaces the whole override map); see
         :meth:`NetworkCore.update`. Raises ``DelaySpecError`` or ``ChannelConfigError``."""
         for spec in [delay, *(per_camera or {}).values()]:
-            try:  # a trace is read (and cached) here, not under the links' lock
+            try:  # a trace is read (and cached, its mean too) here, not under the lock
                 if spec is not None:
-                    parse_channel(spec)
+                    parse_channel(spec).mean_ms  # noqa: B018
             except ValueError:
                 pass  # the core says what is wrong, and where
         now = self._clock.now_ms()

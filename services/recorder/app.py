@@ -39,6 +39,11 @@ class RecordingView(BaseModel):
     path: str | None = Field(description="The latest recording's first file (None: none yet).")
     state: str | None = Field(description="recording, stopped or failed.")
     error: str | None = Field(description="Why it failed (a full disk…), else None.")
+    whole: bool | None = Field(None, description="After a failure: whether its last file was "
+                                                 "finished whole (summary and index) in the "
+                                                 "disk space held for it, or is cut at its "
+                                                 "last whole message (`mcap recover`); null "
+                                                 "otherwise.")
     segments: list[str] = Field(description="Its files, in order.")
     messages: int = Field(description="Bus messages recorded.")
     mcap_messages: int = Field(description="MCAP messages written (a frame is four).")
@@ -51,7 +56,7 @@ def _view(status: RecordingStatus | None) -> RecordingView:
         return RecordingView(recording=False, path=None, state=None, error=None, segments=[],
                              messages=0, mcap_messages=0, bytes_written=0, max_bytes=0)
     return RecordingView(recording=status.state == "recording", path=status.path,
-                         state=status.state, error=status.error,
+                         state=status.state, error=status.error, whole=status.whole,
                          segments=list(status.segments), messages=status.messages,
                          mcap_messages=status.mcap_messages,
                          bytes_written=status.bytes_written, max_bytes=status.max_bytes)
@@ -67,6 +72,12 @@ router = APIRouter(tags=["recording"])
 
 @router.get("/recording", summary="The recording in force (or the latest one).")
 def get_recording(worker: WorkerDep) -> RecordingView:
+    return _view(worker.status())
+
+
+@router.get("/status", summary="The recorder's status: its recording in force or the latest "
+                                "one (as GET /recording), a failure and its error included.")
+def get_status(worker: WorkerDep) -> RecordingView:
     return _view(worker.status())
 
 

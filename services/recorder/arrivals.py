@@ -7,7 +7,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections import defaultdict
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,11 +114,14 @@ def arrivals(rec: SiteRecord) -> Arrivals:
 
 
 def job_frames(selected: Sequence[tuple[int, float]], used: Sequence[float] | None,
-                arr: Arrivals, used_cameras: Sequence[int] = ()) -> list[pb.Frame] | None:
+                arr: Arrivals, used_cameras: Sequence[int] = (),
+                has_pixels: Callable[[pb.Frame], bool] = lambda f: bool(f.image.data),
+                ) -> list[pb.Frame] | None:
     """The frames of a selection (those the live job carried, when ``used`` lists their
     generation times in selection order, and ``used_cameras`` their cameras — a recording
     from before Render.frame_camera_ids has generation times only, which every camera shares
-    at k·C); None when one has no pixels in the recording."""
+    at k·C); None when one has no pixels in the recording (``has_pixels``: whether the
+    recording holds a frame's pixels, by default whether it carries them)."""
     out, k = [], 0
     cams = list(used_cameras) if used is not None and len(used_cameras) == len(used) else None
     for cam, g in selected:
@@ -129,7 +132,7 @@ def job_frames(selected: Sequence[tuple[int, float]], used: Sequence[float] | No
             else:
                 continue  # the live trainer did not hold it
         a = arr.frame(cam, g)
-        if a is None or a.frame is None or not a.frame.image.data:
+        if a is None or a.frame is None or not has_pixels(a.frame):
             return None
         out.append(a.frame)
     return out

@@ -36,9 +36,12 @@ needs (:class:`Recording` ``metadata``).
 Segments: with ``max_bytes`` a file that reaches the cap is finished (summary, footer) and the
 recording goes on in ``<stem>.part2.mcap``, ``part3`` … beside it, each a whole MCAP with its
 own schemas, channels and metadata (a segment passes the cap by at most one chunk and its
-summary). An ``OSError`` while writing (a full disk: ``ENOSPC``) ends the recording: the state
-becomes ``failed`` with the error, later messages are counted ``not_recording``; what reached
-the disk before (whole chunks) stays readable with a streaming reader.
+summary). An ``OSError`` while writing (a full disk: ``ENOSPC``) ends the recording — it
+rotates on a cap, never on a full disk: the state becomes ``failed`` with the error, later
+messages are counted ``not_recording``. The segment being written is finished whole (summary,
+index, footer) in the disk space its :class:`~services.recorder.sink.Sink` held back for it;
+where even that does not fit, it is cut at its last whole message, which a streaming reader
+reads to the end (:mod:`services.recorder.sink`).
 """
 
 from __future__ import annotations
@@ -47,151 +50,28 @@ import contextlib
 import errno
 import math
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO
 
-import numpy as np
-from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
-from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
-from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
-from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
-from google.protobuf.timestamp_pb2 import Timestamp
 from mcap.writer import CompressionType
 from mcap_protobuf.writer import Writer
 
-from services.kit.codec import PNG, FrameData, decode_decision, decode_frame, decode_quality
-from services.kit.codec import decode_render as _decode_render
-from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected, RejectReason
+from services.recorder.entries import (
+    WORLD,
+    entries,
+    segment_path,
+    segments,
+    sim_ms_of,
+    sim_ns,
+)
+from services.recorder.sink import Sink
 
-__all__ = ["COMPRESSIONS", "Recording", "RecordingStatus", "Written", "entries",
+__all__ = ["COMPRESSIONS", "WORLD", "Recording", "RecordingStatus", "Written", "entries",
            "segment_path", "segments", "sim_ms_of", "sim_ns"]
 
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4,
                 "none": CompressionType.NONE}
-WORLD = "world"
-"""The parent frame of every camera's transform."""
-_KEY = re.compile(r"^aoi3d/[^/]+/(?P<site>[^/]+)/(?:(?P<edge>edge/(?P<cam>\d+)/frame)|"
-                  r"(?P<what>truth/frame|decision|render|quality|outcome))$")
-_GL_TO_OPTICAL = np.diag([1.0, -1.0, -1.0])
-
-
-def sim_ns(ms: float) -> int:
-    """Sim milliseconds as whole nanoseconds (an MCAP time or a Foxglove timestamp)."""
-    return max(0, round(ms * 1e6))
-
-
-def sim_ms_of(ts: Timestamp) -> float:
-    ms: float = (ts.seconds * 1_000_000_000 + ts.nanos) / 1e6  # (protobuf: untyped)
-    return ms
-
-
-def _stamp(ms: float) -> Timestamp:
-    ts = Timestamp()
-    ts.FromNanoseconds(sim_ns(ms))
-    return ts
-
-
-def segment_path(path: Path, index: int) -> Path:
-    """The ``index``-th segment (1: ``path`` itself; then ``<stem>.part<index><suffix>``)."""
-    path = Path(path)
-    return path if index == 1 else path.with_name(f"{path.stem}.part{index}{path.suffix}")
-
-
-def segments(path: Path) -> list[Path]:
-    """``path`` and the segments after it that exist, in order."""
-    out, i = [], 1
-    while segment_path(path, i).is_file():
-        out.append(segment_path(path, i))
-        i += 1
-    return out
-
-
-# ---------------------------------------------------------------- bus message → MCAP entries
-def _camera_entries(site: str, name: str, frame: FrameData, image: pb.Image
-                    ) -> list[tuple[str, Any]]:
-    frame_id = f"{site}/{name}"
-    stamp = _stamp(frame.generation_ms)
-    cam = frame.camera
-    if image.encoding == PNG:
-        img: Any = CompressedImage(timestamp=stamp, frame_id=frame_id, data=image.data,
-                                   format="png")
-    else:
-        img = RawImage(timestamp=stamp, frame_id=frame_id, width=image.width,
-                       height=image.height, encoding="rgb8", step=image.width * 3,
-                       data=image.data)
-    calib = CameraCalibration(
-        timestamp=stamp, frame_id=frame_id, width=cam.width, height=cam.height,
-        distortion_model="plumb_bob", D=[0.0] * 5,
-        K=[cam.fx, 0.0, cam.cx, 0.0, cam.fy, cam.cy, 0.0, 0.0, 1.0],
-        R=[1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-        P=[cam.fx, 0.0, cam.cx, 0.0, 0.0, cam.fy, cam.cy, 0.0, 0.0, 0.0, 1.0, 0.0])
-    c2w = np.asarray(cam.c2w, dtype=np.float64)
-    from scipy.spatial.transform import Rotation
-
-    qx, qy, qz, qw = Rotation.from_matrix(c2w[:3, :3] @ _GL_TO_OPTICAL).as_quat()
-    tf = FrameTransform(timestamp=stamp, parent_frame_id=WORLD, child_frame_id=frame_id)
-    tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in c2w[:3, 3])
-    tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = (float(qx), float(qy),
-                                                                  float(qz), float(qw))
-    topic = f"/{site}/{name}"
-    return [(f"{topic}/image", img), (f"{topic}/calibration", calib), ("/tf", tf)]
-
-
-def _without_pixels(msg: Any) -> Any:
-    out = type(msg)()
-    out.CopyFrom(msg)
-    out.image.data = b""
-    return out
-
-
-def entries(key: str, payload: bytes) -> list[tuple[str, Any, float]]:
-    """The MCAP entries of one bus message: ``(topic, protobuf message, sim time ms)``;
-    :class:`Rejected` for a key the recorder does not record or a message its decoder
-    refuses (the decoders every service uses)."""
-    m = _KEY.match(key)
-    if m is None:
-        raise Rejected(RejectReason.UNKNOWN_KEY, f"not a recorded key: {key[:200]}")
-    site = m["site"]
-    if m["edge"]:
-        frame = decode_frame(payload)
-        if frame.camera_id != int(m["cam"]):
-            raise Rejected(RejectReason.UNKNOWN_CAMERA, f"camera {frame.camera_id} on camera "
-                                                        f"{m['cam']}'s key")
-        msg = pb.Frame.FromString(payload)
-        t = frame.generation_ms
-        return [(topic, x, t) for topic, x in
-                _camera_entries(site, f"cam{frame.camera_id}", frame, msg.image)] + [
-            (f"/{site}/delivery", _without_pixels(msg), t)]
-    what = m["what"]
-    if what == "truth/frame":
-        frame = decode_frame(payload)
-        msg = pb.Frame.FromString(payload)
-        t = frame.generation_ms
-        return [(topic, x, t) for topic, x in
-                _camera_entries(site, "truth", frame, msg.image)] + [
-            (f"/{site}/truth", _without_pixels(msg), t)]
-    if what == "decision":
-        d = decode_decision(payload)
-        return [(f"/{site}/decision", d, d.time_ms)]
-    if what == "render":
-        r, _camera = _decode_render(payload)
-        img = CompressedImage(timestamp=_stamp(r.time_ms), frame_id=f"{site}/truth",
-                              data=r.image.data, format="png")
-        out = [(f"/{site}/render", _without_pixels(r), r.time_ms)]
-        if r.image.encoding == PNG:
-            out.append((f"/{site}/render/image", img, r.time_ms))
-        return out
-    if what == "quality":
-        q = decode_quality(payload)
-        return [(f"/{site}/quality", q, q.time_ms)]
-    try:
-        o = pb.Outcome.FromString(payload)
-    except Exception as err:
-        raise Rejected(RejectReason.MALFORMED, f"not a valid Outcome message ({err})") from None
-    return [(f"/{site}/outcome", o, math.nan)]
 
 
 # ---------------------------------------------------------------- the file
@@ -203,6 +83,9 @@ class RecordingStatus:
     state: str = "recording"
     """``recording``, ``stopped`` or ``failed`` (``error`` says why)."""
     error: str | None = None
+    whole: bool | None = None
+    """After a failure: whether the last segment was finished whole (summary and index) in
+    the space held for it, or left cut at its last whole message; None otherwise."""
     segments: list[str] = field(default_factory=list)
     messages: int = 0
     """Bus messages recorded (each is one or more MCAP messages)."""
@@ -222,7 +105,9 @@ class Recording:
 
     ``max_bytes``: the cap of one segment (0: none); ``chunk_bytes``: MCAP chunk size (made
     smaller under a small cap so a segment passes it by at most a chunk); ``metadata``: the
-    ``aoi3d`` metadata record of every segment."""
+    ``aoi3d`` metadata record of every segment. Each segment is written through a
+    :class:`services.recorder.sink.Sink`, which holds disk space for its summary: a full disk
+    finishes the segment whole where it can (:attr:`RecordingStatus.whole`)."""
 
     def __init__(self, path: Path, *, max_bytes: int = 0, chunk_bytes: int = 1 << 20,
                  compression: str = "zstd", metadata: dict[str, str] | None = None) -> None:
@@ -239,9 +124,10 @@ class Recording:
         self.metadata = dict(metadata or {})
         self.status = RecordingStatus(path=str(self.path), max_bytes=self.max_bytes)
         self._index = 0
-        self._file: BinaryIO | None = None
+        self._file: Sink | None = None
         self._writer: Writer | None = None
         self._done_bytes = 0
+        self._largest = 0
         try:
             self._open_next()
         except OSError as err:
@@ -255,33 +141,72 @@ class Recording:
         self._index += 1
         target = segment_path(self.path, self._index)
         target.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(target, "wb")  # noqa: SIM115 - closed by _finish or _fail
         self.status.segments.append(str(target))
-        self._writer = Writer(self._file, chunk_size=self.chunk_bytes,
-                              compression=self.compression)
-        self._writer.add_metadata("aoi3d", {**self.metadata, "segment": str(self._index)})
+        self._file = sink = Sink(target, self.chunk_bytes)  # OSError: no room for its reserve
+        writer = Writer(sink, chunk_size=self.chunk_bytes,  # type: ignore[arg-type]  # a file
+                        compression=self.compression)  # (write, tell) the stubs do not know
+        writer.add_metadata("aoi3d", {**self.metadata, "segment": str(self._index)})
+        sink.mark()
+        self._writer = writer  # (until here a failure leaves no segment: see _fail)
 
     def _finish(self) -> None:
         writer, f = self._writer, self._file
-        self._writer = self._file = None
         if writer is not None:
-            writer.finish()  # type: ignore[no-untyped-call]  # mcap_protobuf: unannotated
+            writer.finish()  # type: ignore[no-untyped-call]  # (mcap is unannotated)
+        self._writer = self._file = None
         if f is not None:
             self._done_bytes += f.tell()
             f.close()
 
     def _fail(self, err: OSError) -> None:
+        """A write failed: the segment is cut at its last whole message (or, when it could
+        not even be opened, not kept)."""
         what = ("the disk is full" if err.errno in (errno.ENOSPC, errno.EDQUOT)
                 else os.strerror(err.errno) if err.errno else str(err))
         target = self.status.segments[-1] if self.status.segments else str(self.path)
-        self.status.state = "failed"
-        self.status.error = f"recording stopped: {what} writing {target} ({err})"
-        f, self._file, self._writer = self._file, None, None
-        if f is not None:
-            with contextlib.suppress(OSError, ValueError):
-                self._done_bytes += f.tell()
-            with contextlib.suppress(OSError, ValueError):
+        f, writer, self._file, self._writer = self._file, self._writer, None, None
+        if writer is None or f is None:  # no room to open the segment: it is not kept
+            if f is not None:
                 f.close()
+            with contextlib.suppress(OSError):
+                Path(target).unlink()
+            if self.status.segments and self.status.segments[-1] == target:
+                self.status.segments.pop()
+            self._ended(True if self.status.segments else None,
+                        f"{what}: no room to start {target} ({err})"
+                        + ("; the segments before are whole" if self.status.segments else ""))
+            return
+        f.cut()
+        f.close()
+        self._ended(False, f"{what} writing {target} ({err}); the file is cut at its last "
+                           "whole message (`mcap recover` rewrites it whole)")
+
+    def _stop_full(self) -> None:
+        """The disk has no room for another chunk: finish the segment whole (its chunk in
+        progress, summary, index) in the space its sink held back, and stop."""
+        f, writer, self._file, self._writer = self._file, self._writer, None, None
+        assert f is not None and writer is not None
+        target = str(f.path)
+        f.release()
+        try:
+            writer.finish()  # type: ignore[no-untyped-call]  # (mcap is unannotated)
+            whole = True
+        except OSError:
+            f.cut()
+            whole = False
+        f.close()
+        self._ended(whole, f"the disk is full: no room for another chunk beside {target}; "
+                           + ("it was finished whole (summary and index)" if whole else
+                              "it is cut at its last whole message (`mcap recover` "
+                              "rewrites it whole)"))
+
+    def _ended(self, whole: bool | None, why: str) -> None:
+        for target in self.status.segments[-1:]:
+            with contextlib.suppress(OSError):
+                self._done_bytes += Path(target).stat().st_size
+        self.status.state = "failed"
+        self.status.whole = whole
+        self.status.error = f"recording stopped: {why}"
         self._update_bytes()
 
     def _update_bytes(self) -> None:
@@ -298,17 +223,30 @@ class Recording:
         if not self.active:
             raise Rejected(RejectReason.NOT_RECORDING, f"the recording is {self.status.state}")
         items = entries(key, payload)
-        writer, f = self._writer, self._file
-        assert writer is not None and f is not None, "active: a segment is open"
+        assert self._writer is not None and self._file is not None
+        self._largest = max(self._largest, len(payload))
+        if not self._file.room(self._largest):  # stop while the segment can end whole
+            self._stop_full()
+            return Written(0)
         try:
             for topic, msg, t_ms in items:
-                writer.write_message(topic, msg, log_time=log_ns,
-                                     publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
-                                     else log_ns)
-            self.status.messages += 1
-            self.status.mcap_messages += len(items)
+                self._writer.write_message(topic, msg, log_time=log_ns,
+                                           publish_time=sim_ns(t_ms) if math.isfinite(t_ms)
+                                           else log_ns)
+            self._file.mark()
+        except OSError as err:
+            self._fail(err)
+            return Written(len(items))
+        self.status.messages += 1
+        self.status.mcap_messages += len(items)
+        try:
+            self._file.reserve()
+        except OSError:  # no room to hold more for the summary: end while it still fits
+            self._stop_full()
+            return Written(len(items))
+        try:
             self._update_bytes()
-            if self.max_bytes and f.tell() >= self.max_bytes:
+            if self.max_bytes and self._file.tell() >= self.max_bytes:
                 self._finish()
                 self._open_next()
         except OSError as err:

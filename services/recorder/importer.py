@@ -37,10 +37,19 @@ import numpy as np
 
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
 from services.kit.codec import camera_from_pb, png_bytes
-from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
+from services.recorder.sources import (
+    NotImportable,
+    Spool,
+    Stream,
+    kind_of,
+    recorded_streams,
+    rosbag_streams,
+)
 
 __all__ = [
+    "MAX_FPS",
+    "MAX_GRID_FRAMES",
     "POSE_TOL",
     "ImportReport",
     "NotImportable",
@@ -49,21 +58,14 @@ __all__ = [
     "recorded_streams",
 ]
 
+MAX_FPS = 1000
+"""The grid's rate at most: one frame a millisecond (a slot)."""
+MAX_GRID_FRAMES = 2_000_000
+"""Grid points (frames × cameras) a dataset may have: 30 GB of 96×72 PNGs, 29 hours of 19
+cameras at 33 fps; refused before anything is written."""
 POSE_TOL = 1e-4
 """Largest change of any camera-to-world entry (metres or cosines) a fixed camera may show."""
 _TOL_MS = 1e-6
-
-
-class NotImportable(ValueError):
-    """The file cannot become a dataset; the message says why."""
-
-
-@dataclass
-class _Stream:
-    """One camera's recorded frames, by generation time."""
-
-    name: str
-    frames: list[pb.Frame] = field(default_factory=list)
 
 
 @dataclass
@@ -86,131 +88,7 @@ class ImportReport:
                 "cameras": self.cameras, "rejected": self.rejected}
 
 
-def kind_of(path: Path) -> str:
-    """``recording`` (aoi3d's protobuf schemas) or ``rosbag2`` (``ros2msg`` schemas)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
-
-    try:
-        with open(path, "rb") as stream:
-            reader = make_reader(stream)
-            summary = reader.get_summary()
-            schemas = list(summary.schemas.values()) if summary is not None else []
-            if not schemas:  # no summary (a recording cut short): read schemas on the way
-                from mcap.records import Schema
-                from mcap.stream_reader import StreamReader
-
-                stream.seek(0)
-                schemas = [r for r in StreamReader(stream).records if isinstance(r, Schema)]
-    except McapError as err:
-        raise NotImportable(f"{path} cannot be read as MCAP: {err}") from None
-    if any(s.name.startswith("aoi3d.") for s in schemas):
-        return "recording"
-    if any(s.encoding == "ros2msg" for s in schemas):
-        return "rosbag2"
-    names = ", ".join(sorted({s.name for s in schemas})) or "none"
-    raise NotImportable(f"{path}: neither an aoi3d recording (aoi3d.* schemas) nor a rosbag2 "
-                        f"of ROS 2 messages (ros2msg schemas); its schemas: {names}")
-
-
-def recorded_streams(path: Path, site: str | None = None) -> tuple[str, dict[int, _Stream],
-                                                                  np.ndarray | None]:
-    """One site's frames with pixels (truth and delivered), by camera id, and the scene box
-    its renders carry (None without a render); ``site`` may be left out when there is one."""
-    from services.recorder.recording import load
-
-    rec = load(path)
-    sites = sorted(rec.sites)
-    if site is None:
-        if len(sites) != 1:
-            raise NotImportable(f"{path} holds sites {', '.join(sites) or 'none'}: name one "
-                                "with --site")
-        site = sites[0]
-    if site not in rec.sites:
-        raise NotImportable(f"no site {site} in {path}; it holds {', '.join(sites) or 'none'}")
-    sr = rec.sites[site]
-    streams: dict[int, _Stream] = {}
-    for fr in [*sr.truth, *sr.deliveries]:
-        if fr.image.data:  # (frames known from before the recording began have no pixels)
-            streams.setdefault(fr.camera_id, _Stream(f"cam{fr.camera_id}")).frames.append(fr)
-    for s in streams.values():
-        s.frames.sort(key=lambda f: f.generation_ms)
-    aabb = next((np.asarray(r.aabb).reshape(2, 3) for r in sr.renders.values()
-                 if len(r.aabb) == 6), None)
-    return site, streams, aabb
-
-
-def _from_rosbag(files: list[Path], rig_path: Path) -> tuple[dict[int, _Stream], np.ndarray,
-                                                      Counter]:
-    from mcap.reader import make_reader
-
-    from aoi3d.rigfile import load_rig
-    from services import ros
-    from services.ingest.core import IngestCore
-    from services.kit.keys import Keys
-
-    rig = load_rig(rig_path)
-    if rig.truth is None:
-        raise NotImportable(f"{rig_path}: the rig names no truth camera; a dataset needs the "
-                            "held-out view (truth: <camera>)")
-    streams: dict[int, _Stream] = {}
-    rejected: Counter = Counter()
-    core: IngestCore | None = None
-
-    def take(published) -> None:
-        for p in published:
-            fr = pb.Frame.FromString(p.payload)
-            streams.setdefault(fr.camera_id, _Stream(p.camera)).frames.append(fr)
-
-    def expire(now_s: float) -> None:
-        assert core is not None, "after the first message"
-        frames, refused = core.expire(now_s)
-        take(frames)
-        rejected.update(err.reason for _name, err in refused)
-
-    def messages():
-        for f in files:  # a split bag's files one after another
-            with open(f, "rb") as stream:
-                yield from make_reader(stream).iter_messages(log_time_order=True)
-
-    for schema, channel, message in messages():
-        receipt_s = message.log_time / 1e9
-        if core is None:
-            # the run's clock starts as early as a stamp the ingest accepts (max_age_s)
-            # a bag has topics, not Zenoh keys or attachments: the bridge's key format
-            core = IngestCore(rig, Keys("import"), epoch_s=receipt_s - rig.clock.max_age_s,
-                              time_scale=1.0, key_format=ros.KeyFormat("bridge"))
-            routes = {r.topic: r for r in core.routes}
-        route = routes.get("/" + channel.topic.strip("/"))
-        if route is None:
-            continue
-        if schema is None or _type(schema.name) != _type(route.ros_type):
-            rejected["wrong_type"] += 1
-            continue
-        try:
-            take(core.on_sample(route, channel.topic, message.data, None, receipt_s))
-        except Rejected as err:
-            rejected[err.reason] += 1
-        expire(receipt_s)
-    path = files[0].parent if len(files) > 1 else files[0]
-    if core is None:
-        raise NotImportable(f"{path} holds no message")
-    expire(math.inf)
-    ids = rig.ids()
-    missing = [c.name for c in rig.cameras if ids[c.name] not in streams]
-    if missing:
-        why = ", ".join(f"{k} {v}" for k, v in sorted(rejected.items())) or "none refused"
-        raise NotImportable(f"camera(s) {', '.join(missing)} of {rig_path}: no frame in {path} "
-                            f"(the ingest refused: {why})")
-    return streams, rig.scene_box.reshape(2, 3), rejected
-
-
-def _type(name: str) -> str:
-    """``sensor_msgs/msg/Image`` and ``sensor_msgs/Image`` alike."""
-    return name.replace("/msg/", "/")
-
-
-def _fixed_camera(stream: _Stream) -> Camera:
+def _fixed_camera(stream: Stream) -> Camera:
     c2w = np.stack([np.asarray(f.pose.c2w, dtype=np.float64) for f in stream.frames])
     moved = float(np.max(np.ptp(c2w, axis=0)))
     if moved > POSE_TOL:
@@ -224,65 +102,51 @@ def _fixed_camera(stream: _Stream) -> Camera:
         raise NotImportable(f"camera {stream.name}: {err.detail}") from None
 
 
-def _mcap_files(path: Path) -> list[Path]:
-    """The file ``path``, or a rosbag2 folder's .mcap files (split or not) in order."""
+def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
+                rig: str | Path | None = None, fps: int | None = None,
+                aabb: list[float] | None = None) -> tuple[SceneDataset, ImportReport]:
+    """Write the dataset ``out`` from the MCAP file ``path`` (see the module docstring)."""
+    path = Path(path)
     files = [path]
-    if path.is_dir():
+    if path.is_dir():  # a rosbag2 folder (metadata.yaml and its .mcap files, split or not)
         files = sorted(path.glob("*.mcap"), key=lambda f: [int(t) if t.isdigit() else t for t
                                                            in re.split(r"(\d+)", f.name)])
         if not files:
             raise NotImportable(f"{path} is a folder without an .mcap file")
     elif not path.is_file():
         raise NotImportable(f"no file at {path}")
-    return files
-
-
-def _on_the_grid(streams: dict[int, _Stream], order: list[int], t0: float, t1: float,
-                 step: float, n_frames: int
-                 ) -> tuple[list[Camera], list[list[int]], list[dict]]:
-    """Per camera: its camera, its frame at each t0 + k·step (the newest), its report row."""
-    cameras: list[Camera] = []
-    picks: list[list[int]] = []
-    rows: list[dict] = []
-    for cam in order:
-        s = streams[cam]
-        cameras.append(_fixed_camera(s))
-        gens = [f.generation_ms for f in s.frames]
-        pick = [bisect.bisect_right(gens, t0 + k * step + _TOL_MS) - 1 for k in range(n_frames)]
-        used = set(pick)
-        in_span = [i for i, g in enumerate(gens) if t0 - _TOL_MS <= g <= t1 + _TOL_MS]
-        held = sum(1 for k, i in enumerate(pick) if t0 + k * step - gens[i] >= step - _TOL_MS)
-        rows.append({"id": len(rows), "name": s.name, "recorded_id": cam,
-                     "frames": len(s.frames), "used": len(used),
-                     "dropped": len([i for i in in_span if i not in used]), "held": held})
-        picks.append(pick)
-    return cameras, picks, rows
-
-
-def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
-                rig: str | Path | None = None, fps: int | None = None,
-                aabb: list[float] | None = None) -> tuple[SceneDataset, ImportReport]:
-    """Write the dataset ``out`` from the MCAP file ``path`` (see the module docstring)."""
-    path = Path(path)
-    files = _mcap_files(path)
     kind = kind_of(files[0])
     if kind == "recording" and path.is_dir():
         raise NotImportable(f"{path}: give an aoi3d recording's .mcap file (its .partN "
                             "segments are found beside it)")
+    spool = Spool()
+    try:
+        return _import(path, files, kind, out, site=site, rig=rig, fps=fps, aabb=aabb,
+                       spool=spool)
+    finally:
+        spool.close()
+
+
+def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: str | None,
+            rig: str | Path | None, fps: int | None, aabb: list[float] | None,
+            spool: Spool) -> tuple[SceneDataset, ImportReport]:
     rejected: Counter = Counter()
     box = None
     if kind == "recording":
         if rig is not None:
             raise NotImportable("--rig is for a rosbag2; an aoi3d recording carries its "
                                 "cameras itself")
-        site, streams, box = recorded_streams(path, site)
+        notes: list[str] = []
+        site, streams, box = recorded_streams(path, site, notes=notes)
+        if notes:
+            rejected["cut_short"] += len(notes)
     else:
         if rig is None:
             raise NotImportable(f"{path} is a rosbag2: give the rig file that says which topic "
                                 "is which camera (--rig)")
         if site is not None:
             raise NotImportable("--site is for an aoi3d recording (a rosbag2 has no sites)")
-        streams, box, rejected = _from_rosbag(files, Path(rig))
+        streams, box, rejected = rosbag_streams(files, Path(rig), spool)
     if aabb is not None:
         box = np.asarray(aabb, dtype=np.float64).reshape(2, 3)
     if box is None:
@@ -302,7 +166,14 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         gaps = np.diff(np.unique(truth_gens))
         if gaps.size == 0:
             raise NotImportable(f"{path} holds one truth frame: give --fps")
-        fps = max(1, round(1000.0 / float(np.median(gaps))))
+        gap = float(np.median(gaps))
+        if gap < 1000.0 / MAX_FPS:
+            raise NotImportable(f"{path}: the truth frames are {gap:.3g} ms apart (median), "
+                                f"a grid over {MAX_FPS} fps: give --fps")
+        fps = max(1, round(1000.0 / gap))
+    if not 1 <= fps <= MAX_FPS:
+        raise NotImportable(f"--fps must be 1..{MAX_FPS} (a frame a millisecond at most), "
+                            f"got {fps}")
     step = 1000.0 / fps
     t0 = max(s.frames[0].generation_ms for s in streams.values())
     t1 = min(s.frames[-1].generation_ms for s in streams.values())
@@ -310,14 +181,33 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         raise NotImportable(f"the cameras' frames do not overlap in time (the latest first frame "
                             f"at {t0:.0f} ms, the earliest last one at {t1:.0f} ms)")
     n_frames = math.floor((t1 - t0) / step + 1e-9) + 1
-    cameras, picks, rows = _on_the_grid(streams, order, t0, t1, step, n_frames)
+    if n_frames * len(order) > MAX_GRID_FRAMES:
+        raise NotImportable(f"{path}: {n_frames} frames × {len(order)} cameras at {fps} fps "
+                            f"over {(t1 - t0) / 1000:.1f} s, over the {MAX_GRID_FRAMES} frames "
+                            f"a dataset may have: give a lower --fps")
+    cameras: list[Camera] = []
+    picks: list[list[int]] = []
+    rows: list[dict[str, object]] = []
+    for cam in order:
+        s = streams[cam]
+        cameras.append(_fixed_camera(s))
+        gens = [f.generation_ms for f in s.frames]
+        pick = [bisect.bisect_right(gens, t0 + k * step + _TOL_MS) - 1 for k in range(n_frames)]
+        used = set(pick)
+        in_span = [i for i, g in enumerate(gens) if t0 - _TOL_MS <= g <= t1 + _TOL_MS]
+        held = sum(1 for k, i in enumerate(pick) if t0 + k * step - gens[i] >= step - _TOL_MS)
+        rows.append({"id": len(rows), "name": s.name, "recorded_id": cam,
+                     "frames": len(s.frames), "used": len(used),
+                     "dropped": len([i for i in in_span if i not in used]), "held": held})
+        picks.append(pick)
     sizes = {(c.width, c.height) for c in cameras}
     if len(sizes) != 1:
         raise NotImportable(f"the cameras' images differ in size ({sorted(sizes)}): the layout "
                             "holds one size")
 
     def frame_png(camera_id: int, k: int) -> bytes:
-        return png_bytes(streams[order[camera_id]].frames[picks[camera_id][k]].image)
+        s = streams[order[camera_id]]
+        return png_bytes(s.pixels(s.frames[picks[camera_id][k]]).image)
 
     report = ImportReport(source=str(path), kind=kind, site=site, out=str(out), fps=fps,
                           n_frames=n_frames, t0_ms=t0, cameras=rows, rejected=dict(rejected))

@@ -116,8 +116,13 @@ class Player:
 
     def __init__(self, frames: dict[int, list[pb.Frame]], cfg: PlayConfig,
                  put: Callable[[str, bytes, bytes | None], None],
-                 clock: Callable[[], float] = time.time) -> None:
+                 clock: Callable[[], float] = time.time,
+                 pixels: Callable[[int, pb.Frame], pb.Frame] | None = None) -> None:
+        """``pixels(camera, frame)``: the frame with its pixels, read when it is sent (a
+        recording played from its file: memory holds the frames' metadata only); default:
+        the frames carry them."""
         self.cfg = cfg
+        self._pixels = pixels or (lambda _n, fr: fr)
         self._put = put
         self._clock = clock
         fmt = ros.KeyFormat(cfg.format, cfg.domain_id, cfg.namespace)
@@ -155,7 +160,8 @@ class Player:
             i = fr.intrinsics
             out.append(("camera_info", ros.camera_info_msg(stamp, name, i.fx, i.fy, i.cx, i.cy,
                                                            i.width, i.height)))
-        out.append(("image", ros.compressed_bytes_msg(stamp, name, png_bytes(fr.image), "png")))
+        png = png_bytes(self._pixels(n, fr).image)
+        out.append(("image", ros.compressed_bytes_msg(stamp, name, png, "png")))
         return [(kind, self._pubs[(n, kind)].encode(msg)) for kind, msg in out]
 
     def run(self, stop: threading.Event | None = None) -> None:

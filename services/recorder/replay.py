@@ -31,6 +31,7 @@ history and are refused.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
@@ -165,7 +166,8 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                 continue
             render = srec.renders[key]
             used = list(render.frame_generation_ms) if chosen is None else None
-            frames = job_frames(selected, used, arr, render.frame_camera_ids)
+            frames = job_frames(selected, used, arr, render.frame_camera_ids,
+                                functools.partial(rec.has_pixels, site))
             out.rebuildable = frames is not None
             if frames is None:
                 out.skipped = "frames_not_recorded"

@@ -5,22 +5,31 @@ compares with the recorded ones (:data:`SCORES`)."""
 
 from __future__ import annotations
 
+import bisect
 import math
+from typing import Any
 
 from aoi3d.metric import AT_DECISION
-from aoi3d.quality import LpipsFn, RewardWeights
+from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.recording import Recorded, SiteRecord
 
 __all__ = ["SCORES", "Scorer", "job_budgets"]
 
+TRUTH_RING = 512
+"""Truth frames a replay's scorer holds at once (the live metrics service's ring)."""
 SCORES = AT_DECISION
 """The Quality fields compared (each where both have it): the scores at the decision's time,
 :data:`aoi3d.metric.AT_DECISION`."""
 
 
 class Scorer:
-    """Rebuilds renders with the live worker's code and scores them with the metrics code."""
+    """Rebuilds renders with the live worker's code and scores them with the metrics code.
+
+    The truth frames go into the metrics core's ring as the scored decisions reach them, each
+    read from the recording when it goes in (:meth:`Recorded.with_pixels`), at most
+    :data:`TRUTH_RING` of them held: memory does not grow with the recording. A render is
+    paired with the truth of its time and the :data:`DYNAMIC_FRAMES` before it, as live."""
 
     def __init__(self, rec: Recorded, site: str, *, lpips: bool, threads: int,
                  lpips_fn: LpipsFn | None = None) -> None:
@@ -41,15 +50,31 @@ class Scorer:
             if lpips_fn is None:
                 raise ValueError("the recorded scores used LPIPS but its weights are not "
                                  "cached here (python -m aoi3d.lpips fetch)")
-        truth = rec.sites[site].truth
+        self._rec, self._site = rec, site
+        self._truth = rec.sites[site].truth  # sorted by generation time
+        self._gens = [fr.generation_ms for fr in self._truth]
         self.metrics = MetricsCore(truth_period_ms=float(meta.get("truth_period_ms", 30.0)),
-                                   truth_frames=max(1, len(truth)), weights=weights,
+                                   truth_frames=TRUTH_RING, weights=weights,
                                    lpips_fn=lpips_fn if lpips else None, site=site)
-        for fr in truth:
-            if fr.image.data:
-                self.metrics.on_truth(fr.SerializeToString(), math.inf)
+        self._fed = (0, 0)  # the truth frames [lo, hi) fed into the ring since it was made
         self.recon = ReconCore(worker_id="replay", device="cpu", num_threads=threads)
-        self._cache: dict[tuple[object, ...], pb.Quality] = {}
+        self._cache: dict[tuple[Any, ...], pb.Quality] = {}
+
+    def _feed(self, start_ms: float, end_ms: float) -> None:
+        """The ring holds every truth frame generated in [start_ms, end_ms]."""
+        from services.metrics.core import TruthRing
+
+        lo = bisect.bisect_left(self._gens, start_ms)
+        hi = bisect.bisect_right(self._gens, end_ms)
+        fed_lo, fed_hi = self._fed
+        if lo < fed_lo or lo < fed_hi - TRUTH_RING or hi - lo > TRUTH_RING:
+            self.metrics.ring = TruthRing(TRUTH_RING)  # back in time: fed again from lo
+            fed_lo = fed_hi = lo
+        for fr in self._truth[max(fed_hi, lo):hi]:
+            full = self._rec.with_pixels(self._site, fr)
+            if full.image.data:
+                self.metrics.on_truth(full.SerializeToString(), math.inf)
+        self._fed = (fed_lo, max(fed_hi, hi))
 
     def score(self, decision: pb.Decision, render: pb.Render, frames: list[pb.Frame],
               steps: int) -> pb.Quality:
@@ -68,8 +93,10 @@ class Scorer:
                      pose=render.pose, intrinsics=render.intrinsics, aabb=list(render.aabb),
                      site=render.site)
         for f in frames:
-            job.frames.add().CopyFrom(f)
+            job.frames.add().CopyFrom(self._rec.with_pixels(self._site, f))
         outcome = self.recon.run(job)
+        period = self.metrics.period_ms
+        self._feed(decision.time_ms - (DYNAMIC_FRAMES + 2) * period, decision.time_ms + 1.0)
         q = self.metrics.score(outcome.render.SerializeToString(), math.inf).message
         self._cache[key] = q
         return q

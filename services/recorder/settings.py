@@ -24,7 +24,8 @@ class Settings(ServiceSettings):
     max_bytes: int = Field(
         0, ge=0, description="Size cap of one MCAP segment in bytes (0: none); a full segment "
                              "is finished and the recording goes on in <stem>.part2.mcap, "
-                             "part3 … beside it.")
+                             "part3 … beside it (nothing is deleted: a full disk stops it, "
+                             "every file whole).")
     chunk_bytes: int = Field(1 << 20, ge=4096, le=64 << 20,
                              description="MCAP chunk size (compressed as a unit).")
     compression: Literal["zstd", "lz4", "none"] = Field(

@@ -4,7 +4,9 @@ It subscribes the run's recorded keys of every site (deliveries, truth frames, d
 renders, quality, outcomes) once, at start; while no recording is open the handlers drop what
 comes (one flag read). While one is open they only enqueue (key, payload, receipt time) into
 a bounded inbox, and one writing thread hands them to the core. A write that fails (a full
-disk) ends the recording with its error — the recorder, and with it the pipeline, goes on.
+disk) ends the recording with its error — the recorder, and with it the pipeline, goes on;
+the error is in ``GET /recording`` and ``GET /status``, ``/readyz``'s reason, the log, and
+``aoi3d_recorder_failed`` (alert ``AoI3DRecordingFailed``).
 """
 
 from __future__ import annotations
@@ -59,6 +61,15 @@ class RecorderWorker:
                                                       "(0 when idle).", registry=registry)
         self._m_state = Gauge("aoi3d_recorder_recording",
                               "1 while a recording is open, else 0.", registry=registry)
+        self._m_failed = Gauge("aoi3d_recorder_failed",
+                               "1 when the latest recording stopped on a write error (a full "
+                               "disk), until a new one starts; else 0 (alert "
+                               "AoI3DRecordingFailed).", registry=registry)
+        self._m_failures = Counter("aoi3d_recorder_failures",
+                                   "Recordings stopped by a write error, by reason (disk_full, "
+                                   "io_error).", ["reason"], registry=registry)
+        for reason in ("disk_full", "io_error"):
+            self._m_failures.labels(reason=reason)
 
     # ------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -96,8 +107,9 @@ class RecorderWorker:
                             compression=self._compression, metadata=meta)
             self._last = rec.status
             if not rec.active:
-                log.error("%s", rec.status.error)
+                self._failed(rec)
                 return rec.status
+            self._m_failed.set(0)
             self._recording = rec
             self._on = True
             self._m_state.set(1)
@@ -129,6 +141,14 @@ class RecorderWorker:
                  status.state, status.messages, status.bytes_written, len(status.segments))
         return status
 
+    def _failed(self, rec: Recording) -> None:
+        """A recording that stopped on a write error: logged, counted, the gauge up."""
+        log.error("%s", rec.status.error)
+        error = rec.status.error or ""
+        self._m_failures.labels(reason="disk_full" if "disk is full" in error
+                                else "io_error").inc()
+        self._m_failed.set(1)
+
     def status(self) -> RecordingStatus | None:
         with self._lock:
             return self._last
@@ -157,7 +177,7 @@ class RecorderWorker:
                 self.rejections.reject(err, key)
                 return
             if not rec.active:  # the write failed: the recording ends, the recorder goes on
-                log.error("%s", rec.status.error)
+                self._failed(rec)
                 self._recording = None
                 self._on = False
                 self._m_state.set(0)

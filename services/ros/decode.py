@@ -80,6 +80,8 @@ def _compressed_rgb(msg: Message, max_pixels: int) -> np.ndarray:
     try:
         im = PILImage.open(io.BytesIO(data), formats=[kind])
         w, h = im.size  # the header only: nothing is decoded yet
+    except PILImage.DecompressionBombError as err:  # declared over PIL's own limit
+        raise Rejected(RejectReason.TOO_LARGE, f"a {kind} whose header says {err}"[:200]) from None
     except Exception as err:
         raise Rejected(RejectReason.BAD_IMAGE,
                        f"{kind} header unreadable ({type(err).__name__})") from None

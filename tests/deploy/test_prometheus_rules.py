@@ -48,7 +48,7 @@ def test_the_alerts_the_operators_asked_for_exist() -> None:
     assert names == {"AoI3DServiceDown", "AoI3DNoQuality", "AoI3DPSNRDrop",
                      "AoI3DNoCameraSelected", "AoI3DTrainerStalled",
                      "AoI3DRejectedMessagesRising", "AoI3DPoolEmpty", "AoI3DDecisionsLost",
-                     "AoI3DCameraTopicUnpublished"}
+                     "AoI3DCameraTopicUnpublished", "AoI3DRecordingFailed"}
     config = yaml.safe_load((PROM / "prometheus.yml").read_text())
     assert config["rule_files"] == ["rules/*.yml"]
 

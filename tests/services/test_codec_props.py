@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from aoi3d.scene.camera import Camera, look_at
@@ -22,8 +22,9 @@ from services.kit.codec import (
 )
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
+from tests.support.fuzz import fuzz
 
-SETTINGS = settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
+SETTINGS = fuzz(300)  # tests/support/fuzz.py: `make fuzz` runs it deeper
 DECODERS = [lambda b: decode_frame(b), lambda b: decode_frame(b, {1, 2}, (8, 6)),
             decode_decision, decode_render, decode_quality, lambda b: with_delivery(b, 1.0)]
 CAMERA = Camera(c2w=look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.5)), fx=8.0, fy=8.0, cx=4.0,

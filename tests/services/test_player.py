@@ -107,3 +107,26 @@ def test_the_live_replay_command_writes_its_rig_file_and_refuses_what_is_not_liv
     assert res.exit_code == 2 and "--epoch-s are for --live" in said(res)
     res = runner.invoke(app, ["replay", str(tmp_path / "run.mcap"), "--live", "--rig-only"])
     assert res.exit_code == 2 and "needs --write-rig" in said(res)
+
+
+def test_a_recording_plays_from_its_file_reading_each_frames_pixels_when_it_is_sent(
+        tmp_path) -> None:
+    """``aoi3d replay --live`` holds the frames' metadata only: each PNG is read from the
+    file as its frame goes out, byte for byte the recorded one."""
+    from services.recorder.sources import recorded_streams
+    from tests.support.recording import frame_seed
+
+    _record(tmp_path / "run.mcap")
+    _site, streams, _box = recorded_streams(tmp_path / "run.mcap")
+    frames = {n: s.frames for n, s in streams.items()}
+    assert all(not f.image.data for lst in frames.values() for f in lst)  # not in memory
+    clock = FakeClock(EPOCH)
+    sent: list[tuple[str, bytes]] = []
+    player = Player(frames, PlayConfig(), lambda k, p, a: sent.append((k, p)), clock=clock,
+                    pixels=lambda n, fr: streams[n].pixels(fr))
+    player.run(clock)
+    images = [ros.decode_cdr(p, ros.COMPRESSED, 1 << 20) for k, p in sent if "image" in k]
+    assert len(images) == player.sent == sum(len(lst) for lst in frames.values())
+    want = {encode_png(noise_image(frame_seed(n, int(f.generation_ms // 30)))).data
+            for n, lst in frames.items() for f in lst}
+    assert {bytes(m.data) for m in images} == want

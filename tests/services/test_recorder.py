@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import contextlib
 import math
-import subprocess
 from collections import Counter
 from pathlib import Path
 
@@ -24,7 +23,17 @@ from services.kit.settings import CommonSettings
 from services.recorder.app import create_app
 from services.recorder.core import Recording, segments
 from services.recorder.settings import Settings
-from tests.support.recording import RUN, H, K, W, camera, frame, noise_image, one_of_each
+from tests.support.recording import (
+    RUN,
+    H,
+    K,
+    W,
+    camera,
+    frame,
+    noise_image,
+    one_of_each,
+    small_disk,
+)
 from tests.support.waits import wait_for
 
 
@@ -126,21 +135,6 @@ def test_size_cap_rotates_into_whole_segments(tmp_path: Path) -> None:
         with open(p, "rb") as f:
             assert make_reader(f).get_summary().statistics.message_count == len(got)
     assert deliveries == [30.0 * i for i in range(n)]  # nothing lost or doubled at a seam
-
-
-@contextlib.contextmanager
-def small_disk(tmp_path: Path, size_kib: int):
-    """A real filesystem of ``size_kib`` KiB (tmpfs; the tests run as root)."""
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs", str(mnt)],
-                       capture_output=True, text=True)
-    if r.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here (not root?): {r.stderr.strip()}")
-    try:
-        yield mnt
-    finally:
-        subprocess.run(["umount", "-l", str(mnt)], check=False)
 
 
 def test_full_disk_stops_the_recording_with_a_clear_error(tmp_path: Path) -> None:

@@ -31,6 +31,20 @@ def common(**kw) -> CommonSettings:
 
 def build(service: str, ds: SceneDataset, **kw) -> FastAPI:
     bus = MemoryBus()
+    if service == "recorder":  # (files_roots: where a fuzzed start may write)
+        from services.recorder.app import create_app as recorder_app
+        from services.recorder.settings import Settings as RecorderSettings
+
+        return recorder_app(RecorderSettings(common=common(**kw)), bus=bus)
+    if service == "ingest":
+        from aoi3d.rigfile import rig_from_dict
+        from services.ingest.app import create_app as ingest_app
+        from services.ingest.settings import Settings as IngestSettings
+        from tests.support.ingest import rig_doc
+
+        rig = rig_from_dict(rig_doc())
+        return ingest_app(IngestSettings(common=common(epoch_s=time.time() - 60, **kw)),
+                          bus=bus, rig=rig, source=MemoryBus())
     if service == "camera":
         return camera_app(CameraSettings(common=common(dataset=ds.root, **kw)), bus=bus,
                           clock=SimClock(time.time(), 1.0), dataset=ds)
@@ -43,3 +57,6 @@ def build(service: str, ds: SceneDataset, **kw) -> FastAPI:
     settings = make_settings(common=common(time_scale=10.0, epoch_s=time.time(), **kw))
     return trainer_app(settings, bus=bus, dataset=ds)
 SERVICES = ["camera", "network", "scheduler", "trainer", "metrics"]
+FUZZED = [*SERVICES, "recorder", "ingest"]
+"""Every service whose REST API the fuzz test drives (the five, and those added with real
+cameras and recordings)."""

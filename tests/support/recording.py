@@ -3,10 +3,14 @@ are predictable), frames, and one message of every kind the recorder keeps."""
 
 from __future__ import annotations
 
+import contextlib
 import math
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from aoi3d.scene.camera import Camera, look_at
 from services.kit.codec import camera_to_pb, encode_frame, encode_png
@@ -95,3 +99,51 @@ def write_recording(path: Path, *, lost=((2, 7),), moving: int | None = None, tr
                        aabb=AABB, site="site1")
     rec.write(K.render, render.SerializeToString(), log_ns=frames)
     rec.close()
+
+
+def write_long_recording(path: Path, *, steps: int, size: tuple[int, int] = (24, 18),
+                         compression: str = "zstd", chunk_bytes: int = 1 << 20) -> int:
+    """A recording of ``steps`` decision epochs 30 ms apart: truth camera 0 and cameras 1, 2
+    delivering a ``size`` frame of noise each (incompressible: the file is about
+    3 × steps × w × h × 3 bytes), and a ``mat:70`` decision after them. Its size in bytes."""
+    w, h = size
+    rng = np.random.default_rng(7)
+    cams = {c: Camera(c2w=look_at((float(c), -4.0, 1.0), (0.0, 0.0, 0.5)), fx=20.0 * w / W,
+                      fy=20.0 * w / W, cx=w / 2, cy=h / 2, width=w, height=h)
+            for c in (0, 1, 2)}
+    rec = Recording(path, compression=compression, chunk_bytes=chunk_bytes)
+    for k in range(1, steps + 1):
+        s = 30.0 * k
+        for c in (0, 1, 2):
+            pixels = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+            payload = encode_frame(camera_id=c, sequence=k, generation_ms=s - 2.0,
+                                   scene_time_ms=s - 2.0, camera=cams[c],
+                                   image=encode_png(pixels), send_ms=s - 2.0,
+                                   delivery_ms=s - 1.0 if c else 0.0)
+            rec.write(K.truth if c == 0 else K.edge_frame(c), payload, log_ns=3 * k + c)
+        d = pb.Decision(decision_id=k, time_ms=s, camera_ids=[1, 2], aoi_ms=[2.0, 2.0],
+                        policy="mat:70",
+                        selected=[pb.FrameRef(camera_id=c, sequence=k, generation_ms=s - 2.0,
+                                              aoi_ms=2.0) for c in (1, 2)])
+        rec.write(K.decision, d.SerializeToString(), log_ns=3 * k + 3)
+    pose, intr = camera_to_pb(cams[0])
+    render = pb.Render(decision_id=1, time_ms=30.0, pose=pose, intrinsics=intr,
+                       image=encode_png(rng.integers(0, 256, (h, w, 3), dtype=np.uint8)),
+                       backend="grid", carry="fresh", aabb=AABB, site="site1")
+    rec.write(K.render, render.SerializeToString(), log_ns=3 * steps + 4)
+    return rec.close().bytes_written
+
+
+@contextlib.contextmanager
+def small_disk(tmp_path: Path, size_kib: int) -> Iterator[Path]:
+    """A real filesystem of ``size_kib`` KiB (tmpfs; the tests run as root)."""
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_kib}k", "tmpfs", str(mnt)],
+                       capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here (not root?): {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)

@@ -9,7 +9,7 @@ import contextlib
 import time
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from aoi3d.rigfile import rig_from_dict
@@ -17,9 +17,10 @@ from services import ros
 from services.ingest.core import IngestCore
 from services.kit.keys import Keys
 from services.kit.rejected import Rejected
+from tests.support.fuzz import fuzz
 from tests.support.ingest import C2W, EPOCH, GID, OPTICAL, T0, H, W, rig_doc
 
-SETTINGS = settings(max_examples=250, deadline=None, suppress_health_check=list(HealthCheck))
+SETTINGS = fuzz(250)  # tests/support/fuzz.py: `make fuzz` runs it deeper
 SLOW_S = 1.0
 """No sample may take longer than this to accept or refuse."""
 RGB = np.random.default_rng(1).integers(0, 255, (H, W, 3), dtype=np.uint8)

@@ -13,7 +13,15 @@ PACKET_BYTES = 1500
 DEFAULT_FRAME_BYTES = 12_000
 """Size of a frame whose size is not known (a trace channel needs one): 12 kB."""
 MAX_REGIMES = 64
-MAX_TRACE_LINES = 20_000_000
+MAX_TRACE_LINES = 4_000_000
+"""Lines a trace may hold (the longest cellular traces hold about 200,000): 32 MB loaded."""
+MAX_TRACE_BYTES = 64 * 2**20
+"""Bytes a trace file may have; a larger one is refused before it is read."""
+MAX_TRACE_PERIOD_MS = 86_400_000
+"""A trace's period (its last time, after ``scale``) may be at most a day."""
+MAX_TRACE_CACHE_BYTES = 128 * 2**20
+"""The loaded traces kept (by path, modification time and scale), in bytes of their times;
+the least recently used one goes first."""
 
 CHANNEL_FORMS: tuple[str, ...] = (
     "regimes:SPEC@DUR,SPEC@DUR,…",

@@ -117,20 +117,25 @@ def transmission_summary(channel: TraceChannel, frame_bytes: int, period_ms: int
                          duration_ms: int | None = None) -> dict[str, float]:
     """One camera at phase ``offset`` offering a ``frame_bytes`` frame every ``period_ms``
     over the trace's length (or ``duration_ms``) through a D/G/1/0 link: mean / p50 / p90 /
-    p99 transmission time (ms) and the drop ratio."""
+    p99 transmission time (ms) and the drop ratio.
+
+    The work is one step per *accepted* frame, not per offered one: a frame offered while
+    the previous one is in flight is dropped, so the next accepted frame is the first offer
+    at or after the link frees. Each accepted frame uses at least one opportunity of the
+    trace or takes up to ``MAX_DELAY_MS``, so the steps are at most the trace's
+    opportunities plus duration / ``MAX_DELAY_MS``, whatever its period."""
+    if period_ms < 1:
+        raise ValueError(f"period_ms must be >= 1, got {period_ms!r}")
     trace = channel.trace
     server = _TraceServer(trace, channel.offset_ms, 0)
     end = int(duration_ms if duration_ms is not None else math.ceil(trace.period_ms))
-    busy = -math.inf
+    offered = max(0, -(-end // period_ms))  # len(range(0, end, period_ms))
     ys: list[int] = []
-    offered = 0
-    for g in range(0, end, period_ms):
-        offered += 1
-        if g < busy:
-            continue
+    g = 0
+    while g < end:
         y = server.slots(g, frame_bytes)
-        busy = g + y
         ys.append(y)
+        g = -(-(g + y) // period_ms) * period_ms  # the first offer at or after g + y
     arr = np.asarray(ys, dtype=np.float64)
     return {"mean_ms": float(arr.mean()), "p50_ms": float(np.percentile(arr, 50)),
             "p90_ms": float(np.percentile(arr, 90)), "p99_ms": float(np.percentile(arr, 99)),

@@ -5,12 +5,21 @@ from __future__ import annotations
 
 import math
 import os
+import warnings
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from aoi3d.channel.varying.spec import MAX_TRACE_LINES, PACKET_BYTES, ChannelSpecError
+from aoi3d.channel.varying.spec import (
+    MAX_TRACE_BYTES,
+    MAX_TRACE_CACHE_BYTES,
+    MAX_TRACE_LINES,
+    MAX_TRACE_PERIOD_MS,
+    PACKET_BYTES,
+    ChannelSpecError,
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -37,11 +46,15 @@ class Trace:
         return c * self.period_ms + float(self.times_ms[i])
 
 
-_TRACES: dict[tuple[str, float, float], Trace] = {}
+_TRACES: OrderedDict[tuple[str, float, float], Trace] = OrderedDict()
 
 
 def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
-    """Read a mahimahi trace (cached by path, modification time and scale)."""
+    """Read a mahimahi trace (cached by path, modification time and scale, at most
+    ``MAX_TRACE_CACHE_BYTES`` of times, least recently used out first). Refused with a
+    ``ChannelSpecError`` naming the file: over ``MAX_TRACE_BYTES`` or ``MAX_TRACE_LINES``,
+    times that are not finite, negative or decreasing, a period (the last time, scaled) over
+    ``MAX_TRACE_PERIOD_MS``."""
     p = Path(path).expanduser()
     try:
         stat = p.stat()
@@ -49,11 +62,17 @@ def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
         raise ChannelSpecError(f"cannot read trace {str(p)!r}: {err.strerror}") from None
     if not p.is_file():
         raise ChannelSpecError(f"trace {str(p)!r} is not a file")
+    if stat.st_size > MAX_TRACE_BYTES:
+        raise ChannelSpecError(f"trace {str(p)!r} has {stat.st_size} bytes, over the "
+                               f"{MAX_TRACE_BYTES} a trace may have")
     key = (str(p.resolve()), stat.st_mtime, float(scale))
     if key in _TRACES:
+        _TRACES.move_to_end(key)
         return _TRACES[key]
     try:
-        raw = np.loadtxt(p, dtype=np.float64, ndmin=1, max_rows=MAX_TRACE_LINES + 1)
+        with warnings.catch_warnings():  # an empty file: refused below, not warned about
+            warnings.simplefilter("ignore", UserWarning)
+            raw = np.loadtxt(p, dtype=np.float64, ndmin=1, max_rows=MAX_TRACE_LINES + 1)
     except (ValueError, OSError):  # the reader's message may quote the file: left out
         raise ChannelSpecError(f"trace {str(p)!r} is not a mahimahi trace (one integer ms "
                                f"a line)") from None
@@ -65,11 +84,21 @@ def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
         raise ChannelSpecError(f"trace {str(p)!r} must hold non-decreasing times >= 0")
     times = raw * float(scale)
     period = max(float(times[-1]), 1.0)
+    if not period <= MAX_TRACE_PERIOD_MS:
+        raise ChannelSpecError(f"trace {str(p)!r} lasts {format(period, '.6g')} ms "
+                               f"(scaled), over the {MAX_TRACE_PERIOD_MS} ms (a day) a trace "
+                               f"may last")
     trace = Trace(str(p), times, period)
-    if len(_TRACES) > 32:
-        _TRACES.clear()
     _TRACES[key] = trace
+    while sum(t.times_ms.nbytes for t in _TRACES.values()) > MAX_TRACE_CACHE_BYTES:
+        _TRACES.popitem(last=False)
     return trace
+
+
+def cached_trace_bytes() -> int:
+    """Bytes of the traces' times held by the cache now."""
+    return sum(t.times_ms.nbytes for t in _TRACES.values())
+
 
 @dataclass
 class CellQueue:
