@@ -101,9 +101,8 @@ def up(
              "decisions, renders, Quality and outcomes. `aoi3d replay FILE` re-runs it. "
              "Without it the recorder idles until POST /recording/start.")] = None,
     record_max_mb: Annotated[float, typer.Option(
-        min=0, help="Size cap of one recording segment in MiB (0: none); the recording "
-                    "rotates into <stem>.part2.mcap, part3 … beside it (nothing deleted) and "
-                    "stops, its files whole, when the disk fills.")] = 0.0,
+        min=0, help="Size cap of one recording segment in MiB (0: none): it rotates into "
+                    "<stem>.part2.mcap, part3 … (nothing deleted); a full disk stops it.")] = 0.0,
 ) -> None:
     """Run the Zenoh router and the pipeline's services locally, supervised, until Ctrl-C (on
     real cameras with --rig). The ports and the dataset (or rig file) are checked first: a

@@ -127,6 +127,23 @@ def import_mcap(path: str | Path, out: str | Path, *, site: str | None = None,
         spool.close()
 
 
+def _grid_fps(path: Path, truth_gens: list[float], fps: int | None) -> int:
+    """The dataset's frame rate: ``fps`` checked, else the truth camera's (its median gap)."""
+    if fps is None:
+        gaps = np.diff(np.unique(np.array(truth_gens)))
+        if gaps.size == 0:
+            raise NotImportable(f"{path} holds one truth frame: give --fps")
+        gap = float(np.median(gaps))
+        if gap < 1000.0 / MAX_FPS:
+            raise NotImportable(f"{path}: the truth frames are {gap:.3g} ms apart (median), "
+                                f"a grid over {MAX_FPS} fps: give --fps")
+        fps = max(1, round(1000.0 / gap))
+    if not 1 <= fps <= MAX_FPS:
+        raise NotImportable(f"--fps must be 1..{MAX_FPS} (a frame a millisecond at most), "
+                            f"got {fps}")
+    return fps
+
+
 def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: str | None,
             rig: str | Path | None, fps: int | None, aabb: list[float] | None,
             spool: Spool) -> tuple[SceneDataset, ImportReport]:
@@ -161,19 +178,7 @@ def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: 
     order = [HELDOUT_ID, *train]
     for s in streams.values():
         s.frames.sort(key=lambda f: f.generation_ms)
-    truth_gens = np.array([f.generation_ms for f in streams[HELDOUT_ID].frames])
-    if fps is None:
-        gaps = np.diff(np.unique(truth_gens))
-        if gaps.size == 0:
-            raise NotImportable(f"{path} holds one truth frame: give --fps")
-        gap = float(np.median(gaps))
-        if gap < 1000.0 / MAX_FPS:
-            raise NotImportable(f"{path}: the truth frames are {gap:.3g} ms apart (median), "
-                                f"a grid over {MAX_FPS} fps: give --fps")
-        fps = max(1, round(1000.0 / gap))
-    if not 1 <= fps <= MAX_FPS:
-        raise NotImportable(f"--fps must be 1..{MAX_FPS} (a frame a millisecond at most), "
-                            f"got {fps}")
+    fps = _grid_fps(path, [f.generation_ms for f in streams[HELDOUT_ID].frames], fps)
     step = 1000.0 / fps
     t0 = max(s.frames[0].generation_ms for s in streams.values())
     t1 = min(s.frames[-1].generation_ms for s in streams.values())

@@ -33,8 +33,8 @@ from services.recorder.mcapfile import ChunkCache, McapFileError, Reading, Where
 
 __all__ = ["McapFileError", "Pixels", "Recorded", "SiteRecord", "load"]
 
-_CLASSES: dict[str, Any] = {cls.DESCRIPTOR.full_name: cls for cls in (pb.Frame, pb.Decision, pb.Render,
-                                                      pb.Quality, pb.Outcome)}
+_CLASSES: dict[str, Any] = {cls.DESCRIPTOR.full_name: cls for cls in (
+    pb.Frame, pb.Decision, pb.Render, pb.Quality, pb.Outcome)}
 _IMAGES: dict[str, Any] = {"foxglove.CompressedImage": CompressedImage,
                            "foxglove.RawImage": RawImage}
 _EXPECTED: dict[str, Any] = {"delivery": pb.Frame, "truth": pb.Frame, "decision": pb.Decision,
