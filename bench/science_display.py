@@ -122,8 +122,9 @@ def render_lines(section: dict[str, Any], rel: str) -> list[str]:
               "hindsight (fresh carry, exp:60, the grid `mat:Γ@s` / `all@s`, Γ ∈ "
               f"{', '.join(map(str, GRID_GAMMAS))}, s ∈ {', '.join(map(str, GRID_STEPS))}, "
               f"and {', '.join(f'`{p}`' for p in COMPUTE_AWARE)}; psnr_display_db):", "",
+              "| question | answer | evidence |", "|---|---|---|",
               f"| {g['statement']}? | {'**yes**' if g['holds'] else '**no**'} | "
-              f"{g['evidence']} |", "|---|---|---|", "",
+              f"{g['evidence']} |", "",
               "Expected from first principles: on the virtual clock the lag has no queue, so "
               "`dmat:Γ@s` selects as a MAT with Γ shifted by the constant lag and `deadline` "
               "picks a constant budget; each is a fixed (Γ, s) cell, so neither can beat the "
@@ -135,8 +136,11 @@ def render_lines(section: dict[str, Any], rel: str) -> list[str]:
     for p, m in sorted(means.items(), key=lambda kv: -kv[1]):
         lines.append(f"| `{p}` | {m:.2f} |")
     if section["runs"]:
-        lines += ["", "Wall time of each run (machine shared, load at start/end): " + "; ".join(
-            f"`{r['command'].split(' --out ')[-1].split('/science/')[-1]}` {r['wall_s']} s "
+        lines += ["", "Wall time of each run (2 cores shared with other sessions, load at "
+                  "start/end; each run reuses the episode cache the runs before it "
+                  "filled): " + "; ".join(
+            f"`{r['command'].split(' --out ')[-1].split(' --')[0].split('/science/')[-1]}` "
+            f"{r['wall_s']} s "
             f"({r['load_at_start']}/{r['load_at_end']})" for r in section["runs"]) + "."]
     lines += ["", f"Figure: `docs/figures/display_budgets.png`; outputs `{rel}/display/`. "
               "Redo only this part: `python -m bench.science --only display`.", ""]

@@ -32,8 +32,8 @@ def compute_aware_beats_best_fixed(compare: Results | Mapping[str, Any],
     runs = {r.policy: r.own for r in doc.runs()}
     fixed = [p for p, own in runs.items() if kind_of(own).kind in FIXED_KINDS]
     aware = [p for p, own in runs.items() if kind_of(own).kind in COMPUTE_AWARE_KINDS]
-    statement = (f"A compute-aware policy is significantly better in {metric_name(metric)} at "
-                 "display time than the best fixed (Γ, steps) in hindsight")
+    statement = (f"A compute-aware policy is significantly better in {metric_name(metric)} "
+                 "than the best fixed (Γ, steps) in hindsight")
     if not fixed or not aware:
         return Verdict("compute-aware-beats-best-fixed", statement, False,
                        "not tested: the compare run has no fixed cell or no compute-aware "
