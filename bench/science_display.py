@@ -41,6 +41,10 @@ COMPUTE_AWARE = ("dmat:100@50", "dmat:130@50", "dmat:160@50", "dmat:130@100",
 budgets, deadline at the lags of 50 and 100 steps (time scale 0.1: 18.6 and 35.6 ms)."""
 
 
+FIGURE_DELAYS = ("exp:20", "exp:100")
+"""The delays the fixed grid is also run at for the figure (exp:60 is the question's run)."""
+
+
 def grid_policies() -> list[str]:
     fixed = [f"mat:{g}@{s}" for s in GRID_STEPS for g in GRID_GAMMAS]
     fixed += [f"all@{s}" for s in GRID_STEPS]
@@ -82,6 +86,12 @@ def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path
     for p in grid_policies():
         grid += ["--policy", p]
     run(grid, log)
+    for delay in FIGURE_DELAYS:  # the figure's other panels: the fixed cells only
+        cmd = [exe, "experiment", "compare", *common, "--seeds", str(seeds), "--no-lpips",
+               "--delay", delay, "--out", str(base / f"grid-{delay.replace(':', '')}")]
+        for p in grid_policies()[:-len(COMPUTE_AWARE)]:
+            cmd += ["--policy", p]
+        run(cmd, log)
 
 
 def _load(path: Path) -> dict[str, Any]:
@@ -174,13 +184,17 @@ def figure(out: Path, dest: Path) -> None:
         ("fresh, 300 steps", out / "delay/results.json", 300, lambda p: 300),
         ("fresh, 50 steps", base / "fresh50/delay/results.json", 50, lambda p: 50),
         ("stream, 25 steps", base / "stream25/delay/results.json", 25, lambda p: 25)]
-    grid = [(f"fresh, {s} steps (grid)", base / "grid/results.json", s,
-             lambda p: int(p.split("@")[1]) if "@" in p else None) for s in GRID_STEPS]
+    def budget(p: str) -> int | None:
+        return int(p.split("@")[1]) if "@" in p else None
+
     delays = ("exp:20", "exp:60", "exp:100")
+    grids = {d: base / (f"grid-{d.replace(':', '')}" if d in FIGURE_DELAYS else "grid")
+             / "results.json" for d in delays}
     fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
     for ax, delay in zip(axes, delays, strict=True):
         labels, data, marks = [], [], []
-        for label, path, steps, steps_of in rows + (grid if delay == "exp:60" else []):
+        grid = [(f"fresh, {s} steps (grid)", grids[delay], s, budget) for s in GRID_STEPS]
+        for label, path, steps, steps_of in rows + grid:
             if not path.exists():
                 continue
             doc = _load(path)
