@@ -32,6 +32,14 @@ policies sharing each selection's reconstruction) adds about 430 reconstructions
 steps, estimated at 5–10 minutes (not timed on an idle machine). Its two questions — does a
 fixed Γ lose to the per-regime best, is an adaptive policy better than the best fixed rule
 in hindsight — are reported either way.
+
+Issue 40's part (:mod:`bench.science_display`): the four display-time PSNR claims again at
+the streaming carry's 25 steps and at 50 fresh steps, and whether a compute-aware policy
+(``dmat``, ``deadline``) beats the best fixed (Γ, steps) in hindsight, over a grid of
+``mat:Γ@s`` at exp:60 (also run at exp:20 and exp:100 for docs/figures/display_budgets.png);
+reported either way. Nine runs of 25–100 steps, 13–74 s each on 2 shared cores (load 2–3).
+``--only display`` runs just this part and merges it into an existing ``claims.json`` and
+``--doc`` (``--reuse`` keeps the runs whose results exist).
 """
 
 from __future__ import annotations

@@ -55,3 +55,21 @@ def test_a_grid_without_a_compute_aware_policy_is_not_tested() -> None:
     doc["policies"] = [r for r in doc["policies"] if r["policy"].startswith(("mat", "all"))]
     v = compute_aware_beats_best_fixed(doc)
     assert not v.holds and v.evidence.startswith("not tested")
+
+
+def test_the_science_section_tables_the_question_with_its_header_first() -> None:
+    from bench.science_display import render_lines
+
+    v = compute_aware_beats_best_fixed(grid_doc(0.0)).to_dict()
+    claim = {"statement": "a claim", "holds": True, "evidence": "e"}
+    section = {"configs": {"fresh50": {"text": "fifty", "options": "--steps-per-epoch 50",
+                                       "verdicts": [claim]}},
+               "grid": v, "runs": [{"command": "aoi3d experiment compare --out "
+                                    "/x/science/display/grid --policy all@25", "wall_s": 1.0,
+                                    "load_at_start": 2.0, "load_at_end": 2.5}]}
+    lines = render_lines(section, "bench/results/science")
+    at = next(i for i, line in enumerate(lines) if line.startswith(f"| {v['statement']}?"))
+    assert lines[at - 2] == "| question | answer | evidence |" and "**no**" in lines[at]
+    assert any("| fresh50: fifty (`--steps-per-epoch 50`) | a claim | **holds** |" in line
+               for line in lines)
+    assert any("`display/grid` 1.0 s (2.0/2.5)" in line for line in lines)
