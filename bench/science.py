@@ -32,6 +32,14 @@ policies sharing each selection's reconstruction) adds about 430 reconstructions
 steps, estimated at 5–10 minutes (not timed on an idle machine). Its two questions — does a
 fixed Γ lose to the per-regime best, is an adaptive policy better than the best fixed rule
 in hindsight — are reported either way.
+
+Issue 40's part (:mod:`bench.science_display`): the four display-time PSNR claims again at
+the streaming carry's 25 steps and at 50 fresh steps, and whether a compute-aware policy
+(``dmat``, ``deadline``) beats the best fixed (Γ, steps) in hindsight, over a grid of
+``mat:Γ@s`` at exp:60 (also run at exp:20 and exp:100 for docs/figures/display_budgets.png);
+reported either way. Nine runs of 25–100 steps, 13–74 s each on 2 shared cores (load 2–3).
+``--only display`` runs just this part and merges it into an existing ``claims.json`` and
+``--doc`` (``--reuse`` keeps the runs whose results exist).
 """
 
 from __future__ import annotations
@@ -48,6 +56,7 @@ from typing import Any
 
 from aoi3d.experiment import claims
 from aoi3d.metric import PSNR, PSNR_DYNAMIC, names_of
+from bench import science_display
 from bench.common import ROOT
 
 DEV_SEEDS = "experiments 0–20, 1000–1015 and 9001–9003; PPO evaluation offsets 0–39"
@@ -112,7 +121,15 @@ def main() -> int:
     ap.add_argument("--extra", action="append", default=[],
                     help="an option passed on to every command (repeat), e.g. "
                          "--extra=--dataset=/tmp/tiny for a smoke run")
+    ap.add_argument("--only", choices=("display",), default=None,
+                    help="run only one part and merge it into the existing claims.json and "
+                         "--doc: `display` = issue 40's display-time claims at 25 and 50 "
+                         "steps and the compute-aware grid (bench/science_display.py)")
+    ap.add_argument("--reuse", action="store_true",
+                    help="with --only: keep a run whose results.json exists")
     args = ap.parse_args()
+    if args.only == "display":
+        return display_only(args)
 
     exe = aoi3d()
     out: Path = args.out
@@ -149,6 +166,8 @@ def main() -> int:
     if args.workers:
         ppo_cmd += ["--workers", str(args.workers)]
     run(ppo_cmd + args.extra, log)
+    # issue 40 §3: the display-time claims at a viewer's budget (bench/science_display.py)
+    science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run, log)
     wall = time.perf_counter() - started
 
     def load(name: str) -> dict[str, Any]:
@@ -188,7 +207,8 @@ def main() -> int:
            "machine": tradeoff["meta"]["machine"],
            "claims": [v.to_dict() for v in verdicts],
            "display_time": [v.to_dict() for v in display],
-           "questions": [v.to_dict() for v in questions]}
+           "questions": [v.to_dict() for v in questions],
+           "display_budgets": science_display.verdicts(out)}
     (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     if str(args.figures):
         args.figures.mkdir(parents=True, exist_ok=True)
@@ -197,6 +217,7 @@ def main() -> int:
                          ("compare/compare.png", "compare.png"),
                          ("views/views.png", "views.png")):
             shutil.copyfile(out / src, args.figures / dst)
+        science_display.figure(out, args.figures / "display_budgets.png")
     if str(args.doc):
         args.doc.write_text(render(doc, tradeoff, delay, compare, evaluation, out, adaptive))
     print()
@@ -362,9 +383,46 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
             lines.append(f"| {_policy_name(r['policy'])} | {_num(r['psnr_db'])} ± "
                          f"{_num(r['psnr_db_ci95'])} | {_num(r['n_selected'], 1)} |")
         lines += [""]
+    if doc.get("display_budgets"):  # issue 40 §3
+        lines += science_display.render_lines(doc["display_budgets"], rel)
     lines += [
         f"Outputs: `{rel}/` (every command's CSV/JSON/PNG, `claims.json`).", ""]
     return "\n".join(lines)
+
+
+def display_only(args: argparse.Namespace) -> int:
+    """``--only display``: run issue 40's part and merge it into ``claims.json`` and the doc,
+    the other parts' results read from ``--out`` as the last full run left them."""
+    out: Path = args.out
+    doc = json.loads((out / "claims.json").read_text())
+    common = ["--preset", "quick", "--cache", str(args.cache),
+              "--seed-offset", str(doc["seed_offset"])]
+    if args.workers:
+        common += ["--workers", str(args.workers)]
+    common += args.extra
+    log: list[dict[str, Any]] = []
+    science_display.run_all(aoi3d(), common, doc["seeds"], doc["delay_seeds"], out, run, log,
+                            reuse=args.reuse)
+    doc["display_budgets"] = science_display.verdicts(out)
+    (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
+    if str(args.figures):
+        science_display.figure(out, args.figures / "display_budgets.png")
+
+    def load(name: str) -> dict[str, Any]:
+        return dict(json.loads((out / name).read_text()))
+
+    if str(args.doc):
+        args.doc.write_text(render(doc, load("tradeoff/results.json"),
+                                   load("delay/results.json"), load("compare/results.json"),
+                                   load("ppo/eval.json"), out, load("adaptive/results.json")))
+    section = doc["display_budgets"]
+    for name, cfg in section["configs"].items():
+        for v in cfg["verdicts"]:
+            print(f"{'HOLDS' if v['holds'] else 'FAILS'} [{name}] {v['statement']}: "
+                  f"{v['evidence']}")
+    g = section["grid"]
+    print(f"{'YES ' if g['holds'] else 'NO  '} {g['statement']}: {g['evidence']}")
+    return 0
 
 
 def _seeds_text(seeds: list[int]) -> str:
