@@ -418,6 +418,8 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     if not isinstance(kind, str):
         raise PolicySpecError('missing or non-string "kind"', dict(data))
     if data.get("budget_steps") is not None:
+        if isinstance(data["budget_steps"], str):
+            raise PolicySpecError("budget_steps must be a JSON number", dict(data))
         inner = policy_from_json({k: v for k, v in data.items() if k != "budget_steps"})
         return _with_budget(inner, data["budget_steps"], dict(data))
     entry = _policy_entry(kind, dict(data))
@@ -430,8 +432,7 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
 
 
 def _with_budget(inner: Policy, steps: object, spec: object) -> Policy:
-    """``inner`` with a fixed budget; ``PolicySpecError`` for a bad budget or a policy that
-    has one already."""
+    """``inner`` with a fixed budget; ``PolicySpecError`` for a bad one, or a second one."""
     if inner.budget_steps is not None:
         raise PolicySpecError("a policy has one budget ('@<steps>' once)", spec)
     if getattr(inner, "chooses_budget", False):

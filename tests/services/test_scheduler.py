@@ -207,6 +207,26 @@ def test_bad_policies_are_rejected_with_a_clear_422(make_harness, body, expect) 
     assert h.client.get("/policy").json()["spec"] == "all"  # unchanged
 
 
+def test_a_budget_is_taken_live_and_travels_in_the_decision(make_harness) -> None:
+    h = make_harness("all", cameras=8)
+    r = h.client.put("/policy", json={"kind": "mat", "mat_ms": 70, "budget_steps": 25})
+    assert r.status_code == 200, r.text
+    assert (r.json()["spec"], r.json()["budget_steps"]) == ("mat:70@25", 25)
+    d = h.decide_at(30.0)
+    assert d.policy == "mat:70@25" and d.HasField("budget_steps") and d.budget_steps == 25
+    got = h.client.get("/decision").json()
+    assert got["budget_steps"] == 25
+    before = h.client.get("/policy").json()
+    for bad in (0, 100_001, "25", True, 2.5):  # refused: nothing changes
+        r = h.client.put("/policy", json={"kind": "mat", "mat_ms": 40, "budget_steps": bad})
+        assert r.status_code == 422, (bad, r.text)
+        assert h.client.get("/policy").json() == before
+    r = h.client.put("/policy", json={"kind": "deadline", "mat_ms": 70, "deadline_ms": 60,
+                                      "budget_steps": 25})
+    assert r.status_code == 422 and "chooses each decision's budget" in r.text
+    assert h.client.get("/policy").json() == before
+
+
 def test_nan_mat_is_rejected(make_harness) -> None:
     h = make_harness("all")
     r = h.client.put("/policy", content=b'{"kind": "mat", "mat_ms": NaN}',

@@ -164,3 +164,23 @@ def test_replay_rebuilds_the_job_from_the_cameras_the_render_names() -> None:
     assert [(f.camera_id, f.generation_ms) for f in got] == [(10, 870.0)]
     old = job_frames(selected, [870.0], arr)  # generation times only: the first that fits
     assert [(f.camera_id, f.generation_ms) for f in old] == [(9, 870.0)]
+
+
+def test_the_job_trains_the_decisions_own_budget(dataset: SceneDataset) -> None:
+    """A decision that carries a budget (a policy's '@<steps>') is a job of that many steps;
+    one without is the pool's render_steps."""
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    core.on_frame(frame_payload(dataset, 1, 0.0), now_ms=0.0)
+    pool.joined("w", 0.5)
+    settings = RenderSettings("grid", "fresh", 12, 3)
+    for decision_id, budget in ((1, None), (2, 40)):
+        msg = pb.Decision.FromString(decision_payload(decision_id, 30.0 * decision_id,
+                                                      [(1, 0.0)], policy="mat:70"))
+        if budget is not None:
+            msg.budget_steps = budget
+        core.on_decision(msg.SerializeToString(), now_ms=30.0 * decision_id, now_s=1.0)
+        assignment = pool.request(Report("w", max_wait_s=1.0), 1.5)
+        job = pb.WorkReply.FromString(core.job(assignment, 1.5, settings)).job
+        assert job.render_steps == (12 if budget is None else budget)
+        pool.request(Report("w", done=assignment.decision.key, rendered=True), 1.6)
