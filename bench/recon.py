@@ -14,6 +14,13 @@ it: reset, views, training, render; not the dataset's decoding), ``psnr_db`` the
     python -m bench.recon --json               # one JSON object
     python -m bench.recon --backend ngp --size 192x144 --threads 2 --json
     python -m bench.recon --backend tensorf --device cuda --json   # on a GPU
+    python -m bench.recon --field flow --ages 1,2,3,4 --ahead 1 --json  # the time-aware field
+
+``--field`` is ``--backend``'s other name (the time-aware ``flow`` is one more backend).
+``--ages``: each chosen camera's frame is that many frames older than t0 (cycled over the
+cameras; default 0: every frame at t0, which teaches a time-aware field no motion);
+``--ahead``: the render is taken that many frames after t0 and scored against the truth then
+(a display time; a static field shows the same image).
 
 The dataset is generated when missing (as the experiment commands do): at 96×72 into
 ``data/turbine-rotor``, at another ``--size`` into ``data/turbine-rotor-<W>x<H>``.
@@ -31,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from aoi3d.experiment.config import EXPERIMENT_DATASET, EXPERIMENT_SCENE
-from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.field import FieldTrainer, TrainView, check_backend, field_config
 from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
 from aoi3d.quality import DYNAMIC_FRAMES, dynamic_mask, dynamic_score, psnr
@@ -52,9 +59,25 @@ def _size(text: str) -> tuple[int, int]:
     return size
 
 
+def _ages(text: str) -> tuple[int, ...]:
+    try:
+        ages = tuple(int(a) for a in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"ages must be frame counts A,B,..., got {text!r}"
+                                         ) from None
+    if min(ages) < 0:
+        raise argparse.ArgumentTypeError(f"ages must be >= 0, got {text!r}")
+    return ages
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--backend", default="grid")
+    parser.add_argument("--backend", "--field", dest="backend", default="grid",
+                        help="the field backend (aoi3d.field.BACKENDS; flow: time-aware)")
+    parser.add_argument("--ages", type=_ages, default=(0,),
+                        help="frame ages in frames, cycled over the cameras (default 0)")
+    parser.add_argument("--ahead", type=int, default=0,
+                        help="frames after t0 the render is taken and scored at (default 0)")
     parser.add_argument("--size", type=_size, default=(EXPERIMENT_SCENE.width,
                                                         EXPERIMENT_SCENE.height),
                         help="image size WxH (default: the experiments' scene, 96x72)")
@@ -97,6 +120,12 @@ def main(argv: list[str] | None = None) -> None:
         parser.error("--repeats must be >= 5")
     if args.steps < 1:
         parser.error("--steps must be >= 1")
+    if args.ahead < 0:
+        parser.error("--ahead must be >= 0")
+    try:
+        check_backend(args.backend)
+    except ValueError as err:
+        parser.error(str(err))
     configure_process(args.threads)
 
     width, height = args.size
@@ -118,12 +147,18 @@ def main(argv: list[str] | None = None) -> None:
         if args.gap < 1:
             parser.error("--gap must be >= 1")
         sequence = [TIMES[0] + (k - 1) * args.gap for k in range(args.repeats + 1)]
-    frames = {t0: ([TrainView(ds.cameras[c], ds.frame(c, t0)) for c in chosen],
-                   ds.frame(ds.heldout_id, t0),
-                   dynamic_mask(ds.frame(ds.heldout_id, t0),
-                                [ds.frame(ds.heldout_id, t0 - k)
-                                 for k in range(1, DYNAMIC_FRAMES + 1)]))
-              for t0 in sorted(set(sequence))}
+    frame_ms = 1000.0 / ds.fps
+    ages = [args.ages[i % len(args.ages)] for i in range(len(chosen))]
+    if max(ages) > min(sequence):
+        parser.error(f"--ages reach before the scene's first frame (t0 from {min(sequence)})")
+    shown = [t0 + args.ahead for t0 in sequence]  # the truth a render is scored against
+    frames = {t0: [TrainView(ds.cameras[c], ds.frame(c, t0 - a), age_ms=a * frame_ms)
+                   for c, a in zip(chosen, ages, strict=True)] for t0 in sorted(set(sequence))}
+    truths = {t: (ds.frame(ds.heldout_id, t),
+                  dynamic_mask(ds.frame(ds.heldout_id, t),
+                               [ds.frame(ds.heldout_id, t - k)
+                                for k in range(1, DYNAMIC_FRAMES + 1)]))
+              for t in sorted(set(shown))}
 
     from aoi3d.device import resolve_device
 
@@ -137,18 +172,22 @@ def main(argv: list[str] | None = None) -> None:
                            dilation_px=args.dilation, lr_scale=args.lr_scale)
     rec = Reconstruction(trainer, "stream", args.steps, warm_start)
     seconds, cpu_seconds, scores, dynamic, at_times, cold_seconds = [], [], [], [], [], []
+    ahead_ms = args.ahead * frame_ms
     for i, t0 in enumerate(sequence):
-        views, truth, mask = frames[t0]
+        views = frames[t0]
+        truth, mask = truths[t0 + args.ahead]
         started, cpu_started = time.perf_counter(), time.process_time()
         if args.carry == "fresh":
             trainer.reset()
             trainer.set_views(views)
             trainer.step(args.steps)
-            image = trainer.render(heldout)
+            image = trainer.render(heldout, ahead_ms=ahead_ms)
         else:
-            image = rec.render_decision(heldout, views, time_ms=t0 * 1000.0 / ds.fps).image
+            image = rec.render_decision(heldout, views, time_ms=t0 * frame_ms).image
         elapsed = time.perf_counter() - started
         cpu = time.process_time() - cpu_started
+        if args.carry == "warm" and args.ahead:  # the same model later (untimed: one render
+            image = rec.render_at(heldout, ahead_ms)  # per reconstruction is timed)
         score = psnr(image, truth)
         dyn = dynamic_score(image, truth, mask).psnr_db
         assert dyn is not None, "the blades' mask is never empty"
@@ -177,6 +216,8 @@ def main(argv: list[str] | None = None) -> None:
         "views": args.views,
         "device": device,
         "carry": args.carry,
+        "ages_frames": list(args.ages),
+        "ahead_frames": args.ahead,
     }
     if args.carry == "warm":  # the scores at the fresh mode's t0s, paired with them
         result.update({

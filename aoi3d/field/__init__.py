@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from aoi3d.field.base import Field, FieldConfig
+from aoi3d.field.flow import FlowConfig, FlowField
 from aoi3d.field.grid import DenseGridField, GridConfig
 from aoi3d.field.nerf import NerfMlpConfig, NerfMlpField
 from aoi3d.field.nerfacto import NerfactoConfig, NerfactoField
@@ -27,6 +28,8 @@ __all__ = [
     "Field",
     "FieldConfig",
     "FieldTrainer",
+    "FlowConfig",
+    "FlowField",
     "GridConfig",
     "LazyAdam",
     "NerfMlpConfig",
@@ -58,8 +61,10 @@ BACKENDS: dict[str, type[FieldConfig]] = {
     "tensorf": TensorfConfig,
     "nerf": NerfMlpConfig,
     "nerfacto": NerfactoConfig,
+    "flow": FlowConfig,
 }
-"""Radiance-field backends by name: grid, ngp, tensorf, nerfacto and the reference nerf MLP."""
+"""Radiance-field backends by name: grid, ngp, tensorf, nerfacto, the reference nerf MLP and
+``flow``, the time-aware grid (a 4-D field: the grid carried by a learned velocity field)."""
 
 
 class UnknownBackendError(ValueError):

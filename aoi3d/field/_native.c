@@ -454,3 +454,7 @@ void latlong_backward(int64_t rows, int64_t cols, const float *dirs, int64_t n_r
         }
     }
 }
+
+/* The flow backend's kernels (trilinear interpolation without activations, its gradient
+ * with respect to the point, a dense scatter): in their own file, one library. */
+#include "_native_flow.c"

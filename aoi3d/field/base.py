@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from abc import ABC, abstractmethod
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
@@ -156,6 +156,14 @@ class FieldConfig:
         return False
 
     @property
+    def time_aware(self) -> bool:
+        """Whether the field this config builds can be rendered at another time than the one
+        it stands for (``FieldTrainer.render``'s ``ahead_ms``: the display time) and carried to
+        a later one (``Field.advance``): the ``flow`` backend. Default: no, a static field
+        shows the same scene at every time."""
+        return False
+
+    @property
     def uses_age(self) -> bool:
         """Whether training needs each view's age (``TrainView.age_ms``): the field takes it,
         or the loss is weighted by it (``age_weight_tau_ms``)."""
@@ -231,6 +239,18 @@ class Field(nn.Module, ABC):
         """Mask (P,) of the points that may have density (empty-space skipping); None keeps
         every point. Skipped points are treated as σ = 0."""
         return None
+
+    def advance(self, dt_ms: float
+                ) -> list[tuple[torch.Tensor, Callable[[torch.Tensor], torch.Tensor]]] | None:
+        """Move the time the field stands for ``dt_ms`` later (a time-aware field, whose
+        config is ``time_aware``, carries its parameters along its motion); returns each
+        parameter changed with the map that changed it, for the optimizer's moments of it.
+        Default: None, nothing changes (a static field stands for every time)."""
+        return None
+
+    def set_pivot(self, pivot_ms: float) -> None:
+        """A time-aware field: the age its parameters stand for (the trainer sets it to the
+        mean age of the views before training). Default: nothing (a static field)."""
 
     def on_step(self, step: int) -> bool:
         """Hook before training step ``step``; True when parameters were replaced (e.g. the

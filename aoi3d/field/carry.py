@@ -183,15 +183,25 @@ class Reconstruction:
         # and, per camera, the last frame the model trained on
         self._model_time_ms: float | None = None
         self._frames: OrderedDict[Camera, np.ndarray] = OrderedDict()
+        # warm and fork: the scene time the trainer's model stands for (None: not known)
+        self._time_ms: float | None = None
+        self._rendered: FieldTrainer = trainer  # the model of the last render
 
     @property
     def trains_in_background(self) -> bool:
         """Whether :meth:`train` does anything (``warm`` and ``fork``)."""
         return self.carry in BACKGROUND_MODES
 
-    def set_views(self, views: Sequence[TrainView]) -> None:
-        """A new decision is in force: its frames are what the model trains on from now on."""
+    def set_views(self, views: Sequence[TrainView], time_ms: float | None = None) -> None:
+        """A new decision is in force: its frames are what the model trains on from now on.
+        ``time_ms``: the decision's scene time; ``warm`` and ``fork`` carry their model there
+        from the previous decision's (``FieldTrainer.advance``: a time-aware field moves along
+        its motion; a static one is unchanged)."""
         views = list(views)
+        if self.trains_in_background and time_ms is not None and math.isfinite(time_ms):
+            if self._time_ms is not None:
+                self.trainer.advance(time_ms - self._time_ms)
+            self._time_ms = float(time_ms)
         self.trainer.set_views(views)  # checks them (and caches their rays) in every mode
         self._views = views
 
@@ -219,18 +229,25 @@ class Reconstruction:
         if self.carry == "stream":
             return self._stream(camera, views, time_ms)
         if self.carry == "warm":
-            t = self.trainer
+            t = self._rendered = self.trainer
             return RenderedDecision(t.render(camera), t.steps, 0, math.nan, t.n_views)
         if self.carry == "fresh":
             model = self.trainer
             model.reset()
         else:
             model = self.trainer.fork()
+        self._rendered = model
         model.set_views(views)
         loss = model.step(self.render_steps) if views else math.nan
         image = model.render(camera)
         return RenderedDecision(image, model.steps, self.render_steps if views else 0,
                                 float(loss), len(views))
+
+    def render_at(self, camera: Camera, ahead_ms: float) -> np.ndarray:
+        """The model of the last :meth:`render_decision` rendered ``ahead_ms`` after its
+        decision's time (the display time): a time-aware field shows the scene then, a static
+        one the same image again (``FieldTrainer.render``)."""
+        return self._rendered.render(camera, ahead_ms=ahead_ms)
 
     def is_warm(self, time_ms: float | None) -> bool:
         """Whether a ``stream`` decision at scene time ``time_ms`` starts warm: a model exists
@@ -254,9 +271,11 @@ class Reconstruction:
     def _stream(self, camera: Camera, views: list[TrainView],
                 time_ms: float | None) -> RenderedDecision:
         ws = self.warm_start
-        model = self.trainer
+        model = self._rendered = self.trainer
         warm = self.is_warm(time_ms) and bool(views)
         if warm:
+            assert time_ms is not None and self._model_time_ms is not None
+            model.advance(time_ms - self._model_time_ms)  # a time-aware field moves along
             changes = self._changes(views)
             model.set_views(views)
             if ws.reset and changes:
@@ -301,6 +320,7 @@ class Reconstruction:
         mode = check_carry(carry, render_steps)
         if mode != self.carry:
             self._model_time_ms = None  # the stream carry starts cold after a switch
+            self._time_ms = None
         self.carry = mode
         self.render_steps = int(render_steps)
 

@@ -38,7 +38,7 @@ import shutil
 import subprocess
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 
@@ -55,13 +55,16 @@ from aoi3d.field.native_calls import (
     volume_forward,
 )
 
-__all__ = ["adam_dense", "available", "grid_query", "grid_step_available", "grid_training_grads",
+__all__ = ["GridRenderGrads", "adam_dense", "available", "grid_query", "grid_render_grads",
+           "grid_step_available", "grid_training_grads",
            "latlong_background", "lazy_adam_rows", "sample_uniform", "volume_render",
            "weighted_colour_error"]
 
 log = logging.getLogger(__name__)
 
 _SOURCE = Path(__file__).with_name("_native.c")
+_INCLUDED = (Path(__file__).with_name("_native_flow.c"),)
+"""Files ``_native.c`` includes (their bytes are part of the library's name)."""
 _FLAGS = ("-O3", "-fno-trapping-math", "-fno-math-errno", "-ffp-contract=off", "-std=c99",
           "-fPIC", "-shared")
 _LIB: ctypes.CDLL | None = None
@@ -85,6 +88,11 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "latlong_backward": (None, [_I, _I, _P, _I, _I, _P, _P, _P]),
     "sample_uniform_count": (_I, [_P, _P, _I, ctypes.c_float, _I, _P]),
     "sample_uniform_fill": (None, [_P, _P, _P, _P, _P, _I, ctypes.c_float, _P, _P, _P, _P]),
+    "trilinear4_forward": (None, [_P, _P, _I, _P, _P, _P, _P]),
+    "trilinear4_scatter": (None, [_P, _I, _P, _P, _P, _P, _P]),
+    "flow_grid_backward": (_I, [_P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P, _P,
+                                _P]),
+    "flow_warp": (None, [_P, _P, _P, _I, _P, _P, _P, _P]),
 }
 
 
@@ -104,7 +112,7 @@ def _compiler() -> str | None:
 
 
 def _build() -> ctypes.CDLL | None:
-    source = _SOURCE.read_bytes()
+    source = _SOURCE.read_bytes() + b"".join(p.read_bytes() for p in _INCLUDED)
     digest = hashlib.sha256(source + " ".join(_FLAGS).encode()).hexdigest()[:16]
     name = f"aoi3d_native-{digest}.so"
     for folder in _cache_dirs():
@@ -407,6 +415,40 @@ def grid_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
     """
     lib = _lib()
     assert lib is not None
+    parts = grid_render_grads(table, aabb, shape, env, up_axis, points, deltas, ray_index,
+                              dirs, target, sample_rgb_loss, opacity_loss)
+    rows, values = grid_backward(lib, table.shape[0], parts.points, parts.geometry,
+                                  parts.grad_sigma, parts.grad_rgb, parts.rgb, parts.sigma_grad)
+    return parts.mse, rows, values, parts.grad_env
+
+
+class GridRenderGrads(NamedTuple):
+    """What :func:`grid_render_grads` computes: the batch's MSE, the gradients of the loss
+    with respect to each sample's σ (P,) and colour (P, 3) and to the background map, and
+    what the table's backward needs (the points, the kernel's geometry of the grid, the
+    samples' colours and dσ/d raw density)."""
+
+    mse: float
+    grad_sigma: torch.Tensor
+    grad_rgb: torch.Tensor
+    grad_env: torch.Tensor
+    points: torch.Tensor
+    geometry: tuple[torch.Tensor, ...]
+    rgb: torch.Tensor
+    sigma_grad: torch.Tensor
+
+
+def grid_render_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[int, int, int],
+                      env: torch.Tensor, up_axis: int, points: torch.Tensor,
+                      deltas: torch.Tensor, ray_index: torch.Tensor, dirs: torch.Tensor,
+                      target: torch.Tensor, sample_rgb_loss: float, opacity_loss: float
+                      ) -> GridRenderGrads:
+    """:func:`grid_training_grads` up to the table's backward: query, background, volume
+    rendering, loss, and the loss's gradients with respect to the samples' σ and colour and
+    to the background map (the ``flow`` backend goes on from them to its velocity grid).
+    Check :func:`grid_step_available` first."""
+    lib = _lib()
+    assert lib is not None
     table, env, points, deltas, ray_index, dirs, target = (
         t.detach().contiguous() for t in (table, env, points, deltas, ray_index, dirs, target))
     geometry = grid_geometry(aabb, tuple(shape))
@@ -431,6 +473,5 @@ def grid_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
     if g_sample_rgb is not None:
         grad_rgb += g_sample_rgb
     grad_env = latlong_backward(lib, tuple(env.shape), dirs, up_axis, background, grad_bg)
-    rows, values = grid_backward(lib, table.shape[0], points, geometry, grad_sigma, grad_rgb,
-                                  rgb, sigma_grad)
-    return mse, rows, values, grad_env
+    return GridRenderGrads(mse, grad_sigma, grad_rgb, grad_env, points, geometry, rgb,
+                           sigma_grad)

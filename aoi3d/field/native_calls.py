@@ -141,3 +141,56 @@ def colour_error_backward(lib: ctypes.CDLL, colours: torch.Tensor, weights: torc
                                        ray_index.data_ptr(), colours.shape[0], target.data_ptr(),
                                        grad, grad_colours.data_ptr(), grad_weights.data_ptr())
     return grad_colours, grad_weights
+
+
+def trilinear4(lib: ctypes.CDLL, table: torch.Tensor, points: torch.Tensor,
+               geometry: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """(P, 4): the raw trilinear interpolation of ``table`` (N, 4) at world ``points``."""
+    lo, factor, shape = geometry
+    out = points.new_empty(points.shape[0], 4)
+    lib.trilinear4_forward(table.data_ptr(), points.data_ptr(), points.shape[0], lo.data_ptr(),
+                           factor.data_ptr(), shape.data_ptr(), out.data_ptr())
+    return out
+
+
+def trilinear4_scatter(lib: ctypes.CDLL, n_rows: int, points: torch.Tensor,
+                       geometry: tuple[torch.Tensor, ...], g: torch.Tensor) -> torch.Tensor:
+    """(n_rows, 4): the dense gradient of a table from that of its interpolation ``g`` (P, 4)
+    at ``points``."""
+    lo, factor, shape = geometry
+    out = points.new_zeros(n_rows, 4)
+    lib.trilinear4_scatter(points.data_ptr(), points.shape[0], lo.data_ptr(), factor.data_ptr(),
+                           shape.data_ptr(), g.data_ptr(), out.data_ptr())
+    return out
+
+
+def flow_grid_backward(lib: ctypes.CDLL, table: torch.Tensor, points: torch.Tensor,
+                       geometry: tuple[torch.Tensor, ...], grad_sigma: torch.Tensor,
+                       grad_rgb: torch.Tensor, rgb: torch.Tensor, sigma_grad: torch.Tensor,
+                       age_s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`grid_backward` (the table's row-sparse gradient: rows, values) and, from the same
+    corners, the loss's gradient with respect to each point times ``age_s`` (P, 4; column 3
+    zero): the flow backend's velocity gradient at the points."""
+    lo, factor, shape = geometry
+    n_rows = table.shape[0]
+    dense, touched = workspace(n_rows)
+    rows = torch.empty(n_rows, dtype=torch.int64)
+    values = points.new_empty(n_rows, 4)
+    at_points = points.new_empty(points.shape[0], 4)
+    count = lib.flow_grid_backward(points.data_ptr(), points.shape[0], lo.data_ptr(),
+                                   factor.data_ptr(), shape.data_ptr(), grad_sigma.data_ptr(),
+                                   grad_rgb.data_ptr(), rgb.data_ptr(), sigma_grad.data_ptr(),
+                                   table.data_ptr(), age_s.data_ptr(), n_rows, dense.data_ptr(),
+                                   touched.data_ptr(), rows.data_ptr(), values.data_ptr(),
+                                   at_points.data_ptr())
+    return rows[:count], values[:count], at_points
+
+
+def flow_warp(lib: ctypes.CDLL, flow: torch.Tensor, points: torch.Tensor, age_s: torch.Tensor,
+              geometry: tuple[torch.Tensor, ...]) -> torch.Tensor:
+    """(P, 3): points + age_s · v(points), v the velocity grid ``flow`` (N, 4) interpolated."""
+    lo, factor, shape = geometry
+    out = points.new_empty(points.shape[0], 3)
+    lib.flow_warp(flow.data_ptr(), points.data_ptr(), age_s.data_ptr(), points.shape[0],
+                  lo.data_ptr(), factor.data_ptr(), shape.data_ptr(), out.data_ptr())
+    return out

@@ -240,6 +240,20 @@ class FieldTrainer:
             total += int(rows.numel())
         return total
 
+    def advance(self, dt_ms: float) -> bool:
+        """Move the time the model stands for ``dt_ms`` later (``Field.advance``: a time-aware
+        field carries itself along its motion, and the optimizer's moments of what it moved
+        follow); True when anything moved (a static field: nothing, False)."""
+        moved = self._field.advance(dt_ms)
+        if not moved:
+            return False
+        for param, carry in moved:
+            state = self._optimizer.state.get(param)
+            if state:
+                state["exp_avg"].copy_(carry(state["exp_avg"]))
+                state["exp_avg_sq"].copy_(carry(state["exp_avg_sq"]).clamp_min_(0.0))
+        return True
+
     @contextmanager
     def lr_scaled(self, factor: float) -> Iterator[None]:
         """Inside: every parameter group's learning rate times ``factor`` (the optimizer's
@@ -344,6 +358,8 @@ class FieldTrainer:
         self._colour_cache = {id(v): (v, c) for v, c in zip(views, colours, strict=True)}
         self._views = views
         self._focus, self._focus_rays = None, 0
+        if views and self.cfg.time_aware and self._steps == 0:  # before training: the pivot
+            self._field.set_pivot(float(np.mean([float(v.age_ms) for v in views])))  # type: ignore[arg-type]
         if not views:
             self._rays = self._packed = None
             return
@@ -447,9 +463,14 @@ class FieldTrainer:
 
     # --- rendering ------------------------------------------------------------------------
     @torch.no_grad()
-    def render(self, camera: Camera) -> np.ndarray:
+    def render(self, camera: Camera, ahead_ms: float = 0.0) -> np.ndarray:
         """The field seen from ``camera``: float32 H×W×3 in [0, 1] (a novel view: rendered
-        with the field's neutral appearance, whatever the camera)."""
+        with the field's neutral appearance, whatever the camera). ``ahead_ms``: the scene
+        that long after the time the field stands for (a field whose config is
+        ``time_aware`` renders every ray at age −``ahead_ms``: the display time; the others
+        show the same scene at every time and ignore it)."""
+        if not math.isfinite(ahead_ms):
+            raise ValueError(f"ahead_ms must be finite, got {ahead_ms}")
         if camera in self._ray_cache:
             origins, dirs, t_near, t_far = self._ray_cache[camera]
         else:
@@ -462,7 +483,10 @@ class FieldTrainer:
             origins, dirs, t_near, t_far = cached
         self._field.eval()
         options = RenderOptions(self.cfg.ray_step(self.aabb, self._steps))
-        rays = RayBundle(origins, dirs, t_near, t_far)
+        age = None
+        if ahead_ms and self.cfg.time_aware:
+            age = torch.full((origins.shape[0],), -float(ahead_ms), device=self._device)
+        rays = RayBundle(origins, dirs, t_near, t_far, None, age)
         chunk = self.cfg.render_chunk_rays
         out = torch.empty_like(origins)
         for i in range(0, origins.shape[0], chunk):

@@ -92,7 +92,7 @@ def run_plan(
     for d in plan.decisions:
         if d.train:
             rec.set_views([frames.view(c, g, d.eval_ms)
-                           for c, g in zip(d.cameras, d.gen_ms, strict=True)])
+                           for c, g in zip(d.cameras, d.gen_ms, strict=True)], d.eval_ms)
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
@@ -109,7 +109,10 @@ def run_plan(
         assert dyn is not None  # score() was given the previous truth frames
         # what a viewer sees: the render once its compute is done, against the truth then
         display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
-        shown = score(image, frames.truth(display_ms), cfg.reward, lpips_fn,
+        # a time-aware field is rendered again at the display time (a static one shows the same)
+        shown_image = (rec.render_at(heldout, display_ms - d.eval_ms)
+                       if trainer.cfg.time_aware else image)
+        shown = score(shown_image, frames.truth(display_ms), cfg.reward, lpips_fn,
                       previous=frames.truth_before(display_ms, cfg.period_ms))
         epochs.append(EpochScore(
             decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
