@@ -57,7 +57,11 @@ CarryOpt = Annotated[str | None, typer.Option(
     help="Model between decisions: fresh (per-time: a new model per scored decision), "
          "warm (one model, rendered as it is) or fork (the live trainer's: a copy of the warm "
          "model trains --set render_steps=K steps on the scored decision's frames).")]
-BackendOpt = Annotated[str | None, typer.Option(help="Radiance-field backend (BACKENDS).")]
+BackendOpt = Annotated[str | None, typer.Option(
+    "--backend", "--field",
+    help="Radiance-field backend (BACKENDS; `aoi3d field backends` lists them): grid, ngp, "
+         "tensorf, nerf, nerfacto, or flow — the time-aware grid, whose render at the display "
+         "time is taken at that time. --field is the same option.")]
 RayOpt = Annotated[str | None, typer.Option(
     help="Run the episodes on Ray: an address (auto, ray://host:10001) or 'local'. Needs "
          "pip install '.[cluster]'.")]

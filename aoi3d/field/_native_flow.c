@@ -132,3 +132,31 @@ void flow_warp(const float *flow, const float *points, const float *age_s, int64
         for (int d = 0; d < 3; d++) warped[3 * i + d] = points[3 * i + d] + age_s[i] * acc[d];
     }
 }
+
+/* grad (N, 4) += the gradient of scale * sum over the axes of the squared second
+ * differences of the velocity grid flow (N, 4; columns 0-2) of shape (nx, ny, nz) along
+ * that axis (FlowField.smoothness: scale = 2 * flow_smooth / entries, per axis). */
+void flow_smooth_grad(const float *flow, const int64_t *shape, const float *scale,
+                      float *grad) {
+    int64_t stride[3] = {shape[1] * shape[2], shape[2], 1};
+    for (int axis = 0; axis < 3; axis++) {
+        int64_t n = shape[axis], s = stride[axis];
+        if (n < 3) continue;
+        float c = scale[axis];
+        for (int64_t x = 0; x < shape[0]; x++)
+            for (int64_t y = 0; y < shape[1]; y++)
+                for (int64_t z = 0; z < shape[2]; z++) {
+                    int64_t pos = axis == 0 ? x : (axis == 1 ? y : z);
+                    if (pos > n - 3) continue;
+                    int64_t r = x * stride[0] + y * stride[1] + z;
+                    for (int d = 0; d < 3; d++) {
+                        float d2 = (flow[4 * (r + 2 * s) + d] - 2.0f * flow[4 * (r + s) + d])
+                                   + flow[4 * r + d];
+                        d2 *= c;
+                        grad[4 * (r + 2 * s) + d] += d2;
+                        grad[4 * (r + s) + d] -= 2.0f * d2;
+                        grad[4 * r + d] += d2;
+                    }
+                }
+    }
+}

@@ -164,24 +164,6 @@ class FlowField(DenseGridField):
                 total = total + (d2 * d2).mean()
         return self.cfg.flow_smooth * total
 
-    @torch.no_grad()
-    def smoothness_grad(self) -> torch.Tensor:
-        """The gradient of :meth:`smoothness` with respect to the velocity grid (M, 4),
-        without autograd (the fused step's)."""
-        v = self.flow[:, :3].view(*self.flow_shape, 3)
-        grad = torch.zeros_like(v)
-        for axis, n in enumerate(self.flow_shape):
-            if n >= 3:
-                d2 = (v.narrow(axis, 2, n - 2) - 2.0 * v.narrow(axis, 1, n - 2)
-                      + v.narrow(axis, 0, n - 2))
-                d2 *= 2.0 * self.cfg.flow_smooth / d2.numel()
-                grad.narrow(axis, 2, n - 2).add_(d2)
-                grad.narrow(axis, 1, n - 2).add_(d2, alpha=-2.0)
-                grad.narrow(axis, 0, n - 2).add_(d2)
-        out = torch.zeros_like(self.flow)
-        out[:, :3] = grad.view(-1, 3)
-        return out
-
     def age_seconds(self, age_ms: torch.Tensor) -> torch.Tensor:
         """Ages (ms) from the pivot, clipped to ±``flow_max_ms``, in seconds."""
         limit = self.cfg.flow_max_ms
@@ -264,11 +246,9 @@ class FlowField(DenseGridField):
         mse, rows, values, grad_env, grad_flow = native_flow.flow_training_grads(
             self.grid, self.aabb, self.shape, self.flow, self.flow_shape, self.env, cfg.up_axis,
             samples.points, warped, age_s, samples.deltas, samples.ray_index, rays.dirs, target,
-            cfg.sample_rgb_loss, cfg.opacity_loss)
+            cfg.sample_rgb_loss, cfg.opacity_loss, cfg.flow_smooth)
         optimizer.update(self.grid, (rows, values))
         optimizer.update(self.env, grad_env)
-        if cfg.flow_smooth > 0:
-            grad_flow += self.smoothness_grad()
         optimizer.update(self.flow, grad_flow)
         return mse
 

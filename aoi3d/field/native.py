@@ -93,6 +93,7 @@ _SIGNATURES: dict[str, tuple[Any, list[Any]]] = {
     "flow_grid_backward": (_I, [_P, _I, _P, _P, _P, _P, _P, _P, _P, _P, _P, _I, _P, _P, _P, _P,
                                 _P]),
     "flow_warp": (None, [_P, _P, _P, _I, _P, _P, _P, _P]),
+    "flow_smooth_grad": (None, [_P, _P, _P, _P]),
 }
 
 

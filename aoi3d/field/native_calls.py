@@ -194,3 +194,11 @@ def flow_warp(lib: ctypes.CDLL, flow: torch.Tensor, points: torch.Tensor, age_s:
     lib.flow_warp(flow.data_ptr(), points.data_ptr(), age_s.data_ptr(), points.shape[0],
                   lo.data_ptr(), factor.data_ptr(), shape.data_ptr(), out.data_ptr())
     return out
+
+
+def flow_smooth_grad(lib: ctypes.CDLL, flow: torch.Tensor, shape: tuple[int, ...],
+                     scale: torch.Tensor, grad: torch.Tensor) -> None:
+    """``grad`` (N, 4) += the gradient of the velocity grid's smoothness term, ``scale`` (3,)
+    float32: 2·weight / entries of each axis's second differences."""
+    dims = torch.tensor(shape, dtype=torch.int64)
+    lib.flow_smooth_grad(flow.data_ptr(), dims.data_ptr(), scale.data_ptr(), grad.data_ptr())

@@ -14,10 +14,17 @@ the torch code of :mod:`aoi3d.field.flow`.
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from aoi3d.field import native
-from aoi3d.field.native_calls import flow_grid_backward, grid_geometry, trilinear4_scatter
+from aoi3d.field.native_calls import (
+    flow_grid_backward,
+    flow_smooth_grad,
+    grid_geometry,
+    trilinear4_scatter,
+)
 from aoi3d.field.native_calls import flow_warp as _flow_warp
 from aoi3d.field.native_calls import trilinear4 as _trilinear4
 
@@ -60,12 +67,12 @@ def flow_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
                         env: torch.Tensor, up_axis: int, points: torch.Tensor,
                         warped: torch.Tensor, age_s: torch.Tensor, deltas: torch.Tensor,
                         ray_index: torch.Tensor, dirs: torch.Tensor, target: torch.Tensor,
-                        sample_rgb_loss: float, opacity_loss: float
+                        sample_rgb_loss: float, opacity_loss: float, flow_smooth: float = 0.0
                         ) -> tuple[float, torch.Tensor, torch.Tensor, torch.Tensor,
                                    torch.Tensor]:
     """One training step of the ``flow`` backend, as its torch code computes it under autograd
-    (:meth:`aoi3d.field.flow.FlowField.render_rays` and the trainer's loss), without autograd
-    and without the velocity grid's smoothness term.
+    (:meth:`aoi3d.field.flow.FlowField.render_rays` and the trainer's loss, with the velocity
+    grid's smoothness term of weight ``flow_smooth``), without autograd.
 
     The samples sit at ``points`` (P, 3) in the frames' time; ``warped`` = points +
     ``age_s``·v(points) are where the canonical grid ``table`` is read (``age_s`` (P,): each
@@ -83,4 +90,8 @@ def flow_training_grads(table: torch.Tensor, aabb: torch.Tensor, shape: tuple[in
         parts.grad_rgb, parts.rgb, parts.sigma_grad, age_s.contiguous())
     grad_flow = trilinear4_scatter(lib, flow.shape[0], points.detach().contiguous(),
                                    grid_geometry(aabb, tuple(flow_shape)), g_velocity)
+    if flow_smooth > 0:
+        entries = [max(0, n - 2) * 3 * math.prod(flow_shape) // n for n in flow_shape]
+        scale = torch.tensor([2.0 * flow_smooth / e if e else 0.0 for e in entries])
+        flow_smooth_grad(lib, flow.detach().contiguous(), tuple(flow_shape), scale, grad_flow)
     return parts.mse, rows, values, parts.grad_env, grad_flow

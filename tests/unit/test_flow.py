@@ -249,3 +249,31 @@ def test_the_stream_carry_advances_a_warm_start_to_its_decision() -> None:
     shown = rec.render_at(novel, 40.0)
     assert not np.array_equal(shown, second.image)
     np.testing.assert_array_equal(shown, rec.trainer.render(novel, ahead_ms=40.0))
+
+
+# --- the episode on the virtual clock --------------------------------------------------------
+def test_an_episode_scores_the_flow_field_at_its_display_time(dataset) -> None:
+    """run_plan renders a time-aware field again at the display time and scores that render;
+    a static field's display score is its decision-time render against the later truth."""
+    from aoi3d.experiment import EpisodeConfig, plan_episode, run_plan
+    from aoi3d.quality import psnr
+    from tests.support.tiny import TINY_FIELD
+
+    shown: dict[str, list[float]] = {}
+    again: dict[str, list[float]] = {}
+    for backend in ("grid", "flow"):
+        cfg = EpisodeConfig(dataset=str(dataset.root), backend=backend, field=dict(TINY_FIELD),
+                            carry="fresh", steps_per_epoch=15, warmup_ms=300, scored_ms=300,
+                            score_every=5, lpips=False, delay="exp:60", time_scale=1.0)
+        plan = plan_episode(cfg, dataset, "mat:130", seed=3)
+        images: list[np.ndarray] = []
+        result, _ = run_plan(plan, dataset,
+                             on_render=lambda d, image, out=images: out.append(image))
+        assert len(images) == len(result.epochs) >= 2
+        shown[backend] = [e.psnr_display_db for e in result.epochs]
+        again[backend] = [
+            psnr(image, dataset.frame(dataset.heldout_id,
+                                      dataset.frame_index(e.display_ms + plan.scene_offset_ms)))
+            for image, e in zip(images, result.epochs, strict=True)]
+    np.testing.assert_allclose(shown["grid"], again["grid"], rtol=1e-6)
+    assert not np.allclose(shown["flow"], again["flow"], rtol=1e-6)  # rendered again, later

@@ -41,11 +41,21 @@ class _Frames:
         """The scene frame shown at channel time ``time_ms``."""
         return self.ds.frame_index(time_ms + self.offset_ms)
 
-    def view(self, camera_id: int, gen_ms: int, eval_ms: int) -> TrainView:
+    def content_ms(self, time_ms: float) -> float:
+        """The scene time of the frame shown at channel time ``time_ms``, not looped: the
+        frames are 1000/fps ms apart, so it trails ``time_ms`` + offset by up to a frame."""
+        return math.floor((time_ms + self.offset_ms) * self.ds.fps / 1000.0 + 1e-9
+                          ) * 1000.0 / self.ds.fps
+
+    def view(self, camera_id: int, gen_ms: int, eval_ms: int, content: bool = False
+             ) -> TrainView:
         """Camera ``camera_id``'s frame generated at ``gen_ms``, used for time ``eval_ms``
-        (its age, ``eval_ms − gen_ms``, is what the age-aware trainers read)."""
+        (its age, ``eval_ms − gen_ms``, is what the age-aware trainers read; ``content``: the
+        age between the scene times the two frames show instead, what a time-aware field
+        reads — a real camera's timestamp is its frame's scene time)."""
         k = self.index(gen_ms)
-        age = float(eval_ms - gen_ms)
+        age = (self.content_ms(eval_ms) - self.content_ms(gen_ms) if content
+               else float(eval_ms - gen_ms))
         held = self._views.get(camera_id)
         if held is None or held[0] != k:
             held = (k, TrainView(self.ds.cameras[camera_id], self.ds.frame(camera_id, k),
@@ -85,21 +95,24 @@ def run_plan(
     rec = Reconstruction(trainer, cfg.carry, render_budget(cfg),
                          WarmStart(cold_steps=cfg.steps_per_epoch))
     frames = _Frames(dataset, plan.scene_offset_ms)
+    time_aware = trainer.cfg.time_aware  # trained at its frames' times, shown at display time
     heldout = dataset.cameras[dataset.heldout_id]
     epochs: list[EpochScore] = []
     last_image: np.ndarray | None = None
     loss = math.nan
     for d in plan.decisions:
+        # the time a carried model moves to (a time-aware one: the scene time shown then)
+        model_ms = frames.content_ms(d.eval_ms) if time_aware else d.eval_ms
         if d.train:
-            rec.set_views([frames.view(c, g, d.eval_ms)
-                           for c, g in zip(d.cameras, d.gen_ms, strict=True)], d.eval_ms)
+            rec.set_views([frames.view(c, g, d.eval_ms, time_aware)
+                           for c, g in zip(d.cameras, d.gen_ms, strict=True)], model_ms)
             loss = rec.train(cfg.steps_per_epoch)
         if not d.scored:
             continue
         budget = decision_budget(cfg, d)
         if budget != rec.render_steps:
             rec.set_carry(cfg.carry, budget)
-        rendered = rec.render_decision(heldout, time_ms=d.eval_ms)
+        rendered = rec.render_decision(heldout, time_ms=model_ms)
         if rendered.render_steps:
             loss = rendered.loss
         image = rendered.image
@@ -109,9 +122,11 @@ def run_plan(
         assert dyn is not None  # score() was given the previous truth frames
         # what a viewer sees: the render once its compute is done, against the truth then
         display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
-        # a time-aware field is rendered again at the display time (a static one shows the same)
-        shown_image = (rec.render_at(heldout, display_ms - d.eval_ms)
-                       if trainer.cfg.time_aware else image)
+        # a time-aware field is rendered again at the scene time of the truth shown then (a
+        # static one shows the same image)
+        shown_image = (rec.render_at(heldout, frames.content_ms(display_ms)
+                                     - frames.content_ms(d.eval_ms))
+                       if time_aware else image)
         shown = score(shown_image, frames.truth(display_ms), cfg.reward, lpips_fn,
                       previous=frames.truth_before(display_ms, cfg.period_ms))
         epochs.append(EpochScore(
