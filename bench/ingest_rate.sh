@@ -13,11 +13,11 @@ SECONDS_RUN=${SECONDS_RUN:-60}
 BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
 OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
-$PY -m aoi3d scene generate --out "$D"
+$PY -m aoi3d_cli scene generate --out "$D"
 for n in ${CAMERAS:-4 9 18}; do
-  $PY -m aoi3d ros2 publish "$D" --cameras "$n" --time-scale 1 --connect "tcp/127.0.0.1:$ZP" \
+  $PY -m aoi3d_cli ros2 publish "$D" --cameras "$n" --time-scale 1 --connect "tcp/127.0.0.1:$ZP" \
     --write-rig "$OUT/rig-$n.yaml" --rig-only
-  $PY -m aoi3d up --rig "$OUT/rig-$n.yaml" --port-offset "$OFF" --zenoh-port "$ZP" \
+  $PY -m aoi3d_cli up --rig "$OUT/rig-$n.yaml" --port-offset "$OFF" --zenoh-port "$ZP" \
     --run-id "ingest-rate-$n" --quiet > "$OUT/up-$n.log" 2>&1 &
   UP=$!
   for _ in $(seq 1 120); do
@@ -25,7 +25,7 @@ for n in ${CAMERAS:-4 9 18}; do
       && curl -sf "http://127.0.0.1:$((8101 + OFF))/healthz" >/dev/null && break
     sleep 1
   done
-  $PY -m aoi3d ros2 publish "$D" --cameras "$n" --time-scale 1 --connect "tcp/127.0.0.1:$ZP" \
+  $PY -m aoi3d_cli ros2 publish "$D" --cameras "$n" --time-scale 1 --connect "tcp/127.0.0.1:$ZP" \
     --duration-s "$SECONDS_RUN" > "$OUT/robot-$n.log" 2>&1
   sleep 3
   curl -s "http://127.0.0.1:$((8101 + OFF))/status" > "$OUT/status-$n.json"

@@ -13,14 +13,14 @@ OUT=${OUT:-runs/ros2-sweep}
 BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
 OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
-$PY -m aoi3d scene generate --out "$D"
+$PY -m aoi3d_cli scene generate --out "$D"
 if [ -z "${ROS_ONLY:-}" ]; then  # ROS_ONLY=1: the ROS 2 half alone
-  $PY -m aoi3d live sweep --up --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
+  $PY -m aoi3d_cli live sweep --up --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
     --out "$OUT/emulated" --port-offset "$OFF" --zenoh-port "$ZP" > "$OUT/emulated.json"
 fi
-$PY -m aoi3d ros2 publish "$D" --time-scale 0.1 --connect "tcp/127.0.0.1:$ZP" \
+$PY -m aoi3d_cli ros2 publish "$D" --time-scale 0.1 --connect "tcp/127.0.0.1:$ZP" \
   --write-rig "$OUT/rig.yaml" --rig-only
-$PY -m aoi3d up --rig "$OUT/rig.yaml" --delay exp:60 --port-offset "$OFF" --zenoh-port "$ZP" \
+$PY -m aoi3d_cli up --rig "$OUT/rig.yaml" --delay exp:60 --port-offset "$OFF" --zenoh-port "$ZP" \
   --run-id ros2-sweep --quiet > "$OUT/up.log" 2>&1 &
 UP=$!
 trap 'kill -TERM $UP 2>/dev/null; wait $UP 2>/dev/null || true' EXIT
@@ -34,11 +34,11 @@ if [ "${1:-}" = "--epoch" ]; then
   EPOCH=(--epoch-s "$(curl -s "http://127.0.0.1:$((8101 + OFF))/status" \
     | $PY -c "import json, sys; print(json.load(sys.stdin)['time']['epoch_s'])")")
 fi
-$PY -m aoi3d ros2 publish "$D" --time-scale 0.1 --connect "tcp/127.0.0.1:$ZP" "${EPOCH[@]}" \
+$PY -m aoi3d_cli ros2 publish "$D" --time-scale 0.1 --connect "tcp/127.0.0.1:$ZP" "${EPOCH[@]}" \
   > "$OUT/robot.log" 2>&1 &
 ROBOT=$!
 sleep 20
-$PY -m aoi3d live sweep --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
+$PY -m aoi3d_cli live sweep --dataset "$D" --policies mat:40,mat:70,all --no-sim --json \
   --out "$OUT/ros2" --port-offset "$OFF" > "$OUT/ros2.json"
 curl -s "http://127.0.0.1:$((8101 + OFF))/status" > "$OUT/ingest-status.json"
 kill -TERM $ROBOT; wait $ROBOT || true

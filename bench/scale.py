@@ -290,7 +290,7 @@ def run(args: argparse.Namespace) -> dict:
     """Every configuration of ``args.configs`` (``parser()``'s options); writes ``args.out``
     and returns the result document."""
     if Path(args.dataset) == DEFAULT_DATASET:  # generated when missing ("up to date" if not)
-        subprocess.run([sys.executable, "-m", "aoi3d", "scene", "generate", "--out",
+        subprocess.run([sys.executable, "-m", "aoi3d_cli", "scene", "generate", "--out",
                         args.dataset], check=True)
     elif not Path(args.dataset).is_dir():
         raise SystemExit(f"no dataset at {args.dataset} (aoi3d scene generate --out …)")
