@@ -24,7 +24,7 @@ from typing import Any
 from aoi3d.experiment import claims
 from aoi3d.experiment.display_claims import compute_aware_beats_best_fixed
 from aoi3d.experiment.optimum import optimum
-from aoi3d.policy import kind_of, parse_policy
+from aoi3d.policy import AllPolicy, Budgeted, MatPolicy, kind_of, parse_policy
 
 CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
     "stream25": ("the streaming carry at its live budget (25 steps per render)",
@@ -46,8 +46,8 @@ FIGURE_DELAYS = ("exp:20", "exp:100")
 
 
 def grid_policies() -> list[str]:
-    fixed = [f"mat:{g}@{s}" for s in GRID_STEPS for g in GRID_GAMMAS]
-    fixed += [f"all@{s}" for s in GRID_STEPS]
+    fixed = [Budgeted(MatPolicy(float(g)), s).spec for s in GRID_STEPS for g in GRID_GAMMAS]
+    fixed += [Budgeted(AllPolicy(), s).spec for s in GRID_STEPS]
     return [*fixed, *COMPUTE_AWARE]
 
 
