@@ -440,7 +440,7 @@ def _with_budget(inner: Policy, steps: object, spec: object) -> Policy:
                               "'@<steps>'", spec)
     if isinstance(steps, str):
         text = steps.strip()
-        if not text.isdigit():
+        if not (text.isascii() and text.isdigit()):
             raise PolicySpecError(f"budget {text!r} after '@' is not a whole number of "
                                   "training steps", spec)
         steps = int(text)

@@ -43,7 +43,8 @@ def test_a_budget_round_trips_through_spec_and_json(spec: str) -> None:
 @pytest.mark.parametrize(("spec", "why"), [
     ("mat:70@0", "1 … 100000"), (f"mat:70@{BUDGET_MAX_STEPS + 1}", "1 … 100000"),
     ("mat:70@x", "not a whole number"), ("mat:70@1e3", "not a whole number"),
-    ("mat:70@-5", "not a whole number"), ("@5", "nothing before"),
+    ("mat:70@-5", "not a whole number"), ("mat:70@²", "not a whole number"),
+    ("@5", "nothing before"),
     ("mat:70@50@25", "one budget"), ("deadline:100:60@25", "chooses each decision's budget")])
 def test_a_bad_budget_is_refused_saying_why(spec: str, why: str) -> None:
     with pytest.raises(PolicySpecError, match=why):
