@@ -95,10 +95,16 @@ def diff_png(worker: Worker) -> Response:
     return _png(worker.diff_png(), "render and truth pair")
 
 
-@router.api_route("/api/{service}/{path:path}", methods=["GET", "PUT", "POST"],
-                  summary="Call a service's REST API (server-side; the page's controls).",
-                  responses={404: {"description": "Unknown service."},
-                             502: {"description": "The service did not answer."}})
+_FORWARD = {"summary": "Call a service's REST API (server-side; the page's controls).",
+            "responses": {404: {"description": "Unknown service."},
+                          502: {"description": "The service did not answer."}}}
+
+
+# One route per method, each with its own operationId: one api_route with three methods gave
+# all three the same id, and which method's name it took varied with the hash seed.
+@router.get("/api/{service}/{path:path}", operation_id="forward_get", **_FORWARD)
+@router.put("/api/{service}/{path:path}", operation_id="forward_put", **_FORWARD)
+@router.post("/api/{service}/{path:path}", operation_id="forward_post", **_FORWARD)
 async def forward(service: str, path: str, request: Request) -> Response:
     worker: ConsoleWorker = request.app.state.worker
     if service not in worker.upstream:
