@@ -11,13 +11,12 @@ epoch), epochs skipped, the updates' wall time and the mean reward of the first 
 updates (it should rise: the toy bandit's best action is the odd cameras). Writes
 ``bench/results/scheduler-learning.json``.
 
-Run: ``python -m bench.scheduler_learning [--seconds 20] [--period-ms 30] [--batch 8]``.
+Run: ``python -m bench.scheduler_learning [--seconds 20] [--period-ms 30] [--batch 8] [--json]``.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import statistics
@@ -25,6 +24,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -36,6 +36,7 @@ from aoi3d.policy.ppo import PPOConfig
 from aoi3d.policy.ppo.learner import PPOLearner
 from aoi3d.rl.online import LearnConfig
 from aoi3d.scene.camera import Camera, look_at
+from bench import common
 from services.kit.codec import encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
@@ -46,15 +47,21 @@ N_CAMERAS = 18
 KEYS = Keys("bench")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seconds", type=float, default=20.0, help="Wall seconds to run.")
-    parser.add_argument("--period-ms", type=float, default=30.0,
-                        help="Decision period (time scale 1: wall ms).")
-    parser.add_argument("--batch", type=int, default=8, help="Rewarded decisions per update.")
-    parser.add_argument("--threads", type=int, default=1, help="Torch CPU threads.")
-    args = parser.parse_args()
-    torch.set_num_threads(args.threads)
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="Wall seconds to run.")
+    ap.add_argument("--period-ms", type=float, default=30.0,
+                    help="Decision period (time scale 1: wall ms).")
+    ap.add_argument("--batch", type=int, default=8, help="Rewarded decisions per update.")
+    ap.add_argument("--threads", type=int, default=1, help="Torch CPU threads.")
+    common.add_json_option(ap)
+    return ap
+
+
+def run(seconds: float = 20.0, period_ms: float = 30.0, batch: int = 8,
+        threads: int = 1) -> dict[str, Any]:
+    """The measurement; writes ``bench/results/scheduler-learning.json`` and returns it."""
+    torch.set_num_threads(threads)
 
     tmp = Path(tempfile.mkdtemp(prefix="aoi3d-bench-"))
     ckpt = tmp / "agent.pt"
@@ -64,8 +71,8 @@ def main() -> None:
     clock = SimClock(epoch_s=time.time(), time_scale=1.0)
     registry = CollectorRegistry()
     worker = SchedulerWorker(bus, registry, run_id="bench", n_cameras=N_CAMERAS, clock=clock,
-                             policy=policy, decision_period_ms=args.period_ms,
-                             learn=LearnConfig(batch_size=args.batch, checkpoint_every=10))
+                             policy=policy, decision_period_ms=period_ms,
+                             learn=LearnConfig(batch_size=batch, checkpoint_every=10))
 
     lateness_ms: list[float] = []
     sign = np.array([1.0 if cam % 2 else -1.0 for cam in range(1, N_CAMERAS + 1)])
@@ -77,7 +84,9 @@ def main() -> None:
         for ref in d.selected:
             chosen[ref.camera_id - 1] = 1.0
         reward = float(sign @ chosen) / N_CAMERAS
+        # the scheduler learns only from its own incarnation's decisions (as the trainer sends)
         bus.publish(KEYS.quality, pb.Quality(decision_id=d.decision_id, time_ms=d.time_ms,
+                                             decision_incarnation=d.incarnation,
                                              reward=reward).SerializeToString())
 
     bus.subscribe(KEYS.decision, on_decision)
@@ -95,14 +104,14 @@ def main() -> None:
                     camera_id=cam, sequence=seq, generation_ms=now - 5.0,
                     scene_time_ms=now, camera=camera, image=image, delivery_ms=now))
             seq += 1
-            time.sleep(args.period_ms / 1000.0)
+            time.sleep(period_ms / 1000.0)
 
     feeder = threading.Thread(target=feed, daemon=True)
     worker.start()
     feeder.start()
     t0 = time.perf_counter()
     rewards_first = None
-    while time.perf_counter() - t0 < args.seconds:
+    while time.perf_counter() - t0 < seconds:
         time.sleep(0.5)
         status = worker.learner.status()  # type: ignore[union-attr]
         if rewards_first is None and status.mean_reward is not None:
@@ -118,8 +127,8 @@ def main() -> None:
     late = sorted(lateness_ms[5:])  # the first decisions include start-up
     result = {
         "benchmark": "scheduler online PPO learning",
-        "seconds": args.seconds, "decision_period_ms": args.period_ms, "batch": args.batch,
-        "torch_threads": args.threads, "cameras": N_CAMERAS,
+        "seconds": seconds, "decision_period_ms": period_ms, "batch": batch,
+        "torch_threads": threads, "cameras": N_CAMERAS,
         "decisions": len(lateness_ms),
         "decisions_skipped": value("aoi3d_decisions_skipped_total"),
         "lateness_ms": {"median": statistics.median(late),
@@ -133,10 +142,23 @@ def main() -> None:
         "machine": {"python": platform.python_version(), "machine": platform.machine(),
                     "cpus": os.cpu_count(), "loadavg_1min": os.getloadavg()[0]},
     }
-    out = Path(__file__).parent / "results" / "scheduler-learning.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(json.dumps(result, indent=2))
+    common.write_json(common.RESULTS / "scheduler-learning.json", result)
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        result = run(args.seconds, args.period_ms, args.batch, args.threads)
+        late = result["lateness_ms"]
+        print(f"{result['decisions']} decisions in {result['seconds']:g} s, "
+              f"{result['decisions_skipped']:g} skipped; lateness median {late['median']:.2f} ms, "
+              f"p99 {late['p99']:.2f}, max {late['max']:.2f}; {result['updates']:g} updates of "
+              f"{result['update_ms_mean']:.1f} ms; mean reward {result['mean_reward_first_update']}"
+              f" → {result['mean_reward_last_update']}")
+        print(f"written to {common.RESULTS / 'scheduler-learning.json'}")
+    if args.json:
+        common.print_json(result)
 
 
 if __name__ == "__main__":
