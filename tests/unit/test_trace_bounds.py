@@ -4,6 +4,7 @@ bytes, and a refused channel change leaves the network's links and config untouc
 
 from __future__ import annotations
 
+import os
 import time
 from pathlib import Path
 
@@ -118,3 +119,19 @@ def test_a_channel_that_cannot_start_changes_nothing(
 def _frame(camera_id: int) -> bytes:
     from tests.support.network import frame
     return frame(camera_id, 0.0)
+
+
+def test_a_rewritten_trace_has_its_own_mean(tmp_path: Path) -> None:
+    # the same path, the same number of opportunities and period: only the times differ, and
+    # the mean delay read from the rewritten file is the new one (it was keyed on path, n and
+    # period, so the first file's mean stood)
+    path = tmp_path / "link.up"
+    _write(path, [*([0] * 20), 1000])
+    first = parse_channel(f"trace:{path},spread=0").mean_ms
+    before = path.stat()
+    _write(path, [*range(0, 1000, 50), 1000])
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns + 1_000_000_000))  # a later write
+    second = parse_channel(f"trace:{path},spread=0").mean_ms
+    assert second != first
+    assert second == transmission_summary(parse_channel(f"trace:{path},spread=0"), 12_000,
+                                          30)["mean_ms"]

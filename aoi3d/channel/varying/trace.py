@@ -15,7 +15,7 @@ from aoi3d.channel.varying.spec import DEFAULT_FRAME_BYTES, PACKET_BYTES, Channe
 from aoi3d.channel.varying.traces import CellQueue, Trace, load_trace
 from aoi3d.numbers import format_number
 
-_MEANS: dict[tuple[str, float, int, int, float], float] = {}
+_MEANS: dict[tuple[str, int, float, int, int, float], float] = {}
 
 
 class _TraceServer(Server):
@@ -82,9 +82,9 @@ class TraceChannel(Channel):
     def mean_ms(self) -> float:
         """Mean transmission time of a 12-kB frame offered every 30 ms over the whole trace
         by one camera from phase ``offset`` (the traces README's table); computed once per
-        trace file and options."""
+        trace file (as modified) and options."""
         trace = self.trace
-        key = (trace.path, self.scale, self.offset_ms, trace.n, trace.period_ms)
+        key = (trace.path, trace.mtime_ns, self.scale, self.offset_ms, trace.n, trace.period_ms)
         if key not in _MEANS:
             if len(_MEANS) > 64:
                 _MEANS.clear()

@@ -29,6 +29,8 @@ class Trace:
     path: str
     times_ms: np.ndarray  # (n,) float64, sorted
     period_ms: float
+    mtime_ns: int = 0
+    """The file's modification time when it was read: what a cache of results keys on."""
 
     @property
     def n(self) -> int:
@@ -46,7 +48,7 @@ class Trace:
         return c * self.period_ms + float(self.times_ms[i])
 
 
-_TRACES: OrderedDict[tuple[str, float, float], Trace] = OrderedDict()
+_TRACES: OrderedDict[tuple[str, int, float], Trace] = OrderedDict()
 
 
 def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
@@ -65,7 +67,7 @@ def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
     if stat.st_size > MAX_TRACE_BYTES:
         raise ChannelSpecError(f"trace {str(p)!r} has {stat.st_size} bytes, over the "
                                f"{MAX_TRACE_BYTES} a trace may have")
-    key = (str(p.resolve()), stat.st_mtime, float(scale))
+    key = (str(p.resolve()), stat.st_mtime_ns, float(scale))
     if key in _TRACES:
         _TRACES.move_to_end(key)
         return _TRACES[key]
@@ -88,7 +90,7 @@ def load_trace(path: str | os.PathLike[str], scale: float = 1.0) -> Trace:
         raise ChannelSpecError(f"trace {str(p)!r} lasts {format(period, '.6g')} ms "
                                f"(scaled), over the {MAX_TRACE_PERIOD_MS} ms (a day) a trace "
                                f"may last")
-    trace = Trace(str(p), times, period)
+    trace = Trace(str(p), times, period, stat.st_mtime_ns)
     _TRACES[key] = trace
     while sum(t.times_ms.nbytes for t in _TRACES.values()) > MAX_TRACE_CACHE_BYTES:
         _TRACES.popitem(last=False)
