@@ -32,7 +32,6 @@ command) and prints the tables. The Γ*(E[Y]) curve the plug-in uses is
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import time
@@ -48,6 +47,7 @@ from aoi3d.experiment.episode import episode_links
 from aoi3d.policy import MatPolicy, kind_of, parse_policy
 from aoi3d.scene import open_dataset
 from aoi3d.stats import mean_ci95, paired_difference
+from bench import common
 from bench.common import ROOT
 
 GAMMAS = (40, 70, 100, 130, 160, 190, 220, 250, 280)
@@ -89,7 +89,7 @@ def window_delay_ms(links: Any, t_ms: int, half_ms: int = 1500) -> float:
     return float(y.mean()) if y.size else math.nan
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--heldout", default="Verizon-LTE-short.up,Verizon-EVDO-driving.up",
                     help="trace files judged on (never used for design)")
@@ -109,7 +109,12 @@ def main() -> int:
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/adaptive-cache")
     ap.add_argument("--out", type=Path, default=ROOT / "bench/results/adaptive")
     ap.add_argument("--dataset", default=None)
-    args = ap.parse_args()
+    common.add_json_option(ap)
+    return ap
+
+
+def run(args: argparse.Namespace, command: str = "python -m bench.adaptive") -> dict[str, Any]:
+    """The study for ``parser()``'s options; writes ``<out>/results.json`` and returns it."""
 
     channels: list[tuple[str, str, str]] = []  # (label, kind, arg)
     names = [n for n in args.heldout.split(",") if n]
@@ -194,15 +199,24 @@ def main() -> int:
                   flush=True)
 
     analysis = analyse(episodes, channels, seeds, rules, adaptive, gammas)
-    doc = {"command": "python bench/" + Path(__file__).name + " " + " ".join(sys.argv[1:]),
+    doc = {"command": command,
            "heldout": names, "regimes": args.regimes or None, "seeds": seeds,
            "episode_config": base.to_dict(), "rules": rules, "adaptive": adaptive,
            "reconstructions": counts, "wall_s": round(time.perf_counter() - started, 1),
            "analysis": analysis, "episodes": episodes}
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "results.json").write_text(json.dumps(doc, indent=1, default=float) + "\n")
+    common.write_json(args.out / "results.json", doc, indent=1, default=float)
     print_tables(analysis)
     print(f"\n{counts}; {doc['wall_s']} s; {args.out / 'results.json'}")
+    return doc
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    command = "python -m bench.adaptive " + " ".join(sys.argv[1:] if argv is None else argv)
+    with common.progress_to_stderr(args.json):
+        doc = run(args, command.strip())
+    if args.json:
+        common.print_json(doc, indent=1, default=float)
     return 0
 
 

@@ -30,12 +30,12 @@ round, over the first (which single camera), and over the later rounds (which ca
 to a selection: the regime of a policy that picks 5–9 cameras).
 
     python -m bench.state_features          # bench/results/state-features.json, a table
+    python -m bench.state_features --json   # the document on stdout
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from dataclasses import replace
@@ -48,6 +48,7 @@ from aoi3d.experiment import ResultCache, get_preset
 from aoi3d.experiment.oracle import search_oracle
 from aoi3d.experiment.sweep import open_dataset, run_plans
 from aoi3d.policy.ppo.obs import pose_features
+from bench import common
 from bench.common import ROOT
 
 FEATURE_SETS = {
@@ -201,16 +202,23 @@ def _rounds(samples, decisions):
             yield (dec == d) & (rnd == r)
 
 
-def main() -> None:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[50000, 50001])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "experiments" / "oracle-cache")
     ap.add_argument("--workers", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "state-features.json")
-    args = ap.parse_args()
+    common.add_json_option(ap)
+    return ap
 
-    rows, _, cfg, ds, computed = collect(args)
+
+def run(seeds: list[int], steps: int = 300, cache: Path = ROOT / "runs" / "experiments" /
+        "oracle-cache", workers: int = 1, out: Path | None = None,
+        command: str = "python -m bench.state_features") -> dict[str, Any]:
+    """The study; writes its document to ``out`` (when given) and returns it."""
+    rows, _, cfg, ds, computed = collect(argparse.Namespace(seeds=seeds, steps=steps,
+                                                            cache=cache, workers=workers))
     samples, decisions = features(rows, cfg, ds)
     parts = {
         "every round": samples,
@@ -218,14 +226,18 @@ def main() -> None:
         "the later rounds (a camera added to a selection)": [s for s in samples
                                                              if s["round"] > 1],
     }
-    doc = {"command": "python bench/state_features.py " + " ".join(sys.argv[1:]),
-           "seeds": args.seeds, "steps_per_epoch": args.steps, "decisions": len(decisions),
+    doc = {"command": command, "seeds": seeds, "steps_per_epoch": steps,
+           "decisions": len(decisions), "candidates": len(samples),
            "reconstructions_computed": computed,
            "parts": {name: study(part, decisions) for name, part in parts.items()}}
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(doc, indent=1) + "\n")
-    print(f"{len(samples)} candidates at {len(decisions)} decisions ({computed} "
-          f"reconstructions computed)")
+    if out is not None:
+        common.write_json(out, doc, indent=1)
+    return doc
+
+
+def print_table(doc: dict[str, Any]) -> None:
+    print(f"{doc['candidates']} candidates at {doc['decisions']} decisions "
+          f"({doc['reconstructions_computed']} reconstructions computed)")
     for name, part in doc["parts"].items():
         print(f"\n{name}: {part['candidates']} candidates, {part['random_pick']['rounds']} "
               f"rounds")
@@ -236,6 +248,18 @@ def main() -> None:
                   f"{r['top1']:6.2f}")
         for fname, r in part["feature_sets"].items():
             print(f"  {fname:30s} {r['r2']:17.3f} {r['regret_db']:10.3f} {r['top1']:6.2f}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    command = "python -m bench.state_features " + " ".join(
+        sys.argv[1:] if argv is None else argv)
+    with common.progress_to_stderr(args.json):
+        doc = run(args.seeds, args.steps, args.cache, args.workers, args.out,
+                  command=command.strip())
+        print_table(doc)
+    if args.json:
+        common.print_json(doc, indent=1)
 
 
 if __name__ == "__main__":

@@ -15,8 +15,8 @@ decision). Every paired difference is a 95% Student-t interval over the seeds.
 
 ``python -m bench.switching run`` computes the missing episodes (the experiments' cache,
 seed-major, so an interrupted run has covered every point with its first seeds);
-``python -m bench.switching report`` reads whatever the cache holds, uses the seeds complete
-for every point, and writes ``bench/results/switching/switching.json``.
+``python -m bench.switching report [--json]`` reads whatever the cache holds, uses the seeds
+complete for every point, and writes ``bench/results/switching/switching.json``.
 
 Episodes already computed by ``make science`` (``bench/results/science/``: the delay sweep at
 exp:20/60/100, Γ 40–160, seeds 20000–20005) are reused: each is re-planned here and its plan
@@ -43,6 +43,7 @@ from aoi3d.experiment.sweep import Job, ResultCache, lpips_available, run_jobs
 from aoi3d.policy import MatPolicy, PolicySpecError, kind_of
 from aoi3d.scene import open_dataset
 from aoi3d.stats import mean_ci95
+from bench import common
 from bench.common import ROOT
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
@@ -96,7 +97,8 @@ def seed_science(cfg, ds, cache: ResultCache) -> int:
     return n
 
 
-def run(seeds: int, workers: int) -> None:
+def compute(seeds: int, workers: int) -> None:
+    """``run``: the missing episodes into the experiments' cache."""
     preset = get_preset("quick")
     cfg = preset.episode
     ds = open_dataset(cfg.dataset)
@@ -262,19 +264,17 @@ def markdown(result: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("what", choices=("run", "report"))
-    ap.add_argument("--seeds", type=int, default=6)
-    ap.add_argument("--workers", type=int, default=2)
-    args = ap.parse_args()
-    if args.what == "run":
-        run(args.seeds, args.workers)
-        return
-    result = report(args.seeds)
+def run(seeds: int = 6) -> dict[str, Any]:
+    """``report``: the result document from what the cache holds; writes
+    ``bench/results/switching/{switching.json,report.md}`` and returns the document."""
+    result = report(seeds)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "switching.json").write_text(json.dumps(result, indent=1, default=str))
     (OUT / "report.md").write_text(markdown(result))
+    return result
+
+
+def print_summary(result: dict[str, Any]) -> None:
     for name, r in result["sets"].items():
         if "G_db" not in r:
             print(f"{name}: {r.get('note')}")
@@ -288,6 +288,28 @@ def main() -> None:
         for lab, pr in r["per_regime"].items():
             print(f"   {lab}: best Γ {pr['best_gamma_ms']}, single Γ loses "
                   f"{pr['single_loses_db'][0]:+.2f} ± {pr['single_loses_db'][1]:.2f} dB")
+
+
+def parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("what", choices=("run", "report"),
+                    help="run: compute the missing episodes; report: the result document")
+    ap.add_argument("--seeds", type=int, default=6)
+    ap.add_argument("--workers", type=int, default=2)
+    common.add_json_option(ap, help="report: print the result document as JSON")
+    return ap
+
+
+def main(argv: list[str] | None = None) -> None:
+    args = parser().parse_args(argv)
+    with common.progress_to_stderr(args.json):
+        if args.what == "run":
+            compute(args.seeds, args.workers)
+            return
+        result = run(args.seeds)
+        print_summary(result)
+    if args.json:
+        common.print_json(result, default=str)
 
 
 if __name__ == "__main__":
