@@ -34,6 +34,7 @@ import statistics
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -70,7 +71,11 @@ def _ages(text: str) -> tuple[int, ...]:
     return ages
 
 
-def main(argv: list[str] | None = None) -> None:
+class UsageError(ValueError):
+    """Options that cannot run together (``main`` prints it as argparse's usage error)."""
+
+
+def parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--backend", "--field", dest="backend", default="grid",
                         help="the field backend (aoi3d.field.BACKENDS; flow: time-aware)")
@@ -113,19 +118,24 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--device", default="cpu",
                         help="torch device of the field: cpu (default), cuda or auto")
     parser.add_argument("--json", action="store_true", help="print one JSON object only")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The measurement for ``parser()``'s options (``UsageError`` for options that cannot
+    run); prints a line per reconstruction unless ``args.json``; returns the result."""
     if args.repeats is None:
         args.repeats = 8 if args.carry == "fresh" else 22
     if args.repeats < 5:
-        parser.error("--repeats must be >= 5")
+        raise UsageError("--repeats must be >= 5")
     if args.steps < 1:
-        parser.error("--steps must be >= 1")
+        raise UsageError("--steps must be >= 1")
     if args.ahead < 0:
-        parser.error("--ahead must be >= 0")
+        raise UsageError("--ahead must be >= 0")
     try:
         check_backend(args.backend)
     except ValueError as err:
-        parser.error(str(err))
+        raise UsageError(str(err)) from None
     configure_process(args.threads)
 
     width, height = args.size
@@ -138,19 +148,19 @@ def main(argv: list[str] | None = None) -> None:
     ds = ensure_dataset(path, scene)
     ids = list(ds.train_ids)
     if not 1 <= args.views <= len(ids):
-        parser.error(f"--views must be in 1..{len(ids)}")
+        raise UsageError(f"--views must be in 1..{len(ids)}")
     chosen = [ids[round(float(i))] for i in np.linspace(0, len(ids) - 1, args.views)]
     heldout = ds.cameras[ds.heldout_id]
     if args.carry == "fresh":
         sequence = [TIMES[i % len(TIMES)] for i in range(args.repeats)]
     else:  # the cold decision, then the warm ones
         if args.gap < 1:
-            parser.error("--gap must be >= 1")
+            raise UsageError("--gap must be >= 1")
         sequence = [TIMES[0] + (k - 1) * args.gap for k in range(args.repeats + 1)]
     frame_ms = 1000.0 / ds.fps
     ages = [args.ages[i % len(args.ages)] for i in range(len(chosen))]
     if max(ages) > min(sequence):
-        parser.error(f"--ages reach before the scene's first frame (t0 from {min(sequence)})")
+        raise UsageError(f"--ages reach before the scene's first frame (t0 from {min(sequence)})")
     shown = [t0 + args.ahead for t0 in sequence]  # the truth a render is scored against
     frames = {t0: [TrainView(ds.cameras[c], ds.frame(c, t0 - a), age_ms=a * frame_ms)
                    for c, a in zip(chosen, ages, strict=True)] for t0 in sorted(set(sequence))}
@@ -165,7 +175,7 @@ def main(argv: list[str] | None = None) -> None:
     try:
         device = resolve_device(args.device)
     except ValueError as err:
-        parser.error(str(err))
+        raise UsageError(str(err)) from None
     trainer = FieldTrainer(field_config(args.backend), ds.aabb, device=device, seed=0)
     warm_start = WarmStart(cold_steps=args.cold_steps,
                            reset=args.reset, focus=args.focus, hold=not args.no_hold,
@@ -228,12 +238,24 @@ def main(argv: list[str] | None = None) -> None:
             "hold": not args.no_hold, "dilation_px": args.dilation,
             "lr_scale": args.lr_scale,
         })
+    return result
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = parser()
+    args = ap.parse_args(argv)
+    try:
+        result = run(args)
+    except UsageError as err:
+        ap.error(str(err))
     if args.json:
         print(json.dumps(result))
     else:
+        width, height = args.size
+        n = args.repeats
         print(f"{args.backend}, {width}×{height}, {args.views} views, {args.steps} steps "
               f"({args.carry}), {args.threads} thread(s): {result['seconds_median']:.3f} s per "
-              f"reconstruction (median of {len(seconds)}), PSNR {result['psnr_db']:.2f} dB, "
+              f"reconstruction (median of {n}), PSNR {result['psnr_db']:.2f} dB, "
               f"dynamic {result['psnr_dynamic_db']:.2f} dB")
 
 
