@@ -74,9 +74,9 @@ def url(block: PortBlock, service: str, path: str = "/", *, site: str | None = N
 def start_up(block: PortBlock, run_id: str, log_dir: Path, args: Sequence[str] = (),
              *, env: Mapping[str, str] | None = None,
              stdout: int = subprocess.DEVNULL) -> subprocess.Popen:
-    """``python -m aoi3d up --quiet`` on ``block``'s ports with ``args``, in its own process
+    """``python -m aoi3d_cli up --quiet`` on ``block``'s ports with ``args``, in its own process
     group (stop it with :func:`stop_up`)."""
-    cmd = [sys.executable, "-m", "aoi3d", "up", "--run-id", run_id, *block.up_args(),
+    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--run-id", run_id, *block.up_args(),
            "--log-dir", str(log_dir), "--quiet", *args]
     return subprocess.Popen(cmd, cwd=ROOT, env=None if env is None else dict(env),
                             stdout=stdout, stderr=subprocess.STDOUT, start_new_session=True)

@@ -55,6 +55,8 @@ ELSEWHERE: dict[str, str] = {
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
                  "[experiments.md](experiments.md), \"The tradeoff at display time\" "
                  "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",
+    "live-default": "[performance.md](performance.md), \"The live default\" "
+                    "(`python -m bench.live_default`)",
     "ppo_arch.json": "[ppo.md](ppo.md), \"Which network\" (`python bench/ppo_arch.py`)",
     "ppo_budget.json": "[ppo.md](ppo.md), the budget trade (`python bench/ppo_budget.py`)",
     "ppo-dynamic": "[ppo.md](ppo.md), the dynamic-region reward",
