@@ -1,12 +1,13 @@
-"""Benchmark: what a viewer of ``aoi3d up`` gets with a trainer configuration (issue 40, §4).
+"""Benchmark: what a viewer of ``aoi3d up`` gets with a configuration (issue 40, §4).
 
 For each configuration of ``--configs``, one after the other, it starts ``aoi3d up
 --time-scale T`` on its own ports with no other option (the default scene, policy and
 ``--workers auto``): ``default`` is the trainer's defaults as they are, ``CARRY@STEPS`` sets
 ``AOI3D_TRAINER_CARRY`` and ``AOI3D_TRAINER_RENDER_STEPS`` (``stream@25``, ``fresh@100``),
-exactly as a user of the environment would. It waits until the pipeline is up, lets it run
-``--settle-s`` wall seconds and reads a window of ``--measure-s`` (so ``--settle-s 40
---measure-s 60`` is "100 s, the last 60 read"):
+and either followed by ``/POLICY`` sets the scheduler's ``AOI3D_SCHEDULER_POLICY``
+(``default/all``, ``stream@25/mat:130``), exactly as a user of the environment would. It
+waits until the pipeline is up, lets it run ``--settle-s`` wall seconds and reads a window of
+``--measure-s`` (so ``--settle-s 40 --measure-s 60`` is "100 s, the last 60 read"):
 
 - **scored**: the share of the window's decisions (the ids the scheduler's ``GET /decision``
   gave at the window's start and end) whose render was scored (distinct ``decision_id`` in the
@@ -39,6 +40,7 @@ from pathlib import Path
 
 import httpx
 
+from aoi3d.policy import parse_policy
 from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95
 from bench import common
@@ -47,19 +49,28 @@ PORTS = BENCH_BLOCKS["live_default"]  # apart from make up and the other benches
 OUT = common.RESULTS / "live-default" / "live-default.json"
 HTTP = httpx.Client(timeout=30)
 CARRY_ENV = ("AOI3D_TRAINER_CARRY", "AOI3D_TRAINER_RENDER_STEPS")
+POLICY_ENV = "AOI3D_SCHEDULER_POLICY"
 
 
 def parse_config(text: str) -> tuple[str, dict[str, str]]:
-    """``default`` or ``CARRY@STEPS``: the configuration's label and the environment it sets
-    (``ValueError`` for anything else)."""
+    """``default`` or ``CARRY@STEPS``, optionally ``/POLICY``: the configuration's label and
+    the environment it sets (``ValueError`` for anything else)."""
     text = text.strip()
-    if text == "default":
-        return text, {}
-    carry, sep, steps = text.partition("@")
+    render, slash, policy = text.partition("/")
+    env: dict[str, str] = {}
+    if slash:
+        try:
+            parse_policy(policy)
+        except ValueError as err:
+            raise ValueError(f"configuration {text!r}: {err}") from None
+        env[POLICY_ENV] = policy
+    if render == "default":
+        return text, env
+    carry, sep, steps = render.partition("@")
     if not sep or not carry or not steps.isdigit() or int(steps) < 1:
         raise ValueError(f"configuration {text!r}: expected 'default' or CARRY@STEPS "
-                         "(stream@25, fresh@100)")
-    return text, dict(zip(CARRY_ENV, (carry, steps), strict=True))
+                         "(stream@25, fresh@100), optionally /POLICY (default/all)")
+    return text, {**dict(zip(CARRY_ENV, (carry, steps), strict=True)), **env}
 
 
 def window_stats(history: list[dict], first_id: int, last_id: int) -> dict:
@@ -106,7 +117,7 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
     """One configuration: ``aoi3d up`` started, measured and stopped; its row."""
     log_dir = common.ROOT / "runs" / "bench-live-default"
     load_before = os.getloadavg()
-    env = {k: v for k, v in os.environ.items() if k not in CARRY_ENV}
+    env = {k: v for k, v in os.environ.items() if k not in (*CARRY_ENV, POLICY_ENV)}
     env.update(env_extra)
     up = common.start_up(PORTS, "livedefault", log_dir, ["--time-scale", str(args.time_scale)],
                          env=env)
@@ -147,7 +158,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="default",
                     help="comma-separated: 'default' (the trainer's defaults) or CARRY@STEPS "
-                         "(AOI3D_TRAINER_CARRY, AOI3D_TRAINER_RENDER_STEPS), run back to back")
+                         "(AOI3D_TRAINER_CARRY, AOI3D_TRAINER_RENDER_STEPS), optionally "
+                         "/POLICY (AOI3D_SCHEDULER_POLICY), run back to back")
     ap.add_argument("--time-scale", type=float, default=0.3, help="aoi3d up --time-scale")
     ap.add_argument("--settle-s", type=float, default=40.0,
                     help="wall seconds from the pipeline's start-up to the window")
