@@ -75,19 +75,23 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 	$(PY) -m pip install -q -e '.[dev,cluster]'
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
 
+# the carry the recorded live sweeps were measured with (the live default: stream, 25 steps)
+FRESH100 := AOI3D_TRAINER_CARRY=fresh AOI3D_TRAINER_RENDER_STEPS=100
+
 bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 26 min)
-	$(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
+	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
 	    --sim-seeds 16 --out bench/results/live-sweep
 
 bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (2 workers) and the scaling bench (about 20 min, its parts timed alone)
 	$(VENV)/bin/aoi3d scene generate --width 192 --height 144 --workers 2 \
 	    --out data/turbine-rotor-192x144
-	$(VENV)/bin/aoi3d live sweep --up --workers 2 --dataset data/turbine-rotor-192x144 \
-	    --port-offset 2000 --zenoh-port 9447 --policies mat:40,mat:70,mat:130,all \
+	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --workers 2 \
+	    --dataset data/turbine-rotor-192x144 --port-offset 2000 --zenoh-port 9447 \
+	    --policies mat:40,mat:70,mat:130,all \
 	    --settle-s 10 --measure-s 75 --repeats 2 --no-sim --out bench/results/live-sweep-192x144
-	$(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 --dataset data/turbine-rotor-192x144 \
-	    --out bench/results/scale-192x144.json
+	$(FRESH100) $(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 \
+	    --dataset data/turbine-rotor-192x144 --out bench/results/scale-192x144.json
 
 science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) -m bench.science $(SCIENCE_ARGS)

@@ -73,6 +73,7 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
     "chaos_multihost": PortBlock(5100, 9667),  # the multi-host stack's published 13203…13205
     "live_channel": PortBlock(700, 7747),  # REST 8801…8808
     "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11608 (bench/ros2_sweep.sh)
+    "live_default": PortBlock(3300, 9647),  # REST 11401…11408 (bench/live_default.py)
 }
 """The ports of each bench that starts its own pipeline (bench/<name>.py), so that a running
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range

@@ -133,8 +133,8 @@ def sweep(
         sim_doc = simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
                            steps_per_decision=steps_per_decision(
                                windows.status0, status1, windows.measurements),
-                           render_steps=render_steps, seeds=sim_seeds,
-                           seed_offset=sim_seed_offset, cache=cache, workers=None)
+                           render_steps=render_steps, cold_steps=_cold_steps(status1),
+                           seeds=sim_seeds, seed_offset=sim_seed_offset, cache=cache, workers=None)
     result = LiveSweep.of(windows.measurements, order, sim=sim_doc, settings={
         "policies": order, "settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
         "reset_each": reset_each, "port_offset": port_offset, "site": site, "carry": carry,
@@ -155,6 +155,16 @@ def sweep(
         for v in result.verdicts():
             stdout.print(f"{v.metric}: best {escape(v.best)} ({v.best_mean:.3f}): {v.text}")
         stdout.print(f"results in {escape(str(out))}")
+
+
+def _cold_steps(status: dict[str, Any]) -> int:
+    """A stream trainer's cold-start budget: its status's if it says, else the trainer's
+    default (``AOI3D_TRAINER_COLD_STEPS``; the status does not report it)."""
+    if status.get("cold_steps"):
+        return int(status["cold_steps"])
+    from services.trainer.settings import Settings
+
+    return int(Settings.model_fields["cold_steps"].default)
 
 
 def _checked(policies: str, delay: str | None, site: str | None

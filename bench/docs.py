@@ -55,6 +55,8 @@ ELSEWHERE: dict[str, str] = {
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
                  "[experiments.md](experiments.md), \"The tradeoff at display time\" "
                  "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",
+    "live-default": "[performance.md](performance.md), \"The live default\" "
+                    "(`python -m bench.live_default`)",
     "ppo_arch.json": "[ppo.md](ppo.md), \"Which network\" (`python bench/ppo_arch.py`)",
     "ppo_budget.json": "[ppo.md](ppo.md), the budget trade (`python bench/ppo_budget.py`)",
     "ppo-dynamic": "[ppo.md](ppo.md), the dynamic-region reward",
@@ -109,6 +111,11 @@ def table(header: list[str], rows: list[list[Any]]) -> list[str]:
     return out
 
 
+#: The live sweeps' carry (``make bench-live``, ``make bench-192``): not the live default.
+FRESH100 = ("export AOI3D_TRAINER_CARRY=fresh AOI3D_TRAINER_RENDER_STEPS=100   # the carry "
+            "these were measured with (the live default: stream, 25)")
+
+
 def redo(*commands: str) -> list[str]:
     return ["```bash", *commands, "```"]
 
@@ -152,7 +159,8 @@ def live_sweep(results: Path) -> tuple[list[str], set[str]]:
         "the best policy is neither end and the 95 % interval of its difference to each end "
         "(Welch, renders as samples) lies above zero.",
         "",
-        *redo("make bench-live   # = the command below",
+        *redo("make bench-live   # = the commands below",
+              FRESH100,
               "aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 "
               "--policies mat:40,mat:70,mat:130,all \\",
               "    --settle-s 10 --measure-s 75 --repeats 3 --sim-seeds 16 "
@@ -201,7 +209,8 @@ def live_192(results: Path) -> tuple[list[str], set[str]]:
     lines = [
         "## At 192×144 pixels",
         "",
-        *redo("make bench-192    # = the scene and the two commands below",
+        *redo("make bench-192    # = the scene and the commands below",
+              FRESH100,
               "aoi3d scene generate --width 192 --height 144 --workers 2 "
               "--out data/turbine-rotor-192x144",
               "aoi3d live sweep --up --workers 2 --dataset data/turbine-rotor-192x144 "

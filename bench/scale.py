@@ -18,7 +18,8 @@ per-site bytes.
     python -m bench.scale --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
 
 A configuration may name the trainer's carry and render steps (``KxS:carry@steps``): the
-streaming warm start (``stream``) beside today's ``fresh`` in the same run (issue 33).
+streaming warm start (``stream``, the default since issue 40) beside ``fresh`` in the same
+run (issue 33); without, the trainer's defaults (the row's ``carry`` says which).
 
 The machine's other load is recorded (load average before and after each run).
 """
@@ -154,6 +155,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         decision1 = ids()
         dt = time.monotonic() - t0
         pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
+        in_force = HTTP.get(PORTS.url("trainer", "/status")).json()["carry"]
         # Bytes in a window of their own, after the renders' window: a subscriber to every key
         # makes the router send everything twice and costs this process CPU, which the
         # workers would otherwise have had.
@@ -185,7 +187,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     age_n = delta("trainer", "aoi3d_pool_render_age_seconds_count")
     return {
         "workers": workers, "sites": sites, "window_s": round(dt, 1),
-        "carry": carry or "fresh (default)", "render_steps": render_steps,
+        "carry": carry or f"{in_force} (default)", "render_steps": render_steps,
         "time_scale": args.time_scale,
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,

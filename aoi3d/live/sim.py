@@ -12,22 +12,36 @@ from aoi3d.experiment.sweep import Job, ResultCache, run_jobs
 from aoi3d.live.summary import METRICS
 from aoi3d.stats import mean_ci95
 
-__all__ = ["simulate"]
+__all__ = ["budget", "simulate"]
+
+
+def budget(carry: str, *, steps_per_decision: int, render_steps: int,
+           cold_steps: int) -> dict[str, int]:
+    """The episode's budget (``steps_per_epoch``, ``render_steps``) that matches a live
+    trainer's carry: ``fresh`` trains ``render_steps`` at each rendered decision; ``stream``
+    warm-starts with ``render_steps`` and starts cold with ``cold_steps`` (the episode's
+    ``steps_per_epoch``); ``fork`` and ``warm`` train ``steps_per_decision`` in the
+    background, ``fork`` ``render_steps`` more on each rendered decision."""
+    if carry == "fresh":
+        return {"steps_per_epoch": render_steps}
+    if carry == "stream":
+        return {"steps_per_epoch": cold_steps, "render_steps": render_steps}
+    return {"steps_per_epoch": max(1, steps_per_decision),
+            "render_steps": render_steps if carry == "fork" else 0}
 
 
 def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
              steps_per_decision: int, render_steps: int, seeds: int, seed_offset: int,
-             cache: Path, workers: int | None) -> dict[str, dict[str, Any]]:
-    """The experiments' engine on the same scene, channel, carry and budget: per policy,
+             cache: Path, workers: int | None, cold_steps: int = 100
+             ) -> dict[str, dict[str, Any]]:
+    """The experiments' engine on the same scene, channel, carry and budget (:func:`budget`;
+    ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``): per policy,
     ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds (and ``_config``: the episode
     config run)."""
     base = get_preset("quick").episode
     changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry}
-    if carry == "fresh":
-        changes["steps_per_epoch"] = render_steps
-    else:
-        changes["steps_per_epoch"] = max(1, steps_per_decision)
-        changes["render_steps"] = render_steps if carry == "fork" else 0
+    changes.update(budget(carry, steps_per_decision=steps_per_decision,
+                          render_steps=render_steps, cold_steps=cold_steps))
     cfg = base.with_(**changes)
     jobs = [Job(p, delay, seed_offset + s) for s in range(seeds) for p in policies]
     outcome = run_jobs(cfg, jobs, cache=ResultCache(cache), workers=workers)

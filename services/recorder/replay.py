@@ -25,8 +25,9 @@ needs one is not redone).
 are the pairing of the counterfactual table). Under the recorded policy each is rebuilt from
 the frames the live job carried (the Render lists them; the trainer may have missed one);
 under another policy from its selection. Exact reproduction needs the ``fresh`` carry (each
-render depends on its decision alone); ``warm``/``fork`` renders depend on the worker's
-history and are refused.
+render depends on its decision alone; record with ``AOI3D_TRAINER_CARRY=fresh``, the live
+default is ``stream``); ``stream``/``warm``/``fork`` renders depend on the worker's history
+and are refused.
 """
 
 from __future__ import annotations
@@ -140,8 +141,9 @@ def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | N
                   if k in srec.renders and k in srec.qualities
                   and (only is None or (site, k) in only)}
         if score and any(srec.renders[k].carry != "fresh" for k in scored):
-            raise ValueError("replay rebuilds renders of the fresh carry only (a warm or fork "
-                             "render depends on the worker's history); give --no-score")
+            raise ValueError("replay rebuilds renders of the fresh carry only (a stream, warm "
+                             "or fork render depends on the worker's history; record with "
+                             "AOI3D_TRAINER_CARRY=fresh); give --no-score")
         total = len(scored) if max_renders is None else min(max_renders, len(scored))
         scorer = None
         done = attempted = 0

@@ -118,18 +118,19 @@ class CarryRequest(BaseModel):
     """How renders are made from the next render on."""
 
     carry: CarryMode = Field(
-        description="fresh: a new model trains `render_steps` steps on the rendered "
-                    "decision's frames alone, then renders (the paper's per-time "
-                    "reconstruction; the default); stream: each worker starts from its "
+        description="stream (the default, with 25 steps): each worker starts from its "
                     "previous decision's model and trains `render_steps` steps, a share of "
-                    "them on the pixels that changed (cold starts: cold_steps); fork: a copy "
-                    "of the continuously trained model does; warm: the continuously trained "
-                    "model renders as it is.",
+                    "them on the pixels that changed (cold starts: cold_steps); fresh: a new "
+                    "model trains `render_steps` steps on the rendered decision's frames "
+                    "alone, then renders (the paper's per-time reconstruction; give it 100 "
+                    "steps); fork: a copy of the continuously trained model does; warm: the "
+                    "continuously trained model renders as it is.",
         examples=["fresh"])
     render_steps: int | None = Field(
         None, ge=1, le=100_000,
         description="Steps on a rendered decision's own frames; null keeps the current "
-                    "value.", examples=[100])
+                    "value (so name it when switching between stream's 25 and fresh's "
+                    "100).", examples=[100])
 
 
 @model_router.put(

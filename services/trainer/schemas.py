@@ -124,10 +124,11 @@ class StatusResponse(BaseModel):
     backends: list[str] = Field(description="Available backends (aoi3d.field.BACKENDS).",
                                 examples=[["grid", "nerfacto", "ngp", "tensorf"]])
     device: str = Field(description="Torch device the field trains on.", examples=["cpu"])
-    carry: str = Field(description="How renders are made (PUT /carry): fresh, fork or warm.",
-                       examples=["fresh"])
+    carry: str = Field(description="How renders are made (PUT /carry): stream (the "
+                                   "default), fresh, fork or warm.", examples=["stream"])
     render_steps: int = Field(description="Training steps spent on a rendered decision's own "
-                                          "frames (fork, fresh).", examples=[100])
+                                          "frames (fork, fresh; stream: a warm start's).",
+                              examples=[25])
     renders: int = Field(description="Renders published.", examples=[17])
     frames_received: int = Field(description="Delivered frames accepted since start.",
                                  examples=[5400])

@@ -146,7 +146,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         for r in doc["results"]:
             assert r["n"] >= 1 and math.isfinite(r["psnr_db"]["mean"]), r
         assert doc["results"][1]["cameras_used"]["mean"] == len(big[-1].camera_ids)
-        assert doc["settings"]["carry"] == "fresh"
+        assert doc["settings"]["carry"] == "stream"  # the default (AOI3D_TRAINER_CARRY)
         assert {"points.csv", "renders.csv", "results.json", "live_sweep.png"} <= {
             f.name for f in (tmp_path / "sweep").iterdir()}
 

@@ -58,7 +58,8 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
            "--run-id", run_id, "--zenoh-port", str(_PORTS.zenoh), "--port-offset",
            str(_PORTS.rest_offset), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0",
+    # the replay rebuilds the fresh carry's renders only (the live default is stream)
+    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_TRAINER_CARRY="fresh",
                AOI3D_TRAINER_RENDER_STEPS="30", AOI3D_FILES_ROOTS=str(tmp_path),
                AOI3D_SCHEDULER_POLICY="mat:70")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,

@@ -58,7 +58,8 @@ def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
 def make_app(dataset: SceneDataset, bus: MemoryBus, **overrides):
     common = CommonSettings(run_id=KEYS.run_id, cameras=N_TRAIN, time_scale=10.0,
                             epoch_s=time.time())
-    settings = Settings(**{"render_steps": 200, "common": common,  # a slow first job: no loss
+    # the default carry (stream): the first job, a cold start, trains 200 steps
+    settings = Settings(**{"render_steps": 200, "cold_steps": 200, "common": common,
                            "job_timeout_s": FIRST_RENDER_S * SCALE, **overrides})
     clock = SimClock(settings.common.epoch_s, settings.common.time_scale)
     return create_app(settings, bus=bus, clock=clock, dataset=dataset)

@@ -315,6 +315,27 @@ def test_policies_pair_on_the_epochs_every_one_can_rebuild() -> None:
     assert [d.rebuildable for d in only.decisions] == [None, True]
 
 
+def test_scores_of_a_stream_run_are_refused_saying_how_to_record_one() -> None:
+    """The live default, stream, renders from the worker's history: the replay cannot rebuild
+    it and says so before anything runs (selections alone still replay)."""
+    from services.recorder.recording import Recorded, SiteRecord
+    from services.recorder.replay import replay
+
+    site = SiteRecord()
+    site.deliveries = [pb.Frame.FromString(frame(1, 25.0, delivery_ms=28.0))]
+    site.decisions = [_decision(30.0, {1: 25.0}, selected=[1])]
+    d = site.decisions[0]
+    d.policy = "mat:20"
+    key = (d.incarnation, d.decision_id)
+    site.renders[key] = pb.Render(decision_id=d.decision_id, carry="stream",
+                                  frame_generation_ms=[25.0], frame_camera_ids=[1])
+    site.qualities[key] = pb.Quality(decision_id=d.decision_id, psnr_db=20.0)
+    rec = Recorded(Path("r.mcap"), [], {}, {"site1": site})
+    with pytest.raises(ValueError, match=r"AOI3D_TRAINER_CARRY=fresh.*--no-score"):
+        replay(rec, None)
+    assert [x.rebuildable for x in replay(rec, None, score=False).decisions] == [True]
+
+
 def _mat10_recording(path: Path) -> None:
     """20 decisions of two cameras under mat:10, their deliveries before them."""
     rec = Recording(path)

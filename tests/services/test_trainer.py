@@ -129,8 +129,9 @@ def test_a_decision_is_rendered_by_one_worker_from_its_own_frames(
     wait_for(lambda: renders(bus), what="a render")
     render, camera = decode_render(bus.messages(KEYS.render)[-1])
     assert (render.decision_id, render.time_ms, render.worker_id) == (7, 200.0, "w1")
-    assert render.backend == "grid" and render.n_views == 3 and render.carry == "fresh"
-    assert render.render_steps == render.training_step == 20
+    # the default carry, stream; a worker's first job is a cold start (cold_steps)
+    assert render.backend == "grid" and render.n_views == 3 and render.carry == "stream"
+    assert render.render_steps == render.training_step == 20 and not render.warm_start
     assert sorted(render.frame_generation_ms) == [100.0] * 3
     assert math.isfinite(render.loss) and render.loss > 0
     assert camera == dataset.cameras[dataset.heldout_id]
@@ -316,7 +317,7 @@ def test_put_backend_and_carry_change_the_jobs_and_refuse_bad_values(
     for body in ({"carry": "lukewarm"}, {"carry": "fresh", "render_steps": 0}):
         assert client.put("/carry", json=body).status_code == 422
     status = client.get("/status").json()
-    assert (status["backend"], status["carry"], status["render_steps"]) == ("grid", "fresh", 20)
+    assert (status["backend"], status["carry"], status["render_steps"]) == ("grid", "stream", 20)
     assert status["resets"] == 0
 
     resp = client.put("/backend", json={"backend": "ngp"})
@@ -350,6 +351,37 @@ def test_settings_validate_backend(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("AOI3D_CAMERAS", "5")
     s = Settings()
     assert (s.job_timeout_s, s.port, s.common.cameras) == (9.0, 8104, 5)
+
+
+def test_the_default_is_the_stream_warm_start_of_25_steps(monkeypatch: pytest.MonkeyPatch
+                                                         ) -> None:
+    # what a viewer sees best live (docs/performance.md, "The live default")
+    s = Settings()
+    assert (s.carry, s.render_steps, s.cold_steps, s.warm_max_gap_ms) == ("stream", 25, 100,
+                                                                           500.0)
+    monkeypatch.setenv("AOI3D_TRAINER_CARRY", "fresh")
+    monkeypatch.setenv("AOI3D_TRAINER_RENDER_STEPS", "100")
+    assert (Settings().carry, Settings().render_steps) == ("fresh", 100)
+    monkeypatch.setenv("AOI3D_TRAINER_CARRY", "lukewarm")
+    with pytest.raises(ValidationError, match="carry"):
+        Settings()
+
+
+def test_by_default_a_workers_next_decision_starts_from_its_model(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    pool.add("w1")
+    wait_for(lambda: client.get("/workers").json()["workers"], what="the worker to join")
+    publish_frames(bus, dataset, 0.0)
+    publish_frames(bus, dataset, 100.0)
+    bus.publish(KEYS.decision, decision_payload(1, 100.0, [(1, 0.0), (2, 0.0)]))
+    wait_for(lambda: len(renders(bus)) == 1, what="the first render")
+    bus.publish(KEYS.decision, decision_payload(2, 200.0, [(1, 100.0), (2, 100.0)]))
+    wait_for(lambda: len(renders(bus)) == 2, what="the second render")
+    first, second = renders(bus)
+    # a cold start first (cold_steps), then 100 scene ms later its model, render_steps more
+    assert (first.carry, first.warm_start, first.render_steps) == ("stream", False, 20)
+    assert (second.carry, second.warm_start, second.render_steps) == ("stream", True, 20)
+    assert metric(client, "aoi3d_renders_warm_start_total", 'site="site1"') == 1
 
 
 def test_recon_settings_default_to_one_thread_and_check_the_worker_id(

@@ -43,7 +43,8 @@ def trainer_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
 def make_settings(**overrides) -> Settings:
     common = CommonSettings(run_id=KEYS.run_id, cameras=N_TRAIN, time_scale=10.0,
                             epoch_s=time.time())
-    values = {"render_steps": 20, "common": common}
+    # the default carry (stream) with every job 20 steps: a cold start as cheap as a warm one
+    values = {"render_steps": 20, "cold_steps": 20, "common": common}
     values.update(overrides)
     return Settings(**values)
 

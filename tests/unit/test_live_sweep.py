@@ -105,3 +105,22 @@ def test_sweep_refuses_a_bad_channel_before_touching_the_pipeline() -> None:
                                            "61000", "--timeout-s", "1"])
     assert result.exit_code == 2, result.output
     assert "lacksitsduration" in "".join(result.output.replace("│", "").split())
+
+
+def test_the_virtual_clock_gets_the_live_trainers_budget_for_every_carry() -> None:
+    # the live default (stream, 25 steps) must make an episode the experiments accept:
+    # a warm start's budget and the cold starts' (not render_steps 0, which they refuse)
+    from aoi3d.experiment.config import get_preset
+    from aoi3d.live.sim import budget
+
+    base = get_preset("quick").episode
+    expect = {"fresh": {"steps_per_epoch": 100},
+              "stream": {"steps_per_epoch": 100, "render_steps": 25},
+              "fork": {"steps_per_epoch": 7, "render_steps": 25},
+              "warm": {"steps_per_epoch": 7, "render_steps": 0}}
+    for carry, want in expect.items():
+        steps = 100 if carry == "fresh" else 25
+        got = budget(carry, steps_per_decision=7, render_steps=steps, cold_steps=100)
+        assert got == want, carry
+        cfg = base.with_(carry=carry, **got)  # the experiments' own checks pass
+        assert (cfg.carry, cfg.steps_per_epoch) == (carry, want["steps_per_epoch"])
