@@ -95,9 +95,10 @@ def diff_png(worker: Worker) -> Response:
     return _png(worker.diff_png(), "render and truth pair")
 
 
-_FORWARD = {"summary": "Call a service's REST API (server-side; the page's controls).",
-            "responses": {404: {"description": "Unknown service."},
-                          502: {"description": "The service did not answer."}}}
+_FORWARD: dict[str, Any] = {
+    "summary": "Call a service's REST API (server-side; the page's controls).",
+    "responses": {404: {"description": "Unknown service."},
+                  502: {"description": "The service did not answer."}}}
 
 
 # One route per method, each with its own operationId: one api_route with three methods gave
