@@ -99,7 +99,8 @@ def sweep(
         min=1, help="Timeout of each REST call and of each wait for the pipeline.")] = 30.0,
 ) -> None:
     """Measure each policy on the running pipeline; write CSV, JSON and a PNG with the
-    virtual clock's curve beside the live one.
+    virtual clock's curve beside the live one. PSNR is reported at the decision's time and at
+    display time (against the truth when the render was ready: what a viewer saw).
 
     Reports, per metric, whether the best policy is an interior maximum beyond its 95%
     confidence interval: neither end of --policies, and the Welch (unpaired: the windows are
@@ -189,10 +190,10 @@ def sweep(
 
 def _table(result: LiveSweep) -> Table:
     table = Table(title="live sweep (mean ± 95% CI per render)")
-    cols = ["policy", "n", "PSNR (dB)", "dyn. PSNR", "SSIM", "LPIPS", "reward", "cameras",
-            "AoI used (ms)"]
+    cols = ["policy", "n", "PSNR (dB)", "display PSNR", "dyn. PSNR", "SSIM", "LPIPS", "reward",
+            "cameras", "AoI used (ms)"]
     if result.sim is not None:
-        cols += ["sim PSNR", "live − sim (dB)"]
+        cols += ["sim PSNR", "live − sim (dB)", "sim display PSNR"]
     for c in cols:
         table.add_column(c, justify="right")
 
@@ -201,12 +202,15 @@ def _table(result: LiveSweep) -> Table:
 
     for r in result.results:
         cells = [escape(r["policy"]), str(r["n"]), cell(r["psnr_db"], 2),
+                 cell(r["psnr_display_db"], 2),
                  cell(r["psnr_dynamic_db"], 2), cell(r["ssim"], 3), cell(r["lpips"], 3),
                  cell(r["reward"], 3), cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
         if result.sim is not None:
-            s = result.sim.get(r["policy"], {}).get("psnr_db", {}).get("mean")
+            sim = result.sim.get(r["policy"], {})
+            s = sim.get("psnr_db", {}).get("mean")
             live = r["psnr_db"]["mean"]
             cells += [fmt(s, None, 2),
-                      "—" if s is None or live is None else f"{live - s:+.2f}"]
+                      "—" if s is None or live is None else f"{live - s:+.2f}",
+                      fmt(sim.get("psnr_display_db", {}).get("mean"), None, 2)]
         table.add_row(*cells)
     return table
