@@ -130,7 +130,7 @@ def sweep(
     from aoi3d.live import steps_per_decision
     from aoi3d.live.figures import plot, plot_views, view_pairs
     from aoi3d.live.report import LiveSweep
-    from aoi3d.live.sim import simulate
+    from aoi3d.live.sim import SimRefused, simulate
     from aoi3d.scene import open_dataset
     from aoi3d_cli.livehttp import LiveSession, Pipeline
 
@@ -151,11 +151,14 @@ def sweep(
     if sim:
         console.print(f"virtual clock: {sim_seeds} seed(s) per policy, carry {carry}, "
                       f"{render_steps} steps per rendered decision, delay {channel['delay']}")
-        sim_doc = simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
-                           steps_per_decision=steps_per_decision(
-                               windows.status0, status1, windows.measurements),
-                           render_steps=render_steps, seeds=sim_seeds,
-                           seed_offset=sim_seed_offset, cache=cache, workers=None)
+        try:
+            sim_doc = simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
+                               steps_per_decision=steps_per_decision(
+                                   windows.status0, status1, windows.measurements),
+                               render_steps=render_steps, seeds=sim_seeds,
+                               seed_offset=sim_seed_offset, cache=cache, workers=None)
+        except SimRefused as err:  # the live measurement is kept: the files have no sim
+            console.print(f"no virtual clock: {escape(str(err))}")
     result = LiveSweep.of(windows.measurements, order, sim=sim_doc, settings={
         "policies": order, "settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
         "reset_each": reset_each, "port_offset": port_offset, "site": site, "carry": carry,

@@ -405,3 +405,19 @@ def test_compare_runs_budgeted_policies_side_by_side(dataset: SceneDataset, tmp_
     doc = json.loads((out / "results.json").read_text())
     as_json = {r["policy"]: r["policy_json"] for r in doc["policies"]}
     assert as_json["mat:70@50"] == {"kind": "mat", "mat_ms": 70, "budget_steps": 50}
+
+
+@pytest.mark.parametrize("spec", ["mat:70@50", "deadline:70:100"])
+def test_compare_refuses_a_budget_under_the_warm_carry_before_running(
+        spec: str, dataset: SceneDataset, tmp_path) -> None:
+    from aoi3d_cli.experiment import app
+
+    out = tmp_path / "w"
+    res = CliRunner().invoke(app, [
+        "compare", "--policy", spec, "--policy", "all", "--seeds", "1", "--carry", "warm",
+        "--dataset", str(dataset.root), "--out", str(out), "--cache", str(tmp_path / "cache"),
+        "--workers", "1", "--no-lpips"])
+    assert res.exit_code == 2, res.output
+    assert "warm carry" in " ".join(res.output.replace("│", "").split())
+    assert not (out / "results.json").exists()  # nothing ran
+    assert not any((tmp_path / "cache").rglob("*.json"))

@@ -175,3 +175,16 @@ def test_sweep_refuses_a_bad_channel_before_touching_the_pipeline() -> None:
                                            "61000", "--timeout-s", "1"])
     assert result.exit_code == 2, result.output
     assert "lacksitsduration" in "".join(result.output.replace("│", "").split())
+
+
+def test_the_virtual_clock_refuses_a_budget_under_the_warm_carry_before_running(
+        dataset, tmp_path) -> None:
+    """A sweep of budgeted policies on a warm-carry pipeline keeps its live measurement: the
+    virtual clock says why it cannot run them (the command prints it and writes no sim)."""
+    from aoi3d.live.sim import SimRefused, simulate
+
+    with pytest.raises(SimRefused, match=r"mat:70@50: .*warm carry"):
+        simulate(["all", "mat:70@50"], dataset=dataset.root, delay="exp:60", carry="warm",
+                 steps_per_decision=1, render_steps=0, seeds=1, seed_offset=0,
+                 cache=tmp_path / "cache", workers=1)
+    assert not (tmp_path / "cache").exists()  # nothing ran
