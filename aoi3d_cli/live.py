@@ -28,13 +28,14 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from aoi3d.metric import BY_NAME, LIVE
+from aoi3d.metric import BY_NAME, LIVE, LIVE_AT_DISPLAY
 from aoi3d.ports import REST_FIRST, REST_LAST, ZENOH_PORT
 from aoi3d_cli.common import fmt, make_console
 
 if TYPE_CHECKING:
     from aoi3d.live.report import LiveSweep
     from aoi3d.live.summary import Measurement
+    from aoi3d_cli.livehttp import SweepWindows
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -101,16 +102,15 @@ def sweep(
         min=1, help="Timeout of each REST call and of each wait for the pipeline.")] = 30.0,
 ) -> None:
     """Measure each policy on the running pipeline; write CSV, JSON and a PNG with the
-    virtual clock's curve beside the live one.
+    virtual clock's curve beside the live one. PSNR is reported at the decision's time and at
+    display time (against the truth when the render was ready: what a viewer saw).
 
     Reports, per metric, whether the best policy is an interior maximum beyond its 95%
     confidence interval: neither end of --policies, and the Welch (unpaired: the windows are
     different renders, not seeds) 95% CI of best − each end above zero."""
     specs, bodies, canon, delay = _checked(policies, delay, site)
-    from aoi3d.live import steps_per_decision
     from aoi3d.live.figures import plot
     from aoi3d.live.report import LiveSweep
-    from aoi3d.live.sim import simulate
     from aoi3d_cli.livehttp import LiveSession, Pipeline
 
     started = time.monotonic()
@@ -126,15 +126,8 @@ def sweep(
     carry = status1.get("carry", "warm")
     render_steps = int(status1.get("render_steps") or 0)
     steps_per_s = float(status1.get("steps_per_s") or 0.0)
-    sim_doc = None
-    if sim:
-        console.print(f"virtual clock: {sim_seeds} seed(s) per policy, carry {carry}, "
-                      f"{render_steps} steps per rendered decision, delay {channel['delay']}")
-        sim_doc = simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
-                           steps_per_decision=steps_per_decision(
-                               windows.status0, status1, windows.measurements),
-                           render_steps=render_steps, cold_steps=_cold_steps(status1),
-                           seeds=sim_seeds, seed_offset=sim_seed_offset, cache=cache, workers=None)
+    sim_doc = (_virtual_clock(order, windows, dataset=dataset, seeds=sim_seeds,
+                              seed_offset=sim_seed_offset, cache=cache) if sim else None)
     result = LiveSweep.of(windows.measurements, order, sim=sim_doc, settings={
         "policies": order, "settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
         "reset_each": reset_each, "port_offset": port_offset, "site": site, "carry": carry,
@@ -155,6 +148,29 @@ def sweep(
         for v in result.verdicts():
             stdout.print(f"{v.metric}: best {escape(v.best)} ({v.best_mean:.3f}): {v.text}")
         stdout.print(f"results in {escape(str(out))}")
+
+
+def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, seeds: int,
+                   seed_offset: int, cache: Path) -> dict[str, Any] | None:
+    """The virtual clock's run of ``order`` with the live trainer's carry, budget and channel
+    (None, with a line saying why, when it cannot run them: the live measurement is kept)."""
+    from aoi3d.live import steps_per_decision
+    from aoi3d.live.sim import SimRefused, simulate
+
+    status1, channel = windows.status1, windows.channel
+    carry = status1.get("carry", "warm")
+    render_steps = int(status1.get("render_steps") or 0)
+    console.print(f"virtual clock: {seeds} seed(s) per policy, carry {carry}, "
+                  f"{render_steps} steps per rendered decision, delay {channel['delay']}")
+    try:
+        return simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
+                        steps_per_decision=steps_per_decision(
+                            windows.status0, status1, windows.measurements),
+                        render_steps=render_steps, cold_steps=_cold_steps(status1),
+                        seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None)
+    except SimRefused as err:
+        console.print(f"no virtual clock: {escape(str(err))}")
+        return None
 
 
 def _cold_steps(status: dict[str, Any]) -> int:
@@ -217,10 +233,10 @@ def _views_figure(measurements: list[Measurement], dataset: Path, out: Path) -> 
 
 def _table(result: LiveSweep) -> Table:
     table = Table(title="live sweep (mean ± 95% CI per render)")
-    cols = ["policy", "n", "PSNR (dB)", "dyn. PSNR", "SSIM", "LPIPS", "reward", "cameras",
-            "AoI used (ms)"]
+    cols = ["policy", "n", "PSNR (dB)", "display PSNR", "dyn. PSNR", "SSIM", "LPIPS", "reward",
+            "cameras", "AoI used (ms)"]
     if result.sim is not None:
-        cols += ["sim PSNR", "live − sim (dB)"]
+        cols += ["sim PSNR", "live − sim (dB)", "sim display PSNR"]
     for c in cols:
         table.add_column(c, justify="right")
 
@@ -229,12 +245,15 @@ def _table(result: LiveSweep) -> Table:
 
     for r in result.results:
         cells = [escape(r["policy"]), str(r["n"]),
-                 *(cell(r[m], BY_NAME[m].digits) for m in LIVE),
+                 *(cell(r[m], BY_NAME[m].digits) for m in (*LIVE[:1], *LIVE_AT_DISPLAY,
+                                                           *LIVE[1:])),
                  cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
         if result.sim is not None:
-            s = result.sim.get(r["policy"], {}).get("psnr_db", {}).get("mean")
+            sim = result.sim.get(r["policy"], {})
+            s = sim.get("psnr_db", {}).get("mean")
             live = r["psnr_db"]["mean"]
             cells += [fmt(s, None, 2),
-                      "—" if s is None or live is None else f"{live - s:+.2f}"]
+                      "—" if s is None or live is None else f"{live - s:+.2f}",
+                      fmt(sim.get("psnr_display_db", {}).get("mean"), None, 2)]
         table.add_row(*cells)
     return table

@@ -19,6 +19,7 @@ from aoi3d.experiment.baselines import (
 )
 from aoi3d.experiment.config import EpisodeConfig
 from aoi3d.experiment.episode import EpisodeResult
+from aoi3d.experiment.episode.plan import check_budget_applies
 from aoi3d.experiment.optimum import Optimum, paired_difference, sign_of
 from aoi3d.experiment.oracle import OracleSpec, OracleSpecError, is_oracle_spec, parse_oracle
 from aoi3d.experiment.sweep import OracleOutcome, aggregate
@@ -82,8 +83,9 @@ class ComparePlan:
 
 def plan_compare(specs: Sequence[str], cfg: EpisodeConfig, n_cameras: int) -> ComparePlan:
     """Check every spec before any sweep runs: :class:`CompareSpecError` for an unknown spec,
-    a policy that does not fit ``n_cameras``, a baseline ``cfg``'s backend cannot take, or
-    an oracle without ``--carry fresh``."""
+    a policy that does not fit ``n_cameras``, a budget (``mat:70@50``, ``deadline``) under
+    the warm carry, a baseline ``cfg``'s backend cannot take, or an oracle without
+    ``--carry fresh``."""
     oracles = []
     entries: list[tuple[TrainerOption | None, Policy | None]] = []
     for spec in specs:
@@ -112,8 +114,16 @@ def plan_compare(specs: Sequence[str], cfg: EpisodeConfig, n_cameras: int) -> Co
                     f"{spec}: the {cfg.backend!r} backend cannot take it ({err}); the "
                     "timeliness embedding (tembed) needs the grid backend") from None
             trainer = option
-        entries.append((trainer, None if policy_spec == MAT_BEST
-                        else _fitting_policy(policy_spec, n_cameras, spec)))
+        policy = None if policy_spec == MAT_BEST else _fitting_policy(policy_spec, n_cameras,
+                                                                      spec)
+        if policy is not None and (policy.budget_steps is not None
+                                   or getattr(policy, "chooses_budget", False)):
+            try:
+                check_budget_applies(cfg)  # a budget needs a carry that spends one
+            except ValueError as err:
+                raise CompareSpecError(f"{spec}: {err} (--carry fresh, stream or fork)"
+                                       ) from None
+        entries.append((trainer, policy))
     return ComparePlan(entries, oracles)
 
 

@@ -10,6 +10,7 @@ imported here; the others load the engine or matplotlib.
 """
 
 from aoi3d.live.summary import (
+    DISPLAY_METRICS,
     METRICS,
     Measurement,
     measurement_doc,
@@ -22,6 +23,7 @@ from aoi3d.live.summary import (
 )
 
 __all__ = [
+    "DISPLAY_METRICS",
     "METRICS",
     "Measurement",
     "measurement_doc",

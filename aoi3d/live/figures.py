@@ -32,7 +32,8 @@ ViewPair = tuple[Measurement, dict[str, Any], np.ndarray]
 def plot(results: Sequence[dict[str, Any]], sim: Mapping[str, Any] | None, path: Path,
          title: str) -> Path:
     """PSNR (full and dynamic), SSIM, LPIPS, reward and cameras used per policy, live with
-    95% CIs, the virtual clock's curve beside it."""
+    95% CIs, the virtual clock's curve beside it; the PSNR panel has the live PSNR at display
+    time too."""
     panels = [*((m, BY_NAME[m].axis_label) for m in LIVE), ("cameras_used", "cameras used")]
     x = list(range(len(results)))
     labels = [r["policy"] for r in results]
@@ -47,6 +48,13 @@ def plot(results: Sequence[dict[str, Any]], sim: Mapping[str, Any] | None, path:
         y = [math.nan if m is None else m for m in means]
         err = [r[metric]["ci95"] or 0.0 for r in results]
         ax.errorbar(x, y, yerr=err, fmt="o-", capsize=4, label="live (95% CI)")
+        if metric == "psnr_db":  # what a viewer saw: the PSNR at display time beside it
+            shown = [r.get("psnr_display_db", {}).get("mean") for r in results]
+            if any(v is not None for v in shown):
+                ax.errorbar(x, [math.nan if v is None else v for v in shown],
+                            yerr=[r["psnr_display_db"]["ci95"] or 0.0 for r in results],
+                            fmt="^:", capsize=4, color="tab:orange",
+                            label="live, at display time")
         if sim is not None:
             sy = [sim.get(p, {}).get(metric, {}).get("mean") for p in labels]
             if any(v is not None for v in sy):

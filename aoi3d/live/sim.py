@@ -8,11 +8,18 @@ from pathlib import Path
 from typing import Any
 
 from aoi3d.experiment.config import get_preset
+from aoi3d.experiment.episode.plan import check_budget_applies
 from aoi3d.experiment.sweep import Job, ResultCache, run_jobs
 from aoi3d.live.summary import METRICS
+from aoi3d.policy import parse_policy
 from aoi3d.stats import mean_ci95
 
-__all__ = ["budget", "simulate"]
+__all__ = ["SimRefused", "budget", "simulate"]
+
+
+class SimRefused(ValueError):
+    """The virtual clock cannot run these policies with the pipeline's settings (a budget
+    under the warm carry); the message says why. Nothing was run."""
 
 
 def budget(carry: str, *, steps_per_decision: int, render_steps: int,
@@ -37,12 +44,19 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
     """The experiments' engine on the same scene, channel, carry and budget (:func:`budget`;
     ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``): per policy,
     ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds (and ``_config``: the episode
-    config run)."""
+    config run). :class:`SimRefused` when a policy's budget cannot run with that carry."""
     base = get_preset("quick").episode
     changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry}
     changes.update(budget(carry, steps_per_decision=steps_per_decision,
                           render_steps=render_steps, cold_steps=cold_steps))
     cfg = base.with_(**changes)
+    for spec in policies:  # before any episode runs
+        policy = parse_policy(spec)
+        if policy.budget_steps is not None or getattr(policy, "chooses_budget", False):
+            try:
+                check_budget_applies(cfg)
+            except ValueError as err:
+                raise SimRefused(f"{spec}: {err}") from None
     jobs = [Job(p, delay, seed_offset + s) for s in range(seeds) for p in policies]
     outcome = run_jobs(cfg, jobs, cache=ResultCache(cache), workers=workers)
     sim: dict[str, dict[str, Any]] = {}

@@ -13,15 +13,19 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from aoi3d.metric import LIVE
+from aoi3d.metric import LIVE, LIVE_AT_DISPLAY
 from aoi3d.stats import mean_ci95
 
-__all__ = ["METRICS", "Measurement", "measurement_doc", "points_rows", "render_latency_s",
-           "render_rows", "steps_per_decision", "summarise", "with_sim"]
+__all__ = ["DISPLAY_METRICS", "METRICS", "Measurement", "measurement_doc", "points_rows",
+           "render_latency_s", "render_rows", "steps_per_decision", "summarise", "with_sim"]
 
-METRICS = LIVE
+DISPLAY_METRICS = LIVE_AT_DISPLAY
+"""Scores against the truth at display time — when the render was ready, what a viewer saw
+(the metrics service's ``*_display`` fields; the virtual clock's, at its cost model) — beside
+the scores at the decision's time: :data:`aoi3d.metric.LIVE_AT_DISPLAY`."""
+METRICS = (*LIVE, *DISPLAY_METRICS)
 """Per-render quality fields summarised per policy (absent ones are reported as null):
-:data:`aoi3d.metric.LIVE`."""
+:data:`aoi3d.metric.LIVE`, then the display-time ones."""
 
 
 @dataclass
@@ -62,12 +66,17 @@ def summarise(measurements: Sequence[Measurement], order: Sequence[str]) -> list
 
 def with_sim(results: Sequence[dict[str, Any]], sim: Mapping[str, Any]) -> None:
     """Set the virtual clock's PSNR beside each live result (``sim_psnr_db``) and the
-    difference of the means (``live_minus_sim_db``; None where either is missing)."""
+    difference of the means (``live_minus_sim_db``; None where either is missing); likewise
+    at display time (``sim_psnr_display_db``, ``live_minus_sim_display_db``; None where the
+    virtual clock has no display score)."""
     for r in results:
-        s = sim[r["policy"]]["psnr_db"]["mean"]
-        live = r["psnr_db"]["mean"]
-        r["sim_psnr_db"] = sim[r["policy"]]["psnr_db"]
-        r["live_minus_sim_db"] = None if s is None or live is None else live - s
+        for metric, diff in (("psnr_db", "live_minus_sim_db"),
+                             ("psnr_display_db", "live_minus_sim_display_db")):
+            stat = sim[r["policy"]].get(metric)
+            s = None if stat is None else stat["mean"]
+            live = r[metric]["mean"]
+            r[f"sim_{metric}"] = stat
+            r[diff] = None if s is None or live is None else live - s
 
 
 def render_latency_s(status: Mapping[str, Any]) -> float:
@@ -104,11 +113,13 @@ def measurement_doc(m: Measurement) -> dict[str, Any]:
 def points_rows(results: Sequence[dict[str, Any]], sim: Mapping[str, Any] | None
                 ) -> list[dict[str, Any]]:
     """``points.csv``: per policy, each metric's mean and 95% CI, and the virtual clock's
-    mean where there is one."""
+    mean where there is one (the display-time scores last: the columns before them are the
+    ones the file always had)."""
+    decision_time = [m for m in METRICS if m not in DISPLAY_METRICS]
     rows = []
     for r in results:
         row: dict[str, Any] = {"policy": r["policy"], "n": r["n"]}
-        for metric in (*METRICS, "cameras_used", "aoi_used_ms"):
+        for metric in (*decision_time, "cameras_used", "aoi_used_ms", *DISPLAY_METRICS):
             row[metric] = r[metric]["mean"]
             row[f"{metric}_ci95"] = r[metric]["ci95"]
             if sim is not None and metric in sim.get(r["policy"], {}):

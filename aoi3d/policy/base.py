@@ -417,11 +417,11 @@ def policy_from_json(data: Mapping[str, Any]) -> Policy:
     kind = data.get("kind")
     if not isinstance(kind, str):
         raise PolicySpecError('missing or non-string "kind"', dict(data))
-    if data.get("budget_steps") is not None:
-        if isinstance(data["budget_steps"], str):
-            raise PolicySpecError("budget_steps must be a JSON number", dict(data))
+    if (steps := data.get("budget_steps")) is not None:
+        if isinstance(steps, str):  # as every number of a JSON form: not a string
+            raise PolicySpecError(f"budget_steps must be a JSON integer, got {steps!r}", dict(data))
         inner = policy_from_json({k: v for k, v in data.items() if k != "budget_steps"})
-        return _with_budget(inner, data["budget_steps"], dict(data))
+        return _with_budget(inner, steps, dict(data))
     entry = _policy_entry(kind, dict(data))
     params = {k: v for k, v in data.items() if k not in ("kind", "budget_steps")}
     try:
@@ -440,7 +440,7 @@ def _with_budget(inner: Policy, steps: object, spec: object) -> Policy:
                               "'@<steps>'", spec)
     if isinstance(steps, str):
         text = steps.strip()
-        if not (text.isascii() and text.isdigit()):
+        if not (text.isascii() and text.isdigit()):  # not '²', which int() refuses
             raise PolicySpecError(f"budget {text!r} after '@' is not a whole number of "
                                   "training steps", spec)
         steps = int(text)

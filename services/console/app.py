@@ -23,10 +23,12 @@ DESCRIPTION = """\
 One page for the running pipeline: open `/` in a browser. It shows the novel view beside the
 ground truth of the same simulated time and their difference, the AoI of every camera with
 the MAT line and the cameras the decision in force used, the channel, the quality over the
-last minutes with a marker at every policy or channel change, and controls that call the
-services' REST APIs through `/api/<service>/<path>` (forwarding the browser's
-`Authorization` header). Updates are pushed as Server-Sent Events on `/events`. Everything
-the page loads is served here: no CDN.
+last minutes (PSNR at the decision's time and at display time) with a marker at every policy
+or channel change, the lag from decision to display (measured, and the scheduler's expected
+lag), the training budget in force, and controls that call the services' REST APIs through
+`/api/<service>/<path>` (forwarding the browser's `Authorization` header; the policy with
+its budget goes to the scheduler's `PUT /policy`). Updates are pushed as Server-Sent Events
+on `/events`. Everything the page loads is served here: no CDN.
 """
 
 Worker = Annotated[ConsoleWorker, Depends(get_worker)]

@@ -5,10 +5,13 @@ No bus, no HTTP client, no threads, no metrics library: the runtime
 lock, with the wall time; tests drive it directly.
 
 It keeps the latest Render, the truth frame of the same simulated time (a ring by generation
-time), every Quality (a timeline of ``history_s``), the latest Decision (AoI per camera, the
-frames selected, the policy), the Γ each decision applied (a timeline too) and the services'
-polled state; a policy or channel change puts a marker on the timeline.
-:meth:`ConsoleCore.snapshot` is the JSON pushed to the page.
+time), every Quality (a timeline of ``history_s``: the scores at the decision's time and at
+its display time), the latest Decision (AoI per camera, the frames selected, the policy, its
+budget and the scheduler's expected lag), the Γ each decision applied (a timeline too) and
+the services' polled state; a policy or channel change puts a marker on the timeline.
+:meth:`ConsoleCore.snapshot` is the JSON pushed to the page, with the display summary
+(:meth:`ConsoleCore.display`: the measured lag from decision to display, the expected one,
+the budget in force).
 """
 
 from __future__ import annotations
@@ -26,13 +29,16 @@ import numpy as np
 from aoi3d.channel import parse_channel
 from services.kit.codec import decode_decision, decode_frame, decode_quality, decode_render
 
-__all__ = ["GAMMA_EVERY_S", "TRUTH_FRAMES", "ConsoleCore", "Pair"]
+__all__ = ["GAMMA_EVERY_S", "LAG_RENDERS", "TRUTH_FRAMES", "ConsoleCore", "Pair"]
 
 TRUTH_FRAMES = 256
 """Truth frames kept to pair a render with the truth of its own time."""
 
 GAMMA_EVERY_S = 0.25
 """The Γ series keeps a decision's Γ when it changed, else one every this many seconds."""
+
+LAG_RENDERS = 20
+"""The display lag shown is the median over this many of the newest scored renders."""
 
 
 @dataclass(frozen=True)
@@ -107,11 +113,19 @@ class ConsoleCore:
 
     def on_quality(self, payload: bytes, now: float) -> None:
         q = decode_quality(payload)
+        # when the render was on screen: its ready time (the display scores' time), absent
+        # from an older metrics service
+        shown = (q.ready_ms if q.HasField("ready_ms") else
+                 q.display_time_ms if q.HasField("psnr_display_db") else None)
         entry = {"wall_s": now, "time_ms": q.time_ms, "psnr_db": q.psnr_db,
                  "ssim": q.ssim, "reward": q.reward,
                  "lpips": q.lpips if q.HasField("lpips") else None,
                  "psnr_dynamic_db": q.psnr_dynamic_db if q.HasField("psnr_dynamic_db")
-                 else None}
+                 else None,
+                 "psnr_display_db": q.psnr_display_db if q.HasField("psnr_display_db")
+                 else None,
+                 "display_lag_ms": None if shown is None else shown - q.time_ms,
+                 "render_steps": q.render_steps if q.HasField("render_steps") else None}
         self._quality.append({k: _finite(v) for k, v in entry.items()})
         self.trim(now)
 
@@ -123,6 +137,9 @@ class ConsoleCore:
                           "aoi_ms": [_finite(a) for a in d.aoi_ms], "selected": selected}
         gamma = d.gamma_ms if d.HasField("gamma_ms") else None
         self._decision["gamma_ms"] = gamma
+        self._decision["budget_steps"] = d.budget_steps if d.HasField("budget_steps") else None
+        self._decision["expected_lag_ms"] = _finite(d.expected_lag_ms) if d.HasField(
+            "expected_lag_ms") else None
         last = self._gamma[-1] if self._gamma else None
         if (last is None or last["gamma_ms"] != gamma
                 or now - last["wall_s"] >= GAMMA_EVERY_S):
@@ -209,6 +226,26 @@ class ConsoleCore:
             self._diff = (pair.decision_id, png)
         return png
 
+    def display(self) -> dict[str, Any]:
+        """What the viewer sees, and when: the median lag from decision to display over the
+        newest :data:`LAG_RENDERS` scored renders (``display_lag_ms``, and how many it is
+        of), the scheduler's expected lag of the latest decision, the newest display-time
+        and decision-time PSNR, and the budget in force — the latest decision's
+        (``budget_source`` ``decision``), else the trainer's ``render_steps`` (``trainer``)."""
+        recent = list(self._quality)[-LAG_RENDERS:]
+        lags = [q["display_lag_ms"] for q in recent if q.get("display_lag_ms") is not None]
+        d = self._decision or {}
+        trainer = self._status.get("trainer") or {}
+        budget, source = d.get("budget_steps"), "decision"
+        if budget is None:
+            budget, source = trainer.get("render_steps"), "trainer"
+        last = recent[-1] if recent else {}
+        return {"display_lag_ms": float(np.median(lags)) if lags else None,
+                "display_lag_n": len(lags),
+                "expected_lag_ms": d.get("expected_lag_ms"),
+                "psnr_db": last.get("psnr_db"), "psnr_display_db": last.get("psnr_display_db"),
+                "budget_steps": budget, "budget_source": None if budget is None else source}
+
     def snapshot(self, now: float) -> dict[str, Any]:
         pair = self.pair
         return {
@@ -223,6 +260,7 @@ class ConsoleCore:
             "gamma": list(self._gamma),
             "markers": list(self._markers),
             "channel_series": list(self._channel_series),
+            "display": self.display(),
             **self._status,
         }
 

@@ -41,6 +41,14 @@ stamped t + ω, the time its render is scored against), `{"kind": "ppo", "checkp
 policy is used from the next decision on. The decision step is the experiments' own
 (`aoi3d.policy.decide`): a policy selects the same frames here as on the virtual clock.
 
+Any policy but `deadline` takes a training budget, `"budget_steps": 50` (the spec's
+`mat:70@50`): each of its decisions' renders trains that many steps instead of the trainer's
+`render_steps`. The Decision carries it (`budget_steps`) and the lag the scheduler expects
+from the decision to its render on screen at that budget (`expected_lag_ms`), learned from
+the Quality of its renders; the compute-aware kinds read that lag: `{"kind": "dmat",
+"mat_ms": 100}` (MAT on the age at display) and `{"kind": "deadline", "mat_ms": 100,
+"deadline_ms": 40}` (the largest budget on screen within the deadline).
+
 With `"learn": true` the PPO policy keeps learning online: each decision samples the agent's
 stochastic action, the metrics service's `Quality` for that decision is its reward, and every
 `AOI3D_SCHEDULER_LEARN_BATCH_SIZE` rewarded decisions make one PPO update. The agent
@@ -63,6 +71,8 @@ _READ_ONLY = {"spec", "accepted_forms", "online"}  # response fields: a GET body
 
 _POLICY_EXAMPLES = {
     "mat": {"summary": "MAT with Γ = 51 ms", "value": {"kind": "mat", "mat_ms": 51}},
+    "mat-budget": {"summary": "MAT with Γ = 70 ms, 50 training steps per decision",
+                   "value": {"kind": "mat", "mat_ms": 70, "budget_steps": 50}},
     "all": {"summary": "Every camera with a known AoI", "value": {"kind": "all"}},
     "freshest": {"summary": "The 6 freshest cameras", "value": {"kind": "freshest", "k": 6}},
     "wait": {"summary": "ω-wait of 40 ms (decides at t + 40 ms)",

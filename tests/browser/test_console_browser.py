@@ -1,8 +1,11 @@
 """The console in a real browser (Debian's Chromium driven by Playwright) against a real
 pipeline on loopback (issue 10): the page loads with no failed request and none leaving
 127.0.0.1, the images update, the MAT slider changes the scheduler's policy and the AoI bars'
-used marks follow, a bad delay spec shows the API's message, and every service's /docs
-renders. Screenshots go to the test's folder (and to $AOI3D_CONSOLE_SCREENSHOT if set)."""
+used marks follow, the budget control puts a training budget with the policy (issue 40: the
+display lag, the PSNR at display time and the budget in force are shown; a refused budget
+shows the scheduler's message), a bad delay spec shows the API's message, and every
+service's /docs renders. Screenshots go to the test's folder (and to
+$AOI3D_CONSOLE_SCREENSHOT if set)."""
 
 from __future__ import annotations
 
@@ -90,23 +93,52 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
                                                 "os => os.map(o => o.value)")
             assert offered == (found or [""]), (offered, found)
 
-            # the MAT slider changes the scheduler's policy; the used marks follow
+            # the budget control: a refused budget shows the scheduler's message and changes
+            # nothing; the trainer's render_steps is the budget in force until one is put
+            page.wait_for_function("document.getElementById('display').innerText"
+                                   ".includes(\"20 steps (the trainer's render_steps)\")")
+            before = HTTP.get(url("scheduler", "/policy")).json()
+            page.fill("#budget", "0")
+            page.click("#apply-policy")
+            page.wait_for_function("document.getElementById('policy-msg').textContent"
+                                   ".includes('greater than or equal to 1')")
+            assert HTTP.get(url("scheduler", "/policy")).json() == before
+
+            # the MAT slider changes the scheduler's policy, with the budget beside it; the
+            # used marks follow, the decisions carry the budget, the page shows it in force
+            page.fill("#budget", "30")
             page.select_option("#kind", "mat")
             for mat in (200, 0):
                 page.eval_on_selector("#mat", f"e => {{ e.value = {mat}; "
                                       "e.dispatchEvent(new Event('input')); "
                                       "e.dispatchEvent(new Event('change')); }")
-                wait_for(f"GET /policy says mat {mat}", lambda m=mat: HTTP.get(
-                    url("scheduler", "/policy")).json().get("mat_ms") == m, timeout_s=30)
+                wait_for(f"GET /policy says mat {mat} at 30 steps", lambda m=mat: (
+                    (p := HTTP.get(url("scheduler", "/policy")).json()).get("mat_ms") == m
+                    and p.get("budget_steps") == 30), timeout_s=30)
                 page.wait_for_function(
                     "m => { const bars = [...document.querySelectorAll('#aoi rect[data-aoi]')];"
                     " const now = document.getElementById('policy-now').textContent;"
-                    " return now === `policy mat:${m}` && bars.length > 0 && bars.every("
+                    " return now === `policy mat:${m}@30` && bars.length > 0 && bars.every("
                     " b => (b.dataset.used === '1') === (Number(b.dataset.aoi) < m)); }",
                     arg=mat)
                 if mat == 200:  # some seconds of timeline by now: the README's screenshot
+                    # the display lag measured and expected, the PSNR at display time, the
+                    # decision's budget
+                    page.wait_for_function(
+                        r"/display lag \(median\)\s+[\d.]+ ms[\s\S]*expected lag "
+                        r"\(scheduler\)\s+[\d.]+ ms[\s\S]*PSNR decision \/ display\s+"
+                        r"[\d.]+ \/ [\d.]+ dB[\s\S]*30 steps \(the decision's\)/"
+                        ".test(document.getElementById('display').innerText)")
+                    assert page.locator("#charts polyline[data-key=psnr_display_db]").count()
+                    page.wait_for_function("document.getElementById('aoi').textContent"
+                                           ".includes('Γ = 200 ms')")  # the policy polled
+                    assert HTTP.get(url("scheduler", "/decision")).json()["budget_steps"] == 30
                     page.screenshot(path=str(tmp_path / "console.png"), full_page=True)
             page.screenshot(path=str(tmp_path / "console-mat0.png"), full_page=True)
+            page.fill("#budget", "")  # no budget: the trainer's render_steps again
+            page.click("#apply-policy")
+            wait_for("GET /policy without a budget", lambda: "budget_steps" not in HTTP.get(
+                url("scheduler", "/policy")).json(), timeout_s=30)
 
             # a bad delay spec: the API's message, inline; nothing changes
             page.fill("#delay-spec", "weird:1")

@@ -13,13 +13,15 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 from fastapi.testclient import TestClient
 
 from aoi3d.clock import SimClock
 from aoi3d.experiment import EpisodeConfig, plan_episode
-from aoi3d.experiment.episode import EpisodeLinks, episode_links
+from aoi3d.experiment.episode import EpisodeLinks, display_lag, episode_links
+from aoi3d.experiment.episode.plan import render_budget
 from aoi3d.policy import parse_policy
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.membus import MemoryBus
@@ -50,11 +52,11 @@ def cfg(dataset: SceneDataset) -> EpisodeConfig:
 def live() -> Iterator:
     clients: list[TestClient] = []
 
-    def start(policy: str) -> Harness:
+    def start(policy: str, **settings_kw: Any) -> Harness:
         wall = ManualWall(10.0)  # the first epoch is t = 30, as in the experiment
         bus = MemoryBus()
         settings = Settings(policy=policy, decision_period_ms=30.0,
-                            common=CommonSettings(run_id=RUN, cameras=N))
+                            common=CommonSettings(run_id=RUN, cameras=N), **settings_kw)
         client = TestClient(create_app(settings, bus=bus,
                                        clock=SimClock(epoch_s=0.0, time_scale=1.0, wall=wall)))
         client.__enter__()
@@ -166,3 +168,38 @@ def test_live_bandit_learns_from_the_quality_topic(cfg: EpisodeConfig, dataset: 
     wait_for(lambda: worker.policy.ucb.t == 1)
     assert worker.policy.status()["arms"][0] == {"gamma_ms": 40.0, "n": 1, "mean": 21.0}
     assert h.decide_at(120.0).gamma_ms == 130  # rewarded: the untried arm next
+
+
+@pytest.mark.parametrize("spec", ["dmat:100", "dmat:100@50", "deadline:100:40"])
+def test_a_compute_aware_policy_decides_live_as_the_experiment(
+        spec: str, cfg: EpisodeConfig, dataset: SceneDataset, live) -> None:
+    """dmat and deadline read the lag from a decision to its display: on the virtual clock the
+    cost model (:func:`aoi3d.experiment.episode.display_lag`), live what the scheduler learned
+    from the Quality of its renders. When the renders' lag is the cost model's (each Quality
+    ready compute_ms(steps) after its decision, at the config's budget) and the scheduler's
+    prior slope is the model's (one budget seen: the slope is not fitted), the live decisions
+    are the experiment's: the same cameras, budget and expected lag."""
+    from services.kit.pb import aoi3d_pb2 as pb
+
+    cfg = cfg.with_(carry="fresh", steps_per_epoch=100)  # L(100) = (16 + 3.4·100)·0.1 = 35.6
+    lag = display_lag(cfg)
+    plan = plan_episode(cfg, dataset, spec, 3)
+    mat = plan_episode(cfg, dataset, "mat:100", 3)
+    assert [d.cameras for d in plan.decisions] != [d.cameras for d in mat.decisions]  # L counts
+    common = CommonSettings(run_id=RUN, cameras=N)
+    h = live(spec, step_ms=cfg.compute_step_ms * cfg.time_scale / common.time_scale)
+    worker = h.client.app.state.worker
+    steps = render_budget(cfg)
+    for i in range(3):  # the renders the scheduler learns from, before its first decision
+        h.put(KEYS.quality, pb.Quality(
+            decision_id=i + 1, time_ms=0.0, reward=0.5, decision_incarnation=worker.incarnation,
+            render_steps=steps, ready_ms=cfg.compute_ms(steps)).SerializeToString())
+    wait_for(lambda: len(worker.core.lag) == 3, what="the renders observed")
+    publish_trace(h, episode_links(cfg, dataset, 3))
+    for d in plan.decisions:
+        got = h.decide_at(float(d.eval_ms))
+        assert got.policy == plan.policy
+        assert [r.camera_id for r in got.selected] == list(d.cameras), d
+        assert [r.aoi_ms for r in got.selected] == list(d.aoi_ms), d
+        assert (got.budget_steps if got.HasField("budget_steps") else None) == d.budget_steps
+        assert got.expected_lag_ms == pytest.approx(lag.lag_ms(d.budget_steps))

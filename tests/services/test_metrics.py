@@ -105,6 +105,27 @@ def test_render_is_scored_against_the_truth_of_the_same_time(make_harness) -> No
     assert exact.truth_time_ms == 30.0 and exact.psnr_db == 100.0 and exact.ssim == 1.0
 
 
+def test_quality_carries_the_renders_steps_and_ready_time(make_harness) -> None:
+    """What the scheduler learns the lag from (issue 40): the render's own training steps and
+    the time it was ready; and the scores against the truth at that (display) time."""
+    h = make_harness()
+    pred = truth_image(60.0)
+    q = h.score(60.0, pred, decision_id=12, render_steps=25, ready_ms=95.0)
+    assert q.HasField("render_steps") and q.render_steps == 25
+    assert q.HasField("ready_ms") and q.ready_ms == 95.0
+    assert q.display_time_ms == 95.0 and q.display_truth_time_ms == 90.0
+    assert q.psnr_db == 100.0 and q.psnr_display_db < 60.0  # the truth moved by then
+    entry = h.client.get("/quality").json()["history"][-1]
+    assert entry["decision_id"] == 12 and entry["display_time_ms"] == 95.0
+    assert entry["psnr_display_db"] == pytest.approx(q.psnr_display_db)
+    # unstamped (an older worker): ready when scored, by the service's clock
+    before = time.time()
+    q = h.score(90.0, truth_image(90.0), decision_id=13, render_steps=0)
+    assert q.HasField("render_steps") and q.render_steps == 0
+    now_ms = (time.time() - before) * 1000.0 + 60_000.0  # the clock started 60 s ago
+    assert q.HasField("ready_ms") and 60_000.0 <= q.ready_ms <= now_ms + 1000.0
+
+
 @pytest.mark.parametrize(("time_ms", "truth_ms"), [
     (50.0, 30.0),   # between two truth frames: the newest one at or before t
     (89.9, 60.0),

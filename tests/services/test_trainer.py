@@ -219,6 +219,52 @@ def outcomes(bus: MemoryBus) -> list[Outcome]:
     return [decode_outcome(p, KEYS.site) for p in bus.messages(KEYS.outcome)]
 
 
+def test_a_decisions_budget_is_the_steps_its_job_trains(
+        client: TestClient, bus: MemoryBus, pool: Pool, dataset: SceneDataset) -> None:
+    """A Decision with a budget (a policy's '@<steps>') becomes a Job of that many
+    render_steps, and the worker trains exactly that; one without gets the pool's."""
+    token = bus.declare_token(KEYS.pool_worker("asker"))  # a worker that asks, to see the Job
+
+    def job_of(decision: bytes) -> pb.Job:
+        answer: list[bytes] = []
+        asker = threading.Thread(target=lambda: answer.append(bus.query(
+            KEYS.work, pb.WorkRequest(worker_id="asker", max_wait_s=5.0).SerializeToString(),
+            timeout_s=10.0)))
+        asker.start()
+        wait_for(lambda: client.get("/workers").json()["workers"], what="the asking worker")
+        bus.publish(KEYS.decision, decision)
+        asker.join(timeout=10 * TIMEOUT_SCALE)
+        return pb.WorkReply.FromString(answer[0]).job
+
+    publish_frames(bus, dataset, 0.0)
+    job = job_of(decision_payload(1, 100.0, [(1, 0.0)], "mat:70@7", budget_steps=7))
+    assert job.decision.decision_id == 1 and job.render_steps == 7
+    assert job.decision.budget_steps == 7  # the decision travels with it
+    job = job_of(decision_payload(2, 200.0, [(1, 0.0)], "mat:70"))
+    assert job.decision.decision_id == 2 and job.render_steps == 20  # the pool's
+    assert not job.decision.HasField("budget_steps")
+    token.undeclare()
+
+    # a real worker trains the job's budget: its render says so. Under the default carry
+    # (stream) its first job is a cold start, which trains the cold budget whatever the
+    # decision's; the warm starts after it train each decision's budget, else the pool's
+    pool.add("w1")
+    bus.publish(KEYS.decision, decision_payload(3, 300.0, [(1, 0.0), (2, 0.0)], "all@5",
+                                                budget_steps=5))
+    r = wait_for(lambda: next((r for r in renders(bus) if r.decision_id == 3), None),
+                 what="decision 3 rendered")
+    assert (r.carry, r.render_steps) == ("stream", 20)  # cold: cold_steps
+    bus.publish(KEYS.decision, decision_payload(4, 400.0, [(1, 0.0), (2, 0.0)], "all@5",
+                                                budget_steps=5))
+    r = wait_for(lambda: next((r for r in renders(bus) if r.decision_id == 4), None),
+                 what="decision 4 rendered")
+    assert (r.carry, r.render_steps) == ("stream", 5)  # warm: the decision's budget
+    bus.publish(KEYS.decision, decision_payload(5, 500.0, [(1, 0.0), (2, 0.0)]))
+    r = wait_for(lambda: next((r for r in renders(bus) if r.decision_id == 5), None),
+                 what="decision 5 rendered")
+    assert (r.carry, r.render_steps) == ("stream", 20)  # warm, no budget: the pool's
+
+
 def test_decisions_ended_without_a_render_are_told_to_the_ledger(
         client: TestClient, bus: MemoryBus, dataset: SceneDataset) -> None:
     """No worker: each newer decision supersedes the pending one; a decision older than the

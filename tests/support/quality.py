@@ -43,10 +43,15 @@ def truth(gen_ms: float, *, camera_id: int = 0, image: np.ndarray | None = None)
                         image=encode_png(img), send_ms=gen_ms)
 
 
-def render(time_ms: float, image: np.ndarray, *, decision_id: int = 7, step: int = 1234
-           ) -> bytes:
+def render(time_ms: float, image: np.ndarray, *, decision_id: int = 7, step: int = 1234,
+           render_steps: int = 0, ready_ms: float | None = None) -> bytes:
+    """A Render of the decision of ``time_ms``; ``render_steps``: the steps trained on its
+    frames; ``ready_ms``: when it was ready (absent: the metrics service's clock says)."""
     pose, intr = camera_to_pb(_camera(image.shape[1], image.shape[0]))
-    return pb.Render(decision_id=decision_id, time_ms=time_ms, pose=pose, intrinsics=intr,
-                     image=encode_png(image), training_step=step, n_views=5,
-                     backend="grid").SerializeToString()
+    msg = pb.Render(decision_id=decision_id, time_ms=time_ms, pose=pose, intrinsics=intr,
+                    image=encode_png(image), training_step=step, n_views=5, backend="grid",
+                    render_steps=render_steps)
+    if ready_ms is not None:
+        msg.ready_ms = ready_ms
+    return msg.SerializeToString()
 

@@ -65,13 +65,17 @@ def publish_frames(bus: MemoryBus, ds: SceneDataset, generation_ms: float) -> No
 
 
 def decision_payload(decision_id: int, time_ms: float, refs: list[tuple[int, float]],
-                     policy: str = "all") -> bytes:
+                     policy: str = "all", *, budget_steps: int | None = None) -> bytes:
+    """A Decision selecting ``refs`` (camera, generation ms); ``budget_steps``: its budget
+    (absent: the pool's render_steps)."""
     ids = list(range(1, N_TRAIN + 1))
     selected = [pb.FrameRef(camera_id=c, sequence=int(g // PERIOD_MS), generation_ms=g,
                             aoi_ms=time_ms - g) for c, g in refs]
-    return pb.Decision(decision_id=decision_id, time_ms=time_ms, camera_ids=ids,
-                       aoi_ms=[50.0] * len(ids), selected=selected,
-                       policy=policy).SerializeToString()
+    msg = pb.Decision(decision_id=decision_id, time_ms=time_ms, camera_ids=ids,
+                      aoi_ms=[50.0] * len(ids), selected=selected, policy=policy)
+    if budget_steps is not None:
+        msg.budget_steps = budget_steps
+    return msg.SerializeToString()
 
 
 def metric(client: TestClient, name: str, labels: str = "",

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from aoi3d.experiment.optimum import unpaired_interior_maximum
-from aoi3d.live import Measurement, summarise
+from aoi3d.live import Measurement, points_rows, render_rows, summarise, with_sim
 
 
 def stat(mean: float | None, ci95: float | None) -> dict:
@@ -84,6 +84,76 @@ def test_summarise_groups_by_policy_over_repeats() -> None:
     assert out[1]["psnr_db"] == {"mean": 24.0, "ci95": None, "n": 1}
 
 
+def display_windows() -> list[Measurement]:
+    """Two policies' windows whose renders were scored at the decision's time and at display
+    time (the metrics service's ``psnr_display_db``; absent where it had no truth then)."""
+    def q(psnr: float, shown: float | None) -> dict:
+        return {"decision_id": 1, "psnr_db": psnr, "psnr_display_db": shown, "n_views": 4}
+
+    return [Measurement("mat:70@50", 0, 1, 9, 10.0, [q(26.0, 24.0), q(28.0, 26.0)], []),
+            Measurement("all", 0, 10, 19, 10.0, [q(24.0, 23.0), q(25.0, None)], [])]
+
+
+def test_the_display_time_psnr_is_summarised_beside_the_decision_time_psnr() -> None:
+    out = summarise(display_windows(), ["mat:70@50", "all"])
+    assert out[0]["psnr_db"]["mean"] == pytest.approx(27.0)
+    assert out[0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
+    assert out[0]["psnr_display_db"]["n"] == 2
+    assert out[1]["psnr_display_db"] == {"mean": 23.0, "ci95": None, "n": 1}  # one had none
+    sim = {"mat:70@50": {"psnr_db": stat(26.5, 0.5), "psnr_display_db": stat(24.0, 0.5)},
+           "all": {"psnr_db": stat(25.0, 0.2)}}  # a virtual clock without display scores
+    with_sim(out, sim)
+    assert out[0]["live_minus_sim_db"] == pytest.approx(0.5)
+    assert out[0]["sim_psnr_display_db"] == stat(24.0, 0.5)
+    assert out[0]["live_minus_sim_display_db"] == pytest.approx(1.0)
+    assert out[1]["sim_psnr_display_db"] is None and out[1]["live_minus_sim_display_db"] is None
+
+
+def test_points_csv_keeps_its_columns_and_adds_the_display_time_psnr() -> None:
+    out = summarise(display_windows(), ["mat:70@50", "all"])
+    sim = {p: {"psnr_db": stat(25.0, 0.2), "psnr_display_db": stat(24.0, 0.3)}
+           for p in ("mat:70@50", "all")}
+    rows = points_rows(out, sim)
+    before = ["policy", "n"]  # the columns points.csv had before the display-time PSNR
+    for metric in ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward", "cameras_used",
+                   "aoi_used_ms"):
+        before += [metric, f"{metric}_ci95", *(["sim_psnr_db"] if metric == "psnr_db" else [])]
+    assert list(rows[0]) == [*before, "psnr_display_db", "psnr_display_db_ci95",
+                             "sim_psnr_display_db"]
+    assert rows[0]["psnr_display_db"] == pytest.approx(25.0)
+    assert rows[0]["sim_psnr_display_db"] == 24.0
+    assert list(points_rows(out, None)[0]) == [c for c in list(rows[0])
+                                               if not c.startswith("sim_")]
+    # renders.csv: every scored render's fields, the display-time PSNR among them
+    assert [r["psnr_display_db"] for r in render_rows(display_windows())] == [24.0, 26.0,
+                                                                              23.0, None]
+
+
+def test_the_sweep_table_and_figure_show_the_display_time_psnr(tmp_path) -> None:
+    from aoi3d.live.figures import plot
+    from aoi3d.live.report import LiveSweep
+    from aoi3d_cli.common import make_console
+    from aoi3d_cli.live import _table
+
+    sim = {p: {m: stat(25.0, 0.2) for m in ("psnr_db", "psnr_dynamic_db", "ssim", "lpips",
+                                             "reward", "psnr_display_db", "cameras_used")}
+           for p in ("mat:70@50", "all")}
+    result = LiveSweep.of(display_windows(), ["mat:70@50", "all"], settings={}, sim=sim)
+    assert "psnr_display_db" in result.shape  # judged like every metric
+    out = make_console(width=220)
+    with out.capture() as cap:
+        out.print(_table(result))
+    text = cap.get()
+    assert "display PSNR" in text and "sim display PSNR" in text
+    assert "25.00" in text and "23.00" in text  # mat:70@50's and all's display PSNR
+    doc = result.document({"live": 1.0})
+    assert doc["results"][0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
+    result.write(tmp_path, doc)
+    header = (tmp_path / "points.csv").read_text().splitlines()[0].split(",")
+    assert header[-3:] == ["psnr_display_db", "psnr_display_db_ci95", "sim_psnr_display_db"]
+    assert plot(result.results, sim, tmp_path / "live_sweep.png", "t").stat().st_size > 0
+
+
 def test_progress_prints_a_policy_spec_as_it_is() -> None:
     """Rich would turn ``mat:100:`` into an emoji ("mat💯") and eat ``[...]`` as markup."""
     from rich.markup import escape
@@ -124,3 +194,16 @@ def test_the_virtual_clock_gets_the_live_trainers_budget_for_every_carry() -> No
         assert got == want, carry
         cfg = base.with_(carry=carry, **got)  # the experiments' own checks pass
         assert (cfg.carry, cfg.steps_per_epoch) == (carry, want["steps_per_epoch"])
+
+
+def test_the_virtual_clock_refuses_a_budget_under_the_warm_carry_before_running(
+        dataset, tmp_path) -> None:
+    """A sweep of budgeted policies on a warm-carry pipeline keeps its live measurement: the
+    virtual clock says why it cannot run them (the command prints it and writes no sim)."""
+    from aoi3d.live.sim import SimRefused, simulate
+
+    with pytest.raises(SimRefused, match=r"mat:70@50: .*warm carry"):
+        simulate(["all", "mat:70@50"], dataset=dataset.root, delay="exp:60", carry="warm",
+                 steps_per_decision=1, render_steps=0, seeds=1, seed_offset=0,
+                 cache=tmp_path / "cache", workers=1)
+    assert not (tmp_path / "cache").exists()  # nothing ran

@@ -41,7 +41,9 @@ def test_the_lists_written_to_files_keep_their_columns() -> None:
         "psnr_db", "ssim", "lpips", "reward", "psnr_dynamic_db", "ssim_dynamic")
     assert ORACLE_METRICS == ("reward", "psnr_db", "ssim", "lpips", "psnr_dynamic_db",
                               "ssim_dynamic")
-    assert LIVE_METRICS == ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward")
+    # the live sweep's: issue 40 added the PSNR at display time, written as the last columns
+    assert LIVE_METRICS == ("psnr_db", "psnr_dynamic_db", "ssim", "lpips", "reward",
+                            "psnr_display_db")
     assert QUALITY_METRICS == ("psnr_db", "reward", "ssim", "psnr_dynamic_db")
     assert EVAL_METRICS == ("reward", "psnr", "ssim", "lpips", "n_selected", "aoi_used_ms")
     assert EPISODE_COLUMNS[:7] == ("episode", "seed", "update", "reward", "psnr", "ssim",
@@ -93,6 +95,10 @@ def test_the_console_charts_the_live_metrics() -> None:
     series = [json.loads(f"[{m}]")[:2] for m in re.findall(r"\[([^\[\]]+)\]", block.group(1))]
     assert series == [[m.name, f"{m.label} ({m.unit})" if m.unit else m.label]
                       for m in (BY_NAME[n] for n in metric.LIVE)]
+    companions = re.search(r"const COMPANIONS = \{(.*?)\};", js, re.S)
+    assert companions is not None
+    drawn = [json.loads(f"[{m}]")[0] for m in re.findall(r"\[([^\[\]]+)\]", companions.group(1))]
+    assert drawn == list(metric.LIVE_AT_DISPLAY)
 
 
 def _spelled_lists(tree: ast.AST) -> list[tuple[int, list[str]]]:

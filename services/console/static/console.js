@@ -10,6 +10,9 @@ const SERIES = [
   ["psnr_db", "PSNR (dB)", "#4fc3f7"], ["psnr_dynamic_db", "dynamic-region PSNR (dB)", "#81c784"],
   ["ssim", "SSIM", "#fff176"], ["lpips", "LPIPS", "#ff8a65"], ["reward", "reward", "#ce93d8"],
 ];
+// a companion drawn on a timeline's axes: [key, label, colour]; its keys are metric.py's
+// LIVE_AT_DISPLAY (the PSNR at display time beside the PSNR at the decision's time)
+const COMPANIONS = {"psnr_db": ["psnr_display_db", "at display", "#ffb74d"]};
 let lastRender = null;
 let state = null;
 
@@ -144,8 +147,23 @@ function drawChannel(s) {
     ["decisions lost", p.lost ? `${lost}` : "–"],
   ]);
   drawLedger(s.ledger || {});
+  drawDisplay(s.display || {});
   $("policy-now").textContent = s.decision ? `policy ${s.decision.policy}` : "";
   $("delay-now").textContent = c ? `delay ${c.delay}` : "";
+}
+
+// What the viewer sees, and when: the lag from a decision to its render on screen (measured,
+// and the scheduler's expectation), the PSNR then beside the PSNR at the decision's time, and
+// the budget in force (the decision's, else the trainer's render_steps).
+function drawDisplay(v) {
+  const ms = (x) => (x === null || x === undefined ? "–" : `${fmt(x, 1)} ms`);
+  facts($("display"), [
+    ["display lag (median)", v.display_lag_n ? `${ms(v.display_lag_ms)} (last ${v.display_lag_n} renders)` : "–"],
+    ["expected lag (scheduler)", ms(v.expected_lag_ms)],
+    ["PSNR decision / display", `${fmt(v.psnr_db, 2)} / ${fmt(v.psnr_display_db, 2)} dB`],
+    ["budget in force", v.budget_steps === null || v.budget_steps === undefined ? "–"
+      : `${v.budget_steps} steps (${v.budget_source === "decision" ? "the decision's" : "the trainer's render_steps"})`],
+  ]);
 }
 
 // The decision ledger (metrics GET /ledger): how every decision of the site ended.
@@ -170,19 +188,26 @@ function drawCharts(s) {
   if (!qs.length) { box.textContent = "waiting for the first scored render…"; return; }
   const W = 720, H = 70, t1 = s.wall_s, t0 = Math.min(qs[0].wall_s, t1 - 60);
   const x = (t) => 40 + ((t - t0) / (t1 - t0)) * (W - 50);
+  const has = (key) => (q) => q[key] !== null && q[key] !== undefined;
   for (const [key, label, colour] of SERIES) {
-    const pts = qs.filter((q) => q[key] !== null && q[key] !== undefined);
+    const companion = COMPANIONS[key];
+    const pts = qs.filter(has(key));
+    const other = companion ? qs.filter(has(companion[0])) : [];
     const svg = el("svg", { width: W, height: H, "data-series": key }, box);
-    el("text", { x: 40, y: 11 }, svg).textContent = `${label}: ${pts.length ? fmt(pts[pts.length - 1][key], 3) : "–"}`;
+    const newest = (ps, k) => (ps.length ? fmt(ps[ps.length - 1][k], 3) : "–");
+    el("text", { x: 40, y: 11 }, svg).textContent = `${label}: ${newest(pts, key)}` +
+      (companion ? ` · ${companion[1]}: ${newest(other, companion[0])}` : "");
     if (!pts.length) continue;
-    const vals = pts.map((q) => q[key]);
+    const vals = pts.map((q) => q[key]).concat(other.map((q) => q[companion[0]]));
     let lo = Math.min(...vals), hi = Math.max(...vals);
     if (hi - lo < 1e-9) { lo -= 0.5; hi += 0.5; }
     const y = (v) => H - 6 - ((v - lo) / (hi - lo)) * (H - 22);
     el("text", { x: 0, y: y(hi) + 4 }, svg).textContent = fmt(hi, 2);
     el("text", { x: 0, y: y(lo) + 4 }, svg).textContent = fmt(lo, 2);
-    el("polyline", { class: "series", stroke: colour,
-      points: pts.map((q) => `${x(q.wall_s).toFixed(1)},${y(q[key]).toFixed(1)}`).join(" ") }, svg);
+    const line = (ps, k, c, cls) => el("polyline", { class: cls, stroke: c, "data-key": k,
+      points: ps.map((q) => `${x(q.wall_s).toFixed(1)},${y(q[k]).toFixed(1)}`).join(" ") }, svg);
+    line(pts, key, colour, "series");
+    if (other.length) line(other, companion[0], companion[2], "series companion");
     for (const m of s.markers) {
       el("line", { x1: x(m.wall_s), x2: x(m.wall_s), y1: 14, y2: H, class: "marker" }, svg);
       el("title", {}, svg).textContent = m.text;
@@ -289,7 +314,7 @@ function showPolicyRows() {
   $("ppo-row").hidden = kind !== "ppo";
 }
 
-function policyBody() {
+function policyKindBody() {
   const kind = $("kind").value;
   if (kind === "mat") return { kind, mat_ms: Number($("mat").value) };
   if (kind === "freshest") return { kind, k: Number($("k").value) };
@@ -297,6 +322,15 @@ function policyBody() {
   if (kind === "ppo") return { kind, checkpoint: $("checkpoint").value };
   if (kind.startsWith("adaptive:")) return { kind: "adaptive", mode: kind.slice(9) };
   return { kind };
+}
+
+// The policy with its training budget (empty: none, the trainer's render_steps); the
+// scheduler checks the number and says what is wrong.
+function policyBody() {
+  const body = policyKindBody();
+  const budget = $("budget").value.trim();
+  if (budget !== "") body.budget_steps = Number(budget);
+  return body;
 }
 
 async function applyPolicy() {
@@ -334,6 +368,7 @@ async function setup() {
     const p = await call("GET", "scheduler", sitePath("policy"));
     $("kind").value = p.kind;
     if (p.kind === "mat") { $("mat").value = p.mat_ms; $("mat-value").textContent = p.mat_ms; }
+    $("budget").value = p.budget_steps ?? "";
     const t = await call("GET", "trainer", "status");  // its backends: the choices
     for (const b of t.backends) $("backend").add(new Option(b, b));
     $("backend").value = t.backend;
