@@ -147,9 +147,9 @@ AT_DISPLAY = names_of(m for m in METRICS if m.display)
 LIVE = names_of((PSNR, PSNR_DYNAMIC, SSIM, LPIPS, REWARD))
 """What a live run shows and summarises per render (the console's charts, ``aoi3d live
 sweep``), in that order."""
-LIVE_AT_DISPLAY = names_of((PSNR_DISPLAY,))
+LIVE_AT_DISPLAY = names_of((PSNR_DISPLAY, PSNR_DYNAMIC_DISPLAY))
 """What a live run also summarises against the truth at display time (when the render was
-ready: what a viewer saw), beside :data:`LIVE`."""
+ready: what a viewer saw), beside :data:`LIVE` (the console draws the first beside PSNR)."""
 REWARD_TERMS = tuple(m.short for m in METRICS if not m.display and m.score != REWARD.name)
 """``psnr, ssim, lpips, psnr_dynamic, ssim_dynamic``: what the reward may weigh (the fields of
 :class:`aoi3d.quality.RewardWeights`, in their order)."""

@@ -18,9 +18,11 @@ modules load httpx, scipy, torch and matplotlib, so the command imports them in 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Any
 
@@ -35,7 +37,7 @@ from aoi3d_cli.common import fmt, make_console
 if TYPE_CHECKING:
     from aoi3d.live.report import LiveSweep
     from aoi3d.live.summary import Measurement
-    from aoi3d_cli.livehttp import SweepWindows
+    from aoi3d_cli.livehttp import LiveSession, SweepWindows
 
 app = typer.Typer(no_args_is_help=True, add_completion=False,
                   help="Drive and measure the running pipeline.")
@@ -100,6 +102,13 @@ def sweep(
     = Path("runs/experiments/cache"),
     timeout_s: Annotated[float, typer.Option(
         min=1, help="Timeout of each REST call and of each wait for the pipeline.")] = 30.0,
+    backends: Annotated[str | None, typer.Option(
+        help="Fields to sweep in one run, comma-separated (e.g. grid,flow: the static grid "
+             "beside the time-aware field, rendered at the display time): PUT /backend on the "
+             "trainer before each one's policies (the one in force is put back afterwards); "
+             "each writes its results under OUT/<backend>/, and a last table sets their "
+             "display-time PSNR side by side. Default: the trainer's backend as it is.")]
+    = None,
 ) -> None:
     """Measure each policy on the running pipeline; write CSV, JSON and a PNG with the
     virtual clock's curve beside the live one. PSNR is reported at the decision's time and at
@@ -109,19 +118,85 @@ def sweep(
     confidence interval: neither end of --policies, and the Welch (unpaired: the windows are
     different renders, not seeds) 95% CI of best − each end above zero."""
     specs, bodies, canon, delay = _checked(policies, delay, site)
-    from aoi3d.live.figures import plot
-    from aoi3d.live.report import LiveSweep
+    fields = _checked_backends(backends)
     from aoi3d_cli.livehttp import LiveSession, Pipeline
 
     started = time.monotonic()
+    docs: dict[str, dict[str, Any]] = {}
+    settings = {"settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
+                "reset_each": reset_each, "port_offset": port_offset, "site": site}
     with LiveSession(Pipeline(url_base, port_offset, timeout_s, site), console) as session:
         if up:
             session.start_pipeline(zenoh_port, time_scale, f"live-sweep-{os.getpid()}",
                                    ["--dataset", str(dataset), "--workers", str(workers)])
-        windows = session.measure(specs, bodies, canon, delay=delay, settle_s=settle_s,
-                                  measure_s=measure_s, repeats=repeats, reset_each=reset_each)
+        runs: list[str | None] = [*fields] or [None]  # None: the trainer's backend as it is
+        with _backends_put_back(session, fields):
+            for field in runs:
+                t_field = started if not docs else time.monotonic()
+                if field is not None:
+                    _put_backend(session, field)
+                windows = session.measure(specs, bodies, canon, delay=delay,
+                                          settle_s=settle_s, measure_s=measure_s,
+                                          repeats=repeats, reset_each=reset_each)
+                docs[field or ""] = _report(
+                    windows, [canon[s] for s in specs], t_field, out / field if field else out,
+                    sim=sim, sim_seeds=sim_seeds, sim_seed_offset=sim_seed_offset,
+                    dataset=dataset, cache=cache, settings=settings, json_=json_ and not fields)
+    if fields:
+        _side_by_side(docs, out, json_)
+
+
+def _checked_backends(backends: str | None) -> list[str]:
+    """--backends: the fields to sweep, each one aoi3d knows (none: the trainer's as it is)."""
+    from aoi3d.field import UnknownBackendError, check_backend
+
+    fields = [b.strip() for b in (backends or "").split(",") if b.strip()]
+    try:
+        for b in fields:
+            check_backend(b)
+    except UnknownBackendError as err:
+        raise typer.BadParameter(str(err), param_hint="'--backends'") from None
+    return fields
+
+
+def _put_backend(session: LiveSession, field: str) -> None:
+    from aoi3d_cli.livehttp import LiveError
+
+    console.print(f"backend: {escape(field)}")
+    try:
+        session.pipe.call("PUT", "trainer", "/backend", json={"backend": field})
+    except LiveError as err:
+        console.print(f"[red]error:[/] {escape(str(err))}")
+        raise typer.Exit(1) from None
+
+
+@contextlib.contextmanager
+def _backends_put_back(session: LiveSession, fields: list[str]) -> Iterator[None]:
+    """While sweeping ``fields``: afterwards the trainer's backend is the one it had (on a
+    pipeline this sweep did not start)."""
+    from aoi3d_cli.livehttp import LiveError
+
+    before = session.pipe.call("GET", "trainer", "/status").get("backend") if fields else None
+    try:
+        yield
+    finally:
+        if before is not None and session.proc is None:
+            try:
+                session.pipe.call("PUT", "trainer", "/backend", json={"backend": before})
+            except LiveError as err:
+                console.print(f"[yellow]could not put the backend back:[/] {escape(str(err))}")
+
+
+def _report(windows: SweepWindows, order: list[str], started: float, out: Path, *, sim: bool,
+            sim_seeds: int, sim_seed_offset: int, dataset: Path, cache: Path,
+            settings: dict[str, Any], json_: bool) -> dict[str, Any]:
+    """One backend's sweep: the virtual clock beside it, the files, the table; returns the
+    results document."""
+    from aoi3d.live.figures import plot
+    from aoi3d.live.report import LiveSweep
+
+    measure_s, repeats = settings["measure_s"], settings["repeats"]
     live_wall_s = time.monotonic() - started
-    order = [canon[s] for s in specs]
     status1, channel = windows.status1, windows.channel
     carry = status1.get("carry", "warm")
     render_steps = int(status1.get("render_steps") or 0)
@@ -129,9 +204,8 @@ def sweep(
     sim_doc = (_virtual_clock(order, windows, dataset=dataset, seeds=sim_seeds,
                               seed_offset=sim_seed_offset, cache=cache) if sim else None)
     result = LiveSweep.of(windows.measurements, order, sim=sim_doc, settings={
-        "policies": order, "settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
-        "reset_each": reset_each, "port_offset": port_offset, "site": site, "carry": carry,
-        "render_steps": render_steps, "trainer_steps_per_s": steps_per_s, "channel": channel,
+        "policies": order, **settings, "carry": carry, "render_steps": render_steps,
+        "trainer_steps_per_s": steps_per_s, "channel": channel,
         "backend": status1.get("backend")})
     doc = result.document({"live": live_wall_s, "total": time.monotonic() - started})
     result.write(out, doc)
@@ -148,6 +222,33 @@ def sweep(
         for v in result.verdicts():
             stdout.print(f"{v.metric}: best {escape(v.best)} ({v.best_mean:.3f}): {v.text}")
         stdout.print(f"results in {escape(str(out))}")
+    return doc
+
+
+def _side_by_side(docs: dict[str, dict[str, Any]], out: Path, json_: bool) -> None:
+    """The backends of one sweep side by side: per policy, PSNR at decision and at display
+    time, whole image and dynamic region (mean ± 95% CI per render); ``OUT/backends.json``."""
+    from aoi3d.metric import PSNR, PSNR_DISPLAY, PSNR_DYNAMIC, PSNR_DYNAMIC_DISPLAY, names_of
+
+    metrics = names_of((PSNR, PSNR_DYNAMIC, PSNR_DISPLAY, PSNR_DYNAMIC_DISPLAY))
+    rows = [{"backend": b, "policy": r["policy"], "n": r["n"],
+             **{m: r.get(m, {}) for m in metrics}}
+            for b, doc in docs.items() for r in doc["results"]]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "backends.json").write_text(json.dumps({"rows": rows}, indent=2, default=str) + "\n")
+    if json_:
+        print(json.dumps({"backends": rows}, default=str))
+        return
+    table = Table(title="the backends side by side (mean ± 95% CI per render)")
+    for c in ("backend", "policy", "n", "PSNR", "dyn. PSNR", "PSNR @display", "dyn. @display"):
+        table.add_column(c, justify="right")
+    for r in rows:
+        table.add_row(escape(r["backend"]), escape(r["policy"]), str(r["n"]),
+                      *(fmt(r[m].get("mean"), r[m].get("ci95"), 2) for m in metrics))
+    stdout = make_console(width=160)
+    stdout.print(table)
+    stdout.print(f"results in {escape(str(out))}/<backend>/, "
+                 f"{escape(str(out / 'backends.json'))}")
 
 
 def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, seeds: int,
@@ -167,7 +268,8 @@ def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, se
                         steps_per_decision=steps_per_decision(
                             windows.status0, status1, windows.measurements),
                         render_steps=render_steps, cold_steps=_cold_steps(status1),
-                        seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None)
+                        seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None,
+                        backend=status1.get("backend") or "grid")
     except SimRefused as err:
         console.print(f"no virtual clock: {escape(str(err))}")
         return None

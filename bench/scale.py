@@ -19,7 +19,11 @@ per-site bytes.
 
 A configuration may name the trainer's carry and render steps (``KxS:carry@steps``): the
 streaming warm start (``stream``, the default since issue 40) beside ``fresh`` in the same
-run (issue 33); without, the trainer's defaults (the row's ``carry`` says which).
+run (issue 33); without, the trainer's defaults (the row's ``carry`` says which); and its field
+backend (``KxS:carry@steps:backend``, ``AOI3D_TRAINER_BACKEND``): the time-aware ``flow``
+field, rendered at the display time, beside the static grid (issue 41):
+
+    python -m bench.scale --configs 2x1:stream@25,2x1:stream@16:flow --time-scale 0.3
 
 The machine's other load is recorded (load average before and after each run).
 """
@@ -106,24 +110,28 @@ def tree_cpu_s(root: int) -> dict[str, float]:
     return out
 
 
-def parse_config(text: str) -> tuple[int, int, str | None, int | None]:
-    """``KxS`` or ``KxS:carry@steps`` (e.g. ``2x1:stream@25``): workers, sites and the
-    trainer's carry and render steps (None: the trainer's defaults)."""
+def parse_config(text: str) -> tuple[int, int, str | None, int | None, str | None]:
+    """``KxS``, ``KxS:carry@steps`` (e.g. ``2x1:stream@25``) or ``KxS:carry@steps:backend``
+    (``2x1:stream@16:flow``): workers, sites and the trainer's carry, render steps and field
+    backend (None: the trainer's defaults)."""
     size, _, render = text.partition(":")
+    render, _, backend = render.partition(":")
     k, _, sites = size.partition("x")
     carry, steps = None, None
     if render:
         carry, _, budget = render.partition("@")
         steps = int(budget) if budget else None
-    return int(k), int(sites), carry or None, steps
+    return int(k), int(sites), carry or None, steps, backend or None
 
 
 def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | None = None,
-            render_steps: int | None = None) -> dict:
+            render_steps: int | None = None, backend: str | None = None) -> dict:
     run_id = f"scale{workers}x{sites}"
     log_dir = ROOT / "runs" / "bench-scale"
     load_before = os.getloadavg()
     env = dict(os.environ)
+    if backend is not None:
+        env["AOI3D_TRAINER_BACKEND"] = backend
     if carry is not None:
         env["AOI3D_TRAINER_CARRY"] = carry
     if render_steps is not None:
@@ -188,6 +196,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     return {
         "workers": workers, "sites": sites, "window_s": round(dt, 1),
         "carry": carry or f"{in_force} (default)", "render_steps": render_steps,
+        "backend": backend or "grid (default)",
         "time_scale": args.time_scale,
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,
@@ -246,7 +255,9 @@ def speedups(rows: list[dict]) -> dict | None:
     pass by pass (each pass's configurations ran back to back, so a pass shares its load)."""
     def label(r: dict) -> str:
         render = f":{r['carry']}@{r['render_steps']}" if r.get("render_steps") else ""
-        return f"{r['workers']}x{r['sites']}{render}"
+        backend = r.get("backend", "")
+        field = f":{backend}" if backend and not backend.startswith("grid") else ""
+        return f"{r['workers']}x{r['sites']}{render}{field}"
 
     by: dict[str, list[float]] = {}
     for r in rows:
@@ -270,7 +281,8 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
                     help="KxS: K workers, S sites, optionally :carry@steps (the trainer's "
-                         "carry and render steps, e.g. 2x1:stream@25); comma-separated")
+                         "carry and render steps, e.g. 2x1:stream@25) and :backend (its "
+                         "field, e.g. 2x1:stream@16:flow); comma-separated")
     ap.add_argument("--time-scale", type=float, default=0.1)
     ap.add_argument("--settle-s", type=float, default=20.0)
     ap.add_argument("--measure-s", type=float, default=60.0)
@@ -299,13 +311,13 @@ def run(args: argparse.Namespace) -> dict:
     configs = [parse_config(c) for c in args.configs.split(",")]
     rows = []
     for rep in range(args.repeats):
-        for k, sites, carry, steps in configs:
-            row = run_one(k, sites, args, carry, steps)
+        for k, sites, carry, steps, backend in configs:
+            row = run_one(k, sites, args, carry, steps, backend)
             row["pass"] = rep + 1
             rows.append(row)
             if not args.json:
                 print(f"pass {rep + 1}, workers {k}, sites {sites}, {row['carry']}"
-                      f"{'@' + str(steps) if steps else ''}: "
+                      f"{'@' + str(steps) if steps else ''}, {row['backend']}: "
                       f"{row['renders_per_s']:.3f} renders/s, "
                       f"{row['fraction_rendered']:.2f} of decisions, age "
                       f"{row['render_age_s_mean']:.2f} s, PSNR {row['psnr_db']['mean']:.2f} ± "

@@ -118,6 +118,9 @@ def main() -> int:
     ap.add_argument("--figures", type=Path, default=ROOT / "docs/figures",
                     help="where the docs' figures are copied ('' to skip)")
     ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--timefield-seeds", type=int, default=None,
+                    help="seeds of issue 41's question, the time-aware field against the "
+                         "static grid (bench/timefield.py; default: --seeds; 0 skips it)")
     ap.add_argument("--extra", action="append", default=[],
                     help="an option passed on to every command (repeat), e.g. "
                          "--extra=--dataset=/tmp/tiny for a smoke run")
@@ -168,6 +171,12 @@ def main() -> int:
     run(ppo_cmd + args.extra, log)
     # issue 40 §3: the display-time claims at a viewer's budget (bench/science_display.py)
     science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run, log)
+    timefield = None  # issue 41: the time-aware field against the static grid, an open question
+    if args.timefield_seeds is None or args.timefield_seeds > 0:
+        from bench import timefield as tfq
+        timefield = tfq.run_question(lambda cmd: run(cmd, log), exe, common, out / "timefield",
+                                     args.timefield_seeds or args.seeds, [],
+                                     tfq.dataset_of(args.extra))
     wall = time.perf_counter() - started
 
     def load(name: str) -> dict[str, Any]:
@@ -198,6 +207,8 @@ def main() -> int:
     questions = [claims.learned_beats_best_rule(compare),
                  claims.fixed_gamma_loses_under_changing_channel(adaptive),
                  claims.adaptive_beats_best_rule(adaptive)]
+    if timefield is not None:
+        questions += [claims.Verdict(**v) for v in timefield["verdicts"]]
     doc = {"seed_offset": args.seed_offset, "seeds": args.seeds,
            "delay_seeds": args.delay_seeds, "regime_seeds": args.regime_seeds,
            "ppo_seed_offset": args.ppo_seed_offset,
@@ -208,18 +219,22 @@ def main() -> int:
            "claims": [v.to_dict() for v in verdicts],
            "display_time": [v.to_dict() for v in display],
            "questions": [v.to_dict() for v in questions],
-           "display_budgets": science_display.verdicts(out)}
+           "display_budgets": science_display.verdicts(out), "time_aware": timefield}
     (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     if str(args.figures):
         args.figures.mkdir(parents=True, exist_ok=True)
         for src, dst in (("tradeoff/tradeoff.png", "tradeoff.png"),
                          ("delay/delay.png", "delay.png"),
                          ("compare/compare.png", "compare.png"),
-                         ("views/views.png", "views.png")):
+                         ("views/views.png", "views.png"),
+                         *([("timefield/timefield.png", "timefield.png")] if timefield else [])):
             shutil.copyfile(out / src, args.figures / dst)
         science_display.figure(out, args.figures / "display_budgets.png")
     if str(args.doc):
-        args.doc.write_text(render(doc, tradeoff, delay, compare, evaluation, out, adaptive))
+        text = render(doc, tradeoff, delay, compare, evaluation, out, adaptive)
+        if timefield is not None:
+            text += "\n".join(tfq.markdown(timefield, os.path.relpath(out, ROOT)))
+        args.doc.write_text(text)
     print()
     for v in verdicts:
         print(f"{'PASS' if v.holds else 'FAIL'}  {v.claim}: {v.evidence}")

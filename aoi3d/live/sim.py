@@ -39,14 +39,16 @@ def budget(carry: str, *, steps_per_decision: int, render_steps: int,
 
 def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
              steps_per_decision: int, render_steps: int, seeds: int, seed_offset: int,
-             cache: Path, workers: int | None, cold_steps: int = 100
+             cache: Path, workers: int | None, cold_steps: int = 100, backend: str = "grid"
              ) -> dict[str, dict[str, Any]]:
-    """The experiments' engine on the same scene, channel, carry and budget (:func:`budget`;
-    ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``): per policy,
-    ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds (and ``_config``: the episode
-    config run). :class:`SimRefused` when a policy's budget cannot run with that carry."""
+    """The experiments' engine on the same scene, channel, carry, budget (:func:`budget`;
+    ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``) and field
+    backend: per policy, ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds (and
+    ``_config``: the episode config run). :class:`SimRefused` when a policy's budget cannot
+    run with that carry."""
     base = get_preset("quick").episode
-    changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry}
+    changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry,
+                               "backend": backend}
     changes.update(budget(carry, steps_per_decision=steps_per_decision,
                           render_steps=render_steps, cold_steps=cold_steps))
     cfg = base.with_(**changes)

@@ -13,6 +13,11 @@ it (:class:`aoi3d.field.snapshot.ModelSnapshot`, one per site: its latest), and
 (checked by :func:`aoi3d.freeview.check_pose`), a point cloud or a mesh as PLY — without
 touching the model the jobs train. (With the ``fork`` carry the snapshot is the continuously
 trained model the forks start from; with the others, the model that rendered the decision.)
+
+Each frame is given its age at the decision (decision time − its generation time), which a
+field that reads ages takes; a time-aware field (``flow``) is rendered at the display time:
+the scene time ``now_ms()`` gives when the render is taken (the worker's clock), so that the
+render shows the scene when it is shown (a static field shows the decision's time).
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -133,9 +139,10 @@ class ReconCore:
         return WarmStart(cold_steps=int(job.cold_steps) or default.cold_steps,
                          max_gap_ms=float(job.warm_max_gap_ms) or default.max_gap_ms)
 
-    def run(self, job: pb.Job) -> Outcome:
+    def run(self, job: pb.Job, now_ms: Callable[[], float] | None = None) -> Outcome:
         """Reconstruct the job's decision and render its camera; :class:`JobFailed` when it
-        cannot be done (bad scene box, camera, backend or selection)."""
+        cannot be done (bad scene box, camera, backend or selection). ``now_ms``: the scene
+        clock, read once the model is trained: a time-aware field is rendered at that time."""
         aabb = np.asarray(job.aabb, dtype=np.float64)
         if aabb.shape != (6,) or not np.all(np.isfinite(aabb)) or np.any(aabb[3:] <= aabb[:3]):
             raise JobFailed("bad_job", "the scene box must be 6 finite values, min < max")
@@ -149,7 +156,9 @@ class ReconCore:
         for frame in job.frames:
             try:
                 data = decode_frame(frame.SerializeToString())
-                views.append(TrainView(camera=data.camera, image=data.rgb()))
+                age = max(0.0, float(job.decision.time_ms) - float(data.generation_ms))
+                views.append(TrainView(camera=data.camera, image=data.rgb(),
+                                       age_ms=age if math.isfinite(age) else None))
                 gens.append(float(data.generation_ms))
                 cams.append(int(frame.camera_id))
             except (Rejected, ValueError):
@@ -160,11 +169,14 @@ class ReconCore:
         except ValueError as err:
             raise JobFailed("bad_selection", str(err)) from None
         rendered = rec.render_decision(camera, time_ms=float(job.decision.time_ms))
+        image = rendered.image
+        if now_ms is not None and rec.trainer.cfg.time_aware:  # taken at the display time
+            image = rec.render_at(camera, max(0.0, now_ms() - float(job.decision.time_ms)))
         self.jobs += 1
         d = job.decision
         render = pb.Render(
             decision_id=d.decision_id, decision_incarnation=d.incarnation, time_ms=d.time_ms,
-            pose=job.pose, intrinsics=job.intrinsics, image=encode_png(rendered.image),
+            pose=job.pose, intrinsics=job.intrinsics, image=encode_png(image),
             training_step=rendered.steps, n_views=rendered.n_views, backend=job.backend,
             frame_generation_ms=gens, frame_camera_ids=cams, carry=rec.carry,
             render_steps=rendered.render_steps,

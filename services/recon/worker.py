@@ -106,7 +106,7 @@ class ReconWorker:
             return True
         t0 = time.monotonic()
         try:
-            outcome = self.core.run(job)
+            outcome = self.core.run(job, now_ms=self.clock.now_ms)
             outcome.render.compute_s = time.monotonic() - t0
             outcome.render.ready_ms = self.clock.now_ms()
             self.bus.publish(Keys(self.keys.run_id, job.site or DEFAULT_SITE).render,

@@ -9,7 +9,7 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from aoi3d.field import GridConfig, NgpConfig
+from aoi3d.field import FlowConfig, GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from services.kit.codec import PNG, encode_frame
 from services.kit.keys import Keys
@@ -29,7 +29,10 @@ TINY_NGP = NgpConfig(batch_rays=64, samples_coarse=8, samples_fine=8, fine_from_
                      n_levels=2, features=2, log2_table_size=8, base_resolution=4,
                      max_resolution=16, hidden=8, geo_features=3, background_size=(4, 8),
                      occupancy_size=8, tune_malloc=False)
-CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP}
+SMALL_FLOW = FlowConfig(batch_rays=128, samples_coarse=12, samples_fine=12, fine_from_step=0,
+                        grid_sizes=(12,), upsample_steps=(), background_size=(4, 8),
+                        render_chunk_rays=4096, tune_malloc=False, flow_size=4, lr_flow=0.1)
+CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP, "flow": SMALL_FLOW}
 
 
 def trainer_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:

@@ -277,3 +277,11 @@ def test_an_episode_scores_the_flow_field_at_its_display_time(dataset) -> None:
             for image, e in zip(images, result.epochs, strict=True)]
     np.testing.assert_allclose(shown["grid"], again["grid"], rtol=1e-6)
     assert not np.allclose(shown["flow"], again["flow"], rtol=1e-6)  # rendered again, later
+
+
+def test_bench_scale_runs_the_flow_field_beside_the_grid() -> None:
+    from bench.scale import parse_config
+
+    assert parse_config("2x1") == (2, 1, None, None, None)
+    assert parse_config("2x1:stream@25") == (2, 1, "stream", 25, None)
+    assert parse_config("2x1:stream@16:flow") == (2, 1, "stream", 16, "flow")

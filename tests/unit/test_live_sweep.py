@@ -119,7 +119,8 @@ def test_points_csv_keeps_its_columns_and_adds_the_display_time_psnr() -> None:
                    "aoi_used_ms"):
         before += [metric, f"{metric}_ci95", *(["sim_psnr_db"] if metric == "psnr_db" else [])]
     assert list(rows[0]) == [*before, "psnr_display_db", "psnr_display_db_ci95",
-                             "sim_psnr_display_db"]
+                             "sim_psnr_display_db", "psnr_dynamic_display_db",
+                             "psnr_dynamic_display_db_ci95"]  # (issue 41: the blades too)
     assert rows[0]["psnr_display_db"] == pytest.approx(25.0)
     assert rows[0]["sim_psnr_display_db"] == 24.0
     assert list(points_rows(out, None)[0]) == [c for c in list(rows[0])
@@ -150,7 +151,8 @@ def test_the_sweep_table_and_figure_show_the_display_time_psnr(tmp_path) -> None
     assert doc["results"][0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
     result.write(tmp_path, doc)
     header = (tmp_path / "points.csv").read_text().splitlines()[0].split(",")
-    assert header[-3:] == ["psnr_display_db", "psnr_display_db_ci95", "sim_psnr_display_db"]
+    assert header[-5:] == ["psnr_display_db", "psnr_display_db_ci95", "sim_psnr_display_db",
+                           "psnr_dynamic_display_db", "psnr_dynamic_display_db_ci95"]
     assert plot(result.results, sim, tmp_path / "live_sweep.png", "t").stat().st_size > 0
 
 
@@ -207,3 +209,14 @@ def test_the_virtual_clock_refuses_a_budget_under_the_warm_carry_before_running(
                  steps_per_decision=1, render_steps=0, seeds=1, seed_offset=0,
                  cache=tmp_path / "cache", workers=1)
     assert not (tmp_path / "cache").exists()  # nothing ran
+
+
+def test_sweep_refuses_an_unknown_backend_before_touching_the_pipeline() -> None:
+    from typer.testing import CliRunner
+
+    from aoi3d_cli import live
+
+    result = CliRunner().invoke(live.app, ["--backends", "grid,fog", "--port-offset", "61000",
+                                           "--timeout-s", "1"])
+    assert result.exit_code == 2, result.output
+    assert "unknownfieldbackend'fog'" in "".join(result.output.replace("│", "").split())

@@ -53,7 +53,15 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     for c in doc["claims"]:
         assert ("PASS" if c["holds"] else "FAIL") + f"  {c['claim']}" in res.stdout
     # the open question: the agent and the oracle bound ran in compare, its answer is reported
-    question, fixed, adaptive = doc["questions"]
+    question, fixed, adaptive, *time_aware = doc["questions"]
+    # issue 41's question: the time-aware field against the static grid, at both links
+    assert [c["claim"] for c in time_aware] == [
+        "time-aware-beats-static@exp:60", "time-aware-beats-static@exp:100"]
+    assert set(doc["time_aware"]["cpu_seconds_per_render"]) == {
+        "grid-fresh-50", "flow-fresh-32", "grid-fresh-100", "flow-fresh-65", "grid-stream-25",
+        "flow-stream-16"}
+    assert "## A time-aware field (issue 41)" in (tmp_path / "science.md").read_text()
+    assert (tmp_path / "figs/timefield.png").stat().st_size > 0
     assert fixed["claim"] == "fixed-gamma-loses" and "G = " in fixed["evidence"]
     assert adaptive["claim"] == "adaptive-beats-best-rule"
     assert adaptive["numbers"]["best_adaptive"].startswith("adaptive:")

@@ -85,6 +85,33 @@ def test_a_stream_worker_starts_warm_from_its_last_job_and_cold_when_it_is_too_o
     assert (third.warm_start, third.render_steps) == (False, 7)  # 870 ms: too old
 
 
+def test_a_time_aware_job_trains_on_its_frames_ages_and_renders_at_the_workers_clock(
+        dataset: SceneDataset) -> None:
+    """A ``flow`` job: each frame gets its age at the decision (else the field refuses it),
+    and the render is taken at the scene time the worker's clock says when it is rendered —
+    the display time; a static field's render is the decision's time whatever the clock."""
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    t = 400.0
+    for cam, gen in ((1, 100.0), (2, 200.0), (3, 300.0), (4, 300.0)):
+        core.on_frame(frame_payload(dataset, cam, gen), now_ms=t)
+    core.on_decision(decision_payload(1, t, [(1, 100.0), (2, 200.0), (3, 300.0), (4, 300.0)]),
+                     now_ms=t, now_s=0.0)
+    pool.joined("w", 0.0)
+    assignment = pool.request(Report("w", max_wait_s=1.0), 0.5)
+    images = {}
+    for backend in ("flow", "grid"):
+        job = pb.WorkReply.FromString(
+            core.job(assignment, 0.5, RenderSettings(backend, "fresh", 25, 3))).job
+        for label, clock in (("decision", None), ("display", lambda: t + 250.0)):
+            recon = ReconCore(worker_id="w", device="cpu", configs=CONFIGS)
+            out = recon.run(job, now_ms=clock)
+            assert out.render.n_views == 4 and out.render.backend == backend
+            images[backend, label] = out.render.image.data
+    assert images["flow", "decision"] != images["flow", "display"]
+    assert images["grid", "decision"] == images["grid", "display"]
+
+
 def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None:
     render = RenderSettings("grid", "fresh", 12, 3).with_backend("ngp").reset()
     assert (render.backend, render.model_epoch) == ("ngp", 2)
