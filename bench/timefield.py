@@ -10,6 +10,12 @@ every command's folder under ``<out>/<link>/<arm>/``. ``make science`` asks it o
 seeds (``bench/science.py``, ``--timefield-seeds``); alone:
 
     python -m bench.timefield --seeds 2 --seed-offset 10 --workers 2    # development seeds
+    python -m bench.timefield --science --workers 2   # make science's seeds, its files only
+
+``--science`` runs it as ``make science`` does (seeds 20000–20007, its cache, into
+``bench/results/science/timefield``) and puts the verdicts, numbers and section into
+``bench/results/science/claims.json`` and ``docs/science.md`` (replacing its own part, the
+rest as ``make science`` last wrote it), without re-running the other claims.
 
 Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 17–100 steps (the Γ that
 select the same frames computed once): with 8 seeds about 2,300 reconstructions, measured
@@ -96,6 +102,7 @@ def run_question(runner: Runner, exe: str, common: list[str], out: Path, seeds: 
     """Run every arm at every link (``runner`` runs one command), measure the CPU seconds,
     analyse, plot; returns the document written to ``<out>/timefield.json``."""
     out.mkdir(parents=True, exist_ok=True)
+    started = time.perf_counter()
     docs: dict[str, dict[str, Any]] = {}
     for delay in tf.DELAYS:
         for arm in tf.ARMS:
@@ -115,7 +122,8 @@ def run_question(runner: Runner, exe: str, common: list[str], out: Path, seeds: 
            "cpu_ratio_time_aware_over_static": ratios,
            "load_after": round(os.getloadavg()[0], 2),
            "parameters": parameter_counts(dataset),
-           "verdicts": [v.to_dict() for v in verdicts], "analysis": tf.public(analysis)}
+           "verdicts": [v.to_dict() for v in verdicts], "analysis": tf.public(analysis),
+           "wall_s": round(time.perf_counter() - started, 1)}
     (out / "timefield.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     tf.plot(analysis, out / "timefield.png")
     return doc
@@ -135,6 +143,9 @@ def markdown(doc: dict[str, Any], rel: str) -> list[str]:
              + ", ".join(f"{k} {v:.2f}" for k, v in
                          doc["cpu_ratio_time_aware_over_static"].items())
              + f". Fields: {tf.parameters(doc['parameters'])}.", "",
+             f"Seeds {_seeds(doc)}; {doc.get('wall_s', 0) / 60:.1f} min of wall time (load "
+             f"{doc.get('load_after', '—')} at the end). Redo: `make science`, or this part "
+             "alone: `python -m bench.timefield --science`.", "",
              "![both tradeoff curves](figures/timefield.png)", "",
              "| question | answer | evidence |", "|---|---|---|"]
     for v in doc["verdicts"]:
@@ -173,12 +184,45 @@ _METRIC_NAMES = {"psnr_db": "PSNR @decision", "psnr_dynamic_db": "dyn. @decision
                  "psnr_static_db": "static region @decision"}
 
 
+def _seeds(doc: dict[str, Any]) -> str:
+    seeds = sorted({s for d in doc["analysis"].values() for a in d["arms"].values()
+                    for s in a["seeds"]})
+    return f"{seeds[0]}–{seeds[-1]}" if len(seeds) > 1 else str(seeds[0]) if seeds else "—"
+
+
 def _g(value: Any) -> str:
     return "all" if value == "all" else f"{float(value):g}"
 
 
+SECTION = "## A time-aware field (issue 41)"
+
+
+def update_science(doc: dict[str, Any], claims_path: Path, science_md: Path,
+                   figures: Path) -> None:
+    """Put the question's part into ``make science``'s outputs: claims.json's ``time_aware``
+    and its verdicts among the ``questions`` (replacing earlier ones), science.md's section
+    (replacing it), the figure."""
+    from aoi3d.experiment.claims import Verdict
+
+    claims = json.loads(claims_path.read_text())
+    ids = {v["claim"] for v in doc["verdicts"]}
+    claims["questions"] = [q for q in claims.get("questions", []) if q["claim"] not in ids]
+    claims["questions"] += [Verdict(**v).to_dict() for v in doc["verdicts"]]
+    claims["time_aware"] = doc
+    claims_path.write_text(json.dumps(claims, indent=2, default=str) + "\n")
+    text = science_md.read_text()
+    if SECTION in text:
+        text = text[:text.index(SECTION)].rstrip("\n") + "\n"
+    rel = os.path.relpath(claims_path.parent, ROOT)
+    science_md.write_text(text + "\n".join(markdown(doc, rel)))
+    figures.mkdir(parents=True, exist_ok=True)
+    (figures / "timefield.png").write_bytes((claims_path.parent / "timefield/timefield.png")
+                                            .read_bytes())
+
+
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--seed-offset", type=int, default=10,
                     help="first seed (default 10: development seeds)")
@@ -188,7 +232,14 @@ def main() -> int:
     ap.add_argument("--dataset", type=Path, default=ROOT / "data/turbine-rotor")
     ap.add_argument("--cost-repeats", type=int, default=6,
                     help="reconstructions per arm for the CPU seconds (0: skip)")
+    ap.add_argument("--science", action="store_true",
+                    help="as make science asks it: seeds 20000-20007, its cache and folder; "
+                         "updates claims.json and docs/science.md (see above)")
     args = ap.parse_args()
+    if args.science:
+        args.seeds, args.seed_offset = 8, 20000
+        args.out = ROOT / "bench/results/science/timefield"
+        args.cache = ROOT / "runs/experiments/science-cache"
     exe = str(Path(sys.executable).with_name("aoi3d"))
     if not Path(exe).exists():
         exe = "aoi3d"
@@ -199,6 +250,9 @@ def main() -> int:
     started = time.perf_counter()
     doc = run_question(lambda cmd: subprocess.run(cmd, check=True), exe, common, args.out,
                        args.seeds, [], args.dataset, args.cost_repeats)
+    if args.science:
+        update_science(doc, args.out.parent / "claims.json", ROOT / "docs/science.md",
+                       ROOT / "docs/figures")
     for v in doc["verdicts"]:
         print(f"{'YES' if v['holds'] else 'NO '}  {v['statement']}: {v['evidence']}")
     print(f"{(time.perf_counter() - started) / 60:.1f} min; {args.out / 'timefield.json'}")

@@ -185,7 +185,7 @@ class FlowField(DenseGridField):
         """σ, rgb of the grid at ``warped`` points; under autograd, differentiable in the grid
         (row-sparse) and in the points."""
         if not (torch.is_grad_enabled() and warped.requires_grad):
-            return self.query(warped, warped)
+            return self.query(warped, warped)  # the grid's colour ignores the direction
         raw = trilinear(self.grid, self.shape, self._coords(warped), sparse=True)
         return F.softplus(raw[:, 0]), torch.sigmoid(raw[:, 1:])
 

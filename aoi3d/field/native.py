@@ -19,6 +19,10 @@ therefore takes its whole training step through these kernels without autograd
 (:func:`grid_training_grads`, called by ``DenseGridField.train_step``), the gradients the
 autograd path computes, from the same random draws.
 
+The ``flow`` backend's kernels (``_native_flow.c``, included by ``_native.c``: one library)
+are called through :mod:`aoi3d.field.native_flow`; :func:`grid_render_grads` is the part of the
+grid's step they share.
+
 The source is compiled at first use with the system C compiler (``$CC``, else ``cc`` or
 ``gcc``; ``-O3``, no Python or torch headers, a fraction of a second) into
 ``$AOI3D_CACHE/native`` (default ``~/.cache/aoi3d/native``, else the temporary directory),
