@@ -93,7 +93,7 @@ bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (
 	$(FRESH100) $(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 \
 	    --dataset data/turbine-rotor-192x144 --out bench/results/scale-192x144.json
 
-science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; SCIENCE_ARGS="--seed-offset 30000" for another block)
+science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; about 12 more for the time-aware field's question, issue 41; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) -m bench.science $(SCIENCE_ARGS)
 
 docs: install  ## regenerate the generated pages: docs/measurements.md from bench/results (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)

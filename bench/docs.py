@@ -52,6 +52,8 @@ ELSEWHERE: dict[str, str] = {
     "live-channel": "[channels.md](channels.md), the console on a changing channel "
                     "(`python bench/live_channel.py`)",
     "science": "[science.md](science.md) (written by `make science`, `bench/science.py`)",
+    "timefield": "[experiments.md](experiments.md), \"A time-aware field\" (`bench/recon.py "
+                 "--field flow`, `bench/scale.py --configs …:flow`; issue 41)",
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
                  "[experiments.md](experiments.md), \"The tradeoff at display time\" "
                  "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",

@@ -40,6 +40,11 @@ the streaming carry's 25 steps and at 50 fresh steps, and whether a compute-awar
 reported either way. Nine runs of 25–100 steps, 13–74 s each on 2 shared cores (load 2–3).
 ``--only display`` runs just this part and merges it into an existing ``claims.json`` and
 ``--doc`` (``--reuse`` keeps the runs whose results exist).
+
+Issue 41's question (``bench/timefield.py``, ``--timefield-seeds``, default ``--seeds``): the
+time-aware field against the static grid at equal CPU seconds per render, six arms over Γ at
+exp:60 and exp:100, LPIPS off — about 2,300 reconstructions of 16–100 steps, 12.0 min alone
+on the 2-core machine (busy for half of it). Its two verdicts are open questions too.
 """
 
 from __future__ import annotations

@@ -17,10 +17,9 @@ seeds (``bench/science.py``, ``--timefield-seeds``); alone:
 ``bench/results/science/claims.json`` and ``docs/science.md`` (replacing its own part, the
 rest as ``make science`` last wrote it), without re-running the other claims.
 
-Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 17–100 steps (the Γ that
-select the same frames computed once): with 8 seeds about 2,300 reconstructions, measured
-at 17 minutes of wall time on the busy 2-core machine with 2 workers (docs/experiments.md,
-"A time-aware field").
+Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 16–100 steps: with 8 seeds
+about 2,300 reconstructions, 12.0 minutes of wall time on the 2-core machine with 2 workers,
+busy with other jobs for the first half (docs/experiments.md, "A time-aware field").
 """
 
 from __future__ import annotations

@@ -7,21 +7,27 @@ about its own time. The field stands for the scene at a reference time t_ref (th
 time); the scene a ms earlier is the grid G (the ``grid`` backend's table, see
 :mod:`aoi3d.field.grid`) read where the flow carries each point by then:
 
-    S(x, a) = G(x + a·v(x)),
+    S(x, a) = G(x + (a − p)·v(x)),
 
 a first-order backward warp by a *steady* velocity field v (m/s): a coarse vertex grid of
 ``flow_size`` vertices along the longest box side, interpolated trilinearly, zero at the start
 (so the untrained field is the static grid). Each training ray is read at its image's age a
 (``TrainView.age_ms``, the AoI at the decision: ``RayBundle.age_ms``); a novel view at the
-decision's time is a = 0, the plain grid, and at any other time t it is a = t_ref − t — the
+decision's time is a = 0, and at any other time t it is a = t_ref − t — the
 display time t_ref + L is a = −L, a time no frame shows (:meth:`FieldTrainer.render`'s
-``ahead_ms``). Ages are clipped to ±``flow_max_ms``.
+``ahead_ms``). Ages are clipped to ±``flow_max_ms``. G itself stands for the age p, the
+*pivot*: the mean age of the views the model first trains on (``FieldTrainer.set_views``
+sets it before the first step), so that ages enter as differences from their mean.
 
 v is learned with the grid, from how the frames of different ages disagree: a sample of an
-image of age a reads G at x + a·v(x), so the loss moves v along G's spatial gradient, times a.
+image of age a reads G at x + (a − p)·v(x), so the loss moves v along G's spatial gradient,
+times a − p.
 Frames of one age say nothing about v (a·v is then an offset the grid absorbs); old frames
-are what teaches it. A rotor at constant speed has v(x) = ω × (x − c), linear in x, which
-trilinear interpolation represents exactly at any resolution.
+are what teaches it. Measured from the pivot, the ages cannot make v a shortcut that pulls
+every old frame's samples towards density. A rotor at constant speed has v(x) = ω × (x − c),
+linear in x, which trilinear interpolation represents exactly at any resolution; a
+smoothness prior (``flow_smooth`` × the squared second differences of v, free for a linear
+field) carries v into space no frame constrains — between the blades, where a blade will be.
 
 Carrying the model to a later decision (the ``stream`` carry, :mod:`aoi3d.field.carry`):
 :meth:`FlowField.advance` moves the reference time by dt, resampling the grid along the flow,
@@ -84,8 +90,9 @@ def trilinear(table: torch.Tensor, shape: Sequence[int], coords: torch.Tensor,
 class FlowConfig(GridConfig):
     """The time-aware grid: :class:`GridConfig`'s grid at the reference time, plus a velocity
     grid of ``flow_size`` vertices along the longest side (m/s, three columns and one unused:
-    the kernels' four-float row), learned at ``lr_flow``; ages clipped to ±``flow_max_ms``.
-    The timeliness embedding (``age_features``) is the other way to take the age: not both."""
+    the kernels' four-float row), learned at ``lr_flow`` with the smoothness weight
+    ``flow_smooth``; ages clipped to ±``flow_max_ms``. The timeliness embedding
+    (``age_features``) is the other way to take the age: not both."""
 
     flow_size: int = 16
     lr_flow: float = 0.02
