@@ -165,7 +165,7 @@ class ReconCore:
                 rejected += 1
         rec = self._reconstruction(job, aabb)
         try:
-            rec.set_views(views)
+            rec.set_views(views, float(job.decision.time_ms))  # warm, fork: the model moves there
         except ValueError as err:
             raise JobFailed("bad_selection", str(err)) from None
         rendered = rec.render_decision(camera, time_ms=float(job.decision.time_ms))

@@ -167,7 +167,8 @@ def test_the_reconstruction_trains_on_each_frames_own_pose(dataset: SceneDataset
     seen = []
     original = Reconstruction.set_views
     monkeypatch.setattr(Reconstruction, "set_views",
-                        lambda self, views: (seen.extend(views), original(self, views))[1])
+                        lambda self, views, *time: (seen.extend(views),
+                                                    original(self, views, *time))[1])
     ReconCore(worker_id="w", device="cpu", configs=CONFIGS).run(job)
     assert len(seen) == 1 and seen[0].camera == moved
     assert seen[0].camera != dataset.cameras[1]
