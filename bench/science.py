@@ -236,10 +236,7 @@ def main() -> int:
             shutil.copyfile(out / src, args.figures / dst)
         science_display.figure(out, args.figures / "display_budgets.png")
     if str(args.doc):
-        text = render(doc, tradeoff, delay, compare, evaluation, out, adaptive)
-        if timefield is not None:
-            text += "\n".join(tfq.markdown(timefield, os.path.relpath(out, ROOT)))
-        args.doc.write_text(text)
+        args.doc.write_text(science_md(doc, tradeoff, delay, compare, evaluation, out, adaptive))
     print()
     for v in verdicts:
         print(f"{'PASS' if v.holds else 'FAIL'}  {v.claim}: {v.evidence}")
@@ -410,6 +407,19 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
     return "\n".join(lines)
 
 
+def science_md(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
+               compare: dict[str, Any], evaluation: dict[str, Any], out: Path,
+               adaptive: dict[str, Any]) -> str:
+    """docs/science.md: :func:`render`'s page, then issue 41's section when ``doc`` has its
+    question (``time_aware``), so that a part re-run alone keeps the others' sections."""
+    text = render(doc, tradeoff, delay, compare, evaluation, out, adaptive)
+    if doc.get("time_aware"):
+        from bench import timefield as tfq
+
+        text += "\n".join(tfq.markdown(doc["time_aware"], os.path.relpath(out, ROOT)))
+    return text
+
+
 def display_only(args: argparse.Namespace) -> int:
     """``--only display``: run issue 40's part and merge it into ``claims.json`` and the doc,
     the other parts' results read from ``--out`` as the last full run left them."""
@@ -432,9 +442,9 @@ def display_only(args: argparse.Namespace) -> int:
         return dict(json.loads((out / name).read_text()))
 
     if str(args.doc):
-        args.doc.write_text(render(doc, load("tradeoff/results.json"),
-                                   load("delay/results.json"), load("compare/results.json"),
-                                   load("ppo/eval.json"), out, load("adaptive/results.json")))
+        args.doc.write_text(science_md(doc, load("tradeoff/results.json"),
+                                       load("delay/results.json"), load("compare/results.json"),
+                                       load("ppo/eval.json"), out, load("adaptive/results.json")))
     section = doc["display_budgets"]
     for name, cfg in section["configs"].items():
         for v in cfg["verdicts"]:
