@@ -305,7 +305,9 @@ def run(args: argparse.Namespace) -> dict:
     and returns the result document."""
     if Path(args.dataset) == DEFAULT_DATASET:  # generated when missing ("up to date" if not)
         subprocess.run([sys.executable, "-m", "aoi3d_cli", "scene", "generate", "--out",
-                        args.dataset], check=True)
+                        args.dataset], check=True,
+                       stdout=sys.stderr if getattr(args, "json", False) else None)  # --json:
+        # stdout is the result document alone
     elif not Path(args.dataset).is_dir():
         raise SystemExit(f"no dataset at {args.dataset} (aoi3d scene generate --out …)")
     configs = [parse_config(c) for c in args.configs.split(",")]

@@ -36,6 +36,7 @@ from pathlib import Path
 from typing import Any
 
 from aoi3d.experiment import timefield as tf
+from bench import common
 from bench.common import ROOT
 
 Runner = Callable[[list[str]], Any]
@@ -219,7 +220,7 @@ def update_science(doc: dict[str, Any], claims_path: Path, science_md: Path,
                                             .read_bytes())
 
 
-def main() -> int:
+def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=2)
@@ -234,7 +235,13 @@ def main() -> int:
     ap.add_argument("--science", action="store_true",
                     help="as make science asks it: seeds 20000-20007, its cache and folder; "
                          "updates claims.json and docs/science.md (see above)")
-    args = ap.parse_args()
+    common.add_json_option(ap)
+    return ap
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    """The question for ``parser()``'s options (its commands' output on stderr under
+    ``--json``); with ``--science`` into make science's outputs. Returns its document."""
     if args.science:
         args.seeds, args.seed_offset = 8, 20000
         args.out = ROOT / "bench/results/science/timefield"
@@ -242,19 +249,29 @@ def main() -> int:
     exe = str(Path(sys.executable).with_name("aoi3d"))
     if not Path(exe).exists():
         exe = "aoi3d"
-    common = ["--preset", "quick", "--cache", str(args.cache), "--seed-offset",
-              str(args.seed_offset), "--dataset", str(args.dataset)]
+    flags = ["--preset", "quick", "--cache", str(args.cache), "--seed-offset",
+             str(args.seed_offset), "--dataset", str(args.dataset)]
     if args.workers:
-        common += ["--workers", str(args.workers)]
-    started = time.perf_counter()
-    doc = run_question(lambda cmd: subprocess.run(cmd, check=True), exe, common, args.out,
-                       args.seeds, [], args.dataset, args.cost_repeats)
+        flags += ["--workers", str(args.workers)]
+    out_to = sys.stderr if args.json else None
+    doc = run_question(lambda cmd: subprocess.run(cmd, check=True, stdout=out_to), exe, flags,
+                       args.out, args.seeds, [], args.dataset, args.cost_repeats)
     if args.science:
         update_science(doc, args.out.parent / "claims.json", ROOT / "docs/science.md",
                        ROOT / "docs/figures")
-    for v in doc["verdicts"]:
-        print(f"{'YES' if v['holds'] else 'NO '}  {v['statement']}: {v['evidence']}")
-    print(f"{(time.perf_counter() - started) / 60:.1f} min; {args.out / 'timefield.json'}")
+    return doc
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parser().parse_args(argv)
+    started = time.perf_counter()
+    with common.progress_to_stderr(args.json):
+        doc = run(args)
+        for v in doc["verdicts"]:
+            print(f"{'YES' if v['holds'] else 'NO '}  {v['statement']}: {v['evidence']}")
+        print(f"{(time.perf_counter() - started) / 60:.1f} min; {args.out / 'timefield.json'}")
+    if args.json:
+        common.print_json(doc, default=str)
     return 0
 
 
