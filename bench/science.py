@@ -82,7 +82,8 @@ def aoi3d() -> str:
     return str(exe) if exe.exists() else "aoi3d"
 
 
-def run(cmd: list[str], log: list[dict[str, Any]]) -> float:
+def run_command(cmd: list[str], log: list[dict[str, Any]]) -> float:
+    """Run one of make science's commands, logging its wall time and the load around it."""
     shown = " ".join(["aoi3d", *cmd[1:]])
     print(f"\n$ {shown}", flush=True)
     started = time.perf_counter()
@@ -149,12 +150,12 @@ def main() -> int:
     common += args.extra
     log: list[dict[str, Any]] = []
     started = time.perf_counter()
-    run([exe, "experiment", "tradeoff", *common, "--seeds", str(args.seeds),
+    run_command([exe, "experiment", "tradeoff", *common, "--seeds", str(args.seeds),
          "--gammas", "0,40,70,100,130,160", "--out", str(out / "tradeoff")], log)
-    run([exe, "experiment", "delay", *common, "--seeds", str(args.delay_seeds),
+    run_command([exe, "experiment", "delay", *common, "--seeds", str(args.delay_seeds),
          "--delays", "exp:20,exp:60,exp:100", "--gammas", "40,70,100,130,160",
          "--out", str(out / "delay")], log)
-    run([exe, "experiment", "compare", *common, "--seeds", str(args.seeds),
+    run_command([exe, "experiment", "compare", *common, "--seeds", str(args.seeds),
          "--policy", "all", "--policy", "mat:best", "--policy", "freshest:6",
          "--policy", "wait:40", "--policy", f"ppo:{args.compare_checkpoint}",
          "--policy", "oracle:rules:psnr_db", "--out", str(out / "compare")], log)
@@ -163,8 +164,8 @@ def main() -> int:
                   "--delay", REGIMES, "--out", str(out / "adaptive")]
     for p in REGIME_POLICIES:
         regime_cmd += ["--policy", p]
-    run(regime_cmd, log)
-    run([exe, "experiment", "views", *common, "--gammas", "40,70,160",
+    run_command(regime_cmd, log)
+    run_command([exe, "experiment", "views", *common, "--gammas", "40,70,160",
          "--out", str(out / "views")], log)
     ppo_cmd = [exe, "ppo", "eval", "--checkpoint", str(args.checkpoint),
                "--seeds", str(args.ppo_seeds), "--seed-offset", str(args.ppo_seed_offset),
@@ -173,14 +174,14 @@ def main() -> int:
         ppo_cmd += ["--compare", p]
     if args.workers:
         ppo_cmd += ["--workers", str(args.workers)]
-    run(ppo_cmd + args.extra, log)
+    run_command(ppo_cmd + args.extra, log)
     # issue 40 §3: the display-time claims at a viewer's budget (bench/science_display.py)
-    science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run, log)
+    science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run_command, log)
     timefield = None  # issue 41: the time-aware field against the static grid, an open question
     if args.timefield_seeds is None or args.timefield_seeds > 0:
         from bench import timefield as tfq
-        timefield = tfq.run_question(lambda cmd: run(cmd, log), exe, common, out / "timefield",
-                                     args.timefield_seeds or args.seeds, [],
+        timefield = tfq.run_question(lambda cmd: run_command(cmd, log), exe, common,
+                                     out / "timefield", args.timefield_seeds or args.seeds, [],
                                      tfq.dataset_of(args.extra))
     wall = time.perf_counter() - started
 
@@ -431,8 +432,8 @@ def display_only(args: argparse.Namespace) -> int:
         common += ["--workers", str(args.workers)]
     common += args.extra
     log: list[dict[str, Any]] = []
-    science_display.run_all(aoi3d(), common, doc["seeds"], doc["delay_seeds"], out, run, log,
-                            reuse=args.reuse)
+    science_display.run_all(aoi3d(), common, doc["seeds"], doc["delay_seeds"], out,
+                            run_command, log, reuse=args.reuse)
     doc["display_budgets"] = science_display.verdicts(out)
     (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     if str(args.figures):
