@@ -175,6 +175,17 @@ def train_cmd(
                            "(repeatable): pose = its angle and distance to the held-out view, "
                            "fixed per rig and stored in the checkpoint. Default: the AoI "
                            "vector alone.")] = None,
+    reward: Annotated[str, typer.Option(
+        help="The reward learned: reward (at the decision's time) or reward_display (at "
+             "display time, once the render's compute is done: what a viewer sees).")]
+    = "reward",
+    budgets: Annotated[str | None, typer.Option(
+        help="Budgets (training steps per render, comma-separated, e.g. 25,50,100) each "
+             "episode's render is drawn from, so the lag to the display varies. Default: "
+             "the preset's steps.")] = None,
+    observe_lag: Annotated[bool, typer.Option(
+        "--observe-lag", help="The agent also observes the expected lag from the decision "
+                              "to its display (at the episode's budget).")] = False,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
     from aoi3d.policy.ppo import PPOConfig
@@ -193,13 +204,16 @@ def train_cmd(
             hyper[key] = value
     if features:
         hyper.update(_camera_features(features, episode, ds))
+    if observe_lag:
+        hyper["lag"] = True
     try:
+        steps = tuple(int(b) for b in budgets.split(",")) if budgets else ()
         ppo_cfg = PPOConfig.from_dict({**hyper, "n_cameras": n})
         cfg = TrainConfig(episode=episode, ppo=ppo_cfg,
                           episodes=episodes if episodes is not None else chosen.episodes,
                           batch_size=batch_size if batch_size is not None else chosen.batch_size,
                           checkpoint_every=checkpoint_every, preset=chosen.name,
-                          seed_offset=seed_offset)
+                          seed_offset=seed_offset, reward=reward, budgets=steps)
     except (TypeError, ValueError) as err:
         raise typer.BadParameter(str(err)) from None
     folder = out if out is not None else Path("runs/ppo") / chosen.name

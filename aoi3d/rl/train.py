@@ -100,7 +100,8 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.pt"
     ds = dataset if dataset is not None else open_dataset(cfg.episode.dataset)
-    env = FrameSelectionEnv(cfg.episode, ds, aoi_scale_ms=cfg.ppo.aoi_scale_ms)
+    env = FrameSelectionEnv(cfg.episode, ds, aoi_scale_ms=cfg.ppo.aoi_scale_ms,
+                            reward=cfg.reward, budgets=cfg.budgets, observe_lag=cfg.ppo.lag)
     cfg = replace(cfg, episode=env.config)  # carry=fresh, dataset path as opened
     _check_rig(cfg, env, ds)
     agent, start, rows, update_rows = _resume_or_start(cfg, out, ckpt, resume)
@@ -130,7 +131,8 @@ def train(
 
     report()
     with EnvPool(cfg.episode, aoi_scale_ms=cfg.ppo.aoi_scale_ms, cache=cache,
-                 workers=workers, threads=threads) as pool:
+                 workers=workers, threads=threads, reward=cfg.reward,
+                 budgets=cfg.budgets) as pool:
         for first in range(start, total, cfg.batch_size):
             batch = list(range(first, min(first + cfg.batch_size, total)))
             obs, acts = _observe_and_sample(env, agent, batch, cfg.seed_offset)
@@ -239,9 +241,9 @@ def _observe_and_sample(env: FrameSelectionEnv, agent: PPOLearner, batch: list[i
     """Each episode of ``batch``: its observation and the agent's sampled action."""
     obs, acts = [], []
     for e in batch:
-        # the agent observes the AoI vector its own way (and its rig's features)
+        # the agent observes the AoI vector its own way (its rig's features, the lag)
         _, info = env.reset(seed=train_seed(e, seed_offset))
-        o = agent.observe(info["aoi"])
+        o = agent.observe(info["aoi"], info["lag_ms"])
         obs.append(o)
         acts.append(agent.sample(o))
     return obs, acts
@@ -260,4 +262,6 @@ def _episode_row(episode: int, outcome: dict[str, Any], a: Sample, update: int
         "selected": outcome["selected"], "p_mean": float(a.probs.mean()),
         "value": a.value, "logp": a.logp, "entropy": a.entropy,
         "cached": outcome["cached"], "wall_s": outcome["wall_s"],
+        "budget": outcome["budget"], "lag_ms": outcome["lag_ms"],
+        "reward_display": outcome["reward_display"], "psnr_display": outcome["psnr_display"],
     }
