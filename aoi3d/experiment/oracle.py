@@ -396,26 +396,28 @@ def search_oracle(cfg: EpisodeConfig, dataset: SceneDataset, oracle: OracleSpec 
             for (s, _), better in zip(batch, improved, strict=True):
                 s.active = better  # the next round tries one more camera, if any is left
 
-    episodes = []
-    for seed in seeds:
-        mine = [s for s in states if s.seed == seed]
-        base = bases[seed]
-        chosen = {s.index: s.decision for s in mine}
-        decisions = tuple(chosen.get(i, d) for i, d in enumerate(base.decisions))
-        plan = replace(base, policy=spec.spec, decisions=decisions)  # type: ignore[arg-type]
-        epochs = [s.score for s in mine]
-        assert all(e is not None for e in epochs)
-        result = episode_result(plan, epochs, key=plan_key(plan, dataset, lpips=lpips),  # type: ignore[arg-type]
-                                wall_s=float(sum(w for s in mine for w in s.wall_s)))
-        searches = tuple(
-            DecisionSearch(seed=seed, decision_ms=base.decisions[s.index].decision_ms,
-                           n_known=int(np.count_nonzero(~np.isnan(s.aoi))),
-                           candidates=s.candidates, rounds=s.rounds,
-                           cameras=s.decision.cameras if s.decision else (),
-                           value=spec.sign * s.value)
-            for s in mine)
-        episodes.append(OracleEpisode(result=result, plan=plan, decisions=searches))
-    return episodes
+    return [_episode_of(seed, [s for s in states if s.seed == seed], bases[seed], spec,
+                        dataset, lpips) for seed in seeds]
+
+
+def _episode_of(seed: int, mine: list[_State], base: EpisodePlan, spec: OracleSpec,
+                dataset: SceneDataset, lpips: bool) -> OracleEpisode:
+    """One seed's oracle episode from its searched decisions (``rules``, ``greedy``)."""
+    chosen = {s.index: s.decision for s in mine}
+    decisions = tuple(chosen.get(i, d) for i, d in enumerate(base.decisions))
+    plan = replace(base, policy=spec.spec, decisions=decisions)  # type: ignore[arg-type]
+    epochs = [s.score for s in mine]
+    assert all(e is not None for e in epochs)
+    result = episode_result(plan, epochs, key=plan_key(plan, dataset, lpips=lpips),  # type: ignore[arg-type]
+                            wall_s=float(sum(w for s in mine for w in s.wall_s)))
+    searches = tuple(
+        DecisionSearch(seed=seed, decision_ms=base.decisions[s.index].decision_ms,
+                       n_known=int(np.count_nonzero(~np.isnan(s.aoi))),
+                       candidates=s.candidates, rounds=s.rounds,
+                       cameras=s.decision.cameras if s.decision else (),
+                       value=spec.sign * s.value)
+        for s in mine)
+    return OracleEpisode(result=result, plan=plan, decisions=searches)
 
 
 def _search_cells(cfg: EpisodeConfig, dataset: SceneDataset, spec: OracleSpec,

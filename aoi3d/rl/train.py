@@ -100,8 +100,7 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.pt"
     ds = dataset if dataset is not None else open_dataset(cfg.episode.dataset)
-    env = FrameSelectionEnv(cfg.episode, ds, aoi_scale_ms=cfg.ppo.aoi_scale_ms,
-                            reward=cfg.reward, budgets=cfg.budgets, observe_lag=cfg.ppo.lag)
+    env = FrameSelectionEnv(cfg.episode, ds, observe_lag=cfg.ppo.lag, **_env_options(cfg))
     cfg = replace(cfg, episode=env.config)  # carry=fresh, dataset path as opened
     _check_rig(cfg, env, ds)
     agent, start, rows, update_rows = _resume_or_start(cfg, out, ckpt, resume)
@@ -130,9 +129,8 @@ def train(
         progress(TrainProgress(len(rows), total, agent.updates, last_batch, moving))
 
     report()
-    with EnvPool(cfg.episode, aoi_scale_ms=cfg.ppo.aoi_scale_ms, cache=cache,
-                 workers=workers, threads=threads, reward=cfg.reward,
-                 budgets=cfg.budgets) as pool:
+    with EnvPool(cfg.episode, cache=cache, workers=workers, threads=threads,
+                 **_env_options(cfg)) as pool:
         for first in range(start, total, cfg.batch_size):
             batch = list(range(first, min(first + cfg.batch_size, total)))
             obs, acts = _observe_and_sample(env, agent, batch, cfg.seed_offset)
@@ -162,6 +160,11 @@ def train(
     write_json(out / "config.json", meta)
     return _summary(out, rows, agent.updates, computed=computed, cached=cached, wall_s=wall,
                     window=window)
+
+
+def _env_options(cfg: TrainConfig) -> dict[str, Any]:
+    """What the training env and its workers are built with besides the episode config."""
+    return {"aoi_scale_ms": cfg.ppo.aoi_scale_ms, "reward": cfg.reward, "budgets": cfg.budgets}
 
 
 def _check_rig(cfg: TrainConfig, env: FrameSelectionEnv, ds: SceneDataset) -> None:
