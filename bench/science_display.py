@@ -60,19 +60,19 @@ def grid_policies() -> list[str]:
     return [*fixed, *COMPUTE_AWARE]
 
 
-def ppo_policies(root: Path) -> list[str]:
-    """The display-time agent at each budget of the grid (none when its checkpoint is
-    missing)."""
-    ckpt = root / PPO_DISPLAY
-    return [f"ppo:{ckpt}@{s}" for s in GRID_STEPS] if ckpt.is_file() else []
+def ppo_policies(checkpoint: str | None) -> list[str]:
+    """The display-time agent at each budget of the grid (none without a checkpoint)."""
+    return [f"ppo:{checkpoint}@{s}" for s in GRID_STEPS] if checkpoint else []
 
 
 def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path,
             runner: Callable[[list[str], list[dict[str, Any]]], float],
-            log: list[dict[str, Any]], reuse: bool = False) -> None:
+            log: list[dict[str, Any]], reuse: bool = False,
+            checkpoint: str | None = None) -> None:
     """Every run of this part, each into ``out/display/<name>``; its wall times are kept in
     ``out/display/runs.json``. ``reuse``: a run whose results.json exists is not redone (its
-    wall time from runs.json stands)."""
+    wall time from runs.json stands). ``checkpoint``: the display-time PPO agent of the grid
+    (:data:`PPO_DISPLAY`; None: none)."""
     base = out / "display"
     base.mkdir(parents=True, exist_ok=True)
     runs_file = base / "runs.json"
@@ -99,7 +99,7 @@ def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path
              "--policy", "wait:40", "--out", str(base / name / "compare")], log)
     grid = [exe, "experiment", "compare", *common, "--seeds", str(seeds), "--no-lpips",
             "--out", str(base / "grid")]
-    for p in [*grid_policies(), *ppo_policies(Path(__file__).resolve().parent.parent), ORACLE]:
+    for p in [*grid_policies(), *ppo_policies(checkpoint), ORACLE]:
         grid += ["--policy", p]
     run(grid, log)
     for delay in FIGURE_DELAYS:  # the figure's other panels: the fixed cells only
