@@ -223,7 +223,7 @@ def compare(
                          "wait:<ms>, or any registered kind; a baseline of the follow-up "
                          "paper, tembed[:<features>[:<scale_ms>]] (timeliness embedding) or "
                          "wsum:<tau_ms> (weighted sum), each optionally @<policy> (default "
-                         "@all); or the oracle bound, oracle[:rules|greedy[:<metric>]] "
+                         "@all); or the oracle bound, oracle[:rules|greedy|budgets[:<metric>]] "
                          "(searched with the truth: a bound, not a policy). Default: the "
                          "preset's.")] = None,
     mat_ms: Annotated[float | None, typer.Option(

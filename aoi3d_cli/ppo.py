@@ -144,6 +144,18 @@ def presets() -> None:
     console.print(table)
 
 
+RewardOpt = Annotated[str, typer.Option(
+    help="The reward learned: reward (at the decision's time) or reward_display (at display "
+         "time, once the render's compute is done: what a viewer sees).")]
+BudgetsOpt = Annotated[str | None, typer.Option(
+    help="Budgets (training steps per render, comma-separated, e.g. 25,50,100) each episode's "
+         "render is drawn from, so the lag to the display varies. Default: the preset's "
+         "steps.")]
+ObserveLagOpt = Annotated[bool, typer.Option(
+    "--observe-lag", help="The agent also observes the expected lag from the decision to its "
+                          "display (at the episode's budget).")]
+
+
 @app.command("train")
 @with_shared_options(_shared_options, _Shared)
 def train_cmd(
@@ -175,6 +187,9 @@ def train_cmd(
                            "(repeatable): pose = its angle and distance to the held-out view, "
                            "fixed per rig and stored in the checkpoint. Default: the AoI "
                            "vector alone.")] = None,
+    reward: RewardOpt = "reward",
+    budgets: BudgetsOpt = None,
+    observe_lag: ObserveLagOpt = False,
 ) -> None:
     """Train the agent (the paper's Fig. 7: reward per episode, in reward.png)."""
     from aoi3d.policy.ppo import PPOConfig
@@ -188,7 +203,8 @@ def train_cmd(
     ds = open_experiment_dataset(Path(episode.dataset), console)
     n = episode.n_cameras or len(ds.train_ids)
     hyper: dict[str, Any] = {**dict(chosen.ppo), **parse_sets(ppo_set, "--ppo-set")}
-    for key, value in (("lr", lr), ("clip_eps", clip_eps), ("seed", seed)):
+    for key, value in (("lr", lr), ("clip_eps", clip_eps), ("seed", seed),
+                       ("lag", observe_lag or None)):
         if value is not None:
             hyper[key] = value
     if features:
@@ -199,7 +215,8 @@ def train_cmd(
                           episodes=episodes if episodes is not None else chosen.episodes,
                           batch_size=batch_size if batch_size is not None else chosen.batch_size,
                           checkpoint_every=checkpoint_every, preset=chosen.name,
-                          seed_offset=seed_offset)
+                          seed_offset=seed_offset, reward=reward,
+                          budgets=_budgets(budgets))
     except (TypeError, ValueError) as err:
         raise typer.BadParameter(str(err)) from None
     folder = out if out is not None else Path("runs/ppo") / chosen.name
@@ -214,6 +231,15 @@ def train_cmd(
         f"({summary.computed} computed, {summary.cached} from the cache); mean reward "
         f"{summary.reward_first:.4f} (first episodes) → {summary.reward_last:.4f} (last)")
     console.print(f"files in {folder}: {', '.join(summary.files)}")
+
+
+def _budgets(text: str | None) -> tuple[int, ...]:
+    """--budgets: comma-separated training steps (empty: none)."""
+    try:
+        return tuple(int(b) for b in text.split(",")) if text else ()
+    except ValueError:
+        raise typer.BadParameter(f"budgets must be whole numbers of steps, comma-separated, "
+                                 f"got {text!r}", param_hint="'--budgets'") from None
 
 
 def _camera_features(features: list[str], episode: EpisodeConfig, ds: SceneDataset

@@ -114,6 +114,10 @@ def main() -> int:
     ap.add_argument("--checkpoint", type=Path, default=ROOT / "models/ppo/quick/final.pt",
                     help="the agent of the PPO claims, scored by `ppo eval` at the budget it "
                          "was trained for (100 field steps)")
+    ap.add_argument("--display-checkpoint", default=str(ROOT / science_display.PPO_DISPLAY),
+                    help="the PPO agent of the display-time compute-aware question (L in its "
+                         "state, trained on reward_display), scored at each grid budget; "
+                         "empty: none")
     ap.add_argument("--compare-checkpoint", type=Path,
                     default=ROOT / "models/ppo/quick300/final.pt",
                     help="the learned policy of the compare run and its open question, "
@@ -176,7 +180,8 @@ def main() -> int:
         ppo_cmd += ["--workers", str(args.workers)]
     run_command(ppo_cmd + args.extra, log)
     # issue 40 §3: the display-time claims at a viewer's budget (bench/science_display.py)
-    science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run_command, log)
+    science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run_command, log,
+                            checkpoint=args.display_checkpoint)
     timefield = None  # issue 41: the time-aware field against the static grid, an open question
     if args.timefield_seeds is None or args.timefield_seeds > 0:
         from bench import timefield as tfq
@@ -433,7 +438,8 @@ def display_only(args: argparse.Namespace) -> int:
     common += args.extra
     log: list[dict[str, Any]] = []
     science_display.run_all(aoi3d(), common, doc["seeds"], doc["delay_seeds"], out,
-                            run_command, log, reuse=args.reuse)
+                            run_command, log, checkpoint=args.display_checkpoint,
+                            reuse=args.reuse)
     doc["display_budgets"] = science_display.verdicts(out)
     (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     if str(args.figures):

@@ -9,8 +9,11 @@ Called from ``bench/science.py`` (``make science``) and alone with
   development seeds (the fresh carry at 50 steps, ``--steps-per-epoch 50``): tradeoff, delay
   and compare (all, mat:best, freshest:6, wait:40) at each;
 - the open question "a compute-aware policy beats the best fixed (Γ, steps) in hindsight at
-  display time": one compare run (fresh carry, exp:60) over the grid ``mat:Γ@s`` / ``all@s``
-  and the compute-aware candidates :data:`COMPUTE_AWARE`.
+  display time": one compare run (fresh carry, exp:60) over the grid ``mat:Γ@s`` / ``all@s``,
+  the compute-aware candidates :data:`COMPUTE_AWARE` and the PPO agent trained with the lag
+  in its state on the display-time reward (:data:`PPO_DISPLAY`), with the oracle over
+  (Γ, steps) per decision (``oracle:budgets:psnr_display_db``: the grid's cells, from the
+  cache) as the bound.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from typing import Any
 from aoi3d.experiment import claims
 from aoi3d.experiment.display_claims import compute_aware_beats_best_fixed
 from aoi3d.experiment.optimum import optimum
+from aoi3d.experiment.oracle import BUDGET_GAMMAS, BUDGET_STEPS
 from aoi3d.policy import AllPolicy, Budgeted, MatPolicy, kind_of, parse_policy
 
 CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
@@ -33,8 +37,13 @@ CONFIGS: dict[str, tuple[str, tuple[str, ...]]] = {
                 ("--steps-per-epoch", "50")),
 }
 """The two configurations the display-time claims are asked in besides the 300-step runs."""
-GRID_GAMMAS = (40, 70, 100, 130, 160)
-GRID_STEPS = (25, 50, 100)
+GRID_GAMMAS = BUDGET_GAMMAS
+GRID_STEPS = BUDGET_STEPS
+"""The grid: the cells the oracle over (Γ, steps) searches (:mod:`aoi3d.experiment.oracle`)."""
+ORACLE = "oracle:budgets:psnr_display_db"
+PPO_DISPLAY = "models/ppo/display/final.pt"
+"""The PPO agent with the lag to the display in its state, trained on ``reward_display`` with
+budgets drawn from the grid's (models/ppo/display/COMMAND), scored at each of them."""
 COMPUTE_AWARE = ("dmat:100@50", "dmat:130@50", "dmat:160@50", "dmat:130@100",
                  "deadline:100:20", "deadline:100:40")
 """The compute-aware candidates of the grid run (docs/experiments.md): dmat at the grid's
@@ -51,12 +60,19 @@ def grid_policies() -> list[str]:
     return [*fixed, *COMPUTE_AWARE]
 
 
+def ppo_policies(checkpoint: str | None) -> list[str]:
+    """The display-time agent at each budget of the grid (none without a checkpoint)."""
+    return [f"ppo:{checkpoint}@{s}" for s in GRID_STEPS] if checkpoint else []
+
+
 def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path,
             runner: Callable[[list[str], list[dict[str, Any]]], float],
-            log: list[dict[str, Any]], reuse: bool = False) -> None:
+            log: list[dict[str, Any]], reuse: bool = False,
+            checkpoint: str | None = None) -> None:
     """Every run of this part, each into ``out/display/<name>``; its wall times are kept in
     ``out/display/runs.json``. ``reuse``: a run whose results.json exists is not redone (its
-    wall time from runs.json stands)."""
+    wall time from runs.json stands). ``checkpoint``: the display-time PPO agent of the grid
+    (:data:`PPO_DISPLAY`; None: none)."""
     base = out / "display"
     base.mkdir(parents=True, exist_ok=True)
     runs_file = base / "runs.json"
@@ -67,8 +83,8 @@ def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path
         own: list[dict[str, Any]] = []
         wall = runner(cmd, own)
         log.extend(own)
-        shown = {r["command"] for r in own}
-        kept[:] = [r for r in kept if r["command"] not in shown] + own
+        shown = {_out_of(r["command"]) for r in own}  # a run redone replaces its old entry
+        kept[:] = [r for r in kept if _out_of(r["command"]) not in shown] + own
         runs_file.write_text(json.dumps(kept, indent=1) + "\n")
         return wall
 
@@ -83,7 +99,7 @@ def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path
              "--policy", "wait:40", "--out", str(base / name / "compare")], log)
     grid = [exe, "experiment", "compare", *common, "--seeds", str(seeds), "--no-lpips",
             "--out", str(base / "grid")]
-    for p in grid_policies():
+    for p in [*grid_policies(), *ppo_policies(checkpoint), ORACLE]:
         grid += ["--policy", p]
     run(grid, log)
     for delay in FIGURE_DELAYS:  # the figure's other panels: the fixed cells only
@@ -92,6 +108,12 @@ def run_all(exe: str, common: list[str], seeds: int, delay_seeds: int, out: Path
         for p in grid_policies()[:-len(COMPUTE_AWARE)]:
             cmd += ["--policy", p]
         run(cmd, log)
+
+
+def _out_of(command: str) -> str:
+    """The ``--out`` folder of a logged command (what identifies the run), from the results'
+    folder on (the same run from another checkout is the same run)."""
+    return command.split(" --out ")[-1].split(" ")[0].split("/science/")[-1]
 
 
 def _load(path: Path) -> dict[str, Any]:
@@ -110,7 +132,11 @@ def verdicts(out: Path) -> dict[str, Any]:
             "text": text, "options": " ".join(opts),
             "steps": t["meta"]["episode_config"]["steps_per_epoch"],
             "verdicts": [v.to_dict() for v in claims.at_display_time(t, d, c)]}
-    result["grid"] = compute_aware_beats_best_fixed(_load(base / "grid/results.json")).to_dict()
+    grid = _load(base / "grid/results.json")
+    ppo = [r["policy"] for r in grid["policies"] if kind_of(r["policy"]).kind == "ppo"]
+    verdict = compute_aware_beats_best_fixed(grid, aware_labels=ppo).to_dict()
+    root = str(Path(__file__).resolve().parent.parent) + "/"  # checkpoints as the repo names them
+    result["grid"] = json.loads(json.dumps(verdict).replace(root, ""))
     runs = base / "runs.json"
     result["runs"] = json.loads(runs.read_text()) if runs.exists() else []
     return result
@@ -131,18 +157,24 @@ def render_lines(section: dict[str, Any], rel: str) -> list[str]:
     lines += ["", "**Open question** — compute-aware against the best fixed (Γ, steps) in "
               "hindsight (fresh carry, exp:60, the grid `mat:Γ@s` / `all@s`, Γ ∈ "
               f"{', '.join(map(str, GRID_GAMMAS))}, s ∈ {', '.join(map(str, GRID_STEPS))}, "
-              f"and {', '.join(f'`{p}`' for p in COMPUTE_AWARE)}; psnr_display_db):", "",
+              f"and {', '.join(f'`{p}`' for p in COMPUTE_AWARE)}, and PPO with the lag in its "
+              f"state trained on reward_display (`{PPO_DISPLAY}`) at each budget; the bound "
+              f"`{ORACLE}`; psnr_display_db):", "",
               "| question | answer | evidence |", "|---|---|---|",
               f"| {g['statement']}? | {'**yes**' if g['holds'] else '**no**'} | "
               f"{g['evidence']} |", "",
               "Expected from first principles: on the virtual clock the lag has no queue, so "
               "`dmat:Γ@s` selects as a MAT with Γ shifted by the constant lag and `deadline` "
               "picks a constant budget; each is a fixed (Γ, s) cell, so neither can beat the "
-              "best cell in hindsight by more than noise. The room is the per-seed best "
-              "cell's mean lead over the best cell (a lower bound on an oracle over rules × "
-              "budgets, which was not searched).", "",
+              "best cell in hindsight by more than noise. At one budget L is a constant too, "
+              "so PPO with L in its state can only gain by selecting better than MAT, not by "
+              "reading L. The room is the per-seed best cell's mean lead over the best cell; "
+              "the oracle's is the best cell per *decision* (searched with the truth at "
+              "display time: a bound, not a policy).", "",
               "| grid cell | display-time PSNR (dB) |", "|---|---|"]
-    means = g["numbers"].get("means", {})
+    means = dict(g["numbers"].get("means", {}))
+    if "oracle_mean" in g["numbers"]:
+        means[f"{g['numbers']['oracle']} (bound)"] = g["numbers"]["oracle_mean"]
     for p, m in sorted(means.items(), key=lambda kv: -kv[1]):
         lines.append(f"| `{p}` | {m:.2f} |")
     if section["runs"]:

@@ -18,7 +18,7 @@ means of their scores (:func:`aoi3d.experiment.episode.episode_result`), exactly
 render depends on its own frames and the seed alone, so the per-decision searches are
 independent and the oracle pairs by seed with every policy.
 
-Two searches (``oracle:<search>[:<metric>]``; ``oracle`` is ``oracle:rules:reward``):
+Three searches (``oracle:<search>[:<metric>]``; ``oracle`` is ``oracle:rules:reward``):
 
 - ``rules`` — the best over every rule that decides at t: ``mat:Γ`` for every Γ (one
   selection per distinct AoI level, ``all`` included) and ``freshest:k`` for every k from 1
@@ -34,6 +34,19 @@ Two searches (``oracle:<search>[:<metric>]``; ``oracle`` is ``oracle:rules:rewar
   + … per decision, one round per camera added plus the round that stops: for N = 18 and 6
   cameras chosen, 18 + 17 + … + 13 = 93 reconstructions, plus 12 for the round that stops:
   105.
+- ``budgets`` — issue 40: the best (Γ, steps) per decision. The candidates are the cells of
+  the display-time grid, ``mat:Γ@s`` for Γ in :data:`BUDGET_GAMMAS` and ``all@s``, for s in
+  :data:`BUDGET_STEPS` (18 cells): each cell is run as its whole episode on the seed (the
+  plan ``aoi3d experiment compare --policy mat:Γ@s`` runs, under the same cache key, so a
+  grid already run costs nothing), and at every scored decision the oracle takes the cell
+  whose render scores best there (``oracle:budgets:psnr_display_db``: the truth at display
+  time, the render shown its budget's compute later). With the ``fresh`` carry a scored
+  decision's render depends on its own frames, budget and the seed alone, so a cell
+  episode's score at a decision is the one-decision reconstruction's, and the oracle's
+  episode replays as one plan (selection and budget per decision). It is never below any
+  cell, per decision: the bound over the fixed (Γ, steps) choices a compute-aware policy
+  picks from, per decision, with the truth no policy has. Cost: 18 reconstructions per
+  decision, counted as cell episodes (``computed`` + ``cached`` = cells × seeds).
 
 Candidates are cached like every episode (:class:`aoi3d.experiment.ResultCache`, under
 :func:`aoi3d.experiment.plan_key` of their one-decision plan), so a re-run costs nothing and
@@ -64,9 +77,10 @@ from aoi3d.experiment.episode import (
     plan_key,
     planned_decision,
 )
-from aoi3d.metric import AT_DECISION, REWARD, lower_is_better
+from aoi3d.metric import AT_DECISION, AT_DISPLAY, REWARD, lower_is_better
 from aoi3d.policy import (
     AllPolicy,
+    Budgeted,
     FreshestPolicy,
     MatPolicy,
     PolicyKind,
@@ -77,6 +91,8 @@ from aoi3d.policy import (
 from aoi3d.scene import SceneDataset
 
 __all__ = [
+    "BUDGET_GAMMAS",
+    "BUDGET_STEPS",
     "ORACLE_FORMS",
     "ORACLE_METRICS",
     "SEARCHES",
@@ -85,16 +101,29 @@ __all__ = [
     "OracleEpisode",
     "OracleSpec",
     "OracleSpecError",
+    "budget_cells",
     "is_oracle_spec",
     "parse_oracle",
     "rule_masks",
     "search_oracle",
 ]
 
-SEARCHES = ("rules", "greedy")
-ORACLE_METRICS = (REWARD.name, *(m for m in AT_DECISION if m != REWARD.name))
+SEARCHES = ("rules", "greedy", "budgets")
+ORACLE_METRICS = (REWARD.name, *(m for m in AT_DECISION if m != REWARD.name), *AT_DISPLAY)
 """What an oracle may maximise (LPIPS: minimise), per scored decision: the scores at the
-decision's time (:data:`aoi3d.metric.AT_DECISION`), the reward (the default) first."""
+decision's time (:data:`aoi3d.metric.AT_DECISION`), the reward (the default) first, then the
+scores at display time (:data:`aoi3d.metric.AT_DISPLAY`)."""
+BUDGET_GAMMAS = (40, 70, 100, 130, 160)
+"""Γ (ms) of the ``budgets`` search's MAT cells (with ``all``): the display-time grid's."""
+BUDGET_STEPS = (25, 50, 100)
+"""Budgets (training steps) of the ``budgets`` search's cells: the display-time grid's."""
+
+
+def budget_cells() -> list[str]:
+    """The ``budgets`` search's candidates, in the grid's order: ``mat:Γ@s`` per budget s
+    and Γ, then ``all@s`` per s."""
+    cells = [Budgeted(MatPolicy(float(g)), s).spec for s in BUDGET_STEPS for g in BUDGET_GAMMAS]
+    return cells + [Budgeted(AllPolicy(), s).spec for s in BUDGET_STEPS]
 ORACLE_FORMS = ("oracle", "oracle:<search>", "oracle:<search>:<metric>")
 
 Evaluate = Callable[[Sequence[EpisodePlan]], Sequence[EpisodeResult]]
@@ -214,9 +243,14 @@ class DecisionSearch:
     rounds: int
     cameras: tuple[int, ...]
     value: float
+    cell: str = ""
+    """The ``budgets`` search's chosen cell (``mat:70@50``); empty for the others."""
 
     def to_dict(self) -> dict[str, Any]:
-        return dict(vars(self), cameras=list(self.cameras))
+        doc = dict(vars(self), cameras=list(self.cameras))
+        if not self.cell:
+            doc.pop("cell")
+        return doc
 
 
 @dataclass(frozen=True)
@@ -264,8 +298,7 @@ def _candidate(state: _State, mask: np.ndarray) -> EpisodePlan:
 
 
 def _value(result: EpisodeResult, oracle: OracleSpec) -> float:
-    v = getattr(result.epochs[0], oracle.metric)
-    return -math.inf if v is None or not math.isfinite(v) else oracle.sign * float(v)
+    return oracle_value(result.epochs[0], oracle)
 
 
 def _evaluate_round(states: list[tuple[_State, list[np.ndarray]]], oracle: OracleSpec,
@@ -313,10 +346,11 @@ def search_oracle(cfg: EpisodeConfig, dataset: SceneDataset, oracle: OracleSpec 
                          f"{cfg.carry!r}")
     states: list[_State] = []
     bases: dict[int, EpisodePlan] = {}
+    links_of: dict[int, EpisodeLinks] = {}
     for seed in seeds:
         links = episode_links(cfg, dataset, seed)
         base = plan_episode(cfg, dataset, AllPolicy(), seed, links=links)
-        bases[seed] = base
+        bases[seed], links_of[seed] = base, links
         for i, d in enumerate(base.decisions):
             if d.scored:
                 aoi = decide(AllPolicy(), d.decision_ms, links.newest_ms).aoi_ms
@@ -328,6 +362,9 @@ def search_oracle(cfg: EpisodeConfig, dataset: SceneDataset, oracle: OracleSpec 
                      f"at {len(batch)} decisions")
         return _evaluate_round(batch, spec, evaluate)
 
+    if spec.search == "budgets":
+        return _search_cells(cfg, dataset, spec, seeds, evaluate, bases, links_of, lpips=lpips,
+                             progress=progress)
     if spec.search == "rules":
         batch = [(s, rule_masks(s.aoi)) for s in states]
         for s, masks in batch:
@@ -359,23 +396,79 @@ def search_oracle(cfg: EpisodeConfig, dataset: SceneDataset, oracle: OracleSpec 
             for (s, _), better in zip(batch, improved, strict=True):
                 s.active = better  # the next round tries one more camera, if any is left
 
+    return [_episode_of(seed, [s for s in states if s.seed == seed], bases[seed], spec,
+                        dataset, lpips) for seed in seeds]
+
+
+def _episode_of(seed: int, mine: list[_State], base: EpisodePlan, spec: OracleSpec,
+                dataset: SceneDataset, lpips: bool) -> OracleEpisode:
+    """One seed's oracle episode from its searched decisions (``rules``, ``greedy``)."""
+    chosen = {s.index: s.decision for s in mine}
+    decisions = tuple(chosen.get(i, d) for i, d in enumerate(base.decisions))
+    plan = replace(base, policy=spec.spec, decisions=decisions)  # type: ignore[arg-type]
+    epochs = [s.score for s in mine]
+    assert all(e is not None for e in epochs)
+    result = episode_result(plan, epochs, key=plan_key(plan, dataset, lpips=lpips),  # type: ignore[arg-type]
+                            wall_s=float(sum(w for s in mine for w in s.wall_s)))
+    searches = tuple(
+        DecisionSearch(seed=seed, decision_ms=base.decisions[s.index].decision_ms,
+                       n_known=int(np.count_nonzero(~np.isnan(s.aoi))),
+                       candidates=s.candidates, rounds=s.rounds,
+                       cameras=s.decision.cameras if s.decision else (),
+                       value=spec.sign * s.value)
+        for s in mine)
+    return OracleEpisode(result=result, plan=plan, decisions=searches)
+
+
+def _search_cells(cfg: EpisodeConfig, dataset: SceneDataset, spec: OracleSpec,
+                  seeds: Sequence[int], evaluate: Evaluate, bases: Mapping[int, EpisodePlan],
+                  links: Mapping[int, EpisodeLinks], *, lpips: bool,
+                  progress: Callable[[str], None] | None
+                  ) -> list[OracleEpisode]:
+    """The ``budgets`` search (see the module): every cell's episode per seed, evaluated in
+    one batch, and per scored decision the best cell there."""
+    cells = budget_cells()
+    plans = [plan_episode(cfg, dataset, c, seed, links=links[seed])
+             for seed in seeds for c in cells]
+    if progress is not None:
+        progress(f"{spec.spec}: {len(plans)} cell episodes ({len(cells)} cells × "
+                 f"{len(seeds)} seeds)")
+    results = list(evaluate(plans))
+    if len(results) != len(plans):
+        raise RuntimeError(f"evaluate returned {len(results)} results for {len(plans)} plans")
     episodes = []
-    for seed in seeds:
-        mine = [s for s in states if s.seed == seed]
+    for k, seed in enumerate(seeds):
+        mine = list(zip(plans[k * len(cells):(k + 1) * len(cells)],
+                        results[k * len(cells):(k + 1) * len(cells)], strict=True))
         base = bases[seed]
-        chosen = {s.index: s.decision for s in mine}
-        decisions = tuple(chosen.get(i, d) for i, d in enumerate(base.decisions))
-        plan = replace(base, policy=spec.spec, decisions=decisions)  # type: ignore[arg-type]
-        epochs = [s.score for s in mine]
-        assert all(e is not None for e in epochs)
-        result = episode_result(plan, epochs, key=plan_key(plan, dataset, lpips=lpips),  # type: ignore[arg-type]
-                                wall_s=float(sum(w for s in mine for w in s.wall_s)))
-        searches = tuple(
-            DecisionSearch(seed=seed, decision_ms=base.decisions[s.index].decision_ms,
-                           n_known=int(np.count_nonzero(~np.isnan(s.aoi))),
-                           candidates=s.candidates, rounds=s.rounds,
-                           cameras=s.decision.cameras if s.decision else (),
-                           value=spec.sign * s.value)
-            for s in mine)
-        episodes.append(OracleEpisode(result=result, plan=plan, decisions=searches))
+        scored = [i for i, d in enumerate(base.decisions) if d.scored]
+        for plan, _ in mine:
+            if [plan.decisions[i].decision_ms for i in scored] != [
+                    base.decisions[i].decision_ms for i in scored]:
+                raise RuntimeError(f"{plan.policy}: its scored decisions are not the grid's")
+        decisions = list(base.decisions)
+        epochs: list[EpochScore] = []
+        searches = []
+        for j, i in enumerate(scored):
+            values = [oracle_value(r.epochs[j], spec) for _, r in mine]
+            best = int(np.argmax(values))  # the first of equals
+            plan, result = mine[best]
+            decisions[i] = plan.decisions[i]
+            epochs.append(result.epochs[j])
+            searches.append(DecisionSearch(
+                seed=seed, decision_ms=base.decisions[i].decision_ms,
+                n_known=base.decisions[i].n_known, candidates=len(cells), rounds=1,
+                cameras=plan.decisions[i].cameras, value=spec.sign * values[best],
+                cell=cells[best]))
+        chosen = replace(base, policy=spec.spec, decisions=tuple(decisions))  # type: ignore[arg-type]
+        result = episode_result(chosen, epochs, key=plan_key(chosen, dataset, lpips=lpips),
+                                wall_s=float(sum(r.wall_s for _, r in mine)))
+        episodes.append(OracleEpisode(result=result, plan=chosen, decisions=tuple(searches)))
     return episodes
+
+
+def oracle_value(score: EpochScore, oracle: OracleSpec) -> float:
+    """The objective at one scored decision, in its better direction (−inf where it is
+    missing or not finite)."""
+    v = getattr(score, oracle.metric)
+    return -math.inf if v is None or not math.isfinite(v) else oracle.sign * float(v)

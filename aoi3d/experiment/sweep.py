@@ -333,7 +333,8 @@ def run_plans(
 class OracleOutcome:
     """The oracle bound's episodes (one per seed, in seed order) and what its search cost:
     ``reconstructions`` tried (each a one-decision episode), of which ``computed`` were run
-    now and ``cached`` came from the cache; ``compute_s``: the compute time of all of them
+    now and ``cached`` came from the cache (for the ``budgets`` search: cell episodes, each a
+    reconstruction at every scored decision); ``compute_s``: the compute time of all of them
     (the sum of their episodes' ``wall_s``, whenever they were run); ``wall_s``: this call."""
 
     spec: str
@@ -363,6 +364,8 @@ class OracleOutcome:
                 "mean": float(np.mean(per)) if per else math.nan,
                 "min": min(per, default=0), "max": max(per, default=0)},
             "computed": self.computed, "cached": self.cached,
+            "counted": ("cell episodes" if self.spec.split(":")[1] == "budgets"
+                        else "reconstructions"),
             "compute_s": self.compute_s,
             "compute_s_per_reconstruction": (self.compute_s / self.reconstructions
                                              if self.reconstructions else math.nan),

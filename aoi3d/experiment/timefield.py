@@ -40,6 +40,7 @@ from aoi3d.experiment.claims import Verdict
 from aoi3d.experiment.config import COMPUTE_STEP_MS, get_preset
 from aoi3d.experiment.optimum import rederived
 from aoi3d.metric import PSNR, PSNR_DISPLAY, PSNR_DYNAMIC, PSNR_DYNAMIC_DISPLAY, names_of
+from aoi3d.policy import kind_of
 from aoi3d.stats import paired_difference
 
 __all__ = ["ARMS", "DELAYS", "DISPLAY", "FLOW_STEP_COST", "GAMMAS", "GOAL_DB", "METRICS",
@@ -117,7 +118,8 @@ ARMS: tuple[Arm, ...] = tuple(a for s in _STATIC for a in (s, twin(s)))
 
 
 def _label(policy: str) -> str:
-    return policy.partition(":")[2] if policy.startswith("mat:") else policy
+    """A tradeoff row's Γ label: ``"70"`` for ``mat:70``, the spec itself otherwise."""
+    return policy.partition(":")[2] if kind_of(policy).kind == "mat" else policy
 
 
 def per_seed(doc: Mapping[str, Any], metric: str) -> dict[str, dict[int, float]]:

@@ -22,9 +22,18 @@ the numbers are those of the experiment engine, and results can be kept in a
 :class:`aoi3d.experiment.ResultCache` under :func:`aoi3d.experiment.plan_key` — a repeated
 (seed, selection, budget) is then computed once.
 
-``info`` of ``step``: ``psnr``, ``ssim``, ``lpips`` (None without LPIPS weights), ``reward``,
-``n_selected``, ``selected`` (camera ids), ``aoi`` (the AoI vector, ms, NaN unknown),
-``aoi_used_ms``, ``eval_ms``, ``seed``, ``key``. Wall time and whether the result came from
+Issue 40, what a viewer sees: ``reward="reward_display"`` makes the step's reward the one at
+display time (the render scored against the truth once its compute is done, the virtual
+clock's lag L later); ``budgets`` draws each episode's budget (training steps of its render)
+from a small set, by the seed, so that L varies between episodes (at one budget L is a
+constant of the cost model: no queue); ``observe_lag`` appends L at the episode's budget to
+the observation (:func:`aoi3d.policy.ppo.obs.with_lag`).
+
+``info`` of ``step``: ``psnr``, ``ssim``, ``lpips`` (None without LPIPS weights), ``reward``
+(the decision-time reward, whatever the env's ``reward``), ``reward_display``,
+``psnr_display``, ``n_selected``, ``selected`` (camera ids), ``aoi`` (the AoI vector, ms, NaN
+unknown), ``aoi_used_ms``, ``eval_ms``, ``seed``, ``key``, ``budget`` and ``lag_ms``.
+Wall time and whether the result came from
 the cache are on the env (:attr:`FrameSelectionEnv.last_outcome`), not in ``info``: the same
 seed and action give the same ``info``.
 """
@@ -53,17 +62,23 @@ from aoi3d.experiment import (
     run_plan,
 )
 from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decision, train_ids
+from aoi3d.experiment.episode.plan import display_lag
 from aoi3d.experiment.sweep import lpips_available
 from aoi3d.policy import AllPolicy, Policy, Selection, decide
+from aoi3d.policy.budget import check_budget
 from aoi3d.policy.decide import Act
-from aoi3d.policy.ppo.obs import encode_aoi, obs_size
+from aoi3d.policy.ppo.obs import encode_aoi, obs_size, with_lag
 from aoi3d.quality import LpipsFn
 from aoi3d.scene import SceneDataset, open_dataset, to_uint8
 
-__all__ = ["FrameSelectionEnv", "StepOutcome"]
+__all__ = ["REWARDS", "FrameSelectionEnv", "StepOutcome"]
 
 _PICK_STREAM = 0x5E1
 """Stream (spawn key) of the decision epoch's draw; apart from the channel's and the aux's."""
+_BUDGET_STREAM = 0x5E2
+"""Stream of the episode's budget draw (``budgets``)."""
+REWARDS = ("reward", "reward_display")
+"""What a step may return as its reward: the score at the decision's time, or at display."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +101,7 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
     :class:`~aoi3d.experiment.ResultCache` or its folder, for repeated (seed, selection).
     ``lpips_fn``: the LPIPS network to use when the config asks for LPIPS (default: loaded
     from the cached weights at the first step that scores; without them, no LPIPS).
+    ``reward``, ``budgets``, ``observe_lag``: what a viewer sees (see the module).
     """
 
     # gymnasium documents metadata as a class attribute but types it as an instance one
@@ -100,6 +116,9 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         cache: ResultCache | str | Path | None = None,
         lpips_fn: LpipsFn | None = None,
         render_mode: str | None = None,
+        reward: str = "reward",
+        budgets: tuple[int, ...] = (),
+        observe_lag: bool = False,
     ) -> None:
         super().__init__()
         if config is None:
@@ -124,9 +143,17 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         self.lpips = self.config.lpips and (lpips_fn is not None
                                             or lpips_available(self.config))
         self._lpips_fn = lpips_fn if self.lpips else None  # else loaded by the first step
+        if reward not in REWARDS:
+            raise ValueError(f"reward must be one of {REWARDS}, got {reward!r}")
+        self.reward = reward
+        self.budgets = tuple(check_budget(b) for b in budgets)  # the carry is fresh here
+        self.observe_lag = bool(observe_lag)
+        self.lag = display_lag(self.config)
+        self._budget: int | None = None
         self.camera_ids: tuple[int, ...] = tuple(train_ids(self.config, ds))
         n = len(self.camera_ids)
-        self.observation_space = spaces.Box(0.0, 1.0, shape=(obs_size(n),), dtype=np.float32)
+        self.observation_space = spaces.Box(0.0, 1.0, shape=(obs_size(n, int(observe_lag)),),
+                                            dtype=np.float32)
         self.action_space = spaces.MultiBinary(n)
         self._plan: EpisodePlan | None = None
         self._decision: PlannedDecision | None = None
@@ -167,9 +194,26 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         decision = scored[int(pick.integers(len(scored)))]
         aoi = self._select(decision.decision_ms, links).aoi_ms
         self._plan, self._decision, self._links, self._aoi = plan, decision, links, aoi
+        self._budget = None
+        if self.budgets:
+            draw = np.random.default_rng(np.random.SeedSequence(episode_seed,
+                                                                spawn_key=(_BUDGET_STREAM,)))
+            self._budget = self.budgets[int(draw.integers(len(self.budgets)))]
         self._last_image = None
-        info = {"seed": episode_seed, "eval_ms": decision.eval_ms, "aoi": aoi.copy()}
+        info = {"seed": episode_seed, "eval_ms": decision.eval_ms, "aoi": aoi.copy(),
+                "budget": self.budget, "lag_ms": self.lag_ms}
         return self._observation(), info
+
+    @property
+    def budget(self) -> int:
+        """The training steps of the current episode's render (drawn from ``budgets``, else
+        the config's)."""
+        return self.lag.default_steps if self._budget is None else self._budget
+
+    @property
+    def lag_ms(self) -> float:
+        """L: the virtual clock's lag from the decision to its display at :attr:`budget`."""
+        return self.lag.lag_ms(self.budget)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool,
                                                 dict[str, Any]]:
@@ -204,10 +248,12 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
             "psnr": score.psnr_db, "ssim": score.ssim, "lpips": score.lpips,
             "reward": score.reward, "n_selected": len(selected), "selected": list(selected),
             "aoi": self._aoi.copy(), "aoi_used_ms": score.aoi_used_ms,
+            "reward_display": score.reward_display, "psnr_display": score.psnr_display_db,
+            "budget": self.budget, "lag_ms": self.lag_ms,
         }
         obs = self._observation()
         self._plan = self._decision = None  # one step per episode
-        return obs, float(score.reward), True, False, info
+        return obs, float(getattr(score, self.reward)), True, False, info
 
     def render(self) -> np.ndarray | None:  # type: ignore[override]
         """The last novel-view render (uint8 H×W×3) with ``render_mode="rgb_array"``."""
@@ -227,6 +273,8 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
         sel = self._select(self._decision.decision_ms, self._links, act=lambda _a, _s: action)
         bits = "".join("1" if u else "0" for u in sel.mask)
         decision = planned_decision(sel, self.camera_ids, train=True, scored=True)
+        if self._budget is not None:
+            decision = replace(decision, budget_steps=self._budget)
         return replace(self._plan, policy=f"mask:{bits}", decisions=(decision,))
 
     def check_policy(self, policy: Policy) -> None:
@@ -271,4 +319,7 @@ class FrameSelectionEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def _observation(self) -> np.ndarray:
         assert self._aoi is not None
-        return encode_aoi(self._aoi, self.aoi_scale_ms)
+        obs = encode_aoi(self._aoi, self.aoi_scale_ms)
+        if self.observe_lag:
+            obs = with_lag(obs, self.n_cameras, self.lag_ms, self.aoi_scale_ms)
+        return obs

@@ -23,15 +23,17 @@ from aoi3d.rl.env import FrameSelectionEnv
 __all__ = ["EnvPool", "run_episode"]
 
 
-EnvArgs = tuple[str, float, str | None]
-"""What builds a worker's environment: the episode config (JSON), the AoI scale, the cache."""
+EnvArgs = tuple[str, float, str | None, str, tuple[int, ...]]
+"""What builds a worker's environment: the episode config (JSON), the AoI scale, the cache,
+the reward and the budgets (:class:`~aoi3d.rl.env.FrameSelectionEnv`)."""
 
 
 @functools.lru_cache(maxsize=1)
-def _env(cfg_json: str, scale: float, cache: str | None) -> FrameSelectionEnv:
+def _env(cfg_json: str, scale: float, cache: str | None, reward: str = "reward",
+         budgets: tuple[int, ...] = ()) -> FrameSelectionEnv:
     """This process's environment for one config: built at its first episode, then reused."""
     return FrameSelectionEnv(EpisodeConfig.from_dict(json.loads(cfg_json)), aoi_scale_ms=scale,
-                             cache=cache)
+                             cache=cache, reward=reward, budgets=budgets)
 
 
 def run_episode(env: FrameSelectionEnv, seed: int, bits: list[int]) -> dict[str, Any]:
@@ -51,6 +53,8 @@ def run_episode(env: FrameSelectionEnv, seed: int, bits: list[int]) -> dict[str,
         "aoi_used_ms": info["aoi_used_ms"],
         "mean_aoi_ms": float(known.mean()) if known.size else math.nan,
         "eval_ms": info["eval_ms"], "cached": outcome.cached, "wall_s": outcome.wall_s,
+        "budget": info["budget"], "lag_ms": info["lag_ms"],
+        "reward_display": info["reward_display"], "psnr_display": info["psnr_display"],
     }
 
 
@@ -65,18 +69,21 @@ class EnvPool:
     once and reused. Use as a context manager."""
 
     def __init__(self, cfg: EpisodeConfig, *, aoi_scale_ms: float, cache: str | Path | None,
-                 workers: int | None = None, threads: int = 1) -> None:
+                 workers: int | None = None, threads: int = 1, reward: str = "reward",
+                 budgets: tuple[int, ...] = ()) -> None:
         self.workers = default_workers() if workers is None else workers
         if self.workers < 1 or threads < 1:
             raise ValueError(f"workers and threads must be >= 1, got {workers}, {threads}")
         self.threads = threads
         self._env_args: EnvArgs = (json.dumps(cfg.to_dict(), sort_keys=True),
-                                   float(aoi_scale_ms), None if cache is None else str(cache))
+                                   float(aoi_scale_ms), None if cache is None else str(cache),
+                                   reward, tuple(budgets))
         self._local: FrameSelectionEnv | None = None
         self._pool: ProcessPoolExecutor | None = None
         if self.workers == 1:
             self._local = FrameSelectionEnv(cfg, aoi_scale_ms=aoi_scale_ms,
-                                            cache=self._env_args[2])
+                                            cache=self._env_args[2], reward=reward,
+                                            budgets=tuple(budgets))
         else:
             self._pool = ProcessPoolExecutor(
                 max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),

@@ -112,6 +112,9 @@ class TrainConfig:
 
     ``checkpoint_every``: updates between two checkpoints (and CSV/plot refreshes).
     ``seed_offset``: training episode i uses channel seed ``TRAIN_SEED_BASE + seed_offset + i``.
+    ``reward``: the env's reward (``reward_display``: at display time, issue 40);
+    ``budgets``: the budgets an episode's render is drawn from (empty: the episode config's);
+    see :class:`aoi3d.rl.env.FrameSelectionEnv`.
     """
 
     episode: EpisodeConfig
@@ -121,8 +124,18 @@ class TrainConfig:
     checkpoint_every: int = 5
     preset: str = "custom"
     seed_offset: int = 0
+    reward: str = "reward"
+    budgets: tuple[int, ...] = ()
 
     def __post_init__(self) -> None:
+        from aoi3d.policy.budget import check_budget
+        from aoi3d.rl.env import REWARDS
+
+        if self.reward not in REWARDS:
+            raise ValueError(f"reward must be one of {REWARDS}, got {self.reward!r}")
+        if isinstance(self.budgets, str) or not isinstance(self.budgets, list | tuple):
+            raise ValueError(f"budgets must be a list of training steps, got {self.budgets!r}")
+        object.__setattr__(self, "budgets", tuple(check_budget(b) for b in self.budgets))
         for name, value, low in (("episodes", self.episodes, 1),
                                  ("batch_size", self.batch_size, 1),
                                  ("seed_offset", self.seed_offset, 0),
@@ -146,7 +159,8 @@ class TrainConfig:
         return {"episode": self.episode.to_dict(), "ppo": self.ppo.to_dict(),
                 "episodes": self.episodes, "batch_size": self.batch_size,
                 "checkpoint_every": self.checkpoint_every, "preset": self.preset,
-                "seed_offset": self.seed_offset}
+                "seed_offset": self.seed_offset, "reward": self.reward,
+                "budgets": list(self.budgets)}
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> TrainConfig:

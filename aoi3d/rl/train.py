@@ -100,7 +100,7 @@ def train(
     out.mkdir(parents=True, exist_ok=True)
     ckpt = out / "checkpoint.pt"
     ds = dataset if dataset is not None else open_dataset(cfg.episode.dataset)
-    env = FrameSelectionEnv(cfg.episode, ds, aoi_scale_ms=cfg.ppo.aoi_scale_ms)
+    env = FrameSelectionEnv(cfg.episode, ds, observe_lag=cfg.ppo.lag, **_env_options(cfg))
     cfg = replace(cfg, episode=env.config)  # carry=fresh, dataset path as opened
     _check_rig(cfg, env, ds)
     agent, start, rows, update_rows = _resume_or_start(cfg, out, ckpt, resume)
@@ -129,8 +129,8 @@ def train(
         progress(TrainProgress(len(rows), total, agent.updates, last_batch, moving))
 
     report()
-    with EnvPool(cfg.episode, aoi_scale_ms=cfg.ppo.aoi_scale_ms, cache=cache,
-                 workers=workers, threads=threads) as pool:
+    with EnvPool(cfg.episode, cache=cache, workers=workers, threads=threads,
+                 **_env_options(cfg)) as pool:
         for first in range(start, total, cfg.batch_size):
             batch = list(range(first, min(first + cfg.batch_size, total)))
             obs, acts = _observe_and_sample(env, agent, batch, cfg.seed_offset)
@@ -160,6 +160,11 @@ def train(
     write_json(out / "config.json", meta)
     return _summary(out, rows, agent.updates, computed=computed, cached=cached, wall_s=wall,
                     window=window)
+
+
+def _env_options(cfg: TrainConfig) -> dict[str, Any]:
+    """What the training env and its workers are built with besides the episode config."""
+    return {"aoi_scale_ms": cfg.ppo.aoi_scale_ms, "reward": cfg.reward, "budgets": cfg.budgets}
 
 
 def _check_rig(cfg: TrainConfig, env: FrameSelectionEnv, ds: SceneDataset) -> None:
@@ -239,9 +244,9 @@ def _observe_and_sample(env: FrameSelectionEnv, agent: PPOLearner, batch: list[i
     """Each episode of ``batch``: its observation and the agent's sampled action."""
     obs, acts = [], []
     for e in batch:
-        # the agent observes the AoI vector its own way (and its rig's features)
+        # the agent observes the AoI vector its own way (its rig's features, the lag)
         _, info = env.reset(seed=train_seed(e, seed_offset))
-        o = agent.observe(info["aoi"])
+        o = agent.observe(info["aoi"], info["lag_ms"])
         obs.append(o)
         acts.append(agent.sample(o))
     return obs, acts
@@ -260,4 +265,6 @@ def _episode_row(episode: int, outcome: dict[str, Any], a: Sample, update: int
         "selected": outcome["selected"], "p_mean": float(a.probs.mean()),
         "value": a.value, "logp": a.logp, "entropy": a.entropy,
         "cached": outcome["cached"], "wall_s": outcome["wall_s"],
+        "budget": outcome["budget"], "lag_ms": outcome["lag_ms"],
+        "reward_display": outcome["reward_display"], "psnr_display": outcome["psnr_display"],
     }

@@ -34,6 +34,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
          "--ppo-compare", "mat:40,mat:70,freshest:2,all",
          "--checkpoint", str(tmp_path / "ppo/final.pt"),
          "--compare-checkpoint", str(tmp_path / "ppo/final.pt"), "--out", str(tmp_path / "out"),
+         "--display-checkpoint", str(tmp_path / "ppo/final.pt"),
          "--cache", str(tmp_path / "cache"), "--doc", str(tmp_path / "science.md"),
          "--figures", str(tmp_path / "figs"), "--workers", "1", *extra],
         capture_output=True, text=True, cwd=ROOT)

@@ -25,7 +25,7 @@ from aoi3d.device import resolve_device
 from aoi3d.policy.ppo.checkpoint import Checkpoint
 from aoi3d.policy.ppo.config import AgentConfig, PPOConfig
 from aoi3d.policy.ppo.network import ActorCritic
-from aoi3d.policy.ppo.obs import encode_aoi, with_camera_features
+from aoi3d.policy.ppo.obs import encode_aoi, with_camera_features, with_lag
 
 __all__ = ["Actor"]
 
@@ -49,19 +49,25 @@ class Actor:
         self.updates = 0
 
     # --- acting --------------------------------------------------------------------------
-    def observe(self, aoi_ms: np.ndarray) -> np.ndarray:
+    def observe(self, aoi_ms: np.ndarray, lag_ms: float | None = None) -> np.ndarray:
         """The observation of an AoI vector (ms, NaN = unknown), with the config's scale and,
-        when the agent observes more of each camera, its rig's fixed camera features."""
+        when the agent observes more of each camera, its rig's fixed camera features, and,
+        when it observes the lag to the display (``config.lag``), ``lag_ms`` (None: 0, no
+        lag known; ignored by an agent that does not observe it)."""
         aoi = np.asarray(aoi_ms, dtype=np.float64)
         cfg = self.config
         if aoi.ndim != 1 or aoi.shape[0] != cfg.n_cameras:
             raise ValueError(f"this agent was trained for {cfg.n_cameras} cameras; "
                              f"got an AoI vector of shape {aoi.shape}")
         obs = encode_aoi(aoi, cfg.aoi_scale_ms)
-        if not cfg.features:
-            return obs
-        values = np.asarray(cfg.camera_features).reshape(cfg.values_per_camera, cfg.n_cameras)
-        return with_camera_features(obs, values.T)
+        if cfg.features:
+            values = np.asarray(cfg.camera_features).reshape(cfg.values_per_camera,
+                                                             cfg.n_cameras)
+            obs = with_camera_features(obs, values.T)
+        if cfg.lag:
+            obs = with_lag(obs, cfg.n_cameras, 0.0 if lag_ms is None else float(lag_ms),
+                           cfg.aoi_scale_ms)
+        return obs
 
     def obs_tensor(self, obs: np.ndarray, batch: bool) -> torch.Tensor:
         """Observations (D,) or, with ``batch``, (B, D) as a tensor on the device, D the
@@ -81,9 +87,10 @@ class Actor:
         """p_n, each camera's selection probability, on an observation (float32, N)."""
         return torch.sigmoid(self.net.logits(self.obs_tensor(obs, batch=False))).cpu().numpy()
 
-    def select(self, aoi_ms: np.ndarray) -> np.ndarray:
-        """The deterministic action on an AoI vector: bit n = (p_n ≥ 0.5), as booleans."""
-        return self.probabilities(self.observe(aoi_ms)) >= 0.5
+    def select(self, aoi_ms: np.ndarray, lag_ms: float | None = None) -> np.ndarray:
+        """The deterministic action on an AoI vector (and the lag to the display, for an
+        agent that observes it): bit n = (p_n ≥ 0.5), as booleans."""
+        return self.probabilities(self.observe(aoi_ms, lag_ms)) >= 0.5
 
     # --- checkpoints ---------------------------------------------------------------------
     @classmethod

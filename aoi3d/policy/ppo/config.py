@@ -59,7 +59,10 @@ class AgentConfig:
     besides its AoI (:data:`aoi3d.policy.ppo.obs.CAMERA_FEATURES`; empty: the AoI vector
     alone, the paper's state); ``camera_features``: their values for the rig it was trained on
     (fixed per rig, so the checkpoint carries them: N values per feature value, value-major),
-    appended to every observation.
+    appended to every observation. ``lag``: the agent also observes the expected lag L from
+    the decision to its display (issue 40: :class:`aoi3d.policy.budget.DisplayLag` at the
+    decision's budget), ``min(L / aoi_scale_ms, 1)`` as one more value per camera (the same
+    for every camera, appended last), so an age Δn is read beside the delay to the screen.
     """
 
     n_cameras: int
@@ -70,8 +73,11 @@ class AgentConfig:
     arch: str = "mlp"
     features: tuple[str, ...] = ()
     camera_features: tuple[float, ...] = ()
+    lag: bool = False
 
     def __post_init__(self) -> None:
+        if not isinstance(self.lag, bool):
+            raise ValueError(f"lag must be a bool, got {self.lag!r}")
         if self.arch not in ARCHS:
             raise ValueError(f"arch must be one of {ARCHS}, got {self.arch!r}")
         if isinstance(self.features, str) or not isinstance(self.features, list | tuple):
@@ -104,9 +110,15 @@ class AgentConfig:
         return sum(len(CAMERA_FEATURES[f]) for f in self.features)
 
     @property
+    def channels(self) -> int:
+        """Values observed per camera: its AoI, its unknown flag, its fixed features and,
+        with ``lag``, the lag to the display."""
+        return 2 + self.values_per_camera + int(self.lag)
+
+    @property
     def obs_dim(self) -> int:
-        """Length of the observation ((2 + values per camera)·N)."""
-        return obs_size(self.n_cameras, self.values_per_camera)
+        """Length of the observation (channels · N)."""
+        return obs_size(self.n_cameras, self.channels - 2)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)

@@ -34,7 +34,8 @@ class SharedCameraActor(nn.Module):
     """Logits from one small MLP shared by all cameras (permutation-equivariant).
 
     Camera n's logit is ``g([x_n, c, e_n]) + b_n``: ``x_n`` = (scaled AoI, unknown flag, and
-    the camera's fixed features when the agent observes any) of camera n, ``c`` = the mean of
+    the camera's fixed features when the agent observes any, the lag to the display when it
+    observes it) of camera n, ``c`` = the mean of
     ``x`` over the cameras (the context: how fresh the others
     are), ``e_n`` a learned embedding of the camera (its place in the rig), ``b_n`` its bias.
     Every episode then teaches the one function g with N samples — what the rule "use camera
@@ -45,7 +46,7 @@ class SharedCameraActor(nn.Module):
         super().__init__()
         n, h, e = cfg.n_cameras, cfg.hidden, 4
         self.n = n
-        self.channels = 2 + cfg.values_per_camera
+        self.channels = cfg.channels
         self.embedding = nn.Parameter(0.1 * torch.randn(n, e, generator=gen))
         self.bias = nn.Parameter(torch.full((n,), bias))
         self.g = nn.Sequential(

@@ -16,6 +16,9 @@ two halves, one block of N per value (:func:`with_camera_features`). The one suc
 today is ``pose`` (:func:`pose_features`): where each camera looks from, relative to the
 held-out view — the angle between the optical axes (/π) and the distance between the centres
 (/ the largest), both in [0, 1].
+
+An agent may also observe the expected lag L from the decision to its display (issue 40,
+:func:`with_lag`): ``min(L / scale, 1)``, one more block of N equal values, appended last.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ import math
 import numpy as np
 
 __all__ = ["CAMERA_FEATURES", "encode_aoi", "obs_size", "pose_features",
-           "with_camera_features"]
+           "with_camera_features", "with_lag"]
 
 CAMERA_FEATURES = {"pose": ("pose_angle", "pose_distance")}
 """Per-camera features an agent may observe besides the AoI, and the values each adds per
@@ -82,3 +85,16 @@ def encode_aoi(aoi_ms: np.ndarray, scale_ms: float = 300.0) -> np.ndarray:
         raise ValueError(f"AoI must be finite and >= 0 ms (NaN = unknown), got {aoi_ms!r}")
     scaled = np.where(unknown, 1.0, np.minimum(np.where(unknown, 0.0, aoi) / scale_ms, 1.0))
     return np.concatenate([scaled, unknown.astype(np.float64)]).astype(np.float32)
+
+
+def with_lag(obs: np.ndarray, n_cameras: int, lag_ms: float, scale_ms: float = 300.0
+             ) -> np.ndarray:
+    """The observation ``obs`` with the expected display lag appended: N copies of
+    ``min(lag_ms / scale_ms, 1)`` (float32). A negative or non-finite lag raises
+    ``ValueError``."""
+    if not (isinstance(lag_ms, int | float) and math.isfinite(lag_ms) and lag_ms >= 0):
+        raise ValueError(f"lag_ms must be a finite number >= 0, got {lag_ms!r}")
+    if not (isinstance(scale_ms, int | float) and math.isfinite(scale_ms) and scale_ms > 0):
+        raise ValueError(f"scale_ms must be a finite number > 0, got {scale_ms!r}")
+    block = np.full(n_cameras, min(float(lag_ms) / scale_ms, 1.0), dtype=np.float32)
+    return np.concatenate([np.asarray(obs, dtype=np.float32), block]).astype(np.float32)

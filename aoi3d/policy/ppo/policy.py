@@ -11,6 +11,11 @@ never selected, whatever the network says. Its forms:
   learning online from the rewards of its decisions (:mod:`aoi3d.rl.online`); the policy
   itself never learns.
 
+An agent trained with the lag to the display in its state (``aoi3d ppo train --observe-lag``,
+issue 40) reads it from the decision step (:meth:`PPOPolicy.observe_lag`: L at the
+decision's budget, ``ppo:<checkpoint>@<steps>`` for a budget); the checkpoint says whether it
+does. The others ignore it.
+
 This module is the torch-free acting side the registry loads: the network
 (:class:`aoi3d.policy.ppo.actor.Actor`, torch) loads when a checkpoint is, so importing
 :mod:`aoi3d.policy` (which registers the kind) stays light.
@@ -28,6 +33,7 @@ from aoi3d.device import resolve_device
 from aoi3d.policy.base import BasePolicy, PolicyKind, PolicySpecError, as_aoi_vector
 
 if TYPE_CHECKING:
+    from aoi3d.policy.budget import DisplayLag
     from aoi3d.policy.ppo.actor import Actor
 
 __all__ = ["KIND", "PPOPolicy", "ppo_from_args", "ppo_from_json"]
@@ -49,6 +55,7 @@ class PPOPolicy(BasePolicy):
         self.actor = actor
         self.checkpoint = str(checkpoint)
         self.learn = learn
+        self._lag: DisplayLag | None = None
 
     @classmethod
     def from_checkpoint(cls, checkpoint: str | Path, *, learn: bool = False,
@@ -86,6 +93,18 @@ class PPOPolicy(BasePolicy):
         """Whether the caller should keep learning online from this policy's decisions."""
         return self.learn
 
+    def observe_lag(self, lag: DisplayLag) -> None:
+        """The expected lag to the display of the coming decision (an agent trained with it
+        observes it; the others do not)."""
+        self._lag = lag
+
+    def lag_ms(self) -> float | None:
+        """L at the decision's budget, or None while no lag was told."""
+        return None if self._lag is None else self._lag.lag_ms(None)
+
+    def reset(self) -> None:
+        self._lag = None
+
     def select(self, aoi_ms: np.ndarray) -> np.ndarray:
         """The deterministic action as a boolean mask; NaN AoI is never selected. A vector
         whose length differs from the checkpoint's N raises ``ValueError``."""
@@ -94,7 +113,7 @@ class PPOPolicy(BasePolicy):
             raise ValueError(f"PPO checkpoint {self.checkpoint} was trained for "
                              f"{self.n_cameras} cameras, but the AoI vector has "
                              f"{aoi.shape[0]}")
-        mask: np.ndarray = self.actor.select(aoi) & ~np.isnan(aoi)
+        mask: np.ndarray = self.actor.select(aoi, self.lag_ms()) & ~np.isnan(aoi)
         return mask
 
     def check_fits(self, n_cameras: int) -> None:
