@@ -198,7 +198,8 @@ def run(args: argparse.Namespace) -> dict:
 
 def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
-    doc = run(args)
+    with common.progress_to_stderr(args.json):  # --json: stdout is the document alone
+        doc = run(args)
     if args.json:
         common.print_json(doc)
     else:
