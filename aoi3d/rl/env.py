@@ -64,6 +64,7 @@ from aoi3d.experiment import (
 from aoi3d.experiment.episode import EpisodeLinks, episode_links, planned_decision, train_ids
 from aoi3d.experiment.episode.plan import display_lag
 from aoi3d.experiment.sweep import lpips_available
+from aoi3d.metric import REWARD, REWARD_DISPLAY
 from aoi3d.policy import AllPolicy, Policy, Selection, decide
 from aoi3d.policy.budget import check_budget
 from aoi3d.policy.decide import Act
@@ -77,7 +78,7 @@ _PICK_STREAM = 0x5E1
 """Stream (spawn key) of the decision epoch's draw; apart from the channel's and the aux's."""
 _BUDGET_STREAM = 0x5E2
 """Stream of the episode's budget draw (``budgets``)."""
-REWARDS = ("reward", "reward_display")
+REWARDS = (REWARD.name, REWARD_DISPLAY.name)
 """What a step may return as its reward: the score at the decision's time, or at display."""
 
 
