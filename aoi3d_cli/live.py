@@ -30,7 +30,16 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
-from aoi3d.metric import BY_NAME, LIVE, LIVE_AT_DISPLAY
+from aoi3d.metric import (
+    BY_NAME,
+    LPIPS,
+    PSNR,
+    PSNR_DISPLAY,
+    PSNR_DYNAMIC,
+    PSNR_DYNAMIC_DISPLAY,
+    REWARD,
+    SSIM,
+)
 from aoi3d.ports import REST_FIRST, REST_LAST, ZENOH_PORT
 from aoi3d_cli.common import fmt, make_console
 
@@ -333,10 +342,15 @@ def _views_figure(measurements: list[Measurement], dataset: Path, out: Path) -> 
                        "render of each policy")
 
 
+# the table's metric columns: each score, its display-time form beside it (what a viewer saw)
+_SHOWN = ((PSNR.name, "PSNR (dB)"), (PSNR_DISPLAY.name, "display PSNR"),
+          (PSNR_DYNAMIC.name, "dyn. PSNR"), (PSNR_DYNAMIC_DISPLAY.name, "dyn. display"),
+          (SSIM.name, "SSIM"), (LPIPS.name, "LPIPS"), (REWARD.name, "reward"))
+
+
 def _table(result: LiveSweep) -> Table:
     table = Table(title="live sweep (mean ± 95% CI per render)")
-    cols = ["policy", "n", "PSNR (dB)", "display PSNR", "dyn. PSNR", "SSIM", "LPIPS", "reward",
-            "cameras", "AoI used (ms)"]
+    cols = ["policy", "n", *(label for _, label in _SHOWN), "cameras", "AoI used (ms)"]
     if result.sim is not None:
         cols += ["sim PSNR", "live − sim (dB)", "sim display PSNR"]
     for c in cols:
@@ -347,8 +361,7 @@ def _table(result: LiveSweep) -> Table:
 
     for r in result.results:
         cells = [escape(r["policy"]), str(r["n"]),
-                 *(cell(r[m], BY_NAME[m].digits) for m in (*LIVE[:1], *LIVE_AT_DISPLAY,
-                                                           *LIVE[1:])),
+                 *(cell(r[m], BY_NAME[m].digits) for m, _ in _SHOWN),
                  cell(r["cameras_used"], 1), cell(r["aoi_used_ms"], 0)]
         if result.sim is not None:
             sim = result.sim.get(r["policy"], {})

@@ -146,6 +146,13 @@ def test_the_sweep_table_and_figure_show_the_display_time_psnr(tmp_path) -> None
         out.print(_table(result))
     text = cap.get()
     assert "display PSNR" in text and "sim display PSNR" in text
+    table = _table(result)  # every cell under a named column, every live metric in one
+    assert all(c.header for c in table.columns) and table.row_count == 2
+    assert all(len(c._cells) == 2 for c in table.columns)
+    from aoi3d.metric import LIVE, LIVE_AT_DISPLAY
+    from aoi3d_cli.live import _SHOWN
+
+    assert {m for m, _ in _SHOWN} == {*LIVE, *LIVE_AT_DISPLAY}
     assert "25.00" in text and "23.00" in text  # mat:70@50's and all's display PSNR
     doc = result.document({"live": 1.0})
     assert doc["results"][0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
