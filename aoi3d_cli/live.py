@@ -150,7 +150,8 @@ def sweep(
                 docs[field or ""] = _report(
                     windows, [canon[s] for s in specs], t_field, out / field if field else out,
                     sim=sim, sim_seeds=sim_seeds, sim_seed_offset=sim_seed_offset,
-                    dataset=dataset, cache=cache, settings=settings, json_=json_ and not fields)
+                    dataset=dataset, cache=cache, settings=settings,
+                    show="none" if fields and json_ else "json" if json_ else "table")
     if fields:
         _side_by_side(docs, out, json_)
 
@@ -198,9 +199,10 @@ def _backends_put_back(session: LiveSession, fields: list[str]) -> Iterator[None
 
 def _report(windows: SweepWindows, order: list[str], started: float, out: Path, *, sim: bool,
             sim_seeds: int, sim_seed_offset: int, dataset: Path, cache: Path,
-            settings: dict[str, Any], json_: bool) -> dict[str, Any]:
-    """One backend's sweep: the virtual clock beside it, the files, the table; returns the
-    results document."""
+            settings: dict[str, Any], show: str) -> dict[str, Any]:
+    """One backend's sweep: the virtual clock beside it, the files, on stdout ``show``
+    (``table``, ``json``, or ``none``: a --backends --json sweep prints one document at the
+    end); returns the results document."""
     from aoi3d.live.figures import plot
     from aoi3d.live.report import LiveSweep
 
@@ -222,10 +224,10 @@ def _report(windows: SweepWindows, order: list[str], started: float, out: Path, 
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
          f"decision, {steps_per_s:.0f} trainer steps/s, {measure_s:g} s × {repeats} per policy")
     _views_figure(windows.measurements, dataset, out)
-    if json_:
+    if show == "json":
         print(json.dumps({k: doc[k] for k in ("results", "unpaired_interior_maximum",
                                                "settings", "wall_s")}, default=str))
-    else:
+    elif show == "table":
         stdout = make_console(width=160)
         stdout.print(_table(result))
         for v in result.verdicts():

@@ -227,3 +227,48 @@ def test_sweep_refuses_an_unknown_backend_before_touching_the_pipeline() -> None
                                            "--timeout-s", "1"])
     assert result.exit_code == 2, result.output
     assert "unknownfieldbackend'fog'" in "".join(result.output.replace("│", "").split())
+
+
+def test_a_sweep_over_backends_with_json_prints_one_document(tmp_path, monkeypatch) -> None:
+    """``--backends grid,flow --json``: stdout is the side-by-side document alone (each
+    backend's own table went to stdout before it, so it was not JSON)."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from aoi3d_cli import live, livehttp
+
+    puts: list[str] = []
+
+    class Pipe:
+        def call(self, method: str, service: str, path: str, json: dict | None = None) -> dict:
+            if (method, path) == ("PUT", "/backend"):
+                puts.append(json["backend"])
+            return {"backend": "grid"}
+
+    class Session:
+        def __init__(self, pipe: object, console: object) -> None:
+            self.pipe, self.proc = Pipe(), None
+
+        def __enter__(self) -> Session:
+            return self
+
+        def __exit__(self, *exc: object) -> None:
+            pass
+
+        def measure(self, *args: object, **kwargs: object) -> livehttp.SweepWindows:
+            status = {"backend": puts[-1], "carry": "stream", "render_steps": 25}
+            return livehttp.SweepWindows(display_windows(), status, status, {"delay": "exp:60"})
+
+    monkeypatch.setattr(livehttp, "LiveSession", Session)
+    monkeypatch.setattr(live, "_views_figure", lambda *args: None)
+    result = CliRunner().invoke(live.app, [
+        "--policies", "mat:70@50,all", "--backends", "grid,flow", "--no-sim", "--json",
+        "--settle-s", "0", "--measure-s", "1", "--out", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    doc = json.loads(result.stdout)
+    assert [(r["backend"], r["policy"]) for r in doc["backends"]] == [
+        ("grid", "mat:70@50"), ("grid", "all"), ("flow", "mat:70@50"), ("flow", "all")]
+    assert doc["backends"][0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
+    assert puts == ["grid", "flow", "grid"]  # a pipeline it did not start: grid put back
+    assert (tmp_path / "flow/results.json").exists()
