@@ -36,6 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
+from aoi3d.scene.dataset import png_problem
 from services.kit.codec import camera_from_pb, png_bytes
 from services.kit.rejected import Rejected
 from services.recorder.sources import (
@@ -212,7 +213,16 @@ def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: 
 
     def frame_png(camera_id: int, k: int) -> bytes:
         s = streams[order[camera_id]]
-        return png_bytes(s.pixels(s.frames[picks[camera_id][k]]).image)
+        fr = s.frames[picks[camera_id][k]]
+        try:  # a damaged image is refused, naming it (nothing is written: the folder is atomic)
+            data = png_bytes(s.pixels(fr).image)
+        except (Rejected, ValueError, OSError) as err:
+            raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
+                                f"its image cannot be read ({type(err).__name__})") from None
+        if problem := png_problem(data[:8], data[-12:], len(data)):
+            raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
+                                f"{problem.replace('frame file', 'its image')}")
+        return data
 
     report = ImportReport(source=str(path), kind=kind, site=site, out=str(out), fps=fps,
                           n_frames=n_frames, t0_ms=t0, cameras=rows, rejected=dict(rejected))

@@ -93,6 +93,24 @@ def test_flipped_or_spliced_bytes_are_read_or_refused_in_one_line(compression, d
     _read(bytes(raw))
 
 
+def test_a_frame_whose_png_is_damaged_is_refused_by_the_import_naming_it() -> None:
+    # what the flip test once found (raw[8786] = 0 in the uncompressed recording): a frame's
+    # PNG bytes damaged in place; the import refused it with write_dataset's ValueError
+    raw = bytearray(WHOLE["none"])
+    at = raw.find(b"\x89PNG\r\n\x1a\n")
+    assert at > 0, "the recording holds PNG frames"
+    raw[at] = 0
+    path = TMP / "damaged.mcap"
+    path.write_bytes(bytes(raw))
+    out = TMP / "damaged-ds"
+    shutil.rmtree(out, ignore_errors=True)
+    with pytest.raises(NotImportable, match="its image is not a PNG") as err:
+        import_mcap(path, out, fps=33)
+    _one_line(err.value, path)
+    assert not out.exists()  # nothing written
+    _read(bytes(raw), "damaged-read.mcap")  # read and replayed as before
+
+
 @fuzz(60)
 @given(st.sampled_from(sorted(WHOLE)), st.data(), st.integers(0, 2**64 - 1))
 def test_a_record_that_claims_any_length_is_refused_before_it_is_read(compression, data,
