@@ -37,7 +37,7 @@ import numpy as np
 
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
 from aoi3d.scene.dataset import png_problem
-from services.kit.codec import camera_from_pb, png_bytes
+from services.kit.codec import camera_from_pb, decode_image, png_bytes
 from services.kit.rejected import Rejected
 from services.recorder.sources import (
     NotImportable,
@@ -215,10 +215,14 @@ def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: 
         s = streams[order[camera_id]]
         fr = s.frames[picks[camera_id][k]]
         try:  # a damaged image is refused, naming it (nothing is written: the folder is atomic)
-            data = png_bytes(s.pixels(fr).image)
+            image = s.pixels(fr).image
+            decode_image(image)  # the whole image decodes, not just its first and last bytes
+            data = png_bytes(image)
         except (Rejected, ValueError, OSError) as err:
+            why = err.detail if isinstance(err, Rejected) else type(err).__name__
+            why = " ".join(why.split())  # one line
             raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
-                                f"its image cannot be read ({type(err).__name__})") from None
+                                f"its image cannot be read ({why})") from None
         if problem := png_problem(data[:8], data[-12:], len(data)):
             raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
                                 f"{problem.replace('frame file', 'its image')}")

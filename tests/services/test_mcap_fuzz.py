@@ -104,11 +104,19 @@ def test_a_frame_whose_png_is_damaged_is_refused_by_the_import_naming_it() -> No
     path.write_bytes(bytes(raw))
     out = TMP / "damaged-ds"
     shutil.rmtree(out, ignore_errors=True)
-    with pytest.raises(NotImportable, match="its image is not a PNG") as err:
+    with pytest.raises(NotImportable, match="its image cannot be read") as err:
         import_mcap(path, out, fps=33)
     _one_line(err.value, path)
     assert not out.exists()  # nothing written
     _read(bytes(raw), "damaged-read.mcap")  # read and replayed as before
+    raw = bytearray(WHOLE["none"])  # damaged inside (its compressed pixels), not at its ends
+    at = raw.find(b"IDAT")
+    raw[at + 8:at + 24] = bytes(16)
+    path.write_bytes(bytes(raw))
+    with pytest.raises(NotImportable, match="its image cannot be read") as err:
+        import_mcap(path, out, fps=33)
+    _one_line(err.value, path)
+    assert not out.exists()
 
 
 @fuzz(60)
