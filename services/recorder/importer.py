@@ -38,6 +38,7 @@ import numpy as np
 from aoi3d.scene import HELDOUT_ID, Camera, SceneDataset, write_dataset
 from aoi3d.scene.dataset import png_problem
 from services.kit.codec import camera_from_pb, decode_image, png_bytes
+from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected
 from services.recorder.sources import (
     NotImportable,
@@ -213,20 +214,7 @@ def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: 
 
     def frame_png(camera_id: int, k: int) -> bytes:
         s = streams[order[camera_id]]
-        fr = s.frames[picks[camera_id][k]]
-        try:  # a damaged image is refused, naming it (nothing is written: the folder is atomic)
-            image = s.pixels(fr).image
-            decode_image(image)  # the whole image decodes, not just its first and last bytes
-            data = png_bytes(image)
-        except (Rejected, ValueError, OSError) as err:
-            why = err.detail if isinstance(err, Rejected) else type(err).__name__
-            why = " ".join(why.split())  # one line
-            raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
-                                f"its image cannot be read ({why})") from None
-        if problem := png_problem(data[:8], data[-12:], len(data)):
-            raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
-                                f"{problem.replace('frame file', 'its image')}")
-        return data
+        return _checked_png(path, s, s.frames[picks[camera_id][k]])
 
     report = ImportReport(source=str(path), kind=kind, site=site, out=str(out), fps=fps,
                           n_frames=n_frames, t0_ms=t0, cameras=rows, rejected=dict(rejected))
@@ -234,3 +222,22 @@ def _import(path: Path, files: list[Path], kind: str, out: str | Path, *, site: 
                        extra={"imported": {k: v for k, v in report.to_dict().items()
                                            if k != "out"}})
     return ds, report
+
+
+def _checked_png(path: Path, s: Stream, fr: pb.Frame) -> bytes:
+    """The PNG bytes of recorded frame ``fr`` of stream ``s``, once its whole image decodes; a
+    damaged image is :class:`NotImportable`, in one line naming the file, camera and frame
+    (nothing is written: the dataset's folder is atomic)."""
+    try:
+        image = s.pixels(fr).image
+        decode_image(image)  # the whole image decodes, not just its first and last bytes
+        data = png_bytes(image)
+    except (Rejected, ValueError, OSError) as err:
+        why = err.detail if isinstance(err, Rejected) else type(err).__name__
+        why = " ".join(why.split())  # one line
+        raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
+                            f"its image cannot be read ({why})") from None
+    if problem := png_problem(data[:8], data[-12:], len(data)):
+        raise NotImportable(f"{path}: camera {s.name}, frame at {fr.generation_ms:g} ms: "
+                            f"{problem.replace('frame file', 'its image')}")
+    return data
