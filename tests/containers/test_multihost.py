@@ -75,6 +75,15 @@ class Hosts(Stack):
     def now_ms(self) -> float:
         return HTTP.get(url("scheduler", "/aoi")).json()["time_ms"]
 
+    def fresh_carry(self) -> None:
+        """The trainer hands each job to the worker that has waited longest (the ``fresh``
+        carry): the default ``stream`` carry hands it to the warmest one, so a pool with slack
+        may give every job to the host that stayed, and a rejoined host would wait on."""
+        token = (self.secrets_dir / "control_token").read_text(encoding="utf-8").strip()
+        r = HTTP.put(url("trainer", "/carry"), json={"carry": "fresh", "render_steps": 25},
+                     headers={"Authorization": f"Bearer {token}"})
+        r.raise_for_status()
+
     def session(self):
         import zenoh
 
@@ -123,6 +132,7 @@ def hop_rtt_ms(h: Hosts, session, service: str, name: str, n: int = 40) -> float
 
 def test_workers_on_two_hosts_a_cut_and_a_router_restart(hosts: Hosts) -> None:
     h = hosts
+    wait_for("the trainer", lambda: h.fresh_carry() is None, timeout_s=180)
     # every worker is on a worker host; none on the edge
     wait_for("both worker hosts in the pool", lambda: h.hosts() == {"worker-a", "worker-b"},
              timeout_s=180)
