@@ -84,10 +84,12 @@ __all__ = [
     "LpipsFn",
     "QualityScore",
     "RewardWeights",
+    "Truth",
     "dynamic_mask",
     "dynamic_score",
     "psnr",
     "score",
+    "score_many",
     "ssim",
 ]
 
@@ -296,6 +298,25 @@ class QualityScore:
     """Scores over the dynamic mask; None when no earlier truth frames were given."""
 
 
+@dataclass(frozen=True)
+class Truth:
+    """A ground-truth image to score a render against, with what its dynamic region needs:
+    the truth at t − C, …, t − K·C (``previous``), or its :func:`dynamic_mask` already made
+    (``mask``: a caller that scores many renders against one truth keeps it). Neither: no
+    dynamic scores."""
+
+    image: np.ndarray
+    previous: Sequence[np.ndarray] | None = None
+    mask: np.ndarray | None = None
+
+    def dynamic_mask(self) -> np.ndarray | None:
+        if self.mask is not None:
+            return _check_mask(self.mask, np.asarray(self.image).shape)
+        if self.previous is not None and len(self.previous) > 0:
+            return dynamic_mask(self.image, self.previous)
+        return None
+
+
 def score(
     pred: np.ndarray,
     truth: np.ndarray,
@@ -314,23 +335,96 @@ def score(
     mask: nothing moved) the full image's PSNR or SSIM stands in, named ``psnr_dynamic=full``
     or ``ssim_dynamic=full`` in ``reward_terms``.
     """
+    return score_many(pred, [Truth(truth, previous)], weights, lpips_fn)[0]
+
+
+def score_many(
+    pred: np.ndarray,
+    truths: Sequence[Truth],
+    weights: RewardWeights = RewardWeights(),
+    lpips_fn: LpipsFn | None = None,
+) -> list[QualityScore]:
+    """:func:`score` of one render against each of ``truths`` (a render at its decision time
+    and at its display time), the same numbers as one :func:`score` call each, bit for bit
+    (tests/unit/test_quality_many.py), for less work: the render is converted once, SSIM's
+    local moments of every image are filtered in one batch (:func:`_ssim_maps`), and LPIPS
+    (when ``lpips_fn`` has ``many``, as :func:`aoi3d.lpips.load_lpips_fn`'s has) runs the
+    render and every truth through its network in one batch."""
+    if not truths:
+        return []
     w = weights
-    p, t = _pair(pred, truth)
-    psnr_db = _psnr(p, t)
-    ssim_map = _ssim_map(p, t)
-    ssim_value = float(ssim_map.mean())
-    dynamic = None
-    if previous is not None and len(previous) > 0:
-        dynamic = _dynamic(p, t, dynamic_mask(truth, previous), ssim_map)
+    p_np = _as_unit_float(pred, "pred")
+    ts_np = [_as_unit_float(t.image, "truth") for t in truths]
+    for t in ts_np:
+        if t.shape != p_np.shape:
+            raise ValueError(f"image shapes differ: pred {p_np.shape} vs truth {t.shape}")
+    p, ts = _chw(p_np), [_chw(t) for t in ts_np]
+    maps = _ssim_maps(p, ts)
+    lpips_values: list[float | None] = [None] * len(truths)
+    if lpips_fn is not None:
+        p32 = p_np.astype(np.float32)
+        t32 = [t.astype(np.float32) for t in ts_np]
+        many = getattr(lpips_fn, "many", None)
+        values = (list(many(p32, t32)) if callable(many)
+                  else [lpips_fn(p32, t) for t in t32])
+        for i, value in enumerate(values):
+            lpips_values[i] = float(value)
+            if not math.isfinite(lpips_values[i]):  # type: ignore[arg-type]
+                raise ValueError(f"lpips_fn returned a non-finite value: {value}")
+    out = []
+    for truth, t, ssim_map, lpips_value in zip(truths, ts, maps, lpips_values, strict=True):
+        mask = truth.dynamic_mask()
+        dynamic = None if mask is None else _dynamic(p, t, mask, ssim_map)
+        out.append(_assemble(w, _psnr(p, t), float(ssim_map.mean()), lpips_value, dynamic,
+                             lpips_fn is not None))
+    return out
+
+
+def _ssim_maps(p: torch.Tensor, ts: Sequence[torch.Tensor]) -> list[torch.Tensor]:
+    """The SSIM map of ``p`` against each of ``ts`` (1×C×H×W float64), as
+    ``kornia.metrics.ssim(p, t, SSIM_WINDOW, max_val=1.0, eps=0.0, padding="valid")`` gives
+    it, bit for bit: kornia's own Gaussian window and filter (``filter2d_separable``) and its
+    arithmetic, in its order. Why not kornia's function: it filters the render's moments
+    again for every truth, five filter calls a pair; here the moments of the render and of
+    every truth are filtered in one call, side by side as channels (the filter is depthwise:
+    each channel alone, the same numbers as one image at a time, and a third of the time of a
+    batch of images on one core)."""
+    h, w = p.shape[-2:]
+    if min(h, w) < SSIM_WINDOW:
+        raise ValueError(f"SSIM needs images of at least {SSIM_WINDOW}×{SSIM_WINDOW}, got {h}×{w}")
+    k = len(ts)
+    kernel = kornia.filters.get_gaussian_kernel1d(SSIM_WINDOW, SSIM_SIGMA, device=p.device,
+                                                  dtype=p.dtype)
+    c1, c2 = (0.01 * 1.0) ** 2, (0.03 * 1.0) ** 2
+    images = [p, *ts, p**2, *(t**2 for t in ts), *(p * t for t in ts)]
+    c = p.shape[1]  # each image's channels side by side: the filter is depthwise (per channel)
+    stacked = torch.cat(images, dim=1)
+    r = SSIM_WINDOW // 2
+    filtered = kornia.filters.filter2d_separable(stacked, kernel, kernel)
+    moments = torch.nn.functional.pad(filtered, (-r, -r, -r, -r)).reshape(len(images), c, h - 2 * r,
+                                                                          w - 2 * r)
+    mu1 = moments[0:1]
+    mu1_sq = mu1**2
+    maps = []
+    for i in range(k):
+        mu2 = moments[1 + i:2 + i]
+        mu2_sq = mu2**2
+        mu1_mu2 = mu1 * mu2
+        sigma1_sq = moments[1 + k:2 + k] - mu1_sq
+        sigma2_sq = moments[2 + k + i:3 + k + i] - mu2_sq
+        sigma12 = moments[2 + 2 * k + i:3 + 2 * k + i] - mu1_mu2
+        num = (2.0 * mu1_mu2 + c1) * (2.0 * sigma12 + c2)
+        den = (mu1_sq + mu2_sq + c1) * (sigma1_sq + sigma2_sq + c2)
+        maps.append(num / (den + 0.0))
+    return maps
+
+
+def _assemble(w: RewardWeights, psnr_db: float, ssim_value: float, lpips_value: float | None,
+              dynamic: DynamicScore | None, has_lpips: bool) -> QualityScore:
+    """The reward of one render's scores and the terms it was built from (see :func:`score`)."""
     reward = w.psnr * psnr_db + w.ssim * ssim_value
     terms: tuple[str, ...] = (PSNR.short, SSIM.short)
-    lpips_value: float | None = None
-    if lpips_fn is not None:
-        p32 = _as_unit_float(pred, "pred").astype(np.float32)
-        t32 = _as_unit_float(truth, "truth").astype(np.float32)
-        lpips_value = float(lpips_fn(p32, t32))
-        if not math.isfinite(lpips_value):
-            raise ValueError(f"lpips_fn returned a non-finite value: {lpips_value}")
+    if lpips_value is not None:
         reward += w.lpips * lpips_value
         terms = (*terms, LPIPS.short)
     if w.dynamic:
@@ -345,7 +439,7 @@ def score(
                 continue
             reward += weight * (full if value is None else value)
             terms = (*terms, name if value is not None else f"{name}=full")
-    weighed = w.terms(lpips_fn is not None)
+    weighed = w.terms(has_lpips)
     terms = tuple(t for t in terms if t.split("=")[0] in weighed)
     return QualityScore(
         psnr_db=psnr_db, ssim=ssim_value, lpips=lpips_value, reward=reward, reward_terms=terms,

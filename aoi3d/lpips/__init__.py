@@ -39,6 +39,7 @@ __all__ = [
     "NETS",
     "SDIST_REQUIREMENT",
     "SDIST_SHA256",
+    "LpipsDistance",
     "LpipsFetchError",
     "LpipsUnavailableError",
     "LpipsWeightsError",
@@ -71,11 +72,26 @@ def load_lpips(net: str = "alex", device: str | torch.device | None = None) -> L
     return model.to(torch.device(device) if device is not None else torch.device("cpu"))
 
 
+class LpipsDistance:
+    """The ``lpips_fn`` of :func:`aoi3d.quality.score`: ``(pred, truth) -> float``, and
+    ``many(pred, truths)`` for :func:`aoi3d.quality.score_many` (one batch)."""
+
+    def __init__(self, model: LPIPS) -> None:
+        self.model = model
+
+    def __call__(self, pred: np.ndarray, truth: np.ndarray) -> float:
+        return self.model.distance(pred, truth)
+
+    def many(self, pred: np.ndarray, truths: list[np.ndarray]) -> list[float]:
+        return self.model.distances(pred, truths)
+
+
 def load_lpips_fn(net: str = "alex", device: str | torch.device | None = None) -> LpipsFn | None:
-    """``lpips_fn(pred, truth) -> float`` for :func:`aoi3d.quality.score`, or None when the
+    """``lpips_fn(pred, truth) -> float`` for :func:`aoi3d.quality.score` (a
+    :class:`LpipsDistance`, which also scores many truths in one batch), or None when the
     weights of ``net`` are not cached."""
     model = load_lpips(net, device)
-    return None if model is None else model.distance
+    return None if model is None else LpipsDistance(model)
 
 
 _MODELS: dict[str, LPIPS] = {}

@@ -229,6 +229,34 @@ class LPIPS(nn.Module):
         with torch.inference_mode():
             return float(self(x, y)[0])
 
+    def distances(self, pred: np.ndarray, truths: list[np.ndarray]) -> list[float]:
+        """LPIPS of ``pred`` against each of ``truths`` (H×W×3, uint8 or float in [0, 1]):
+        the same values as :meth:`distance` of each pair, bit for bit, with ``pred`` and
+        every truth through the network in one batch (``pred``'s features once). A batch of
+        one image takes another convolution path than a batch of two or more, whose per-image
+        results agree (tests/unit/test_quality_many.py holds it), hence never one image
+        alone."""
+        x = _image_tensor(pred, "pred", self.device)
+        ys = [_image_tensor(t, "truth", self.device) for t in truths]
+        for y, t in zip(ys, truths, strict=True):
+            if x.shape != y.shape:
+                raise ValueError(f"image shapes differ: pred {tuple(pred.shape)} vs truth "
+                                 f"{tuple(t.shape)}")
+        if not ys:
+            return []
+        with torch.inference_mode():
+            for y in ys:
+                self._check(x, y)
+            z = torch.cat((x, *ys)).to(self.shift.dtype) * 2.0 - 1.0  # as forward()
+            z = (z - self.shift) / self.scale
+            totals = [z.new_zeros(1) for _ in ys]
+            for feat, lin in zip(self.net(z), self.lins, strict=True):
+                feat = feat / (feat.square().sum(dim=1, keepdim=True).sqrt() + _EPS)
+                for i in range(len(ys)):
+                    diff = (feat[0:1] - feat[1 + i:2 + i]).square()
+                    totals[i] = totals[i] + lin(diff).mean(dim=(1, 2, 3))
+            return [float(t[0]) for t in totals]
+
 
 def _image_tensor(image: np.ndarray, name: str, device: torch.device) -> torch.Tensor:
     """H×W×3 uint8 (÷255) or float in [0, 1] → float32 1×3×H×W on ``device``."""
