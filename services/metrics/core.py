@@ -26,19 +26,25 @@ when no truth frame was generated in [display − C, display].
 
 from __future__ import annotations
 
-import bisect
 import math
 from dataclasses import dataclass
 from typing import cast
 
 import numpy as np
 
-from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, QualityScore, RewardWeights, score
+from aoi3d.quality import (
+    LpipsFn,
+    QualityScore,
+    RewardWeights,
+    Truth,
+    score_many,
+)
 from aoi3d.scene import HELDOUT_ID  # the held-out novel view: the only camera on the truth key
 from services.kit.codec import check_size, decode_frame, decode_image, decode_render
 from services.kit.keys import DEFAULT_SITE
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected, RejectReason
+from services.metrics.truth import TruthFrame, TruthImages, TruthRing
 
 __all__ = [
     "MetricsCore",
@@ -51,73 +57,6 @@ __all__ = [
     "or_nan",
 ]
 
-_TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
-
-
-@dataclass(frozen=True)
-class TruthFrame:
-    """A ground-truth frame of the held-out camera, image still encoded."""
-
-    generation_ms: float
-    scene_time_ms: float
-    image: pb.Image
-
-
-class TruthRing:
-    """The most recent ground-truth frames, by generation time (not thread-safe)."""
-
-    def __init__(self, capacity: int) -> None:
-        if capacity < 1:
-            raise ValueError(f"capacity must be >= 1, got {capacity}")
-        self._capacity = capacity
-        self._times: list[float] = []  # sorted generation times
-        self._frames: dict[float, TruthFrame] = {}
-
-    def __len__(self) -> int:
-        return len(self._times)
-
-    @property
-    def newest_ms(self) -> float | None:
-        """Generation time of the newest frame held (None when empty)."""
-        return self._times[-1] if self._times else None
-
-    def add(self, frame: TruthFrame) -> None:
-        """Keep ``frame`` (a repeat of a generation time replaces it); evict the oldest."""
-        if frame.generation_ms not in self._frames:
-            bisect.insort(self._times, frame.generation_ms)
-        self._frames[frame.generation_ms] = frame
-        while len(self._times) > self._capacity:
-            del self._frames[self._times.pop(0)]
-
-    def pair(self, time_ms: float, period_ms: float) -> TruthFrame:
-        """The frame generated at ``time_ms``, else the newest in [time_ms − period_ms,
-        time_ms]; raises ``Rejected(RejectReason.NO_TRUTH)`` when there is none."""
-        exact = self._frames.get(time_ms)
-        if exact is not None:
-            return exact
-        i = bisect.bisect_right(self._times, time_ms + _TIME_TOL_MS) - 1
-        if i >= 0 and time_ms - self._times[i] <= period_ms + _TIME_TOL_MS:
-            return self._frames[self._times[i]]
-        held = (f"holding {len(self)} frame(s) generated in [{self._times[0]:g}, "
-                f"{self._times[-1]:g}] ms" if self._times else "holding no frame")
-        raise Rejected(RejectReason.NO_TRUTH,
-                       f"no ground-truth frame generated at t = {time_ms:g} ms or "
-                       f"within {period_ms:g} ms before it ({held})")
-
-    def before(self, generation_ms: float, period_ms: float, count: int
-               ) -> list[TruthFrame] | None:
-        """The frames generated at ``generation_ms`` − k·``period_ms``, k = 1..``count``:
-        for each, the newest generated in (that time − period/2, that time + period/2];
-        None when any of them is missing."""
-        half = period_ms / 2.0
-        frames = []
-        for k in range(1, count + 1):
-            target = generation_ms - k * period_ms
-            i = bisect.bisect_right(self._times, target + half) - 1
-            if i < 0 or self._times[i] <= target - half:
-                return None
-            frames.append(self._frames[self._times[i]])
-        return frames
 
 
 @dataclass(frozen=True)
@@ -174,11 +113,22 @@ class MetricsCore:
         if not (math.isfinite(truth_period_ms) and truth_period_ms > 0):
             raise ValueError(f"truth_period_ms must be > 0, got {truth_period_ms}")
         self.period_ms = float(truth_period_ms)
-        self.ring = TruthRing(truth_frames)
+        self.ring = TruthRing(truth_frames)  # (its setter keeps the decoded images beside it)
         self.weights = weights or RewardWeights()
         self.lpips_fn = lpips_fn
         self.skew_ms = float(max_skew_ms)
         self.site = site
+
+    @property
+    def ring(self) -> TruthRing:
+        """The truth frames held; set a new one to start again (the replay does, going back
+        in time), the decoded images and masks of the old one are dropped with it."""
+        return self._ring
+
+    @ring.setter
+    def ring(self, ring: TruthRing) -> None:
+        self._ring = ring
+        self._truth = TruthImages(ring, self.period_ms)
 
     def _ahead(self, what: str, time_ms: float, now_ms: float) -> None:
         """Reject a message stamped ahead of this clock by more than the skew: 512 truth
@@ -203,19 +153,14 @@ class MetricsCore:
         truth = self.ring.pair(render.time_ms, self.period_ms)
         check_size(render.image, (truth.image.width, truth.image.height))
         pred = decode_image(render.image)
-        gt = decode_image(truth.image)
+        gt = self._truth.decoded(truth)
         if pred.shape != gt.shape:
             raise Rejected(RejectReason.IMAGE_SIZE_MISMATCH,
                            f"render is {pred.shape[1]}x{pred.shape[0]} but the ground truth is "
                            f"{gt.shape[1]}x{gt.shape[0]}")
-        previous = self._previous_truth(truth, gt.shape)
-        try:
-            q = score(pred, gt, self.weights, lpips_fn=self.lpips_fn, previous=previous)
-        except ValueError as err:
-            raise Rejected(RejectReason.UNSCORABLE, str(err)) from err
-        dyn = q.dynamic
         display_ms = render.ready_ms if render.HasField("ready_ms") else now_ms
-        shown, shown_truth = self._display_score(pred, display_ms, truth, q)
+        q, shown, shown_truth = self._score_both(pred, truth, display_ms)
+        dyn = q.dynamic
         msg = pb.Quality(decision_id=render.decision_id,
                          decision_incarnation=render.decision_incarnation,
                          time_ms=render.time_ms,
@@ -260,46 +205,40 @@ class MetricsCore:
                    "empty_mask" if dyn.psnr_db is None else None)
         return Scored(msg, record, missing)
 
-    def _display_score(self, pred: np.ndarray, display_ms: float, truth: TruthFrame,
-                       at_decision: QualityScore
-                       ) -> tuple[QualityScore | None, TruthFrame | None]:
-        """The render against the truth at ``display_ms`` (the newest generated in
-        [display − C, display]): ``at_decision`` again when that is the decision-time
-        pairing's frame (not scored twice). (None, None) when there is none, or it cannot be
-        scored."""
+    def _score_both(self, pred: np.ndarray, truth: TruthFrame, display_ms: float
+                    ) -> tuple[QualityScore, QualityScore | None, TruthFrame | None]:
+        """The render against the truth at its decision time and against the truth at
+        ``display_ms`` (the newest generated in [display − C, display]), in one
+        :func:`score_many` call: (at decision, at display, the display's truth frame). The
+        display score is the decision's when both pair the same frame (not scored twice), and
+        None (with its frame) when there is no such frame, or it cannot be decoded or scored:
+        the decision's score stands alone then."""
+        truths = [Truth(self._truth.decoded(truth), mask=self._truth.mask(truth))]
         try:
             shown = self.ring.pair(display_ms, self.period_ms)
         except Rejected:
-            return None, None
-        if shown.generation_ms == truth.generation_ms:
-            return at_decision, shown
-        try:
-            gt = decode_image(shown.image)
-            if gt.shape != pred.shape:
-                return None, None
-            return score(pred, gt, self.weights, lpips_fn=self.lpips_fn,
-                         previous=self._previous_truth(shown, gt.shape)), shown
-        except (Rejected, ValueError):
-            return None, None
-
-    def _previous_truth(self, truth: TruthFrame, shape: tuple[int, ...]
-                        ) -> list[np.ndarray] | None:
-        """The decoded truth one to K periods before ``truth`` (see :meth:`TruthRing.before`),
-        or None when a frame is missing, undecodable or of another size."""
-        frames = self.ring.before(truth.generation_ms, self.period_ms, DYNAMIC_FRAMES)
-        if frames is None:
-            return None
-        images = []
-        for frame in frames:
+            shown = None
+        if shown is not None and shown.generation_ms != truth.generation_ms:
             try:
-                image = decode_image(frame.image)
+                image = self._truth.decoded(shown)
             except Rejected:
-                return None
-            if image.shape != shape:
-                return None
-            images.append(image)
-        return images
-
+                image = None
+            if image is not None and image.shape == pred.shape:
+                truths.append(Truth(image, mask=self._truth.mask(shown)))
+            else:
+                shown = None
+        try:
+            scores = score_many(pred, truths, self.weights, lpips_fn=self.lpips_fn)
+        except ValueError as err:
+            if len(truths) == 1:
+                raise Rejected(RejectReason.UNSCORABLE, str(err)) from err
+            try:  # the display's truth could not be scored: the decision's alone
+                return score_many(pred, truths[:1], self.weights, self.lpips_fn)[0], None, None
+            except ValueError as err1:
+                raise Rejected(RejectReason.UNSCORABLE, str(err1)) from err1
+        if shown is None:
+            return scores[0], None, None
+        return scores[0], scores[-1], shown
 
 def or_nan(value: float | None) -> float:
     return math.nan if value is None else value
