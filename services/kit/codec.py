@@ -60,7 +60,26 @@ def camera_to_pb(camera: Camera) -> tuple[pb.Pose, pb.Intrinsics]:
     return pose, intr
 
 
+_CAMERAS: dict[tuple[bytes, bytes], Camera] = {}
+"""Cameras already validated, by their pose and intrinsics bytes: a rig's cameras send the
+same few poses 33 times a second, to several services each (a Camera is immutable)."""
+_CAMERAS_KEPT = 4096
+
+
 def camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
+    """The validated :class:`Camera` of a pose and intrinsics; :class:`Rejected` when they
+    are not one (each pose validated once, then remembered)."""
+    key = (pose.SerializeToString(), intr.SerializeToString())
+    camera = _CAMERAS.get(key)
+    if camera is None:
+        camera = _camera_from_pb(pose, intr)
+        if len(_CAMERAS) >= _CAMERAS_KEPT:  # a rig of moving cameras: start again
+            _CAMERAS.clear()
+        _CAMERAS[key] = camera
+    return camera
+
+
+def _camera_from_pb(pose: pb.Pose, intr: pb.Intrinsics) -> Camera:
     if len(pose.c2w) != 16:
         raise Rejected(RejectReason.BAD_POSE, f"pose has {len(pose.c2w)} values, expected 16 (4x4)")
     c2w = np.asarray(pose.c2w, dtype=np.float64).reshape(4, 4)
