@@ -9,7 +9,9 @@ websocket, beside ``/healthz``, ``/metrics`` and ``/scene.json``. What is drawn 
 
 - decisions and delivered frames of every site (subscriptions) go to the core under a lock;
 - a drawing loop redraws the frustums (colour: AoI at the decision in force; thicker and
-  labelled ✓: used by it; image: the latest delivered frame) when a decision came;
+  labelled ✓: used by it; image: the latest delivered frame) when a decision came, while a
+  browser is connected (the frustums and their thumbnails cost a tenth of a core at time
+  scale 1; nobody watching, nothing is drawn);
 - each browser's camera, as the user orbits, is turned into a free view: the trainer's
   ``GET /sites/<site>/render.png?c2w=…`` (the pool renders the latest model from that pose),
   shown as the scene's background — the newest pose of each browser wins, and an unmoved
@@ -69,6 +71,7 @@ class ViewerWorker:
         """client id → (client handle, monotonic time of its last free view)."""
         self._moved: set[int] = set()
         self._wake = threading.Event()
+        self._draw_lock = threading.Lock()
         token = common.token()
         self._headers = {"authorization": f"Bearer {token}"} if token else {}
         self._http = httpx.Client(timeout=30.0, headers=self._headers)
@@ -137,9 +140,15 @@ class ViewerWorker:
 
     # ------------------------------------------------------------------ drawing
     def _draw(self) -> None:
-        """Redraw the frustums of the site shown when a decision came since the last time."""
-        if self.server is None:
+        """Redraw the frustums of the site shown when a decision came since the last time,
+        while a browser is connected (nobody watching: nothing is drawn, and a browser that
+        connects gets the scene of the decision in force at once)."""
+        if self.server is None or not self.server.get_clients():
             return
+        with self._draw_lock:  # the loop's and a new browser's (one drawing at a time)
+            self._redraw()
+
+    def _redraw(self) -> None:
         with self._lock:
             site = self.site
             version = self.core.version(site)
@@ -229,6 +238,9 @@ class ViewerWorker:
 
     # ------------------------------------------------------------------ free views
     def _on_client(self, client: Any) -> None:
+        with self._draw_lock:  # drawn for it at once (nothing is drawn while nobody watches)
+            self._drawn.clear()
+            self._redraw()
         drawing.overview(client, self.core)
 
         @client.camera.on_update
