@@ -49,10 +49,17 @@ class Token(Protocol):
     def undeclare(self) -> None: ...
 
 
+Subscription = Token
+"""A subscription: :meth:`undeclare` ends it (its handler is called no more)."""
+
+
 class Bus(Protocol):
     def publish(self, key: str, payload: bytes) -> None: ...
 
-    def subscribe(self, key: str, handler: Handler) -> None: ...
+    def subscribe(self, key: str, handler: Handler) -> Subscription:
+        """Call ``handler`` for every sample on ``key`` until the subscription is
+        undeclared (most services keep theirs for the session's life)."""
+        ...
 
     def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
         """As :meth:`subscribe`, with each sample's attachment (ROS 2's rmw_zenoh puts its
@@ -99,7 +106,7 @@ class ZenohBus:
                 self._publishers[key] = pub
         pub.put(payload)
 
-    def subscribe(self, key: str, handler: Handler) -> None:
+    def subscribe(self, key: str, handler: Handler) -> Subscription:
         def on_sample(sample) -> None:
             try:
                 handler(str(sample.key_expr), sample.payload.to_bytes())
@@ -107,7 +114,17 @@ class ZenohBus:
                 log.exception("handler for %s failed", key)
 
         with self._lock:
-            self._subscribers.append(self._session.declare_subscriber(key, on_sample))
+            sub = self._session.declare_subscriber(key, on_sample)
+            self._subscribers.append(sub)
+        return _ZenohSubscription(self, sub)
+
+    def _undeclare(self, sub: Any) -> None:
+        with self._lock:
+            if self._closed or sub not in self._subscribers:
+                return
+            self._subscribers.remove(sub)
+        with contextlib.suppress(Exception):  # already gone with the session
+            sub.undeclare()
 
     def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
         def on_sample(sample) -> None:
@@ -172,6 +189,14 @@ class ZenohBus:
             with contextlib.suppress(Exception):  # already gone with the session
                 ent.undeclare()
         self._session.close()
+
+
+class _ZenohSubscription:
+    def __init__(self, bus: ZenohBus, sub: Any) -> None:
+        self._bus, self._sub = bus, sub
+
+    def undeclare(self) -> None:
+        self._bus._undeclare(self._sub)
 
 
 class _ZenohQuery:

@@ -58,9 +58,16 @@ class MemoryBus:
             if key_matches(pattern, key):
                 handler_a(key, payload, attachment)
 
-    def subscribe(self, key: str, handler: Handler) -> None:
+    def subscribe(self, key: str, handler: Handler) -> _MemorySubscription:
+        entry = (key, handler)
         with self._lock:
-            self._subs.append((key, handler))
+            self._subs.append(entry)
+        return _MemorySubscription(self, entry)
+
+    def _unsubscribe(self, entry: tuple[str, Handler]) -> None:
+        with self._lock:
+            if entry in self._subs:
+                self._subs.remove(entry)
 
     def subscribe_attached(self, key: str, handler: AttachedHandler) -> None:
         with self._lock:
@@ -144,3 +151,11 @@ class _MemoryToken:
 
     def undeclare(self) -> None:
         self._bus._drop_token(self.key)
+
+
+class _MemorySubscription:
+    def __init__(self, bus: MemoryBus, entry: tuple[str, Handler]) -> None:
+        self._bus, self._entry = bus, entry
+
+    def undeclare(self) -> None:
+        self._bus._unsubscribe(self._entry)
