@@ -355,18 +355,18 @@ def score_many(
     w = weights
     p_np = _as_unit_float(pred, "pred")
     ts_np = [_as_unit_float(t.image, "truth") for t in truths]
-    for t in ts_np:
-        if t.shape != p_np.shape:
-            raise ValueError(f"image shapes differ: pred {p_np.shape} vs truth {t.shape}")
-    p, ts = _chw(p_np), [_chw(t) for t in ts_np]
+    for t_np in ts_np:
+        if t_np.shape != p_np.shape:
+            raise ValueError(f"image shapes differ: pred {p_np.shape} vs truth {t_np.shape}")
+    p, ts = _chw(p_np), [_chw(t_np) for t_np in ts_np]
     maps = _ssim_maps(p, ts)
     lpips_values: list[float | None] = [None] * len(truths)
     if lpips_fn is not None:
         p32 = p_np.astype(np.float32)
-        t32 = [t.astype(np.float32) for t in ts_np]
+        t32 = [t_np.astype(np.float32) for t_np in ts_np]
         many = getattr(lpips_fn, "many", None)
         values = (list(many(p32, t32)) if callable(many)
-                  else [lpips_fn(p32, t) for t in t32])
+                  else [lpips_fn(p32, one) for one in t32])
         for i, value in enumerate(values):
             lpips_values[i] = float(value)
             if not math.isfinite(lpips_values[i]):  # type: ignore[arg-type]
