@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed-stamp
 PROTO_OUT := services/kit/pb
 
-.PHONY: install up test test-fast fuzz proto lint bench bench-ray bench-live bench-192 bench-multihost figures science docs clean help \
+.PHONY: install up test test-fast fuzz proto lint bench bench-realtime bench-ray bench-live bench-192 bench-multihost figures science docs clean help \
         lock wheelhouse secrets images compose-test monitoring k8s
 
 help:  ## list the targets
@@ -59,6 +59,7 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(PY) -m bench.pipeline --policy mat:70 --time-scale 0.1 --window-s 60
 	$(PY) -m bench.pipeline --policy mat:70 --time-scale 0.3 --window-s 60
 	$(PY) -m bench.pipeline --policy mat:70 --time-scale 1 --window-s 60
+	$(PY) -m bench.realtime
 	$(PY) -m bench.scheduler_learning --seconds 20
 	$(VENV)/bin/aoi3d scene generate --framing rotor --rotor-rpm 6 --out data/turbine-rotor
 	$(PY) -m bench.staleness --dataset data/turbine-rotor
@@ -66,6 +67,9 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 --repeats 2
 	$(PY) -m bench.chaos --minutes 10
 	$(PY) -m bench.soak --minutes 60
+
+bench-realtime: install  ## does `aoi3d up` keep real time on this machine? time scale 1, 1 then 2 workers, 90 s each: renders/s, display lag, CPU per service (bench/results/realtime/; about 6 min; run it idle)
+	$(PY) -m bench.realtime
 
 bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)
 	eval "$$(deploy/engine.sh start)" && deploy/build-images.sh && \

@@ -74,6 +74,7 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
     "live_channel": PortBlock(700, 7747),  # REST 8801…8808
     "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11608 (bench/ros2_sweep.sh)
     "live_default": PortBlock(3300, 9647),  # REST 11401…11408 (bench/live_default.py)
+    "realtime": PortBlock(3400, 9747),     # REST 11501…11508 (bench/realtime.py)
 }
 """The ports of each bench that starts its own pipeline (bench/<name>.py), so that a running
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range
