@@ -263,8 +263,10 @@ def decode_quality(payload: bytes) -> pb.Quality:
 
 def quality_scores(msg: pb.Quality) -> dict[str, float | None]:
     """A Quality's scores by the names the virtual clock's scores have (``psnr_db``,
-    ``ssim``, ``reward``, ``psnr_dynamic_db``; None where absent): what a policy rewarded by
+    ``ssim``, ``reward``, ``psnr_dynamic_db``; None where absent: the reward of a render
+    scored without LPIPS, ``lpips_skipped``): what a policy rewarded by
     quality is told (``policy.observe_quality``)."""
-    return {"psnr_db": msg.psnr_db, "ssim": msg.ssim, "reward": msg.reward,
+    return {"psnr_db": msg.psnr_db, "ssim": msg.ssim,
+            "reward": None if msg.lpips_skipped else msg.reward,
             "psnr_dynamic_db": msg.psnr_dynamic_db if msg.HasField("psnr_dynamic_db")
             else None}

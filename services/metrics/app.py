@@ -24,6 +24,12 @@ Scores each render of the held-out novel view against the ground-truth frame of 
 time (PSNR, SSIM and, when its weights are cached, LPIPS) and publishes a `Quality` message
 per render. `reward_terms` says which metrics the reward was built from.
 
+Sampling: LPIPS runs on at most `lpips_per_s` renders a wall second (0: every render), so
+that scoring keeps up at real time; the others are scored with PSNR and SSIM (and their
+dynamic and display-time forms) alone and marked `lpips_skipped`: no LPIPS and no reward
+(it needs LPIPS), counted in `aoi3d_quality_lpips_skipped_total`. The means below are over
+the entries that have the value.
+
 Pairing: the truth frame generated exactly at the render's time t, else the newest generated
 within one generation period before t; otherwise the render is dropped and counted in
 `aoi3d_messages_rejected_total{reason="no_truth"}` — after a wait of up to `truth_wait_s` when
@@ -61,10 +67,14 @@ class QualityEntry(BaseModel):
                         examples=[0.81])
     lpips: float | None = Field(description="LPIPS distance (AlexNet, v0.1); null while LPIPS "
                                             "is unavailable (never 0).", examples=[0.21])
-    reward: float = Field(description="Weighted sum of the terms in reward_terms.",
-                          examples=[0.891])
-    reward_terms: list[str] = Field(description="Metrics the reward was built from.",
+    reward: float | None = Field(description="Weighted sum of the terms in reward_terms; "
+                                             "null when lpips_skipped.", examples=[0.891])
+    reward_terms: list[str] = Field(description="Metrics the reward was built from (none when "
+                                                "lpips_skipped).",
                                     examples=[["psnr", "ssim", "lpips"]])
+    lpips_skipped: bool = Field(False, description="LPIPS left out by the sampling "
+                                                   "(lpips_per_s): lpips, lpips_display, reward "
+                                                   "and reward_display are null.")
     training_step: int = Field(description="Trainer step count when rendered.", examples=[5120])
     n_views: int = Field(description="Frames in the training set when rendered.", examples=[12])
     backend: str = Field(description="Radiance-field backend that rendered.", examples=["grid"])
@@ -111,7 +121,8 @@ class QualityEntry(BaseModel):
                    display_time_ms=record.display_time_ms,
                    psnr_display_db=record.psnr_display_db, ssim_display=record.ssim_display,
                    lpips_display=record.lpips_display, reward_display=record.reward_display,
-                   psnr_dynamic_display_db=record.psnr_dynamic_display_db)
+                   psnr_dynamic_display_db=record.psnr_dynamic_display_db,
+                   lpips_skipped=record.lpips_skipped)
 
 
 class QualitySummary(BaseModel):
@@ -134,10 +145,12 @@ class QualitySummary(BaseModel):
     mean_ssim: float | None = Field(description="Mean SSIM over the window; null if empty.",
                                     examples=[0.8])
     mean_lpips: float | None = Field(
-        description="Mean LPIPS over the window; null if empty or LPIPS unavailable.",
-        examples=[None])
-    mean_reward: float | None = Field(description="Mean reward over the window; null if empty.",
-                                      examples=[0.88])
+        description="Mean LPIPS over the window's entries that have one; null if none (LPIPS "
+                    "unavailable, or every entry lpips_skipped).", examples=[None])
+    mean_reward: float | None = Field(description="Mean reward over the window's entries that "
+                                                  "have one; null if none.", examples=[0.88])
+    lpips_skipped_window: int = Field(0, description="Entries of the window scored without "
+                                                     "LPIPS (lpips_skipped).", examples=[35])
     dynamic_window: int = Field(
         description="Entries of the window with a dynamic-region PSNR (the dynamic means are "
                     "taken over these).", examples=[48])
@@ -187,8 +200,9 @@ def get_quality(
         reward_terms=list(worker.reward_terms),
         mean_psnr_db=mean_or_none([r.psnr_db for r in records]),
         mean_ssim=mean_or_none([r.ssim for r in records]),
-        mean_lpips=mean_or_none([r.lpips for r in records]),
-        mean_reward=mean_or_none([r.reward for r in records]),
+        mean_lpips=mean_of_present([r.lpips for r in records]),
+        mean_reward=mean_of_present([r.reward for r in records]),
+        lpips_skipped_window=sum(r.lpips_skipped for r in records),
         dynamic_window=sum(r.psnr_dynamic_db is not None for r in records),
         mean_psnr_dynamic_db=mean_of_present([r.psnr_dynamic_db for r in records]),
         mean_ssim_dynamic=mean_of_present([r.ssim_dynamic for r in records]),
@@ -285,7 +299,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             weights=settings.reward_weights(), lpips_fn=lpips[0],
             max_skew_ms=common.skew_ms, stall_s=common.stall_s,
             ledger_open_s=settings.ledger_open_s, state_dir=settings.state_dir,
-            truth_wait_s=settings.truth_wait_s)
+            truth_wait_s=settings.truth_wait_s, lpips_per_s=settings.lpips_per_s)
 
     app = service_app(title="aoi3d metrics", description=DESCRIPTION, settings=settings,
                       build_worker=build_worker, bus=bus, per_site=True)

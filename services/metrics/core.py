@@ -27,7 +27,7 @@ when no truth frame was generated in [display − C, display].
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import cast
 
 import numpy as np
@@ -70,7 +70,8 @@ class QualityRecord:
     psnr_db: float
     ssim: float
     lpips: float | None
-    reward: float
+    reward: float | None
+    """None when LPIPS was skipped (``lpips_skipped``): the reward needs it."""
     reward_terms: tuple[str, ...]
     training_step: int
     n_views: int
@@ -92,6 +93,9 @@ class QualityRecord:
     lpips_display: float | None = None
     reward_display: float | None = None
     psnr_dynamic_display_db: float | None = None
+    lpips_skipped: bool = False
+    """LPIPS left out by the metrics service's sampling: ``lpips``, ``lpips_display``,
+    ``reward`` and ``reward_display`` are None, ``reward_terms`` empty."""
 
 
 @dataclass(frozen=True)
@@ -146,8 +150,10 @@ class MetricsCore:
         self.ring.add(truth)
         return truth
 
-    def score(self, payload: bytes, now_ms: float) -> Scored:
-        """Pair a render with its truth and score it; :class:`Rejected` when it cannot be."""
+    def score(self, payload: bytes, now_ms: float, *, lpips: bool = True) -> Scored:
+        """Pair a render with its truth and score it; :class:`Rejected` when it cannot be.
+        ``lpips`` False (the service's sampling): no LPIPS for this render, so no reward
+        either; the Quality says so (``lpips_skipped``) when LPIPS is available at all."""
         render, _camera = decode_render(payload)
         self._ahead("render for", render.time_ms, now_ms)
         truth = self.ring.pair(render.time_ms, self.period_ms)
@@ -159,7 +165,12 @@ class MetricsCore:
                            f"render is {pred.shape[1]}x{pred.shape[0]} but the ground truth is "
                            f"{gt.shape[1]}x{gt.shape[0]}")
         display_ms = render.ready_ms if render.HasField("ready_ms") else now_ms
-        q, shown, shown_truth = self._score_both(pred, truth, display_ms)
+        skipped = not lpips and self.lpips_fn is not None
+        q, shown, shown_truth = self._score_both(pred, truth, display_ms,
+                                                 None if skipped else self.lpips_fn)
+        if skipped:  # PSNR and SSIM alone are not the reward: none rather than another one
+            q = replace(q, reward=math.nan, reward_terms=())
+            shown = None if shown is None else replace(shown, reward=math.nan)
         dyn = q.dynamic
         msg = pb.Quality(decision_id=render.decision_id,
                          decision_incarnation=render.decision_incarnation,
@@ -168,7 +179,8 @@ class MetricsCore:
                          reward=q.reward, reward_terms=list(q.reward_terms),
                          training_step=render.training_step,
                          truth_time_ms=truth.generation_ms, site=self.site,
-                         render_steps=render.render_steps, ready_ms=display_ms)
+                         render_steps=render.render_steps, ready_ms=display_ms,
+                         lpips_skipped=skipped)
         if q.lpips is not None:
             msg.lpips = q.lpips  # proto3 optional: left unset (absent) when unavailable
         if dyn is not None:
@@ -190,7 +202,8 @@ class MetricsCore:
         record = QualityRecord(
             decision_id=render.decision_id, time_ms=render.time_ms,
             truth_time_ms=truth.generation_ms, scene_time_ms=truth.scene_time_ms,
-            psnr_db=q.psnr_db, ssim=q.ssim, lpips=q.lpips, reward=q.reward,
+            psnr_db=q.psnr_db, ssim=q.ssim, lpips=q.lpips,
+            reward=None if skipped else q.reward, lpips_skipped=skipped,
             reward_terms=q.reward_terms, training_step=render.training_step,
             n_views=render.n_views, backend=render.backend, lag_ms=now_ms - render.time_ms,
             psnr_dynamic_db=dyn.psnr_db if dyn else None,
@@ -199,13 +212,14 @@ class MetricsCore:
             **({} if shown is None else dict(
                 display_time_ms=display_ms, psnr_display_db=shown.psnr_db,
                 ssim_display=shown.ssim, lpips_display=shown.lpips,
-                reward_display=shown.reward,
+                reward_display=None if skipped else shown.reward,
                 psnr_dynamic_display_db=shown.dynamic.psnr_db if shown.dynamic else None)))
         missing = ("no_history" if dyn is None else
                    "empty_mask" if dyn.psnr_db is None else None)
         return Scored(msg, record, missing)
 
-    def _score_both(self, pred: np.ndarray, truth: TruthFrame, display_ms: float
+    def _score_both(self, pred: np.ndarray, truth: TruthFrame, display_ms: float,
+                    lpips_fn: LpipsFn | None
                     ) -> tuple[QualityScore, QualityScore | None, TruthFrame | None]:
         """The render against the truth at its decision time and against the truth at
         ``display_ms`` (the newest generated in [display − C, display]), in one
@@ -228,12 +242,12 @@ class MetricsCore:
             else:
                 shown = None
         try:
-            scores = score_many(pred, truths, self.weights, lpips_fn=self.lpips_fn)
+            scores = score_many(pred, truths, self.weights, lpips_fn=lpips_fn)
         except ValueError as err:
             if len(truths) == 1:
                 raise Rejected(RejectReason.UNSCORABLE, str(err)) from err
             try:  # the display's truth could not be scored: the decision's alone
-                return score_many(pred, truths[:1], self.weights, self.lpips_fn)[0], None, None
+                return score_many(pred, truths[:1], self.weights, lpips_fn)[0], None, None
             except ValueError as err1:
                 raise Rejected(RejectReason.UNSCORABLE, str(err1)) from err1
         if shown is None:

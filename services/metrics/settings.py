@@ -55,6 +55,14 @@ class Settings(ServiceSettings):
         True, description="Compute LPIPS when its weights are cached (`python -m aoi3d.lpips "
                           "fetch`, run by `make install`); without them, or when false, LPIPS is "
                           "null and the reward uses PSNR and SSIM only.")
+    lpips_per_s: float = Field(
+        4.0, ge=0, le=10_000, allow_inf_nan=False,
+        description="LPIPS on at most this many renders a wall second, evenly (0: on every "
+                    "render). LPIPS is most of the scoring's CPU; at time scale 1 the pool "
+                    "renders 8-13 a second on 2 cores, and scoring them all took a quarter of a "
+                    "core from the reconstruction. The renders left out are scored with PSNR "
+                    "and SSIM alone and marked lpips_skipped (no reward: it needs LPIPS). Set 0 "
+                    "for online PPO (learn=true) to be rewarded for every render.")
     lpips_net: Literal["alex", "vgg"] = Field(
         "alex", description="LPIPS backbone: alex (the paper's) or vgg (VGG16).")
     truth_wait_s: float = Field(

@@ -16,6 +16,7 @@ import threading
 import time
 from collections import deque
 from pathlib import Path
+from typing import cast
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram
 
@@ -33,6 +34,7 @@ from services.metrics.core import (
     or_nan,
 )
 from services.metrics.ledger import render_header
+from services.metrics.sampling import LpipsSampler
 
 log = logging.getLogger(__name__)
 
@@ -51,7 +53,8 @@ class MetricsWorker:
                  inbox_size: int = 256, weights: RewardWeights | None = None,
                  lpips_fn: LpipsFn | None = None, max_skew_ms: float = 50.0,
                  stall_s: float = 30.0, ledger_open_s: float = 150.0,
-                 state_dir: Path | None = None, truth_wait_s: float = 5.0) -> None:
+                 state_dir: Path | None = None, truth_wait_s: float = 5.0,
+                 lpips_per_s: float = 0.0) -> None:
         self.core = MetricsCore(truth_period_ms=truth_period_ms, truth_frames=truth_frames,
                                 weights=weights, lpips_fn=lpips_fn, max_skew_ms=max_skew_ms,
                                 site=site)
@@ -61,6 +64,7 @@ class MetricsWorker:
         self._clock = clock
         self._quality_beat = Heartbeat(stall_s)  # a Quality published
         self._lpips_fn = lpips_fn
+        self._lpips_sampler = LpipsSampler(lpips_per_s)  # used by the scoring thread only
         self._inbox = Inbox(inbox_size, on_drop=lambda: self._m_inbox_dropped.inc())
         self._history: deque[QualityRecord] = deque(maxlen=history)
         self._truth_wait_s = float(truth_wait_s)
@@ -90,8 +94,13 @@ class MetricsWorker:
                              "NaN before the first.", registry=registry)
         self._m_ssim = Gauge("aoi3d_render_ssim", "SSIM of the latest scored render; NaN "
                              "before the first.", registry=registry)
-        self._m_reward = Gauge("aoi3d_reward", "Reward of the latest scored render; NaN before "
-                               "the first.", registry=registry)
+        self._m_reward = Gauge("aoi3d_reward", "Reward of the latest render scored with LPIPS "
+                               "(aoi3d_quality_lpips_skipped); NaN before the first.",
+                               registry=registry)
+        self._m_lpips_skipped = Counter(
+            "aoi3d_quality_lpips_skipped", "Renders scored without LPIPS, so without a reward, "
+            "by the sampling (lpips_per_s); their PSNR and SSIM are in every series.",
+            registry=registry)
         self._m_psnr_display = Gauge(
             "aoi3d_render_psnr_display_db", "PSNR of the latest scored render against the "
             "truth at the time it was ready (display time, dB); NaN when it has none.",
@@ -139,7 +148,8 @@ class MetricsWorker:
                                      registry=registry)
         self._h_ssim = Histogram("aoi3d_quality_ssim", "SSIM" + every, buckets=unit,
                                  registry=registry)
-        self._h_reward = Histogram("aoi3d_quality_reward", "Reward" + every,
+        self._h_reward = Histogram("aoi3d_quality_reward", "Reward" + every.replace(
+                                       "scored render", "render scored with LPIPS"),
                                    buckets=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
                                    registry=registry)
         self._h_lpips = None
@@ -264,8 +274,10 @@ class MetricsWorker:
         self._waiting = keep
 
     def _on_render(self, payload: bytes, may_wait: bool = True) -> None:
+        now_s = time.monotonic()
+        lpips = self._lpips_sampler.due(now_s)
         try:
-            scored = self.core.score(payload, self._clock.now_ms())
+            scored = self.core.score(payload, self._clock.now_ms(), lpips=lpips)
         except Rejected as err:
             header = render_header(payload)  # parsed once, only when scoring failed
             if (may_wait and err.reason == RejectReason.NO_TRUTH and header is not None
@@ -274,6 +286,8 @@ class MetricsWorker:
             ids = None if header is None or not header[1] else header[:2]
             self._guarded(self._keys.render, self.ledger.on_render, ids, err)
             raise
+        if lpips:
+            self._lpips_sampler.taken(now_s)
         self._bus.publish(self._keys.quality, scored.message.SerializeToString())
         record, missing = scored.record, scored.dynamic_missing
         with self._lock:
@@ -285,7 +299,11 @@ class MetricsWorker:
         self._quality_beat.beat()
         self._m_psnr.set(record.psnr_db)
         self._m_ssim.set(record.ssim)
-        self._m_reward.set(record.reward)
+        if record.lpips_skipped:
+            self._m_lpips_skipped.inc()
+        else:  # a skipped render has no reward: the gauge keeps the last render's that has
+            self._m_reward.set(cast("float", record.reward))
+            self._h_reward.observe(cast("float", record.reward))
         self._m_psnr_dyn.set(or_nan(record.psnr_dynamic_db))
         self._m_psnr_display.set(or_nan(record.psnr_display_db))
         if record.display_time_ms is not None and record.display_time_ms >= record.time_ms:
@@ -298,7 +316,6 @@ class MetricsWorker:
             self._m_lpips.set(record.lpips)
         self._h_psnr.observe(record.psnr_db)
         self._h_ssim.observe(record.ssim)
-        self._h_reward.observe(record.reward)
         if record.psnr_dynamic_db is not None:
             self._h_psnr_dyn.observe(record.psnr_dynamic_db)
         if self._h_lpips is not None and record.lpips is not None:

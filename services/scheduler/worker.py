@@ -287,7 +287,7 @@ class SchedulerWorker:
         """Validate a Quality and, while learning, hand its reward to the learner."""
         try:
             msg = decode_quality(payload)
-            if not math.isfinite(msg.reward):
+            if not msg.lpips_skipped and not math.isfinite(msg.reward):
                 raise Rejected(RejectReason.NON_FINITE,
                                f"quality reward is not finite ({msg.reward})")
         except Rejected as err:
@@ -300,5 +300,5 @@ class SchedulerWorker:
             policy = self._policy
             if policy.wants_quality:  # a policy rewarded by quality (adaptive:bandit)
                 policy.observe_quality(msg.time_ms, quality_scores(msg))
-        if learner is not None:
+        if learner is not None and not msg.lpips_skipped:  # a skipped render has no reward
             learner.reward(int(msg.decision_id), msg.time_ms, msg.reward)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import itertools
 import math
 import time
 from collections.abc import Callable, Iterator
@@ -353,6 +354,44 @@ def test_lpips_when_available_is_published_and_enters_the_reward(make_harness) -
     assert value(h.client.get("/metrics").text, "aoi3d_render_lpips") == 0.25
 
 
+def test_lpips_sampling_marks_the_renders_it_leaves_out(make_harness) -> None:
+    """lpips_per_s: LPIPS (and so the reward) on at most that many renders a wall second; the
+    others keep PSNR and SSIM, are marked lpips_skipped, have no reward anywhere (Quality NaN,
+    REST null, no gauge or histogram sample) and are counted."""
+    calls: list[int] = []
+
+    def lpips_fn(pred, gt) -> float:
+        calls.append(1)
+        return 0.25
+
+    h = make_harness(lpips_fn=lpips_fn, settings_kw={"lpips_per_s": 0.001})  # 1 per 1000 s
+    first = h.score(30.0, noisy(truth_image(30.0), seed=3))
+    second = h.score(60.0, noisy(truth_image(60.0), seed=4))
+    assert not first.lpips_skipped and first.lpips == 0.25
+    assert first.reward == pytest.approx(0.02 * first.psnr_db + 0.5 * first.ssim - 0.25)
+    assert second.lpips_skipped and not second.HasField("lpips")
+    assert math.isnan(second.reward) and list(second.reward_terms) == []
+    assert 10.0 < second.psnr_db < 40.0 and 0.0 < second.ssim < 1.0  # scored all the same
+    assert len(calls) == 1  # LPIPS did not run for the second
+    doc = h.client.get("/quality").json()
+    entry = doc["history"][-1]
+    assert entry["lpips_skipped"] and entry["reward"] is None and entry["lpips"] is None
+    assert doc["summary"]["lpips_skipped_window"] == 1
+    assert doc["summary"]["mean_reward"] == pytest.approx(first.reward)
+    assert doc["summary"]["mean_lpips"] == 0.25
+    text = h.client.get("/metrics").text
+    assert value(text, "aoi3d_quality_lpips_skipped_total") == 1
+    assert value(text, "aoi3d_quality_reward_count") == 1
+    assert value(text, "aoi3d_reward") == pytest.approx(first.reward)
+
+
+def test_lpips_sampling_off_scores_every_render(make_harness) -> None:
+    h = make_harness(lpips_fn=lambda pred, gt: 0.25, settings_kw={"lpips_per_s": 0})
+    qs = [h.score(t, noisy(truth_image(t), seed=int(t))) for t in (30.0, 60.0, 90.0)]
+    assert all(q.lpips == 0.25 and not q.lpips_skipped for q in qs)
+    assert value(h.client.get("/metrics").text, "aoi3d_quality_lpips_skipped_total") == 0
+
+
 def test_lpips_setting_loads_the_cached_weights(make_harness, monkeypatch) -> None:
     calls: list[str] = []
 
@@ -489,3 +528,21 @@ def test_every_score_goes_into_histograms(make_harness) -> None:
     assert value(text, "aoi3d_quality_ssim_count") == 4
     assert value(text, "aoi3d_quality_reward_sum") == pytest.approx(sum(q.reward for q in scores))
     assert value(text, "aoi3d_quality_lpips_count") is None  # no LPIPS here: no series
+
+
+def test_lpips_sampler_takes_at_most_its_rate_evenly() -> None:
+    from services.metrics.sampling import LpipsSampler
+
+    s = LpipsSampler(4.0)
+    taken = []
+    for i in range(100):  # a render every 50 ms for 5 s
+        now = i * 0.05
+        if s.due(now):
+            s.taken(now)
+            taken.append(now)
+    assert len(taken) == 20 and all(b - a >= 0.25 - 1e-9 for a, b in itertools.pairwise(taken))
+    every = LpipsSampler(0.0)
+    assert all(every.due(i * 0.001) for i in range(10))
+    for bad in (-1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match="per_s"):
+            LpipsSampler(bad)

@@ -325,10 +325,13 @@ def test_odd_rewards_are_ignored_and_counted(make_harness, ckpt: Path) -> None:
     other = pb.Quality.FromString(quality(h, d2.decision_id, d2.time_ms, 0.5))
     other.decision_incarnation += 1  # d2's id and time, but a decision of another scheduler
     h.put(KEYS.quality, other.SerializeToString())
+    skipped = pb.Quality.FromString(quality(h, d2.decision_id, d2.time_ms, math.nan))
+    skipped.lpips_skipped = True  # scored without LPIPS (metrics' sampling): no reward to use
+    h.put(KEYS.quality, skipped.SerializeToString())
     nan_reward = pb.Quality.FromString(quality(h, d2.decision_id, d2.time_ms, 0.0))
     nan_reward.reward = math.nan
     h.put(KEYS.quality, nan_reward.SerializeToString())
-    wait_for(lambda: ppo_metrics(h)["rejected_non_finite"] == 1)
+    wait_for(lambda: ppo_metrics(h)["rejected_non_finite"] == 1)  # the NaN one, not skipped
     m = ppo_metrics(h)
     assert (m["ignored_unknown"], m["ignored_time_mismatch"], m["ignored_duplicate"]) == (1, 1, 1)
     assert m["rejected_malformed"] == 1

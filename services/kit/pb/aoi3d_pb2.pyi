@@ -268,7 +268,7 @@ class Outcome(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., incarnation: _Optional[int] = ..., site: _Optional[str] = ..., state: _Optional[str] = ..., reason: _Optional[_Union[EndReason, str]] = ..., detail: _Optional[str] = ...) -> None: ...
 
 class Quality(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site", "display_time_ms", "psnr_display_db", "ssim_display", "lpips_display", "reward_display", "psnr_dynamic_display_db", "display_truth_time_ms", "render_steps", "ready_ms")
+    __slots__ = ("decision_id", "time_ms", "scene_time_ms", "psnr_db", "ssim", "lpips", "reward", "reward_terms", "training_step", "truth_time_ms", "psnr_dynamic_db", "ssim_dynamic", "dynamic_fraction", "decision_incarnation", "site", "display_time_ms", "psnr_display_db", "ssim_display", "lpips_display", "reward_display", "psnr_dynamic_display_db", "display_truth_time_ms", "render_steps", "ready_ms", "lpips_skipped")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     SCENE_TIME_MS_FIELD_NUMBER: _ClassVar[int]
@@ -293,6 +293,7 @@ class Quality(_message.Message):
     DISPLAY_TRUTH_TIME_MS_FIELD_NUMBER: _ClassVar[int]
     RENDER_STEPS_FIELD_NUMBER: _ClassVar[int]
     READY_MS_FIELD_NUMBER: _ClassVar[int]
+    LPIPS_SKIPPED_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     scene_time_ms: float
@@ -317,7 +318,8 @@ class Quality(_message.Message):
     display_truth_time_ms: float
     render_steps: int
     ready_ms: float
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ..., render_steps: _Optional[int] = ..., ready_ms: _Optional[float] = ...) -> None: ...
+    lpips_skipped: bool
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., scene_time_ms: _Optional[float] = ..., psnr_db: _Optional[float] = ..., ssim: _Optional[float] = ..., lpips: _Optional[float] = ..., reward: _Optional[float] = ..., reward_terms: _Optional[_Iterable[str]] = ..., training_step: _Optional[int] = ..., truth_time_ms: _Optional[float] = ..., psnr_dynamic_db: _Optional[float] = ..., ssim_dynamic: _Optional[float] = ..., dynamic_fraction: _Optional[float] = ..., decision_incarnation: _Optional[int] = ..., site: _Optional[str] = ..., display_time_ms: _Optional[float] = ..., psnr_display_db: _Optional[float] = ..., ssim_display: _Optional[float] = ..., lpips_display: _Optional[float] = ..., reward_display: _Optional[float] = ..., psnr_dynamic_display_db: _Optional[float] = ..., display_truth_time_ms: _Optional[float] = ..., render_steps: _Optional[int] = ..., ready_ms: _Optional[float] = ..., lpips_skipped: _Optional[bool] = ...) -> None: ...
 
 class ViewRequest(_message.Message):
     __slots__ = ("site", "format", "pose", "intrinsics", "resolution", "alpha")
