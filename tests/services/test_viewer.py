@@ -118,3 +118,41 @@ def test_the_status_line_names_the_decision_and_the_model_shown() -> None:
     text = status_text(doc, {"decision_id": "6", "training_step": "30", "worker": "w1"})
     assert text.startswith("**site1** decision 7 (mat, Γ 70 ms): 2 of 3 cameras used")
     assert text.endswith("view: decision 6, step 30, worker w1")
+
+
+
+class _Browser:
+    """What the worker touches of a viser client when one connects (its camera and an atomic
+    block): the real ones need viser's browser client (tests/browser drives one)."""
+
+    def __init__(self, client_id: int) -> None:
+        self.client_id = client_id
+        self.camera = SimpleNamespace(on_update=lambda fn: fn)
+
+    def atomic(self):
+        import contextlib
+
+        return contextlib.nullcontext()
+
+
+def test_delivered_frames_are_kept_only_while_a_browser_is_connected(viewer) -> None:
+    """The thumbnails' frames (600 a second at the default rig) are subscribed at the first
+    browser and undeclared when the last one leaves."""
+    from tests.support.network import frame
+
+    client, bus = viewer
+    worker = client.app.state.worker
+    site = worker.core.sites[worker.site]
+    bus.publish(KEYS.edge_frame(1), frame(1, 100.0))
+    assert 1 not in site.frames  # nobody watching: not even received
+    first, second = _Browser(1), _Browser(2)
+    worker._on_client(first)
+    worker._on_client(second)
+    bus.publish(KEYS.edge_frame(1), frame(1, 200.0))
+    assert site.frame_ms.get(1) == 200.0
+    worker._on_client_gone(first)  # one still watches
+    bus.publish(KEYS.edge_frame(1), frame(1, 300.0))
+    assert site.frame_ms[1] == 300.0
+    worker._on_client_gone(second)
+    bus.publish(KEYS.edge_frame(1), frame(1, 400.0))
+    assert site.frame_ms[1] == 300.0
