@@ -202,7 +202,12 @@ def decode_frame(payload: bytes, camera_ids: set[int] | frozenset[int] | None = 
                  size: tuple[int, int] | None = None) -> FrameData:
     """Parse and validate a Frame; ``camera_ids`` restricts the accepted cameras and ``size``
     = (width, height), when given, is the only accepted image size (:func:`check_size`)."""
-    msg = _parse(pb.Frame, payload)
+    return frame_data(_parse(pb.Frame, payload), camera_ids, size)
+
+
+def frame_data(msg: pb.Frame, camera_ids: set[int] | frozenset[int] | None = None,
+               size: tuple[int, int] | None = None) -> FrameData:
+    """:func:`decode_frame`'s validation of a Frame already parsed (one a Job carries)."""
     if camera_ids is not None and msg.camera_id not in camera_ids:
         raise Rejected(RejectReason.UNKNOWN_CAMERA,
                        f"camera id {msg.camera_id} is not part of this rig")

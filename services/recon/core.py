@@ -7,11 +7,15 @@ the default ``fresh`` carry each job is an independent reconstruction; ``warm`` 
 carry this worker's own model from job to job (a new one when the job's backend, seed, scene
 box or model epoch changes).
 
-Free views and exports: after each job the worker keeps a snapshot of the model that rendered
-it (:class:`aoi3d.field.snapshot.ModelSnapshot`, one per site: its latest), and
+Free views and exports: after a job the worker keeps a snapshot of the model that rendered
+it (:class:`aoi3d.field.snapshot.ModelSnapshot`, one per site: its latest) — after every job
+while views are being asked for (one in the last :data:`VIEW_INTEREST_S`), else only the first
+of each site (a copy of the model a job nobody views is CPU the next job lacks) — and
 :meth:`ReconCore.view` answers a :class:`pb.ViewRequest` from it — a render from any pose
 (checked by :func:`aoi3d.freeview.check_pose`), a point cloud or a mesh as PLY — without
-touching the model the jobs train. (With the ``fork`` carry the snapshot is the continuously
+touching the model the jobs train; a request that finds its site's snapshot older than the
+site's last job waits for the next job's (at most :data:`VIEW_WAIT_S`, then the older one
+answers). (With the ``fork`` carry the snapshot is the continuously
 trained model the forks start from; with the others, the model that rendered the decision.)
 
 Each frame is given its age at the decision (decision time − its generation time), which a
@@ -35,7 +39,7 @@ from aoi3d.field import field_config as make_field_config
 from aoi3d.field.carry import Reconstruction, RenderedDecision, WarmStart
 from aoi3d.field.snapshot import ModelSnapshot, ply_bytes
 from aoi3d.freeview import MAX_VIEW_SIDE, PoseError, check_pose, check_size
-from services.kit.codec import camera_from_pb, decode_frame, encode_png
+from services.kit.codec import camera_from_pb, encode_png, frame_data
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected, RejectReason
 
@@ -70,6 +74,10 @@ class Latest:
     time_ms: float
 
 
+VIEW_INTEREST_S = 60.0
+"""Seconds after a view request during which every job's model is snapshot."""
+VIEW_WAIT_S = 2.0
+"""Longest a view request waits for a snapshot of its site's last job's model."""
 EXPORT_RESOLUTION = 96
 """Lattice points a side of an export unless the request says (96³ ≈ 885 k queries)."""
 EXPORT_ALPHA = 0.1
@@ -102,6 +110,11 @@ class ReconCore:
         self.max_view_side = MAX_VIEW_SIDE
         self._latest: dict[str, Latest] = {}
         self._latest_lock = threading.Lock()
+        self._latest_cond = threading.Condition(self._latest_lock)
+        self._last_job: dict[str, int] = {}
+        """site → decision id of the last job rendered (its snapshot may be older)."""
+        self._view_asked_s: float | None = None  # monotonic time of the last view request
+        self.snapshots = 0
         self.views = 0
 
     def _config(self, name: str) -> FieldConfig:
@@ -155,7 +168,7 @@ class ReconCore:
         views, gens, cams, rejected = [], [], [], 0
         for frame in job.frames:
             try:
-                data = decode_frame(frame.SerializeToString())
+                data = frame_data(frame)
                 age = max(0.0, float(job.decision.time_ms) - float(data.generation_ms))
                 views.append(TrainView(camera=data.camera, image=data.rgb(),
                                        age_ms=age if math.isfinite(age) else None))
@@ -186,14 +199,39 @@ class ReconCore:
         return Outcome(render, rendered, rejected)
 
     def keep_latest(self, job: pb.Job) -> None:
-        """Snapshot the model that just rendered ``job`` as its site's latest (call it after
-        the render is published: the copy never delays a decision's render)."""
+        """Snapshot the model that just rendered ``job`` as its site's latest, when views are
+        being asked for or the site has none yet (call it after the render is published: the
+        copy never delays a decision's render)."""
         if self._rec is None:
             return
-        latest = Latest(ModelSnapshot(self._rec.trainer), int(job.decision.decision_id),
+        site, decision_id = job.site or "site1", int(job.decision.decision_id)
+        with self._latest_cond:
+            self._last_job[site] = decision_id
+            asked = self._view_asked_s
+            if site in self._latest and (asked is None
+                                         or time.monotonic() - asked > VIEW_INTEREST_S):
+                return
+        latest = Latest(ModelSnapshot(self._rec.trainer), decision_id,
                         float(job.decision.time_ms))
-        with self._latest_lock:
-            self._latest[job.site or "site1"] = latest
+        with self._latest_cond:
+            self._latest[site] = latest
+            self.snapshots += 1
+            self._latest_cond.notify_all()
+
+    def _latest_for_view(self, site: str) -> Latest | None:
+        """The site's snapshot for a view: that of its last job, waited for (at most
+        :data:`VIEW_WAIT_S`) when the one kept is older; marks views as asked for."""
+        deadline = time.monotonic() + VIEW_WAIT_S
+        with self._latest_cond:
+            self._view_asked_s = time.monotonic()
+            while True:
+                latest = self._latest.get(site)
+                left = deadline - time.monotonic()
+                last = self._last_job.get(site)
+                if left <= 0 or last is None or (latest is not None
+                                                 and latest.decision_id == last):
+                    return latest  # (no job of the site here yet: none to wait for)
+                self._latest_cond.wait(left)
 
     def latest(self, site: str) -> Latest | None:
         with self._latest_lock:
@@ -204,7 +242,7 @@ class ReconCore:
         ``error``/``reason`` say why not (no model of that site yet, a bad pose or size, an
         unknown format)."""
         t0 = time.monotonic()
-        latest = self.latest(req.site or "site1")
+        latest = self._latest_for_view(req.site or "site1")
         if latest is None:
             return pb.ViewReply(error=f"worker {self.worker_id} has no model of site "
                                       f"{req.site!r} yet", reason="no_model",

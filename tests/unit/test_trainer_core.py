@@ -212,3 +212,47 @@ def test_the_job_trains_the_decisions_own_budget(dataset: SceneDataset) -> None:
         job = pb.WorkReply.FromString(core.job(assignment, 1.5, settings)).job
         assert job.render_steps == (12 if budget is None else budget)
         pool.request(Report("w", done=assignment.decision.key, rendered=True), 1.6)
+
+
+def test_the_model_is_snapshot_for_views_only_while_views_are_asked_for(
+        dataset: SceneDataset, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A copy of the model per job is CPU the next job lacks: a site's first job is kept, the
+    others only within VIEW_INTEREST_S of a view request; a request that finds an older
+    snapshot than the site's last job waits for the next (VIEW_WAIT_S, then the older one)."""
+    import services.recon.core as recon_core
+
+    monkeypatch.setattr(recon_core, "VIEW_WAIT_S", 0.2)
+    pool = Dispatcher()
+    core = make_core(dataset, pool)
+    pool.joined("w", 0.0)
+    recon = ReconCore(worker_id="w", device="cpu", configs=CONFIGS)
+    settings = RenderSettings("grid", "stream", 3, 3, cold_steps=7, warm_max_gap_ms=1e6)
+    view = pb.ViewRequest(site="north", pose=pb.Pose(c2w=np.asarray(
+        dataset.cameras[dataset.heldout_id].c2w, dtype=np.float64).reshape(-1).tolist()),
+        intrinsics=pb.Intrinsics(fx=20.0, fy=20.0, cx=8.0, cy=6.0, width=16, height=12))
+
+    done = []
+
+    def job_at(i: int) -> pb.Job:
+        for cam in (1, 2):
+            core.on_frame(frame_payload(dataset, cam, 100.0 * i), now_ms=100.0 * i)
+        core.on_decision(decision_payload(i, 100.0 * i, [(1, 100.0 * i), (2, 100.0 * i)]),
+                         now_ms=100.0 * i, now_s=float(i))
+        last = done[-1] if done else None
+        assignment = pool.request(Report("w", done=last, rendered=last is not None,
+                                         max_wait_s=1.0), float(i))
+        job = pb.WorkReply.FromString(core.job(assignment, float(i), settings)).job
+        recon.run(job)
+        recon.keep_latest(job)
+        done.append(assignment.decision.key)
+        return job
+
+    job_at(1)
+    job_at(2)
+    assert recon.snapshots == 1  # nobody asked: the first job's only
+    stale = recon.view(view)
+    assert not stale.error and stale.decision_id == 1  # the older one, after the wait
+    job_at(3)  # views were asked for: this job's model is kept
+    assert recon.snapshots == 2
+    fresh = recon.view(view)
+    assert not fresh.error and fresh.decision_id == 3 and len(fresh.data) > 0
