@@ -52,7 +52,7 @@ lint: install  ## ruff, the import contracts (lint-imports; make test runs them 
 	$(VENV)/bin/lint-imports
 	$(VENV)/bin/mypy
 
-bench: install bench-ray  ## benchmarks (results under bench/results/; about 110 minutes)
+bench: install bench-ray  ## benchmarks (results under bench/results/; about 115 minutes)
 	$(PY) -m bench.channel
 	$(PY) -m bench.fields
 	$(PY) -m bench.recon
@@ -68,7 +68,7 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 110
 	$(PY) -m bench.chaos --minutes 10
 	$(PY) -m bench.soak --minutes 60
 
-bench-realtime: install  ## does `aoi3d up` keep real time on this machine? time scale 1, 1 then 2 workers, 90 s each: renders/s, display lag, CPU per service (bench/results/realtime/; about 6 min; run it idle)
+bench-realtime: install  ## does `aoi3d up` keep real time on this machine? time scale 1, 1 then 2 workers, 90 s each: renders/s, display lag, CPU per service (bench/results/realtime/; about 5 min; run it idle: another busy process halves the figures)
 	$(PY) -m bench.realtime
 
 bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)

@@ -57,6 +57,8 @@ ELSEWHERE: dict[str, str] = {
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
                  "[experiments.md](experiments.md), \"The tradeoff at display time\" "
                  "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",
+    "realtime/before-after": "[performance.md](performance.md), \"Real time on two cores\" "
+                             "(bench/realtime.py before and after, paired)",
     "live-default": "[performance.md](performance.md), \"The live default\" "
                     "(`python -m bench.live_default`)",
     "ppo_arch.json": "[ppo.md](ppo.md), \"Which network\" (`python bench/ppo_arch.py`)",
@@ -314,6 +316,61 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
     ]
     return lines, used
 
+
+
+def realtime(results: Path) -> tuple[list[str], set[str]]:
+    """realtime/realtime.json: ``bench/realtime.py``'s rows, one per worker count."""
+    name = "realtime/realtime.json"
+    d = load(results, name)
+    rows, cpu_rows = [], []
+    procs: list[str] = []
+    for r in d["rows"]:
+        for p in r["cpu"]["processes"]:
+            if p not in procs:
+                procs.append(p)
+    procs.sort(key=lambda p: (not p.startswith("recon-"), p if p.startswith("recon-") else ""))
+    for r in d["rows"]:
+        rows.append([r["workers"], f(r["renders_per_s"]),
+                     f"{r['rendered_share'] * 100:.1f} %" if r["rendered_share"] else "—",
+                     f(r["display_lag_ms_median"], 0), f(r["display_lag_ms_p90"], 0),
+                     ci(r["psnr_display_db"]), f(r["pool_wait_ms_mean"], 1),
+                     f(r["pool_render_age_ms_mean"], 0), r["superseded"],
+                     f"{r['cpu']['recon_share'] * 100:.1f} %",
+                     f"{r['load_before'][0]:.2f} → {r['load_after'][0]:.2f}"])
+        cpu_rows.append([r["workers"], *(f(r["cpu"]["processes"].get(p, {}).get("core_pct"), 1)
+                                         for p in procs), f(r["cpu"]["total_core_pct"], 1)])
+    speedup = d.get("speedup")
+    lines = [
+        "## Real time on two cores",
+        "",
+        "`aoi3d up --time-scale 1 --workers N` with nothing else changed (the rotor scene, "
+        "`mat:70`, the stream carry at 25 steps), each worker count alone: a settling time, "
+        "then a window in which renders/s (distinct decisions scored), the share of the "
+        "window's decisions rendered, the display lag (display time − decision time, scene "
+        "ms), the PSNR at display time and each process's CPU (utime + stime from /proc, with "
+        "its children) are read. Pool wait: decision to hand-out; render age: decision to the "
+        "render back at the pool (wall ms, means). Load: the 1-minute load average before and "
+        f"after ({d['cpus']} CPUs; the pipeline's own threads raise it while it runs).",
+        "",
+        *redo("make bench-realtime   # = " + d["command"]),
+        "",
+        f"Measured {d['date']} UTC.",
+        "",
+        *table(["workers", "renders/s", "rendered", "lag median (ms)", "lag p90 (ms)",
+                "PSNR at display (dB)", "pool wait (ms)", "render age (ms)", "superseded",
+                "reconstruction's CPU share", "load"], rows),
+        "",
+        "CPU per process, percent of one core over the window:",
+        "",
+        *table(["workers", *procs, "all"], cpu_rows),
+        "",
+    ]
+    if speedup is not None:
+        counts = sorted({r["workers"] for r in d["rows"]})
+        pairs = ", ".join(f"{p:.2f}×" for p in d.get("speedup_pairs", []))
+        lines += [f"Renders/s of {counts[-1]} workers over {counts[0]}: {speedup:.2f}× (the "
+                  f"means of their runs; run by run {pairs}).", ""]
+    return lines, {name}
 
 def reconstruction(results: Path) -> tuple[list[str], set[str]]:
     """recon-ab.txt: paragraphs (blank-line separated) of ``after``/``before`` lines (JSON),
@@ -823,8 +880,8 @@ def ingest_rate(results: Path) -> tuple[list[str], set[str]]:
 
 
 SECTIONS: tuple[Callable[[Path], tuple[list[str], set[str]]], ...] = (
-    live_sweep, live_192, scaling, reconstruction, gpu, chaos, chaos_multihost, soak, pipeline,
-    fields,
+    live_sweep, live_192, realtime, scaling, reconstruction, gpu, chaos, chaos_multihost, soak,
+    pipeline, fields,
     channel, learning, staleness, dynamic_mask, trainer_restart, ros2_path, ingest_rate,
 )
 

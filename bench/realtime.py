@@ -6,7 +6,8 @@ default scene, policy ``mat:70``, the stream carry at 25 steps), waits until it 
 run ``--settle-s`` wall seconds and reads a window of ``--measure-s`` (90 by default):
 
 - **renders/s**: renders scored in the window (distinct ``decision_id`` in the metrics
-  service's ``GET /quality`` among the window's decisions) per wall second;
+  service's ``GET /quality`` among the window's decisions, read every 20 s: it keeps only
+  its last 1000) per wall second;
 - **rendered**: their share of the window's decisions (the scheduler's ``GET /decision`` ids
   at the window's start and end); the rest were coalesced (a newer decision replaced them
   before a worker was free: ``superseded``, the trainer's ``aoi3d_pool_decisions_total``) or
@@ -25,6 +26,7 @@ document goes to ``--out`` (default ``bench/results/realtime/realtime.json``); `
 prints it.
 
     python -m bench.realtime                        # 1 and 2 workers, 90 s each (about 5 min)
+    python -m bench.realtime --workers 1,2,1,2      # twice each, interleaved (about 11 min)
     python -m bench.realtime --workers 2 --measure-s 30 --json
 """
 
@@ -150,6 +152,18 @@ def _pool_window(before: dict[str, float], after: dict[str, float]) -> dict:
     return out
 
 
+HISTORY_POLL_S = 20.0
+"""How often the window's quality is read: the metrics service keeps its last ``history``
+(1000 by default) results, 70 s of renders at 14 a second, so one read after a 90 s window
+would miss its first renders."""
+
+
+def _collect(scored: dict[int, dict]) -> None:
+    """The metrics service's quality history so far, merged into ``scored`` by decision."""
+    for q in _get("metrics", "/quality", limit=1_000_000)["history"]:
+        scored[q["decision_id"]] = q
+
+
 def _children(log_dir: Path) -> dict[str, int]:
     doc = json.loads((log_dir / "latest" / "up.json").read_text())
     return {name: c["pid"] for name, c in doc["children"].items() if c["pid"]}
@@ -172,12 +186,15 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         first_id = _get("scheduler", "/decision")["decision_id"]
         pool0 = _pool()
         ticks0, t0 = cpu_ticks(procs), time.monotonic()
-        time.sleep(args.measure_s)
+        scored: dict[int, dict] = {}
+        while (left := args.measure_s - (time.monotonic() - t0)) > 0:
+            time.sleep(min(left, HISTORY_POLL_S))
+            _collect(scored)
         ticks1, window_s = cpu_ticks(procs), time.monotonic() - t0
         last = _get("scheduler", "/decision")
         pool1 = _pool()
         time.sleep(args.grace_s)  # the window's last renders are scored later
-        history = _get("metrics", "/quality", limit=1_000_000)["history"]
+        _collect(scored)
         status = _get("trainer", "/status")
     finally:
         common.stop_up(up)
@@ -185,12 +202,34 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         "workers": workers, "time_scale": args.time_scale, "carry": status["carry"],
         "render_steps": status["render_steps"], "policy": last["policy"],
         "window_s": round(window_s, 1), "first_id": first_id, "last_id": last["decision_id"],
-        **window_stats(history, first_id, last["decision_id"], window_s),
+        **window_stats(list(scored.values()), first_id, last["decision_id"], window_s),
         **_pool_window(pool0, pool1),
         "cpu": cpu_table(ticks0, ticks1, window_s),
         "load_before": [round(x, 2) for x in load_before],
         "load_after": [round(x, 2) for x in os.getloadavg()],
     }
+
+
+def speedup(rows: list[dict]) -> dict:
+    """``speedup``: the mean renders/s of the largest worker count over the smallest's (their
+    runs in any order, e.g. ``--workers 1,2,1,2``); ``speedup_pairs``: each run of the
+    largest over the run of the smallest before it. Empty until both counts ran."""
+    by: dict[int, list[float]] = {}
+    for r in rows:
+        if r["renders_per_s"]:
+            by.setdefault(r["workers"], []).append(r["renders_per_s"])
+    if len(by) < 2:
+        return {}
+    lo, hi = min(by), max(by)
+    out: dict = {"speedup": round(statistics.mean(by[hi]) / statistics.mean(by[lo]), 2)}
+    pairs, base = [], None
+    for r in rows:
+        if r["workers"] == lo and r["renders_per_s"]:
+            base = r["renders_per_s"]
+        elif r["workers"] == hi and base and r["renders_per_s"]:
+            pairs.append(round(r["renders_per_s"] / base, 2))
+    out["speedup_pairs"] = pairs
+    return out
 
 
 def parser() -> argparse.ArgumentParser:
@@ -211,8 +250,7 @@ def parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> dict:
     """Every worker count of ``args.workers`` (``parser()``'s options), back to back; writes
-    ``args.out`` and returns the result document (``speedup``: the last count's renders/s
-    over the first's)."""
+    ``args.out`` and returns the result document (with :func:`speedup`'s figures)."""
     counts = [int(w) for w in str(args.workers).split(",")]
     if any(w < 1 for w in counts):
         raise SystemExit(f"--workers {args.workers}: counts must be >= 1")
@@ -225,8 +263,7 @@ def run(args: argparse.Namespace) -> dict:
     for workers in counts:
         row = run_one(workers, args)
         rows.append(row)
-        if len(rows) > 1 and rows[0]["renders_per_s"]:
-            doc["speedup"] = round(row["renders_per_s"] / rows[0]["renders_per_s"], 2)
+        doc.update(speedup(rows))
         common.write_json(out, doc)  # after each run: a cut run keeps its rows
         top = ", ".join(f"{name} {p['core_pct']}" for name, p in
                         list(row["cpu"]["processes"].items())[:6])
