@@ -116,6 +116,26 @@ def wait_until(what: str, cond: Callable[[], Any], timeout_s: float, *,
         time.sleep(every_s)
 
 
+def get_json(client: Any, block: PortBlock, service: str, path: str, **params: int) -> Any:
+    """``GET`` a service of ``block``'s pipeline as JSON (an HTTP error raises)."""
+    response = client.get(block.url(service, path), params=params or None)
+    response.raise_for_status()
+    return response.json()
+
+
+def bench_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], Any],
+               argv: list[str] | None = None) -> None:
+    """A bench's ``main``: ``run`` on the parsed options (progress to stderr with ``--json``,
+    whose stdout is the document alone, printed), else the file written."""
+    args = parser.parse_args(argv)
+    with progress_to_stderr(args.json):
+        doc = run(args)
+    if args.json:
+        print_json(doc)
+    else:
+        print(f"written: {args.out}")
+
+
 def scrape(client: Any, url: str) -> dict[str, float]:
     """A service's ``/metrics`` as ``{series: value}``: each labelled sample under its full
     name, plus its metric's sum over labels under the bare name."""

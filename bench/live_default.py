@@ -94,6 +94,8 @@ def window_stats(history: list[dict], first_id: int, last_id: int) -> dict:
         "scored_share": len(entries) / made if made > 0 else None,
         "scored_share_of_span": len(entries) / span if span else None,
         "display_lag_ms_median": median(lags),
+        "display_lag_ms_p90": (float(statistics.quantiles(lags, n=10)[8]) if len(lags) >= 2
+                               else None),
         "display_lag_ms_mean": mean_ci95(lags).to_dict(),
         "psnr_db_median": median(psnr), "psnr_db": mean_ci95(psnr).to_dict(),
         "psnr_display_db_median": median(display),
@@ -102,9 +104,7 @@ def window_stats(history: list[dict], first_id: int, last_id: int) -> dict:
 
 
 def _get(service: str, path: str, **params: int) -> dict:
-    response = HTTP.get(PORTS.url(service, path), params=params or None)
-    response.raise_for_status()
-    return response.json()
+    return common.get_json(HTTP, PORTS, service, path, **params)
 
 
 def _ledger() -> dict:
@@ -197,13 +197,7 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parser().parse_args(argv)
-    with common.progress_to_stderr(args.json):  # --json: stdout is the document alone
-        doc = run(args)
-    if args.json:
-        common.print_json(doc)
-    else:
-        print(f"written: {args.out}")
+    common.bench_main(parser(), run, argv)
 
 
 if __name__ == "__main__":

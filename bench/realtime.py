@@ -43,8 +43,7 @@ from pathlib import Path
 import httpx
 
 from aoi3d.ports import BENCH_BLOCKS
-from aoi3d.stats import mean_ci95
-from bench import common
+from bench import common, live_default
 
 PORTS = BENCH_BLOCKS["realtime"]  # apart from make up and the other benches (aoi3d/ports.py)
 OUT = common.RESULTS / "realtime" / "realtime.json"
@@ -99,34 +98,27 @@ def cpu_table(before: dict[str, int], after: dict[str, int], seconds: float) -> 
 
 def window_stats(history: list[dict], first_id: int, last_id: int, window_s: float) -> dict:
     """What a viewer got from the decisions ``first_id < id ≤ last_id`` (the metrics
-    service's quality ``history``): renders/s, the share rendered, the display lag (median,
-    p90) and the PSNR at display time."""
-    made = last_id - first_id
-    rows = list({q["decision_id"]: q for q in history
-                 if first_id < q["decision_id"] <= last_id}.values())
-    lags = sorted(q["display_time_ms"] - q["time_ms"] for q in rows
-                  if q.get("display_time_ms") is not None)
-    display = [q["psnr_display_db"] for q in rows if q.get("psnr_display_db") is not None]
+    service's quality ``history``; :func:`bench.live_default.window_stats`), with the window's
+    wall seconds: renders/s, the share rendered, the display lag (median, p90) and the PSNR at
+    display time."""
+    w = live_default.window_stats(history, first_id, last_id)
 
-    def quantile(xs: list[float], p: float) -> float | None:
-        return round(float(statistics.quantiles(xs, n=10)[8]), 1) if len(xs) >= 2 and p == 0.9 \
-            else (round(statistics.median(xs), 1) if xs else None)
+    def r(x: float | None, digits: int = 1) -> float | None:
+        return None if x is None else round(x, digits)
 
     return {
-        "decisions": made, "renders": len(rows),
-        "renders_per_s": round(len(rows) / window_s, 2) if window_s > 0 else None,
-        "rendered_share": round(len(rows) / made, 3) if made > 0 else None,
-        "display_lag_ms_median": quantile(lags, 0.5),
-        "display_lag_ms_p90": quantile(lags, 0.9),
-        "psnr_display_db_median": round(statistics.median(display), 2) if display else None,
-        "psnr_display_db": mean_ci95(display).to_dict(),
+        "decisions": w["decisions"], "renders": w["scored"],
+        "renders_per_s": round(w["scored"] / window_s, 2) if window_s > 0 else None,
+        "rendered_share": r(w["scored_share"], 3),
+        "display_lag_ms_median": r(w["display_lag_ms_median"]),
+        "display_lag_ms_p90": r(w["display_lag_ms_p90"]),
+        "psnr_display_db_median": r(w["psnr_display_db_median"], 2),
+        "psnr_display_db": w["psnr_display_db"],
     }
 
 
 def _get(service: str, path: str, **params: int) -> dict:
-    response = HTTP.get(PORTS.url(service, path), params=params or None)
-    response.raise_for_status()
-    return response.json()
+    return common.get_json(HTTP, PORTS, service, path, **params)
 
 
 def _pool() -> dict[str, float]:
@@ -278,13 +270,7 @@ def run(args: argparse.Namespace) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    args = parser().parse_args(argv)
-    with common.progress_to_stderr(args.json):  # --json: stdout is the document alone
-        doc = run(args)
-    if args.json:
-        common.print_json(doc)
-    else:
-        print(f"written: {args.out}")
+    common.bench_main(parser(), run, argv)
 
 
 if __name__ == "__main__":
