@@ -24,7 +24,8 @@ Scores each render of the held-out novel view against the ground-truth frame of 
 time (PSNR, SSIM and, when its weights are cached, LPIPS) and publishes a `Quality` message
 per render. `reward_terms` says which metrics the reward was built from.
 
-Sampling: LPIPS runs on at most `lpips_per_s` renders a wall second (0: every render), so
+Sampling: LPIPS runs on `lpips_per_s` renders a wall second on average, a burst of one
+second's worth let through (0: every render), so
 that scoring keeps up at real time; the others are scored with PSNR and SSIM (and their
 dynamic and display-time forms) alone and marked `lpips_skipped`: no LPIPS and no reward
 (it needs LPIPS), counted in `aoi3d_quality_lpips_skipped_total`. The means below are over

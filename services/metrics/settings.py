@@ -57,9 +57,10 @@ class Settings(ServiceSettings):
                           "null and the reward uses PSNR and SSIM only.")
     lpips_per_s: float = Field(
         4.0, ge=0, le=10_000, allow_inf_nan=False,
-        description="LPIPS on at most this many renders a wall second, evenly (0: on every "
+        description="LPIPS on this many renders a wall second on average, bursts of one "
+                    "second's worth let through (0: on every "
                     "render). LPIPS is most of the scoring's CPU; at time scale 1 the pool "
-                    "renders 8-13 a second on 2 cores, and scoring them all took a quarter of a "
+                    "renders 9-16 a second on 2 cores, and scoring them all took a quarter of a "
                     "core from the reconstruction. The renders left out are scored with PSNR "
                     "and SSIM alone and marked lpips_skipped (no reward: it needs LPIPS). Set 0 "
                     "for online PPO (learn=true) to be rewarded for every render.")

@@ -97,10 +97,9 @@ class MetricsWorker:
         self._m_reward = Gauge("aoi3d_reward", "Reward of the latest render scored with LPIPS "
                                "(aoi3d_quality_lpips_skipped); NaN before the first.",
                                registry=registry)
-        self._m_lpips_skipped = Counter(
-            "aoi3d_quality_lpips_skipped", "Renders scored without LPIPS, so without a reward, "
-            "by the sampling (lpips_per_s); their PSNR and SSIM are in every series.",
-            registry=registry)
+        self._m_lpips_skipped = Counter("aoi3d_quality_lpips_skipped", "Renders scored without "
+                                        "LPIPS, so without a reward, by lpips_per_s.",
+                                        registry=registry)
         self._m_psnr_display = Gauge(
             "aoi3d_render_psnr_display_db", "PSNR of the latest scored render against the "
             "truth at the time it was ready (display time, dB); NaN when it has none.",
@@ -148,8 +147,9 @@ class MetricsWorker:
                                      registry=registry)
         self._h_ssim = Histogram("aoi3d_quality_ssim", "SSIM" + every, buckets=unit,
                                  registry=registry)
-        self._h_reward = Histogram("aoi3d_quality_reward", "Reward" + every.replace(
-                                       "scored render", "render scored with LPIPS"),
+        self._h_reward = Histogram("aoi3d_quality_reward", "Reward of every render scored "
+                                   "with LPIPS (rate(_sum)/rate(_count): the mean over a "
+                                   "window).",
                                    buckets=(0.0, 0.25, 0.5, 0.75, 1.0, 1.25, 1.5),
                                    registry=registry)
         self._h_lpips = None

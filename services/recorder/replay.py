@@ -40,7 +40,7 @@ from typing import Any
 
 import numpy as np
 
-from aoi3d.metric import BY_NAME
+from aoi3d.metric import BY_NAME, REWARD
 from aoi3d.metric import SCORES as QUALITY
 from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.stats import MeanCI, mean_ci95
@@ -103,10 +103,12 @@ def _replayed_decision(d: pb.Decision, sel: Selection, camera_ids: Sequence[int]
 def _site_scorer(rec: Recorded, site: str, q0: pb.Quality, scorers: dict[str, Scorer] | None,
                  threads: int) -> Scorer:
     """The site's scorer: the caller's (``scorers``, kept there when made here) or a new one
-    with LPIPS when the site's first scored Quality has it."""
+    with LPIPS when the site's first scored Quality has it (or left it out by the metrics
+    service's sampling, ``lpips_skipped``: LPIPS was on)."""
     if scorers is not None and site in scorers:
         return scorers[site]
-    scorer = Scorer(rec, site, lpips="lpips" in q0.reward_terms, threads=threads)
+    scorer = Scorer(rec, site, lpips="lpips" in q0.reward_terms or q0.lpips_skipped,
+                    threads=threads)
     if scorers is not None:
         scorers[site] = scorer
     return scorer
@@ -207,7 +209,9 @@ def rebuildable_keys(rec: Recorded, policies: Sequence[str | None], *,
 
 
 def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:
-    """Largest |replayed − recorded| of each score over the rebuilt decisions."""
+    """Largest |replayed − recorded| of each score over the rebuilt decisions (LPIPS and the
+    reward only where the recording scored them: not on a render it marked
+    ``lpips_skipped``)."""
     diffs: dict[str, float] = {}
     for d in result.decisions:
         if d.quality is None:
@@ -216,6 +220,8 @@ def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:
         for name in SCORES:
             if BY_NAME[name].optional and not (
                     live.HasField(name) and d.quality.HasField(name)):
+                continue
+            if live.lpips_skipped and name == REWARD.name:
                 continue
             diff = abs(getattr(d.quality, name) - getattr(live, name))
             diffs[name] = max(diffs.get(name, 0.0), diff)

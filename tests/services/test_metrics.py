@@ -530,19 +530,25 @@ def test_every_score_goes_into_histograms(make_harness) -> None:
     assert value(text, "aoi3d_quality_lpips_count") is None  # no LPIPS here: no series
 
 
-def test_lpips_sampler_takes_at_most_its_rate_evenly() -> None:
+def test_lpips_sampler_keeps_its_rate_and_lets_a_short_burst_through() -> None:
     from services.metrics.sampling import LpipsSampler
 
     s = LpipsSampler(4.0)
     taken = []
-    for i in range(100):  # a render every 50 ms for 5 s
+    for i in range(200):  # a render every 50 ms for 10 s
         now = i * 0.05
         if s.due(now):
             s.taken(now)
             taken.append(now)
-    assert len(taken) == 20 and all(b - a >= 0.25 - 1e-9 for a, b in itertools.pairwise(taken))
+    assert [round(t, 2) for t in taken[:4]] == [0.0, 0.05, 0.1, 0.15]  # one second's worth
+    assert len(taken) <= 4 * 10 + 4 and len([t for t in taken if t >= 5.0]) == 20  # 4 a second
+    assert all(b - a >= 0.25 - 1e-9 for a, b in itertools.pairwise(taken[4:]))  # then evenly
     every = LpipsSampler(0.0)
     assert all(every.due(i * 0.001) for i in range(10))
+    slow = LpipsSampler(0.5)  # a burst of one, then one every 2 s
+    assert slow.due(0.0)
+    slow.taken(0.0)
+    assert not slow.due(1.9) and slow.due(2.0)
     for bad in (-1.0, math.nan, math.inf):
         with pytest.raises(ValueError, match="per_s"):
             LpipsSampler(bad)

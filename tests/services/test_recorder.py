@@ -421,3 +421,28 @@ def test_a_raw_frame_is_a_foxglove_raw_image(tmp_path: Path) -> None:
     assert schema == "foxglove.RawImage" and img.encoding == "rgb8"
     assert (img.width, img.height, img.step) == (W, H, 3 * W)
     assert np.array_equal(np.frombuffer(img.data, np.uint8).reshape(H, W, 3), pixels)
+
+
+def test_a_replay_compares_the_reward_only_where_the_recording_scored_it() -> None:
+    """A render the metrics service scored without LPIPS (``lpips_skipped``: reward NaN) is
+    compared on PSNR and SSIM alone; the others on every score."""
+    from types import SimpleNamespace
+
+    from services.recorder.replay import score_diffs
+
+    def q(psnr: float, reward: float, lpips: float | None, skipped: bool = False):
+        msg = pb.Quality(psnr_db=psnr, ssim=0.5, reward=reward, lpips_skipped=skipped)
+        if lpips is not None:
+            msg.lpips = lpips
+        return msg
+
+    live = {(0, 1): q(20.0, 0.7, 0.2), (0, 2): q(21.0, math.nan, None, skipped=True)}
+    replayed = {(0, 1): q(20.5, 0.71, 0.19), (0, 2): q(21.25, 0.9, 0.15)}
+    rec = SimpleNamespace(sites={"site1": SimpleNamespace(qualities=live)})
+    result = SimpleNamespace(decisions=[SimpleNamespace(site="site1", key=k, quality=v)
+                                        for k, v in replayed.items()])
+    diffs = score_diffs(rec, result)
+    assert diffs["psnr_db"] == 0.5 and diffs["ssim"] == 0.0
+    assert diffs["reward"] == pytest.approx(0.01) and diffs["lpips"] == pytest.approx(0.01)
+    only_skipped = SimpleNamespace(decisions=result.decisions[1:])
+    assert set(score_diffs(rec, only_skipped)) == {"psnr_db", "ssim"}  # not "equal": not compared
