@@ -36,6 +36,19 @@ Model carry-over (``carry``):
   period is what the live pool does). Like
   ``fresh``, unscored decisions cost nothing.
 
+The pool (``pool_workers`` ≥ 1): the twin of the live pipeline's pool of reconstruction
+workers (:mod:`aoi3d.experiment.episode.pool`). Every decision is offered, as live, to the
+live dispatcher's code (:class:`aoi3d.pool.Dispatcher`) at its time; ``pool_workers`` simulated
+workers, each with its own model (the ``stream`` carry's warm chain runs through the jobs of
+one worker), take the newest, and a job occupies its worker for :meth:`EpisodeConfig.compute_ms`
+of its steps (``compute_fixed_ms`` + ``compute_step_ms`` · steps, wall ms, times
+``time_scale``): what the live workers' own timings say (``Render.compute_s``, the trainer's
+``GET /status`` ``job_s``). The decisions the workers cannot take are superseded; the ones
+rendered in the scored span are scored, at decision and at display time (the job's end).
+``score_every`` is then 1: the pool, not a schedule, chooses which decisions are rendered.
+0 (the default): no pool, every ``score_every``-th decision rendered, charged its compute
+but never queued (the engine of the experiments' figures).
+
 Compute is fixed per decision, whatever the policy selects; an empty selection trains
 nothing (as in the live trainer) and the render shows the model as it is (fresh: untrained).
 
@@ -63,6 +76,7 @@ __all__ = [
     "CARRY_MODES",
     "EXPERIMENT_DATASET",
     "EXPERIMENT_SCENE",
+    "POOL_CARRIES",
     "PRESETS",
     "EpisodeConfig",
     "Preset",
@@ -91,6 +105,9 @@ COMPUTE_STEP_MS = 3.4
 EXPERIMENT_DATASET = FRAMING_DATASETS["rotor"]  # "data/turbine-rotor"
 """Where the experiments' scene is generated (when missing or of another config)."""
 CAMERA_PHASES = ("sync", "random")
+POOL_CARRIES = ("fresh", "stream")
+"""The carries the pool's twin runs (``pool_workers`` ≥ 1): a job's model is made by the job
+alone (``fresh``) or continues its worker's previous job's (``stream``)."""
 
 
 def _int_at_least(name: str, value: Any, minimum: int) -> None:
@@ -136,6 +153,7 @@ class EpisodeConfig:
     time_scale: float = 0.1
     compute_fixed_ms: float = COMPUTE_FIXED_MS
     compute_step_ms: float = COMPUTE_STEP_MS
+    pool_workers: int = 0
 
     def __post_init__(self) -> None:
         parse_channel(self.delay)  # raises DelaySpecError listing the accepted forms
@@ -168,6 +186,15 @@ class EpisodeConfig:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if not self.time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {self.time_scale}")
+        _int_at_least("pool_workers", self.pool_workers, 0)
+        if self.pool_workers and self.carry not in POOL_CARRIES:
+            raise ValueError(f"the pool's twin (pool_workers={self.pool_workers}) runs the "
+                             f"carries {', '.join(POOL_CARRIES)}; {self.carry!r} trains between "
+                             "jobs, which a simulated worker does not")
+        if self.pool_workers and self.score_every != 1:
+            raise ValueError(f"with pool_workers={self.pool_workers} every decision goes to the "
+                             f"pool, which chooses what is rendered: score_every must be 1, "
+                             f"got {self.score_every}")
         if self.scored_decisions < 1:
             raise ValueError("the scored span holds no decision: raise scored_ms")
 

@@ -20,14 +20,20 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from aoi3d.field.carry import CARRY_MODES, check_carry
+from aoi3d.pool import Assignment, DecisionRef, Dispatcher, Report
 from aoi3d.scene.camera import Camera
 from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
 from services.kit.keys import DEFAULT_SITE
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.rejected import Rejected, RejectReason
 from services.trainer.frames import FrameBuffer
-from services.trainer.pool import Assignment, DecisionRef, Dispatcher, Report
-from services.trainer.state import CarryError, DecisionInForce, LatestRender, check_backend
+from services.trainer.state import (
+    CarryError,
+    DecisionInForce,
+    JobTimes,
+    LatestRender,
+    check_backend,
+)
 
 __all__ = ["RenderSettings", "TrainerCore", "decode_request"]
 
@@ -139,6 +145,7 @@ class TrainerCore:
         self.n_views = 0
         self.last_render_steps = 0
         self.warm_starts = 0
+        self.job_times = JobTimes()
         """Renders whose worker started from its previous model (the stream carry)."""
         self.render_lag_ms = math.nan
         self.frames_age_ms = math.nan
@@ -286,6 +293,7 @@ class TrainerCore:
     def _count_render(self, msg: pb.Render, now_ms: float) -> None:
         self.renders_seen += 1
         self.warm_starts += int(msg.warm_start)
+        self.job_times.add(msg.backend, msg.carry, int(msg.render_steps), float(msg.compute_s))
         self.steps_total += int(msg.render_steps)
         self.loss = float(msg.loss) if math.isfinite(msg.loss) and msg.render_steps else None
         self.n_views = int(msg.n_views)

@@ -9,7 +9,7 @@ from typing import Any
 
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, SummaryMetricFamily
 
-from services.trainer.pool import POOL_LOST
+from aoi3d.pool import POOL_LOST
 
 RATE_WINDOW_S = 5.0
 """Wall seconds over which ``aoi3d_trainer_steps_per_second`` is measured."""

@@ -7,7 +7,7 @@ import math
 from pydantic import BaseModel, Field
 
 from aoi3d.field import BACKENDS
-from services.trainer.pool import PoolStatus
+from aoi3d.pool import PoolStatus
 from services.trainer.state import TrainerStatus
 
 __all__ = ["DecisionInfo", "PoolInfo", "StatusResponse", "WorkerInfo", "pool_body",
@@ -144,6 +144,13 @@ class StatusResponse(BaseModel):
                       examples=["site1"])
     pool: PoolInfo = Field(description="The reconstruction workers and what they did "
                                        "(GET /workers has the same).")
+    job_s: dict[str, dict[str, float]] = Field(
+        default_factory=dict,
+        description="The workers' own compute time per job of this site (Render.compute_s), "
+                    "by `backend/carry/steps` (a stream cold start trains more steps than a "
+                    "warm one): median_s, mean_s and n over the last 500 of each. What the "
+                    "virtual clock's twin of the pool charges a job.",
+        examples=[{"grid/stream/25": {"median_s": 0.094, "mean_s": 0.097, "n": 500.0}}])
 
 
 def status_body(status: TrainerStatus, site: str) -> StatusResponse:
@@ -161,4 +168,4 @@ def status_body(status: TrainerStatus, site: str) -> StatusResponse:
         renders=status.renders, frames_received=status.frames_received,
         frames_buffered=status.frames_buffered,
         frames_missing=status.frames_missing, resets=status.resets, running=status.running,
-        pool=pool_body(status.pool), site=site)
+        pool=pool_body(status.pool), site=site, job_s=status.job_s)

@@ -8,14 +8,17 @@ decisions to the reconstruction workers (:mod:`services.recon`) and publishes th
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import statistics
+from collections import deque
+from dataclasses import dataclass, field
 
 from aoi3d.field import UnknownBackendError, check_backend  # re-exported: one check
-from services.trainer.pool import PoolStatus
+from aoi3d.pool import PoolStatus
 
 __all__ = [
     "CarryError",
     "DecisionInForce",
+    "JobTimes",
     "LatestRender",
     "TrainerStatus",
     "UnknownBackendError",
@@ -65,6 +68,28 @@ class LatestRender:
     worker_id: str = ""
 
 
+class JobTimes:
+    """The workers' own compute time per job (``Render.compute_s``), by backend, carry and
+    the steps the job trained (a stream cold start's differ from a warm start's): what the
+    virtual clock's twin of the pool charges a job (``compute_fixed_ms``, ``compute_step_ms``;
+    docs/experiments.md, "The pool's twin"). The last :attr:`KEEP` of each."""
+
+    KEEP = 500
+
+    def __init__(self) -> None:
+        self._s: dict[str, deque[float]] = {}
+
+    def add(self, backend: str, carry: str, steps: int, compute_s: float) -> None:
+        if math.isfinite(compute_s) and compute_s > 0:
+            key = f"{backend}/{carry}/{int(steps)}"
+            self._s.setdefault(key, deque(maxlen=self.KEEP)).append(float(compute_s))
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        """``{"grid/stream/25": {"median_s", "mean_s", "n"}, …}``."""
+        return {k: {"median_s": statistics.median(v), "mean_s": statistics.fmean(v),
+                    "n": float(len(v))} for k, v in sorted(self._s.items())}
+
+
 @dataclass(frozen=True)
 class TrainerStatus:
     """A consistent snapshot of the trainer for ``GET /status``."""
@@ -87,3 +112,4 @@ class TrainerStatus:
     resets: int
     running: bool
     pool: PoolStatus | None = None
+    job_s: dict[str, dict[str, float]] = field(default_factory=dict)

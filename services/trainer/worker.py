@@ -1,7 +1,7 @@
 """The trainer service's runtime: the bus, one lock, a housekeeping thread, the metrics.
 
 The logic is :class:`services.trainer.core.TrainerCore` — one per site of the run — and the
-pool's :class:`services.trainer.pool.Dispatcher`, shared by the sites; this module only wires
+pool's :class:`aoi3d.pool.Dispatcher`, shared by the sites; this module only wires
 them to the bus (the site of a message is its key's ``<site>`` chunk):
 
 - delivered frames, decisions and renders (subscriptions) go to the core under one lock —
@@ -30,17 +30,18 @@ import numpy as np
 from prometheus_client import CollectorRegistry
 
 from aoi3d.clock import SimClock
+from aoi3d.pool import Assignment, Dispatcher, PoolStatus
 from aoi3d.rigfile import Rig
 from aoi3d.scene import SceneDataset
 from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.reasons import EndReason
 from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
 from services.trainer.core import RenderSettings, TrainerCore, decode_request
 from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
-from services.trainer.pool import Assignment, Dispatcher, PoolStatus
 from services.trainer.relay import ViewRelay
 from services.trainer.settings import Settings
 from services.trainer.state import CarryError, LatestRender, TrainerStatus
@@ -121,7 +122,7 @@ class TrainerWorker:
         for e in ended:
             d = e.decision
             msg = pb.Outcome(decision_id=d.decision_id, incarnation=d.incarnation, site=d.site,
-                             state=e.state, reason=e.reason.wire, detail=e.detail[:200])
+                             state=e.state, reason=EndReason(e.reason).wire, detail=e.detail[:200])
             self.bus.publish(Keys(self.settings.common.run_id, d.site).outcome,
                              msg.SerializeToString())
 
@@ -301,7 +302,8 @@ class TrainerWorker:
                 carry=self.render.carry, render_steps=self.render.render_steps,
                 renders=c.renders_seen, frames_received=c.frames_received,
                 frames_buffered=c.frames_buffered, frames_missing=c.frames_missing,
-                resets=self.render.model_epoch, running=self.running(), pool=pool)
+                resets=self.render.model_epoch, running=self.running(), pool=pool,
+                job_s=c.job_times.summary())
 
 
 __all__ = ["CarryError", "TrainerWorker"]

@@ -7,7 +7,8 @@ import math
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from services.trainer.pool import DecisionRef, Dispatcher, Report
+from aoi3d.pool import POOL_LOST, DecisionRef, Dispatcher, PoolReason, Report
+from services.kit.reasons import SKIPPED, TRAINER_LOST, EndReason
 
 
 def d(i: int, inc: int = 7) -> DecisionRef:
@@ -18,6 +19,14 @@ def ask(pool: Dispatcher, w: str, now: float, done: DecisionRef | None = None,
         rendered: bool = True, reason: str = "", wait: float = 2.0, busy: float = 0.0):
     return pool.request(Report(w, done=None if done is None else done.key, rendered=rendered,
                                reason=reason, max_wait_s=wait, busy_s=busy), now)
+
+
+def test_the_pools_reasons_are_the_wires_skipped_or_trainer_lost_ones() -> None:
+    """The domain names the pool's reasons (it imports no proto); each is an EndReason of the
+    wire with the same label, and the pool tells exactly the trainer's reasons."""
+    assert {EndReason(r) for r in PoolReason} == set(SKIPPED) | set(TRAINER_LOST)
+    assert set(POOL_LOST) <= set(TRAINER_LOST)
+    assert all(EndReason(r) == r for r in PoolReason)
 
 
 def test_the_newest_decision_wins_and_older_pending_ones_are_superseded() -> None:

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
+from aoi3d.pool import Dispatcher, Report
 from aoi3d.scene import SceneDataset
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed, ReconCore
 from services.trainer.core import RenderSettings, TrainerCore
-from services.trainer.pool import Dispatcher, Report
 from tests.support.trainer import CONFIGS, N_TRAIN, decision_payload, frame_payload, trainer_scene
 
 

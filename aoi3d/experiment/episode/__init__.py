@@ -22,9 +22,15 @@ The numbers are a function of the plan, the config and the seed alone (channel d
 same seed, the model's ray sampling from ``seed``): two policies that select the same frames
 give the same numbers, which is what :func:`plan_key` lets a sweep exploit.
 
+With ``pool_workers`` ≥ 1 stage 2 is the twin of the live pool (:mod:`.pool`): every decision
+is offered to the live dispatcher's code, simulated workers with their own models take the
+newest, each job occupies its worker for its compute time, and what is rendered is scored at
+its display time.
+
 The package's modules, each importing only those before it: :mod:`.links` (the simulated
 links, frame sizes), :mod:`.plan` (stage 1 and the cache key), :mod:`.result` (the scores and
-their means), :mod:`.run` (stage 2).
+their means), :mod:`.scoring` (a rendered decision's scores), :mod:`.pool` (the pool's twin),
+:mod:`.run` (stage 2).
 """
 
 from aoi3d.experiment.episode.links import EpisodeLinks, episode_links, frame_sizes, train_ids
@@ -39,6 +45,7 @@ from aoi3d.experiment.episode.plan import (
     plan_key,
     planned_decision,
 )
+from aoi3d.experiment.episode.pool import PoolOutcome, run_pool_plan
 from aoi3d.experiment.episode.result import EpisodeResult, EpochScore, episode_result
 from aoi3d.experiment.episode.run import run_plan, set_torch_threads
 
@@ -49,6 +56,7 @@ __all__ = [
     "EpisodeResult",
     "EpochScore",
     "PlannedDecision",
+    "PoolOutcome",
     "dataset_fingerprint",
     "decision_budget",
     "display_lag",
@@ -59,6 +67,7 @@ __all__ = [
     "plan_key",
     "planned_decision",
     "run_plan",
+    "run_pool_plan",
     "set_torch_threads",
     "train_ids",
 ]

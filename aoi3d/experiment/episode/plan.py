@@ -177,6 +177,7 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
         **({"render_steps": cfg.render_steps} if cfg.carry in FINETUNE_MODES else {}),
         "compute": [cfg.time_scale, cfg.compute_fixed_ms, cfg.compute_step_ms],
+        **({"pool_workers": cfg.pool_workers} if cfg.pool_workers else {}),
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
                                        *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
                                          if cfg.reward.dynamic else [])],

@@ -79,6 +79,9 @@ class EpisodeResult:
     lpips_display: float | None
     reward_display: float
     psnr_dynamic_display_db: float | None
+    rendered_fraction: float | None = None
+    """With the pool's twin (``pool_workers``): the share of the scored span's decisions the
+    pool rendered (the epochs); None without a pool (every ``score_every``-th is)."""
 
     def to_dict(self) -> dict[str, Any]:
         out = {k: v for k, v in vars(self).items() if k != "epochs"}
@@ -112,9 +115,12 @@ def _nanmean(values: list[float]) -> float:
 
 
 def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str = "",
-                   wall_s: float = math.nan) -> EpisodeResult:
+                   wall_s: float = math.nan, train_steps: int | None = None,
+                   rendered_fraction: float | None = None) -> EpisodeResult:
     """The episode's numbers from the scores of its scored decisions (``epochs``, in order):
-    their means, and the selections of the plan's reported decisions."""
+    their means, and the selections of the plan's reported decisions. ``train_steps``: the
+    steps taken, when not the plan's (:func:`total_steps`: the pool's twin counts its jobs');
+    ``rendered_fraction``: the pool's, with one."""
     cfg = plan.config
     used = plan.reported
     aois = [a for d in used for a in d.aoi_ms]
@@ -132,7 +138,7 @@ def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str 
         psnr_dynamic_db=_mean_or_none([e.psnr_dynamic_db for e in epochs]),
         ssim_dynamic=_mean_or_none([e.ssim_dynamic for e in epochs]),
         dynamic_fraction=float(np.mean([e.dynamic_fraction for e in epochs])),
-        train_steps=total_steps(plan),
+        train_steps=total_steps(plan) if train_steps is None else train_steps,
         wall_s=wall_s,
         compute_ms=float(np.mean([e.display_ms - e.eval_ms for e in epochs])),
         psnr_display_db=float(np.mean([e.psnr_display_db for e in epochs])),
@@ -141,4 +147,5 @@ def episode_result(plan: EpisodePlan, epochs: Sequence[EpochScore], *, key: str 
                        if all(e.lpips_display is not None for e in epochs) else None),
         reward_display=float(np.mean([e.reward_display for e in epochs])),
         psnr_dynamic_display_db=_mean_or_none([e.psnr_dynamic_display_db for e in epochs]),
+        rendered_fraction=rendered_fraction,
     )

@@ -6,7 +6,6 @@ import io
 import math
 import time
 from collections.abc import Callable
-from dataclasses import replace
 
 import numpy as np
 from PIL import Image
@@ -17,63 +16,14 @@ from aoi3d.experiment.episode.plan import (
     decision_budget,
     render_budget,
 )
+from aoi3d.experiment.episode.pool import run_pool_plan
 from aoi3d.experiment.episode.result import EpisodeResult, EpochScore, episode_result
-from aoi3d.field import FieldTrainer, TrainView, field_config
+from aoi3d.experiment.episode.scoring import Frames, epoch_score
+from aoi3d.field import FieldTrainer, field_config
 from aoi3d.field.carry import Reconstruction, WarmStart
 from aoi3d.field.process import configure_process
-from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, score
+from aoi3d.quality import LpipsFn
 from aoi3d.scene import SceneDataset, to_uint8
-
-
-class _Frames:
-    """Decoded frames of the dataset at channel times (scene time = channel time + offset).
-
-    Keeps one :class:`TrainView` per camera — its newest — so that the trainer's per-view
-    pixel cache hits while a camera's frame does not change, and memory stays bounded.
-    """
-
-    def __init__(self, dataset: SceneDataset, offset_ms: int) -> None:
-        self.ds = dataset
-        self.offset_ms = offset_ms
-        self._views: dict[int, tuple[int, TrainView]] = {}
-
-    def index(self, time_ms: float) -> int:
-        """The scene frame shown at channel time ``time_ms``."""
-        return self.ds.frame_index(time_ms + self.offset_ms)
-
-    def content_ms(self, time_ms: float) -> float:
-        """The scene time of the frame shown at channel time ``time_ms``, not looped: the
-        frames are 1000/fps ms apart, so it trails ``time_ms`` + offset by up to a frame."""
-        return math.floor((time_ms + self.offset_ms) * self.ds.fps / 1000.0 + 1e-9
-                          ) * 1000.0 / self.ds.fps
-
-    def view(self, camera_id: int, gen_ms: int, eval_ms: int, content: bool = False
-             ) -> TrainView:
-        """Camera ``camera_id``'s frame generated at ``gen_ms``, used for time ``eval_ms``
-        (its age, ``eval_ms − gen_ms``, is what the age-aware trainers read; ``content``: the
-        age between the scene times the two frames show instead, what a time-aware field
-        reads — a real camera's timestamp is its frame's scene time)."""
-        k = self.index(gen_ms)
-        age = (self.content_ms(eval_ms) - self.content_ms(gen_ms) if content
-               else float(eval_ms - gen_ms))
-        held = self._views.get(camera_id)
-        if held is None or held[0] != k:
-            held = (k, TrainView(self.ds.cameras[camera_id], self.ds.frame(camera_id, k),
-                                 age_ms=age))
-            self._views[camera_id] = held
-        elif held[1].age_ms != age:  # the same frame, older: its pixels are shared
-            held = (k, replace(held[1], age_ms=age))
-            self._views[camera_id] = held
-        return held[1]
-
-    def truth(self, time_ms: float) -> np.ndarray:
-        """The held-out camera's frame at ``time_ms``: the ground truth of the novel view."""
-        return self.ds.frame(self.ds.heldout_id, self.index(time_ms))
-
-    def truth_before(self, time_ms: float, period_ms: int) -> list[np.ndarray]:
-        """The truth at ``time_ms`` − k·``period_ms``, k = 1..K: what the dynamic mask
-        compares the truth at ``time_ms`` with."""
-        return [self.truth(time_ms - k * period_ms) for k in range(1, DYNAMIC_FRAMES + 1)]
 
 
 def run_plan(
@@ -85,16 +35,21 @@ def run_plan(
     on_render: Callable[[PlannedDecision, np.ndarray], None] | None = None,
 ) -> tuple[EpisodeResult, bytes]:
     """Train, render and score the plan; returns the result and the PNG of the last render.
+    With ``pool_workers`` ≥ 1 the pool's twin runs it (:func:`.pool.run_pool_plan`).
 
     ``on_render(decision, image)`` sees every scored render (float32 H×W×3 in [0, 1]).
     """
     cfg = plan.config
+    if cfg.pool_workers:
+        result, _, image = run_pool_plan(plan, dataset, key=key, lpips_fn=lpips_fn,
+                                         on_render=on_render)
+        return result, _png(image)
     started = time.perf_counter()
     trainer = FieldTrainer(field_config(cfg.backend, **cfg.field), dataset.aabb,
                            device=cfg.device, seed=plan.seed)
     rec = Reconstruction(trainer, cfg.carry, render_budget(cfg),
                          WarmStart(cold_steps=cfg.steps_per_epoch))
-    frames = _Frames(dataset, plan.scene_offset_ms)
+    frames = Frames(dataset, plan.scene_offset_ms)
     time_aware = trainer.cfg.time_aware  # trained at its frames' times, shown at display time
     heldout = dataset.cameras[dataset.heldout_id]
     epochs: list[EpochScore] = []
@@ -115,30 +70,11 @@ def run_plan(
         rendered = rec.render_decision(heldout, time_ms=model_ms)
         if rendered.render_steps:
             loss = rendered.loss
+        epoch = epoch_score(cfg, d, rec, rendered, frames, heldout, lpips_fn,
+                            display_ms=d.eval_ms + cfg.compute_ms(rendered.render_steps),
+                            loss=float(loss))
+        epochs.append(epoch)
         image = rendered.image
-        quality = score(image, frames.truth(d.eval_ms), cfg.reward, lpips_fn,
-                        previous=frames.truth_before(d.eval_ms, cfg.period_ms))
-        dyn = quality.dynamic
-        assert dyn is not None  # score() was given the previous truth frames
-        # what a viewer sees: the render once its compute is done, against the truth then
-        display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
-        # a time-aware field is rendered again at the scene time of the truth shown then (a
-        # static one shows the same image)
-        shown_image = (rec.render_at(heldout, frames.content_ms(display_ms)
-                                     - frames.content_ms(d.eval_ms))
-                       if time_aware else image)
-        shown = score(shown_image, frames.truth(display_ms), cfg.reward, lpips_fn,
-                      previous=frames.truth_before(display_ms, cfg.period_ms))
-        epochs.append(EpochScore(
-            decision_ms=d.decision_ms, eval_ms=d.eval_ms, n_selected=len(d.cameras),
-            aoi_used_ms=float(np.mean(d.aoi_ms)) if d.aoi_ms else math.nan,
-            psnr_db=quality.psnr_db, ssim=quality.ssim, lpips=quality.lpips,
-            reward=quality.reward, loss=float(loss), steps=rendered.steps,
-            psnr_dynamic_db=dyn.psnr_db, ssim_dynamic=dyn.ssim, dynamic_fraction=dyn.fraction,
-            display_ms=display_ms, psnr_display_db=shown.psnr_db, ssim_display=shown.ssim,
-            lpips_display=shown.lpips, reward_display=shown.reward,
-            psnr_dynamic_display_db=shown.dynamic.psnr_db if shown.dynamic else None,
-        ))
         last_image = image
         if on_render is not None:
             on_render(d, image)

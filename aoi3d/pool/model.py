@@ -1,15 +1,31 @@
-"""The values the pool's dispatcher (:mod:`services.trainer.pool`) takes and gives: a
-decision as the pool knows it, an assignment, a decision ended without a render, a worker's
-report, and the status views. Pure data, no logic."""
+"""The values the pool's dispatcher (:mod:`aoi3d.pool.dispatcher`) takes and gives: a
+decision as the pool knows it, an assignment, a decision ended without a render and why, a
+worker's report, and the status views. Pure data, no logic."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
-from services.kit.keys import DEFAULT_SITE
-from services.kit.reasons import EndReason
+from aoi3d.ports import DEFAULT_SITE
 
-__all__ = ["Assignment", "DecisionRef", "Ended", "PoolStatus", "Report", "WorkerView"]
+__all__ = ["Assignment", "DecisionRef", "Ended", "PoolReason", "PoolStatus", "Report",
+           "WorkerView"]
+
+
+class PoolReason(StrEnum):
+    """Why a decision ended in the pool without a render: the pool's share of the wire's
+    ``EndReason`` (proto/aoi3d.proto; a member's value is its label there, so
+    ``services.kit.reasons.EndReason(reason)`` is the wire's member, and
+    tests/unit/test_pool.py checks that every one is a reason the trainer tells)."""
+
+    SUPERSEDED = "superseded"
+    WORKER_DIED = "worker_died"
+    TIMEOUT = "timeout"
+    NOT_DELIVERED = "not_delivered"
+    RENDER_FAILED = "render_failed"
+    REFUSED = "refused"
+    NOT_RECEIVED = "not_received"
 
 
 @dataclass(frozen=True)
@@ -50,9 +66,9 @@ class Ended:
     decision: DecisionRef
     state: str
     """``skipped`` or ``lost``."""
-    reason: EndReason
+    reason: PoolReason
     """skipped: ``superseded``; lost: one the trainer tells
-    (:data:`services.kit.reasons.TRAINER_LOST`)."""
+    (``services.kit.reasons.TRAINER_LOST``)."""
     detail: str = ""
 
 

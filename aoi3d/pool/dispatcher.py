@@ -1,7 +1,9 @@
 """Who reconstructs which decision: the pool's dispatcher, as pure logic (no bus, no threads).
 
 The trainer service runs one :class:`Dispatcher`; reconstruction workers (``python -m
-services.recon``) pull work from it. Design (docs/architecture.md, "The worker pool"):
+services.recon``) pull work from it. The virtual clock's twin of the pool
+(:mod:`aoi3d.experiment.episode.pool`) runs the same one, with simulated workers. Design
+(docs/architecture.md, "The worker pool"):
 
 - **Membership** is Zenoh liveliness: each worker holds a token
   ``aoi3d/<run>/pool/worker/<id>`` for as long as its session lives; the runtime calls
@@ -22,7 +24,8 @@ services.recon``) pull work from it. Design (docs/architecture.md, "The worker p
   vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
   longer than ``job_timeout_s``), ``not_delivered`` (the worker asked again without reporting
   it: the reply never reached it) or ``render_failed`` (the worker could not render it; its
-  own why is the detail). The reasons are :class:`services.kit.reasons.EndReason`. A decision
+  own why is the detail). The reasons are :class:`aoi3d.pool.model.PoolReason` (the wire's
+  ``EndReason``). A decision
   is never handed out twice, so nothing is rendered twice; a worker that comes back after its
   decision was counted lost has its late report ignored (``late_reports``).
 """
@@ -33,22 +36,21 @@ import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
-from services.kit.keys import DEFAULT_SITE
-from services.kit.reasons import EndReason
-from services.trainer.poolmodel import (
+from aoi3d.pool.model import (
     Assignment,
     DecisionRef,
     Ended,
+    PoolReason,
     PoolStatus,
     Report,
     WorkerView,
 )
+from aoi3d.ports import DEFAULT_SITE
 
-__all__ = ["POOL_LOST", "Assignment", "DecisionRef", "Dispatcher", "Ended", "PoolStatus",
-           "Report", "WorkerView"]
+__all__ = ["POOL_LOST", "Dispatcher"]
 
-POOL_LOST = (EndReason.WORKER_DIED, EndReason.TIMEOUT, EndReason.NOT_DELIVERED,
-             EndReason.RENDER_FAILED)
+POOL_LOST = (PoolReason.WORKER_DIED, PoolReason.TIMEOUT, PoolReason.NOT_DELIVERED,
+             PoolReason.RENDER_FAILED)
 """Why the pool itself loses a decision it handed out (``Dispatcher.lost``, the
 ``aoi3d_pool_decisions_lost{reason}`` series); the trainer tells ``refused`` and
 ``not_received`` too, for decisions that never reached the pool."""
@@ -94,7 +96,7 @@ class Dispatcher:
         self.assigned = 0
         self.rendered = 0
         self.superseded = 0
-        self.lost: Counter[str] = Counter()  # EndReason keys (a str)
+        self.lost: Counter[str] = Counter()  # PoolReason keys (a str)
         """Handed-out decisions lost, by reason (:data:`POOL_LOST`)."""
         self.late_reports = 0
         self.wait_sum_s = 0.0
@@ -123,7 +125,7 @@ class Dispatcher:
         if worker is None or worker.holding is None:
             return None
         held = worker.holding
-        self._lose(held.decision, EndReason.WORKER_DIED)
+        self._lose(held.decision, PoolReason.WORKER_DIED)
         return held
 
     @property
@@ -163,7 +165,7 @@ class Dispatcher:
             self.superseded += 1
             self._count(decision.site, "superseded")
             self._ended.append(Ended(self._pending[decision.site][0], "skipped",
-                                     EndReason.SUPERSEDED))
+                                     PoolReason.SUPERSEDED))
         self._pending[decision.site] = (decision, now_s)
         return None
 
@@ -192,12 +194,12 @@ class Dispatcher:
     def refuse(self, decision: DecisionRef, why: str) -> None:
         """The trainer did not take ``decision`` (stale, or ahead of its clock): it never
         reaches the pool, but its end is told (lost, ``refused``)."""
-        self._ended.append(Ended(decision, "lost", EndReason.REFUSED, why))
+        self._ended.append(Ended(decision, "lost", PoolReason.REFUSED, why))
 
     def never_received(self, decision: DecisionRef) -> None:
         """The trainer never received ``decision`` (a gap in its incarnation's ids): its end
         is told (lost, ``not_received``)."""
-        self._ended.append(Ended(decision, "lost", EndReason.NOT_RECEIVED))
+        self._ended.append(Ended(decision, "lost", PoolReason.NOT_RECEIVED))
 
     def give_up(self, worker_id: str) -> None:
         """The worker's held query was answered with no job (its wait ran out)."""
@@ -211,7 +213,7 @@ class Dispatcher:
             if held is not None and now_s - held.assigned_s > self.job_timeout_s:
                 worker.holding = None
                 worker.lost += 1
-                self._lose(held.decision, EndReason.TIMEOUT)
+                self._lose(held.decision, PoolReason.TIMEOUT)
                 out.append(held)
         return out
 
@@ -238,7 +240,7 @@ class Dispatcher:
         site = held.decision.site
         if report.done != held.decision.key:
             worker.lost += 1
-            self._lose(held.decision, EndReason.NOT_DELIVERED)
+            self._lose(held.decision, PoolReason.NOT_DELIVERED)
             return
         if report.rendered:
             worker.rendered += 1
@@ -250,9 +252,9 @@ class Dispatcher:
             self._event(now_s, "age", age)
         else:
             worker.lost += 1
-            self._lose(held.decision, EndReason.RENDER_FAILED, report.reason or "unknown")
+            self._lose(held.decision, PoolReason.RENDER_FAILED, report.reason or "unknown")
 
-    def _lose(self, decision: DecisionRef, reason: EndReason, detail: str = "") -> None:
+    def _lose(self, decision: DecisionRef, reason: PoolReason, detail: str = "") -> None:
         """Count a handed-out decision lost for ``reason`` (one of :data:`POOL_LOST`)."""
         self.lost[reason] += 1
         self._count(decision.site, "lost")
