@@ -75,6 +75,7 @@ BENCH_BLOCKS: dict[str, PortBlock] = {
     "ros2_sweep": PortBlock(3500, 11647),  # REST 11601…11608 (bench/ros2_sweep.sh)
     "live_default": PortBlock(3300, 9647),  # REST 11401…11408 (bench/live_default.py)
     "realtime": PortBlock(3400, 9747),     # REST 11501…11508 (bench/realtime.py)
+    "science_twin": PortBlock(3600, 9847),  # REST 11701…11708 (bench/science_twin.py)
 }
 """The ports of each bench that starts its own pipeline (bench/<name>.py), so that a running
 ``make up`` and the other benches are not disturbed. soak's and chaos's lie in the tests' range

@@ -45,6 +45,7 @@ from aoi3d_cli.common import fmt, make_console
 
 if TYPE_CHECKING:
     from aoi3d.live.report import LiveSweep
+    from aoi3d.live.sim import PoolTwin
     from aoi3d.live.summary import Measurement
     from aoi3d_cli.livehttp import LiveSession, SweepWindows
 
@@ -90,6 +91,12 @@ def sweep(
         min=1, help="Reconstruction workers of the pipeline --up starts.")] = 1,
     sim: Annotated[bool, typer.Option(
         help="Overlay the virtual-clock curve (same scene, channel, carry, budget).")] = True,
+    sim_pool: Annotated[bool, typer.Option(
+        help="Run the virtual clock through the twin of the live pool (fresh and stream "
+             "carries): the pipeline's workers and time scale, each job charged the workers' "
+             "own mean job time (the trainer's GET /status job_s), the decisions no worker "
+             "takes superseded; --no-sim-pool: every fifth decision rendered, no queue.")]
+    = True,
     delay: Annotated[str | None, typer.Option(
         help="The channel for the sweep (PUT /channel on the network service before measuring; "
              "the one in force is put back afterwards): a delay spec (exp:60, …) or a channel "
@@ -133,25 +140,31 @@ def sweep(
     started = time.monotonic()
     docs: dict[str, dict[str, Any]] = {}
     settings = {"settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
-                "reset_each": reset_each, "port_offset": port_offset, "site": site}
+                "reset_each": reset_each, "port_offset": port_offset, "site": site,
+                "sim_pool": sim_pool}
     with LiveSession(Pipeline(url_base, port_offset, timeout_s, site), console) as session:
         if up:
             session.start_pipeline(zenoh_port, time_scale, f"live-sweep-{os.getpid()}",
                                    ["--dataset", str(dataset), "--workers", str(workers)])
         runs: list[str | None] = [*fields] or [None]  # None: the trainer's backend as it is
+        measured: list[tuple[str | None, SweepWindows, float]] = []
         with _backends_put_back(session, fields):
             for field in runs:
-                t_field = started if not docs else time.monotonic()
+                t_field = started if not measured else time.monotonic()
                 if field is not None:
                     _put_backend(session, field)
                 windows = session.measure(specs, bodies, canon, delay=delay,
                                           settle_s=settle_s, measure_s=measure_s,
                                           repeats=repeats, reset_each=reset_each)
-                docs[field or ""] = _report(
-                    windows, [canon[s] for s in specs], t_field, out / field if field else out,
-                    sim=sim, sim_seeds=sim_seeds, sim_seed_offset=sim_seed_offset,
-                    dataset=dataset, cache=cache, settings=settings,
-                    show="none" if fields and json_ else "json" if json_ else "table")
+                measured.append((field, windows, time.monotonic() - t_field))
+    # the virtual clock runs once the live windows are in (and a pipeline --up started has
+    # stopped): it does not take the pipeline's cores while it is measured
+    for field, windows, live_wall_s in measured:
+        docs[field or ""] = _report(
+            windows, [canon[s] for s in specs], live_wall_s, out / field if field else out,
+            sim=sim, sim_seeds=sim_seeds, sim_seed_offset=sim_seed_offset, dataset=dataset,
+            cache=cache, settings=settings, show="none" if fields and json_ else
+            "json" if json_ else "table")
     if fields:
         _side_by_side(docs, out, json_)
 
@@ -197,7 +210,7 @@ def _backends_put_back(session: LiveSession, fields: list[str]) -> Iterator[None
                 console.print(f"[yellow]could not put the backend back:[/] {escape(str(err))}")
 
 
-def _report(windows: SweepWindows, order: list[str], started: float, out: Path, *, sim: bool,
+def _report(windows: SweepWindows, order: list[str], live_wall_s: float, out: Path, *, sim: bool,
             sim_seeds: int, sim_seed_offset: int, dataset: Path, cache: Path,
             settings: dict[str, Any], show: str) -> dict[str, Any]:
     """One backend's sweep: the virtual clock beside it, the files, on stdout ``show``
@@ -207,18 +220,20 @@ def _report(windows: SweepWindows, order: list[str], started: float, out: Path, 
     from aoi3d.live.report import LiveSweep
 
     measure_s, repeats = settings["measure_s"], settings["repeats"]
-    live_wall_s = time.monotonic() - started
+    started = time.monotonic()
     status1, channel = windows.status1, windows.channel
     carry = status1.get("carry", "warm")
     render_steps = int(status1.get("render_steps") or 0)
     steps_per_s = float(status1.get("steps_per_s") or 0.0)
     sim_doc = (_virtual_clock(order, windows, dataset=dataset, seeds=sim_seeds,
-                              seed_offset=sim_seed_offset, cache=cache) if sim else None)
+                              seed_offset=sim_seed_offset, cache=cache,
+                              pool=settings["sim_pool"]) if sim else None)
     result = LiveSweep.of(windows.measurements, order, sim=sim_doc, settings={
         "policies": order, **settings, "carry": carry, "render_steps": render_steps,
         "trainer_steps_per_s": steps_per_s, "channel": channel,
         "backend": status1.get("backend")})
-    doc = result.document({"live": live_wall_s, "total": time.monotonic() - started})
+    doc = result.document({"live": live_wall_s,
+                           "total": live_wall_s + time.monotonic() - started})
     result.write(out, doc)
     plot(result.results, sim_doc, out / "live_sweep.png",
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
@@ -263,27 +278,53 @@ def _side_by_side(docs: dict[str, dict[str, Any]], out: Path, json_: bool) -> No
 
 
 def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, seeds: int,
-                   seed_offset: int, cache: Path) -> dict[str, Any] | None:
+                   seed_offset: int, cache: Path, pool: bool = True) -> dict[str, Any] | None:
     """The virtual clock's run of ``order`` with the live trainer's carry, budget and channel
-    (None, with a line saying why, when it cannot run them: the live measurement is kept)."""
+    — and with ``pool``, the twin of the live pool: the run's workers, time scale and the
+    workers' own job times (None, with a line saying why, when it cannot run them: the live
+    measurement is kept)."""
     from aoi3d.live import steps_per_decision
     from aoi3d.live.sim import SimRefused, simulate
 
     status1, channel = windows.status1, windows.channel
     carry = status1.get("carry", "warm")
     render_steps = int(status1.get("render_steps") or 0)
+    backend = status1.get("backend") or "grid"
+    twin = _pool_twin(status1, backend, carry) if pool else None
     console.print(f"virtual clock: {seeds} seed(s) per policy, carry {carry}, "
-                  f"{render_steps} steps per rendered decision, delay {channel['delay']}")
-    try:
+                  f"{render_steps} steps per rendered decision, delay {channel['delay']}"
+                  + (f", the pool's twin: {twin.workers} worker(s) at time scale "
+                     f"{twin.time_scale:g}, a job of "
+                     + ", ".join(f"{k} steps {ms:.0f} ms" for k, ms in twin.job_ms)
+                     + f" (others {twin.fixed_ms:.1f} + {twin.step_ms:.2f} ms/step)"
+                     if twin is not None else ", no pool"))
+    try:  # its _config holds the twin's settings (pool_workers, time_scale, compute_*)
         return simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,
-                        steps_per_decision=steps_per_decision(
-                            windows.status0, status1, windows.measurements),
-                        render_steps=render_steps, cold_steps=_cold_steps(status1),
-                        seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None,
-                        backend=status1.get("backend") or "grid")
+                       steps_per_decision=steps_per_decision(
+                           windows.status0, status1, windows.measurements),
+                       render_steps=render_steps, cold_steps=_cold_steps(status1),
+                       seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None,
+                       backend=backend, pool=twin)
     except SimRefused as err:
         console.print(f"no virtual clock: {escape(str(err))}")
         return None
+
+
+def _pool_twin(status: dict[str, Any], backend: str, carry: str) -> PoolTwin | None:
+    """The live pool as the twin runs it, from the trainer's status: its workers, time scale
+    and job times; None (and a line why) when the status cannot say."""
+    from aoi3d.experiment.config import POOL_CARRIES
+    from aoi3d.live.sim import PoolTwin, job_cost, job_table
+
+    workers = len((status.get("pool") or {}).get("workers") or [])
+    cost = job_cost(status.get("job_s") or {}, backend, carry)
+    if carry not in POOL_CARRIES or workers < 1 or cost is None:
+        console.print(f"no pool in the virtual clock: carry {carry} (the twin runs "
+                      f"{', '.join(POOL_CARRIES)}), {workers} worker(s), "
+                      f"{'no' if cost is None else 'some'} timed job")
+        return None
+    return PoolTwin(workers, float(status.get("time_scale") or 1.0), *cost,
+                    job_ms=job_table(status.get("job_s") or {}, backend, carry))
 
 
 def _cold_steps(status: dict[str, Any]) -> int:

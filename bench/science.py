@@ -61,7 +61,7 @@ from typing import Any
 
 from aoi3d.experiment import claims
 from aoi3d.metric import PSNR, PSNR_DYNAMIC, names_of
-from bench import science_display
+from bench import science_display, science_twin
 from bench.common import ROOT
 
 DEV_SEEDS = "experiments 0–20, 1000–1015 and 9001–9003; PPO evaluation offsets 0–39"
@@ -134,15 +134,26 @@ def main() -> int:
     ap.add_argument("--extra", action="append", default=[],
                     help="an option passed on to every command (repeat), e.g. "
                          "--extra=--dataset=/tmp/tiny for a smoke run")
-    ap.add_argument("--only", choices=("display",), default=None,
+    ap.add_argument("--twin-seeds", type=int, default=4,
+                    help="virtual-clock seeds per policy of the live-against-twin part "
+                         "(bench/science_twin.py; 0 skips it)")
+    ap.add_argument("--twin-measure-s", type=float, default=40.0,
+                    help="live wall seconds measured per policy and repeat in that part")
+    ap.add_argument("--twin-repeats", type=int, default=2,
+                    help="live passes over the policies in that part")
+    ap.add_argument("--only", choices=("display", "twin"), default=None,
                     help="run only one part and merge it into the existing claims.json and "
                          "--doc: `display` = issue 40's display-time claims at 25 and 50 "
-                         "steps and the compute-aware grid (bench/science_display.py)")
+                         "steps and the compute-aware grid (bench/science_display.py); "
+                         "`twin` = the live pipeline against the virtual clock's twin of "
+                         "the pool at time scales 0.3 and 1 (bench/science_twin.py)")
     ap.add_argument("--reuse", action="store_true",
                     help="with --only: keep a run whose results.json exists")
     args = ap.parse_args()
     if args.only == "display":
         return display_only(args)
+    if args.only == "twin":
+        return twin_only(args)
 
     exe = aoi3d()
     out: Path = args.out
@@ -188,6 +199,8 @@ def main() -> int:
         timefield = tfq.run_question(lambda cmd: run_command(cmd, log), exe, common,
                                      out / "timefield", args.timefield_seeds or args.seeds, [],
                                      tfq.dataset_of(args.extra))
+    if args.twin_seeds > 0:  # issue 49: the live pipeline against the twin of its pool
+        _run_twin(exe, args, out, log)
     wall = time.perf_counter() - started
 
     def load(name: str) -> dict[str, Any]:
@@ -230,7 +243,8 @@ def main() -> int:
            "claims": [v.to_dict() for v in verdicts],
            "display_time": [v.to_dict() for v in display],
            "questions": [v.to_dict() for v in questions],
-           "display_budgets": science_display.verdicts(out), "time_aware": timefield}
+           "display_budgets": science_display.verdicts(out), "time_aware": timefield,
+           "live_twin": science_twin.verdicts(out) if args.twin_seeds > 0 else None}
     (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
     if str(args.figures):
         args.figures.mkdir(parents=True, exist_ok=True)
@@ -423,7 +437,42 @@ def science_md(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, A
         from bench import timefield as tfq
 
         text += "\n".join(tfq.markdown(doc["time_aware"], os.path.relpath(out, ROOT)))
+    if doc.get("live_twin"):
+        text += "\n" + "\n".join(science_twin.render_lines(doc["live_twin"],
+                                                            os.path.relpath(out, ROOT)))
     return text
+
+
+def _run_twin(exe: str, args: argparse.Namespace, out: Path, log: list[dict[str, Any]]
+              ) -> None:
+    science_twin.run_all(exe, out, run_command, log, seeds=args.twin_seeds,
+                         seed_offset=args.seed_offset, cache=args.cache,
+                         measure_s=args.twin_measure_s, repeats=args.twin_repeats,
+                         reuse=args.reuse, extra=tuple(args.extra))
+
+
+def twin_only(args: argparse.Namespace) -> int:
+    """``--only twin``: run the live-against-twin part and merge it into ``claims.json`` and
+    the doc, the other parts' results read from ``--out`` as the last full run left them."""
+    out: Path = args.out
+    doc = json.loads((out / "claims.json").read_text())
+    args.seed_offset = doc["seed_offset"]
+    _run_twin(aoi3d(), args, out, [])
+    doc["live_twin"] = science_twin.verdicts(out)
+    (out / "claims.json").write_text(json.dumps(doc, indent=2, default=str) + "\n")
+
+    def load(name: str) -> dict[str, Any]:
+        return dict(json.loads((out / name).read_text()))
+
+    if str(args.doc):
+        args.doc.write_text(science_md(doc, load("tradeoff/results.json"),
+                                       load("delay/results.json"), load("compare/results.json"),
+                                       load("ppo/eval.json"), out, load("adaptive/results.json")))
+    for scale, v in doc["live_twin"]["scales"].items():
+        print(f"{'YES ' if v['holds'] else 'NO  '} time scale {scale}: best live "
+              f"{v['live_best']}, twin {v['twin_best']}, mean |live - twin| "
+              f"{v['mean_abs_diff_db']:.2f} dB")
+    return 0
 
 
 def display_only(args: argparse.Namespace) -> int:

@@ -154,6 +154,7 @@ class EpisodeConfig:
     compute_fixed_ms: float = COMPUTE_FIXED_MS
     compute_step_ms: float = COMPUTE_STEP_MS
     pool_workers: int = 0
+    job_ms: tuple[tuple[int, float], ...] = ()
 
     def __post_init__(self) -> None:
         parse_channel(self.delay)  # raises DelaySpecError listing the accepted forms
@@ -187,6 +188,14 @@ class EpisodeConfig:
         if not self.time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {self.time_scale}")
         _int_at_least("pool_workers", self.pool_workers, 0)
+        try:
+            table = tuple((int(k), float(v)) for k, v in self.job_ms)
+        except (TypeError, ValueError):
+            raise ValueError(f"job_ms must be (steps, wall ms) pairs, got {self.job_ms!r}"
+                             ) from None
+        if any(k < 0 or not (math.isfinite(v) and v >= 0) for k, v in table):
+            raise ValueError(f"job_ms: steps >= 0 and finite wall ms >= 0, got {table}")
+        object.__setattr__(self, "job_ms", tuple(sorted(table)))
         if self.pool_workers and self.carry not in POOL_CARRIES:
             raise ValueError(f"the pool's twin (pool_workers={self.pool_workers}) runs the "
                              f"carries {', '.join(POOL_CARRIES)}; {self.carry!r} trains between "
@@ -200,9 +209,14 @@ class EpisodeConfig:
 
     def compute_ms(self, steps: int) -> float:
         """Scene ms a reconstruction of ``steps`` training steps takes at the run's
-        ``time_scale``: (``compute_fixed_ms`` + ``compute_step_ms`` · steps) wall ms, times
+        ``time_scale``: ``job_ms``'s wall ms for that many steps where it has them (a measured
+        table: a cold start's steps cost more each than a warm start's), else
+        (``compute_fixed_ms`` + ``compute_step_ms`` · steps) wall ms, times
         the scale (the live clock: scene = wall × time_scale). What the virtual clock charges
         a scored decision before its render is shown (the display time)."""
+        for k, ms in self.job_ms:
+            if k == steps:
+                return ms * self.time_scale
         return (self.compute_fixed_ms + self.compute_step_ms * steps) * self.time_scale
 
     @property

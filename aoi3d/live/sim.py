@@ -1,25 +1,105 @@
 """The virtual-clock counterpart of a live sweep: the experiments' engine on the same scene,
-channel, carry mode and training budget per rendered decision."""
+channel, carry mode and training budget per rendered decision — and, with :class:`PoolTwin`,
+the live run's pool: as many workers, its time scale, and a job charged what the live
+workers' own timings say (:func:`job_cost`, from the trainer's ``GET /status`` ``job_s``)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from aoi3d.experiment.config import get_preset
+from aoi3d.experiment.config import COMPUTE_FIXED_MS, COMPUTE_STEP_MS, get_preset
 from aoi3d.experiment.episode.plan import check_budget_applies
 from aoi3d.experiment.sweep import Job, ResultCache, run_jobs
 from aoi3d.live.summary import METRICS
 from aoi3d.policy import parse_policy
 from aoi3d.stats import mean_ci95
 
-__all__ = ["SimRefused", "budget", "simulate"]
+__all__ = ["MIN_JOBS", "PoolTwin", "SimRefused", "budget", "job_cost", "job_table", "simulate"]
 
 
 class SimRefused(ValueError):
     """The virtual clock cannot run these policies with the pipeline's settings (a budget
     under the warm carry); the message says why. Nothing was run."""
+
+
+@dataclass(frozen=True)
+class PoolTwin:
+    """The live run's pool as the virtual clock's twin runs it: ``workers``, the run's
+    ``time_scale`` and a job's wall ms: ``job_ms``'s median for the step counts the live
+    workers timed (:func:`job_table`), else ``fixed_ms`` + ``step_ms`` · steps."""
+
+    workers: int
+    time_scale: float
+    fixed_ms: float
+    step_ms: float
+    job_ms: tuple[tuple[int, float], ...] = ()
+
+    def changes(self) -> dict[str, Any]:
+        """The episode config's settings for it (every decision goes to the pool)."""
+        return {"pool_workers": self.workers, "time_scale": self.time_scale,
+                "compute_fixed_ms": self.fixed_ms, "compute_step_ms": self.step_ms,
+                "job_ms": self.job_ms, "score_every": 1}
+
+
+MIN_JOBS = 3
+"""Jobs a step count needs to count in :func:`job_cost` (a run's first jobs, cold, also build
+the model and warm the process up: one of them alone says little)."""
+
+
+def job_table(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
+              ) -> tuple[tuple[int, float], ...]:
+    """(steps, median wall ms) of each step count of ``backend`` and ``carry`` the live
+    workers timed at least :data:`MIN_JOBS` times (the trainer's ``job_s``)."""
+    return tuple(sorted((s, ms) for s, ms, n in _points(job_s, backend, carry)
+                        if n >= MIN_JOBS))
+
+
+def _points(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
+            ) -> list[tuple[int, float, float]]:
+    """(steps, median ms, jobs) of each timed step count of ``backend`` and ``carry``."""
+    points = []
+    for key, stat in job_s.items():
+        b, _, rest = key.partition("/")
+        c, _, count = rest.partition("/")
+        if b == backend and c == carry and count.isdigit() and stat.get("n", 0) > 0 \
+                and math.isfinite(stat.get("median_s", math.nan)):
+            points.append((int(count), 1000.0 * float(stat["median_s"]), float(stat["n"])))
+    return points
+
+
+def job_cost(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
+             ) -> tuple[float, float] | None:
+    """(fixed ms, ms per step) of a job of ``backend`` and ``carry`` from the live workers'
+    own timings (the trainer's ``job_s``: ``{"grid/stream/25": {"median_s", "n", …}}``): the
+    line through the median time at each step count timed at least :data:`MIN_JOBS` times,
+    least squares weighted by the jobs (a stream run has two: its warm and its cold starts);
+    with one such step count, the default cost model
+    (:data:`~aoi3d.experiment.config.COMPUTE_FIXED_MS`, ``COMPUTE_STEP_MS``) scaled to it.
+    Medians, since a worker's first job also builds its model. None: no job of that kind
+    was timed. (The twin charges the timed step counts their own medians, :func:`job_table`:
+    this line is for the others, a budgeted policy's.)"""
+    points = _points(job_s, backend, carry)
+    if not points:
+        return None
+    enough = [p for p in points if p[2] >= MIN_JOBS] or [max(points, key=lambda p: p[2])]
+    if len(enough) == 1:
+        only, ms, _ = enough[0]
+        k = ms / (COMPUTE_FIXED_MS + COMPUTE_STEP_MS * only)
+        return COMPUTE_FIXED_MS * k, COMPUTE_STEP_MS * k
+    w = sum(n for _, _, n in enough)
+    sx = sum(n * s for s, _, n in enough) / w
+    sy = sum(n * ms for _, ms, n in enough) / w
+    sxx = sum(n * (s - sx) ** 2 for s, _, n in enough)
+    sxy = sum(n * (s - sx) * (ms - sy) for s, ms, n in enough)
+    slope = max(0.0, sxy / sxx)
+    if sy - slope * sx < 0:  # steps dearer as there are more (a cold start's): through 0
+        return 0.0, (sum(n * s * ms for s, ms, n in enough)
+                     / sum(n * s * s for s, _, n in enough))
+    return sy - slope * sx, slope
 
 
 def budget(carry: str, *, steps_per_decision: int, render_steps: int,
@@ -39,19 +119,28 @@ def budget(carry: str, *, steps_per_decision: int, render_steps: int,
 
 def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
              steps_per_decision: int, render_steps: int, seeds: int, seed_offset: int,
-             cache: Path, workers: int | None, cold_steps: int = 100, backend: str = "grid"
-             ) -> dict[str, dict[str, Any]]:
+             cache: Path, workers: int | None, cold_steps: int = 100, backend: str = "grid",
+             pool: PoolTwin | None = None, lpips: bool = True) -> dict[str, dict[str, Any]]:
     """The experiments' engine on the same scene, channel, carry, budget (:func:`budget`;
     ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``) and field
-    backend: per policy, ``{metric: {"mean", "ci95", "n"}}`` over ``seeds`` seeds (and
-    ``_config``: the episode config run). :class:`SimRefused` when a policy's budget cannot
-    run with that carry."""
+    backend, through the twin of the live pool when ``pool`` says it (else every fifth
+    decision rendered, no queue): per policy, ``{metric: {"mean", "ci95", "n"}}`` over
+    ``seeds`` seeds, ``rendered_fraction`` with a pool (and ``_config``: the episode config
+    run). :class:`SimRefused` when a policy's budget cannot run with that carry. ``workers``:
+    the sweep's processes."""
     base = get_preset("quick").episode
     changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry,
                                "backend": backend}
     changes.update(budget(carry, steps_per_decision=steps_per_decision,
                           render_steps=render_steps, cold_steps=cold_steps))
-    cfg = base.with_(**changes)
+    if pool is not None:
+        changes.update(pool.changes())
+    if not lpips:
+        changes["lpips"] = False
+    try:
+        cfg = base.with_(**changes)
+    except ValueError as err:
+        raise SimRefused(str(err)) from None
     for spec in policies:  # before any episode runs
         policy = parse_policy(spec)
         if policy.budget_steps is not None or getattr(policy, "chooses_budget", False):
@@ -66,5 +155,9 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
         rs = [r for r in outcome.results if r.policy == spec]
         sim[spec] = {m: mean_ci95([getattr(r, m, None) for r in rs]).to_dict() for m in METRICS}
         sim[spec]["cameras_used"] = mean_ci95([r.n_selected for r in rs]).to_dict()
+        if pool is not None:
+            sim[spec]["rendered_fraction"] = mean_ci95(
+                [r.rendered_fraction for r in rs]).to_dict()
+            sim[spec]["display_lag_ms"] = mean_ci95([r.compute_ms for r in rs]).to_dict()
     sim["_config"] = cfg.to_dict()
     return sim

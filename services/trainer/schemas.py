@@ -151,6 +151,9 @@ class StatusResponse(BaseModel):
                     "warm one): median_s, mean_s and n over the last 500 of each. What the "
                     "virtual clock's twin of the pool charges a job.",
         examples=[{"grid/stream/25": {"median_s": 0.094, "mean_s": 0.097, "n": 500.0}}])
+    time_scale: float = Field(description="The run's time scale (scene seconds per wall "
+                                          "second): a job's compute_s in scene time is "
+                                          "compute_s × time_scale.", examples=[1.0])
 
 
 def status_body(status: TrainerStatus, site: str) -> StatusResponse:
@@ -168,4 +171,5 @@ def status_body(status: TrainerStatus, site: str) -> StatusResponse:
         renders=status.renders, frames_received=status.frames_received,
         frames_buffered=status.frames_buffered,
         frames_missing=status.frames_missing, resets=status.resets, running=status.running,
-        pool=pool_body(status.pool), site=site, job_s=status.job_s)
+        pool=pool_body(status.pool), site=site, job_s=status.job_s,
+        time_scale=status.time_scale)

@@ -113,3 +113,4 @@ class TrainerStatus:
     running: bool
     pool: PoolStatus | None = None
     job_s: dict[str, dict[str, float]] = field(default_factory=dict)
+    time_scale: float = 1.0

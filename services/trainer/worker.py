@@ -303,7 +303,7 @@ class TrainerWorker:
                 renders=c.renders_seen, frames_received=c.frames_received,
                 frames_buffered=c.frames_buffered, frames_missing=c.frames_missing,
                 resets=self.render.model_epoch, running=self.running(), pool=pool,
-                job_s=c.job_times.summary())
+                job_s=c.job_times.summary(), time_scale=self.clock.time_scale)
 
 
 __all__ = ["CarryError", "TrainerWorker"]

@@ -272,3 +272,33 @@ def test_a_sweep_over_backends_with_json_prints_one_document(tmp_path, monkeypat
     assert doc["backends"][0]["psnr_display_db"]["mean"] == pytest.approx(25.0)
     assert puts == ["grid", "flow", "grid"]  # a pipeline it did not start: grid put back
     assert (tmp_path / "flow/results.json").exists()
+
+
+def test_the_pool_twin_charges_what_the_live_workers_timed() -> None:
+    from aoi3d.experiment.config import EpisodeConfig
+    from aoi3d.live.sim import MIN_JOBS, PoolTwin, job_cost, job_table
+
+    job_s = {"grid/stream/25": {"median_s": 0.1, "mean_s": 0.12, "n": 500.0},
+             "grid/stream/100": {"median_s": 0.7, "mean_s": 0.9, "n": 12.0},
+             "grid/stream/50": {"median_s": 9.0, "mean_s": 9.0, "n": MIN_JOBS - 1.0},
+             "grid/fresh/25": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0},
+             "ngp/stream/25": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0}}
+    assert job_table(job_s, "grid", "stream") == ((25, 100.0), (100, 700.0))
+    fixed, step = job_cost(job_s, "grid", "stream")
+    assert fixed == 0.0 and 100 / 25 < step < 700 / 100  # cold steps dearer: through 0
+    line = job_cost({"grid/stream/25": {"median_s": 0.1, "n": 5.0},
+                     "grid/stream/100": {"median_s": 0.25, "n": 5.0}}, "grid", "stream")
+    assert line == pytest.approx((50.0, 2.0))
+    assert job_cost({}, "grid", "stream") is None
+    # one step count: the default model scaled to it
+    fixed1, step1 = job_cost({"grid/fresh/25": {"median_s": 0.2, "n": 9.0}}, "grid", "fresh")
+    assert fixed1 + 25 * step1 == pytest.approx(200.0)
+    twin = PoolTwin(2, 0.5, fixed, step, job_table(job_s, "grid", "stream"))
+    cfg = EpisodeConfig(carry="stream", steps_per_epoch=100, render_steps=25,
+                        **twin.changes())
+    assert cfg.compute_ms(25) == pytest.approx(50.0)  # the table, times the time scale
+    assert cfg.compute_ms(100) == pytest.approx(350.0)
+    assert cfg.compute_ms(60) == pytest.approx((fixed + 60 * step) * 0.5)  # the line
+    assert EpisodeConfig.from_dict(cfg.to_dict()) == cfg
+    with pytest.raises(ValueError, match="job_ms"):
+        EpisodeConfig(job_ms=((25, -1.0),))

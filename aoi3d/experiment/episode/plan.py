@@ -178,6 +178,7 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         **({"render_steps": cfg.render_steps} if cfg.carry in FINETUNE_MODES else {}),
         "compute": [cfg.time_scale, cfg.compute_fixed_ms, cfg.compute_step_ms],
         **({"pool_workers": cfg.pool_workers} if cfg.pool_workers else {}),
+        **({"job_ms": [list(x) for x in cfg.job_ms]} if cfg.job_ms else {}),
         "lpips": lpips, "reward": [cfg.reward.psnr, cfg.reward.ssim, cfg.reward.lpips,
                                        *([cfg.reward.psnr_dynamic, cfg.reward.ssim_dynamic]
                                          if cfg.reward.dynamic else [])],
