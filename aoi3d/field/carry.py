@@ -80,8 +80,10 @@ class WarmStart:
     """Settings of the ``stream`` carry (the streaming warm start, see the module).
 
     ``cold_steps``: the budget of a cold start (no model yet, or one too old: its decision
-    more than ``max_gap_ms`` of scene time away from the new one's, either way; a decision
-    without a time is always cold). A warm start trains ``render_steps``: ``reset`` — the
+    more than ``max_gap_ms`` of scene time away from the new one's, either way, not counting
+    the time its own job took — :meth:`Reconstruction.ready`: a cold start slower than the gap
+    would otherwise leave its worker cold for good; a decision without a time is always
+    cold). A warm start trains ``render_steps``: ``reset`` — the
     grid's vertices the change carve marks go back to their initial values (and their Adam
     moments to 0); ``focus`` — that share of each batch's rays comes from the changed pixels;
     ``hold`` — the carried model's step counter is set back to ``cold_steps − render_steps``
@@ -182,6 +184,7 @@ class Reconstruction:
         # the stream carry: the scene time of the model's last decision (None: no model yet)
         # and, per camera, the last frame the model trained on
         self._model_time_ms: float | None = None
+        self._job_ms = 0.0  # scene ms its last job took (ready), not counted in the gap
         self._frames: OrderedDict[Camera, np.ndarray] = OrderedDict()
         # warm and fork: the scene time the trainer's model stands for (None: not known)
         self._time_ms: float | None = None
@@ -249,12 +252,21 @@ class Reconstruction:
         one the same image again (``FieldTrainer.render``)."""
         return self._rendered.render(camera, ahead_ms=ahead_ms)
 
+    def ready(self, time_ms: float) -> None:
+        """The last :meth:`render_decision` was ready (shown) at scene time ``time_ms``: the
+        ``stream`` carry does not count the time its job took in the gap to the next decision
+        (:meth:`is_warm`; no call: all of it counts)."""
+        last = self._model_time_ms
+        self._job_ms = max(0.0, time_ms - last) if last is not None and math.isfinite(
+            time_ms) else 0.0
+
     def is_warm(self, time_ms: float | None) -> bool:
         """Whether a ``stream`` decision at scene time ``time_ms`` starts warm: a model exists
-        and its last decision is at most ``max_gap_ms`` away."""
+        and its last decision is at most ``max_gap_ms`` away, not counting the time its job
+        took (:meth:`ready`)."""
         last = self._model_time_ms
         return (last is not None and time_ms is not None and math.isfinite(time_ms)
-                and abs(time_ms - last) <= self.warm_start.max_gap_ms)
+                and abs(time_ms - last) <= self.warm_start.max_gap_ms + self._job_ms)
 
     def _changes(self, views: Sequence[TrainView]) -> list[tuple[Camera, np.ndarray]]:
         """Each view's change mask against its camera's last frame (views of a camera the
@@ -311,6 +323,7 @@ class Reconstruction:
         while len(self._frames) > _FRAMES_KEPT:
             self._frames.popitem(last=False)
         self._model_time_ms = time_ms if views else None
+        self._job_ms = 0.0
         return RenderedDecision(image, model.steps, budget if views else 0, float(loss),
                                 len(views), warm)
 

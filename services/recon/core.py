@@ -155,7 +155,9 @@ class ReconCore:
     def run(self, job: pb.Job, now_ms: Callable[[], float] | None = None) -> Outcome:
         """Reconstruct the job's decision and render its camera; :class:`JobFailed` when it
         cannot be done (bad scene box, camera, backend or selection). ``now_ms``: the scene
-        clock, read once the model is trained: a time-aware field is rendered at that time."""
+        clock, read once the model is trained (a time-aware field is rendered at that time)
+        and once the Render is made: its ``ready_ms``, which the stream carry's gap to the
+        next job leaves out (:meth:`aoi3d.field.carry.Reconstruction.ready`)."""
         aabb = np.asarray(job.aabb, dtype=np.float64)
         if aabb.shape != (6,) or not np.all(np.isfinite(aabb)) or np.any(aabb[3:] <= aabb[:3]):
             raise JobFailed("bad_job", "the scene box must be 6 finite values, min < max")
@@ -196,6 +198,9 @@ class ReconCore:
             worker_id=self.worker_id, site=job.site, seed=job.seed, aabb=list(job.aabb),
             warm_start=rendered.warm,
             loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
+        if now_ms is not None:  # ready: shown from now on; the stream gap leaves the job out
+            render.ready_ms = now_ms()
+            rec.ready(render.ready_ms)
         return Outcome(render, rendered, rejected)
 
     def keep_latest(self, job: pb.Job) -> None:

@@ -107,8 +107,7 @@ class ReconWorker:
         t0 = time.monotonic()
         try:
             outcome = self.core.run(job, now_ms=self.clock.now_ms)
-            outcome.render.compute_s = time.monotonic() - t0
-            outcome.render.ready_ms = self.clock.now_ms()
+            outcome.render.compute_s = time.monotonic() - t0  # (its ready_ms: the core's)
             self.bus.publish(Keys(self.keys.run_id, job.site or DEFAULT_SITE).render,
                              outcome.render.SerializeToString())
             self._done = (job, True, "")

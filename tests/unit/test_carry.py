@@ -224,6 +224,20 @@ def test_stream_starts_cold_then_warm_from_the_previous_model(dataset: SceneData
     assert not rec.is_warm(560.0)  # an empty decision leaves no model to start from
 
 
+def test_the_stream_gap_leaves_out_the_time_the_job_took(dataset: SceneDataset) -> None:
+    """A cold start slower than max_gap_ms must not leave its worker cold for good: the gap
+    to the next decision is counted without the time the last job took (ready)."""
+    ws = WarmStart(cold_steps=4, max_gap_ms=100.0)
+    rec = Reconstruction(trainer(dataset), "stream", render_steps=2, warm_start=ws)
+    cam = dataset.cameras[0]
+    rec.render_decision(cam, views(dataset, 0), time_ms=0.0)
+    assert not rec.is_warm(330.0)  # its job's time not told: all of the gap counts
+    rec.ready(300.0)  # the cold job took 300 ms
+    assert rec.is_warm(330.0) and not rec.is_warm(401.0)
+    second = rec.render_decision(cam, views(dataset, 1), time_ms=330.0)
+    assert second.warm and not rec.is_warm(330.0 + 101.0)  # a new job: its own time again
+
+
 def test_stream_focuses_on_the_changed_pixels(dataset: SceneDataset) -> None:
     t = trainer(dataset)
     t.set_views(views(dataset, 0))

@@ -68,6 +68,18 @@ def test_the_stream_carry_chains_each_workers_jobs(dataset: SceneDataset) -> Non
     assert again.psnr_display_db == res.psnr_display_db and out_again == out  # deterministic
 
 
+def test_a_cold_start_slower_than_the_gap_leaves_its_worker_warm_after(
+        dataset: SceneDataset) -> None:
+    # the cold start (6 steps) takes 700 ms, beyond the stream carry's 500-ms gap; the warm
+    # ones 20: counted from its decision, the next decision would be cold again, for good
+    cfg = config(carry="stream", steps_per_epoch=6, render_steps=2, pool_workers=1,
+                 job_ms=((6, 700.0), (2, 20.0)), warmup_ms=900, scored_ms=300)
+    plan = plan_episode(cfg, dataset, "all", 0)
+    _, out, _ = run_pool_plan(plan, dataset)
+    empties = sum(not d.cameras for d in plan.decisions)
+    assert out.warm >= out.rendered - 1 - empties and out.rendered_scored == out.offered_scored
+
+
 def test_run_plan_takes_the_twin_with_a_pool(dataset: SceneDataset) -> None:
     cfg = config()
     plan = plan_episode(cfg, dataset, "all", 0)

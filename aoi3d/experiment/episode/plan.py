@@ -176,6 +176,8 @@ def plan_key(plan: EpisodePlan, dataset: SceneDataset, *, lpips: bool) -> str:
         "field": _field_dict(cfg),
         "steps_per_epoch": cfg.steps_per_epoch, "carry": cfg.carry, "device": cfg.device,
         **({"render_steps": cfg.render_steps} if cfg.carry in FINETUNE_MODES else {}),
+        # the stream carry's gap leaves out the job's own time (Reconstruction.ready)
+        **({"warm_gap": "less_job"} if cfg.carry == "stream" else {}),
         "compute": [cfg.time_scale, cfg.compute_fixed_ms, cfg.compute_step_ms],
         **({"pool_workers": cfg.pool_workers} if cfg.pool_workers else {}),
         **({"job_ms": [list(x) for x in cfg.job_ms]} if cfg.job_ms else {}),

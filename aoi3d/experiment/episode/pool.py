@@ -145,8 +145,12 @@ class _Twin:
 
     def start(self, a: Assignment, now_ms: float) -> None:
         d = self.decisions[a.decision.decision_id]
-        rendered = self.workers[a.worker_id].run(self.cfg, d, self.frames)
+        worker = self.workers[a.worker_id]
+        rendered = worker.run(self.cfg, d, self.frames)
         end_ms = now_ms + self.cfg.compute_ms(rendered.render_steps)
+        assert worker.rec is not None  # it just ran the job
+        worker.rec.ready(self.frames.content_ms(end_ms) if worker.rec.trainer.cfg.time_aware
+                         else end_ms)
         self.held[a.worker_id] = _Job(d, a.decision, rendered, end_ms)
         heapq.heappush(self.running, (end_ms, a.decision.decision_id, a.worker_id))
 

@@ -70,9 +70,10 @@ def run_plan(
         rendered = rec.render_decision(heldout, time_ms=model_ms)
         if rendered.render_steps:
             loss = rendered.loss
+        display_ms = d.eval_ms + cfg.compute_ms(rendered.render_steps)
+        rec.ready(frames.content_ms(display_ms) if time_aware else display_ms)
         epoch = epoch_score(cfg, d, rec, rendered, frames, heldout, lpips_fn,
-                            display_ms=d.eval_ms + cfg.compute_ms(rendered.render_steps),
-                            loss=float(loss))
+                            display_ms=display_ms, loss=float(loss))
         epochs.append(epoch)
         image = rendered.image
         last_image = image
