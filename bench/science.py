@@ -45,6 +45,13 @@ Issue 41's question (``bench/timefield.py``, ``--timefield-seeds``, default ``--
 time-aware field against the static grid at equal CPU seconds per render, six arms over Γ at
 exp:60 and exp:100, LPIPS off — about 2,300 reconstructions of 16–100 steps, 12.0 min alone
 on the 2-core machine (busy for half of it). Its two verdicts are open questions too.
+
+Issue 49's question (:mod:`bench.science_twin`, ``--twin-seeds``, default 4; 0 skips it):
+the live pipeline (``aoi3d live sweep --up``, its defaults, two workers) against the virtual
+clock's twin of its pool, at time scales 0.3 and 1, Γ ∈ {40, 70, 100, 160, all}: does the
+twin put the same Γ first, within 0.5 dB on average? Two live sweeps of 5 policies ×
+``--twin-measure-s`` (40) × ``--twin-repeats`` (2) and their twins; ``--only twin`` runs it
+alone and merges it. An open question, reported either way.
 """
 
 from __future__ import annotations
