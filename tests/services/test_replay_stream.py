@@ -197,3 +197,35 @@ def test_a_recording_from_before_the_chain_fields_orders_each_workers_jobs_by_ti
         1: True, 2: True, 3: True, 6: False, 7: False, 8: False, 9: False}
     assert result.chains.to_dict() == {"gaps": 0, "skipped": 0, "carried": 1, "not_exact": 4}
     assert score_diffs(rec, result)["psnr_db"] <= 1e-4  # 1, 2 and 3 (a warm start)
+
+
+def test_the_replay_command_scores_a_stream_recording(dataset: SceneDataset, tmp_path: Path,
+                                                      monkeypatch) -> None:
+    """``aoi3d replay --json --policy all`` on the stream recording with a gap: the exact
+    renders' largest difference, the ones after the gap counted apart, each policy's chains."""
+    import json
+
+    from typer.testing import CliRunner
+
+    import services.recon.core
+    from aoi3d_cli import app
+
+    monkeypatch.setattr(services.recon.core, "make_field_config", CONFIGS.__getitem__)
+    record_stream_run(dataset, tmp_path / "run.mcap", drop=frozenset({6}))
+    out = CliRunner().invoke(app, ["replay", str(tmp_path / "run.mcap"), "--json",
+                                   "--policy", "all"])
+    assert out.exit_code == 0, out.output
+    doc = json.loads(out.stdout)
+    assert doc["selections_equal"] == doc["decisions"] == 9
+    assert doc["max_abs_score_diff"] is not None and doc["max_abs_score_diff"] <= 1e-4, doc
+    assert doc["not_exact"] == 1 and doc["score_diffs_not_exact"]["psnr_db"] > 0.1, doc
+    # all's first job names a frame from before the recording: not paired (the recorded
+    # policy runs it only to carry A's model on), and all's chain goes on without it
+    assert doc["chains"]["recorded"] == {"gaps": 1, "skipped": 0, "carried": 2,
+                                         "not_exact": 1}
+    assert doc["chains"]["all"]["skipped"] == 1 and doc["paired_epochs"] == 5, doc
+    recorded, every = doc["counterfactual"]
+    assert recorded["n"] == every["n"] == 5 and every["cameras_used"] == 4.0
+    text = CliRunner().invoke(app, ["replay", str(tmp_path / "run.mcap")])
+    assert text.exit_code == 0, text.output
+    assert "not reproducible exactly: 1 stream renders after 1 gaps" in text.output
