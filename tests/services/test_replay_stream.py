@@ -44,8 +44,8 @@ def _frame(ds: SceneDataset, cam: int, k: int) -> bytes:
                         send_ms=gen, delivery_ms=gen + DELAY_MS.get(cam, 0.0))
 
 
-def record_stream_run(ds: SceneDataset, path: Path, *, drop: frozenset[int] = frozenset()
-                      ) -> dict[int, pb.Render]:
+def record_stream_run(ds: SceneDataset, path: Path, *, drop: frozenset[int] = frozenset(),
+                      carry: str = "stream") -> dict[int, pb.Render]:
     """Record the run (see the module docstring) into ``path``, leaving out the renders (and
     scores) of the decisions in ``drop``, as a recording that missed them. Camera 4's first
     frame is not on record: the scheduler knew it before the recording began. The renders
@@ -83,7 +83,7 @@ def record_stream_run(ds: SceneDataset, path: Path, *, drop: frozenset[int] = fr
         rec.write(K.decision, d.SerializeToString(), log_ns=next(log))
         if k not in WORKER:
             continue
-        job = pb.Job(decision=d, backend="grid", carry="stream", render_steps=STEPS, seed=3,
+        job = pb.Job(decision=d, backend="grid", carry=carry, render_steps=STEPS, seed=3,
                      cold_steps=COLD_STEPS, warm_max_gap_ms=MAX_GAP_MS, pose=pose,
                      intrinsics=intrinsics, aabb=np.asarray(ds.aabb).reshape(-1).tolist(),
                      site="site1")
@@ -131,6 +131,21 @@ def test_a_stream_recording_replays_every_selection_and_score(dataset: SceneData
     assert set(diffs) >= {"psnr_db", "ssim"}
     assert diffs["psnr_db"] <= 1e-4 and diffs["ssim"] <= 1e-6, diffs  # measured: 0
     assert score_diffs(rec, result, exact=False) == {}
+
+
+def test_fresh_renders_are_rebuilt_alone(dataset: SceneDataset, tmp_path: Path) -> None:
+    """The fresh carry: each render depends on its decision alone, rebuilt on its own (no
+    chain, nothing carried, no exactness to track), every score equal."""
+    from services.recorder.recording import load
+    from services.recorder.replay import replay, score_diffs
+
+    record_stream_run(dataset, tmp_path / "run.mcap", carry="fresh")
+    rec = load(tmp_path / "run.mcap")
+    result = replay(rec, None, configs=CONFIGS)
+    scored = [d for d in result.decisions if d.quality is not None]
+    assert len(scored) == 7 and all(d.exact is None for d in scored)
+    assert result.chains.to_dict() == {"gaps": 0, "skipped": 0, "carried": 0, "not_exact": 0}
+    assert score_diffs(rec, result)["psnr_db"] <= 1e-4
 
 
 def test_a_counterfactual_runs_the_chain_through_its_own_selections(dataset: SceneDataset,
