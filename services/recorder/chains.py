@@ -17,8 +17,11 @@ It is not (``exact`` False; scored all the same, and counted: ``not_exact``) aft
 lost), a job of the chain the replay cannot run (a frame or its decision not recorded; a
 counterfactual selection naming a frame with no pixels: ``skipped``, the model goes on without
 it), a job whose replayed warm start differs from the recorded one — until the worker's next
-job that both the live worker and the replay started cold (their models reset alike). A
-worker whose first recorded job is not its first starts its model where the recording begins.
+cold start that the run it stands for took too: one the live worker took as well (under the
+recorded policy), or one the replay takes after it has trained on a job's frames since the
+break (the time of the model's last decision, which decides a cold start, is then the run's),
+or a job without frames (a reset either way). A worker whose first recorded job is not its
+first starts its model where the recording begins.
 
 ``fresh`` renders do not depend on history: a worker whose recorded jobs are all fresh has
 its scored jobs rebuilt alone, on the site scorer's own core, cached by job
@@ -170,6 +173,9 @@ class _Worker:
     history: bool
     core: ReconCore | None = None
     exact: bool = True
+    synced: bool = True
+    """No break since the model last trained on a job's frames: the time of its last decision
+    (which decides a cold start) is the one the run had."""
     prev_index: int | None = None
     pos: int = 0
 
@@ -227,16 +233,16 @@ def _chain_step(w: _Worker, j: ChainJob, scorer: Scorer, counts: ChainCounts,
         expected = 0 if w.prev_index is None else w.prev_index + 1
         if r.job_index != expected:
             counts.gaps += 1
-            w.exact = False
+            w.exact = w.synced = False
         w.prev_index = r.job_index
     elif w.pos == 0 and r.warm_start:  # a recording from before job_index: began mid-chain
         counts.gaps += 1
-        w.exact = False
+        w.exact = w.synced = False
     if j.decision is None or j.frames is None:
         j.skipped = j.skipped or ("decision_not_recorded" if j.decision is None
                                   else "frames_not_recorded")
         counts.skipped += 1
-        w.exact = False
+        w.exact = w.synced = False
         return
     s = w.settings[w.pos]
     assert w.core is not None
@@ -247,13 +253,14 @@ def _chain_step(w: _Worker, j: ChainJob, scorer: Scorer, counts: ChainCounts,
     except JobFailed as err:
         j.skipped = f"render_failed: {err}"
         counts.skipped += 1
-        w.exact = False
+        w.exact = w.synced = False
         return
-    warm = outcome.render.warm_start
-    if not warm and not r.warm_start:
-        w.exact = True  # both models started cold: alike from here on
-    elif recorded_policy and warm != r.warm_start:
-        w.exact = False
+    warm, views = outcome.render.warm_start, outcome.render.n_views > 0
+    if recorded_policy and warm != r.warm_start:
+        w.exact = False  # the replayed chain is not the live one
+    elif not warm and (recorded_policy or not views or w.synced):
+        w.exact = True  # a cold start the run it stands for took too: alike from here on
+    w.synced = w.synced or views
     if not j.wanted:
         counts.carried += 1
         return
