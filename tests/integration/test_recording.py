@@ -108,9 +108,6 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
     assert doc["decisions"] >= 10
     assert doc["selections_equal"] == doc["decisions"], doc
     assert doc["rendered"] >= 3, doc
-    print("replay:", json.dumps({k: doc[k] for k in (
-        "rendered", "not_exact", "max_abs_score_diff", "score_diffs", "score_diffs_not_exact",
-        "chains")}))
     # --record starts the recorder before anything flows: the worker's chain is on record from
     # its first job (frames included), so every render is reproduced (measured: 0.0)
     chains = doc["chains"]["recorded"]
