@@ -2,9 +2,10 @@
 
 Under the recorded policy it checks that the recording reproduces: every decision's
 selection, and every scored render's PSNR, SSIM, LPIPS and reward, rebuilt with the live
-worker's and metrics service's own code (:mod:`services.recorder.replay`). With ``--policy``
-it also gives each other policy's counterfactual on the same arrivals, paired by decision
-epoch with the recorded policy's replayed scores (docs/recording.md).
+worker's and metrics service's own code (:mod:`services.recorder.replay`; a ``stream`` render,
+the live default, through its worker's chain of jobs: :mod:`services.recorder.chains`). With
+``--policy`` it also gives each other policy's counterfactual on the same arrivals, paired by
+decision epoch with the recorded policy's replayed scores (docs/recording.md).
 """
 
 from __future__ import annotations
@@ -118,6 +119,8 @@ def _virtual(recording: Path, policy: list[str] | None, json_out: bool, site: li
         fail(err)
     diffs = score_diffs(rec, base)
     doc = _document(recording, rec, site, base, others, paired, diffs, score)
+    doc["score_diffs_not_exact"] = score_diffs(rec, base, exact=False)
+    doc["chains"] = {r.policy: r.chains.to_dict() for r in [base, *others]} if score else {}
     if json_out:
         print(json.dumps(doc, allow_nan=False, default=lambda x: None))
         return
@@ -179,6 +182,7 @@ def _document(recording: Path, rec: Recorded, site: list[str] | None, base: Repl
         "aoi_vectors_equal": sum(d.aoi_equal for d in base.decisions),
         "late_arrivals": None,
         "rendered": sum(d.quality is not None for d in base.decisions),
+        "not_exact": sum(d.exact is False for d in base.decisions),
         "not_rebuilt": (sum(d.skipped is not None for d in base.decisions) if paired is None
                         else _scored_total(rec, site) - len(paired)),
         "paired_epochs": None if paired is None else len(paired),
@@ -205,6 +209,13 @@ def _print_report(console: Console, recording: Path, doc: dict[str, Any],
     if diffs:
         console.print("max |replayed − recorded|: " + ", ".join(
             f"{k} {v:.2e}" for k, v in diffs.items()))
+    if doc["not_exact"]:
+        chains = doc["chains"]["recorded"]
+        console.print(f"not reproducible exactly: {doc['not_exact']} stream renders after "
+                      f"{chains['gaps']} gaps and {chains['skipped']} skipped jobs in their "
+                      f"workers' chains (before the next cold start); max |replayed − "
+                      f"recorded| of them: " + ", ".join(
+                          f"{k} {v:.2e}" for k, v in doc["score_diffs_not_exact"].items()))
     if doc["counterfactual"]:
         from rich.table import Table
 

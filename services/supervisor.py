@@ -12,7 +12,8 @@ overwrites another's logs. Each child runs in its own process group with the run
 environment (run id, clock epoch and scale, endpoints, ports); child output goes to its log
 and, prefixed, to the console.
 
-Start-up: the router must accept TCP connections, then every service must answer
+Start-up: the router must accept TCP connections (with ``--record``, then the recorder must
+answer, so that the recording begins before any frame flows), then every service must answer
 ``/healthz`` *from its own process* (the answer carries the pid, so another pipeline on the
 same ports never passes for this one) within ``ready_timeout_s``. A service that exits before
 it is healthy is restarted once; a second exit, or the timeout, ends the start-up with one
@@ -132,8 +133,17 @@ class Supervisor:
             router.start(self.cfg.echo)
             if not self._wait_tcp(self.cfg.zenoh_port, router):
                 return 0 if self.stopping.is_set() else 1
-            for child in services:
+            # --record: the recorder first, so the file holds the run from its first message
+            # (a replay of the stream carry runs each worker's chain from its first job)
+            first = [c for c in services if c.name == "recorder"
+                     and c.env.get("AOI3D_RECORDER_PATH")]
+            for child in first:
                 child.start(self.cfg.echo)
+            if first and not self._wait_ready(first):
+                return 0 if self.stopping.is_set() else 1
+            for child in services:
+                if all(child is not c for c in first):
+                    child.start(self.cfg.echo)
             self._write_state()
             if not self._wait_ready():
                 return 0 if self.stopping.is_set() else 1
@@ -174,8 +184,8 @@ class Supervisor:
     def _restart_dead(self) -> None:
         now = time.monotonic()
         for child in self.children:
-            if child.alive() or self.stopping.is_set():
-                continue
+            if child.alive() or self.stopping.is_set() or child.proc is None:
+                continue  # (None: not started yet)
             if child.next_start == 0.0:
                 code = child.proc.returncode if child.proc else None
                 child.exits.append(code)
@@ -261,11 +271,11 @@ class Supervisor:
         except (OSError, ValueError, AttributeError):
             return False
 
-    def _wait_ready(self) -> bool:
-        """Wait until every service answers /healthz from its own process; False (and
-        :attr:`failure` set, unless stopping) when one exits more than
+    def _wait_ready(self, children: list[Child] | None = None) -> bool:
+        """Wait until every service (of ``children``) answers /healthz from its own process;
+        False (and :attr:`failure` set, unless stopping) when one exits more than
         :data:`STARTUP_RESTARTS` times first, or the start-up timeout passes."""
-        pending = {c.name: c for c in self.children[1:]}
+        pending = {c.name: c for c in (children or self.children[1:])}
         router = self.children[0]
         deadline = time.monotonic() + self.cfg.ready_timeout_s
         while pending and time.monotonic() < deadline and not self.stopping.is_set():

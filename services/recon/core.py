@@ -3,9 +3,12 @@
 No bus and no threads. The job carries everything (the decision, its frames, backend, carry,
 steps, seed, the camera to render and the scene box), so one worker serves any scene and any
 site. The model is an :class:`aoi3d.field.carry.Reconstruction` — the experiments' code: with
-the default ``fresh`` carry each job is an independent reconstruction; ``warm`` and ``fork``
-carry this worker's own model from job to job (a new one when the job's backend, seed, scene
-box or model epoch changes).
+the ``fresh`` carry each job is an independent reconstruction; ``stream`` (the live default),
+``warm`` and ``fork`` carry this worker's own model from job to job (a new one when the job's
+backend, seed, scene box or model epoch changes). Each Render says where in that chain it
+stands (``job_index``: the jobs that reached this worker's model before it) and the settings
+it was made with (model epoch, budgets, the stream carry's cold steps and gap), so a replay
+can run the chain again (:mod:`services.recorder.chains`).
 
 Free views and exports: after a job the worker keeps a snapshot of the model that rendered
 it (:class:`aoi3d.field.snapshot.ModelSnapshot`, one per site: its latest) — after every job
@@ -107,6 +110,8 @@ class ReconCore:
         self._rec: Reconstruction | None = None
         self._model_key: tuple[str, int, int, tuple[float, ...]] | None = None
         self.jobs = 0
+        self.model_jobs = 0
+        """Jobs that reached the model (trained it, or would have): a Render's ``job_index``."""
         self.max_view_side = MAX_VIEW_SIDE
         self._latest: dict[str, Latest] = {}
         self._latest_lock = threading.Lock()
@@ -183,6 +188,7 @@ class ReconCore:
             rec.set_views(views, float(job.decision.time_ms))  # warm, fork: the model moves there
         except ValueError as err:
             raise JobFailed("bad_selection", str(err)) from None
+        job_index, self.model_jobs = self.model_jobs, self.model_jobs + 1
         rendered = rec.render_decision(camera, time_ms=float(job.decision.time_ms))
         image = rendered.image
         if now_ms is not None and rec.trainer.cfg.time_aware:  # taken at the display time
@@ -197,7 +203,9 @@ class ReconCore:
             render_steps=rendered.render_steps,
             worker_id=self.worker_id, site=job.site, seed=job.seed, aabb=list(job.aabb),
             warm_start=rendered.warm,
-            loss=rendered.loss if math.isfinite(rendered.loss) else math.nan)
+            loss=rendered.loss if math.isfinite(rendered.loss) else math.nan,
+            job_index=job_index, model_epoch=job.model_epoch, job_steps=job.render_steps,
+            cold_steps=rec.warm_start.cold_steps, warm_max_gap_ms=rec.warm_start.max_gap_ms)
         if now_ms is not None:  # ready: shown from now on; the stream gap leaves the job out
             render.ready_ms = now_ms()
             rec.ready(render.ready_ms)

@@ -24,10 +24,17 @@ needs one is not redone).
 **Scores.** Only the decisions the live pool rendered and scored are rebuilt (their epochs
 are the pairing of the counterfactual table). Under the recorded policy each is rebuilt from
 the frames the live job carried (the Render lists them; the trainer may have missed one);
-under another policy from its selection. Exact reproduction needs the ``fresh`` carry (each
-render depends on its decision alone; record with ``AOI3D_TRAINER_CARRY=fresh``, the live
-default is ``stream``); ``stream``/``warm``/``fork`` renders depend on the worker's history
-and are refused.
+under another policy from its selection. A ``fresh`` render depends on its decision alone
+and is rebuilt alone. A ``stream`` render (the live default) depends on its worker's history:
+the replay runs each recorded worker's jobs again in the worker's order on one model, as the
+worker did (:mod:`services.recorder.chains`: ``Render.job_index`` orders them and shows a
+gap; a render after a gap, before its worker's next cold start, is scored but marked not
+exact, ``DecisionReplay.exact``). Under another policy the recorded pool schedule is kept —
+the same decisions rendered by the same workers in the same order — and each job trains on
+that policy's selection, so the warm chain runs through the counterfactual's own renders (a
+job whose frames were not recorded is skipped: its worker's model does not train on it;
+counted, ``ReplayResult.chains``). ``warm`` and ``fork`` renders also depend on training
+between jobs, timed by the wall clock, and are refused.
 """
 
 from __future__ import annotations
@@ -35,8 +42,8 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable, Collection, Sequence
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -45,10 +52,13 @@ from aoi3d.metric import SCORES as QUALITY
 from aoi3d.policy import Policy, Selection, decide, parse_policy
 from aoi3d.stats import MeanCI, mean_ci95
 from services.kit.pb import aoi3d_pb2 as pb
-from services.recon.core import JobFailed
 from services.recorder.arrivals import TOL_MS, arrivals, job_frames
+from services.recorder.chains import ChainCounts, ChainJob, check_carries, run_jobs
 from services.recorder.recording import Recorded
 from services.recorder.scoring import SCORES, Scorer, job_budgets
+
+if TYPE_CHECKING:
+    from aoi3d.field import FieldConfig
 
 __all__ = ["Counterfactual", "DecisionReplay", "ReplayResult", "rebuildable_keys", "replay",
            "score_diffs"]
@@ -67,12 +77,17 @@ class DecisionReplay:
     skipped: str | None = None
     rebuildable: bool | None = None
     """For a decision the live pool scored: whether every frame it needs was recorded."""
+    exact: bool | None = None
+    """For a rebuilt stream render: whether its worker's chain of jobs up to it is the
+    recorded one (False: after a break, see :mod:`services.recorder.chains`); None: a render
+    that depends on its decision alone (fresh), or none rebuilt."""
 
 
 @dataclass
 class ReplayResult:
     policy: str
     decisions: list[DecisionReplay]
+    chains: ChainCounts = field(default_factory=ChainCounts)
 
     @property
     def selections_equal(self) -> int:
@@ -100,97 +115,111 @@ def _replayed_decision(d: pb.Decision, sel: Selection, camera_ids: Sequence[int]
     return replayed
 
 
-def _site_scorer(rec: Recorded, site: str, q0: pb.Quality, scorers: dict[str, Scorer] | None,
-                 threads: int) -> Scorer:
-    """The site's scorer: the caller's (``scorers``, kept there when made here) or a new one
-    with LPIPS when the site's first scored Quality has it (or left it out by the metrics
-    service's sampling, ``lpips_skipped``: LPIPS was on)."""
-    if scorers is not None and site in scorers:
-        return scorers[site]
-    scorer = Scorer(rec, site, lpips="lpips" in q0.reward_terms or q0.lpips_skipped,
-                    threads=threads)
-    if scorers is not None:
-        scorers[site] = scorer
-    return scorer
+class _Policies:
+    """Parsed policies by spec (one object each: a policy may keep state across decisions)."""
+
+    def __init__(self) -> None:
+        self._cache: dict[str, Policy] = {}
+
+    def __call__(self, spec: str) -> Policy:
+        if spec not in self._cache:
+            self._cache[spec] = parse_policy(spec)
+        return self._cache[spec]
 
 
 def replay(rec: Recorded, policy: str | None = None, *, sites: Sequence[str] | None = None,
            score: bool = True, max_renders: int | None = None, threads: int | None = None,
            scorers: dict[str, Scorer] | None = None,
            only: Collection[tuple[str, tuple[int, int]]] | None = None,
-           progress: Callable[[int, int], None] | None = None) -> ReplayResult:
+           progress: Callable[[int, int], None] | None = None,
+           configs: dict[str, FieldConfig] | None = None) -> ReplayResult:
     """Replay every recorded decision under ``policy`` (None: each decision's recorded
     policy) and, with ``score``, rebuild and score the decisions the live pool scored (those
-    in ``only``, (site, key) pairs, when given; the first ``max_renders`` of them that can be
-    rebuilt). Without ``score`` each scored decision still says whether it could be rebuilt
-    (``DecisionReplay.rebuildable``): :func:`rebuildable_keys` pairs policies with it."""
-    results: list[DecisionReplay] = []
-    cache: dict[str, Policy] = {}
+    in ``only``, (site, key) pairs, when given; per site the first ``max_renders`` of them
+    that can be rebuilt), stream renders through their worker's chain of jobs
+    (:mod:`services.recorder.chains`). Without ``score`` each scored decision still says
+    whether it could be rebuilt (``DecisionReplay.rebuildable``): :func:`rebuildable_keys`
+    pairs policies with it. ``progress(done, total)``: after each scored render;
+    ``configs``: field configs by backend in place of the defaults (tests)."""
     threads = threads or int(rec.metadata.get("recon_torch_threads", "1") or 1)
-
-    def policy_of(spec: str) -> Policy:
-        if spec not in cache:
-            cache[spec] = parse_policy(spec)
-        return cache[spec]
-
+    policy_of = _Policies()
     chosen = policy_of(policy) if policy is not None else None
+    results: list[DecisionReplay] = []
+    jobs: list[tuple[ChainJob, DecisionReplay | None]] = []
     for site in sites or sorted(rec.sites):
-        srec = rec.sites[site]
-        if not srec.decisions:
+        if rec.sites[site].decisions:
+            jobs += _site_jobs(rec, site, chosen, policy_of, results, only=only,
+                               score=score, max_renders=max_renders)
+    result = ReplayResult(chosen.spec if chosen else "recorded", results)
+    if not score:
+        return result
+    check_carries(j.render for j, _ in jobs if j.wanted)
+    made: dict[str, Scorer] = {} if scorers is None else scorers
+
+    def scorer_of(site: str) -> Scorer:
+        if site not in made:
+            q0 = next(iter(rec.sites[site].qualities.values()), pb.Quality())
+            made[site] = Scorer(rec, site, lpips="lpips" in q0.reward_terms or q0.lpips_skipped,
+                                threads=threads, configs=configs)
+        return made[site]
+
+    result.chains = run_jobs([j for j, _ in jobs], scorer_of, threads=threads,
+                             recorded_policy=chosen is None, configs=configs,
+                             progress=progress)
+    for j, out in jobs:
+        if out is not None and j.wanted:
+            out.quality, out.exact, out.skipped = j.quality, j.exact, j.skipped
+    return result
+
+
+def _site_jobs(rec: Recorded, site: str, chosen: Policy | None,
+               policy_of: Callable[[str], Policy], results: list[DecisionReplay], *,
+               only: Collection[tuple[str, tuple[int, int]]] | None, score: bool,
+               max_renders: int | None) -> list[tuple[ChainJob, DecisionReplay | None]]:
+    """Replay the site's decisions (appended to ``results``) and make the job of each
+    recorded render again: on the replayed selection, wanted when the live pool scored it
+    and it is asked for (``only``, ``max_renders``) and can be rebuilt."""
+    srec = rec.sites[site]
+    arr = arrivals(srec)
+    budgets = job_budgets(srec)
+    jobs: list[tuple[ChainJob, DecisionReplay | None]] = []
+    attempted = 0
+    seen = set()
+    for d in srec.decisions:
+        rec_policy = policy_of(d.policy)
+        p = chosen or rec_policy
+        sel = decide(p, d.time_ms - rec_policy.wait_ms, arr.newest_at)
+        same_time = abs(sel.eval_ms - d.time_ms) <= TOL_MS
+        aoi_equal = same_time and bool(np.allclose(
+            sel.aoi_ms, np.asarray(d.aoi_ms, dtype=np.float64), atol=1e-6, equal_nan=True))
+        selected = _selection(sel, arr.camera_ids)
+        key = (d.incarnation, d.decision_id)
+        out = DecisionReplay(site, key, float(sel.eval_ms), selected, _recorded_selection(d),
+                             aoi_equal, float(np.mean(sel.selected_aoi_ms)) if sel.mask.any()
+                             else math.nan)
+        results.append(out)
+        render = srec.renders.get(key)
+        if render is None:
             continue
-        arr = arrivals(srec)
-        scored = {k for k in ((d.incarnation, d.decision_id) for d in srec.decisions)
-                  if k in srec.renders and k in srec.qualities
-                  and (only is None or (site, k) in only)}
-        if score and any(srec.renders[k].carry != "fresh" for k in scored):
-            raise ValueError("replay rebuilds renders of the fresh carry only (a stream, warm "
-                             "or fork render depends on the worker's history; record with "
-                             "AOI3D_TRAINER_CARRY=fresh); give --no-score")
-        total = len(scored) if max_renders is None else min(max_renders, len(scored))
-        scorer = None
-        done = attempted = 0
-        budgets = job_budgets(srec)
-        for d in srec.decisions:
-            rec_policy = policy_of(d.policy)
-            t = d.time_ms - rec_policy.wait_ms
-            p = chosen or rec_policy
-            sel = decide(p, t, arr.newest_at)
-            recorded_aoi = np.asarray(d.aoi_ms, dtype=np.float64)
-            same_time = abs(sel.eval_ms - d.time_ms) <= TOL_MS
-            aoi_equal = same_time and bool(np.allclose(sel.aoi_ms, recorded_aoi, atol=1e-6,
-                                                       equal_nan=True))
-            selected = _selection(sel, arr.camera_ids)
-            key = (d.incarnation, d.decision_id)
-            out = DecisionReplay(site, key, float(sel.eval_ms), selected,
-                                 _recorded_selection(d), aoi_equal,
-                                 float(np.mean(sel.selected_aoi_ms)) if sel.mask.any()
-                                 else math.nan)
-            results.append(out)
-            if key not in scored:
-                continue
-            render = srec.renders[key]
-            used = list(render.frame_generation_ms) if chosen is None else None
-            frames = job_frames(selected, used, arr, render.frame_camera_ids,
-                                functools.partial(rec.has_pixels, site))
+        seen.add(key)
+        used = list(render.frame_generation_ms) if chosen is None else None
+        frames = job_frames(selected, used, arr, render.frame_camera_ids,
+                            functools.partial(rec.has_pixels, site))
+        scored = key in srec.qualities and (only is None or (site, key) in only)
+        if scored:
             out.rebuildable = frames is not None
-            if frames is None:
-                out.skipped = "frames_not_recorded"
-                continue
-            if not score or (max_renders is not None and attempted >= max_renders):
-                continue
-            attempted += 1
-            replayed = _replayed_decision(d, sel, arr.camera_ids, selected, p.spec)
-            if scorer is None:
-                scorer = _site_scorer(rec, site, srec.qualities[key], scorers, threads)
-            try:
-                out.quality = scorer.score(replayed, render, frames, budgets[key])
-            except JobFailed as err:
-                out.skipped = f"render_failed: {err}"
-                continue
-            done += 1
-            if progress is not None:
-                progress(done, total)
-    return ReplayResult(chosen.spec if chosen else "recorded", results)
+            out.skipped = "frames_not_recorded" if frames is None else None
+        wanted = (scored and frames is not None and score
+                  and (max_renders is None or attempted < max_renders))
+        attempted += wanted
+        jobs.append((ChainJob(site, key, render,
+                              _replayed_decision(d, sel, arr.camera_ids, selected, p.spec),
+                              frames, wanted, budgets.get(key, 1)),
+                     out if scored else None))
+    for key, render in srec.renders.items():  # renders of decisions not on record
+        if key not in seen:
+            jobs.append((ChainJob(site, key, render, None, None, False, 1), None))
+    return jobs
 
 
 def rebuildable_keys(rec: Recorded, policies: Sequence[str | None], *,
@@ -208,13 +237,15 @@ def rebuildable_keys(rec: Recorded, policies: Sequence[str | None], *,
     return common or set()
 
 
-def score_diffs(rec: Recorded, result: ReplayResult) -> dict[str, float]:
-    """Largest |replayed − recorded| of each score over the rebuilt decisions (LPIPS and the
-    reward only where the recording scored them: not on a render it marked
-    ``lpips_skipped``)."""
+def score_diffs(rec: Recorded, result: ReplayResult, *, exact: bool = True
+                ) -> dict[str, float]:
+    """Largest |replayed − recorded| of each score over the rebuilt decisions that are
+    reproduced exactly (``exact`` False: over those that are not, the stream renders after a
+    break in their worker's chain); LPIPS and the reward only where the recording scored them
+    (not on a render it marked ``lpips_skipped``)."""
     diffs: dict[str, float] = {}
     for d in result.decisions:
-        if d.quality is None:
+        if d.quality is None or (d.exact is not False) != exact:
             continue
         live = rec.sites[d.site].qualities[d.key]
         for name in SCORES:

@@ -7,12 +7,15 @@ from __future__ import annotations
 
 import bisect
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from aoi3d.metric import AT_DECISION
 from aoi3d.quality import DYNAMIC_FRAMES, LpipsFn, RewardWeights
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.recording import Recorded, SiteRecord
+
+if TYPE_CHECKING:
+    from aoi3d.field import FieldConfig
 
 __all__ = ["SCORES", "Scorer", "job_budgets"]
 
@@ -29,10 +32,18 @@ class Scorer:
     The truth frames go into the metrics core's ring as the scored decisions reach them, each
     read from the recording when it goes in (:meth:`Recorded.with_pixels`), at most
     :data:`TRUTH_RING` of them held: memory does not grow with the recording. A render is
-    paired with the truth of its time and the :data:`DYNAMIC_FRAMES` before it, as live."""
+    paired with the truth of its time and the :data:`DYNAMIC_FRAMES` before it, as live.
+
+    :meth:`score` rebuilds a render on the scorer's own worker core, whose model no other job
+    shares (the ``fresh`` carry: a render that depends on its decision alone, cached by its
+    job); a chain of jobs that depends on a worker's history (the ``stream`` carry) runs on
+    that worker's core (:mod:`services.recorder.chains`): :meth:`job` and :meth:`quality`.
+    ``configs``: field configs by backend that replace the defaults (as
+    :class:`services.recon.core.ReconCore` takes them: tests use small ones)."""
 
     def __init__(self, rec: Recorded, site: str, *, lpips: bool, threads: int,
-                 lpips_fn: LpipsFn | None = None) -> None:
+                 lpips_fn: LpipsFn | None = None,
+                 configs: dict[str, FieldConfig] | None = None) -> None:
         from services.metrics.core import MetricsCore
         from services.recon.core import ReconCore
 
@@ -57,7 +68,8 @@ class Scorer:
                                    truth_frames=TRUTH_RING, weights=weights,
                                    lpips_fn=lpips_fn if lpips else None, site=site)
         self._fed = (0, 0)  # the truth frames [lo, hi) fed into the ring since it was made
-        self.recon = ReconCore(worker_id="replay", device="cpu", num_threads=threads)
+        self.recon = ReconCore(worker_id="replay", device="cpu", num_threads=threads,
+                               configs=configs)
         self._cache: dict[tuple[Any, ...], pb.Quality] = {}
 
     def _feed(self, start_ms: float, end_ms: float) -> None:
@@ -88,17 +100,29 @@ class Scorer:
             out.CopyFrom(self._cache[key])
             out.decision_id = decision.decision_id
             return out
+        outcome = self.recon.run(self.job(decision, render, frames, steps))
+        q = self.quality(outcome.render)
+        self._cache[key] = q
+        return q
+
+    def job(self, decision: pb.Decision, render: pb.Render, frames: list[pb.Frame], steps: int,
+            *, cold_steps: int = 0, max_gap_ms: float = 0.0, model_epoch: int = 0) -> pb.Job:
+        """The job of ``render`` again, on ``decision`` and ``frames`` (their pixels read from
+        the recording): ``steps`` its budget, the stream carry's cold budget and gap (0: the
+        worker's defaults) and the model epoch as the live job had them."""
         job = pb.Job(decision=decision, backend=render.backend, carry=render.carry,
-                     render_steps=steps, seed=render.seed, model_epoch=0,
+                     render_steps=steps, seed=render.seed, model_epoch=model_epoch,
                      pose=render.pose, intrinsics=render.intrinsics, aabb=list(render.aabb),
-                     site=render.site)
+                     site=render.site, cold_steps=cold_steps, warm_max_gap_ms=max_gap_ms)
         for f in frames:
             job.frames.add().CopyFrom(self._rec.with_pixels(self._site, f))
-        outcome = self.recon.run(job)
+        return job
+
+    def quality(self, render: pb.Render) -> pb.Quality:
+        """The Quality of a rebuilt render (paired with the truth of its time)."""
         period = self.metrics.period_ms
-        self._feed(decision.time_ms - (DYNAMIC_FRAMES + 2) * period, decision.time_ms + 1.0)
-        q = self.metrics.score(outcome.render.SerializeToString(), math.inf).message
-        self._cache[key] = q
+        self._feed(render.time_ms - (DYNAMIC_FRAMES + 2) * period, render.time_ms + 1.0)
+        q: pb.Quality = self.metrics.score(render.SerializeToString(), math.inf).message
         return q
 
 

@@ -1,7 +1,8 @@
 """Every run on record, and replayed: ``aoi3d up --record`` on a small scene (real processes,
 real Zenoh on 127.0.0.1), a second recording started and stopped over REST, then ``aoi3d
-replay --json`` of the first under its own policy (mat:70, deterministic): every selection
-the same, every score within 1e-3 — and a counterfactual policy on the same arrivals."""
+replay --json`` of the first under its own policy (mat:70, deterministic) and the live
+default carry (stream: each worker's chain of jobs rebuilt): every selection the same, every
+score within 1e-3 — and a counterfactual policy on the same arrivals."""
 
 from __future__ import annotations
 
@@ -58,9 +59,10 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
            "--run-id", run_id, "--zenoh-port", str(_PORTS.zenoh), "--port-offset",
            str(_PORTS.rest_offset), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
-    # the replay rebuilds the fresh carry's renders only (the live default is stream)
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_TRAINER_CARRY="fresh",
-               AOI3D_TRAINER_RENDER_STEPS="30", AOI3D_FILES_ROOTS=str(tmp_path),
+    # the live default carry (stream): the replay rebuilds the worker's chain of jobs
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("AOI3D_TRAINER_CARRY", "AOI3D_TRAINER_RENDER_STEPS")}
+    env.update(AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_FILES_ROOTS=str(tmp_path),
                AOI3D_SCHEDULER_POLICY="mat:70")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
@@ -106,6 +108,10 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
     assert doc["decisions"] >= 10
     assert doc["selections_equal"] == doc["decisions"], doc
     assert doc["rendered"] >= 3, doc
+    # --record starts the recorder before anything flows: the worker's chain is on record from
+    # its first job (frames included), so every render is reproduced (measured: 0.0)
+    chains = doc["chains"]["recorded"]
+    assert (chains["gaps"], chains["skipped"], doc["not_exact"]) == (0, 0, 0), doc
     assert doc["max_abs_score_diff"] is not None and doc["max_abs_score_diff"] <= 1e-3, doc
     recorded, every = doc["counterfactual"]
     assert (recorded["policy"], every["policy"]) == ("recorded", "all")

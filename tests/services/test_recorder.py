@@ -315,9 +315,11 @@ def test_policies_pair_on_the_epochs_every_one_can_rebuild() -> None:
     assert [d.rebuildable for d in only.decisions] == [None, True]
 
 
-def test_scores_of_a_stream_run_are_refused_saying_how_to_record_one() -> None:
-    """The live default, stream, renders from the worker's history: the replay cannot rebuild
-    it and says so before anything runs (selections alone still replay)."""
+@pytest.mark.parametrize("carry", ["warm", "fork"])
+def test_scores_of_a_background_carry_are_refused_saying_how_to_record_one(carry: str) -> None:
+    """A warm or fork model trains between jobs on the wall clock, which no recording holds:
+    the replay cannot rebuild its renders and says so before anything runs (selections alone
+    still replay)."""
     from services.recorder.recording import Recorded, SiteRecord
     from services.recorder.replay import replay
 
@@ -327,11 +329,12 @@ def test_scores_of_a_stream_run_are_refused_saying_how_to_record_one() -> None:
     d = site.decisions[0]
     d.policy = "mat:20"
     key = (d.incarnation, d.decision_id)
-    site.renders[key] = pb.Render(decision_id=d.decision_id, carry="stream",
+    site.renders[key] = pb.Render(decision_id=d.decision_id, carry=carry,
                                   frame_generation_ms=[25.0], frame_camera_ids=[1])
     site.qualities[key] = pb.Quality(decision_id=d.decision_id, psnr_db=20.0)
     rec = Recorded(Path("r.mcap"), [], {}, {"site1": site})
-    with pytest.raises(ValueError, match=r"AOI3D_TRAINER_CARRY=fresh.*--no-score"):
+    with pytest.raises(ValueError, match=rf"{carry} renders.*AOI3D_TRAINER_CARRY=stream or "
+                                         r"fresh.*--no-score"):
         replay(rec, None)
     assert [x.rebuildable for x in replay(rec, None, score=False).decisions] == [True]
 
@@ -439,7 +442,8 @@ def test_a_replay_compares_the_reward_only_where_the_recording_scored_it() -> No
     live = {(0, 1): q(20.0, 0.7, 0.2), (0, 2): q(21.0, math.nan, None, skipped=True)}
     replayed = {(0, 1): q(20.5, 0.71, 0.19), (0, 2): q(21.25, 0.9, 0.15)}
     rec = SimpleNamespace(sites={"site1": SimpleNamespace(qualities=live)})
-    result = SimpleNamespace(decisions=[SimpleNamespace(site="site1", key=k, quality=v)
+    result = SimpleNamespace(decisions=[SimpleNamespace(site="site1", key=k, quality=v,
+                                                        exact=None)
                                         for k, v in replayed.items()])
     diffs = score_diffs(rec, result)
     assert diffs["psnr_db"] == 0.5 and diffs["ssim"] == 0.0

@@ -241,3 +241,20 @@ def test_up_refuses_a_worker_count_that_is_not_auto_or_0_to_64() -> None:
     for bad in ("-1", "65", "many"):
         out = CliRunner().invoke(app, ["up", "--workers", bad])
         assert out.exit_code == 2 and "--workers" in out.output, out.output
+
+
+def test_with_record_the_recorder_is_up_before_anything_else_starts(tmp_path: Path) -> None:
+    """`aoi3d up --record` (the recorder's AOI3D_RECORDER_PATH): the recorder starts first and
+    the other services only once it answers, so the recording holds the run from its first
+    message (a stream replay needs each worker's first job)."""
+    commands = standins()
+    commands["recorder"] = [sys.executable, "-c", "import time; time.sleep(1.0)\n" + SERVICE,
+                            "recorder"]
+    cfg = config(tmp_path, commands=commands,
+                 extra_env={"AOI3D_RECORDER_PATH": str(tmp_path / "run.mcap")})
+    sup = Supervisor(cfg)
+    assert sup.run() == 0, sup.failure
+    started = {c.name: c.started_s for c in sup.children}
+    assert min(t for name, t in started.items() if name not in ("router", "recorder")) \
+        >= started["recorder"] + 1.0
+    assert_all_gone(sup)

@@ -136,7 +136,7 @@ class Decision(_message.Message):
     def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., camera_ids: _Optional[_Iterable[int]] = ..., aoi_ms: _Optional[_Iterable[float]] = ..., selected: _Optional[_Iterable[_Union[FrameRef, _Mapping]]] = ..., policy: _Optional[str] = ..., incarnation: _Optional[int] = ..., gamma_ms: _Optional[float] = ..., budget_steps: _Optional[int] = ..., expected_lag_ms: _Optional[float] = ...) -> None: ...
 
 class Render(_message.Message):
-    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s", "frame_camera_ids")
+    __slots__ = ("decision_id", "time_ms", "pose", "intrinsics", "image", "training_step", "n_views", "backend", "frame_generation_ms", "carry", "render_steps", "decision_incarnation", "worker_id", "loss", "site", "seed", "aabb", "ready_ms", "warm_start", "compute_s", "frame_camera_ids", "job_index", "model_epoch", "job_steps", "cold_steps", "warm_max_gap_ms")
     DECISION_ID_FIELD_NUMBER: _ClassVar[int]
     TIME_MS_FIELD_NUMBER: _ClassVar[int]
     POSE_FIELD_NUMBER: _ClassVar[int]
@@ -158,6 +158,11 @@ class Render(_message.Message):
     WARM_START_FIELD_NUMBER: _ClassVar[int]
     COMPUTE_S_FIELD_NUMBER: _ClassVar[int]
     FRAME_CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    JOB_INDEX_FIELD_NUMBER: _ClassVar[int]
+    MODEL_EPOCH_FIELD_NUMBER: _ClassVar[int]
+    JOB_STEPS_FIELD_NUMBER: _ClassVar[int]
+    COLD_STEPS_FIELD_NUMBER: _ClassVar[int]
+    WARM_MAX_GAP_MS_FIELD_NUMBER: _ClassVar[int]
     decision_id: int
     time_ms: float
     pose: Pose
@@ -179,7 +184,12 @@ class Render(_message.Message):
     warm_start: bool
     compute_s: float
     frame_camera_ids: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ..., ready_ms: _Optional[float] = ..., warm_start: _Optional[bool] = ..., compute_s: _Optional[float] = ..., frame_camera_ids: _Optional[_Iterable[int]] = ...) -> None: ...
+    job_index: int
+    model_epoch: int
+    job_steps: int
+    cold_steps: int
+    warm_max_gap_ms: float
+    def __init__(self, decision_id: _Optional[int] = ..., time_ms: _Optional[float] = ..., pose: _Optional[_Union[Pose, _Mapping]] = ..., intrinsics: _Optional[_Union[Intrinsics, _Mapping]] = ..., image: _Optional[_Union[Image, _Mapping]] = ..., training_step: _Optional[int] = ..., n_views: _Optional[int] = ..., backend: _Optional[str] = ..., frame_generation_ms: _Optional[_Iterable[float]] = ..., carry: _Optional[str] = ..., render_steps: _Optional[int] = ..., decision_incarnation: _Optional[int] = ..., worker_id: _Optional[str] = ..., loss: _Optional[float] = ..., site: _Optional[str] = ..., seed: _Optional[int] = ..., aabb: _Optional[_Iterable[float]] = ..., ready_ms: _Optional[float] = ..., warm_start: _Optional[bool] = ..., compute_s: _Optional[float] = ..., frame_camera_ids: _Optional[_Iterable[int]] = ..., job_index: _Optional[int] = ..., model_epoch: _Optional[int] = ..., job_steps: _Optional[int] = ..., cold_steps: _Optional[int] = ..., warm_max_gap_ms: _Optional[float] = ...) -> None: ...
 
 class Job(_message.Message):
     __slots__ = ("decision", "frames", "n_missing", "backend", "carry", "render_steps", "seed", "model_epoch", "pose", "intrinsics", "aabb", "assigned_unix_s", "site", "cold_steps", "warm_max_gap_ms")
