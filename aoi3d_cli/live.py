@@ -94,8 +94,8 @@ def sweep(
     sim_pool: Annotated[bool, typer.Option(
         help="Run the virtual clock through the twin of the live pool (fresh and stream "
              "carries): the pipeline's workers and time scale, each job charged the workers' "
-             "own mean job time (the trainer's GET /status job_s), the decisions no worker "
-             "takes superseded; --no-sim-pool: every fifth decision rendered, no queue.")]
+             "own median job time for its steps and frames (the trainer's GET /status job_s), "
+             "the rest superseded; --no-sim-pool: every fifth decision rendered, no queue.")]
     = True,
     delay: Annotated[str | None, typer.Option(
         help="The channel for the sweep (PUT /channel on the network service before measuring; "
@@ -294,9 +294,8 @@ def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, se
     console.print(f"virtual clock: {seeds} seed(s) per policy, carry {carry}, "
                   f"{render_steps} steps per rendered decision, delay {channel['delay']}"
                   + (f", the pool's twin: {twin.workers} worker(s) at time scale "
-                     f"{twin.time_scale:g}, a job of "
-                     + ", ".join(f"{k} steps {ms:.0f} ms" for k, ms in twin.job_ms)
-                     + f" (others {twin.fixed_ms:.1f} + {twin.step_ms:.2f} ms/step)"
+                     f"{twin.time_scale:g}, {len(twin.job_ms)} timed (steps, frames) "
+                     f"cells, else {twin.fixed_ms:.1f} + {twin.step_ms:.2f} ms/step"
                      if twin is not None else ", no pool"))
     try:  # its _config holds the twin's settings (pool_workers, time_scale, compute_*)
         return simulate(order, dataset=dataset, delay=channel["delay"], carry=carry,

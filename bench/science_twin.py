@@ -8,7 +8,7 @@ its defaults (the stream carry at 25 steps, two workers), the policies of :data:
 in turn, interleaved over the repeats, the model reset at each change — and, on the same
 seed block, the virtual clock through the pool's twin (``--sim-pool``: the pipeline's
 workers and time scale, each job charged the median the live workers timed for its step
-count). The live network's seed is the block's first seed (``AOI3D_NETWORK_SEED``); the
+count and frames). The live network's seed is the block's first seed (``AOI3D_NETWORK_SEED``); the
 twin's episodes are the block's seeds.
 
 Per time scale: PSNR at display time, live (mean ± 95 % CI over the window's renders) and on
@@ -116,6 +116,17 @@ def _verdict(rows: list[dict[str, Any]], cfg: dict[str, Any], doc: dict[str, Any
         "wall_s": doc.get("wall_s")}
 
 
+def _jobs_text(table: list[list[float]]) -> str:
+    """The timed jobs, per step count: the range of medians over the frames timed."""
+    out = []
+    for steps in sorted({int(e[0]) for e in table}):
+        ms = [float(e[-1]) for e in table if int(e[0]) == steps]
+        frames = [int(e[1]) for e in table if int(e[0]) == steps and len(e) == 3]
+        span = f" ({min(frames)}–{max(frames)} frames)" if frames else ""
+        out.append(f"{steps} steps {min(ms):.0f}–{max(ms):.0f} ms{span}")
+    return ", ".join(out)
+
+
 def _cell(stat: dict[str, Any] | None) -> str:
     if not stat or stat.get("mean") is None:
         return "—"
@@ -132,13 +143,14 @@ def render_lines(section: dict[str, Any], rel: str) -> list[str]:
              "The pipeline's defaults (the stream carry at 25 steps, two workers, exp:60), "
              "each Γ live (`aoi3d live sweep --up`) and on the virtual clock through the twin "
              "of the pool (the same dispatcher code; the pipeline's workers and time scale; "
-             "each job charged the median the live workers timed for its step count). PSNR "
+             "each job charged the median the live workers timed for its step count and "
+             "frames). PSNR "
              "at display time, dB; live over the renders of the windows, the twin over "
              "seeds (95 % CIs). An open question, reported either way: does the twin put the "
              f"same Γ first, within {section['goal_db']:g} dB on average?", ""]
     for scale, v in section["scales"].items():
         twin = v["twin"]
-        jobs = ", ".join(f"{k} steps {ms:.0f} ms" for k, ms in twin.get("job_ms") or [])
+        jobs = _jobs_text(twin.get("job_ms") or [])
         lines += [f"### Time scale {scale}", "",
                   f"Twin: {twin.get('pool_workers')} workers, jobs of {jobs or '—'} (wall, "
                   f"median as timed live), {v['twin_seeds']} seeds; live: "

@@ -154,7 +154,7 @@ class EpisodeConfig:
     compute_fixed_ms: float = COMPUTE_FIXED_MS
     compute_step_ms: float = COMPUTE_STEP_MS
     pool_workers: int = 0
-    job_ms: tuple[tuple[int, float], ...] = ()
+    job_ms: tuple[tuple[int, int, float], ...] = ()
 
     def __post_init__(self) -> None:
         parse_channel(self.delay)  # raises DelaySpecError listing the accepted forms
@@ -188,13 +188,15 @@ class EpisodeConfig:
         if not self.time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {self.time_scale}")
         _int_at_least("pool_workers", self.pool_workers, 0)
-        try:
-            table = tuple((int(k), float(v)) for k, v in self.job_ms)
-        except (TypeError, ValueError):
-            raise ValueError(f"job_ms must be (steps, wall ms) pairs, got {self.job_ms!r}"
-                             ) from None
-        if any(k < 0 or not (math.isfinite(v) and v >= 0) for k, v in table):
-            raise ValueError(f"job_ms: steps >= 0 and finite wall ms >= 0, got {table}")
+        try:  # (steps, views, ms); (steps, ms): for any number of views (-1)
+            table = tuple((int(e[0]), int(e[1]), float(e[2])) if len(e) == 3
+                          else (int(e[0]), -1, float(e[1])) for e in self.job_ms)
+        except (TypeError, ValueError, IndexError):
+            raise ValueError(f"job_ms must be (steps, views, wall ms) or (steps, wall ms), "
+                             f"got {self.job_ms!r}") from None
+        if any(k < 0 or v < -1 or not (math.isfinite(ms) and ms >= 0) for k, v, ms in table):
+            raise ValueError(f"job_ms: steps >= 0, views >= 0 (or -1: any) and finite wall ms "
+                             f">= 0, got {table}")
         object.__setattr__(self, "job_ms", tuple(sorted(table)))
         if self.pool_workers and self.carry not in POOL_CARRIES:
             raise ValueError(f"the pool's twin (pool_workers={self.pool_workers}) runs the "
@@ -207,17 +209,31 @@ class EpisodeConfig:
         if self.scored_decisions < 1:
             raise ValueError("the scored span holds no decision: raise scored_ms")
 
-    def compute_ms(self, steps: int) -> float:
-        """Scene ms a reconstruction of ``steps`` training steps takes at the run's
-        ``time_scale``: ``job_ms``'s wall ms for that many steps where it has them (a measured
-        table: a cold start's steps cost more each than a warm start's), else
-        (``compute_fixed_ms`` + ``compute_step_ms`` · steps) wall ms, times
-        the scale (the live clock: scene = wall × time_scale). What the virtual clock charges
-        a scored decision before its render is shown (the display time)."""
-        for k, ms in self.job_ms:
-            if k == steps:
-                return ms * self.time_scale
-        return (self.compute_fixed_ms + self.compute_step_ms * steps) * self.time_scale
+    def compute_ms(self, steps: int, views: int | None = None) -> float:
+        """Scene ms a reconstruction of ``steps`` training steps (on ``views`` frames) takes at
+        the run's ``time_scale``: ``job_ms``'s wall ms for that step count where it has it (a
+        measured table: a cold start's steps cost more each than a warm start's, and a job of
+        more frames more) — that of ``views`` frames, else the line through that step count's
+        entries over their frames — else (``compute_fixed_ms`` + ``compute_step_ms`` · steps)
+        wall ms; times the scale (the live clock: scene = wall × time_scale). What the virtual
+        clock charges a scored decision before it is shown."""
+        return self._job_wall_ms(steps, views) * self.time_scale
+
+    def _job_wall_ms(self, steps: int, views: int | None) -> float:
+        rows = [(v, ms) for k, v, ms in self.job_ms if k == steps]
+        exact = [ms for v, ms in rows if views is not None and v == views]
+        if exact:
+            return exact[0]
+        known = [(v, ms) for v, ms in rows if v >= 0]
+        if views is not None and len({v for v, _ in known}) >= 2:
+            mv = sum(v for v, _ in known) / len(known)
+            mm = sum(ms for _, ms in known) / len(known)
+            slope = (sum((v - mv) * (ms - mm) for v, ms in known)
+                     / sum((v - mv) ** 2 for v, _ in known))
+            return max(0.0, mm + slope * (views - mv))
+        if rows:
+            return sum(ms for _, ms in rows) / len(rows)
+        return self.compute_fixed_ms + self.compute_step_ms * steps
 
     @property
     def end_ms(self) -> int:

@@ -29,14 +29,14 @@ class SimRefused(ValueError):
 @dataclass(frozen=True)
 class PoolTwin:
     """The live run's pool as the virtual clock's twin runs it: ``workers``, the run's
-    ``time_scale`` and a job's wall ms: ``job_ms``'s median for the step counts the live
-    workers timed (:func:`job_table`), else ``fixed_ms`` + ``step_ms`` · steps."""
+    ``time_scale`` and a job's wall ms: ``job_ms``'s medians by step count and frames as the
+    live workers timed them (:func:`job_table`), else ``fixed_ms`` + ``step_ms`` · steps."""
 
     workers: int
     time_scale: float
     fixed_ms: float
     step_ms: float
-    job_ms: tuple[tuple[int, float], ...] = ()
+    job_ms: tuple[tuple[int, int, float], ...] = ()
 
     def changes(self) -> dict[str, Any]:
         """The episode config's settings for it (every decision goes to the pool)."""
@@ -46,53 +46,56 @@ class PoolTwin:
 
 
 MIN_JOBS = 3
-"""Jobs a step count needs to count in :func:`job_cost` (a run's first jobs, cold, also build
-the model and warm the process up: one of them alone says little)."""
+"""Jobs a (steps, frames) cell needs to count (a run's first jobs, cold, also build the model
+and warm the process up: one of them alone says little)."""
 
 
 def job_table(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
-              ) -> tuple[tuple[int, float], ...]:
-    """(steps, median wall ms) of each step count of ``backend`` and ``carry`` the live
-    workers timed at least :data:`MIN_JOBS` times (the trainer's ``job_s``)."""
-    return tuple(sorted((s, ms) for s, ms, n in _points(job_s, backend, carry)
+              ) -> tuple[tuple[int, int, float], ...]:
+    """(steps, frames, median wall ms) of each cell of ``backend`` and ``carry`` the live
+    workers timed at least :data:`MIN_JOBS` times (the trainer's ``job_s``,
+    ``backend/carry/steps/frames``; an older key without frames: -1, any)."""
+    return tuple(sorted((s, v, ms) for s, v, ms, n in _points(job_s, backend, carry)
                         if n >= MIN_JOBS))
 
 
 def _points(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
-            ) -> list[tuple[int, float, float]]:
-    """(steps, median ms, jobs) of each timed step count of ``backend`` and ``carry``."""
+            ) -> list[tuple[int, int, float, float]]:
+    """(steps, frames, median ms, jobs) of each timed cell of ``backend`` and ``carry``."""
     points = []
     for key, stat in job_s.items():
-        b, _, rest = key.partition("/")
-        c, _, count = rest.partition("/")
-        if b == backend and c == carry and count.isdigit() and stat.get("n", 0) > 0 \
-                and math.isfinite(stat.get("median_s", math.nan)):
-            points.append((int(count), 1000.0 * float(stat["median_s"]), float(stat["n"])))
+        parts = key.split("/")
+        if len(parts) == 3:
+            parts.append("-1")
+        if len(parts) != 4 or parts[:2] != [backend, carry] or not parts[2].isdigit() \
+                or not parts[3].lstrip("-").isdigit():
+            continue
+        if stat.get("n", 0) > 0 and math.isfinite(stat.get("median_s", math.nan)):
+            points.append((int(parts[2]), int(parts[3]), 1000.0 * float(stat["median_s"]),
+                           float(stat["n"])))
     return points
 
 
 def job_cost(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
              ) -> tuple[float, float] | None:
     """(fixed ms, ms per step) of a job of ``backend`` and ``carry`` from the live workers'
-    own timings (the trainer's ``job_s``: ``{"grid/stream/25": {"median_s", "n", …}}``): the
-    line through the median time at each step count timed at least :data:`MIN_JOBS` times,
-    least squares weighted by the jobs (a stream run has two: its warm and its cold starts);
-    with one such step count, the default cost model
-    (:data:`~aoi3d.experiment.config.COMPUTE_FIXED_MS`, ``COMPUTE_STEP_MS``) scaled to it.
-    Medians, since a worker's first job also builds its model. None: no job of that kind
-    was timed. (The twin charges the timed step counts their own medians, :func:`job_table`:
-    this line is for the others, a budgeted policy's.)"""
-    points = _points(job_s, backend, carry)
+    own timings (the trainer's ``job_s``): the line over the steps through the medians of
+    the cells timed at least :data:`MIN_JOBS` times, least squares weighted by the jobs (a
+    stream run has two step counts: its warm and its cold starts); with one step count, the
+    default cost model (:data:`~aoi3d.experiment.config.COMPUTE_FIXED_MS`,
+    ``COMPUTE_STEP_MS``) scaled to it. Medians, since a worker's first job also builds its
+    model. None: no job of that kind was timed. (The twin charges a timed step count its own
+    medians, :func:`job_table`: this line is for the others, a budgeted policy's.)"""
+    points = [(st, ms, n) for st, _, ms, n in _points(job_s, backend, carry)]
     if not points:
         return None
     enough = [p for p in points if p[2] >= MIN_JOBS] or [max(points, key=lambda p: p[2])]
-    if len(enough) == 1:
-        only, ms, _ = enough[0]
-        k = ms / (COMPUTE_FIXED_MS + COMPUTE_STEP_MS * only)
-        return COMPUTE_FIXED_MS * k, COMPUTE_STEP_MS * k
     w = sum(n for _, _, n in enough)
     sx = sum(n * s for s, _, n in enough) / w
     sy = sum(n * ms for _, ms, n in enough) / w
+    if len({s for s, _, _ in enough}) == 1:
+        k = sy / (COMPUTE_FIXED_MS + COMPUTE_STEP_MS * sx)
+        return COMPUTE_FIXED_MS * k, COMPUTE_STEP_MS * k
     sxx = sum(n * (s - sx) ** 2 for s, _, n in enough)
     sxy = sum(n * (s - sx) * (ms - sy) for s, ms, n in enough)
     slope = max(0.0, sxy / sxx)

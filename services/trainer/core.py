@@ -293,7 +293,8 @@ class TrainerCore:
     def _count_render(self, msg: pb.Render, now_ms: float) -> None:
         self.renders_seen += 1
         self.warm_starts += int(msg.warm_start)
-        self.job_times.add(msg.backend, msg.carry, int(msg.render_steps), float(msg.compute_s))
+        self.job_times.add(msg.backend, msg.carry, int(msg.render_steps), int(msg.n_views),
+                           float(msg.compute_s))
         self.steps_total += int(msg.render_steps)
         self.loss = float(msg.loss) if math.isfinite(msg.loss) and msg.render_steps else None
         self.n_views = int(msg.n_views)

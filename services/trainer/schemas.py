@@ -147,10 +147,11 @@ class StatusResponse(BaseModel):
     job_s: dict[str, dict[str, float]] = Field(
         default_factory=dict,
         description="The workers' own compute time per job of this site (Render.compute_s), "
-                    "by `backend/carry/steps` (a stream cold start trains more steps than a "
-                    "warm one): median_s, mean_s and n over the last 500 of each. What the "
-                    "virtual clock's twin of the pool charges a job.",
-        examples=[{"grid/stream/25": {"median_s": 0.094, "mean_s": 0.097, "n": 500.0}}])
+                    "by `backend/carry/steps/frames` (a stream cold start trains more steps "
+                    "than a warm one; more frames take longer): median_s, mean_s and n over "
+                    "the last 500 of each. What the virtual clock's twin of the pool charges "
+                    "a job.",
+        examples=[{"grid/stream/25/18": {"median_s": 0.094, "mean_s": 0.097, "n": 500.0}}])
     time_scale: float = Field(description="The run's time scale (scene seconds per wall "
                                           "second): a job's compute_s in scene time is "
                                           "compute_s × time_scale.", examples=[1.0])

@@ -69,8 +69,9 @@ class LatestRender:
 
 
 class JobTimes:
-    """The workers' own compute time per job (``Render.compute_s``), by backend, carry and
-    the steps the job trained (a stream cold start's differ from a warm start's): what the
+    """The workers' own compute time per job (``Render.compute_s``), by backend, carry, the
+    steps the job trained (a stream cold start's differ from a warm start's) and the frames it
+    trained on (a job of 18 frames takes longer than one of 5): what the
     virtual clock's twin of the pool charges a job (``compute_fixed_ms``, ``compute_step_ms``;
     docs/experiments.md, "The pool's twin"). The last :attr:`KEEP` of each."""
 
@@ -79,13 +80,13 @@ class JobTimes:
     def __init__(self) -> None:
         self._s: dict[str, deque[float]] = {}
 
-    def add(self, backend: str, carry: str, steps: int, compute_s: float) -> None:
+    def add(self, backend: str, carry: str, steps: int, views: int, compute_s: float) -> None:
         if math.isfinite(compute_s) and compute_s > 0:
-            key = f"{backend}/{carry}/{int(steps)}"
+            key = f"{backend}/{carry}/{int(steps)}/{int(views)}"
             self._s.setdefault(key, deque(maxlen=self.KEEP)).append(float(compute_s))
 
     def summary(self) -> dict[str, dict[str, float]]:
-        """``{"grid/stream/25": {"median_s", "mean_s", "n"}, …}``."""
+        """``{"grid/stream/25/18": {"median_s", "mean_s", "n"}, …}``."""
         return {k: {"median_s": statistics.median(v), "mean_s": statistics.fmean(v),
                     "n": float(len(v))} for k, v in sorted(self._s.items())}
 

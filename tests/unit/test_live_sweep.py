@@ -278,27 +278,34 @@ def test_the_pool_twin_charges_what_the_live_workers_timed() -> None:
     from aoi3d.experiment.config import EpisodeConfig
     from aoi3d.live.sim import MIN_JOBS, PoolTwin, job_cost, job_table
 
-    job_s = {"grid/stream/25": {"median_s": 0.1, "mean_s": 0.12, "n": 500.0},
-             "grid/stream/100": {"median_s": 0.7, "mean_s": 0.9, "n": 12.0},
-             "grid/stream/50": {"median_s": 9.0, "mean_s": 9.0, "n": MIN_JOBS - 1.0},
-             "grid/fresh/25": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0},
-             "ngp/stream/25": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0}}
-    assert job_table(job_s, "grid", "stream") == ((25, 100.0), (100, 700.0))
+    job_s = {"grid/stream/25/18": {"median_s": 0.1, "mean_s": 0.12, "n": 300.0},
+             "grid/stream/25/6": {"median_s": 0.06, "mean_s": 0.07, "n": 200.0},
+             "grid/stream/100/18": {"median_s": 0.7, "mean_s": 0.9, "n": 12.0},
+             "grid/stream/50/18": {"median_s": 9.0, "mean_s": 9.0, "n": MIN_JOBS - 1.0},
+             "grid/fresh/25/18": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0},
+             "ngp/stream/25/18": {"median_s": 5.0, "mean_s": 5.0, "n": 40.0}}
+    assert job_table(job_s, "grid", "stream") == ((25, 6, 60.0), (25, 18, 100.0),
+                                                  (100, 18, 700.0))
     fixed, step = job_cost(job_s, "grid", "stream")
-    assert fixed == 0.0 and 100 / 25 < step < 700 / 100  # cold steps dearer: through 0
-    line = job_cost({"grid/stream/25": {"median_s": 0.1, "n": 5.0},
-                     "grid/stream/100": {"median_s": 0.25, "n": 5.0}}, "grid", "stream")
+    assert fixed == 0.0 and 60 / 25 < step < 700 / 100  # cold steps dearer: through 0
+    line = job_cost({"grid/stream/25/9": {"median_s": 0.1, "n": 5.0},
+                     "grid/stream/100/9": {"median_s": 0.25, "n": 5.0}}, "grid", "stream")
     assert line == pytest.approx((50.0, 2.0))
     assert job_cost({}, "grid", "stream") is None
-    # one step count: the default model scaled to it
+    # one step count: the default model scaled to it; an older key without frames is read
     fixed1, step1 = job_cost({"grid/fresh/25": {"median_s": 0.2, "n": 9.0}}, "grid", "fresh")
     assert fixed1 + 25 * step1 == pytest.approx(200.0)
+    assert job_table({"grid/fresh/25": {"median_s": 0.2, "n": 9.0}}, "grid", "fresh") == (
+        (25, -1, 200.0),)
     twin = PoolTwin(2, 0.5, fixed, step, job_table(job_s, "grid", "stream"))
     cfg = EpisodeConfig(carry="stream", steps_per_epoch=100, render_steps=25,
                         **twin.changes())
-    assert cfg.compute_ms(25) == pytest.approx(50.0)  # the table, times the time scale
-    assert cfg.compute_ms(100) == pytest.approx(350.0)
+    assert cfg.compute_ms(25, 18) == pytest.approx(50.0)  # the table, times the time scale
+    assert cfg.compute_ms(25, 12) == pytest.approx(40.0)  # between two timed frame counts
+    assert cfg.compute_ms(100, 5) == pytest.approx(350.0)  # the step count's one cell
     assert cfg.compute_ms(60) == pytest.approx((fixed + 60 * step) * 0.5)  # the line
     assert EpisodeConfig.from_dict(cfg.to_dict()) == cfg
-    with pytest.raises(ValueError, match="job_ms"):
-        EpisodeConfig(job_ms=((25, -1.0),))
+    assert EpisodeConfig(job_ms=((25, 40.0),)).job_ms == ((25, -1, 40.0),)  # any frames
+    for bad in (((25, -1.0),), ((25, 3, -1.0),), (("x",),)):
+        with pytest.raises(ValueError, match="job_ms"):
+            EpisodeConfig(job_ms=bad)

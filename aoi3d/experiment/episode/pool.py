@@ -147,7 +147,7 @@ class _Twin:
         d = self.decisions[a.decision.decision_id]
         worker = self.workers[a.worker_id]
         rendered = worker.run(self.cfg, d, self.frames)
-        end_ms = now_ms + self.cfg.compute_ms(rendered.render_steps)
+        end_ms = now_ms + self.cfg.compute_ms(rendered.render_steps, rendered.n_views)
         assert worker.rec is not None  # it just ran the job
         worker.rec.ready(self.frames.content_ms(end_ms) if worker.rec.trainer.cfg.time_aware
                          else end_ms)
