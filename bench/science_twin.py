@@ -118,12 +118,16 @@ def _verdict(rows: list[dict[str, Any]], cfg: dict[str, Any], doc: dict[str, Any
 
 def _jobs_text(table: list[list[float]]) -> str:
     """The timed jobs, per step count: the range of medians over the frames timed."""
+    def span(values: list[float], fmt: str) -> str:
+        lo, hi = format(min(values), fmt), format(max(values), fmt)
+        return lo if lo == hi else f"{lo}–{hi}"
+
     out = []
-    for steps in sorted({int(e[0]) for e in table}):
+    for steps in sorted({int(e[0]) for e in table} - {0}):  # (0 steps: an empty selection)
         ms = [float(e[-1]) for e in table if int(e[0]) == steps]
-        frames = [int(e[1]) for e in table if int(e[0]) == steps and len(e) == 3]
-        span = f" ({min(frames)}–{max(frames)} frames)" if frames else ""
-        out.append(f"{steps} steps {min(ms):.0f}–{max(ms):.0f} ms{span}")
+        frames = [float(e[1]) for e in table if int(e[0]) == steps and len(e) == 3]
+        out.append(f"{steps} steps {span(ms, '.0f')} ms"
+                   + (f" ({span(frames, '.0f')} frames)" if frames else ""))
     return ", ".join(out)
 
 

@@ -15,6 +15,7 @@ NOT_BENCHMARKS = {
     "science": "make science: its document is bench/results/science/claims.json, its page "
                "docs/science.md, its exit status the claims' verdict",
     "science_display": "a part of make science (python -m bench.science --only display)",
+    "science_twin": "a part of make science (python -m bench.science --only twin)",
 }
 
 

@@ -36,7 +36,10 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
          "--compare-checkpoint", str(tmp_path / "ppo/final.pt"), "--out", str(tmp_path / "out"),
          "--display-checkpoint", str(tmp_path / "ppo/final.pt"),
          "--cache", str(tmp_path / "cache"), "--doc", str(tmp_path / "science.md"),
-         "--figures", str(tmp_path / "figs"), "--workers", "1", *extra],
+         "--figures", str(tmp_path / "figs"), "--workers", "1",
+         # the live-against-twin part runs two live pipelines (minutes): its verdicts are
+         # tested on their own (test_science_twin.py), and 0 skips it here
+         "--twin-seeds", "0", *extra],
         capture_output=True, text=True, cwd=ROOT)
     assert res.returncode == 1, res.stdout[-3000:] + res.stderr[-3000:]
     doc = json.loads((tmp_path / "out/claims.json").read_text())
@@ -62,6 +65,8 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
         "grid-fresh-50", "flow-fresh-32", "grid-fresh-100", "flow-fresh-65", "grid-stream-25",
         "flow-stream-16"}
     assert "## A time-aware field (issue 41)" in (tmp_path / "science.md").read_text()
+    assert doc["live_twin"] is None  # skipped (--twin-seeds 0), and said so by its absence
+    assert "twin of the pool" not in (tmp_path / "science.md").read_text()
     assert (tmp_path / "figs/timefield.png").stat().st_size > 0
     assert fixed["claim"] == "fixed-gamma-loses" and "G = " in fixed["evidence"]
     assert adaptive["claim"] == "adaptive-beats-best-rule"
