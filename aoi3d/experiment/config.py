@@ -41,10 +41,11 @@ workers (:mod:`aoi3d.experiment.episode.pool`). Every decision is offered, as li
 live dispatcher's code (:class:`aoi3d.pool.Dispatcher`) at its time; ``pool_workers`` simulated
 workers, each with its own model (the ``stream`` carry's warm chain runs through the jobs of
 one worker), take the newest, and a job occupies its worker for :meth:`EpisodeConfig.compute_ms`
-of its steps (``compute_fixed_ms`` + ``compute_step_ms`` · steps, wall ms, times
-``time_scale``): what the live workers' own timings say (``Render.compute_s``, the trainer's
-``GET /status`` ``job_s``). The decisions the workers cannot take are superseded; the ones
-rendered in the scored span are scored, at decision and at display time (the job's end).
+of its steps and frames (``job_ms``, wall ms measured by step count and frames, else
+``compute_fixed_ms`` + ``compute_step_ms`` · steps; times ``time_scale``): what the live
+workers' own timings say (``Render.compute_s``, the trainer's ``GET /status`` ``job_s``).
+The decisions the workers cannot take are superseded; the ones rendered in the scored span
+are scored, at decision and at display time (the job's end).
 ``score_every`` is then 1: the pool, not a schedule, chooses which decisions are rendered.
 0 (the default): no pool, every ``score_every``-th decision rendered, charged its compute
 but never queued (the engine of the experiments' figures).
