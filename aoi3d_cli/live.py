@@ -323,7 +323,8 @@ def _pool_twin(status: dict[str, Any], backend: str, carry: str) -> PoolTwin | N
                       f"{'no' if cost is None else 'some'} timed job")
         return None
     return PoolTwin(workers, float(status.get("time_scale") or 1.0), *cost,
-                    job_ms=job_table(status.get("job_s") or {}, backend, carry))
+                    job_ms=job_table(status.get("job_s") or {}, backend, carry),
+                    fresh_fraction=float((status.get("pool") or {}).get("fresh_fraction", 1.0)))
 
 
 def _cold_steps(status: dict[str, Any]) -> int:

@@ -193,6 +193,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
     return {
         "workers": workers, "time_scale": args.time_scale, "carry": status["carry"],
         "render_steps": status["render_steps"], "policy": last["policy"],
+        "fresh_fraction": (status.get("pool") or {}).get("fresh_fraction"),
         "window_s": round(window_s, 1), "first_id": first_id, "last_id": last["decision_id"],
         **window_stats(list(scored.values()), first_id, last["decision_id"], window_s),
         **_pool_window(pool0, pool1),

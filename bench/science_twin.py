@@ -40,6 +40,10 @@ def _folder(scale: float) -> str:
     return f"ts{scale:g}".replace(".", "_")
 
 
+FRESH_FRACTION = "1"
+"""AOI3D_TRAINER_FRESH_FRACTION of the live runs (and so of their twin)."""
+
+
 def run_all(exe: str, out: Path, runner: Callable[[list[str], list[dict[str, Any]]], float],
             log: list[dict[str, Any]], *, seeds: int, seed_offset: int, cache: Path,
             settle_s: float = 10.0, measure_s: float = 40.0, repeats: int = 2,
@@ -47,6 +51,9 @@ def run_all(exe: str, out: Path, runner: Callable[[list[str], list[dict[str, Any
     """One live sweep with its twin per time scale, into ``out/twin/<ts>`` (``reuse``: one
     whose results.json exists is kept)."""
     os.environ["AOI3D_NETWORK_SEED"] = str(seed_offset)  # the live run's seed (inherited)
+    # the dispatcher these results were measured with (no wait for a fresher decision; the
+    # default is 0.5 since): the twin reads it from the live status, so both run it
+    os.environ["AOI3D_TRAINER_FRESH_FRACTION"] = FRESH_FRACTION
     for scale in TIME_SCALES:
         dest = out / "twin" / _folder(scale)
         if reuse and (dest / "results.json").exists():

@@ -44,8 +44,11 @@ one worker), take the newest, and a job occupies its worker for :meth:`EpisodeCo
 of its steps and frames (``job_ms``, wall ms measured by step count and frames, else
 ``compute_fixed_ms`` + ``compute_step_ms`` · steps; times ``time_scale``): what the live
 workers' own timings say (``Render.compute_s``, the trainer's ``GET /status`` ``job_s``).
-The decisions the workers cannot take are superseded; the ones rendered in the scored span
-are scored, at decision and at display time (the job's end).
+``pool_fresh_fraction`` is the dispatcher's ``fresh_fraction`` (the live trainer's
+``AOI3D_TRAINER_FRESH_FRACTION``: a free worker waits for the next decision rather than take a
+pending one older than that fraction of the period). The decisions the workers cannot take
+are superseded; the ones rendered in the scored span are scored, at decision and at display
+time (the job's end).
 ``score_every`` is then 1: the pool, not a schedule, chooses which decisions are rendered.
 0 (the default): no pool, every ``score_every``-th decision rendered, charged its compute
 but never queued (the engine of the experiments' figures).
@@ -155,6 +158,7 @@ class EpisodeConfig:
     compute_fixed_ms: float = COMPUTE_FIXED_MS
     compute_step_ms: float = COMPUTE_STEP_MS
     pool_workers: int = 0
+    pool_fresh_fraction: float = 1.0
     job_ms: tuple[tuple[int, int, float], ...] = ()
 
     def __post_init__(self) -> None:
@@ -189,6 +193,10 @@ class EpisodeConfig:
         if not self.time_scale > 0:
             raise ValueError(f"time_scale must be > 0, got {self.time_scale}")
         _int_at_least("pool_workers", self.pool_workers, 0)
+        f = self.pool_fresh_fraction
+        if isinstance(f, bool) or not isinstance(f, int | float) or not 0 <= f <= 1:
+            raise ValueError(f"pool_fresh_fraction must be a number in [0, 1] (the live "
+                             f"trainer's AOI3D_TRAINER_FRESH_FRACTION), got {f!r}")
         try:  # (steps, views, ms); (steps, ms): for any number of views (-1)
             table = tuple((int(e[0]), int(e[1]), float(e[2])) if len(e) == 3
                           else (int(e[0]), -1, float(e[1])) for e in self.job_ms)

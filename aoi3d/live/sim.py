@@ -37,10 +37,14 @@ class PoolTwin:
     fixed_ms: float
     step_ms: float
     job_ms: tuple[tuple[int, int, float], ...] = ()
+    fresh_fraction: float = 1.0
+    """The live dispatcher's: a free worker waits for the next decision rather than take one
+    older than this fraction of the period."""
 
     def changes(self) -> dict[str, Any]:
         """The episode config's settings for it (every decision goes to the pool)."""
         return {"pool_workers": self.workers, "time_scale": self.time_scale,
+                "pool_fresh_fraction": self.fresh_fraction,
                 "compute_fixed_ms": self.fixed_ms, "compute_step_ms": self.step_ms,
                 "job_ms": self.job_ms, "score_every": 1}
 

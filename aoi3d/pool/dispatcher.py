@@ -19,6 +19,13 @@ services.recon``) pull work from it. The virtual clock's twin of the pool
   (the ``stream`` carry), to the waiting worker whose last decision of that site is the
   newest, so that a pool with slack keeps warm-starting from one decision ago. No queue
   grows and no render is older than one that could have been done instead.
+- **Fresh wait** (``fresh_fraction`` < 1): a worker that asks when its site's pending
+  decision has waited longer than that fraction of the site's decision period (learned from
+  the offers), and less than :data:`OVERDUE` periods, waits for the next decision instead;
+  the stale one is superseded by it. Decisions come every period, so the wait is at most the
+  rest of one, and the render shows a decision a fraction of a period old instead of up to a
+  whole one (waiting can beat zero-wait for the age of what is shown: Sun et al., "Update or
+  Wait", IEEE/ACM ToN 2017). A worker that cannot wait (``max_wait_s`` 0) takes it.
 - **Ledger**: a handed-out decision ends ``rendered`` (the worker reports its Render
   published in its next request) or ``lost`` with a reason: ``worker_died`` (its token
   vanished while it held the decision: a crash, a SIGKILL, a network cut), ``timeout`` (held
@@ -56,6 +63,13 @@ POOL_LOST = (PoolReason.WORKER_DIED, PoolReason.TIMEOUT, PoolReason.NOT_DELIVERE
 ``not_received`` too, for decisions that never reached the pool."""
 
 
+OVERDUE = 1.5
+"""A pending decision older than this many decision periods is taken at once: the next one is
+late (a paused camera, a stalled scheduler), so waiting for it could wait for nothing."""
+PERIOD_GAIN = 0.1
+"""The smoothing of the decision period's estimate (an exponential moving average)."""
+
+
 @dataclass
 class _Member:
     """A member of the pool as the dispatcher sees it: one reconstruction worker (a
@@ -79,9 +93,22 @@ class Dispatcher:
     """The pool's assignment state; see the module docstring. Not thread-safe: the caller
     serialises calls (the trainer's runtime holds one lock). Times are wall seconds."""
 
-    def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0) -> None:
+    def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0,
+                 fresh_fraction: float = 1.0) -> None:
+        if not 0.0 <= fresh_fraction <= 1.0:
+            raise ValueError(f"fresh_fraction must be in [0, 1], got {fresh_fraction!r}")
         self.window_s = float(window_s)
         self.job_timeout_s = float(job_timeout_s)
+        self.fresh_fraction = float(fresh_fraction)
+        """Wait for the next decision: a worker that asks when its site's pending decision has
+        waited longer than this fraction of the site's decision period (and less than
+        :data:`OVERDUE` periods: the next one is due) waits for the next decision instead, and
+        the stale one is superseded by it. 1: never (take the pending one at once)."""
+        self._period_s: dict[str, float] = {}
+        """Each site's decision period (wall s): the smoothed interval between its offers."""
+        self._offered_s: dict[str, float] = {}
+        self.waited_fresh = 0
+        """Requests that waited for the next decision rather than take a stale pending one."""
         self._workers: dict[str, _Member] = {}
         self._waiting: deque[str] = deque()
         self.prefer_warm = False
@@ -149,6 +176,12 @@ class Dispatcher:
         self.decisions += 1
         self._count(decision.site, "decisions")
         self._event(now_s, "decision", 1.0)
+        self._learn_period(decision.site, now_s)
+        if self._waiting and decision.site in self._pending:
+            free_waiting = any((w := self._workers.get(i)) is not None and w.holding is None
+                               for i in self._waiting)
+            if free_waiting:  # a worker left the pending one for this newer one
+                self._supersede(decision.site)
         if self.prefer_warm:
             free = [w for i in self._waiting
                     if (w := self._workers.get(i)) is not None and w.holding is None]
@@ -162,10 +195,7 @@ class Dispatcher:
             if worker is not None and worker.holding is None:
                 return self._assign(worker, decision, now_s, now_s)
         if decision.site in self._pending:
-            self.superseded += 1
-            self._count(decision.site, "superseded")
-            self._ended.append(Ended(self._pending[decision.site][0], "skipped",
-                                     PoolReason.SUPERSEDED))
+            self._supersede(decision.site)
         self._pending[decision.site] = (decision, now_s)
         return None
 
@@ -182,9 +212,14 @@ class Dispatcher:
             worker.busy.popleft()
         self._close(worker, report, now_s)
         self._unwait(worker.worker_id)
-        if self._pending:
-            site = min(self._pending, key=lambda s: (self._served_s.get(s, -math.inf),
-                                                     self._pending[s][1]))
+        sites = list(self._pending)
+        if report.max_wait_s > 0:  # a worker that can wait leaves a stale one for the next
+            sites = [s for s in sites if not self._stale(s, now_s)]
+            if len(sites) < len(self._pending):
+                self.waited_fresh += 1
+        if sites:
+            site = min(sites, key=lambda s: (self._served_s.get(s, -math.inf),
+                                             self._pending[s][1]))
             decision, arrived_s = self._pending.pop(site)
             return self._assign(worker, decision, arrived_s, now_s)
         if report.max_wait_s > 0:
@@ -218,6 +253,29 @@ class Dispatcher:
         return out
 
     # ------------------------------------------------------------------ internals
+    def _learn_period(self, site: str, now_s: float) -> None:
+        last = self._offered_s.get(site)
+        self._offered_s[site] = now_s
+        if last is None or now_s <= last:
+            return
+        gap = now_s - last
+        period = self._period_s.get(site)
+        self._period_s[site] = gap if period is None else period + PERIOD_GAIN * (gap - period)
+
+    def _stale(self, site: str, now_s: float) -> bool:
+        """Whether the site's pending decision is better left for the next one (see
+        ``fresh_fraction``): older than that fraction of the period, the next one due."""
+        period = self._period_s.get(site)
+        if self.fresh_fraction >= 1.0 or period is None or site not in self._pending:
+            return False
+        age = now_s - self._pending[site][1]
+        return self.fresh_fraction * period < age < OVERDUE * period
+
+    def _supersede(self, site: str) -> None:
+        self.superseded += 1
+        self._count(site, "superseded")
+        self._ended.append(Ended(self._pending.pop(site)[0], "skipped", PoolReason.SUPERSEDED))
+
     def _assign(self, worker: _Member, decision: DecisionRef, arrived_s: float,
                 now_s: float) -> Assignment:
         held = Assignment(decision, worker.worker_id, arrived_s, now_s)
@@ -311,4 +369,5 @@ class Dispatcher:
             rendered_fraction=n_ren / n_dec if n_dec else math.nan,
             wait_s_mean=mean(by_kind["wait"]), render_age_s_mean=mean(by_kind["age"]),
             late_reports=self.late_reports, window_s=self.window_s,
-            by_site={site: dict(c) for site, c in sorted(self.by_site.items())})
+            by_site={site: dict(c) for site, c in sorted(self.by_site.items())},
+            fresh_fraction=self.fresh_fraction, waited_fresh=self.waited_fresh)

@@ -129,3 +129,7 @@ class PoolStatus:
     window_s: float
     by_site: dict[str, dict[str, int]]
     """Site → its counts: decisions, assigned, rendered, superseded, lost."""
+    fresh_fraction: float = 1.0
+    """The dispatcher's ``fresh_fraction`` (1: a free worker never waits for a fresher one)."""
+    waited_fresh: int = 0
+    """Requests that left a stale pending decision to wait for the next one."""

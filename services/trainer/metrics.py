@@ -123,6 +123,10 @@ class PoolCollector:
         yield one(GaugeMetricFamily("aoi3d_pool_rendered_fraction",
                                     f"Decisions rendered / decisions taken over the last "
                                     f"{pool.window_s:g} s."), pool.rendered_fraction)
+        yield one(CounterMetricFamily(
+            "aoi3d_pool_waited_fresh", "Worker requests that left a stale pending decision "
+            "(older than AOI3D_TRAINER_FRESH_FRACTION of the decision period) to wait for the "
+            "next one."), pool.waited_fresh)
         yield one(GaugeMetricFamily("aoi3d_pool_renders_per_second",
                                     f"Renders per wall second over the last "
                                     f"{pool.window_s:g} s."), pool.renders_per_s)

@@ -80,6 +80,13 @@ class PoolInfo(BaseModel):
         description="Site → its counts since start: decisions, assigned, rendered, superseded, "
                     "lost.", examples=[{"site1": {"decisions": 300, "assigned": 120,
                                                   "rendered": 118, "superseded": 180}}])
+    fresh_fraction: float = Field(
+        1.0, description="AOI3D_TRAINER_FRESH_FRACTION: a worker that asks when the pending "
+                         "decision has waited longer than this fraction of the decision period "
+                         "waits for the next one (1: never).", examples=[0.5])
+    waited_fresh: int = Field(
+        0, description="Requests that left a stale pending decision to wait for the next one "
+                       "(it is then superseded).", examples=[40])
 
 
 def _num(x: float) -> float | None:
@@ -98,7 +105,8 @@ def pool_body(pool: PoolStatus) -> PoolInfo:
         decisions_per_s=round(pool.decisions_per_s, 4),
         rendered_fraction=_num(pool.rendered_fraction), wait_s_mean=_num(pool.wait_s_mean),
         render_age_s_mean=_num(pool.render_age_s_mean), late_reports=pool.late_reports,
-        window_s=pool.window_s, by_site=pool.by_site)
+        window_s=pool.window_s, by_site=pool.by_site, fresh_fraction=pool.fresh_fraction,
+        waited_fresh=pool.waited_fresh)
 
 
 class StatusResponse(BaseModel):

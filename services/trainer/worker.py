@@ -71,7 +71,8 @@ class TrainerWorker:
             heldout, aabb = dataset.cameras[dataset.heldout_id], np.asarray(dataset.aabb)
         else:
             raise ValueError("the trainer needs a dataset or a rig")
-        self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s)
+        self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s,
+                               fresh_fraction=settings.fresh_fraction)
         self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
                                      settings.seed, cold_steps=settings.cold_steps,
                                      warm_max_gap_ms=settings.warm_max_gap_ms)

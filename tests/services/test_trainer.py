@@ -149,6 +149,7 @@ def test_a_decision_is_rendered_by_one_worker_from_its_own_frames(
     p = status["pool"]
     assert (p["decisions"], p["assigned"], p["rendered"], p["superseded"]) == (1, 1, 1, 0)
     assert p["lost"] == {} and p["in_flight"] == 0 and p["rendered_fraction"] == 1.0
+    assert p["fresh_fraction"] == 0.5 and p["waited_fresh"] == 0  # the default; one decision
     (w,) = p["workers"]
     assert w["worker_id"] == "w1" and w["rendered"] == 1 and w["pid"] == os.getpid()
 

@@ -260,3 +260,55 @@ def test_each_end_without_a_render_is_told_with_its_reason() -> None:
                    (6, "lost", "refused", "stale_decision"),
                    (7, "lost", "not_received", "")]
     assert a is not None and pool.lost["render_failed"] == 1  # the why is the detail only
+
+
+def periodic(pool: Dispatcher, n: int, period: float = 0.03) -> None:
+    """Offer decisions 1..n at a steady period (the dispatcher learns it), none taken."""
+    for i in range(1, n + 1):
+        pool.offer(d(i), i * period)
+
+
+def test_fresh_fraction_leaves_a_stale_pending_decision_for_the_next_one() -> None:
+    """A worker that asks when the pending decision has waited more than the fraction of the
+    period waits; the next decision goes to it and the stale one ends superseded."""
+    pool = Dispatcher(fresh_fraction=0.5)
+    pool.joined("a", 0.0)
+    periodic(pool, 5)  # pending: d(5), offered at 0.15; period 0.03
+    assert ask(pool, "a", 0.17) is None  # 20 ms old > 15 ms: wait for d(6)
+    assert pool.waited_fresh == 1 and pool.pending() == d(5)
+    got = pool.offer(d(6), 0.18)
+    assert got is not None and got.decision == d(6) and got.wait_s == 0.0
+    assert pool.pending() is None and pool.superseded == 5  # d(1)..d(4), then d(5)
+    ended = {e.decision.decision_id: e.reason for e in pool.drain_ended()}
+    assert ended[5] == PoolReason.SUPERSEDED
+
+
+def test_fresh_fraction_takes_a_young_or_overdue_pending_decision_at_once() -> None:
+    pool = Dispatcher(fresh_fraction=0.5)
+    pool.joined("a", 0.0)
+    periodic(pool, 5)
+    young = ask(pool, "a", 0.16)  # 10 ms old < 15 ms
+    assert young is not None and young.decision == d(5)
+    pool.offer(d(6), 0.18)
+    # the next one is late (more than 1.5 periods since d(6)): waiting could wait for nothing
+    late = ask(pool, "a", 0.24, done=d(5))
+    assert late is not None and late.decision == d(6) and pool.waited_fresh == 0
+
+
+def test_fresh_fraction_one_and_a_worker_that_cannot_wait_take_the_pending_one() -> None:
+    for fraction, wait in ((1.0, 2.0), (0.5, 0.0)):
+        pool = Dispatcher(fresh_fraction=fraction)
+        pool.joined("a", 0.0)
+        periodic(pool, 5)
+        got = ask(pool, "a", 0.17, wait=wait)
+        assert got is not None and got.decision == d(5) and pool.waited_fresh == 0
+
+
+def test_fresh_fraction_is_checked() -> None:
+    for bad in (-0.1, 1.5, math.nan):
+        try:
+            Dispatcher(fresh_fraction=bad)
+        except ValueError as err:
+            assert "fresh_fraction" in str(err)
+        else:
+            raise AssertionError(f"fresh_fraction={bad} accepted")

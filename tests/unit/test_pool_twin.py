@@ -56,6 +56,20 @@ def test_a_slow_pool_takes_the_newest_decision_and_the_rest_are_superseded(
     assert out_two.rendered > out.rendered
 
 
+def test_the_twin_runs_the_dispatchers_fresh_wait(dataset: SceneDataset) -> None:
+    """With pool_fresh_fraction 0.5 a free worker never takes a decision more than half a
+    period (15 ms) old while the next is due: the render is at most a job and 15 ms late.
+    A 67 ms job against a 30 ms decision period: each job ends 7 ms later in the period."""
+    lags = {}
+    for fraction in (1.0, 0.5):
+        cfg = config(compute_fixed_ms=47.0, compute_step_ms=5.0, pool_fresh_fraction=fraction)
+        res, out, _ = run_pool_plan(plan_episode(cfg, dataset, "all", 0), dataset)
+        assert out.offered == out.rendered + out.superseded
+        lags[fraction] = [e.display_ms - e.eval_ms for e in res.epochs]
+    assert max(lags[0.5]) <= 67.0 + 15.0 + 1e-6 < max(lags[1.0])
+    assert sum(lags[0.5]) / len(lags[0.5]) < sum(lags[1.0]) / len(lags[1.0])
+
+
 def test_the_stream_carry_chains_each_workers_jobs(dataset: SceneDataset) -> None:
     cfg = config(carry="stream", steps_per_epoch=6, render_steps=2, pool_workers=2,
                  compute_fixed_ms=40.0, compute_step_ms=1.0)
@@ -94,6 +108,7 @@ def test_run_plan_takes_the_twin_with_a_pool(dataset: SceneDataset) -> None:
     ({"carry": "warm", "steps_per_epoch": 4}, "trains between jobs"),
     ({"score_every": 2}, "score_every must be 1"),
     ({"pool_workers": -1}, "pool_workers must be an int >= 0"),
+    ({"pool_fresh_fraction": 1.5}, "pool_fresh_fraction must be a number in"),
 ])
 def test_a_pool_config_it_cannot_run_is_refused(changes: dict, match: str) -> None:
     with pytest.raises(ValueError, match=match):

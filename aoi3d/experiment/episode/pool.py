@@ -116,7 +116,7 @@ class _Twin:
         self.frames = Frames(dataset, plan.scene_offset_ms)
         self.heldout = dataset.cameras[dataset.heldout_id]
         self.lpips_fn, self.on_render = lpips_fn, on_render
-        self.pool = Dispatcher(job_timeout_s=math.inf)
+        self.pool = Dispatcher(job_timeout_s=math.inf, fresh_fraction=cfg.pool_fresh_fraction)
         self.pool.prefer_warm = cfg.carry == "stream"  # the trainer's choice for stream
         self.workers = {f"twin-{i}": _Worker(f"twin-{i}", cfg, dataset, plan.seed)
                         for i in range(cfg.pool_workers)}
