@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -318,10 +319,8 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
 
 
 
-def realtime(results: Path) -> tuple[list[str], set[str]]:
-    """realtime/realtime.json: ``bench/realtime.py``'s rows, one per worker count."""
-    name = "realtime/realtime.json"
-    d = load(results, name)
+def _realtime_run(d: dict[str, Any]) -> list[str]:
+    """One bench/realtime.py document: its table, the CPU per process and the speedup."""
     rows, cpu_rows = [], []
     procs: list[str] = []
     for r in d["rows"]:
@@ -339,7 +338,64 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
                      f"{r['load_before'][0]:.2f} → {r['load_after'][0]:.2f}"])
         cpu_rows.append([r["workers"], *(f(r["cpu"]["processes"].get(p, {}).get("core_pct"), 1)
                                          for p in procs), f(r["cpu"]["total_core_pct"], 1)])
+    lines = [
+        *table(["workers", "renders/s", "rendered", "lag median (ms)", "lag p90 (ms)",
+                "PSNR at display (dB)", "pool wait (ms)", "render age (ms)", "superseded",
+                "reconstruction's CPU share", "load"], rows),
+        "",
+        "CPU per process, percent of one core over the window:",
+        "",
+        *table(["workers", *procs, "all"], cpu_rows),
+        "",
+    ]
     speedup = d.get("speedup")
+    if speedup is not None:
+        counts = sorted({r["workers"] for r in d["rows"]})
+        pairs = ", ".join(f"{p:.2f}×" for p in d.get("speedup_pairs", []))
+        lines += [f"Renders/s of {counts[-1]} workers over {counts[0]}: {speedup:.2f}× (the "
+                  f"means of their runs; run by run {pairs}).", ""]
+    return lines
+
+
+_RUN_LINE = re.compile(r"^(?P<label>\S+) (?:\S+ )?(?P<workers>\d+) worker\(s\) at x[\d.]+: "
+                       r"(?P<rps>[\d.]+) renders/s, .*display lag median (?P<lag>[\d.]+) / "
+                       r"p90 [\d.]+ ms, PSNR at display median (?P<psnr>[\d.]+) dB")
+FRESH = "realtime/fresh-wait"
+FRESH_LOGS = {"two-workers.log": ("ff1.0", "ff0.5", "AOI3D_TRAINER_FRESH_FRACTION 1 ↔ 0.5"),
+              "one-worker.log": ("ff1.0", "ff0.5", "AOI3D_TRAINER_FRESH_FRACTION 1 ↔ 0.5"),
+              "before-after.log": ("OLD", "NEW", "the code before (ef77d61) ↔ after")}
+"""The paired runs of the fresh wait: log → (label off, label on, what was switched)."""
+
+
+def _fresh_pairs(results: Path) -> tuple[list[list[Any]], list[float]]:
+    """The fresh wait's paired runs: a table row per log, and every pair's lag change."""
+    rows, deltas = [], []
+    for log_name, (off, on, what) in FRESH_LOGS.items():
+        runs: dict[str, list[re.Match[str]]] = {off: [], on: []}
+        for line in (results / FRESH / log_name).read_text().splitlines():
+            m = _RUN_LINE.match(line)
+            if m and m["label"] in runs:
+                runs[m["label"]].append(m)
+        pairs = list(zip(runs[off], runs[on], strict=False))
+
+        def arrows(key: str, pairs: list[tuple[re.Match[str], re.Match[str]]] = pairs) -> str:
+            return ", ".join(f"{a[key]} → {b[key]}" for a, b in pairs)
+
+        deltas += [float(b["lag"]) - float(a["lag"]) for a, b in pairs]
+        rows.append([what, pairs[0][0]["workers"] if pairs else "—", arrows("rps"),
+                     arrows("lag"), arrows("psnr")])
+    return rows, deltas
+
+
+def realtime(results: Path) -> tuple[list[str], set[str]]:
+    """realtime/realtime.json: ``bench/realtime.py``'s rows, one per worker count; the run
+    before the fresh wait (realtime-2026-12-06.json) and the wait's paired runs
+    (realtime/fresh-wait/)."""
+    name, before = "realtime/realtime.json", "realtime/realtime-2026-12-06.json"
+    d = load(results, name)
+    fresh_rows, deltas = _fresh_pairs(results)
+    waits = {k: load(results, f"{FRESH}/two-workers-ff{k}.json")["rows"][0]["pool_wait_ms_mean"]
+             for k in ("1.0", "0.5")}
     lines = [
         "## Real time on two cores",
         "",
@@ -354,23 +410,36 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         "",
         *redo("make bench-realtime   # = " + d["command"]),
         "",
-        f"Measured {d['date']} UTC.",
+        f"Measured {d['date']} UTC, the fresh wait on (AOI3D_TRAINER_FRESH_FRACTION "
+        f"{d['rows'][0].get('fresh_fraction') or 0.5:g}). This VM's speed for the pipeline "
+        "drifts by a third within an hour (the code before the wait gave 10.2 renders/s at "
+        "112 ms with one worker at 09:56 and 11:27 the same day, 7.5 at 126 ms at 11:31): "
+        "compare settings by the paired runs below, not this table against the next.",
         "",
-        *table(["workers", "renders/s", "rendered", "lag median (ms)", "lag p90 (ms)",
-                "PSNR at display (dB)", "pool wait (ms)", "render age (ms)", "superseded",
-                "reconstruction's CPU share", "load"], rows),
+        *_realtime_run(d),
+        "**The fresh wait, paired** (`bench/results/realtime/fresh-wait/`, its README has "
+        "the commands; 40 s windows, alternated so that the VM's drift hits both alike). A "
+        "free worker used to take the pending decision, on average half a decision period "
+        "old; it now waits for the next one when the pending one is older than half a period "
+        f"(pool wait {waits['1.0']:.1f} → {waits['0.5']:.1f} ms in the two-worker pair's "
+        "files):",
         "",
-        "CPU per process, percent of one core over the window:",
+        *table(["runs (2026-12-07 UTC)", "workers", "renders/s, off → on",
+                "median lag (ms), off → on", "PSNR at display (dB), off → on"], fresh_rows),
         "",
-        *table(["workers", *procs, "all"], cpu_rows),
+        f"The median lag changed by {min(deltas):+.1f} to {max(deltas):+.1f} ms over the "
+        f"{len(deltas)} pairs. What is left of the lag is the job: a warm start of 25 steps "
+        "is about 85 ms of CPU (`python -m bench.recon --carry warm --steps 25 --views 18 "
+        "--repeats 30`), and with two workers each has about 70 % of a core beside the "
+        "services' half of one.",
         "",
+        f"Measured {load(results, before)['date']} UTC, before the fresh wait "
+        f"(`bench/results/{before}`):",
+        "",
+        *_realtime_run(load(results, before)),
     ]
-    if speedup is not None:
-        counts = sorted({r["workers"] for r in d["rows"]})
-        pairs = ", ".join(f"{p:.2f}×" for p in d.get("speedup_pairs", []))
-        lines += [f"Renders/s of {counts[-1]} workers over {counts[0]}: {speedup:.2f}× (the "
-                  f"means of their runs; run by run {pairs}).", ""]
-    return lines, {name}
+    used = {name, before} | {f"{FRESH}/{p.name}" for p in (results / FRESH).iterdir()}
+    return lines, used
 
 def reconstruction(results: Path) -> tuple[list[str], set[str]]:
     """recon-ab.txt: paragraphs (blank-line separated) of ``after``/``before`` lines (JSON),
