@@ -215,8 +215,7 @@ class Dispatcher:
         sites = list(self._pending)
         if report.max_wait_s > 0:  # a worker that can wait leaves a stale one for the next
             sites = [s for s in sites if not self._stale(s, now_s)]
-            if len(sites) < len(self._pending):
-                self.waited_fresh += 1
+            self.waited_fresh += not sites and bool(self._pending)
         if sites:
             site = min(sites, key=lambda s: (self._served_s.get(s, -math.inf),
                                              self._pending[s][1]))
