@@ -75,7 +75,7 @@ class Settings(ServiceSettings):
                     "the next one instead (due within the rest of the period), and the stale "
                     "one is superseded; 1 = never wait (take the pending one at once). At "
                     "time scale 1 with two workers on 2 cores, 0.5 cut the pool wait from 13 "
-                    "to 3 ms and the display lag by 8-17 ms at the same renders/s "
+                    "to 3 ms and the median display lag by 8-26 ms at the same renders/s "
                     "(docs/measurements.md, \"Real time on two cores\").")
     window_s: float = Field(
         30.0, gt=0, le=3600,
