@@ -392,7 +392,8 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
     before the fresh wait (realtime-2026-12-06.json) and the wait's paired runs
     (realtime/fresh-wait/)."""
     name, before = "realtime/realtime.json", "realtime/realtime-2026-12-06.json"
-    d = load(results, name)
+    d, d_before = load(results, name), load(results, before)
+    one = next((r for r in d["rows"] if r["workers"] == 1), d["rows"][0])
     fresh_rows, deltas = _fresh_pairs(results)
     waits = {k: load(results, f"{FRESH}/two-workers-ff{k}.json")["rows"][0]["pool_wait_ms_mean"]
              for k in ("1.0", "0.5")}
@@ -413,7 +414,8 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         f"Measured {d['date']} UTC, the fresh wait on (AOI3D_TRAINER_FRESH_FRACTION "
         f"{d['rows'][0].get('fresh_fraction') or 0.5:g}). This VM's speed for the pipeline "
         "drifts by a third within an hour (the code before the wait gave 10.2 renders/s at "
-        "112 ms with one worker at 09:56 and 11:27 the same day, 7.5 at 126 ms at 11:31): "
+        "112 ms with one worker at 09:56 and 11:27 the same day; this run "
+        f"{one['renders_per_s']:.1f} at {one['display_lag_ms_median']:.0f} ms): "
         "compare settings by the paired runs below, not this table against the next.",
         "",
         *_realtime_run(d),
@@ -433,10 +435,10 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         "--repeats 30`), and with two workers each has about 70 % of a core beside the "
         "services' half of one.",
         "",
-        f"Measured {load(results, before)['date']} UTC, before the fresh wait "
+        f"Measured {d_before['date']} UTC, before the fresh wait "
         f"(`bench/results/{before}`):",
         "",
-        *_realtime_run(load(results, before)),
+        *_realtime_run(d_before),
     ]
     used = {name, before} | {f"{FRESH}/{p.name}" for p in (results / FRESH).iterdir()}
     return lines, used

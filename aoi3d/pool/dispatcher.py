@@ -177,11 +177,8 @@ class Dispatcher:
         self._count(decision.site, "decisions")
         self._event(now_s, "decision", 1.0)
         self._learn_period(decision.site, now_s)
-        if self._waiting and decision.site in self._pending:
-            free_waiting = any((w := self._workers.get(i)) is not None and w.holding is None
-                               for i in self._waiting)
-            if free_waiting:  # a worker left the pending one for this newer one
-                self._supersede(decision.site)
+        if decision.site in self._pending:  # handed out or pending, this one replaces it
+            self._supersede(decision.site)
         if self.prefer_warm:
             free = [w for i in self._waiting
                     if (w := self._workers.get(i)) is not None and w.holding is None]
@@ -194,8 +191,6 @@ class Dispatcher:
             worker = self._workers.get(self._waiting.popleft())
             if worker is not None and worker.holding is None:
                 return self._assign(worker, decision, now_s, now_s)
-        if decision.site in self._pending:
-            self._supersede(decision.site)
         self._pending[decision.site] = (decision, now_s)
         return None
 
