@@ -80,7 +80,7 @@ bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs th
 	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
 
 # the carry the recorded live sweeps were measured with (the live default: stream, 25 steps)
-FRESH100 := AOI3D_TRAINER_CARRY=fresh AOI3D_TRAINER_RENDER_STEPS=100
+FRESH100 := AOI3D_DISPATCHER_CARRY=fresh AOI3D_DISPATCHER_RENDER_STEPS=100
 
 bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 26 min)
 	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \

@@ -1,7 +1,7 @@
 """Seeing the scene from anywhere: a free-view pose checked, the camera it makes, and the
 pure geometry and colours of the 3D viewer (services/viewer).
 
-One check of a free-view pose (:func:`check_pose`), used by the trainer's REST
+One check of a free-view pose (:func:`check_pose`), used by the dispatcher's REST
 (``GET /render.png?c2w=…``) and by the reconstruction worker's Zenoh query alike: 16 finite
 numbers, a rigid transform (orthonormal rotation, determinant +1, last row 0 0 0 1), and a
 camera centre within :data:`MAX_DISTANCE_DIAGONALS` box diagonals of the scene box's centre.

@@ -23,7 +23,7 @@ import re
 from dataclasses import dataclass
 
 SERVICE_PORTS: dict[str, int] = {"camera": 8101, "network": 8102, "scheduler": 8103,
-                                 "trainer": 8104, "metrics": 8105, "console": 8106,
+                                 "dispatcher": 8104, "metrics": 8105, "console": 8106,
                                  "recorder": 8107, "viewer": 8108}
 """Each service's REST port before ``--port-offset``, in ``aoi3d up``'s start order."""
 ZENOH_PORT = 7447

@@ -55,7 +55,7 @@ StepsOpt = Annotated[int | None, typer.Option(
     min=1, help="Training steps per decision (default: the preset's).")]
 CarryOpt = Annotated[str | None, typer.Option(
     help="Model between decisions: fresh (per-time: a new model per scored decision), "
-         "warm (one model, rendered as it is) or fork (the live trainer's: a copy of the warm "
+         "warm (one model, rendered as it is) or fork (the live workers': a copy of the warm "
          "model trains --set render_steps=K steps on the scored decision's frames).")]
 BackendOpt = Annotated[str | None, typer.Option(
     "--backend", "--field",

@@ -1,7 +1,7 @@
 """``aoi3d export``: the running pipeline's latest reconstruction of a site as a .ply that other
 tools open (MeshLab, CloudCompare, Blender, trimesh, Open3D).
 
-It asks the trainer's ``GET /sites/<site>/export.ply``; the worker that rendered the site's
+It asks the dispatcher's ``GET /sites/<site>/export.ply``; the worker that rendered the site's
 latest decision answers from its snapshot of that model. What each format holds and loses:
 docs/viewer.md ("Export").
 """
@@ -31,8 +31,10 @@ def export(
         min=0.001, max=0.999,
         help="Opacity a kept point (the mesh's surface) has over one of the renderer's "
              "ray steps.")] = 0.1,
-    trainer: Annotated[str | None, typer.Option(
-        help="The trainer's URL (default: this machine's, moved by --port-offset).")] = None,
+    dispatcher: Annotated[str | None, typer.Option(
+        "--dispatcher", "--trainer",
+        help="The dispatcher's URL (default: this machine's, moved by --port-offset; "
+             "--trainer is its old name, read for one release).")] = None,
     port_offset: Annotated[int, typer.Option(help="As given to `aoi3d up`.")] = 0,
     timeout_s: Annotated[float, typer.Option(min=1, help="How long to wait.")] = 180.0,
 ) -> None:
@@ -41,14 +43,14 @@ def export(
     (`aoi3d up`) and have rendered a decision of the site."""
     import httpx
 
-    base = (trainer or f"http://{LOCALHOST}:{rest_port('trainer', port_offset)}").rstrip("/")
+    base = (dispatcher or f"http://{LOCALHOST}:{rest_port('dispatcher', port_offset)}").rstrip("/")
     url = f"{base}/sites/{site}/export.ply"
     params = {"format": "mesh" if mesh else "points", "resolution": resolution,
               "alpha": alpha}
     try:
         r = httpx.get(url, params=params, headers=control_headers(), timeout=timeout_s)
     except httpx.HTTPError as err:
-        fail(f"the trainer at {base} did not answer ({type(err).__name__}): is the pipeline "
+        fail(f"the dispatcher at {base} did not answer ({type(err).__name__}): is the pipeline "
              f"running (aoi3d up)?")
     if r.status_code != 200:
         try:

@@ -69,7 +69,7 @@ def sweep(
     repeats: Annotated[int, typer.Option(
         min=1, help="Passes over the policies (interleaved, so drift hits every policy).")] = 2,
     reset_each: Annotated[bool, typer.Option(
-        help="POST /reset on the trainer after each policy change.")] = True,
+        help="POST /reset on the dispatcher after each policy change.")] = True,
     url_base: Annotated[str, typer.Option(help="Scheme and host of the services.")]
     = "http://127.0.0.1",
     port_offset: Annotated[int, typer.Option(
@@ -94,7 +94,7 @@ def sweep(
     sim_pool: Annotated[bool, typer.Option(
         help="Run the virtual clock through the twin of the live pool (fresh and stream "
              "carries): the pipeline's workers and time scale, each job charged the workers' "
-             "own median job time for its steps and frames (the trainer's GET /status job_s), "
+             "own median job time for its steps and frames (the dispatcher's GET /status job_s), "
              "the rest superseded; --no-sim-pool: every fifth decision rendered, no queue.")]
     = True,
     delay: Annotated[str | None, typer.Option(
@@ -121,9 +121,9 @@ def sweep(
     backends: Annotated[str | None, typer.Option(
         help="Fields to sweep in one run, comma-separated (e.g. grid,flow: the static grid "
              "beside the time-aware field, rendered at the display time): PUT /backend on the "
-             "trainer before each one's policies (the one in force is put back afterwards); "
+             "dispatcher before each one's policies (the one in force is put back afterwards); "
              "each writes its results under OUT/<backend>/, and a last table sets their "
-             "display-time PSNR side by side. Default: the trainer's backend as it is.")]
+             "display-time PSNR side by side. Default: the dispatcher's backend as it is.")]
     = None,
 ) -> None:
     """Measure each policy on the running pipeline; write CSV, JSON and a PNG with the
@@ -146,7 +146,7 @@ def sweep(
         if up:
             session.start_pipeline(zenoh_port, time_scale, f"live-sweep-{os.getpid()}",
                                    ["--dataset", str(dataset), "--workers", str(workers)])
-        runs: list[str | None] = [*fields] or [None]  # None: the trainer's backend as it is
+        runs: list[str | None] = [*fields] or [None]  # None: the dispatcher's backend as it is
         measured: list[tuple[str | None, SweepWindows, float]] = []
         with _backends_put_back(session, fields):
             for field in runs:
@@ -170,7 +170,7 @@ def sweep(
 
 
 def _checked_backends(backends: str | None) -> list[str]:
-    """--backends: the fields to sweep, each one aoi3d knows (none: the trainer's as it is)."""
+    """--backends: the fields to sweep, each one aoi3d knows (none: the dispatcher's as it is)."""
     from aoi3d.field import UnknownBackendError, check_backend
 
     fields = [b.strip() for b in (backends or "").split(",") if b.strip()]
@@ -187,7 +187,7 @@ def _put_backend(session: LiveSession, field: str) -> None:
 
     console.print(f"backend: {escape(field)}")
     try:
-        session.pipe.call("PUT", "trainer", "/backend", json={"backend": field})
+        session.pipe.call("PUT", "dispatcher", "/backend", json={"backend": field})
     except LiveError as err:
         console.print(f"[red]error:[/] {escape(str(err))}")
         raise typer.Exit(1) from None
@@ -195,17 +195,17 @@ def _put_backend(session: LiveSession, field: str) -> None:
 
 @contextlib.contextmanager
 def _backends_put_back(session: LiveSession, fields: list[str]) -> Iterator[None]:
-    """While sweeping ``fields``: afterwards the trainer's backend is the one it had (on a
+    """While sweeping ``fields``: afterwards the dispatcher's backend is the one it had (on a
     pipeline this sweep did not start)."""
     from aoi3d_cli.livehttp import LiveError
 
-    before = session.pipe.call("GET", "trainer", "/status").get("backend") if fields else None
+    before = session.pipe.call("GET", "dispatcher", "/status").get("backend") if fields else None
     try:
         yield
     finally:
         if before is not None and session.proc is None:
             try:
-                session.pipe.call("PUT", "trainer", "/backend", json={"backend": before})
+                session.pipe.call("PUT", "dispatcher", "/backend", json={"backend": before})
             except LiveError as err:
                 console.print(f"[yellow]could not put the backend back:[/] {escape(str(err))}")
 
@@ -237,7 +237,7 @@ def _report(windows: SweepWindows, order: list[str], live_wall_s: float, out: Pa
     result.write(out, doc)
     plot(result.results, sim_doc, out / "live_sweep.png",
          f"Live sweep — {channel['delay']}, carry {carry}, {render_steps} steps per rendered "
-         f"decision, {steps_per_s:.0f} trainer steps/s, {measure_s:g} s × {repeats} per policy")
+         f"decision, {steps_per_s:.0f} training steps/s, {measure_s:g} s × {repeats} per policy")
     _views_figure(windows.measurements, dataset, out)
     if show == "json":
         print(json.dumps({k: doc[k] for k in ("results", "unpaired_interior_maximum",
@@ -279,7 +279,7 @@ def _side_by_side(docs: dict[str, dict[str, Any]], out: Path, json_: bool) -> No
 
 def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, seeds: int,
                    seed_offset: int, cache: Path, pool: bool = True) -> dict[str, Any] | None:
-    """The virtual clock's run of ``order`` with the live trainer's carry, budget and channel
+    """The virtual clock's run of ``order`` with the live dispatcher's carry, budget and channel
     — and with ``pool``, the twin of the live pool: the run's workers, time scale and the
     workers' own job times (None, with a line saying why, when it cannot run them: the live
     measurement is kept)."""
@@ -310,7 +310,7 @@ def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, se
 
 
 def _pool_twin(status: dict[str, Any], backend: str, carry: str) -> PoolTwin | None:
-    """The live pool as the twin runs it, from the trainer's status: its workers, time scale
+    """The live pool as the twin runs it, from the dispatcher's status: its workers, time scale
     and job times; None (and a line why) when the status cannot say."""
     from aoi3d.experiment.config import POOL_CARRIES
     from aoi3d.live.sim import PoolTwin, job_cost, job_table
@@ -328,11 +328,11 @@ def _pool_twin(status: dict[str, Any], backend: str, carry: str) -> PoolTwin | N
 
 
 def _cold_steps(status: dict[str, Any]) -> int:
-    """A stream trainer's cold-start budget: its status's if it says, else the trainer's
-    default (``AOI3D_TRAINER_COLD_STEPS``; the status does not report it)."""
+    """The stream carry's cold-start budget: its status's if it says, else the dispatcher's
+    default (``AOI3D_DISPATCHER_COLD_STEPS``; the status does not report it)."""
     if status.get("cold_steps"):
         return int(status["cold_steps"])
-    from services.trainer.settings import Settings
+    from services.dispatcher.settings import Settings
 
     return int(Settings.model_fields["cold_steps"].default)
 

@@ -44,8 +44,8 @@ class Pipeline:
     """The site measured (``/sites/<site>/…``); None: the run's first site (today's paths)."""
     client: Any = field(default=None, repr=False)
 
-    RUN_LEVEL = frozenset({("trainer", "/reset"), ("trainer", "/backend"),
-                           ("trainer", "/carry"), ("trainer", "/workers")})
+    RUN_LEVEL = frozenset({("dispatcher", "/reset"), ("dispatcher", "/backend"),
+                           ("dispatcher", "/carry"), ("dispatcher", "/workers")})
     """Paths that are the run's, not a site's (the pool and its settings)."""
 
     def __post_init__(self) -> None:
@@ -75,9 +75,9 @@ class Pipeline:
             return False
 
     def latest_render(self) -> tuple[bytes, int | None]:
-        """The trainer's latest render (PNG) and the decision it represents."""
+        """The dispatcher's latest render (PNG) and the decision it represents."""
         try:
-            resp = self.client.get(self.url("trainer", "/render.png"))
+            resp = self.client.get(self.url("dispatcher", "/render.png"))
         except httpx.HTTPError:
             return b"", None
         if resp.status_code != 200:
@@ -113,7 +113,7 @@ def measure_policy(pipe: Pipeline, policy: dict[str, Any], spec: str, *, settle_
          lambda: pipe.call("GET", "scheduler", "/decision").get("policy") == spec,
          pipe.timeout_s)
     if reset:
-        pipe.call("POST", "trainer", "/reset")
+        pipe.call("POST", "dispatcher", "/reset")
     time.sleep(settle_s)
     first = pipe.call("GET", "scheduler", "/decision")
     if first["policy"] != spec:
@@ -131,7 +131,7 @@ def measure_policy(pipe: Pipeline, policy: dict[str, Any], spec: str, *, settle_
     # the renders of the window's decisions come a render's compute later: wait for them
     lo, hi = first["decision_id"], last["decision_id"]
     png, png_decision = pipe.latest_render()
-    time.sleep(render_latency_s(pipe.call("GET", "trainer", "/status")))
+    time.sleep(render_latency_s(pipe.call("GET", "dispatcher", "/status")))
     history = pipe.call("GET", "metrics", "/quality", params={"limit": 1000})["history"]
     qualities = [q for q in history if lo <= q["decision_id"] <= hi]
     return Measurement(policy=spec, repeat=repeat, first_decision=lo, last_decision=hi,
@@ -142,7 +142,7 @@ def measure_policy(pipe: Pipeline, policy: dict[str, Any], spec: str, *, settle_
 
 @dataclass
 class SweepWindows:
-    """What :meth:`LiveSession.measure` collected: the windows, the trainer's status before
+    """What :meth:`LiveSession.measure` collected: the windows, the dispatcher's status before
     and after, and the channel (as the network service reported it, with its changes)."""
 
     measurements: list[Measurement]
@@ -197,7 +197,7 @@ class LiveSession:
         that does not answer ends the command (exit status 1)."""
         pipe, console = self.pipe, self.console
         try:
-            status0 = pipe.call("GET", "trainer", "/status")
+            status0 = pipe.call("GET", "dispatcher", "/status")
             channel = pipe.call("GET", "network", "/channel")
             if delay is not None and delay != channel["delay"]:
                 self.previous_delay = channel["delay"]
@@ -221,7 +221,7 @@ class LiveSession:
                 measurements.append(m)
                 console.print(f"    {len(m.qualities)} renders scored, decisions "
                               f"{m.first_decision}..{m.last_decision}")
-        status1 = pipe.call("GET", "trainer", "/status")
+        status1 = pipe.call("GET", "dispatcher", "/status")
         channel_end = pipe.call("GET", "network", "/channel")
         channel["changes"] = channel_end.get("changes", [])
         return SweepWindows(measurements, status0, status1, channel)

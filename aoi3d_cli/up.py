@@ -31,7 +31,7 @@ HINTS = {
     "camera": "GET /config",
     "network": "GET /channel",
     "scheduler": "GET /aoi, PUT /policy",
-    "trainer": "GET /status, /render.png",
+    "dispatcher": "GET /status, /render.png",
     "metrics": "GET /quality?limit=5",
     "console": "open / in a browser",
     "recorder": "GET /recording, POST /recording/start",
@@ -54,7 +54,7 @@ def up(
         help="Generate the framing's scene at --dataset if it is missing or stale, whatever "
              "the folder.")] = False,
     time_scale: Annotated[float | None, typer.Option(
-        help="Simulation seconds per wall second; < 1 slows the world so the CPU trainer "
+        help="Simulation seconds per wall second; < 1 slows the world so the CPU workers "
              "keeps pace. Default: 0.1, or with --rig the rig file's time_scale (1 for a real "
              "robot; a played dataset's --time-scale).")] = None,
     rig: Annotated[Path | None, typer.Option(
@@ -219,7 +219,7 @@ def _show_where(console: Console, cfg: UpConfig, real: Rig | None, sup: Supervis
         table.add_row(name, f"http://127.0.0.1:{cfg.port(name)}", HINTS.get(name, "/docs"))
     table.add_row("router", f"tcp/127.0.0.1:{cfg.zenoh_port}", "Zenoh, multicast off")
     table.add_row(f"recon × {cfg.workers}", "no REST API (pull work over Zenoh)",
-                  f"http://127.0.0.1:{cfg.port('trainer')}/workers")
+                  f"http://127.0.0.1:{cfg.port('dispatcher')}/workers")
     console.print(table)
     console.print(f"[bold]Console: http://127.0.0.1:{cfg.port('console')}/[/bold] "
                   "(the novel view, AoI, quality over time, controls)", soft_wrap=True)

@@ -12,7 +12,7 @@ A Zenoh session of its own records every Quality (per site) and every Decision (
 of each scheduler incarnation of each site: the decisions made). After ``--minutes`` the
 faults stop; the scheduler is frozen (SIGSTOP) so no decision is made while the books are
 read, the decision ledgers (the metrics service's ``GET /sites/<site>/ledger``) are given
-until every open decision has ended (a decision held by a killed trainer ends ``expired``
+until every open decision has ended (a decision held by a killed dispatcher ends ``expired``
 after ``AOI3D_METRICS_LEDGER_OPEN_S``, 30 s here), and the run is judged:
 
 - per fault, ``recovery_s``: from the fault's end (the kill, or the SIGCONT) to the next
@@ -144,7 +144,7 @@ def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
     except OSError:
         up["router"] = False
     try:
-        pool = http.get(url("trainer", "/workers")).json()["workers"]
+        pool = http.get(url("dispatcher", "/workers")).json()["workers"]
         up["workers"] = len(pool) == workers
     except (httpx.HTTPError, ValueError, KeyError):
         up["workers"] = False
@@ -199,7 +199,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     run_id = f"chaos{uuid.uuid4().hex[:6]}"
     log_dir = ROOT / "runs" / "bench-chaos"
     env = {**os.environ, "AOI3D_METRICS_LEDGER_OPEN_S": str(LEDGER_OPEN_S),
-           "AOI3D_TRAINER_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S)}
+           "AOI3D_DISPATCHER_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S)}
     up = common.start_up(PORTS, run_id, log_dir, [
         "--sites", str(args.sites), "--workers", str(args.workers),
         "--time-scale", str(args.time_scale)], env=env)
@@ -281,12 +281,12 @@ def outcome(args: argparse.Namespace, faults: list[dict], made: dict, ledgers: d
 # ------------------------------------------------------------------ the multi-host target
 MH_FILE = ROOT / "compose.multihost.yaml"
 _MH = BENCH_BLOCKS["chaos_multihost"]
-MH_PORTS = {"ZENOH": _MH.zenoh, **{s.upper(): _MH.rest(s) for s in ("scheduler", "trainer",
+MH_PORTS = {"ZENOH": _MH.zenoh, **{s.upper(): _MH.rest(s) for s in ("scheduler", "dispatcher",
                                                                       "metrics")}}
 """The multi-host stack's published ports (compose.multihost.yaml's AOI3D_PORT_<NAME>), from the
 one table: apart from `aoi3d up` above, compose-test and soak."""
 MH_HOSTS = {"worker-a": ("router-a", "recon-a"), "worker-b": ("router-b", "recon-b")}
-MH_EDGE = ("camera", "network", "scheduler", "trainer", "metrics")
+MH_EDGE = ("camera", "network", "scheduler", "dispatcher", "metrics")
 MH_ROUTERS = ("router-edge", "router-a", "router-b")
 MH_FAULTS = ("cut", "cut", "router_restart", "edge_restart", "worker_kill", "worker_kill")
 """The draw: a worker host cut off twice as often as a restart, as often as a worker crash."""
@@ -394,7 +394,7 @@ class MultiHost:
             up[row["Service"]] = row["State"] == "running" and row.get("Health") in (
                 "", "healthy", None)
         try:
-            hosts = {w["host"] for w in http.get(self.url("trainer", "/workers")).json()[
+            hosts = {w["host"] for w in http.get(self.url("dispatcher", "/workers")).json()[
                 "workers"]}
             up["workers"] = hosts == set(MH_HOSTS)
         except (httpx.HTTPError, ValueError, KeyError):
@@ -422,7 +422,7 @@ def run_multihost(args: argparse.Namespace, rng: random.Random) -> dict:
     try:
         mh.compose("up", "-d", "--no-build", "--wait", "--wait-timeout", "600", timeout_s=660)
         wait("both worker hosts in the pool", lambda: {w["host"] for w in http.get(
-            mh.url("trainer", "/workers")).json()["workers"]} == set(MH_HOSTS), 300)
+            mh.url("dispatcher", "/workers")).json()["workers"]} == set(MH_HOSTS), 300)
         sites = http.get(mh.url("metrics", "/sites")).json()["sites"]
         tap = Tap(project, mh.common())
         wait("a Quality of every site", lambda: all(tap.quality_times(s) for s in sites), 300)

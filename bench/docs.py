@@ -117,7 +117,7 @@ def table(header: list[str], rows: list[list[Any]]) -> list[str]:
 
 
 #: The live sweeps' carry (``make bench-live``, ``make bench-192``): not the live default.
-FRESH100 = ("export AOI3D_TRAINER_CARRY=fresh AOI3D_TRAINER_RENDER_STEPS=100   # the carry "
+FRESH100 = ("export AOI3D_DISPATCHER_CARRY=fresh AOI3D_DISPATCHER_RENDER_STEPS=100   # the carry "
             "these were measured with (the live default: stream, 25)")
 
 
@@ -173,7 +173,7 @@ def live_sweep(results: Path) -> tuple[list[str], set[str]]:
         "",
         f"Settings: time scale 0.1, delay `{s['channel']['delay']}`, carry `{s['carry']}`, "
         f"{s['render_steps']} steps per render, {s['measure_s']:.0f} s windows × "
-        f"{s['repeats']} repeats, {s['trainer_steps_per_s']:.0f} trainer steps/s; "
+        f"{s['repeats']} repeats, {s['trainer_steps_per_s']:.0f} training steps/s; "
         f"{r['wall_s']['total'] / 60:.1f} min in all; code {meta['code_version']}, "
         f"{meta['machine']['cpu_count']} cores, load {meta['machine']['loadavg'][0]} at the end. "
         f"The virtual clock ran in the same command on {r['sim'][first]['psnr_db']['n']} "
@@ -245,6 +245,13 @@ def _busy(row: dict[str, Any]) -> str:
     return ", ".join(f"{v:.2f}" for v in row["busy_fraction"].values())
 
 
+def _cores(by_process: dict[str, float], name: str) -> float:
+    """A process's cores; the dispatcher's were stored as ``trainer`` before its rename."""
+    if name == "dispatcher" and name not in by_process:
+        name = "trainer"
+    return by_process.get(name, 0)
+
+
 def scale_table(rows: list[tuple[str, dict[str, Any]]]) -> list[str]:
     out = []
     for label, row in rows:
@@ -295,8 +302,8 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
         lines.append(f"- {label}: " + "; ".join(parts))
     d = load(results, "scale.json")
     cores = [[f"{r['workers']} × {r['sites']}, pass {r['pass']}",
-              *(f"{r['cores_by_process'].get(p, 0):.2f}" for p in
-                ("router", "camera", "network", "scheduler", "trainer", "metrics", "console")),
+              *(f"{_cores(r['cores_by_process'], p):.2f}" for p in
+                ("router", "camera", "network", "scheduler", "dispatcher", "metrics", "console")),
               ", ".join(f"{v:.2f}" for k, v in r["cores_by_process"].items()
                         if k.startswith("recon"))] for r in d["rows"]]
     farm = d["farm"]
@@ -304,7 +311,7 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
         "",
         "Where the cores go (`scale.json`, mean cores over the window):",
         "",
-        *table(["run", "router", "camera", "network", "scheduler", "trainer", "metrics",
+        *table(["run", "router", "camera", "network", "scheduler", "dispatcher", "metrics",
                 "console", "workers"], cores),
         "",
         f"A farm, from `scale.json`: {farm['sites']} sites × {farm['cameras_per_site']} "
@@ -361,8 +368,8 @@ _RUN_LINE = re.compile(r"^(?P<label>\S+) (?:\S+ )?(?P<workers>\d+) worker\(s\) a
                        r"(?P<rps>[\d.]+) renders/s, .*display lag median (?P<lag>[\d.]+) / "
                        r"p90 [\d.]+ ms, PSNR at display median (?P<psnr>[\d.]+) dB")
 FRESH = "realtime/fresh-wait"
-FRESH_LOGS = {"two-workers.log": ("ff1.0", "ff0.5", "AOI3D_TRAINER_FRESH_FRACTION 1 ↔ 0.5"),
-              "one-worker.log": ("ff1.0", "ff0.5", "AOI3D_TRAINER_FRESH_FRACTION 1 ↔ 0.5"),
+FRESH_LOGS = {"two-workers.log": ("ff1.0", "ff0.5", "AOI3D_DISPATCHER_FRESH_FRACTION 1 ↔ 0.5"),
+              "one-worker.log": ("ff1.0", "ff0.5", "AOI3D_DISPATCHER_FRESH_FRACTION 1 ↔ 0.5"),
               "before-after.log": ("OLD", "NEW", "the code before (ef77d61) ↔ after")}
 """The paired runs of the fresh wait: log → (label off, label on, what was switched)."""
 
@@ -411,7 +418,7 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         "",
         *redo("make bench-realtime   # = " + d["command"]),
         "",
-        f"Measured {d['date']} UTC, the fresh wait on (AOI3D_TRAINER_FRESH_FRACTION "
+        f"Measured {d['date']} UTC, the fresh wait on (AOI3D_DISPATCHER_FRESH_FRACTION "
         f"{d['rows'][0].get('fresh_fraction') or 0.5:g}). This VM's speed for the pipeline "
         "drifts by a third within an hour (the code before the wait gave 10.2 renders/s at "
         "112 ms with one worker at 09:56 and 11:27 the same day; this run "

@@ -31,7 +31,7 @@ TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = common.RESULTS / "live-channel"
 PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (aoi3d/ports.py)
 url = functools.partial(common.url, PORTS)  # url(service, path="/")
-WATCHED = ("camera", "network", "scheduler", "trainer", "metrics", "console")
+WATCHED = ("camera", "network", "scheduler", "dispatcher", "metrics", "console")
 
 
 def parser() -> argparse.ArgumentParser:

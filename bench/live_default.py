@@ -2,8 +2,8 @@
 
 For each configuration of ``--configs``, one after the other, it starts ``aoi3d up
 --time-scale T`` on its own ports with no other option (the default scene, policy and
-``--workers auto``): ``default`` is the trainer's defaults as they are, ``CARRY@STEPS`` sets
-``AOI3D_TRAINER_CARRY`` and ``AOI3D_TRAINER_RENDER_STEPS`` (``stream@25``, ``fresh@100``),
+``--workers auto``): ``default`` is the dispatcher's defaults as they are, ``CARRY@STEPS`` sets
+``AOI3D_DISPATCHER_CARRY`` and ``AOI3D_DISPATCHER_RENDER_STEPS`` (``stream@25``, ``fresh@100``),
 and either followed by ``/POLICY`` sets the scheduler's ``AOI3D_SCHEDULER_POLICY``
 (``default/all``, ``stream@25/mat:130``), exactly as a user of the environment would. It
 waits until the pipeline is up, lets it run ``--settle-s`` wall seconds and reads a window of
@@ -18,7 +18,7 @@ waits until the pipeline is up, lets it run ``--settle-s`` wall seconds and read
   scene ms: how long after its decision a render is shown;
 - **PSNR** at decision and at display time: median and mean ± 95 % CI of those renders.
 
-It records what the run had in force (the trainer's ``GET /status``: carry and render steps;
+It records what the run had in force (the dispatcher's ``GET /status``: carry and render steps;
 the policy of the last decision; the pool's workers) and the machine's load average before
 and after each configuration. The document goes to ``--out`` (default
 ``bench/results/live-default/live-default.json``); ``--json`` prints it.
@@ -48,7 +48,7 @@ from bench import common
 PORTS = BENCH_BLOCKS["live_default"]  # apart from make up and the other benches (aoi3d/ports.py)
 OUT = common.RESULTS / "live-default" / "live-default.json"
 HTTP = httpx.Client(timeout=30)
-CARRY_ENV = ("AOI3D_TRAINER_CARRY", "AOI3D_TRAINER_RENDER_STEPS")
+CARRY_ENV = ("AOI3D_DISPATCHER_CARRY", "AOI3D_DISPATCHER_RENDER_STEPS")
 POLICY_ENV = "AOI3D_SCHEDULER_POLICY"
 
 
@@ -124,7 +124,7 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
     try:
         common.wait_until(
             f"the pipeline up (see {log_dir}/latest/)",
-            lambda: _get("trainer", "/workers")["workers"]
+            lambda: _get("dispatcher", "/workers")["workers"]
             and _get("metrics", "/healthz") is not None
             and _get("scheduler", "/decision")["decision_id"] >= 0,
             args.ready_timeout_s, proc=up)
@@ -138,8 +138,8 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
         ledger1 = _ledger()
         time.sleep(args.grace_s)  # the window's last renders are scored later
         history = _get("metrics", "/quality", limit=1_000_000)["history"]
-        status = _get("trainer", "/status")
-        pool = _get("trainer", "/workers")
+        status = _get("dispatcher", "/status")
+        pool = _get("dispatcher", "/workers")
     finally:
         common.stop_up(up)
     return {
@@ -157,8 +157,8 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="default",
-                    help="comma-separated: 'default' (the trainer's defaults) or CARRY@STEPS "
-                         "(AOI3D_TRAINER_CARRY, AOI3D_TRAINER_RENDER_STEPS), optionally "
+                    help="comma-separated: 'default' (the dispatcher's defaults) or CARRY@STEPS "
+                         "(AOI3D_DISPATCHER_CARRY, AOI3D_DISPATCHER_RENDER_STEPS), optionally "
                          "/POLICY (AOI3D_SCHEDULER_POLICY), run back to back")
     ap.add_argument("--time-scale", type=float, default=0.3, help="aoi3d up --time-scale")
     ap.add_argument("--settle-s", type=float, default=40.0,

@@ -81,9 +81,9 @@ def scratch_checkpoint(path: Path, seed: int) -> None:
 def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
     common.wait_until(
         "the pipeline ready (see runs/bench-online/latest/)",
-        lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
+        lambda: len(HTTP.get(PORTS.url("dispatcher", "/workers")).json()["workers"]) == workers
         and all(HTTP.get(PORTS.url(s, "/readyz")).status_code == 200
-                for s in ("scheduler", "metrics", "trainer")),
+                for s in ("scheduler", "metrics", "dispatcher")),
         timeout_s, every_s=1.0, proc=up)
 
 
@@ -222,7 +222,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                                      "mean_reward", "unscored", "expired")}})
             print(f"{wall / 60:5.1f} min: " + ", ".join(
                 f"{s} {len(seen[s])} renders" for s in SITES), flush=True)
-        pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
+        pool = HTTP.get(PORTS.url("dispatcher", "/workers")).json()
     finally:
         common.stop_up(up, timeout_s=120)
 

@@ -2,7 +2,7 @@
 
 Starts ``aoi3d up`` on its own ports with the default scene, sets the policy, and after
 ``--warmup-s`` samples every counter twice, ``--window-s`` apart: frames offered/delivered
-per second through camera → network, decisions per second, the trainer's steps per second,
+per second through camera → network, decisions per second, the dispatcher's steps per second,
 the quality of the renders of the window's decisions (mean ± 95% CI), and how late they come:
 the render lag (sim ms from the time a render represents to its scoring) and the same in wall
 seconds. Writes ``bench/results/pipeline-<policy>-x<time scale>.json``.
@@ -24,7 +24,7 @@ from bench import common
 
 ROOT = common.ROOT
 BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")  # the ones measured
+SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")  # the ones measured
 
 
 def scrape(service: str) -> dict[str, float]:
@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> dict:
         last = {s: scrape(s) for s in SERVICES}
         id1 = httpx.get(decision, timeout=30).json()["decision_id"]
         dt = time.monotonic() - t0
-        status = httpx.get(BLOCK.url("trainer", "/status"), timeout=30).json()
+        status = httpx.get(BLOCK.url("dispatcher", "/status"), timeout=30).json()
         # the window's last decisions are rendered a render's compute later
         rate_now = status.get("steps_per_s") or 1.0
         time.sleep(min(120.0, 2.0 + 1.5 * (status.get("render_steps") or 0) / rate_now))
@@ -100,12 +100,12 @@ def run(args: argparse.Namespace) -> dict:
         "frames_offered_per_s": rate("network", "aoi3d_frames_offered_total"),
         "frames_delivered_per_s": rate("network", "aoi3d_frames_delivered_total"),
         "decisions_per_s": rate("scheduler", "aoi3d_decisions_total"),
-        "trainer_steps_per_s": rate("trainer", "aoi3d_trainer_steps_total"),
+        "trainer_steps_per_s": rate("dispatcher", "aoi3d_dispatcher_steps_total"),
         "renders_scored_per_s": rate("metrics", "aoi3d_quality_total"),
         "camera_ticks_skipped_per_s": rate("camera", "aoi3d_camera_ticks_skipped_total"),
         "decisions_skipped_per_s": rate("scheduler", "aoi3d_decisions_skipped_total"),
-        "trainer_decisions_applied_per_s": rate("trainer", "aoi3d_trainer_decisions_total"),
-        "trainer_steps_per_decision": (rate("trainer", "aoi3d_trainer_steps_total")
+        "trainer_decisions_applied_per_s": rate("dispatcher", "aoi3d_dispatcher_decisions_total"),
+        "trainer_steps_per_decision": (rate("dispatcher", "aoi3d_dispatcher_steps_total")
                                        / max(rate("scheduler", "aoi3d_decisions_total"), 1e-9)),
         "mean_cameras_selected_at_end": last["scheduler"].get("aoi3d_cameras_selected"),
         "renders_scored": len(psnr),

@@ -10,7 +10,7 @@ run ``--settle-s`` wall seconds and reads a window of ``--measure-s`` (90 by def
   its last 1000) per wall second;
 - **rendered**: their share of the window's decisions (the scheduler's ``GET /decision`` ids
   at the window's start and end); the rest were coalesced (a newer decision replaced them
-  before a worker was free: ``superseded``, the trainer's ``aoi3d_pool_decisions_total``) or
+  before a worker was free: ``superseded``, the dispatcher's ``aoi3d_pool_decisions_total``) or
   lost;
 - **display lag**: median and p90 of ``display_time_ms − time_ms`` of those renders, in scene
   ms (how long after its decision a render is shown);
@@ -122,9 +122,9 @@ def _get(service: str, path: str, **params: int) -> dict:
 
 
 def _pool() -> dict[str, float]:
-    """The pool's counters so far (the trainer's /metrics): decisions superseded (every site),
+    """The pool's counters so far (the dispatcher's /metrics): decisions superseded (every site),
     and the sums and counts of the hand-out wait and the render age (wall seconds)."""
-    series = common.scrape(HTTP, PORTS.url("trainer", "/metrics"))
+    series = common.scrape(HTTP, PORTS.url("dispatcher", "/metrics"))
     out = {"superseded": sum(v for k, v in series.items()
                              if k.startswith("aoi3d_pool_decisions_total{")
                              and 'outcome="superseded"' in k)}
@@ -170,7 +170,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
     try:
         common.wait_until(
             f"the pipeline up (see {log_dir}/latest/)",
-            lambda: len(_get("trainer", "/workers")["workers"]) >= workers
+            lambda: len(_get("dispatcher", "/workers")["workers"]) >= workers
             and _get("scheduler", "/decision")["decision_id"] >= 0,
             args.ready_timeout_s, proc=up)
         time.sleep(args.settle_s)
@@ -187,7 +187,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         pool1 = _pool()
         time.sleep(args.grace_s)  # the window's last renders are scored later
         _collect(scored)
-        status = _get("trainer", "/status")
+        status = _get("dispatcher", "/status")
     finally:
         common.stop_up(up)
     return {

@@ -1,6 +1,6 @@
 """The per-decision reconstruction, timed: the project's unit of work (issue 23).
 
-One reconstruction is what the live trainer (carry ``fresh``) and the experiments' virtual
+One reconstruction is what a live worker (carry ``fresh``) and the experiments' virtual
 clock do per scored decision: ``FieldTrainer.reset`` → ``set_views`` of the views' frames at
 t0 → ``step(steps)`` → ``render`` of the held-out camera, scored (PSNR) against the held-out
 camera's frame at t0. Defaults are the live settings: the rotor scene

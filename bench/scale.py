@@ -5,7 +5,7 @@ it starts ``aoi3d up --workers K --sites S`` on its own ports with the default s
 policy, lets it settle ``--settle-s``, then measures
 ``--measure-s`` wall seconds from the services' counters: renders per wall second, the
 fraction of decisions rendered, the mean wait from a decision to its hand-out and the mean
-render age (the trainer's pool summaries), each worker's busy fraction, the decisions lost,
+render age (the dispatcher's pool summaries), each worker's busy fraction, the decisions lost,
 the PSNR of the window's renders (mean ± 95 % CI, from the metrics service), and the Zenoh
 bytes per second of the run (a subscriber on ``aoi3d/<run>/**`` counting payload bytes: the
 traffic one site puts through a router; in a window of its own after the renders', since the
@@ -17,10 +17,10 @@ per-site bytes.
     python -m bench.scale --configs 1x1,2x1 --measure-s 90 --repeats 2
     python -m bench.scale --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
 
-A configuration may name the trainer's carry and render steps (``KxS:carry@steps``): the
+A configuration may name the dispatcher's carry and render steps (``KxS:carry@steps``): the
 streaming warm start (``stream``, the default since issue 40) beside ``fresh`` in the same
-run (issue 33); without, the trainer's defaults (the row's ``carry`` says which); and its field
-backend (``KxS:carry@steps:backend``, ``AOI3D_TRAINER_BACKEND``): the time-aware ``flow``
+run (issue 33); without, the dispatcher's defaults (the row's ``carry`` says which); and its field
+backend (``KxS:carry@steps:backend``, ``AOI3D_DISPATCHER_BACKEND``): the time-aware ``flow``
 field, rendered at the display time, beside the static grid (issue 41):
 
     python -m bench.scale --configs 2x1:stream@25,2x1:stream@16:flow --time-scale 0.3
@@ -112,8 +112,8 @@ def tree_cpu_s(root: int) -> dict[str, float]:
 
 def parse_config(text: str) -> tuple[int, int, str | None, int | None, str | None]:
     """``KxS``, ``KxS:carry@steps`` (e.g. ``2x1:stream@25``) or ``KxS:carry@steps:backend``
-    (``2x1:stream@16:flow``): workers, sites and the trainer's carry, render steps and field
-    backend (None: the trainer's defaults)."""
+    (``2x1:stream@16:flow``): workers, sites and the dispatcher's carry, render steps and field
+    backend (None: the dispatcher's defaults)."""
     size, _, render = text.partition(":")
     render, _, backend = render.partition(":")
     k, _, sites = size.partition("x")
@@ -131,11 +131,11 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     load_before = os.getloadavg()
     env = dict(os.environ)
     if backend is not None:
-        env["AOI3D_TRAINER_BACKEND"] = backend
+        env["AOI3D_DISPATCHER_BACKEND"] = backend
     if carry is not None:
-        env["AOI3D_TRAINER_CARRY"] = carry
+        env["AOI3D_DISPATCHER_CARRY"] = carry
     if render_steps is not None:
-        env["AOI3D_TRAINER_RENDER_STEPS"] = str(render_steps)
+        env["AOI3D_DISPATCHER_RENDER_STEPS"] = str(render_steps)
     up = common.start_up(PORTS, run_id, log_dir, [
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
         "--workers", str(workers), "--sites", str(sites)], env=env)
@@ -143,11 +143,11 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     try:
         common.wait_until(
             f"the pipeline with {workers} workers up (see {log_dir}/latest/)",
-            lambda: len(HTTP.get(PORTS.url("trainer", "/workers")).json()["workers"]) == workers
+            lambda: len(HTTP.get(PORTS.url("dispatcher", "/workers")).json()["workers"]) == workers
             and HTTP.get(PORTS.url("metrics", "/healthz")).status_code == 200,
             args.ready_timeout_s, proc=up)
         time.sleep(args.settle_s)
-        first = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
+        first = {s: scrape(s) for s in ("dispatcher", "scheduler", "metrics")}
         cpu0 = tree_cpu_s(up.pid)
         names = [f"site{i}" for i in range(1, sites + 1)]
 
@@ -158,12 +158,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         decision0 = ids()
         t0 = time.monotonic()
         time.sleep(args.measure_s)
-        last = {s: scrape(s) for s in ("trainer", "scheduler", "metrics")}
+        last = {s: scrape(s) for s in ("dispatcher", "scheduler", "metrics")}
         cpu1 = tree_cpu_s(up.pid)
         decision1 = ids()
         dt = time.monotonic() - t0
-        pool = HTTP.get(PORTS.url("trainer", "/workers")).json()
-        in_force = HTTP.get(PORTS.url("trainer", "/status")).json()["carry"]
+        pool = HTTP.get(PORTS.url("dispatcher", "/workers")).json()
+        in_force = HTTP.get(PORTS.url("dispatcher", "/status")).json()["carry"]
         # Bytes in a window of their own, after the renders' window: a subscriber to every key
         # makes the router send everything twice and costs this process CPU, which the
         # workers would otherwise have had.
@@ -187,12 +187,12 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
 
     window = [q for n in names for q in history[n]
               if decision0[n] < q["decision_id"] <= decision1[n]]
-    by_site = {n: delta("trainer", f'aoi3d_pool_decisions_total{{outcome="rendered",site="{n}"}}')
-               for n in names}
+    rendered = 'aoi3d_pool_decisions_total{{outcome="rendered",site="{}"}}'
+    by_site = {n: delta("dispatcher", rendered.format(n)) for n in names}
     rendered = sum(by_site.values())
-    taken = delta("trainer", "aoi3d_trainer_decisions_total")
-    wait_n = delta("trainer", "aoi3d_pool_wait_seconds_count")
-    age_n = delta("trainer", "aoi3d_pool_render_age_seconds_count")
+    taken = delta("dispatcher", "aoi3d_dispatcher_decisions_total")
+    wait_n = delta("dispatcher", "aoi3d_pool_wait_seconds_count")
+    age_n = delta("dispatcher", "aoi3d_pool_render_age_seconds_count")
     return {
         "workers": workers, "sites": sites, "window_s": round(dt, 1),
         "carry": carry or f"{in_force} (default)", "render_steps": render_steps,
@@ -201,13 +201,13 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         "renders_per_s": rendered / dt,
         "decisions_per_s": taken / dt,
         "fraction_rendered": rendered / taken if taken else None,
-        "fraction_warm_start": (delta("trainer", "aoi3d_renders_warm_start_total")
-                                / delta("trainer", "aoi3d_renders_total")
-                                if delta("trainer", "aoi3d_renders_total") else None),
+        "fraction_warm_start": (delta("dispatcher", "aoi3d_renders_warm_start_total")
+                                / delta("dispatcher", "aoi3d_renders_total")
+                                if delta("dispatcher", "aoi3d_renders_total") else None),
         "scored_per_s": delta("metrics", "aoi3d_quality_total") / dt,
-        "wait_s_mean": (delta("trainer", "aoi3d_pool_wait_seconds_sum") / wait_n
+        "wait_s_mean": (delta("dispatcher", "aoi3d_pool_wait_seconds_sum") / wait_n
                         if wait_n else None),
-        "render_age_s_mean": (delta("trainer", "aoi3d_pool_render_age_seconds_sum") / age_n
+        "render_age_s_mean": (delta("dispatcher", "aoi3d_pool_render_age_seconds_sum") / age_n
                               if age_n else None),
         "busy_fraction": {w["worker_id"]: w["busy_fraction"] for w in pool["workers"]},
         "lost": pool["lost"],
@@ -280,7 +280,7 @@ def speedups(rows: list[dict]) -> dict | None:
 def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--configs", default="1x1,2x1,3x1,2x2",
-                    help="KxS: K workers, S sites, optionally :carry@steps (the trainer's "
+                    help="KxS: K workers, S sites, optionally :carry@steps (the dispatcher's "
                          "carry and render steps, e.g. 2x1:stream@25) and :backend (its "
                          "field, e.g. 2x1:stream@16:flow); comma-separated")
     ap.add_argument("--time-scale", type=float, default=0.1)

@@ -84,7 +84,7 @@ def run(seconds: float = 20.0, period_ms: float = 30.0, batch: int = 8,
         for ref in d.selected:
             chosen[ref.camera_id - 1] = 1.0
         reward = float(sign @ chosen) / N_CAMERAS
-        # the scheduler learns only from its own incarnation's decisions (as the trainer sends)
+        # the scheduler learns only from its own incarnation's decisions (as the dispatcher sends)
         bus.publish(KEYS.quality, pb.Quality(decision_id=d.decision_id, time_ms=d.time_ms,
                                              decision_incarnation=d.incarnation,
                                              reward=reward).SerializeToString())

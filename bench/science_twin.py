@@ -41,7 +41,7 @@ def _folder(scale: float) -> str:
 
 
 FRESH_FRACTION = "1"
-"""AOI3D_TRAINER_FRESH_FRACTION of the live runs (and so of their twin)."""
+"""AOI3D_DISPATCHER_FRESH_FRACTION of the live runs (and so of their twin)."""
 
 
 def run_all(exe: str, out: Path, runner: Callable[[list[str], list[dict[str, Any]]], float],
@@ -53,7 +53,7 @@ def run_all(exe: str, out: Path, runner: Callable[[list[str], list[dict[str, Any
     os.environ["AOI3D_NETWORK_SEED"] = str(seed_offset)  # the live run's seed (inherited)
     # the dispatcher these results were measured with (no wait for a fresher decision; the
     # default is 0.5 since): the twin reads it from the live status, so both run it
-    os.environ["AOI3D_TRAINER_FRESH_FRACTION"] = FRESH_FRACTION
+    os.environ["AOI3D_DISPATCHER_FRESH_FRACTION"] = FRESH_FRACTION
     for scale in TIME_SCALES:
         dest = out / "twin" / _folder(scale)
         if reuse and (dest / "results.json").exists():

@@ -3,7 +3,7 @@
 Starts ``aoi3d up`` (default scene and settings, ``--sites`` 2 and ``--workers`` 2, its own
 ports), waits ``--warmup-s`` and then for ``--minutes`` samples, every ``--every-s`` seconds,
 the resident memory (RSS, from /proc) of the router, every service and every reconstruction
-worker, and the pool's renders so far (the trainer's ``GET /status``). At the end it reads the
+worker, and the pool's renders so far (the dispatcher's ``GET /status``). At the end it reads the
 decision ledger of every site (the metrics service's ``GET /sites/<site>/ledger``).
 
 The JSON (``--out``) gives per process the RSS over the first and over the last window (the
@@ -95,7 +95,7 @@ def run(args: argparse.Namespace) -> dict:
     try:
         common.wait_until(
             "soak: the pipeline rendering",
-            lambda: http.get(url("trainer", "/status")).json()["pool"]["rendered"] > 0,
+            lambda: http.get(url("dispatcher", "/status")).json()["pool"]["rendered"] > 0,
             600, every_s=2.0, proc=up)
         time.sleep(args.warmup_s)
         t0 = time.monotonic()
@@ -107,7 +107,7 @@ def run(args: argparse.Namespace) -> dict:
                 mib = rss_mib(child["pid"]) if child["pid"] else None
                 if mib is not None:
                     samples.setdefault(name, []).append((now, mib))
-            renders.append((now, http.get(url("trainer", "/status")).json()["pool"]["rendered"]))
+            renders.append((now, http.get(url("dispatcher", "/status")).json()["pool"]["rendered"]))
             loads.append(os.getloadavg()[0])
             if time.monotonic() >= end:
                 break

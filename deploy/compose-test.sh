@@ -4,7 +4,7 @@
 #      the end when this script started it)
 #   2. the images, without a registry (deploy/build-images.sh)
 #   3. pytest tests/containers: up --wait, Quality, PUT /policy, Prometheus targets, a killed
-#      trainer restarted, down -v leaves nothing
+#      dispatcher restarted, down -v leaves nothing
 # Waits scale with AOI3D_TEST_TIMEOUT_SCALE. Prints how long each phase took.
 set -euo pipefail
 cd "$(dirname "$0")/.."

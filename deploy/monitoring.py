@@ -38,7 +38,7 @@ DATASOURCE_UID = "aoi3d-prometheus"
 
 # ------------------------------------------------------------------------------ selectors
 SITE = 'site=~"$site"'
-"""Series of the per-site services (camera, network, scheduler, metrics) and the trainer's
+"""Series of the per-site services (camera, network, scheduler, metrics) and the dispatcher's
 per-site series carry ``site``; the pool's and the process-wide ones do not."""
 WORKER = 'worker=~"$worker"'
 CAMERA = 'camera=~"$camera"'
@@ -133,17 +133,17 @@ ALERTS: list[dict] = [
                                      "below the smallest AoI, no frame delivered, or no "
                                      "decision at all)."}),
     dict(alert="AoI3DTrainerStalled",
-         expr="rate(aoi3d_trainer_steps_total[1m]) == 0 and "
-              "rate(aoi3d_trainer_decisions_total[1m]) > 0",
+         expr="rate(aoi3d_dispatcher_steps_total[1m]) == 0 and "
+              "rate(aoi3d_dispatcher_decisions_total[1m]) > 0",
          **{"for": "30s"}, labels={"severity": "critical"},
          annotations={"summary": "Decisions arrive but the pool renders nothing",
-                      "description": "aoi3d_trainer_steps_total (the steps of the pool's "
+                      "description": "aoi3d_dispatcher_steps_total (the steps of the pool's "
                                      "renders) did not grow for a minute while decisions were "
                                      "taken."}),
     dict(alert="AoI3DPoolEmpty", expr="aoi3d_pool_workers == 0", **{"for": "30s"},
          labels={"severity": "critical"},
          annotations={"summary": "No reconstruction worker in the pool",
-                      "description": "The trainer sees no worker's liveliness token: "
+                      "description": "The dispatcher sees no worker's liveliness token: "
                                      "decisions are taken but none can be rendered. Start one "
                                      "(python -m services.recon, or docker compose up --scale "
                                      "recon=N)."}),
@@ -276,11 +276,11 @@ PANELS: list[Row | Panel] = [
                       "exported)."),
     Panel("timeseries", "Cameras selected (latest and mean per decision) and training views",
           [Q(f"aoi3d_cameras_selected{S}", "{{site}} selected"),
-           Q(f"aoi3d_trainer_views{S}", "{{site}} trainer views"),
+           Q(f"aoi3d_dispatcher_views{S}", "{{site}} dispatcher views"),
            Q(f"{rate('aoi3d_camera_selections_total')} / {rate('aoi3d_decisions_total')}",
              "{{site}} mean selected per decision")],
           w=8, h=9, unit="none", min=0,
-          description="Cameras selected per decision and frames in the trainer's current "
+          description="Cameras selected per decision and frames in the dispatcher's current "
                       "training set."),
     Panel("timeseries", "Decisions / s",
           [Q(rate("aoi3d_decisions_total"), "{{site}} decisions"),
@@ -322,23 +322,23 @@ PANELS: list[Row | Panel] = [
                       "held-out ground truth) and generation ticks skipped because the loop "
                       "fell behind the clock."),
 
-    Row("Trainer: the reconstruction pool"),
+    Row("Dispatcher: the reconstruction pool"),
     Panel("timeseries", "Training steps / s",
-          [Q("aoi3d_trainer_steps_per_second", "steps/s (trainer)"),
-           Q(f"sum({rate('aoi3d_trainer_steps_total')})", "steps/s (counter rate)")],
+          [Q("aoi3d_dispatcher_steps_per_second", "steps/s (dispatcher)"),
+           Q(f"sum({rate('aoi3d_dispatcher_steps_total')})", "steps/s (counter rate)")],
           w=6, unit="short", min=0,
-          description="The trainer's own estimate (the whole pool) and the rate of its step "
+          description="The dispatcher's own estimate (the whole pool) and the rate of its step "
                       "counter (the sites shown)."),
-    Panel("timeseries", "Training loss", [Q(f"aoi3d_trainer_loss{S}", "{{site}} loss")], w=6,
+    Panel("timeseries", "Training loss", [Q(f"aoi3d_dispatcher_loss{S}", "{{site}} loss")], w=6,
           unit="none", log_scale=True,
           description="Photometric loss of the latest render's last step (log scale)."),
     Panel("timeseries", "Renders and missing frames / s",
           [Q(rate("aoi3d_renders_total"), "{{site}} renders"),
-           Q(rate("aoi3d_trainer_decisions_total"), "{{site}} decisions applied"),
-           Q(rate("aoi3d_trainer_frames_missing_total"), "{{site}} frames missing")],
+           Q(rate("aoi3d_dispatcher_decisions_total"), "{{site}} decisions applied"),
+           Q(rate("aoi3d_dispatcher_frames_missing_total"), "{{site}} frames missing")],
           w=6, unit="short", min=0,
           description="Novel-view renders published, decisions applied and selected frames "
-                      "the trainer never received, per wall second."),
+                      "the dispatcher never received, per wall second."),
     Panel("timeseries", "Render lag",
           quantiles("aoi3d_render_lag_seconds", (0.5, 0.9, 0.99)),
           w=6, unit="s", min=0,
@@ -364,7 +364,7 @@ PANELS: list[Row | Panel] = [
            Q(mean_of("aoi3d_pool_render_age_seconds", RATE), "render age"),
            Q(f"aoi3d_render_age_seconds{S}", "{{site}} latest render age")],
           w=6, unit="s", min=0,
-          description="Wall seconds from a decision reaching the trainer to its hand-out, and "
+          description="Wall seconds from a decision reaching the dispatcher to its hand-out, and "
                       "to its render's report; the latest render's age per site."),
     Panel("timeseries", "Pool: busy fraction per worker, decisions lost",
           [Q(f"aoi3d_pool_worker_busy_ratio{sel(WORKER)}", "{{worker}}"),
@@ -526,7 +526,7 @@ class Variable:
 
 
 VARIABLES = [
-    Variable("site", "Site", "aoi3d_trainer_decisions_total"),
+    Variable("site", "Site", "aoi3d_dispatcher_decisions_total"),
     Variable("worker", "Worker", "aoi3d_pool_worker_busy_ratio"),
     Variable("camera", "Camera", f"aoi3d_frames_offered_total{S}"),
 ]

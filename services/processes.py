@@ -27,7 +27,7 @@ DEFAULT_PORTS = SERVICE_PORTS
 """Each service's REST port before ``--port-offset`` (:data:`aoi3d.ports.SERVICE_PORTS`)."""
 WORKER = "recon"
 """The reconstruction workers (``python -m services.recon``): ``--workers`` of them, named
-``recon-1`` … in the logs; no REST port each — a worker is ready when the trainer's ``GET
+``recon-1`` … in the logs; no REST port each — a worker is ready when the dispatcher's ``GET
 /workers`` lists its pid (it joined the pool by its Zenoh liveliness token)."""
 LATEST = "latest"
 """The link in ``log_dir`` to the newest run's log folder."""

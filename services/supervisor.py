@@ -253,13 +253,13 @@ class Supervisor:
 
     def _healthy(self, child: Child) -> bool:
         """Whether ``child`` itself answers ``/healthz`` (the body's pid is the child's); a
-        reconstruction worker: whether the trainer's ``GET /workers`` lists its pid."""
+        reconstruction worker: whether the dispatcher's ``GET /workers`` lists its pid."""
         import urllib.request  # here: `aoi3d --help` imports this module
 
         if child.proc is None or not child.alive():  # alive() is False without a process
             return False
         worker = child.name not in DEFAULT_PORTS
-        port = self.cfg.port("trainer" if worker else child.name)
+        port = self.cfg.port("dispatcher" if worker else child.name)
         url = f"http://127.0.0.1:{port}/{'workers' if worker else 'healthz'}"
         try:
             with urllib.request.urlopen(url, timeout=1) as resp:

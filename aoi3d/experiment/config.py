@@ -45,7 +45,7 @@ of its steps and frames (``job_ms``, wall ms measured by step count and frames, 
 ``compute_fixed_ms`` + ``compute_step_ms`` · steps; times ``time_scale``): what the live
 workers' own timings say (``Render.compute_s``, the trainer's ``GET /status`` ``job_s``).
 ``pool_fresh_fraction`` is the dispatcher's ``fresh_fraction`` (the live trainer's
-``AOI3D_TRAINER_FRESH_FRACTION``: a free worker waits for the next decision rather than take a
+``AOI3D_DISPATCHER_FRESH_FRACTION``: a free worker waits for the next decision rather than take a
 pending one older than that fraction of the period). The decisions the workers cannot take
 are superseded; the ones rendered in the scored span are scored, at decision and at display
 time (the job's end).
@@ -196,7 +196,7 @@ class EpisodeConfig:
         f = self.pool_fresh_fraction
         if isinstance(f, bool) or not isinstance(f, int | float) or not 0 <= f <= 1:
             raise ValueError(f"pool_fresh_fraction must be a number in [0, 1] (the live "
-                             f"trainer's AOI3D_TRAINER_FRESH_FRACTION), got {f!r}")
+                             f"trainer's AOI3D_DISPATCHER_FRESH_FRACTION), got {f!r}")
         try:  # (steps, views, ms); (steps, ms): for any number of views (-1)
             table = tuple((int(e[0]), int(e[1]), float(e[2])) if len(e) == 3
                           else (int(e[0]), -1, float(e[1])) for e in self.job_ms)

@@ -1,7 +1,7 @@
 """The virtual-clock counterpart of a live sweep: the experiments' engine on the same scene,
 channel, carry mode and training budget per rendered decision — and, with :class:`PoolTwin`,
 the live run's pool: as many workers, its time scale, and a job charged what the live
-workers' own timings say (:func:`job_cost`, from the trainer's ``GET /status`` ``job_s``)."""
+workers' own timings say (:func:`job_cost`, from the dispatcher's ``GET /status`` ``job_s``)."""
 
 from __future__ import annotations
 
@@ -57,7 +57,7 @@ and warm the process up: one of them alone says little)."""
 def job_table(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
               ) -> tuple[tuple[int, int, float], ...]:
     """(steps, frames, median wall ms) of each cell of ``backend`` and ``carry`` the live
-    workers timed at least :data:`MIN_JOBS` times (the trainer's ``job_s``,
+    workers timed at least :data:`MIN_JOBS` times (the dispatcher's ``job_s``,
     ``backend/carry/steps/frames``; an older key without frames: -1, any)."""
     return tuple(sorted((s, v, ms) for s, v, ms, n in _points(job_s, backend, carry)
                         if n >= MIN_JOBS))
@@ -83,7 +83,7 @@ def _points(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
 def job_cost(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
              ) -> tuple[float, float] | None:
     """(fixed ms, ms per step) of a job of ``backend`` and ``carry`` from the live workers'
-    own timings (the trainer's ``job_s``): the line over the steps through the medians of
+    own timings (the dispatcher's ``job_s``): the line over the steps through the medians of
     the cells timed at least :data:`MIN_JOBS` times, least squares weighted by the jobs (a
     stream run has two step counts: its warm and its cold starts); with one step count, the
     default cost model (:data:`~aoi3d.experiment.config.COMPUTE_FIXED_MS`,
@@ -112,7 +112,7 @@ def job_cost(job_s: Mapping[str, Mapping[str, float]], backend: str, carry: str
 def budget(carry: str, *, steps_per_decision: int, render_steps: int,
            cold_steps: int) -> dict[str, int]:
     """The episode's budget (``steps_per_epoch``, ``render_steps``) that matches a live
-    trainer's carry: ``fresh`` trains ``render_steps`` at each rendered decision; ``stream``
+    dispatcher's carry: ``fresh`` trains ``render_steps`` at each rendered decision; ``stream``
     warm-starts with ``render_steps`` and starts cold with ``cold_steps`` (the episode's
     ``steps_per_epoch``); ``fork`` and ``warm`` train ``steps_per_decision`` in the
     background, ``fork`` ``render_steps`` more on each rendered decision."""
@@ -129,7 +129,7 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
              cache: Path, workers: int | None, cold_steps: int = 100, backend: str = "grid",
              pool: PoolTwin | None = None, lpips: bool = True) -> dict[str, dict[str, Any]]:
     """The experiments' engine on the same scene, channel, carry, budget (:func:`budget`;
-    ``cold_steps``: the trainer's ``AOI3D_TRAINER_COLD_STEPS``, for ``stream``) and field
+    ``cold_steps``: the dispatcher's ``AOI3D_DISPATCHER_COLD_STEPS``, for ``stream``) and field
     backend, through the twin of the live pool when ``pool`` says it (else every fifth
     decision rendered, no queue): per policy, ``{metric: {"mean", "ci95", "n"}}`` over
     ``seeds`` seeds, ``rendered_fraction`` with a pool (and ``_config``: the episode config

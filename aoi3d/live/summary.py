@@ -3,7 +3,7 @@ statistics of :func:`summarise`, the virtual clock's numbers set beside them
 (:func:`with_sim`), and the rows and entries the sweep writes (``points.csv``,
 ``renders.csv``, the windows of ``results.json``).
 
-Pure: the windows come from whoever talked to the pipeline (``aoi3d live sweep``); the trainer
+Pure: the windows come from whoever talked to the pipeline (``aoi3d live sweep``); the dispatcher
 status dicts are its ``GET /status`` answers as they are.
 """
 
@@ -80,7 +80,7 @@ def with_sim(results: Sequence[dict[str, Any]], sim: Mapping[str, Any]) -> None:
 
 
 def render_latency_s(status: Mapping[str, Any]) -> float:
-    """Wall seconds a render may take, from the trainer's status: its own training at the
+    """Wall seconds a render may take, from the dispatcher's status: its own training at the
     measured step rate, plus scoring; at least 2 s."""
     rate = status.get("steps_per_s") or 0.0
     steps = status.get("render_steps") or 0
@@ -90,7 +90,7 @@ def render_latency_s(status: Mapping[str, Any]) -> float:
 def steps_per_decision(s0: Mapping[str, Any], s1: Mapping[str, Any],
                        measurements: Sequence[Measurement]) -> int:
     """Background training steps per decision over the sweep (warm/fork carry), from the
-    trainer's status before (``s0``) and after (``s1``)."""
+    dispatcher's status before (``s0``) and after (``s1``)."""
     decisions = sum(m.last_decision - m.first_decision + 1 for m in measurements)
     renders = sum(len(m.qualities) for m in measurements)
     steps = s1.get("steps_total", 0) - s0.get("steps_total", 0)

@@ -1,5 +1,5 @@
 """The pool of reconstruction workers, as pure logic: who reconstructs which decision
-(:class:`Dispatcher`) and the values it takes and gives (:mod:`.model`). The live trainer
+(:class:`Dispatcher`) and the values it takes and gives (:mod:`.model`). The live dispatcher
 service runs it with real workers; the virtual clock's twin of the pool
 (:mod:`aoi3d.experiment.episode.pool`) with simulated ones: the same code in both."""
 

@@ -1,6 +1,6 @@
 """Who reconstructs which decision: the pool's dispatcher, as pure logic (no bus, no threads).
 
-The trainer service runs one :class:`Dispatcher`; reconstruction workers (``python -m
+The dispatcher service runs one :class:`Dispatcher`; reconstruction workers (``python -m
 services.recon``) pull work from it. The virtual clock's twin of the pool
 (:mod:`aoi3d.experiment.episode.pool`) runs the same one, with simulated workers. Design
 (docs/architecture.md, "The worker pool"):
@@ -59,7 +59,7 @@ __all__ = ["POOL_LOST", "Dispatcher"]
 POOL_LOST = (PoolReason.WORKER_DIED, PoolReason.TIMEOUT, PoolReason.NOT_DELIVERED,
              PoolReason.RENDER_FAILED)
 """Why the pool itself loses a decision it handed out (``Dispatcher.lost``, the
-``aoi3d_pool_decisions_lost{reason}`` series); the trainer tells ``refused`` and
+``aoi3d_pool_decisions_lost{reason}`` series); the dispatcher tells ``refused`` and
 ``not_received`` too, for decisions that never reached the pool."""
 
 
@@ -91,7 +91,7 @@ class _Member:
 
 class Dispatcher:
     """The pool's assignment state; see the module docstring. Not thread-safe: the caller
-    serialises calls (the trainer's runtime holds one lock). Times are wall seconds."""
+    serialises calls (the dispatcher's runtime holds one lock). Times are wall seconds."""
 
     def __init__(self, *, window_s: float = 30.0, job_timeout_s: float = 120.0,
                  fresh_fraction: float = 1.0) -> None:
@@ -221,12 +221,12 @@ class Dispatcher:
         return None
 
     def refuse(self, decision: DecisionRef, why: str) -> None:
-        """The trainer did not take ``decision`` (stale, or ahead of its clock): it never
+        """The dispatcher did not take ``decision`` (stale, or ahead of its clock): it never
         reaches the pool, but its end is told (lost, ``refused``)."""
         self._ended.append(Ended(decision, "lost", PoolReason.REFUSED, why))
 
     def never_received(self, decision: DecisionRef) -> None:
-        """The trainer never received ``decision`` (a gap in its incarnation's ids): its end
+        """The dispatcher never received ``decision`` (a gap in its incarnation's ids): its end
         is told (lost, ``not_received``)."""
         self._ended.append(Ended(decision, "lost", PoolReason.NOT_RECEIVED))
 

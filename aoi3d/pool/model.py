@@ -17,7 +17,7 @@ class PoolReason(StrEnum):
     """Why a decision ended in the pool without a render: the pool's share of the wire's
     ``EndReason`` (proto/aoi3d.proto; a member's value is its label there, so
     ``services.kit.reasons.EndReason(reason)`` is the wire's member, and
-    tests/unit/test_pool.py checks that every one is a reason the trainer tells)."""
+    tests/unit/test_pool.py checks that every one is a reason the dispatcher tells)."""
 
     SUPERSEDED = "superseded"
     WORKER_DIED = "worker_died"
@@ -60,14 +60,14 @@ class Assignment:
 
 @dataclass(frozen=True)
 class Ended:
-    """A decision that ended in the pool without a render: the trainer publishes it as an
+    """A decision that ended in the pool without a render: the dispatcher publishes it as an
     Outcome for the decision ledger (services.metrics.ledger)."""
 
     decision: DecisionRef
     state: str
     """``skipped`` or ``lost``."""
     reason: PoolReason
-    """skipped: ``superseded``; lost: one the trainer tells
+    """skipped: ``superseded``; lost: one the dispatcher tells
     (``services.kit.reasons.TRAINER_LOST``)."""
     detail: str = ""
 

@@ -40,7 +40,7 @@ ENV_SOURCES: dict[str, list[tuple[str, str, tuple[str, ...] | None]]] = {
     # The mesh's hub (a StatefulSet of one): compose.multihost.yaml's edge router.
     "router-edge": [(MULTIHOST, "router-edge", None)],
     **{name: [(COMPOSE, name, None)] for name in
-       ("camera", "network", "scheduler", "trainer", "metrics", "console", "recorder", "recon")},
+       ("camera", "network", "scheduler", "dispatcher", "metrics", "console", "recorder", "recon")},
 }
 """Kubernetes workload → the compose services (file, service, keys: None for all) its
 environment is made of, later entries over earlier ones."""

@@ -158,7 +158,7 @@ class ConsoleCore:
 
     # ------------------------------------------------------------------ the services
     def on_status(self, status: dict[str, Any], now: float) -> None:
-        """The services' answers of one poll (``channel``, ``trainer``, ``policy``, ``ledger``:
+        """The services' answers of one poll (``channel``, ``dispatcher``, ``policy``, ``ledger``:
         JSON, or ``{"error": …}`` for a service that did not answer)."""
         self._status = {**status, "channel_summary": self._channel(status.get("channel") or {},
                                                                    now)}
@@ -231,14 +231,15 @@ class ConsoleCore:
         newest :data:`LAG_RENDERS` scored renders (``display_lag_ms``, and how many it is
         of), the scheduler's expected lag of the latest decision, the newest display-time
         and decision-time PSNR, and the budget in force — the latest decision's
-        (``budget_source`` ``decision``), else the trainer's ``render_steps`` (``trainer``)."""
+        (``budget_source`` ``decision``), else the dispatcher's ``render_steps``
+        (``dispatcher``)."""
         recent = list(self._quality)[-LAG_RENDERS:]
         lags = [q["display_lag_ms"] for q in recent if q.get("display_lag_ms") is not None]
         d = self._decision or {}
-        trainer = self._status.get("trainer") or {}
+        dispatcher = self._status.get("dispatcher") or {}
         budget, source = d.get("budget_steps"), "decision"
         if budget is None:
-            budget, source = trainer.get("render_steps"), "trainer"
+            budget, source = dispatcher.get("render_steps"), "dispatcher"
         last = recent[-1] if recent else {}
         return {"display_lag_ms": float(np.median(lags)) if lags else None,
                 "display_lag_n": len(lags),

@@ -11,7 +11,7 @@ from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 UPSTREAMS = {name: SERVICE_PORTS[name]
-             for name in ("camera", "network", "scheduler", "trainer", "metrics")}
+             for name in ("camera", "network", "scheduler", "dispatcher", "metrics")}
 """The services the console shows, polls and controls, with their default ports: the five of
 the pipeline (not the recorder, which compose and Kubernetes do not run)."""
 
@@ -39,7 +39,7 @@ class Settings(ServiceSettings):
                                  description="Seconds between two updates pushed to the page.")
     poll_period_s: float = Field(1.0, gt=0.1, le=60,
                                  description="Seconds between two polls of the services' "
-                                             "status (channel, trainer, policy).")
+                                             "status (channel, dispatcher, policy).")
     viewer_port: int = Field(
         default_factory=lambda: int(os.environ.get("AOI3D_VIEWER_PORT",
                                                    SERVICE_PORTS["viewer"])),

@@ -4,7 +4,7 @@ What the page shows is the core's (:class:`services.console.core.ConsoleCore`, n
 worker subscribes the messages the services exchange (truth frames, Renders, Quality,
 Decisions: handlers only hand the bytes to the core under its lock) and polls, every
 ``poll_period_s`` on a thread of its own (:class:`services.kit.runtime.Loops`), the channel,
-the trainer's status, the policy in force and the decision ledger.
+the dispatcher's status, the policy in force and the decision ledger.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ log = logging.getLogger(__name__)
 
 __all__ = ["TRUTH_FRAMES", "ConsoleWorker", "Pair"]
 
-POLLED = (("channel", "network", "/channel"), ("trainer", "trainer", "/status"),
+POLLED = (("channel", "network", "/channel"), ("dispatcher", "dispatcher", "/status"),
           ("policy", "scheduler", "/policy"), ("ledger", "metrics", "/ledger"))
 """What each poll asks: (status key, service, path)."""
 

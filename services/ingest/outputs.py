@@ -7,7 +7,7 @@ Topics (settable: the ingest's ``AOI3D_INGEST_ROS_*_TOPIC``), every message CDR-
 the decision, as wall time on the pipeline's clock: ``epoch_s + time_ms / 1000 /
 time_scale``):
 
-- ``/aoi3d/render`` — ``sensor_msgs/Image``, ``rgb8``, the trainer's render of the view
+- ``/aoi3d/render`` — ``sensor_msgs/Image``, ``rgb8``, the dispatcher's render of the view
   (its size: the rig's working size), ``frame_id`` ``aoi3d_view``;
 - ``/aoi3d/camera_info`` — ``sensor_msgs/CameraInfo`` of that render (pinhole K and P, no
   distortion), published with each render, same stamp (image_transport's pairing);

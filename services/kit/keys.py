@@ -49,7 +49,7 @@ class Keys:
         return f"{self.root}/truth/frame"
 
     def edge_frame(self, camera_id: int) -> str:
-        """Delivered frames of one camera (network → scheduler, trainer)."""
+        """Delivered frames of one camera (network → scheduler, dispatcher)."""
         return f"{self.root}/edge/{camera_id}/frame"
 
     @property
@@ -70,7 +70,7 @@ class Keys:
 
     @property
     def outcome(self) -> str:
-        """How a decision ended without a render (trainer → the ledger in metrics)."""
+        """How a decision ended without a render (dispatcher → the ledger in metrics)."""
         return f"{self.root}/outcome"
 
     @property
@@ -83,7 +83,7 @@ class Keys:
         return f"{self.run_root}/pool/worker/{worker_id}"
 
     def pool_view(self, worker_id: str) -> str:
-        """A reconstruction worker answers free-view and export queries here (the trainer
+        """A reconstruction worker answers free-view and export queries here (the dispatcher
         asks the worker that rendered a site's latest decision)."""
         return f"{self.run_root}/pool/view/{worker_id}"
 

@@ -4,7 +4,7 @@
 :class:`EndReason` is built from the generated protobuf enum, so there is no second list to
 keep in step: a member's value is its *label*, the proto name without ``END_REASON_`` in lower
 case (``END_REASON_WORKER_DIED`` → ``"worker_died"``). A member is a ``str``: it is the
-Prometheus label value, the key of the ledger's JSON and saved file and of the trainer's
+Prometheus label value, the key of the ledger's JSON and saved file and of the dispatcher's
 ``/status`` as it is; :meth:`EndReason.wire` and :func:`from_wire` cross to the Outcome's
 enum number. The proto's number ranges say who tells a reason; the groups below read them.
 Standard library and the generated module only (a service's core may import it).
@@ -75,7 +75,7 @@ def _within(low: int, high: int) -> tuple[EndReason, ...]:
 SKIPPED = _within(1, 9)
 """Skipped by choice: ``superseded``."""
 TRAINER_LOST = _within(10, 29)
-"""Lost, told by the trainer in an Outcome: ``worker_died``, ``timeout``, ``not_delivered``,
+"""Lost, told by the dispatcher in an Outcome: ``worker_died``, ``timeout``, ``not_delivered``,
 ``render_failed``, ``refused``, ``not_received``."""
 METRICS_LOST = _within(30, 39)
 """Lost, found by the metrics service: ``truth_missing``, ``render_rejected``."""

@@ -59,7 +59,7 @@ class CommonSettings(BaseSettings):
         "--rotor-rpm 6`; any layout `aoi3d scene info` reads)."))
     rig: Path | None = Field(None, description=(
         "A rig file of real cameras (ROS 2 over Zenoh; docs/real-cameras.md): the ingest "
-        "service takes their frames where the camera emulator would publish, and the trainer "
+        "service takes their frames where the camera emulator would publish, and the dispatcher "
         "renders the rig's view in the rig's scene box instead of the dataset's. Set by `aoi3d "
         "up --rig`. Unset: the emulated cameras of AOI3D_DATASET."))
     log_level: str = Field("INFO", description="Python logging level.")
@@ -96,7 +96,7 @@ class CommonSettings(BaseSettings):
         30.0, gt=0, le=3600,
         description="Readiness that tells the truth: a service alive but not doing its job for "
                     "this many wall seconds answers /readyz with 503 and the reason (scheduler: "
-                    "no frame delivered; trainer: decisions arrive but no training step; "
+                    "no frame delivered; dispatcher: decisions arrive but no training step; "
                     "metrics: no Quality).")
     control_token: SecretStr | None = Field(
         None, description="Bearer token every state-changing REST request (PUT/POST/PATCH/"

@@ -6,7 +6,7 @@ from services.metrics.settings import Settings
 
 
 def _torch_threads(settings: Settings) -> None:
-    """LPIPS runs on this process's torch threads; one keeps it off the trainer's cores."""
+    """LPIPS runs on this process's torch threads; one keeps it off the dispatcher's cores."""
     if settings.torch_threads:
         import torch
 

@@ -229,7 +229,7 @@ class LedgerResponse(BaseModel):
                     "was taken before a worker was free).", examples=[{"superseded": 1040}])
     lost: dict[str, int] = Field(
         description="Lost, by reason: worker_died, timeout, not_delivered, render_failed, "
-                    "refused, not_received (from the trainer), truth_missing, render_rejected "
+                    "refused, not_received (from the dispatcher), truth_missing, render_rejected "
                     "(from scoring), "
                     "unseen (never seen: made while this service was down or lost in transit), "
                     "expired (open longer than open_bound_s).",

@@ -11,13 +11,13 @@ States (:data:`STATES`) and their reasons:
 - ``scored``: its render was paired with its truth frame and a Quality published.
 - ``skipped`` (by choice): ``superseded`` — a newer decision of its site was taken before a
   worker was free (the pool keeps one pending decision per site).
-- ``lost``, with a reason (:data:`LOST_REASONS`): from the trainer's Outcome —
+- ``lost``, with a reason (:data:`LOST_REASONS`): from the dispatcher's Outcome —
   ``worker_died``, ``timeout``, ``not_delivered``, ``render_failed``, ``refused``,
-  ``not_received`` (a gap in the ids the trainer received: lost in transit); from the
+  ``not_received`` (a gap in the ids the dispatcher received: lost in transit); from the
   metrics service itself — ``truth_missing`` (no truth frame of its time), ``render_rejected``
   (its render could not be scored); from the ledger — ``unseen`` (it never saw the decision: made
   while the metrics service was down, or lost in transit) and ``expired`` (still open after
-  ``open_bound_s``: a trainer or worker died holding it, or its render or outcome was lost).
+  ``open_bound_s``: a dispatcher or worker died holding it, or its render or outcome was lost).
 
 Every reason is a member of :class:`services.kit.reasons.EndReason` (the proto's one enum); the
 ledger keeps and saves its label, the same text as before the enum (snapshot version 1).
@@ -218,7 +218,7 @@ def decode_outcome(payload: bytes, site: str) -> Outcome:
         raise Rejected(RejectReason.MALFORMED, f"an Outcome's reason: {err}") from None
     if msg.state == "lost" and reason not in reasons.TRAINER_LOST:
         raise Rejected(RejectReason.MALFORMED,
-                       f"the trainer does not lose a decision for {reason!s} "
+                       f"the dispatcher does not lose a decision for {reason!s} "
                        f"(its reasons: {', '.join(TRAINER_LOST)})")
     Ledger._check(msg.state, str(reason))
     return Outcome(msg.decision_id, msg.incarnation, msg.site, msg.state, reason, msg.detail)

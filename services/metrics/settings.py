@@ -74,7 +74,7 @@ class Settings(ServiceSettings):
     ledger_open_s: float = Field(
         150.0, gt=0, le=86_400,
         description="Wall seconds a decision may stay open in the decision ledger (no render, "
-                    "no outcome) before it is counted lost (expired). Above the trainer's "
+                    "no outcome) before it is counted lost (expired). Above the dispatcher's "
                     "job_timeout_s, so a job the pool still waits for is not counted twice.")
     state_dir: Path | None = Field(
         None, description="Folder where the decision ledger is saved (ledger-<run>-<site>.json, "
@@ -84,7 +84,7 @@ class Settings(ServiceSettings):
     torch_threads: int = Field(
         1, ge=0, le=256,
         description="Torch CPU threads of this process (LPIPS); 0 keeps torch's default. One "
-                    "thread keeps LPIPS at ~4 ms a pair without competing with the trainer.")
+                    "thread keeps LPIPS at ~4 ms a pair without competing with the dispatcher.")
 
     def reward_weights(self) -> RewardWeights:
         """The reward weights as the domain's :class:`RewardWeights`."""

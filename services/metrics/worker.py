@@ -4,7 +4,7 @@ and scoring rules are documented there).
 Bus handlers only enqueue; one scoring thread hands truth frames and renders to the core,
 publishes the ``Quality`` it returns, keeps the history the REST API shows and updates the
 Prometheus series. The same thread keeps the site's decision ledger
-(:mod:`services.metrics.bookkeeping`): Decisions, the trainer's Outcomes and each render's
+(:mod:`services.metrics.bookkeeping`): Decisions, the dispatcher's Outcomes and each render's
 fate close every decision in exactly one state.
 """
 

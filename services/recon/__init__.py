@@ -1,1 +1,1 @@
-"""A reconstruction worker of the pool: pulls jobs from the trainer service, renders, publishes."""
+"""A reconstruction worker of the pool: pulls jobs from the dispatcher, renders, publishes."""

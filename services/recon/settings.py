@@ -11,8 +11,8 @@ from services.kit.settings import CommonSettings
 
 
 class Settings(BaseSettings):
-    """A reconstruction worker of the pool: asks the trainer service for jobs, reconstructs
-    each decision it is given and publishes the render. No REST API: it is seen in the trainer
+    """A reconstruction worker of the pool: asks the dispatcher service for jobs, reconstructs
+    each decision it is given and publishes the render. No REST API: it is seen in the dispatcher
     service's `GET /workers` (membership by Zenoh liveliness)."""
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_RECON_", extra="ignore")
@@ -28,7 +28,7 @@ class Settings(BaseSettings):
                     "workers side by side 1.30-1.37 s each; add workers, not threads.")
     max_wait_s: float = Field(
         2.0, gt=0, le=60,
-        description="How long the trainer may hold this worker's request for work when no "
+        description="How long the dispatcher may hold this worker's request for work when no "
                     "decision is pending (a long poll: the next decision goes to a waiting "
                     "worker at once).")
     query_margin_s: float = Field(

@@ -1,7 +1,7 @@
 """The reconstruction worker's runtime: its liveliness token, the request loop, the bus.
 
 It declares ``aoi3d/<run>/pool/worker/<id>`` (membership: the token lives as long as the
-session), then asks the trainer service for work — a query on ``aoi3d/<run>/pool/work``
+session), then asks the dispatcher service for work — a query on ``aoi3d/<run>/pool/work``
 carrying a :class:`pb.WorkRequest` that reports how the previous job ended — reconstructs the
 job it is given with :class:`services.recon.core.ReconCore` and publishes the Render on
 ``aoi3d/<run>/render``. One thread does all of it: the worker never does two jobs at once.
@@ -80,7 +80,7 @@ class ReconWorker:
         wait_s = 0.0 if background else self.settings.max_wait_s
         answer = self.bus.query(self.keys.work, self._request(wait_s),
                                 timeout_s=wait_s + self.settings.query_margin_s)
-        if answer is None:  # no trainer reachable (yet): the report is sent again next time
+        if answer is None:  # no dispatcher reachable (yet): the report is sent again next time
             if background:
                 self.core.train_between_jobs(self.settings.background_steps)
             else:
@@ -90,7 +90,7 @@ class ReconWorker:
         try:
             reply = decode_reply(answer)
         except Rejected as err:
-            log.warning("dropped a malformed reply from the trainer: %s", err)
+            log.warning("dropped a malformed reply from the dispatcher: %s", err)
             return False
         if not reply.HasField("job"):
             if background:

@@ -130,7 +130,7 @@ def job_frames(selected: Sequence[tuple[int, float]], used: Sequence[float] | No
                     and (cams is None or cams[k] == cam)):
                 k += 1
             else:
-                continue  # the live trainer did not hold it
+                continue  # the live dispatcher did not hold it
         a = arr.frame(cam, g)
         if a is None or a.frame is None or not has_pixels(a.frame):
             return None

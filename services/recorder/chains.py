@@ -105,7 +105,7 @@ def check_carries(renders: Iterable[pb.Render]) -> None:
         raise ValueError(f"replay rebuilds renders of the fresh and stream carries; the "
                          f"recording's {' and '.join(carries)} renders depend on the "
                          f"worker's training between jobs, timed by the wall clock and not "
-                         f"on record (record with AOI3D_TRAINER_CARRY=stream or fresh); give "
+                         f"on record (record with AOI3D_DISPATCHER_CARRY=stream or fresh); give "
                          f"--no-score")
 
 

@@ -23,7 +23,7 @@ needs one is not redone).
 
 **Scores.** Only the decisions the live pool rendered and scored are rebuilt (their epochs
 are the pairing of the counterfactual table). Under the recorded policy each is rebuilt from
-the frames the live job carried (the Render lists them; the trainer may have missed one);
+the frames the live job carried (the Render lists them; the dispatcher may have missed one);
 under another policy from its selection. A ``fresh`` render depends on its decision alone
 and is rebuilt alone. A ``stream`` render (the live default) depends on its worker's history:
 the replay runs each recorded worker's jobs again in the worker's order on one model, as the

@@ -7,7 +7,7 @@ from services.scheduler.settings import Settings
 
 def _torch_threads(settings: Settings) -> None:
     """A ppo policy acts and learns on this process's torch threads; its network is tiny, so
-    one thread is fastest and leaves the cores to the trainer."""
+    one thread is fastest and leaves the cores to the dispatcher."""
     if settings.torch_threads:
         import torch
 

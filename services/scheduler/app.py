@@ -30,7 +30,7 @@ from services.scheduler.worker import SchedulerWorker
 DESCRIPTION = """\
 Tracks the Age of Information (AoI) of every training camera from the frames the network
 delivers and, every decision period, applies the selection policy to the AoI vector and
-publishes a `Decision` (the frames the trainer uses).
+publishes a `Decision` (the frames the dispatcher uses).
 
 Policies: `{"kind": "all"}`, `{"kind": "mat", "mat_ms": 51}` (use camera n iff its AoI is
 below the maximum acceptable AoI Γ = mat_ms), `{"kind": "freshest", "k": 6}` (the k cameras
@@ -42,7 +42,7 @@ policy is used from the next decision on. The decision step is the experiments' 
 (`aoi3d.policy.decide`): a policy selects the same frames here as on the virtual clock.
 
 Any policy but `deadline` takes a training budget, `"budget_steps": 50` (the spec's
-`mat:70@50`): each of its decisions' renders trains that many steps instead of the trainer's
+`mat:70@50`): each of its decisions' renders trains that many steps instead of the dispatcher's
 `render_steps`. The Decision carries it (`budget_steps`) and the lag the scheduler expects
 from the decision to its render on screen at that budget (`expected_lag_ms`), learned from
 the Quality of its renders; the compute-aware kinds read that lag: `{"kind": "dmat",

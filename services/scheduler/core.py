@@ -61,7 +61,7 @@ class SchedulerCore:
     """One site's AoI state and decisions. Not thread-safe: the runtime serialises calls.
 
     ``incarnation``: this process's random id on every Decision (a restarted scheduler gets
-    a new one, so the trainer follows it at once although it numbers from 1 again)."""
+    a new one, so the dispatcher follows it at once although it numbers from 1 again)."""
 
     def __init__(self, n_cameras: int, incarnation: int | None = None, *,
                  step_ms_prior: float = 0.34) -> None:

@@ -42,7 +42,7 @@ class PolicyRequest(BaseModel):
         None, ge=1, le=BUDGET_MAX_STEPS,
         description="Any kind but deadline: the decision's training budget, the steps its "
                     "reconstruction takes (the spec's '@<steps>', e.g. mat:70@50); absent: "
-                    "the pool's render_steps (PUT /carry on the trainer).", examples=[50])
+                    "the pool's render_steps (PUT /carry on the dispatcher).", examples=[50])
     deadline_ms: float | None = Field(
         None, description="kind deadline: the budget is the largest whose render is on screen "
                           "within deadline_ms of its decision (queue + compute, as learned "

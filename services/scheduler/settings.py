@@ -14,7 +14,7 @@ from services.kit.settings import ServiceSettings
 
 
 class Settings(ServiceSettings):
-    """The scheduler: tracks each camera's AoI and decides which frames the trainer uses."""
+    """The scheduler: tracks each camera's AoI and decides which frames the dispatcher uses."""
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_SCHEDULER_", extra="ignore")
 

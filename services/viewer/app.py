@@ -33,7 +33,7 @@ The live 3D viewer: open `/` in a browser. It shows the scene box, every camera 
 coloured by its AoI at the decision in force (green fresh, yellow at Γ, red at 2Γ; the
 cameras the decision used drawn thicker and marked ✓, each with its latest delivered frame),
 the truth camera (blue), and the live reconstruction seen from the viewer's own camera: as you
-orbit, the trainer's pool renders that pose (`GET /render.png?c2w=…` on the trainer) and the
+orbit, the dispatcher's pool renders that pose (`GET /render.png?c2w=…` on the dispatcher) and the
 view updates. Controls: the site, the policy and Γ (the scheduler's `PUT /policy`). Built on
 viser, whose client is served from its wheel: no CDN.
 """

@@ -3,7 +3,7 @@
 The scene building of :class:`services.viewer.worker.ViewerWorker`, apart from its loops,
 locks and bus: the box and the truth camera (drawn once), a frustum per camera in the state
 :class:`services.viewer.core.ViewerCore` gives it, the status line, where a browser's camera
-starts or is sent back to, and the trainer's query for a free view from a browser's camera.
+starts or is sent back to, and the dispatcher's query for a free view from a browser's camera.
 ``scene`` and ``client`` are viser's (``ViserServer.scene``, a ``ClientHandle``).
 """
 
@@ -91,7 +91,7 @@ def overview(client: Any, core: ViewerCore) -> None:
 
 
 def view_params(camera: Any, height: int) -> dict[str, str | int | float] | None:
-    """The trainer's ``GET /render.png`` query for a free view from the browser's ``camera``,
+    """The dispatcher's ``GET /render.png`` query for a free view from the browser's ``camera``,
     ``height`` pixels high (the width follows its aspect); None while its pose is unknown."""
     try:
         c2w = c2w_from_viser(camera.wxyz, camera.position)

@@ -20,16 +20,16 @@ class Settings(ServiceSettings):
     """The 3D viewer: the scene box, every camera as a frustum coloured by its AoI at the
     decision in force (the cameras it used marked, its latest delivered frame as the image),
     the truth camera, and the live reconstruction seen from the viewer's own camera (a free
-    view the trainer's pool renders as the user orbits); controls for the policy and Γ."""
+    view the dispatcher's pool renders as the user orbits); controls for the policy and Γ."""
 
     model_config = SettingsConfigDict(env_prefix="AOI3D_VIEWER_", extra="ignore")
 
     port: int = Field(SERVICE_PORTS["viewer"], ge=0, le=65535,
                       description="The viewer's web page, its websocket and REST API port.")
     trainer_url: str = Field(
-        default_factory=lambda: _url("trainer"),
-        json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_TRAINER_PORT>`"},
-        description="The trainer's REST API: free views (GET /render.png?c2w=…).")
+        default_factory=lambda: _url("dispatcher"),
+        json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_DISPATCHER_PORT>`"},
+        description="The dispatcher's REST API: free views (GET /render.png?c2w=…).")
     scheduler_url: str = Field(
         default_factory=lambda: _url("scheduler"),
         json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_SCHEDULER_PORT>`"},

@@ -14,7 +14,7 @@ websocket, beside ``/healthz``, ``/metrics`` and ``/scene.json``. What is drawn 
   labelled ✓: used by it; image: the latest delivered frame) when a decision came, while a
   browser is connected (the frustums and their thumbnails cost a tenth of a core at time
   scale 1; nobody watching, nothing is drawn);
-- each browser's camera, as the user orbits, is turned into a free view: the trainer's
+- each browser's camera, as the user orbits, is turned into a free view: the dispatcher's
   ``GET /sites/<site>/render.png?c2w=…`` (the pool renders the latest model from that pose),
   shown as the scene's background — the newest pose of each browser wins, and an unmoved
   camera is rendered again every ``refresh_s`` so the view follows the live reconstruction;
@@ -61,8 +61,8 @@ class ViewerWorker:
         self.core = ViewerCore(cameras, truth, np.asarray(aabb), list(common.sites))
         self.site = common.sites[0]
         self.rejections = Rejections(registry)
-        self.views = Counter("aoi3d_viewer_views", "Free views the viewer asked the trainer "
-                             "for, by outcome (shown, or the trainer's HTTP status).",
+        self.views = Counter("aoi3d_viewer_views", "Free views the viewer asked the dispatcher "
+                             "for, by outcome (shown, or the dispatcher's HTTP status).",
                              ["outcome"], registry=registry)
         self.views_shown = 0
         self.views_asked = 0

@@ -49,7 +49,8 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
         [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",
          run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
          str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1"],
-        env=dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
+                 AOI3D_DISPATCHER_RENDER_STEPS="20",
                  AOI3D_SCHEDULER_POLICY="mat:70"),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     failed: list[str] = []
@@ -84,7 +85,7 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
             ledger = HTTP.get(url("metrics", "/ledger")).json()
             assert ledger["decisions"] >= ledger["scored"] > 0, ledger
 
-            # the controls know the trainer's backends and the scheduler's checkpoints
+            # the controls know the dispatcher's backends and the scheduler's checkpoints
             page.wait_for_function("document.getElementById('backend').options.length > 0")
             backends = page.eval_on_selector_all("#backend option", "os => os.map(o => o.value)")
             assert "grid" in backends and page.input_value("#backend") == "grid", backends
@@ -94,9 +95,9 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
             assert offered == (found or [""]), (offered, found)
 
             # the budget control: a refused budget shows the scheduler's message and changes
-            # nothing; the trainer's render_steps is the budget in force until one is put
+            # nothing; the dispatcher's render_steps is the budget in force until one is put
             page.wait_for_function("document.getElementById('display').innerText"
-                                   ".includes(\"20 steps (the trainer's render_steps)\")")
+                                   ".includes(\"20 steps (the dispatcher's render_steps)\")")
             before = HTTP.get(url("scheduler", "/policy")).json()
             page.fill("#budget", "0")
             page.click("#apply-policy")
@@ -135,7 +136,7 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
                     assert HTTP.get(url("scheduler", "/decision")).json()["budget_steps"] == 30
                     page.screenshot(path=str(tmp_path / "console.png"), full_page=True)
             page.screenshot(path=str(tmp_path / "console-mat0.png"), full_page=True)
-            page.fill("#budget", "")  # no budget: the trainer's render_steps again
+            page.fill("#budget", "")  # no budget: the dispatcher's render_steps again
             page.click("#apply-policy")
             wait_for("GET /policy without a budget", lambda: "budget_steps" not in HTTP.get(
                 url("scheduler", "/policy")).json(), timeout_s=30)

@@ -90,14 +90,14 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
          f"view{uuid.uuid4().hex[:8]}", "--zenoh-port", str(zenoh), "--port-offset",
          str(offset), "--log-dir", str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1",
          "--workers", "1"],
-        env=dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30", AOI3D_SCHEDULER_POLICY="mat:70"),
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30", AOI3D_SCHEDULER_POLICY="mat:70"),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     outside: list[str] = []
     try:
         for name in SERVICE_PORTS:
             wait_for(f"{name} /healthz",
                      lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 240)
-        wait_for("a render", lambda: HTTP.get(url("trainer", "/render.png")).status_code == 200,
+        wait_for("a render", lambda: HTTP.get(url("dispatcher", "/render.png")).status_code == 200,
                  300)
         wait_for("a decision at the viewer",
                  lambda: HTTP.get(url("viewer", "/scene.json")).json()["decision"], 120)
@@ -171,8 +171,8 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
             if target:
                 Path(target).write_bytes(second)
             browser.close()
-        trainer_metrics = HTTP.get(url("trainer", "/metrics")).text
-        assert 'aoi3d_trainer_views_total{kind="view",outcome="served"}' in trainer_metrics
+        trainer_metrics = HTTP.get(url("dispatcher", "/metrics")).text
+        assert 'aoi3d_dispatcher_views_total{kind="view",outcome="served"}' in trainer_metrics
         assert not outside, outside
     finally:
         if up.poll() is None:

@@ -56,7 +56,7 @@ ROBOT = {
         },
     },
 }
-SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "recon",
+SERVICES = ["router", "dataset", "camera", "network", "scheduler", "dispatcher", "recon",
             "metrics", "robot-router", "robot"]
 
 

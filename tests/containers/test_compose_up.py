@@ -8,7 +8,7 @@ published ports, as a user would: every healthcheck passes, Quality flows, ``PUT
 changes the decisions, the recorder records the run into the runs volume, Prometheus scrapes
 every target, Zenoh is mutual TLS (a client with the CA and a client certificate joins and
 receives the run's samples; without the CA, without a certificate, with another CA or on plain
-TCP it cannot), a trainer whose process is killed is restarted, and ``docker compose down -v``
+TCP it cannot), a dispatcher whose process is killed is restarted, and ``docker compose down -v``
 leaves no container, network or volume behind.
 
 Grafana is not run (no registry has its image on this project's machines); its provisioning is
@@ -73,12 +73,12 @@ def test_every_healthcheck_passes(stack: Stack) -> None:
     for service in SERVICES:
         limits = stack.inspect(service)["HostConfig"]
         assert limits["NanoCpus"] > 0 and limits["Memory"] > 0, (service, limits)
-    mounts = {m["Destination"]: m for m in stack.inspect("trainer")["Mounts"]}
+    mounts = {m["Destination"]: m for m in stack.inspect("dispatcher")["Mounts"]}
     assert mounts["/app/runs"]["Type"] == "volume" and mounts["/data"]["Type"] == "volume"
 
 
 def test_quality_flows_through_the_published_ports(stack: Stack) -> None:
-    wait_for("training steps", lambda: HTTP.get(url("trainer", "/status")).json()["steps"] > 0,
+    wait_for("training steps", lambda: HTTP.get(url("dispatcher", "/status")).json()["steps"] > 0,
              timeout_s=120)
     history = wait_for("quality history",
                        lambda: HTTP.get(url("metrics", "/quality")).json()["history"],
@@ -144,7 +144,7 @@ def test_prometheus_scrapes_every_target(stack: Stack) -> None:
 
     active = wait_for("every Prometheus target up", targets, timeout_s=90)
     scraped = {t["labels"]["service"] for t in active}
-    assert {"camera", "network", "scheduler", "trainer", "metrics"} <= scraped, scraped
+    assert {"camera", "network", "scheduler", "dispatcher", "metrics"} <= scraped, scraped
     r = HTTP.get(url("prometheus", "/api/v1/query"),
                  params={"query": "sum(aoi3d_frames_delivered_total)"})
     assert float(r.json()["data"]["result"][0]["value"][1]) > 0
@@ -206,29 +206,29 @@ def test_zenoh_is_mutual_tls_on_the_published_port(stack: Stack, tmp_path: Path)
 
 
 def test_a_killed_trainer_is_restarted(stack: Stack) -> None:
-    """SIGKILL to the trainer's process (as a crash or the OOM killer would) → the engine
+    """SIGKILL to the dispatcher's process (as a crash or the OOM killer would) → the engine
     restarts the container (restart: unless-stopped) and it becomes healthy again. (A
     `docker kill` would count as stopping it by hand: Docker leaves such a container down.)"""
-    before = stack.inspect("trainer")
-    killer = stack.compose("exec", "-T", "trainer", "python", "-c",
+    before = stack.inspect("dispatcher")
+    killer = stack.compose("exec", "-T", "dispatcher", "python", "-c",
                            "import os, signal\n"
                            "for pid in filter(str.isdigit, os.listdir('/proc')):\n"
                            "    cmd = open(f'/proc/{pid}/cmdline', 'rb').read().split(b'\\0')\n"
-                           "    if cmd[:3] == [b'python', b'-m', b'services.trainer']:\n"
+                           "    if cmd[:3] == [b'python', b'-m', b'services.dispatcher']:\n"
                            "        os.kill(int(pid), signal.SIGKILL)\n", check=False)
     # 137: the container went down with its main process before the exec'd script exited,
     # and took the script with it (a race, seen once); the restart below is the evidence
     assert killer.returncode in (0, 137), killer.stdout + killer.stderr
     # the engine counts the restart when it schedules it, and sets StartedAt once the new
     # process runs: wait for both
-    wait_for("the trainer restarted", lambda: (
-        s := stack.inspect("trainer"))["RestartCount"] > before["RestartCount"]
+    wait_for("the dispatcher restarted", lambda: (
+        s := stack.inspect("dispatcher"))["RestartCount"] > before["RestartCount"]
         and s["State"]["StartedAt"] != before["State"]["StartedAt"])
-    wait_for("the trainer healthy again",
-             lambda: stack.inspect("trainer")["State"]["Health"]["Status"] == "healthy",
+    wait_for("the dispatcher healthy again",
+             lambda: stack.inspect("dispatcher")["State"]["Health"]["Status"] == "healthy",
              timeout_s=240)
-    wait_for("the restarted trainer answers on its published port",
-             lambda: HTTP.get(url("trainer", "/readyz")).status_code == 200)
+    wait_for("the restarted dispatcher answers on its published port",
+             lambda: HTTP.get(url("dispatcher", "/readyz")).status_code == 200)
 
 
 def test_the_reconstruction_workers_run_the_fused_kernels(stack: Stack) -> None:

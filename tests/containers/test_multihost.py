@@ -30,7 +30,7 @@ from tests.support.ports import block
 
 pytestmark = COMPOSE_MARKS  # the same marks as test_compose_up.py: skipped unless compose-test
 
-PORTS = dict(zip(["ZENOH", "SCHEDULER", "TRAINER", "METRICS"], block("multihost").ports(),
+PORTS = dict(zip(["ZENOH", "SCHEDULER", "DISPATCHER", "METRICS"], block("multihost").ports(),
                  strict=False))
 PROJECT = f"aoi3d-mh-{os.getpid()}"
 FILE = ROOT / "compose.multihost.yaml"
@@ -63,7 +63,7 @@ class Hosts(Stack):
         self.project, self.files = PROJECT, (FILE,)
 
     def workers(self) -> dict[str, Any]:
-        return HTTP.get(url("trainer", "/workers")).json()
+        return HTTP.get(url("dispatcher", "/workers")).json()
 
     def hosts(self) -> set[str]:
         return {w["host"] for w in self.workers()["workers"]}
@@ -76,11 +76,11 @@ class Hosts(Stack):
         return HTTP.get(url("scheduler", "/aoi")).json()["time_ms"]
 
     def fresh_carry(self) -> None:
-        """The trainer hands each job to the worker that has waited longest (the ``fresh``
+        """The dispatcher hands each job to the worker that has waited longest (the ``fresh``
         carry): the default ``stream`` carry hands it to the warmest one, so a pool with slack
         may give every job to the host that stayed, and a rejoined host would wait on."""
         token = (self.secrets_dir / "control_token").read_text(encoding="utf-8").strip()
-        r = HTTP.put(url("trainer", "/carry"), json={"carry": "fresh", "render_steps": 25},
+        r = HTTP.put(url("dispatcher", "/carry"), json={"carry": "fresh", "render_steps": 25},
                      headers={"Authorization": f"Bearer {token}"})
         r.raise_for_status()
 
@@ -132,7 +132,7 @@ def hop_rtt_ms(h: Hosts, session, service: str, name: str, n: int = 40) -> float
 
 def test_workers_on_two_hosts_a_cut_and_a_router_restart(hosts: Hosts) -> None:
     h = hosts
-    wait_for("the trainer", lambda: h.fresh_carry() is None, timeout_s=180)
+    wait_for("the dispatcher", lambda: h.fresh_carry() is None, timeout_s=180)
     # every worker is on a worker host; none on the edge
     wait_for("both worker hosts in the pool", lambda: h.hosts() == {"worker-a", "worker-b"},
              timeout_s=180)

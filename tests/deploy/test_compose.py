@@ -135,11 +135,11 @@ def test_zenoh_runs_over_mutual_tls(compose):
     s["camera"]["environment"] = {**s["camera"]["environment"],
                                   "AOI3D_ZENOH_TLS_CERT": "/run/secrets/zenoh_tls_router_cert"}
     s["metrics"]["environment"] = {**s["metrics"]["environment"], "AOI3D_ZENOH_TLS_MTLS": False}
-    s["trainer"]["secrets"] = ["control_token", "zenoh_password"]
+    s["dispatcher"]["secrets"] = ["control_token", "zenoh_password"]
     assert any("want tls/0.0.0.0" in p for p in shared_env_problems(broken))
     assert any("camera: AOI3D_ZENOH_TLS_CERT" in p for p in tls_problems(broken))
     assert any("metrics: AOI3D_ZENOH_TLS_MTLS" in p for p in tls_problems(broken))
-    assert any("trainer: reads /run/secrets/zenoh_tls_ca" in p for p in secrets_problems(broken))
+    assert any("dispatcher: reads /run/secrets/zenoh_tls_ca" in p for p in secrets_problems(broken))
 
 
 def test_dataset_job_feeds_camera_and_trainer(compose):
@@ -165,7 +165,7 @@ def test_dataset_job_runs_a_real_cli_command(compose):
 
 def test_dataset_job_renders_the_rotor_scene_by_default(compose):
     """The one-shot job's command, parsed by the CLI itself, renders the experiments' scene
-    (the rotor close-up at 6 rpm) where camera and trainer read it, as `aoi3d up` does."""
+    (the rotor close-up at 6 rpm) where camera and dispatcher read it, as `aoi3d up` does."""
     import typer
 
     from aoi3d.experiment.config import EXPERIMENT_SCENE
@@ -217,20 +217,20 @@ def test_checks_catch_a_broken_deployment(compose):
     camera = broken["services"]["camera"]
     camera["environment"]["AOI3D_CAMERA_PORT"] = 8199
     camera["environment"]["AOI3D_CAMERA_PERIOD"] = 30  # the field is period_ms
-    broken["services"]["trainer"]["command"] = ["python", "-m", "services.trainr"]
+    broken["services"]["dispatcher"]["command"] = ["python", "-m", "services.trainr"]
     broken["services"]["network"]["environment"]["AOI3D_RUN_ID"] = "other"
     broken["services"]["scheduler"]["healthcheck"]["test"][3] = (
         "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8103/ready')")
     broken["services"]["metrics"]["depends_on"] = {"router": {"condition": "service_started"}}
-    broken["services"]["trainer"]["depends_on"].pop("dataset")
+    broken["services"]["dispatcher"]["depends_on"].pop("dataset")
 
     assert any("AOI3D_CAMERA_PORT=8199" in p for p in service_problems(broken, "camera"))
-    assert any("services.trainr" in p for p in service_problems(broken, "trainer"))
+    assert any("services.trainr" in p for p in service_problems(broken, "dispatcher"))
     assert any("/ready," in p for p in service_problems(broken, "scheduler"))
     assert any("service_healthy" in p for p in service_problems(broken, "metrics"))
     assert any("AOI3D_CAMERA_PERIOD" in p for p in env_problems(broken))
     assert any("AOI3D_RUN_ID differs" in p for p in shared_env_problems(broken))
-    assert any("trainer: must wait for dataset" in p for p in dataset_problems(broken))
+    assert any("dispatcher: must wait for dataset" in p for p in dataset_problems(broken))
 
     prom = _yaml(PROMETHEUS_FILE)
     prom["scrape_configs"][0]["static_configs"][0]["targets"] = ["camera:9101"]

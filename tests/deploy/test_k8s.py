@@ -49,7 +49,7 @@ pytestmark = pytest.mark.skipif(
 COMPOSE_OF: dict[str, tuple[str, str]] = {
     "router": ("compose.yaml", "router"),
     "router-edge": ("compose.multihost.yaml", "router-edge"),
-    **{n: ("compose.yaml", n) for n in ("camera", "network", "scheduler", "trainer",
+    **{n: ("compose.yaml", n) for n in ("camera", "network", "scheduler", "dispatcher",
                                          "metrics", "console", "recorder", "recon", "dataset",
                                          "prometheus")},
 }
@@ -61,7 +61,7 @@ NO_PROBES = {
 }
 """Long-running containers without probes, and why."""
 
-HTTP_PROBED = {"camera", "network", "scheduler", "trainer", "metrics", "console"}
+HTTP_PROBED = {"camera", "network", "scheduler", "dispatcher", "metrics", "console"}
 
 
 # ----------------------------------------------------------------------------- rendering
@@ -476,7 +476,7 @@ def allowed_flows(docs: list[dict]) -> set[tuple[str, str, int]]:
     return flows
 
 
-EDGE = ("camera", "network", "scheduler", "trainer", "metrics", "console", "recorder")
+EDGE = ("camera", "network", "scheduler", "dispatcher", "metrics", "console", "recorder")
 EXPECTED_FLOWS = {
     # Zenoh: every client to the node routers (its own node's, through the Service)
     *((c, "router", 7447) for c in (*EDGE, "recon")),
@@ -624,9 +624,9 @@ def test_project_checks_catch_broken_manifests(rendered) -> None:
     # the environment drifts from compose's: a value, a variable added in Kubernetes only
     problems = environment_problems(broken(
         docs, "ConfigMap", next(n for n in by_kind(docs, "ConfigMap")
-                                if n.startswith("env-trainer")),
+                                if n.startswith("env-dispatcher")),
         lambda cm: cm["data"].update(AOI3D_TIME_SCALE="1")))
-    assert any("trainer" in p and "AOI3D_TIME_SCALE" in p for p in problems), problems
+    assert any("dispatcher" in p and "AOI3D_TIME_SCALE" in p for p in problems), problems
     problems = environment_problems(broken(
         docs, "Deployment", "recon",
         lambda w: first(w).setdefault("env", []).append({"name": "AOI3D_X", "value": "1"})))
@@ -636,7 +636,7 @@ def test_project_checks_catch_broken_manifests(rendered) -> None:
         lambda w: first(w)["resources"]["limits"].update(memory="512m")))
     assert any("memory limit" in p for p in problems), problems
     problems = environment_problems(broken(
-        docs, "Deployment", "trainer",
+        docs, "Deployment", "dispatcher",
         lambda w: pod_spec(w)["volumes"][0]["projected"]["sources"].pop()))
     assert any("is not mounted" in p for p in problems), problems
 

@@ -44,8 +44,8 @@ DOCUMENTED_SERIES = {
     "network": ["aoi3d_frames_offered_total", "aoi3d_frames_dropped_total",
                 "aoi3d_frames_delivered_total", "aoi3d_link_delay_seconds_bucket"],
     "scheduler": ["aoi3d_aoi_seconds", "aoi3d_cameras_selected", "aoi3d_decisions_total"],
-    "trainer": ["aoi3d_trainer_steps_total", "aoi3d_trainer_steps_per_second",
-                "aoi3d_trainer_loss", "aoi3d_trainer_views", "aoi3d_renders_total",
+    "dispatcher": ["aoi3d_dispatcher_steps_total", "aoi3d_dispatcher_steps_per_second",
+                "aoi3d_dispatcher_loss", "aoi3d_dispatcher_views", "aoi3d_renders_total",
                 "aoi3d_render_age_seconds", "aoi3d_render_lag_sim_seconds",
                 "aoi3d_render_frames_age_seconds", "aoi3d_render_steps"],
     "metrics": ["aoi3d_render_psnr_db", "aoi3d_render_ssim", "aoi3d_reward",
@@ -75,7 +75,8 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1"]
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_TRAINER_RENDER_STEPS="30")
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="1.0",
+               AOI3D_DISPATCHER_RENDER_STEPS="30")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
@@ -88,7 +89,8 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         # frames flow end to end: offered → delivered → decisions → training → quality
         wait_for("frames delivered", lambda: metric("network", "aoi3d_frames_delivered_total") > 20)
         wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 5)
-        wait_for("training steps", lambda: HTTP.get(url("trainer", "/status")).json()["steps"] > 0)
+        wait_for("training steps",
+                 lambda: HTTP.get(url("dispatcher", "/status")).json()["steps"] > 0)
         entries = wait_for("quality history",
                            lambda: HTTP.get(url("metrics", "/quality")).json()["history"],
                            timeout_s=90)
@@ -146,7 +148,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         for r in doc["results"]:
             assert r["n"] >= 1 and math.isfinite(r["psnr_db"]["mean"]), r
         assert doc["results"][1]["cameras_used"]["mean"] == len(big[-1].camera_ids)
-        assert doc["settings"]["carry"] == "stream"  # the default (AOI3D_TRAINER_CARRY)
+        assert doc["settings"]["carry"] == "stream"  # the default (AOI3D_DISPATCHER_CARRY)
         assert {"points.csv", "renders.csv", "results.json", "live_sweep.png"} <= {
             f.name for f in (tmp_path / "sweep").iterdir()}
 

@@ -58,13 +58,13 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
            "--workers", "2"]
     # enough steps that a reconstruction lasts long enough to be caught mid-way
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="150")
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="150")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
     try:
         pool = wait_for("two workers in the pool", lambda: len(
-            (p := HTTP.get(url("trainer", "/workers")).json())["workers"]) == 2 and p,
+            (p := HTTP.get(url("dispatcher", "/workers")).json())["workers"]) == 2 and p,
             timeout_s=120)
         tap = RenderTap(run_id)
         wait_for("renders from both workers", lambda: len(
@@ -73,12 +73,12 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
 
         # a worker in the middle of a reconstruction is killed
         busy = wait_for("a worker holding a decision", lambda: next(
-            (w for w in HTTP.get(url("trainer", "/workers")).json()["workers"]
+            (w for w in HTTP.get(url("dispatcher", "/workers")).json()["workers"]
              if w["holding"] is not None), None), every_s=0.02)
-        before = HTTP.get(url("trainer", "/workers")).json()
+        before = HTTP.get(url("dispatcher", "/workers")).json()
         os.kill(busy["pid"], signal.SIGKILL)
         after = wait_for("the loss counted", lambda: (p := HTTP.get(
-            url("trainer", "/workers")).json())["lost"].get("worker_died") and p, timeout_s=30)
+            url("dispatcher", "/workers")).json())["lost"].get("worker_died") and p, timeout_s=30)
         assert after["lost"]["worker_died"] == before["lost"].get("worker_died", 0) + 1
         assert set(after["lost"]) == {"worker_died"}, after["lost"]
         # the held decision is the one lost: never rendered by anyone
@@ -90,13 +90,13 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
                  timeout_s=60)
         # the supervisor restarts the worker; it rejoins the pool with a new id
         wait_for("the pool back to two workers", lambda: len(
-            ws := HTTP.get(url("trainer", "/workers")).json()["workers"]) == 2
+            ws := HTTP.get(url("dispatcher", "/workers")).json()["workers"]) == 2
             and killed not in {w["worker_id"] for w in ws}, timeout_s=60)
         state = json.loads((log_dir / "latest" / "up.json").read_text())
         assert sum(c["restarts"] for n, c in state["children"].items()
                    if n.startswith("recon-")) == 1
 
-        final = HTTP.get(url("trainer", "/workers")).json()
+        final = HTTP.get(url("dispatcher", "/workers")).json()
         with tap._rlock:
             done = [(i, d) for i, d, _ in tap.renders]
         assert len(done) == len(set(done)), "a decision was rendered twice"

@@ -1,6 +1,6 @@
 """The live pipeline switches to a PPO checkpoint, then learns online from its own rewards.
 
-Real processes, a real Zenoh router on 127.0.0.1 and the real trainer and metrics services
+Real processes, a real Zenoh router on 127.0.0.1 and the real dispatcher and metrics services
 (started by ``aoi3d up``, as in ``test_pipeline.py``, whose helpers this reuses). The
 checkpoint is built so that its deterministic action is known: it selects the odd cameras,
 whatever the AoI, while the pipeline starts with ``all``; so the decisions must change from
@@ -58,7 +58,7 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,
     # control locked with a token, checkpoints in the test's folder (docs/operations.md,
     # "Reliability and security")
     env = dict(os.environ, AOI3D_SCHEDULER_POLICY="all", AOI3D_SCHEDULER_LEARN_BATCH_SIZE="2",
-               AOI3D_TRAINER_RENDER_PERIOD_S="0.5", AOI3D_TRAINER_RENDER_STEPS="20",
+               AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5", AOI3D_DISPATCHER_RENDER_STEPS="20",
                AOI3D_CONTROL_TOKEN=TOKEN, AOI3D_FILES_ROOTS=str(tmp_path))
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)

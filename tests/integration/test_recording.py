@@ -61,8 +61,8 @@ def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) ->
            "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
     # the live default carry (stream): the replay rebuilds the worker's chain of jobs
     env = {k: v for k, v in os.environ.items()
-           if k not in ("AOI3D_TRAINER_CARRY", "AOI3D_TRAINER_RENDER_STEPS")}
-    env.update(AOI3D_TRAINER_RENDER_PERIOD_S="1.0", AOI3D_FILES_ROOTS=str(tmp_path),
+           if k not in ("AOI3D_DISPATCHER_CARRY", "AOI3D_DISPATCHER_RENDER_STEPS")}
+    env.update(AOI3D_DISPATCHER_RENDER_PERIOD_S="1.0", AOI3D_FILES_ROOTS=str(tmp_path),
                AOI3D_SCHEDULER_POLICY="mat:70")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)

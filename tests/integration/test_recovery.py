@@ -3,7 +3,7 @@ Quality flows (issue 11): `aoi3d up` restarts the process, and a render of a tim
 process came back is scored. Bound: 15 s on an unloaded machine (× AOI3D_TEST_TIMEOUT_SCALE).
 
 Before the fix a killed scheduler froze training for minutes: its successor numbered its
-decisions from 1 again and the trainer dropped them all as stale, so the renders kept
+decisions from 1 again and the dispatcher dropped them all as stale, so the renders kept
 showing the old decision's time — never a time after the restart."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ _PORTS = block("recovery")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
 PORTS = {s: p for s, p in SERVICE_PORTS.items() if s != "console"}
-ORDER = ("router", "camera", "network", "scheduler", "trainer", "metrics", "recon-1")
+ORDER = ("router", "camera", "network", "scheduler", "dispatcher", "metrics", "recon-1")
 BOUND_S = 15.0
 TIME_SCALE = 0.1
 
@@ -49,8 +49,8 @@ def test_each_process_killed_gives_new_quality_within_the_bound(
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet",
            "--time-scale", str(TIME_SCALE)]
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="0.5",
-               AOI3D_TRAINER_RENDER_STEPS="30")
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
+               AOI3D_DISPATCHER_RENDER_STEPS="30")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
@@ -68,11 +68,11 @@ def test_each_process_killed_gives_new_quality_within_the_bound(
             if name in PORTS:
                 wait_for(f"{name} back", lambda n=name, p=pid: healthy_pid(n) not in (None, p),
                          timeout_s=60)
-            elif name.startswith("recon-"):  # back when the trainer's pool lists its new pid
+            elif name.startswith("recon-"):  # back when the dispatcher's pool lists its new pid
                 wait_for(f"{name} back", lambda n=name, p=pid: (new := json.loads(
                     (log_dir / "latest" / "up.json").read_text())["children"][n]["pid"]) != p
                     and new in {w["pid"] for w in HTTP.get(
-                        f"http://127.0.0.1:{PORTS['trainer'] + PORT_OFFSET}/workers"
+                        f"http://127.0.0.1:{PORTS['dispatcher'] + PORT_OFFSET}/workers"
                     ).json()["workers"]}, timeout_s=60)
             else:
                 wait_for("router back", lambda p=pid: json.loads(

@@ -73,13 +73,13 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
            "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
            str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
            "--time-scale", "0.1", "--sites", "2", "--workers", "2"]
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
     up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                           text=True, start_new_session=True)
     tap = None
     try:
         wait_for("two workers", lambda: len(
-            HTTP.get(url("trainer", "/workers")).json()["workers"]) == 2, timeout_s=120)
+            HTTP.get(url("dispatcher", "/workers")).json()["workers"]) == 2, timeout_s=120)
         tap = SiteTap(run_id)
         for site in SITES:
             wait_for(f"Quality of {site}", lambda s=site: len(tap.quality[s]) >= 2,
@@ -108,8 +108,8 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
         # per-site REST and series, one pool
         for site in SITES:
             assert HTTP.get(url("metrics", f"/sites/{site}/quality")).json()["history"]
-            assert HTTP.get(url("trainer", f"/sites/{site}/status")).json()["site"] == site
-        by_site = HTTP.get(url("trainer", "/workers")).json()["by_site"]
+            assert HTTP.get(url("dispatcher", f"/sites/{site}/status")).json()["site"] == site
+        by_site = HTTP.get(url("dispatcher", "/workers")).json()["by_site"]
         assert all(by_site[s].get("rendered", 0) >= 1 for s in SITES), by_site
         text = HTTP.get(url("metrics", "/metrics")).text
         assert all(f'site="{s}"' in text for s in SITES)

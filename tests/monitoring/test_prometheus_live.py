@@ -171,8 +171,8 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
          run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET),
          "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
          "--workers", str(WORKERS)],
-        env=dict(os.environ, AOI3D_TRAINER_RENDER_PERIOD_S="0.5",
-                 AOI3D_TRAINER_RENDER_STEPS="20"),
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
+                 AOI3D_DISPATCHER_RENDER_STEPS="20"),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
     prometheus = None
     stopped_pid = None
@@ -207,7 +207,7 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
         for pick_one in (False, True):  # every variable at "All", then at one value
             chosen = resolve_variables(doc, pick_one)
             if not pick_one:
-                sites = prom("/api/v1/series", **{"match[]": "aoi3d_trainer_decisions_total"})
+                sites = prom("/api/v1/series", **{"match[]": "aoi3d_dispatcher_decisions_total"})
                 assert len({s["site"] for s in sites}) == 1
             for panel in panels(doc):
                 for target in panel["targets"]:

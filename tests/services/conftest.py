@@ -1,10 +1,10 @@
-"""The service tests' shared fixture: the trainer tests' scene (tests/support/trainer.py),
+"""The service tests' shared fixture: the dispatcher tests' scene (tests/support/dispatcher.py),
 generated once per module that asks for ``dataset`` (a module may define its own)."""
 
 import pytest
 
 from aoi3d.scene import SceneDataset
-from tests.support.trainer import trainer_scene
+from tests.support.dispatcher import trainer_scene
 
 
 @pytest.fixture(scope="module")

@@ -24,7 +24,7 @@ from tests.support.network import CAMERA
 from tests.support.waits import wait_for
 
 KEYS = Keys("console")
-UPSTREAM = {n: "http://127.0.0.1:9" for n in ("camera", "network", "scheduler", "trainer",
+UPSTREAM = {n: "http://127.0.0.1:9" for n in ("camera", "network", "scheduler", "dispatcher",
                                                "metrics")}  # nothing listens: errors shown
 
 
@@ -117,12 +117,12 @@ def test_the_display_summary_takes_the_recent_renders_and_the_trainers_budget() 
                               "expected_lag_ms": None, "psnr_db": None,
                               "psnr_display_db": None, "budget_steps": None,
                               "budget_source": None}
-    # a decision without a budget: the trainer's render_steps is the budget in force
+    # a decision without a budget: the dispatcher's render_steps is the budget in force
     core.on_decision(pb.Decision(decision_id=1, time_ms=30.0, camera_ids=[1], aoi_ms=[0.0],
                                  policy="mat:70").SerializeToString(), now=1.0)
-    core.on_status({"trainer": {"render_steps": 20}}, now=1.0)
+    core.on_status({"dispatcher": {"render_steps": 20}}, now=1.0)
     got = core.display()
-    assert (got["budget_steps"], got["budget_source"]) == (20, "trainer")
+    assert (got["budget_steps"], got["budget_source"]) == (20, "dispatcher")
     assert got["expected_lag_ms"] is None
     # an old regime, then LAG_RENDERS newer renders: the median is the newer ones'
     for i in range(10):
@@ -135,6 +135,6 @@ def test_the_display_summary_takes_the_recent_renders_and_the_trainers_budget() 
     # a render of an older metrics service (no ready time): no lag from it
     core.on_quality(quality(99, 30.0, lag_ms=None), now=4.0)
     assert core.display()["display_lag_n"] == LAG_RENDERS - 1
-    # a trainer that did not answer: no budget known
-    core.on_status({"trainer": {"error": "trainer unreachable"}}, now=5.0)
+    # a dispatcher that did not answer: no budget known
+    core.on_status({"dispatcher": {"error": "dispatcher unreachable"}}, now=5.0)
     assert core.display()["budget_steps"] is None

@@ -1,4 +1,4 @@
-"""The services that read the dataset (camera: frames, trainer: cameras and box) say what is
+"""The services that read the dataset (camera: frames, dispatcher: cameras and box) say what is
 wrong with it in one log line and exit 2 before serving — no traceback, no half-started server.
 """
 
@@ -51,7 +51,7 @@ def test_camera_with_a_missing_frame_logs_one_line_and_exits(intact: Path, tmp_p
     assert "aoi3d scene generate" in lines[0] and "Traceback" not in out
 
 
-@pytest.mark.parametrize("name", ["camera", "trainer"])
+@pytest.mark.parametrize("name", ["camera", "dispatcher"])
 def test_a_transforms_file_that_is_not_json_is_one_line(intact: Path, tmp_path: Path,
                                                         name: str) -> None:
     root = tmp_path / "scene"

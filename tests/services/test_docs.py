@@ -17,7 +17,7 @@ README = (ROOT / "README.md").read_text()
 DOCS = {p.name: p.read_text() for p in sorted((ROOT / "docs").glob("*.md"))}
 #: Every page a user reads: the front page and docs/.
 PAGES = {"README.md": README, **{f"docs/{k}": v for k, v in DOCS.items()}}
-PORTS = {8101: "camera", 8102: "network", 8103: "scheduler", 8104: "trainer", 8105: "metrics"}
+PORTS = {8101: "camera", 8102: "network", 8103: "scheduler", 8104: "dispatcher", 8105: "metrics"}
 CURL = re.compile(r"curl(?: -X (\w+))?[^\n]*?localhost:(\d+)(/[\w./]*)")
 #: Pages whose numbers come from result files: measurements.md (bench/docs.py, from
 #: bench/results) and science.md (bench/science.py, `make science`); and the hand-written
@@ -64,7 +64,7 @@ def test_the_pages_that_teach_control_show_it() -> None:
 def test_route_table_exists(openapi_paths: dict[str, dict]) -> None:
     rows = 0
     for line in DOCS["operations.md"].splitlines():
-        m = re.match(r"\| (camera|network|scheduler|trainer|metrics) \| 81\d\d \|.*\| (.+) \|$",
+        m = re.match(r"\| (camera|network|scheduler|dispatcher|metrics) \| 81\d\d \|.*\| (.+) \|$",
                      line)
         if not m:
             continue

@@ -1,4 +1,4 @@
-"""Free views and exports through the trainer's REST, answered by a real reconstruction worker
+"""Free views and exports through the dispatcher's REST, answered by a real reconstruction worker
 on a MemoryBus: two poses give two different images of the asked size, a bad pose a 4xx, the
 rate limit a 429 (counted), and ``aoi3d export`` a .ply that trimesh reads with thousands of
 coloured points inside the scene box. Every wait is tests/support/waits.py's, scaled by
@@ -23,6 +23,8 @@ from aoi3d.clock import SimClock
 from aoi3d.field import GridConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from aoi3d.scene.camera import look_at
+from services.dispatcher.app import create_app
+from services.dispatcher.settings import Settings
 from services.kit.codec import PNG, encode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
@@ -31,8 +33,6 @@ from services.kit.settings import CommonSettings
 from services.recon.core import ReconCore
 from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
-from services.trainer.app import create_app
-from services.trainer.settings import Settings
 from tests.support.timeouts import SCALE
 from tests.support.waits import wait_for
 
@@ -117,7 +117,7 @@ def served(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:
 
 
 def views_total(client: TestClient, outcome: str, kind: str = "view") -> float:
-    series = f'aoi3d_trainer_views_total{{kind="{kind}",outcome="{outcome}"}}'
+    series = f'aoi3d_dispatcher_views_total{{kind="{kind}",outcome="{outcome}"}}'
     for line in client.get("/metrics").text.splitlines():
         if line.startswith(series + " "):
             return float(line.split()[-1])
@@ -199,7 +199,7 @@ def test_aoi3d_export_writes_a_ply_trimesh_reads(dataset: SceneDataset, tmp_path
     thread.start()
     worker = None
     try:
-        wait_for(lambda: server.started, 60.0, what="the trainer's server", every_s=POLL_S)
+        wait_for(lambda: server.started, 60.0, what="the dispatcher's server", every_s=POLL_S)
         worker = Worker(bus)
         render_one_decision(bus, dataset)
         import httpx
@@ -210,7 +210,7 @@ def test_aoi3d_export_writes_a_ply_trimesh_reads(dataset: SceneDataset, tmp_path
         out = tmp_path / "model.ply"
         result = CliRunner().invoke(cli, ["export", "--site", "site1", "--out", str(out),
                                           "--resolution", "96",
-                                          "--trainer", f"http://127.0.0.1:{port}"])
+                                          "--dispatcher", f"http://127.0.0.1:{port}"])
         assert result.exit_code == 0, result.output
         cloud = trimesh.load(out)
         assert isinstance(cloud, trimesh.PointCloud)
@@ -222,13 +222,13 @@ def test_aoi3d_export_writes_a_ply_trimesh_reads(dataset: SceneDataset, tmp_path
         assert len(np.unique(colours, axis=0)) > 50
         mesh_out = tmp_path / "model-mesh.ply"
         result = CliRunner().invoke(cli, ["export", "--out", str(mesh_out), "--mesh",
-                                          "--resolution", "48", "--trainer",
+                                          "--resolution", "48", "--dispatcher",
                                           f"http://127.0.0.1:{port}"])
         assert result.exit_code == 0, result.output
         mesh = trimesh.load(mesh_out)
         assert isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) > 100
         result = CliRunner().invoke(cli, ["export", "--site", "nosuch", "--out",
-                                          str(tmp_path / "x.ply"), "--trainer",
+                                          str(tmp_path / "x.ply"), "--dispatcher",
                                           f"http://127.0.0.1:{port}"])
         assert result.exit_code == 1 and "404" in result.output
     finally:

@@ -19,12 +19,12 @@ TOKEN = "s3cret-token"
 VALID = {"camera": ("PUT", "/config", {"paused": False}),
          "network": ("PUT", "/channel", {"delay": "exp:60"}),
          "scheduler": ("PUT", "/policy", {"kind": "mat", "mat_ms": 70}),
-         "trainer": ("POST", "/reset", None),
+         "dispatcher": ("POST", "/reset", None),
          "metrics": None}  # nothing to change there: GETs only
 NUMERIC = {"camera": ("PUT", "/config", "period_ms"),
            "network": ("PUT", "/channel", "seed"),
            "scheduler": ("PUT", "/policy", "mat_ms"),
-           "trainer": ("PUT", "/carry", "render_steps")}
+           "dispatcher": ("PUT", "/carry", "render_steps")}
 
 
 
@@ -145,7 +145,7 @@ def test_the_token_can_come_from_a_file(open_app, tmp_path: Path) -> None:
 def test_cross_site_requests_are_refused(open_app) -> None:
     """A page of another site posting a form, or fetching with its Origin; and a rebound DNS
     name pointing at 127.0.0.1 (the Host header names it)."""
-    client = open_app("trainer")
+    client = open_app("dispatcher")
     steps = client.get("/status").json()["steps"]
     r = client.post("/reset", content=b"a=1",
                     headers={"content-type": "application/x-www-form-urlencoded"})

@@ -1,8 +1,8 @@
 """The decision ledger live in the metrics service (one MemoryBus, the real runtime): each
 state and lost reason reaches GET /ledger and /metrics, an open decision expires, nonsense is
 refused and counted, and the ledger survives a restart of the service (its state folder).
-The trainer's side — an Outcome for each decision that ends without a render — is in
-tests/services/test_trainer.py and tests/unit/test_pool.py."""
+The dispatcher's side — an Outcome for each decision that ends without a render — is in
+tests/services/test_dispatcher.py and tests/unit/test_pool.py."""
 
 from __future__ import annotations
 

@@ -14,11 +14,11 @@ from PIL import Image
 
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
+from services.dispatcher.app import create_app as trainer_app
 from services.kit.codec import PNG, encode_frame
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
-from services.trainer.app import create_app as trainer_app
-from tests.support.trainer import (
+from tests.support.dispatcher import (
     KEYS,
     N_TRAIN,
     frame_payload,
@@ -32,7 +32,7 @@ U64_MAX = 2**64 - 1
 
 
 @pytest.fixture
-def trainer(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:
+def dispatcher(dataset: SceneDataset) -> Iterator[tuple[TestClient, MemoryBus]]:
     bus = MemoryBus()
     # the clock is 10 s into the run (time scale 10: 100 s of sim time), so the decisions
     # below are in its past; the skew is 0.5 s × 10 = 5000 sim ms
@@ -58,8 +58,8 @@ def in_force(client: TestClient) -> tuple[int, float] | None:
     return None if d is None else (d["decision_id"], d["time_ms"])
 
 
-def test_a_restarted_scheduler_is_followed_at_once(trainer, dataset: SceneDataset) -> None:
-    client, bus = trainer
+def test_a_restarted_scheduler_is_followed_at_once(dispatcher, dataset: SceneDataset) -> None:
+    client, bus = dispatcher
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(777, 3000.0, incarnation=11, refs=[(1, 0.0)]))
     wait_for(lambda: in_force(client) == (777, 3000.0), what="the first scheduler's decision")
@@ -70,8 +70,8 @@ def test_a_restarted_scheduler_is_followed_at_once(trainer, dataset: SceneDatase
                   default=0.0) == 0.0
 
 
-def test_decision_id_u64_max_does_not_freeze_the_trainer(trainer, dataset: SceneDataset) -> None:
-    client, bus = trainer
+def test_decision_id_u64_max_does_not_freeze_the_trainer(dispatcher, dataset: SceneDataset) -> None:
+    client, bus = dispatcher
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(U64_MAX, 3000.0, incarnation=11, refs=[(1, 0.0)]))
     wait_for(lambda: in_force(client) == (U64_MAX, 3000.0), what="the poisoned decision")
@@ -80,8 +80,9 @@ def test_decision_id_u64_max_does_not_freeze_the_trainer(trainer, dataset: Scene
     wait_for(lambda: in_force(client) == (5, 3030.0), what="a later decision after the poison")
 
 
-def test_decisions_from_the_future_are_rejected_and_counted(trainer, dataset: SceneDataset) -> None:
-    client, bus = trainer
+def test_decisions_from_the_future_are_rejected_and_counted(dispatcher,
+                                                            dataset: SceneDataset) -> None:
+    client, bus = dispatcher
     publish_frames(bus, dataset, 0.0)
     bus.publish(KEYS.decision, decision(1, 1e12, incarnation=11, refs=[(1, 0.0)]))
     wait_for(lambda: metric(client, "aoi3d_messages_rejected_total", 'reason="clock_skew"',
@@ -90,8 +91,8 @@ def test_decisions_from_the_future_are_rejected_and_counted(trainer, dataset: Sc
     wait_for(lambda: in_force(client) == (2, 3000.0), what="the next real decision")
 
 
-def test_a_huge_png_is_rejected_before_it_is_decoded(trainer, dataset: SceneDataset) -> None:
-    client, bus = trainer
+def test_a_huge_png_is_rejected_before_it_is_decoded(dispatcher, dataset: SceneDataset) -> None:
+    client, bus = dispatcher
     ds = dataset
     buf = io.BytesIO()
     Image.new("RGB", (4096, 4096)).save(buf, format="PNG")  # ~50 KB, 50 MB decoded

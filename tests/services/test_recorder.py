@@ -333,7 +333,7 @@ def test_scores_of_a_background_carry_are_refused_saying_how_to_record_one(carry
                                   frame_generation_ms=[25.0], frame_camera_ids=[1])
     site.qualities[key] = pb.Quality(decision_id=d.decision_id, psnr_db=20.0)
     rec = Recorded(Path("r.mcap"), [], {}, {"site1": site})
-    with pytest.raises(ValueError, match=rf"{carry} renders.*AOI3D_TRAINER_CARRY=stream or "
+    with pytest.raises(ValueError, match=rf"{carry} renders.*AOI3D_DISPATCHER_CARRY=stream or "
                                          r"fresh.*--no-score"):
         replay(rec, None)
     assert [x.rebuildable for x in replay(rec, None, score=False).decisions] == [True]

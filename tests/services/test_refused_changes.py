@@ -61,12 +61,12 @@ def _bodies(tmp: Path, *, write: bool = True) -> dict[tuple[str, str, str], list
             {"kind": "ppo", "checkpoint": "/etc/passwd"},
             {"kind": "ppo", "checkpoint": "models/no-such.pt", "learn": True},
             "not json"],
-        ("trainer", "/backend", "/status"): [{"backend": "nope"}, {"backend": 3}, "not json"],
+        ("dispatcher", "/backend", "/status"): [{"backend": "nope"}, {"backend": 3}, "not json"],
         ("recorder", "/recording/start", "/recording"): [  # a POST: the one state change
             {"path": "/etc/aoi3d.mcap"}, {"path": ""}, {"path": "~nobody-here/x.mcap"},
             {"path": str(tmp / "x.mcap"), "max_bytes": -1}, {"path": "a\u0000b"},
             {"path": str(tmp / "x.mcap"), "extra": 1}, "not json"],
-        ("trainer", "/carry", "/status"): [
+        ("dispatcher", "/carry", "/status"): [
             {"carry": "nope"}, {"carry": "stream", "render_steps": 0},
             {"carry": "fresh", "render_steps": 10**9}, "not json"],
     }

@@ -4,7 +4,7 @@ the recorder's own writer and read back; the replay rebuilds each worker's chain
 
 The "live" run here is the pool's code without the bus: the decisions are taken by the
 decision step every setting shares, each rendered job is run by its worker's
-:class:`ReconCore` (the small grid of the trainer tests) and scored by the metrics service's
+:class:`ReconCore` (the small grid of the dispatcher tests) and scored by the metrics service's
 core, and every message goes through :class:`services.recorder.core.Recording`."""
 
 from __future__ import annotations
@@ -20,8 +20,8 @@ from services.kit.codec import PNG, camera_to_pb, encode_frame
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import ReconCore
 from services.recorder.core import Recording
+from tests.support.dispatcher import CONFIGS, N_TRAIN
 from tests.support.recording import K
-from tests.support.trainer import CONFIGS, N_TRAIN
 
 CAMS = list(range(1, N_TRAIN + 1))
 DELAY_MS = {1: 10.0, 2: 20.0, 3: 45.0, 4: 70.0}

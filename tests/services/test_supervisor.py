@@ -96,10 +96,10 @@ def test_taken_ports_sees_a_listening_socket() -> None:
     cfg = UpConfig(port_offset=PORT_OFFSET, zenoh_port=ZENOH_PORT)
     assert taken_ports(cfg) == []
     with socket.socket() as s:
-        s.bind(("127.0.0.1", cfg.port("trainer")))
+        s.bind(("127.0.0.1", cfg.port("dispatcher")))
         s.listen()
-        assert port_in_use(cfg.port("trainer"))
-        assert taken_ports(cfg) == [("trainer", cfg.port("trainer"))]
+        assert port_in_use(cfg.port("dispatcher"))
+        assert taken_ports(cfg) == [("dispatcher", cfg.port("dispatcher"))]
     with socket.socket() as s:  # a server on all interfaces blocks 127.0.0.1 too
         s.bind(("0.0.0.0", ZENOH_PORT))
         s.listen()

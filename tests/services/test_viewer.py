@@ -1,6 +1,6 @@
 """The 3D viewer service on a MemoryBus: its page is viser's client served from the wheel
 (nothing from outside), its websocket is relayed to viser, and what it draws follows the
-decision in force (AoI colours, the cameras used); a browser's camera becomes the trainer's
+decision in force (AoI colours, the cameras used); a browser's camera becomes the dispatcher's
 free-view query, and the status line says what is shown. Waits: tests/support/waits.py."""
 
 from __future__ import annotations

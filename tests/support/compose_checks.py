@@ -34,7 +34,7 @@ PROMETHEUS_FILE = PROMETHEUS_DIR / "prometheus.yml"
 GRAFANA_DIR = ROOT / "deploy" / "grafana"
 DASHBOARD_FILE = GRAFANA_DIR / "dashboards" / "aoi3d.json"
 
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
+SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")
 """The five pipeline services; each runs as ``python -m services.<name>``."""
 
 HTTP_SERVICES = (*SERVICES, "console", "recorder")
@@ -299,7 +299,7 @@ def tls_problems(doc: dict[str, Any]) -> list[str]:
 
 
 def dataset_problems(doc: dict[str, Any]) -> list[str]:
-    """The one-shot dataset job writes where camera and trainer read, and they wait for it."""
+    """The one-shot dataset job writes where camera and dispatcher read, and they wait for it."""
     services = doc["services"]
     job = services.get("dataset")
     if job is None:
@@ -312,7 +312,7 @@ def dataset_problems(doc: dict[str, Any]) -> list[str]:
     if job.get("restart", "no") != "no":
         problems.append("dataset: a one-shot job must not restart")
     job_mounts = {str(v).split(":")[1]: str(v).split(":")[0] for v in job.get("volumes", [])}
-    for name in ("camera", "trainer"):
+    for name in ("camera", "dispatcher"):
         service = services.get(name, {})
         dataset = environment(service).get("AOI3D_DATASET")
         if dataset != out:

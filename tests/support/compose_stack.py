@@ -30,13 +30,13 @@ COMPOSE_MARKS = [
                        reason="runs containers: `make compose-test` (sets AOI3D_COMPOSE_TEST=1)"),
 ]
 TARGET_PORTS = {"ZENOH": 7447, "CAMERA": 8101, "NETWORK": 8102, "SCHEDULER": 8103,
-                "TRAINER": 8104, "METRICS": 8105, "CONSOLE": 8106, "RECORDER": 8107,
+                "DISPATCHER": 8104, "METRICS": 8105, "CONSOLE": 8106, "RECORDER": 8107,
                 "PROMETHEUS": 9090, "GRAFANA": 3000}
 PORTS = dict(zip(TARGET_PORTS, block("compose").ports(), strict=False))
 """Published ports of this run (compose.yaml's AOI3D_PORT_<NAME>)."""
 PROJECT = f"aoi3d-test-{os.getpid()}"
 HAS_CONSOLE = (ROOT / "services" / "console" / "__main__.py").is_file()
-SERVICES = ["router", "dataset", "camera", "network", "scheduler", "trainer", "recon",
+SERVICES = ["router", "dataset", "camera", "network", "scheduler", "dispatcher", "recon",
             "metrics", "recorder", "prometheus", *(["console"] if HAS_CONSOLE else [])]
 """What `up` starts: everything but Grafana; the console once it exists in the code."""
 

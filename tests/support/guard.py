@@ -11,6 +11,7 @@ from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset
 from services.camera.app import create_app as camera_app
 from services.camera.settings import Settings as CameraSettings
+from services.dispatcher.app import create_app as trainer_app
 from services.kit.membus import MemoryBus
 from services.kit.settings import CommonSettings
 from services.metrics.app import create_app as metrics_app
@@ -19,8 +20,7 @@ from services.network.app import create_app as network_app
 from services.network.settings import Settings as NetworkSettings
 from services.scheduler.app import create_app as scheduler_app
 from services.scheduler.settings import Settings as SchedulerSettings
-from services.trainer.app import create_app as trainer_app
-from tests.support.trainer import N_TRAIN, make_settings
+from tests.support.dispatcher import N_TRAIN, make_settings
 
 HOSTS = ["127.0.0.1", "localhost", "testserver"]
 
@@ -56,7 +56,7 @@ def build(service: str, ds: SceneDataset, **kw) -> FastAPI:
         return metrics_app(MetricsSettings(common=common(**kw)), bus=bus)
     settings = make_settings(common=common(time_scale=10.0, epoch_s=time.time(), **kw))
     return trainer_app(settings, bus=bus, dataset=ds)
-SERVICES = ["camera", "network", "scheduler", "trainer", "metrics"]
+SERVICES = ["camera", "network", "scheduler", "dispatcher", "metrics"]
 FUZZED = [*SERVICES, "recorder", "ingest"]
 """Every service whose REST API the fuzz test drives (the five, and those added with real
 cameras and recordings)."""

@@ -30,7 +30,7 @@ HTTP = httpx.Client(timeout=30 * SCALE)
 _PORTS = block("pipeline")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
-SERVICES = ("camera", "network", "scheduler", "trainer", "metrics")
+SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")
 
 
 def url(service: str, path: str) -> str:

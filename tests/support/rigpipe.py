@@ -25,7 +25,7 @@ __all__ = ["PORTS", "PORT_OFFSET", "ZENOH_PORT", "QualityTap", "metric", "up_rig
 PORTS = block("ros2")
 PORT_OFFSET = PORTS.rest_offset
 ZENOH_PORT = PORTS.zenoh
-RIG_SERVICES = ("ingest", "network", "scheduler", "trainer", "metrics")
+RIG_SERVICES = ("ingest", "network", "scheduler", "dispatcher", "metrics")
 
 
 def url(service: str, path: str) -> str:
@@ -44,7 +44,7 @@ def metric(service: str, name: str, default: float | None = None) -> float:
 def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[subprocess.Popen, str]:
     """``aoi3d up --rig`` on these ports (30 steps per render), and its run id."""
     run_id = f"{prefix}{uuid.uuid4().hex[:8]}"
-    env = dict(os.environ, AOI3D_TRAINER_RENDER_STEPS="30")
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
     up = subprocess.Popen(
         [sys.executable, "-m", "aoi3d_cli", "up", "--rig", str(rig), "--run-id", run_id,
          "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",

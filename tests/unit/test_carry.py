@@ -1,4 +1,5 @@
-"""The carry modes (aoi3d.field.carry): one implementation for the experiments and the trainer."""
+"""The carry modes (aoi3d.field.carry): one implementation for the experiments and the live
+workers."""
 
 from __future__ import annotations
 
@@ -127,8 +128,8 @@ def test_the_modes_are_spelled_once() -> None:
     # the one definition (CarryMode), what every list and every API schema takes
     assert CARRY_MODES == ("fork", "fresh", "stream", "warm")
     assert {"fork", "warm"} == BACKGROUND_MODES and {"fork", "stream"} == FINETUNE_MODES
-    from services.trainer.app import CarryRequest
-    from services.trainer.settings import Settings
+    from services.dispatcher.app import CarryRequest
+    from services.dispatcher.settings import Settings
 
     for model in (CarryRequest, Settings):
         assert model.model_json_schema()["properties"]["carry"]["enum"] == list(CARRY_MODES)

@@ -134,7 +134,7 @@ def test_point_cloud_and_mesh_ply_read_back_with_trimesh(trained) -> None:
 
 
 def test_token_bucket_allows_bursts_then_the_rate() -> None:
-    from services.trainer.views import TokenBucket, ViewRefused
+    from services.dispatcher.views import TokenBucket, ViewRefused
 
     bucket = TokenBucket(rate_per_s=2.0, burst=3)
     assert [bucket.take(0.0) for _ in range(4)] == [True, True, True, False]

@@ -22,8 +22,8 @@ ALLOWED: dict[str, tuple[int, str]] = {
     "aoi3d_cli/live.py::sweep": (
         111, "its typer option table is 64 lines (one Option, with its --help text, per "
              "flag); the body, 47 lines, is already split into named steps"),
-    "services/trainer/metrics.py::PoolCollector.collect": (
-        117, "a declarative table: one yield per metric family of the trainer and the pool "
+    "services/dispatcher/metrics.py::PoolCollector.collect": (
+        117, "a declarative table: one yield per metric family of the dispatcher and the pool "
              "(26 of them), after one snapshot under the lock"),
 }
 

@@ -12,11 +12,11 @@ from bench import live_default
 def test_a_configuration_is_the_environment_a_user_sets() -> None:
     assert live_default.parse_config("default") == ("default", {})
     assert live_default.parse_config(" stream@25") == (
-        "stream@25", {"AOI3D_TRAINER_CARRY": "stream", "AOI3D_TRAINER_RENDER_STEPS": "25"})
+        "stream@25", {"AOI3D_DISPATCHER_CARRY": "stream", "AOI3D_DISPATCHER_RENDER_STEPS": "25"})
     assert live_default.parse_config("default/all") == (
         "default/all", {"AOI3D_SCHEDULER_POLICY": "all"})
     assert live_default.parse_config("fresh@100/mat:130")[1] == {
-        "AOI3D_TRAINER_CARRY": "fresh", "AOI3D_TRAINER_RENDER_STEPS": "100",
+        "AOI3D_DISPATCHER_CARRY": "fresh", "AOI3D_DISPATCHER_RENDER_STEPS": "100",
         "AOI3D_SCHEDULER_POLICY": "mat:130"}
     for bad in ("stream", "stream@", "@25", "fresh@0", "fresh@x", "fresh@-3", "stream/all"):
         with pytest.raises(ValueError, match="CARRY@STEPS"):

@@ -23,7 +23,7 @@ def ask(pool: Dispatcher, w: str, now: float, done: DecisionRef | None = None,
 
 def test_the_pools_reasons_are_the_wires_skipped_or_trainer_lost_ones() -> None:
     """The domain names the pool's reasons (it imports no proto); each is an EndReason of the
-    wire with the same label, and the pool tells exactly the trainer's reasons."""
+    wire with the same label, and the pool tells exactly the dispatcher's reasons."""
     assert {EndReason(r) for r in PoolReason} == set(SKIPPED) | set(TRAINER_LOST)
     assert set(POOL_LOST) <= set(TRAINER_LOST)
     assert all(EndReason(r) == r for r in PoolReason)
@@ -226,7 +226,7 @@ def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) ->
     for counts in s.by_site.values():
         assert counts.get("assigned", 0) + counts.get("superseded", 0) <= counts["decisions"]
     assert s.assigned + s.superseded + len(s.pending) == s.decisions
-    ended = pool.drain_ended()  # what the trainer tells the ledger: each end once
+    ended = pool.drain_ended()  # what the dispatcher tells the ledger: each end once
     assert len({e.decision.key for e in ended}) == len(ended)
     assert sum(e.state == "skipped" for e in ended) == s.superseded
     assert sum(e.state == "lost" for e in ended) == sum(s.lost.values())
@@ -234,7 +234,7 @@ def test_every_decision_is_accounted_for_and_none_is_handed_out_twice(events) ->
 
 
 def test_each_end_without_a_render_is_told_with_its_reason() -> None:
-    """The Ended events the trainer publishes as Outcomes: one per pool reason."""
+    """The Ended events the dispatcher publishes as Outcomes: one per pool reason."""
     pool = Dispatcher(job_timeout_s=5.0)
     for w in "abcd":
         pool.joined(w, 0.0)

@@ -72,7 +72,7 @@ def test_every_port_comes_from_the_one_table() -> None:
         for p in block.ports():
             assert p not in taken, f"bench {name}'s port {p} is also {taken[p]}'s"
             taken[p] = name
-    assert table.UP.url("trainer", "/status") == "http://127.0.0.1:8104/status"
+    assert table.UP.url("dispatcher", "/status") == "http://127.0.0.1:8104/status"
     assert table.BENCH_BLOCKS["pipeline"].up_args() == ["--port-offset", "1000",
                                                         "--zenoh-port", "7547"]
 

@@ -1,5 +1,5 @@
 """The rig file (issue 31): YAML or JSON, validated, every error naming its field; poses in any
-of the conventions a ROS user has; the view, box and working size the trainer uses; and
+of the conventions a ROS user has; the view, box and working size the dispatcher uses; and
 ``aoi3d up --rig`` running the ingest service in the camera's slot."""
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ def test_the_compose_rig_override_runs_the_ingest_in_the_cameras_slot() -> None:
     rig = yaml.safe_load((root / "compose.rig.yaml").read_text())["services"]
     assert set(rig) <= set(base)
     assert rig["camera"]["command"] == ["python", "-m", "services.ingest"]
-    for name in ("camera", "trainer"):
+    for name in ("camera", "dispatcher"):
         assert rig[name]["environment"]["AOI3D_RIG"] == "/rig/rig.yaml"
         assert any(v.endswith(":/rig/rig.yaml:ro") for v in rig[name]["volumes"])
     for var in rig["camera"]["environment"]:

@@ -1,10 +1,10 @@
 """The twin of the live pool on the virtual clock (:func:`run_pool_plan`: ``pool_workers`` ≥ 1).
 
-Live, every decision goes to the trainer service's dispatcher, which hands the newest one to
+Live, every decision goes to the dispatcher service, which hands the newest one to
 a free reconstruction worker and counts the ones no worker took ``superseded``; each worker
 keeps one model, and under the ``stream`` carry a job continues the model of that worker's
 previous job (the warm chain). The twin runs the same dispatcher (:class:`aoi3d.pool.
-Dispatcher`, with ``prefer_warm`` under ``stream`` as the trainer sets it) on the virtual
+Dispatcher`, with ``prefer_warm`` under ``stream`` as the dispatcher sets it) on the virtual
 clock, with simulated workers in place of the processes:
 
 - each planned decision is offered at its time (``eval_ms``: a waiting policy's decision is
@@ -19,7 +19,7 @@ clock, with simulated workers in place of the processes:
   decisions the pool left are counted (:class:`PoolOutcome`).
 
 Times go to the dispatcher in wall seconds (scene ms / ``time_scale`` / 1000), as the live
-trainer's clock gives them. What the twin leaves out: the messaging between the processes
+dispatcher's clock gives them. What the twin leaves out: the messaging between the processes
 (a job's frames, the Render's way back; a few ms), and the other processes' share of the
 cores, which is in the measured compute time.
 """
@@ -117,7 +117,7 @@ class _Twin:
         self.heldout = dataset.cameras[dataset.heldout_id]
         self.lpips_fn, self.on_render = lpips_fn, on_render
         self.pool = Dispatcher(job_timeout_s=math.inf, fresh_fraction=cfg.pool_fresh_fraction)
-        self.pool.prefer_warm = cfg.carry == "stream"  # the trainer's choice for stream
+        self.pool.prefer_warm = cfg.carry == "stream"  # the dispatcher's choice for stream
         self.workers = {f"twin-{i}": _Worker(f"twin-{i}", cfg, dataset, plan.seed)
                         for i in range(cfg.pool_workers)}
         for wid in self.workers:
@@ -131,7 +131,7 @@ class _Twin:
         self.warm = self.rendered = self.steps = 0
 
     def wall_s(self, ms: float) -> float:
-        """Scene ms as the live trainer's clock gives them to the dispatcher: wall seconds."""
+        """Scene ms as the live dispatcher's clock gives them: wall seconds."""
         return ms / self.cfg.time_scale / 1000.0
 
     def offer(self, i: int) -> None:

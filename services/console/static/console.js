@@ -121,7 +121,7 @@ function drawAoI(s) {
 
 function drawChannel(s) {
   const c = s.channel_summary;
-  const t = s.trainer || {};
+  const t = s.dispatcher || {};
   facts($("channel"), c ? [
     ["delay", c.delay],
     ...(c.in_force && c.in_force !== c.delay ? [["in force now", c.in_force]] : []),
@@ -135,7 +135,7 @@ function drawChannel(s) {
   const p = t.pool || {};
   const busy = (p.workers || []).map((w) => w.busy_fraction === null ? "–" : fmt(w.busy_fraction, 2));
   const lost = Object.values(p.lost || {}).reduce((a, b) => a + b, 0);
-  facts($("trainer"), [
+  facts($("dispatcher"), [
     ["backend", t.backend || "–"], ["worker training steps / s", fmt(t.steps_per_s, 1)],
     ["views", t.n_views ?? "–"], ["render age", s.render ? `${fmt(s.render.age_s, 1)} s` : "–"],
     ["renders", t.renders ?? "–"],
@@ -154,7 +154,7 @@ function drawChannel(s) {
 
 // What the viewer sees, and when: the lag from a decision to its render on screen (measured,
 // and the scheduler's expectation), the PSNR then beside the PSNR at the decision's time, and
-// the budget in force (the decision's, else the trainer's render_steps).
+// the budget in force (the decision's, else the dispatcher's render_steps).
 function drawDisplay(v) {
   const ms = (x) => (x === null || x === undefined ? "–" : `${fmt(x, 1)} ms`);
   facts($("display"), [
@@ -162,7 +162,7 @@ function drawDisplay(v) {
     ["expected lag (scheduler)", ms(v.expected_lag_ms)],
     ["PSNR decision / display", `${fmt(v.psnr_db, 2)} / ${fmt(v.psnr_display_db, 2)} dB`],
     ["budget in force", v.budget_steps === null || v.budget_steps === undefined ? "–"
-      : `${v.budget_steps} steps (${v.budget_source === "decision" ? "the decision's" : "the trainer's render_steps"})`],
+      : `${v.budget_steps} steps (${v.budget_source === "decision" ? "the decision's" : "the dispatcher's render_steps"})`],
   ]);
 }
 
@@ -324,7 +324,7 @@ function policyKindBody() {
   return { kind };
 }
 
-// The policy with its training budget (empty: none, the trainer's render_steps); the
+// The policy with its training budget (empty: none, the dispatcher's render_steps); the
 // scheduler checks the number and says what is wrong.
 function policyBody() {
   const body = policyKindBody();
@@ -369,7 +369,7 @@ async function setup() {
     $("kind").value = p.kind;
     if (p.kind === "mat") { $("mat").value = p.mat_ms; $("mat-value").textContent = p.mat_ms; }
     $("budget").value = p.budget_steps ?? "";
-    const t = await call("GET", "trainer", "status");  // its backends: the choices
+    const t = await call("GET", "dispatcher", "status");  // its backends: the choices
     for (const b of t.backends) $("backend").add(new Option(b, b));
     $("backend").value = t.backend;
   } catch (e) { /* shown by the next event */ }
@@ -383,12 +383,12 @@ async function setup() {
   $("apply-delay").addEventListener("click", () => applyDelay($("delay-spec").value || `exp:${$("delay-mean").value}`));
   $("apply-backend").addEventListener("click", async () => {
     try {
-      await call("PUT", "trainer", "backend", { backend: $("backend").value });
+      await call("PUT", "dispatcher", "backend", { backend: $("backend").value });
       say("model-msg", `backend ${$("backend").value}`, true);
     } catch (e) { say("model-msg", e.message, false); }
   });
   $("reset").addEventListener("click", async () => {
-    try { await call("POST", "trainer", "reset"); say("model-msg", "model reset", true); }
+    try { await call("POST", "dispatcher", "reset"); say("model-msg", "model reset", true); }
     catch (e) { say("model-msg", e.message, false); }
   });
 

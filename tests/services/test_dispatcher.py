@@ -1,4 +1,4 @@
-"""The trainer service (the pool's dispatcher) and real reconstruction workers on one MemoryBus:
+"""The dispatcher service (the pool's dispatcher) and real reconstruction workers on one MemoryBus:
 real frames and decisions in, renders out, each decision to exactly one worker."""
 
 from __future__ import annotations
@@ -19,6 +19,8 @@ from pydantic import ValidationError
 from aoi3d.clock import SimClock
 from aoi3d.field import BACKENDS
 from aoi3d.scene import SceneDataset
+from services.dispatcher.app import create_app
+from services.dispatcher.settings import Settings
 from services.kit.codec import decode_image, decode_render
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
@@ -28,10 +30,7 @@ from services.metrics.ledger import Outcome, decode_outcome
 from services.recon.core import ReconCore
 from services.recon.settings import Settings as ReconSettings
 from services.recon.worker import ReconWorker
-from services.trainer.app import create_app
-from services.trainer.settings import Settings
-from tests.support.timeouts import timeout_scale
-from tests.support.trainer import (
+from tests.support.dispatcher import (
     CONFIGS,
     KEYS,
     N_TRAIN,
@@ -41,6 +40,7 @@ from tests.support.trainer import (
     metric,
     publish_frames,
 )
+from tests.support.timeouts import timeout_scale
 from tests.support.waits import settle, wait_for
 
 TIMEOUT_SCALE = timeout_scale()
@@ -154,13 +154,13 @@ def test_a_decision_is_rendered_by_one_worker_from_its_own_frames(
     assert w["worker_id"] == "w1" and w["rendered"] == 1 and w["pid"] == os.getpid()
 
     assert metric(client, "aoi3d_renders_total", 'site="site1"') == 1
-    assert metric(client, "aoi3d_trainer_steps_total", 'site="site1"') == 20
-    assert metric(client, "aoi3d_trainer_views", 'site="site1"') == 3
-    assert metric(client, "aoi3d_trainer_frames_missing_total", 'site="site1"') == 1
+    assert metric(client, "aoi3d_dispatcher_steps_total", 'site="site1"') == 20
+    assert metric(client, "aoi3d_dispatcher_views", 'site="site1"') == 3
+    assert metric(client, "aoi3d_dispatcher_frames_missing_total", 'site="site1"') == 1
     assert metric(client, "aoi3d_pool_workers") == 1
     assert metric(client, "aoi3d_pool_decisions_total", 'outcome="rendered",site="site1"') == 1
     assert metric(client, "aoi3d_pool_wait_seconds_count") == 1
-    assert math.isfinite(metric(client, "aoi3d_trainer_loss", 'site="site1"'))
+    assert math.isfinite(metric(client, "aoi3d_dispatcher_loss", 'site="site1"'))
     assert metric(client, "aoi3d_pool_worker_renders", 'worker="w1"') == 1
 
     # An older or repeated decision is rejected, not offered.
@@ -394,7 +394,7 @@ def test_settings_validate_backend(monkeypatch: pytest.MonkeyPatch) -> None:
         Settings(backend="nope")
     with pytest.raises(ValidationError):
         Settings(job_timeout_s=0)
-    monkeypatch.setenv("AOI3D_TRAINER_JOB_TIMEOUT_S", "9")
+    monkeypatch.setenv("AOI3D_DISPATCHER_JOB_TIMEOUT_S", "9")
     monkeypatch.setenv("AOI3D_CAMERAS", "5")
     s = Settings()
     assert (s.job_timeout_s, s.port, s.common.cameras) == (9.0, 8104, 5)
@@ -406,10 +406,10 @@ def test_the_default_is_the_stream_warm_start_of_25_steps(monkeypatch: pytest.Mo
     s = Settings()
     assert (s.carry, s.render_steps, s.cold_steps, s.warm_max_gap_ms) == ("stream", 25, 100,
                                                                            500.0)
-    monkeypatch.setenv("AOI3D_TRAINER_CARRY", "fresh")
-    monkeypatch.setenv("AOI3D_TRAINER_RENDER_STEPS", "100")
+    monkeypatch.setenv("AOI3D_DISPATCHER_CARRY", "fresh")
+    monkeypatch.setenv("AOI3D_DISPATCHER_RENDER_STEPS", "100")
     assert (Settings().carry, Settings().render_steps) == ("fresh", 100)
-    monkeypatch.setenv("AOI3D_TRAINER_CARRY", "lukewarm")
+    monkeypatch.setenv("AOI3D_DISPATCHER_CARRY", "lukewarm")
     with pytest.raises(ValidationError, match="carry"):
         Settings()
 
@@ -472,3 +472,30 @@ def test_one_pool_serves_every_site_and_each_render_goes_to_its_site(
         assert by_site["north"]["rendered"] == by_site["south"]["rendered"] == 1
         assert metric(client, "aoi3d_messages_rejected_total", 'reason="unknown_site"') == 1
         assert metric(client, "aoi3d_renders_total", 'site="south"') == 1
+
+
+def test_the_old_trainer_names_are_read_for_one_release_and_named_in_a_warning(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    """The service was the trainer: AOI3D_TRAINER_* still works, the new name wins, and the
+    start logs one deprecation line naming each old variable it read."""
+    import importlib
+
+    from services.dispatcher.settings import deprecated_names
+
+    monkeypatch.setenv("AOI3D_TRAINER_RENDER_STEPS", "7")
+    monkeypatch.setenv("AOI3D_TRAINER_COLD_STEPS", "40")
+    assert (Settings().render_steps, Settings().cold_steps) == (7, 40)
+    monkeypatch.setenv("AOI3D_DISPATCHER_RENDER_STEPS", "9")
+    assert Settings().render_steps == 9
+    monkeypatch.setenv("AOI3D_TRAINER_SEED", "-1")  # refused as the new name would be
+    with pytest.raises(ValidationError, match="seed"):
+        Settings()
+    monkeypatch.delenv("AOI3D_TRAINER_SEED")
+    assert deprecated_names() == ["AOI3D_TRAINER_COLD_STEPS", "AOI3D_TRAINER_RENDER_STEPS"]
+    main = importlib.import_module("services.dispatcher.__main__")
+    with caplog.at_level("WARNING"):
+        main._warn_old_names(Settings())
+    assert [r.getMessage() for r in caplog.records] == [
+        "deprecated: AOI3D_TRAINER_COLD_STEPS, AOI3D_TRAINER_RENDER_STEPS read as "
+        "AOI3D_DISPATCHER_COLD_STEPS, AOI3D_DISPATCHER_RENDER_STEPS; the AOI3D_TRAINER_ names "
+        "go in the next release"]

@@ -1,4 +1,4 @@
-"""The delivered frames the trainer holds, per camera and still encoded, to resolve the
+"""The delivered frames the dispatcher holds, per camera and still encoded, to resolve the
 FrameRefs of a decision (a selection names a camera's frame by its generation time)."""
 
 from __future__ import annotations

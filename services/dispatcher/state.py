@@ -1,7 +1,7 @@
-"""What the trainer service reports and accepts: its status types and errors.
+"""What the dispatcher service reports and accepts: its status types and errors.
 
-Plain data shared by the dispatcher's runtime (:mod:`services.trainer.worker`) and the REST
-layer (:mod:`services.trainer.app`). The trainer service trains no model itself: it hands
+Plain data shared by the dispatcher's runtime (:mod:`services.dispatcher.worker`) and the REST
+layer (:mod:`services.dispatcher.app`). The dispatcher service trains no model itself: it hands
 decisions to the reconstruction workers (:mod:`services.recon`) and publishes their renders.
 """
 
@@ -18,23 +18,23 @@ from aoi3d.pool import PoolStatus
 __all__ = [
     "CarryError",
     "DecisionInForce",
+    "DispatcherStatus",
     "JobTimes",
     "LatestRender",
-    "TrainerStatus",
     "UnknownBackendError",
     "check_backend",
 ]
 
 
 class CarryError(ValueError):
-    """A carry mode or render budget the trainer cannot use; nothing was changed."""
+    """A carry mode or render budget the dispatcher cannot use; nothing was changed."""
 
 
 @dataclass(frozen=True)
 class DecisionInForce:
     """The decision whose selection the model is being trained on.
 
-    ``generation_ms``: generation times of the frames it selected that the trainer holds."""
+    ``generation_ms``: generation times of the frames it selected that the dispatcher holds."""
 
     decision_id: int
     incarnation: int
@@ -52,7 +52,7 @@ class LatestRender:
 
     ``frames_age_ms``: mean age of its frames at ``time_ms`` (NaN: none); ``lag_ms``: sim ms
     from ``time_ms`` to the render's publication; ``age_s``: wall s from the decision taking
-    effect at the trainer to the publication."""
+    effect at the dispatcher to the publication."""
 
     png: bytes
     decision_id: int
@@ -92,8 +92,8 @@ class JobTimes:
 
 
 @dataclass(frozen=True)
-class TrainerStatus:
-    """A consistent snapshot of the trainer for ``GET /status``."""
+class DispatcherStatus:
+    """A consistent snapshot of the dispatcher for ``GET /status``."""
 
     steps: int
     steps_total: int

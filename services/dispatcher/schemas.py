@@ -1,4 +1,4 @@
-"""The trainer's REST bodies (status, the pool) and how the runtime's snapshots become them."""
+"""The dispatcher's REST bodies (status, the pool) and how the runtime's snapshots become them."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pydantic import BaseModel, Field
 
 from aoi3d.field import BACKENDS
 from aoi3d.pool import PoolStatus
-from services.trainer.state import TrainerStatus
+from services.dispatcher.state import DispatcherStatus
 
 __all__ = ["DecisionInfo", "PoolInfo", "StatusResponse", "WorkerInfo", "pool_body",
            "status_body"]
@@ -20,7 +20,7 @@ class DecisionInfo(BaseModel):
                            examples=[1260.0])
     policy: str = Field(description="The scheduler's policy spec.", examples=["mat:51"])
     n_selected: int = Field(description="Frames the decision selected.", examples=[9])
-    n_missing: int = Field(description="Selected frames the trainer never received (skipped).",
+    n_missing: int = Field(description="Selected frames the dispatcher never received (skipped).",
                            examples=[0])
     age_ms: float = Field(description="Sim ms since the decision epoch.", examples=[35.0])
 
@@ -74,14 +74,14 @@ class PoolInfo(BaseModel):
                                             examples=[1.5])
     late_reports: int = Field(description="Worker reports of decisions already counted lost.",
                               examples=[0])
-    window_s: float = Field(description="The window of the rates (AOI3D_TRAINER_WINDOW_S).",
+    window_s: float = Field(description="The window of the rates (AOI3D_DISPATCHER_WINDOW_S).",
                             examples=[30.0])
     by_site: dict[str, dict[str, int]] = Field(
         description="Site → its counts since start: decisions, assigned, rendered, superseded, "
                     "lost.", examples=[{"site1": {"decisions": 300, "assigned": 120,
                                                   "rendered": 118, "superseded": 180}}])
     fresh_fraction: float = Field(
-        1.0, description="AOI3D_TRAINER_FRESH_FRACTION: a worker that asks when the pending "
+        1.0, description="AOI3D_DISPATCHER_FRESH_FRACTION: a worker that asks when the pending "
                          "decision has waited longer than this fraction of the decision period "
                          "waits for the next one (1: never).", examples=[0.5])
     waited_fresh: int = Field(
@@ -112,7 +112,7 @@ def pool_body(pool: PoolStatus) -> PoolInfo:
 class StatusResponse(BaseModel):
     steps: int = Field(description="Training steps of the latest render's model (since the "
                                    "last reset), as its reconstruction worker reported them: "
-                                   "the Render's training_step. The trainer service trains "
+                                   "the Render's training_step. The dispatcher service trains "
                                    "nothing itself; it hands decisions to the workers.",
                        examples=[1200])
     steps_total: int = Field(description="Training steps of every render the workers "
@@ -165,7 +165,7 @@ class StatusResponse(BaseModel):
                                           "compute_s × time_scale.", examples=[1.0])
 
 
-def status_body(status: TrainerStatus, site: str) -> StatusResponse:
+def status_body(status: DispatcherStatus, site: str) -> StatusResponse:
     d = status.decision
     assert status.pool is not None  # the worker's status always carries its pool
     return StatusResponse(

@@ -1,6 +1,6 @@
-"""REST API of the trainer service — the pool's dispatcher, which hands each decision to one
+"""REST API of the dispatcher service — the pool's dispatcher, which hands each decision to one
 reconstruction worker and publishes its render (it trains no model itself; the name is the
-service's, kept for its REST paths, compose service and ``aoi3d_trainer_*`` series): status,
+service's, kept for its REST paths, compose service and ``aoi3d_dispatcher_*`` series): status,
 model reset, backend switch and the latest novel-view render."""
 
 from __future__ import annotations
@@ -16,24 +16,24 @@ from aoi3d.clock import SimClock
 from aoi3d.field.carry import CarryMode
 from aoi3d.rigfile import load_rig
 from aoi3d.scene import SceneDataset, open_dataset
-from services.kit.app import include_site_routers, service_app
-from services.kit.bus import Bus
-from services.trainer.schemas import PoolInfo, StatusResponse, pool_body, status_body
-from services.trainer.settings import Settings
-from services.trainer.state import (
+from services.dispatcher.schemas import PoolInfo, StatusResponse, pool_body, status_body
+from services.dispatcher.settings import Settings
+from services.dispatcher.state import (
     CarryError,
     UnknownBackendError,
 )
-from services.trainer.views import ViewRefused
-from services.trainer.worker import TrainerWorker
+from services.dispatcher.views import ViewRefused
+from services.dispatcher.worker import DispatcherWorker
+from services.kit.app import include_site_routers, service_app
+from services.kit.bus import Bus
 
 
-def _pool(request: Request) -> TrainerWorker:
-    """The trainer's one worker: the pool's, serving every site."""
+def _pool(request: Request) -> DispatcherWorker:
+    """The dispatcher's one worker: the pool's, serving every site."""
     return request.app.state.worker
 
 
-Worker = Annotated[TrainerWorker, Depends(_pool)]
+Worker = Annotated[DispatcherWorker, Depends(_pool)]
 
 
 def _site(request: Request, worker: Worker) -> str:
@@ -163,9 +163,9 @@ _VIEW_HEADERS = ("X-Decision-Id (the decision whose model answered), X-Time-Ms, 
                 "`c2w`: the site's latest model (kept by the worker that rendered its latest "
                 "decision) rendered from that pose on request — a free view, never scored "
                 "(there is no truth there) and never delaying a decision's render; rate "
-                "limited (429) and bounded in size (`AOI3D_TRAINER_VIEW_RATE_PER_S`, "
-                "`AOI3D_TRAINER_MAX_VIEW_SIDE`), every refusal counted in "
-                "`aoi3d_trainer_views_total{outcome}`.",
+                "limited (429) and bounded in size (`AOI3D_DISPATCHER_VIEW_RATE_PER_S`, "
+                "`AOI3D_DISPATCHER_MAX_VIEW_SIDE`), every refusal counted in "
+                "`aoi3d_dispatcher_views_total{outcome}`.",
     response_class=Response,
     responses={200: {"content": {"image/png": {}},
                      "description": "PNG; headers X-Decision-Id, X-Time-Ms (the time it "
@@ -236,7 +236,7 @@ def _view_headers(reply) -> dict[str, str]:
                 "density). `format=mesh`: marching cubes (scikit-image) at that opacity, "
                 "vertices coloured. Lost either way: view dependence, the background, "
                 "anything finer than the lattice. Rate limited as free views "
-                "(`aoi3d_trainer_views_total{kind=\"export\"}`).",
+                "(`aoi3d_dispatcher_views_total{kind=\"export\"}`).",
     response_class=Response,
     responses={200: {"content": {"application/octet-stream": {}},
                      "description": "A binary PLY; headers " + _VIEW_HEADERS + "."},
@@ -263,21 +263,21 @@ def get_export(
 
 def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                clock: SimClock | None = None, dataset: SceneDataset | None = None) -> FastAPI:
-    """The trainer's app. ``dataset`` defaults to ``open_dataset(settings.common.dataset)``
+    """The dispatcher's app. ``dataset`` defaults to ``open_dataset(settings.common.dataset)``
     (read when the app starts: the held-out camera, the scene box and the image size); with a
     rig file (``AOI3D_RIG``, real cameras) they are the rig's view, box and working size."""
     settings = settings or Settings()
     clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
 
-    def build_worker(the_bus: Bus, registry) -> TrainerWorker:
+    def build_worker(the_bus: Bus, registry) -> DispatcherWorker:
         if settings.common.rig is not None and dataset is None:  # real cameras
-            return TrainerWorker(settings, the_bus, registry, rig=load_rig(settings.common.rig),
+            return DispatcherWorker(settings, the_bus, registry, rig=load_rig(settings.common.rig),
                                  clock=clock)
         data = dataset if dataset is not None else open_dataset(settings.common.dataset)
-        return TrainerWorker(settings, the_bus, registry, dataset=data, clock=clock)
+        return DispatcherWorker(settings, the_bus, registry, dataset=data, clock=clock)
 
     app = service_app(
-        title="aoi3d trainer",
+        title="aoi3d dispatcher",
         description="The pool's dispatcher: takes each scheduler decision and hands it, with "
                     "the frames it selected, to exactly one reconstruction worker (`python -m "
                     "services.recon`, any number, joining and leaving at run time: GET "
@@ -285,7 +285,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                     "of the held-out novel view. When the pool cannot keep up the newest "
                     "decision wins. The backend (grid, ngp, tensorf, nerfacto, … whatever "
                     "aoi3d.field.BACKENDS registers) is chosen at start "
-                    "(AOI3D_TRAINER_BACKEND) and switched at run time with `PUT /backend "
+                    "(AOI3D_DISPATCHER_BACKEND) and switched at run time with `PUT /backend "
                     "{\"backend\": \"ngp\"}`.",
         settings=settings, build_worker=build_worker, bus=bus)
     app.include_router(model_router)

@@ -1,12 +1,12 @@
-"""Free views and exports at the trainer, as pure logic: the bound on their rate and the
+"""Free views and exports at the dispatcher, as pure logic: the bound on their rate and the
 reasons one is refused (no bus, no clock of its own: the runtime passes the time).
 
 A free view (``GET /render.png?c2w=…``) or an export (``GET /export.ply``) is asked of the
 worker that rendered the site's latest decision (it keeps that model). They are not scored
 (there is no truth at a free pose) and never delay a decision's render: the worker answers
-them on a thread of their own from a snapshot. The trainer bounds them — a token bucket
+them on a thread of their own from a snapshot. The dispatcher bounds them — a token bucket
 (``view_rate_per_s``, bursts of ``view_burst``) and a largest side (``max_view_side``) — and
-counts every refusal by reason (``aoi3d_trainer_views_total{outcome}``).
+counts every refusal by reason (``aoi3d_dispatcher_views_total{outcome}``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ __all__ = ["OUTCOMES", "TokenBucket", "ViewRefused"]
 
 OUTCOMES = ("served", "rate_limited", "bad_request", "no_model", "busy", "timeout", "failed")
 """How a free view or export ended: ``served``, or why it was refused (the label values of
-``aoi3d_trainer_views_total{outcome}``)."""
+``aoi3d_dispatcher_views_total{outcome}``)."""
 
 STATUS = {"rate_limited": 429, "bad_request": 422, "no_model": 404, "busy": 503,
           "timeout": 504, "failed": 502}

@@ -1,4 +1,4 @@
-"""The trainer's Prometheus series, read from its cores and the pool at scrape time (no
+"""The dispatcher's Prometheus series, read from its cores and the pool at scrape time (no
 state kept twice): per-site series carry a ``site`` label; the pool's are the run's."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Summa
 from aoi3d.pool import POOL_LOST
 
 RATE_WINDOW_S = 5.0
-"""Wall seconds over which ``aoi3d_trainer_steps_per_second`` is measured."""
+"""Wall seconds over which ``aoi3d_dispatcher_steps_per_second`` is measured."""
 
 LOST_REASONS = tuple(sorted(str(r) for r in POOL_LOST))
 """Why the pool itself counts a handed-out decision lost (:data:`POOL_LOST`), as labels."""
@@ -20,10 +20,10 @@ LOST_REASONS = tuple(sorted(str(r) for r in POOL_LOST))
 __all__ = ["LOST_REASONS", "RATE_WINDOW_S", "PoolCollector"]
 
 class PoolCollector:
-    """The trainer's Prometheus series, read from the core at scrape time."""
+    """The dispatcher's Prometheus series, read from the core at scrape time."""
 
     def __init__(self, worker: Any) -> None:
-        """``worker``: the trainer's runtime (its lock, cores, pool and rates)."""
+        """``worker``: the dispatcher's runtime (its lock, cores, pool and rates)."""
         self._worker = worker
 
     def describe(self):
@@ -58,43 +58,43 @@ class PoolCollector:
             return [([site], v[field]) for site, v in sites]
 
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_decisions", "Decisions taken (each offered to the pool).",
+            "aoi3d_dispatcher_decisions", "Decisions taken (each offered to the pool).",
             labels=["site"]), by_site("decisions"))
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_frames_received",
+            "aoi3d_dispatcher_frames_received",
             "Delivered frames accepted into the per-camera buffers.", labels=["site"]),
             by_site("received"))
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_frames_missing",
-            "Selected frames the trainer never received (left out of the job).",
+            "aoi3d_dispatcher_frames_missing",
+            "Selected frames the dispatcher never received (left out of the job).",
             labels=["site"]), by_site("missing"))
         yield each(CounterMetricFamily(
             "aoi3d_renders", "Novel-view renders published by the pool's workers.",
             labels=["site"]), by_site("renders"))
         yield each(CounterMetricFamily(
-            "aoi3d_trainer_steps", "Training steps of the renders' reconstructions (the "
-            "reconstruction workers'; the trainer service trains nothing itself).",
+            "aoi3d_dispatcher_steps", "Training steps of the renders' reconstructions (the "
+            "reconstruction workers'; the dispatcher service trains nothing itself).",
             labels=["site"]), by_site("steps"))
         yield each(CounterMetricFamily(
             "aoi3d_renders_warm_start", "Renders whose worker started from its previous "
             "decision's model (the stream carry; the others started cold).", labels=["site"]),
             by_site("warm"))
         yield one(GaugeMetricFamily(
-            "aoi3d_trainer_steps_per_second", f"Reconstruction steps per wall second over the "
+            "aoi3d_dispatcher_steps_per_second", f"Reconstruction steps per wall second over the "
             f"last {RATE_WINDOW_S:g} s, the whole pool."), w.steps_per_s)
         yield each(GaugeMetricFamily(
-            "aoi3d_trainer_loss", "Photometric loss of the latest render's last step (as its "
+            "aoi3d_dispatcher_loss", "Photometric loss of the latest render's last step (as its "
             "reconstruction worker reported it).",
             labels=["site"]), by_site("loss"))
         yield each(GaugeMetricFamily(
-            "aoi3d_trainer_views", "Frames the latest render trained on.", labels=["site"]),
+            "aoi3d_dispatcher_views", "Frames the latest render trained on.", labels=["site"]),
             by_site("views"))
         yield each(GaugeMetricFamily(
             "aoi3d_render_steps", "Training steps spent on the latest render's own decision "
             "(0 for warm).", labels=["site"]), by_site("render_steps"))
         yield each(GaugeMetricFamily(
             "aoi3d_render_age_seconds", "Wall seconds from the latest render's decision "
-            "reaching the trainer to the render's arrival (what a viewer waits).",
+            "reaching the dispatcher to the render's arrival (what a viewer waits).",
             labels=["site"]), by_site("age_s"))
         yield each(GaugeMetricFamily(
             "aoi3d_render_lag_sim_seconds", "Sim seconds from the time the latest render "
@@ -125,17 +125,17 @@ class PoolCollector:
                                     f"{pool.window_s:g} s."), pool.rendered_fraction)
         yield one(CounterMetricFamily(
             "aoi3d_pool_waited_fresh", "Worker requests that left a stale pending decision "
-            "(older than AOI3D_TRAINER_FRESH_FRACTION of the decision period) to wait for the "
+            "(older than AOI3D_DISPATCHER_FRESH_FRACTION of the decision period) to wait for the "
             "next one."), pool.waited_fresh)
         yield one(GaugeMetricFamily("aoi3d_pool_renders_per_second",
                                     f"Renders per wall second over the last "
                                     f"{pool.window_s:g} s."), pool.renders_per_s)
         yield SummaryMetricFamily("aoi3d_pool_wait_seconds",
-                                  "Wall seconds from a decision reaching the trainer to its "
+                                  "Wall seconds from a decision reaching the dispatcher to its "
                                   "hand-out to a worker.", count_value=pool.assigned,
                                   sum_value=wait_sum)
         yield SummaryMetricFamily("aoi3d_pool_render_age_seconds",
-                                  "Wall seconds from a decision reaching the trainer to its "
+                                  "Wall seconds from a decision reaching the dispatcher to its "
                                   "worker's report of the render.", count_value=pool.rendered,
                                   sum_value=age_sum)
         yield each(GaugeMetricFamily("aoi3d_pool_worker_busy_ratio",

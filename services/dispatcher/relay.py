@@ -1,8 +1,9 @@
-"""The trainer's free views and exports at run time: each is asked of the worker that rendered
+"""The dispatcher's free views and exports at run time: each is asked of the worker that rendered
 the site's latest decision (``aoi3d/<run>/pool/view/<worker>``, a :class:`pb.ViewRequest`),
-bounded by the token bucket and counted by outcome in ``aoi3d_trainer_views_total``. The pure
-parts — the bucket, the outcomes and their HTTP statuses — are :mod:`services.trainer.views`;
-:class:`services.trainer.worker.TrainerWorker` owns one :class:`ViewRelay` and shares its lock.
+bounded by the token bucket and counted by outcome in ``aoi3d_dispatcher_views_total``. The pure
+parts — the bucket, the outcomes and their HTTP statuses — are :mod:`services.dispatcher.views`;
+:class:`services.dispatcher.worker.DispatcherWorker` owns one :class:`ViewRelay` and shares its
+lock.
 """
 
 from __future__ import annotations
@@ -14,13 +15,13 @@ import numpy as np
 from prometheus_client import CollectorRegistry, Counter
 
 from aoi3d.freeview import PoseError, check_pose, check_size, free_camera
+from services.dispatcher.core import DispatcherCore
+from services.dispatcher.settings import Settings
+from services.dispatcher.views import OUTCOMES, TokenBucket, ViewRefused
 from services.kit.bus import Bus
 from services.kit.codec import camera_to_pb
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.trainer.core import TrainerCore
-from services.trainer.settings import Settings
-from services.trainer.views import OUTCOMES, TokenBucket, ViewRefused
 
 __all__ = ["ViewRelay"]
 
@@ -33,14 +34,14 @@ class ViewRelay:
     """Free views and exports of the sites' latest models; ``lock`` guards ``cores``."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry,
-                 cores: dict[str, TrainerCore], lock: threading.Lock) -> None:
+                 cores: dict[str, DispatcherCore], lock: threading.Lock) -> None:
         self.settings = settings
         self.bus = bus
         self.cores = cores
         self._lock = lock
         self._bucket = TokenBucket(settings.view_rate_per_s, settings.view_burst)
         self._total = Counter(
-            "aoi3d_trainer_views", "Free views and exports asked of the trainer, by outcome "
+            "aoi3d_dispatcher_views", "Free views and exports asked of the dispatcher, by outcome "
             "(served, or why refused: rate_limited, bad_request, no_model, busy, timeout, "
             "failed); never scored.", ["outcome", "kind"], registry=registry)
         for outcome in OUTCOMES:

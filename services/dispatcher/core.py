@@ -1,7 +1,7 @@
-"""The trainer service's core: decoded messages and a time in, what to send out.
+"""The dispatcher service's core: decoded messages and a time in, what to send out.
 
 No bus, no threads, no web framework, no metrics library: the runtime
-(:mod:`services.trainer.worker`) feeds it and sends what it returns; tests drive it directly.
+(:mod:`services.dispatcher.worker`) feeds it and sends what it returns; tests drive it directly.
 
 It holds the delivered frames (still encoded, per camera), takes the newest decision (in
 (sim time, id) order within a scheduler incarnation; a new incarnation at once), and hands
@@ -22,26 +22,26 @@ import numpy as np
 from aoi3d.field.carry import CARRY_MODES, check_carry
 from aoi3d.pool import Assignment, DecisionRef, Dispatcher, Report
 from aoi3d.scene.camera import Camera
-from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
-from services.kit.keys import DEFAULT_SITE
-from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.rejected import Rejected, RejectReason
-from services.trainer.frames import FrameBuffer
-from services.trainer.state import (
+from services.dispatcher.frames import FrameBuffer
+from services.dispatcher.state import (
     CarryError,
     DecisionInForce,
     JobTimes,
     LatestRender,
     check_backend,
 )
+from services.kit.codec import camera_to_pb, decode_decision, decode_frame, decode_render
+from services.kit.keys import DEFAULT_SITE
+from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.rejected import Rejected, RejectReason
 
-__all__ = ["RenderSettings", "TrainerCore", "decode_request"]
+__all__ = ["DispatcherCore", "RenderSettings", "decode_request"]
 
 _ARRIVALS_KEPT = 4096
 """Recent decisions whose arrival time is kept (two minutes of decisions every 30 ms)."""
 MAX_NOT_RECEIVED = 1000
 """Most ids of one gap told ``not_received`` (50 s of decisions at one per 50 ms); a hostile
-id cannot make the trainer publish more."""
+id cannot make the dispatcher publish more."""
 
 
 @dataclass(frozen=True)
@@ -111,7 +111,7 @@ def decode_request(payload: bytes) -> Report:
                   host=msg.host[:64])
 
 
-class TrainerCore:
+class DispatcherCore:
     """See the module docstring. Not thread-safe: the runtime serialises calls."""
 
     def __init__(self, *, camera_ids: frozenset[int], size: tuple[int, int] | None,
@@ -132,7 +132,7 @@ class TrainerCore:
         self._highest: dict[int, int] = {}
         """incarnation → highest decision id received (the gaps: :meth:`_never_received`)."""
         self._arrived: OrderedDict[tuple[str, int, int], float] = OrderedDict()
-        """Wall s each recent decision reached the trainer (its render's age is measured from
+        """Wall s each recent decision reached the dispatcher (its render's age is measured from
         it, whether or not the worker's report of the job came first)."""
         self.latest: LatestRender | None = None
         self._latest_incarnation = 0
@@ -200,7 +200,7 @@ class TrainerCore:
 
     def _never_received(self, msg: pb.Decision) -> None:
         """Ids skipped since the highest received of the incarnation (since this process
-        started) never reached the trainer — lost in transit, a router restarting: each is told
+        started) never reached the dispatcher — lost in transit, a router restarting: each is told
         lost (``not_received``), up to :data:`MAX_NOT_RECEIVED` per gap (the ledger counts any
         beyond that ``expired``)."""
         high = self._highest.get(msg.incarnation)

@@ -1,4 +1,6 @@
-"""Settings of the trainer service (environment prefix ``AOI3D_TRAINER_``).
+"""Settings of the dispatcher service (environment prefix ``AOI3D_DISPATCHER_``; the old
+``AOI3D_TRAINER_`` names, from when the service was called the trainer, are read too for one
+release, the new name winning, and each one set is named in a deprecation line at start).
 
 The radiance-field backend is chosen by name from ``aoi3d.field.BACKENDS``, the one place
 that maps a backend name to its config; ``PUT /backend`` switches it at run time.
@@ -6,23 +8,39 @@ that maps a backend name to its config; ``PUT /backend`` switches it at run time
 
 from __future__ import annotations
 
+import os
+from collections.abc import Mapping
+
 from pydantic import Field, field_validator
-from pydantic_settings import SettingsConfigDict
+from pydantic_settings import (
+    BaseSettings,
+    EnvSettingsSource,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+)
 
 from aoi3d.field import check_backend
 from aoi3d.field.carry import CarryMode
 from aoi3d.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
+OLD_PREFIX = "AOI3D_TRAINER_"
+"""The settings' prefix before the service was renamed (read as an alias for one release)."""
+
+
+def deprecated_names(environ: Mapping[str, str] = os.environ) -> list[str]:
+    """The old-prefix variables set in ``environ``: each is read, and named in a warning."""
+    return sorted(k for k in environ if k.upper().startswith(OLD_PREFIX))
+
 
 class Settings(ServiceSettings):
-    """The trainer: the pool's dispatcher. It takes the scheduler's decisions and hands each to
+    """The pool's dispatcher. It takes the scheduler's decisions and hands each to
     one reconstruction worker (`python -m services.recon`) with the frames it selected; the
     worker trains a radiance field on them and renders the novel view."""
 
-    model_config = SettingsConfigDict(env_prefix="AOI3D_TRAINER_", extra="ignore")
+    model_config = SettingsConfigDict(env_prefix="AOI3D_DISPATCHER_", extra="ignore")
 
-    port: int = Field(SERVICE_PORTS["trainer"], ge=0, le=65535, description="REST API port.")
+    port: int = Field(SERVICE_PORTS["dispatcher"], ge=0, le=65535, description="REST API port.")
     backend: str = Field("grid", description="Radiance-field backend at start, a name in "
                                              "aoi3d.field.BACKENDS (`aoi3d field backends` "
                                              "lists them); `PUT /backend` switches it at run "
@@ -90,7 +108,7 @@ class Settings(ServiceSettings):
         4.0, gt=0, le=1000,
         description="Free views and exports (GET /render.png?c2w=…, GET /export.ply, the 3D "
                     "viewer) per second, on average, over the whole run; beyond it 429 (counted "
-                    "in aoi3d_trainer_views_total{outcome=\"rate_limited\"}). They are never "
+                    "in aoi3d_dispatcher_views_total{outcome=\"rate_limited\"}). They are never "
                     "scored and never delay a decision's render (the worker answers them from "
                     "a snapshot, on a thread of their own).")
     view_burst: int = Field(8, ge=1, le=1000,
@@ -101,6 +119,17 @@ class Settings(ServiceSettings):
         20.0, gt=0, le=600, description="Wall seconds to wait for a worker's free view.")
     export_timeout_s: float = Field(
         120.0, gt=0, le=3600, description="Wall seconds to wait for a worker's export.")
+
+    @classmethod
+    def settings_customise_sources(cls, settings_cls: type[BaseSettings],
+                                   init_settings: PydanticBaseSettingsSource,
+                                   env_settings: PydanticBaseSettingsSource,
+                                   dotenv_settings: PydanticBaseSettingsSource,
+                                   file_secret_settings: PydanticBaseSettingsSource,
+                                   ) -> tuple[PydanticBaseSettingsSource, ...]:
+        """The new names first, then the old ``AOI3D_TRAINER_`` ones (for one release)."""
+        old = EnvSettingsSource(settings_cls, env_prefix=OLD_PREFIX)
+        return init_settings, env_settings, old, dotenv_settings, file_secret_settings
 
     @field_validator("backend")
     @classmethod

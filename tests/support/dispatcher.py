@@ -1,6 +1,6 @@
-"""The trainer's tests' scene, settings and messages (tests/services/test_trainer.py, the guard,
-the poison tests, the API fuzz and the trainer core): a 24×18 scene of 4 cameras at 10 fps,
-frames and decisions of it."""
+"""The dispatcher's tests' scene, settings and messages (tests/services/test_dispatcher.py,
+the guard, the poison tests, the API fuzz and the dispatcher core): a 24×18 scene of 4 cameras
+at 10 fps, frames and decisions of it."""
 
 from __future__ import annotations
 
@@ -11,12 +11,12 @@ from fastapi.testclient import TestClient
 
 from aoi3d.field import FlowConfig, GridConfig, NgpConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
+from services.dispatcher.settings import Settings
 from services.kit.codec import PNG, encode_frame
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
-from services.trainer.settings import Settings
 from tests.support.metrics import REQUIRED, value
 
 N_TRAIN = 4
@@ -36,8 +36,8 @@ CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP, "flow": SMALL_FLOW}
 
 
 def trainer_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    """The trainer tests' scene, generated in a fresh temporary folder (the ``dataset``
-    fixture of tests/services/conftest.py, and tests/unit/test_trainer_core.py's)."""
+    """The dispatcher tests' scene, generated in a fresh temporary folder (the ``dataset``
+    fixture of tests/services/conftest.py, and tests/unit/test_dispatcher_core.py's)."""
     cfg = SceneConfig(width=24, height=18, fps=10, duration_s=1.0, n_train=N_TRAIN,
                       rotor_rpm=20.0, spp=1)
     return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
@@ -83,7 +83,7 @@ def decision_payload(decision_id: int, time_ms: float, refs: list[tuple[int, flo
 
 def metric(client: TestClient, name: str, labels: str = "",
            default: float | None = None) -> float:
-    """A series' value from the trainer's /metrics (``labels``: as exposed, ``'a="1"'``);
+    """A series' value from the dispatcher's /metrics (``labels``: as exposed, ``'a="1"'``);
     ``default`` if it is not exported (else an error)."""
     series = f"{name}{{{labels}}}" if labels else name
     got = value(client.get("/metrics").text, series,

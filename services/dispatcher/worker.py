@@ -1,6 +1,6 @@
-"""The trainer service's runtime: the bus, one lock, a housekeeping thread, the metrics.
+"""The dispatcher service's runtime: the bus, one lock, a housekeeping thread, the metrics.
 
-The logic is :class:`services.trainer.core.TrainerCore` — one per site of the run — and the
+The logic is :class:`services.dispatcher.core.DispatcherCore` — one per site of the run — and the
 pool's :class:`aoi3d.pool.Dispatcher`, shared by the sites; this module only wires
 them to the bus (the site of a message is its key's ``<site>`` chunk):
 
@@ -17,7 +17,7 @@ them to the bus (the site of a message is its key's ``<site>`` chunk):
 - the metrics are read from the core at scrape time (:class:`PoolCollector`), so no state is
   kept twice;
 - free views and exports are relayed to the worker that rendered a site's latest decision
-  (:class:`services.trainer.relay.ViewRelay`, under the same lock).
+  (:class:`services.dispatcher.relay.ViewRelay`, under the same lock).
 """
 
 from __future__ import annotations
@@ -33,6 +33,11 @@ from aoi3d.clock import SimClock
 from aoi3d.pool import Assignment, Dispatcher, PoolStatus
 from aoi3d.rigfile import Rig
 from aoi3d.scene import SceneDataset
+from services.dispatcher.core import DispatcherCore, RenderSettings, decode_request
+from services.dispatcher.metrics import RATE_WINDOW_S, PoolCollector
+from services.dispatcher.relay import ViewRelay
+from services.dispatcher.settings import Settings
+from services.dispatcher.state import CarryError, DispatcherStatus, LatestRender
 from services.kit.bus import Bus, Query
 from services.kit.keys import Keys
 from services.kit.observe import Heartbeat, RateMeter, Rejected, Rejections
@@ -40,11 +45,6 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.reasons import EndReason
 from services.kit.rejected import RejectReason
 from services.kit.runtime import Loops
-from services.trainer.core import RenderSettings, TrainerCore, decode_request
-from services.trainer.metrics import RATE_WINDOW_S, PoolCollector
-from services.trainer.relay import ViewRelay
-from services.trainer.settings import Settings
-from services.trainer.state import CarryError, LatestRender, TrainerStatus
 
 log = logging.getLogger(__name__)
 
@@ -52,7 +52,7 @@ _TICK_S = 0.1
 _STOP_JOIN_S = 2.0
 
 
-class TrainerWorker:
+class DispatcherWorker:
     """See the module docstring."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,
@@ -70,7 +70,7 @@ class TrainerWorker:
             size = sizes.pop() if len(sizes) == 1 else None
             heldout, aabb = dataset.cameras[dataset.heldout_id], np.asarray(dataset.aabb)
         else:
-            raise ValueError("the trainer needs a dataset or a rig")
+            raise ValueError("the dispatcher needs a dataset or a rig")
         self.pool = Dispatcher(window_s=settings.window_s, job_timeout_s=settings.job_timeout_s,
                                fresh_fraction=settings.fresh_fraction)
         self.render = RenderSettings(settings.backend, settings.carry, settings.render_steps,
@@ -78,7 +78,7 @@ class TrainerWorker:
                                      warm_max_gap_ms=settings.warm_max_gap_ms)
         self.pool.prefer_warm = settings.carry == "stream"
         # the sites film the same scene (at their own phases): one camera and box for all
-        self.cores = {site: TrainerCore(
+        self.cores = {site: DispatcherCore(
             camera_ids=frozenset(range(1, settings.common.cameras + 1)), size=size,
             skew_ms=settings.common.skew_ms, heldout=heldout,
             aabb=aabb, frames_per_camera=settings.frames_per_camera,
@@ -93,7 +93,7 @@ class TrainerWorker:
         self._renders_beat = Heartbeat(settings.common.stall_s)
         self._steps_rate = RateMeter(RATE_WINDOW_S)
         self.steps_per_s = 0.0
-        self._loops = Loops("trainer")
+        self._loops = Loops("dispatcher")
         self._loops.every("pool", _TICK_S, self._housekeeping)
         registry.register(PoolCollector(self))
         self.views = ViewRelay(settings, bus, registry, self.cores, self._lock)
@@ -113,7 +113,7 @@ class TrainerWorker:
         with self._lock:
             held, self._held = list(self._held.values()), {}
         for query, _ in held:
-            query.reply(self.core.no_job("the trainer is stopping"))
+            query.reply(self.core.no_job("the dispatcher is stopping"))
         self._tell_ended()
 
     def _tell_ended(self) -> None:
@@ -144,7 +144,7 @@ class TrainerWorker:
         return True, f"{n} worker(s) in the pool; decision {decision.decision_id} in force"
 
     # ------------------------------------------------------------------ bus callbacks
-    def _site(self, key: str) -> TrainerCore:
+    def _site(self, key: str) -> DispatcherCore:
         core = self.cores.get(Keys.site_of(key))
         if core is None:
             raise Rejected(RejectReason.UNKNOWN_SITE, f"{key}: not a site of this run "
@@ -197,7 +197,7 @@ class TrainerWorker:
                     self._held[report.worker_id] = (query, time.monotonic() + report.max_wait_s)
                     answer = None
                 else:
-                    answer = TrainerCore.no_job("no decision pending")
+                    answer = DispatcherCore.no_job("no decision pending")
         except Rejected as err:
             self.rejections.reject(err, self.keys.work)
             query.close()
@@ -254,7 +254,7 @@ class TrainerWorker:
                 for core in self.cores.values():
                     core.forget()
         for query in released:
-            query.reply(TrainerCore.no_job("no decision pending"))
+            query.reply(DispatcherCore.no_job("no decision pending"))
         for a in expired:
             log.warning("decision %d held by %s for over %.0f s: lost", a.decision.decision_id,
                         a.worker_id, self.settings.job_timeout_s)
@@ -288,12 +288,12 @@ class TrainerWorker:
         with self._lock:
             return self.pool.status(time.time())
 
-    def status(self, site: str | None = None) -> TrainerStatus:
+    def status(self, site: str | None = None) -> DispatcherStatus:
         with self._lock:
             c = self.cores[site or self.sites[0]]
             pool = self.pool.status(time.time())
             devices = sorted({w.device for w in pool.workers if w.device})
-            return TrainerStatus(
+            return DispatcherStatus(
                 steps=c.latest.training_step if c.latest is not None else 0,
                 steps_total=c.steps_total, steps_per_s=self.steps_per_s, loss=c.loss,
                 n_views=c.n_views, decision=c.decision,
@@ -307,4 +307,4 @@ class TrainerWorker:
                 job_s=c.job_times.summary(), time_scale=self.clock.time_scale)
 
 
-__all__ = ["CarryError", "TrainerWorker"]
+__all__ = ["CarryError", "DispatcherWorker"]

@@ -1,4 +1,4 @@
-"""The trainer's core and a reconstruction worker's core on their own: no bus, no server."""
+"""The dispatcher's core and a reconstruction worker's core on their own: no bus, no server."""
 
 from __future__ import annotations
 
@@ -9,21 +9,27 @@ import pytest
 
 from aoi3d.pool import Dispatcher, Report
 from aoi3d.scene import SceneDataset
+from services.dispatcher.core import DispatcherCore, RenderSettings
 from services.kit.observe import Rejected
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recon.core import JobFailed, ReconCore
-from services.trainer.core import RenderSettings, TrainerCore
-from tests.support.trainer import CONFIGS, N_TRAIN, decision_payload, frame_payload, trainer_scene
+from tests.support.dispatcher import (
+    CONFIGS,
+    N_TRAIN,
+    decision_payload,
+    frame_payload,
+    trainer_scene,
+)
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
-    """The trainer tests' scene (not the unit tests' tiny one)."""
+    """The dispatcher tests' scene (not the unit tests' tiny one)."""
     return trainer_scene(tmp_path_factory)
 
 
-def make_core(ds: SceneDataset, pool: Dispatcher) -> TrainerCore:
-    return TrainerCore(camera_ids=frozenset(range(1, N_TRAIN + 1)),
+def make_core(ds: SceneDataset, pool: Dispatcher) -> DispatcherCore:
+    return DispatcherCore(camera_ids=frozenset(range(1, N_TRAIN + 1)),
                        size=(ds.width, ds.height), skew_ms=1e9,
                        heldout=ds.cameras[ds.heldout_id], aabb=np.asarray(ds.aabb),
                        frames_per_camera=4, dispatcher=pool, site="north")
@@ -131,14 +137,14 @@ def test_settings_move_the_model_epoch_and_bad_jobs_fail_with_a_reason() -> None
 
 def test_a_gap_in_the_ids_received_is_told_not_received_and_bounded(
         dataset: SceneDataset) -> None:
-    """The first decision of a trainer's life has no gap before it; later gaps end lost
+    """The first decision of a dispatcher's life has no gap before it; later gaps end lost
     ``not_received``, at most MAX_NOT_RECEIVED per gap (a hostile id cannot make more)."""
-    from services.trainer.core import MAX_NOT_RECEIVED
+    from services.dispatcher.core import MAX_NOT_RECEIVED
 
     pool = Dispatcher()
     core = make_core(dataset, pool)
     core.on_decision(decision_payload(50, 100.0, []), now_ms=100.0, now_s=1.0)
-    assert pool.drain_ended() == []  # 1..49 were another trainer's (or never made)
+    assert pool.drain_ended() == []  # 1..49 were another dispatcher's (or never made)
     core.on_decision(decision_payload(53, 200.0, []), now_ms=200.0, now_s=1.1)
     ended = [(e.decision.decision_id, e.reason) for e in pool.drain_ended()]
     assert ended == [(51, "not_received"), (52, "not_received"), (50, "superseded")]
