@@ -131,7 +131,7 @@ def run_question(runner: Runner, exe: str, common: list[str], out: Path, seeds: 
 
 def markdown(doc: dict[str, Any], rel: str) -> list[str]:
     """science.md's section on the question."""
-    lines = ["", "## A time-aware field (issue 41)", "",
+    lines = ["", "## A time-aware field", "",
              "The static grid against the time-aware `flow` field (the grid carried by a learned "
              "velocity field, rendered at the time asked for: aoi3d/field/flow.py) on the same "
              "seeds and episodes, LPIPS off. Equal CPU seconds per render: a flow step costs "
@@ -194,7 +194,7 @@ def _g(value: Any) -> str:
     return "all" if value == "all" else f"{float(value):g}"
 
 
-SECTION = "## A time-aware field (issue 41)"
+SECTION = "## A time-aware field"
 
 
 def update_science(doc: dict[str, Any], claims_path: Path, science_md: Path,
