@@ -230,7 +230,7 @@ def main() -> int:
     # docs/research.md does not make them, so they do not decide the exit status
     # issue 32's claim that a fixed Γ loses to the per-regime best is asked, not claimed: on
     # held-out seeds of this schedule at this budget the switching gain G was inside the
-    # noise (docs/experiments.md, "Adaptive Γ on a changing channel")
+    # noise (docs/experiments.md, "Does an adaptive Γ beat the best fixed rule")
     # the PSNR claims asked again of what a viewer sees (issue 33): the same episodes, judged
     # by their display-time scores; reported, not deciding the exit status (docs/research.md
     # claims them at decision time, as the paper does)

@@ -19,7 +19,8 @@ rest as ``make science`` last wrote it), without re-running the other claims.
 
 Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 16–100 steps: with 8 seeds
 about 2,300 reconstructions, 12.0 minutes of wall time on the 2-core machine with 2 workers,
-busy with other jobs for the first half (docs/experiments.md, "A time-aware field").
+busy with other jobs for the first half (docs/experiments.md, "Does a time-aware field move
+the tradeoff?").
 """
 
 from __future__ import annotations
