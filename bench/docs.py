@@ -40,24 +40,26 @@ PAGE = "measurements.md"
 #: Result files (paths relative to bench/results) that no section below renders, with the
 #: page that reports them.
 ELSEWHERE: dict[str, str] = {
-    "adaptive": "[experiments.md](experiments.md), \"Adaptive Γ on a changing channel\" "
-                "(`python bench/adaptive.py`)",
-    "adaptive-spread2000": "[experiments.md](experiments.md), \"Adaptive Γ on a changing "
-                           "channel\" (cameras 2 s apart)",
+    "adaptive": "[experiments.md](experiments.md), \"Does an adaptive Γ beat the best fixed "
+                "rule on a changing channel?\" (`python bench/adaptive.py`)",
+    "adaptive-spread2000": "[experiments.md](experiments.md), \"Does an adaptive Γ beat the "
+                           "best fixed rule on a changing channel?\" (cameras 2 s apart)",
     "adaptive-gamma-curve": "[experiments.md](experiments.md), the plug-in's Γ*(E[Y]) curve "
                             "(`bench/adaptive_curve.sh`, `bench/adaptive_curve.py`)",
     "adaptive-halflife": "[experiments.md](experiments.md), the plug-in's half-life "
                          "(`python bench/adaptive_halflife.py`)",
-    "switching": "[experiments.md](experiments.md), \"A changing channel: the switching gain G\" "
-                 "(`python bench/switching.py`)",
+    "switching": "[experiments.md](experiments.md), \"How much could a Γ that follows a "
+                 "changing channel gain?\" (`python bench/switching.py`)",
     "live-channel": "[channels.md](channels.md), the console on a changing channel "
                     "(`python bench/live_channel.py`)",
     "science": "[science.md](science.md) (written by `make science`, `bench/science.py`)",
-    "timefield": "[experiments.md](experiments.md), \"A time-aware field\" (`bench/recon.py "
-                 "--field flow`, `bench/scale.py --configs …:flow`; issue 41)",
+    "timefield": "[experiments.md](experiments.md), \"Does a time-aware field move the "
+                 "tradeoff?\" (`bench/recon.py --field flow`, `bench/scale.py --configs "
+                 "…:flow`)",
     "streaming": "[performance.md](performance.md), \"Streaming reconstruction\", and "
-                 "[experiments.md](experiments.md), \"The tradeoff at display time\" "
-                 "(`bench/recon.py --carry warm`, `bench/scale.py`, `bench/display_sweep.py`)",
+                 "[experiments.md](experiments.md), \"Does the tradeoff survive at display "
+                 "time?\" (`bench/recon.py --carry warm`, `bench/scale.py`, "
+                 "`bench/display_sweep.py`)",
     "realtime/before-after": "[performance.md](performance.md), \"Real time on two cores\" "
                              "(bench/realtime.py before and after, paired)",
     "live-default": "[performance.md](performance.md), \"The live default\" "
@@ -70,8 +72,8 @@ ELSEWHERE: dict[str, str] = {
                            "(`python bench/state_features.py`)",
     "state-features.txt": "[ppo.md](ppo.md), \"A richer state\" "
                           "(`python bench/state_features.py`)",
-    "oracle-300": "[experiments.md](experiments.md), \"The oracle bound and the follow-up "
-                  "paper's baselines\"",
+    "oracle-300": "[experiments.md](experiments.md), \"How much can a frame-selection policy "
+                  "gain over the best fixed rule?\"",
     "oracle-greedy-300": "[experiments.md](experiments.md), \"The greedy search\"",
     "online-live/learners.csv": "[ppo.md](ppo.md), online learning live (its figure)",
     "online-live/qualities.csv": "[ppo.md](ppo.md), online learning live (its figure)",

@@ -230,7 +230,7 @@ def main() -> int:
     # docs/research.md does not make them, so they do not decide the exit status
     # issue 32's claim that a fixed Γ loses to the per-regime best is asked, not claimed: on
     # held-out seeds of this schedule at this budget the switching gain G was inside the
-    # noise (docs/experiments.md, "Adaptive Γ on a changing channel")
+    # noise (docs/experiments.md, "Does an adaptive Γ beat the best fixed rule")
     # the PSNR claims asked again of what a viewer sees (issue 33): the same episodes, judged
     # by their display-time scores; reported, not deciding the exit status (docs/research.md
     # claims them at decision time, as the paper does)
@@ -337,9 +337,9 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
         lines += ["", "**At display time** — the PSNR claims asked of what a viewer sees: the "
                   "same episodes, each render scored against the truth at the time it is ready "
                   "(its decision time plus its compute, `psnr_display_db`; docs/experiments.md, "
-                  "\"The tradeoff at display time\"). Reported either way; the exit status is "
-                  "the decision-time claims'. The PPO claims are not asked: the agent learned "
-                  "the decision-time reward.", "", "| claim | verdict | evidence |",
+                  "\"Does the tradeoff survive at display time?\"). Reported either way; the "
+                  "exit status is the decision-time claims'. The PPO claims are not asked: the "
+                  "agent learned the decision-time reward.", "", "| claim | verdict | evidence |",
                   "|---|---|---|"]
         for c in doc["display_time"]:
             lines.append(f"| {c['statement']} | {'**holds**' if c['holds'] else '**fails**'} "
@@ -416,7 +416,7 @@ def render(doc: dict[str, Any], tradeoff: dict[str, Any], delay: dict[str, Any],
     if adaptive is not None:
         cfg = adaptive["meta"]["episode_config"]
         lines += [f"## A changing channel: {adaptive['meta']['args']['delay']}", "",
-                  f"Issue 32: every fixed rule and the adaptive policies on the same seeds "
+                  f"Every fixed rule and the adaptive policies on the same seeds "
                   f"({_seeds_text(adaptive['meta']['seed_list'])}), "
                   f"{cfg['steps_per_epoch']} field steps per scored decision, "
                   f"{cfg['scored_ms'] // (cfg['decision_period_ms'] * cfg['score_every'])} "

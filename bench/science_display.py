@@ -144,7 +144,7 @@ def verdicts(out: Path) -> dict[str, Any]:
 
 def render_lines(section: dict[str, Any], rel: str) -> list[str]:
     """The science.md section of this part."""
-    lines = ["", "## The claims at display time, at a budget a viewer would choose (issue 40)",
+    lines = ["", "## The claims at display time, at a budget a viewer would choose",
              "", "The four display-time PSNR claims asked again in two more configurations, "
              "same seeds and options as the 300-step runs (compare: all, mat:best, "
              "freshest:6, wait:40). Reported either way; they do not decide the exit status.",

@@ -19,7 +19,8 @@ rest as ``make science`` last wrote it), without re-running the other claims.
 
 Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 16–100 steps: with 8 seeds
 about 2,300 reconstructions, 12.0 minutes of wall time on the 2-core machine with 2 workers,
-busy with other jobs for the first half (docs/experiments.md, "A time-aware field").
+busy with other jobs for the first half (docs/experiments.md, "Does a time-aware field move
+the tradeoff?").
 """
 
 from __future__ import annotations
@@ -131,7 +132,7 @@ def run_question(runner: Runner, exe: str, common: list[str], out: Path, seeds: 
 
 def markdown(doc: dict[str, Any], rel: str) -> list[str]:
     """science.md's section on the question."""
-    lines = ["", "## A time-aware field (issue 41)", "",
+    lines = ["", "## A time-aware field", "",
              "The static grid against the time-aware `flow` field (the grid carried by a learned "
              "velocity field, rendered at the time asked for: aoi3d/field/flow.py) on the same "
              "seeds and episodes, LPIPS off. Equal CPU seconds per render: a flow step costs "
@@ -194,7 +195,7 @@ def _g(value: Any) -> str:
     return "all" if value == "all" else f"{float(value):g}"
 
 
-SECTION = "## A time-aware field (issue 41)"
+SECTION = "## A time-aware field"
 
 
 def update_science(doc: dict[str, Any], claims_path: Path, science_md: Path,

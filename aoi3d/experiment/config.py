@@ -25,8 +25,8 @@ Model carry-over (``carry``):
   of each scored decision's reconstruction: a copy of it trains ``render_steps`` more steps on
   exactly that decision's frames and renders the held-out view. Measured on the rotor scene
   it loses the tradeoff, as ``warm`` does; the live trainer renders with ``fresh``
-  (docs/experiments.md, "The live carry"). :mod:`aoi3d.field.carry` is the one
-  implementation of these modes, used here and by the trainer service.
+  (docs/experiments.md, "Which carry keeps the tradeoff live"). :mod:`aoi3d.field.carry` is
+  the one implementation of these modes, used here and by the trainer service.
 - ``stream`` — the streaming warm start (issue 33): each scored decision starts from the
   previous scored decision's model and trains ``render_steps`` steps on its own frames, a
   share of each batch drawn from the pixels that changed since (:class:`aoi3d.field.carry.

@@ -13,9 +13,9 @@ seconds per render. The twin's compute model charges the same ratio per step
 (``compute_step_ms``), so both are shown at the same display time.
 
 **The arms**, three CPU levels: the paper's per-decision reconstruction (``fresh``) at 50 and
-100 grid steps (the budgets where the display-time optimum lies, docs/experiments.md, "The
-tradeoff at display time"), and the streaming warm start (``stream``, issue 33) at 25 grid
-steps per warm start after a cold start of 100.
+100 grid steps (the budgets where the display-time optimum lies, docs/experiments.md, "Does
+the tradeoff survive at display time?"), and the streaming warm start (``stream``, issue 33)
+at 25 grid steps per warm start after a cold start of 100.
 
 **The goal** (:func:`goal`): at display time, the time-aware field beats the best static
 configuration by at least 1 dB in dynamic-region PSNR at equal CPU seconds per render. The

@@ -17,14 +17,15 @@ Carry modes:
 - ``warm`` — one model trained continuously on the decision in force (the training set is
   swapped, the model kept) and rendered as it is. Cheap, but the model lags and averages
   its frames over many decisions: on the rotor close-up the blades blur away and the
-  freshness of the frames stops mattering (docs/experiments.md, "The live carry").
+  freshness of the frames stops mattering (docs/experiments.md, "Which carry keeps the
+  tradeoff live").
 - ``fork`` — the warm model, continuously trained on the decision in force, is the *start*
   of each rendered decision's reconstruction: a copy of it (:meth:`FieldTrainer.fork`:
   weights, optimizer state and random stream) trains ``render_steps`` more steps on exactly
   that decision's frames, is rendered, and is dropped. The idea: the warm model holds what
   does not move, the copy's short run places the moving parts. Measured on the rotor scene
   at 100 steps it renders worse than ``fresh`` and shows no tradeoff (docs/experiments.md,
-  "The live carry"); the render still carries the earlier decisions' influence.
+  "Which carry keeps the tradeoff live"); the render still carries the earlier decisions' influence.
 
 :class:`RenderedDecision` is a render and what made it: the steps of its model, those spent
 on its decision's frames alone, the last loss and the number of views.

@@ -73,7 +73,8 @@ class JobTimes:
     steps the job trained (a stream cold start's differ from a warm start's) and the frames it
     trained on (a job of 18 frames takes longer than one of 5): what the
     virtual clock's twin of the pool charges a job (``compute_fixed_ms``, ``compute_step_ms``;
-    docs/experiments.md, "The pool's twin"). The last :attr:`KEEP` of each."""
+    docs/experiments.md, "Does the virtual clock's twin of the pool predict the live
+    pipeline?"). The last :attr:`KEEP` of each."""
 
     KEEP = 500
 
