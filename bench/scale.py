@@ -187,8 +187,8 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
 
     window = [q for n in names for q in history[n]
               if decision0[n] < q["decision_id"] <= decision1[n]]
-    rendered = 'aoi3d_pool_decisions_total{{outcome="rendered",site="{}"}}'
-    by_site = {n: delta("dispatcher", rendered.format(n)) for n in names}
+    series = 'aoi3d_pool_decisions_total{{outcome="rendered",site="{}"}}'
+    by_site = {n: delta("dispatcher", series.format(n)) for n in names}
     rendered = sum(by_site.values())
     taken = delta("dispatcher", "aoi3d_dispatcher_decisions_total")
     wait_n = delta("dispatcher", "aoi3d_pool_wait_seconds_count")

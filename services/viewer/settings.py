@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import os
 
-from pydantic import Field
+from pydantic import AliasChoices, Field
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.ports import SERVICE_PORTS
@@ -26,8 +26,10 @@ class Settings(ServiceSettings):
 
     port: int = Field(SERVICE_PORTS["viewer"], ge=0, le=65535,
                       description="The viewer's web page, its websocket and REST API port.")
-    trainer_url: str = Field(
+    dispatcher_url: str = Field(
         default_factory=lambda: _url("dispatcher"),
+        validation_alias=AliasChoices("AOI3D_VIEWER_DISPATCHER_URL", "dispatcher_url",
+                                      "AOI3D_VIEWER_TRAINER_URL"),  # its old name, one release
         json_schema_extra={"doc_default": "`http://127.0.0.1:<AOI3D_DISPATCHER_PORT>`"},
         description="The dispatcher's REST API: free views (GET /render.png?c2w=…).")
     scheduler_url: str = Field(

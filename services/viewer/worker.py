@@ -289,7 +289,7 @@ class ViewerWorker:
         params = drawing.view_params(client.camera, self.settings.render_height)
         if params is None:
             return
-        url = f"{self.settings.trainer_url.rstrip('/')}/sites/{self.site}/render.png"
+        url = f"{self.settings.dispatcher_url.rstrip('/')}/sites/{self.site}/render.png"
         self.views_asked += 1
         try:
             r = self._http.get(url, params=params)
