@@ -41,7 +41,7 @@ from services.kit.codec import encode_frame, encode_png
 from services.kit.keys import Keys
 from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
-from services.scheduler.worker import SchedulerWorker
+from services.scheduler.runtime import SchedulerRuntime
 
 N_CAMERAS = 18
 KEYS = Keys("bench")
@@ -70,7 +70,7 @@ def run(seconds: float = 20.0, period_ms: float = 30.0, batch: int = 8,
     bus = MemoryBus()
     clock = SimClock(epoch_s=time.time(), time_scale=1.0)
     registry = CollectorRegistry()
-    worker = SchedulerWorker(bus, registry, run_id="bench", n_cameras=N_CAMERAS, clock=clock,
+    worker = SchedulerRuntime(bus, registry, run_id="bench", n_cameras=N_CAMERAS, clock=clock,
                              policy=policy, decision_period_ms=period_ms,
                              learn=LearnConfig(batch_size=batch, checkpoint_every=10))
 

@@ -10,14 +10,14 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from aoi3d.clock import SimClock
 from aoi3d.scene import SceneDataset, open_dataset
-from services.camera.settings import Settings
-from services.camera.worker import (
+from services.camera.runtime import (
     MAX_PERIOD_MS,
     MIN_PERIOD_MS,
     CameraConfig,
     CameraConfigError,
-    CameraWorker,
+    CameraRuntime,
 )
+from services.camera.settings import Settings
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.keys import Keys
@@ -31,7 +31,7 @@ at t on `aoi3d/<run>/cam/<n>/frame`; the held-out camera 0 publishes on
 active cameras.
 """
 
-WorkerDep = Annotated[CameraWorker, Depends(get_worker)]
+WorkerDep = Annotated[CameraRuntime, Depends(get_worker)]
 
 
 class CameraConfigView(BaseModel):
@@ -65,7 +65,7 @@ class CameraConfigUpdate(BaseModel):
                                       examples=[[1, 2, 3]])
 
 
-def _view(worker: CameraWorker, cfg: CameraConfig) -> CameraConfigView:
+def _view(worker: CameraRuntime, cfg: CameraConfig) -> CameraConfigView:
     return CameraConfigView(period_ms=cfg.period_ms, paused=cfg.paused, cameras=list(cfg.cameras),
                             rig=list(worker.rig), heldout_id=worker.heldout_id)
 
@@ -100,14 +100,14 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
 
     opened: list[SceneDataset] = [] if dataset is None else [dataset]
 
-    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> CameraWorker:
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> CameraRuntime:
         if not opened:
             opened.append(open_dataset(common.dataset))
         ds = opened[0]
         # each site films the same scene at its own phase: the loop split evenly among them
         loop_ms = 1000.0 * ds.n_frames / ds.fps
         phase_ms = loop_ms * common.sites.index(site) / len(common.sites)
-        return CameraWorker(
+        return CameraRuntime(
             bus=the_bus, registry=the_registry, dataset=ds, clock=clock,
             keys=Keys(common.run_id, site), n_cameras=common.cameras,
             period_ms=settings.period_ms, paused=settings.paused,

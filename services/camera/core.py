@@ -1,6 +1,6 @@
 """The camera rig's core: a configuration and a time in, the frames of a tick out.
 
-No bus, no threads, no metrics library: the runtime (:mod:`services.camera.worker`) calls it
+No bus, no threads, no metrics library: the runtime (:mod:`services.camera.runtime`) calls it
 from its loop and publishes what it returns; tests drive it directly.
 
 Every period C (sim ms), at the aligned times t = k·C, each active training camera n shows

@@ -12,8 +12,8 @@ from fastapi import APIRouter, Depends, FastAPI, HTTPException, Request
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from fastapi.staticfiles import StaticFiles
 
+from services.console.runtime import ConsoleRuntime
 from services.console.settings import UPSTREAMS, Settings
-from services.console.worker import ConsoleWorker
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 
@@ -31,7 +31,7 @@ its budget goes to the scheduler's `PUT /policy`). Updates are pushed as Server-
 on `/events`. Everything the page loads is served here: no CDN.
 """
 
-Worker = Annotated[ConsoleWorker, Depends(get_worker)]
+Worker = Annotated[ConsoleRuntime, Depends(get_worker)]
 router = APIRouter(tags=["console"])
 site_router = APIRouter(tags=["console"])
 """What the page shows of one site: at the root for the first, under /sites/{site}."""
@@ -109,7 +109,7 @@ _FORWARD: dict[str, Any] = {
 @router.put("/api/{service}/{path:path}", operation_id="forward_put", **_FORWARD)
 @router.post("/api/{service}/{path:path}", operation_id="forward_post", **_FORWARD)
 async def forward(service: str, path: str, request: Request) -> Response:
-    worker: ConsoleWorker = request.app.state.worker
+    worker: ConsoleRuntime = request.app.state.worker
     if service not in worker.upstream:
         raise HTTPException(status_code=404, detail=f"unknown service {service!r}; "
                                                     f"known: {', '.join(sorted(UPSTREAMS))}")
@@ -135,8 +135,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None) -> F
     common = settings.common
     token = common.token()
 
-    def build_worker(the_bus: Bus, registry, site: str) -> ConsoleWorker:
-        return ConsoleWorker(the_bus, registry, run_id=common.run_id, site=site,
+    def build_worker(the_bus: Bus, registry, site: str) -> ConsoleRuntime:
+        return ConsoleRuntime(the_bus, registry, run_id=common.run_id, site=site,
                              poll_prefix="" if site == common.sites[0] else f"/sites/{site}",
                              upstream=settings.upstream,
                              headers={"authorization": f"Bearer {token}"} if token else {},

@@ -1,7 +1,7 @@
 """The console's core: what the page shows, from the messages and the services' answers.
 
 No bus, no HTTP client, no threads, no metrics library: the runtime
-(:mod:`services.console.worker`) feeds it decoded-at-the-edge bytes and polled JSON under its
+(:mod:`services.console.runtime`) feeds it decoded-at-the-edge bytes and polled JSON under its
 lock, with the wall time; tests drive it directly.
 
 It keeps the latest Render, the truth frame of the same simulated time (a ring by generation

@@ -16,6 +16,7 @@ from aoi3d.clock import SimClock
 from aoi3d.field.carry import CarryMode
 from aoi3d.rigfile import load_rig
 from aoi3d.scene import SceneDataset, open_dataset
+from services.dispatcher.runtime import DispatcherRuntime
 from services.dispatcher.schemas import PoolInfo, StatusResponse, pool_body, status_body
 from services.dispatcher.settings import Settings
 from services.dispatcher.state import (
@@ -23,17 +24,16 @@ from services.dispatcher.state import (
     UnknownBackendError,
 )
 from services.dispatcher.views import ViewRefused
-from services.dispatcher.worker import DispatcherWorker
 from services.kit.app import include_site_routers, service_app
 from services.kit.bus import Bus
 
 
-def _pool(request: Request) -> DispatcherWorker:
+def _pool(request: Request) -> DispatcherRuntime:
     """The dispatcher's one worker: the pool's, serving every site."""
     return request.app.state.worker
 
 
-Worker = Annotated[DispatcherWorker, Depends(_pool)]
+Worker = Annotated[DispatcherRuntime, Depends(_pool)]
 
 
 def _site(request: Request, worker: Worker) -> str:
@@ -269,12 +269,12 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     settings = settings or Settings()
     clock = clock or SimClock(settings.common.epoch_s, settings.common.time_scale)
 
-    def build_worker(the_bus: Bus, registry) -> DispatcherWorker:
+    def build_worker(the_bus: Bus, registry) -> DispatcherRuntime:
         if settings.common.rig is not None and dataset is None:  # real cameras
-            return DispatcherWorker(settings, the_bus, registry, rig=load_rig(settings.common.rig),
+            return DispatcherRuntime(settings, the_bus, registry, rig=load_rig(settings.common.rig),
                                  clock=clock)
         data = dataset if dataset is not None else open_dataset(settings.common.dataset)
-        return DispatcherWorker(settings, the_bus, registry, dataset=data, clock=clock)
+        return DispatcherRuntime(settings, the_bus, registry, dataset=data, clock=clock)
 
     app = service_app(
         title="aoi3d dispatcher",

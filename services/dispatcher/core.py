@@ -1,7 +1,7 @@
 """The dispatcher service's core: decoded messages and a time in, what to send out.
 
 No bus, no threads, no web framework, no metrics library: the runtime
-(:mod:`services.dispatcher.worker`) feeds it and sends what it returns; tests drive it directly.
+(:mod:`services.dispatcher.runtime`) feeds it and sends what it returns; tests drive it directly.
 
 It holds the delivered frames (still encoded, per camera), takes the newest decision (in
 (sim time, id) order within a scheduler incarnation; a new incarnation at once), and hands

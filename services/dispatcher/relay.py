@@ -2,7 +2,7 @@
 the site's latest decision (``aoi3d/<run>/pool/view/<worker>``, a :class:`pb.ViewRequest`),
 bounded by the token bucket and counted by outcome in ``aoi3d_dispatcher_views_total``. The pure
 parts — the bucket, the outcomes and their HTTP statuses — are :mod:`services.dispatcher.views`;
-:class:`services.dispatcher.worker.DispatcherWorker` owns one :class:`ViewRelay` and shares its
+:class:`services.dispatcher.runtime.DispatcherRuntime` owns one :class:`ViewRelay` and shares its
 lock.
 """
 

@@ -1,6 +1,6 @@
 """What the dispatcher service reports and accepts: its status types and errors.
 
-Plain data shared by the dispatcher's runtime (:mod:`services.dispatcher.worker`) and the REST
+Plain data shared by the dispatcher's runtime (:mod:`services.dispatcher.runtime`) and the REST
 layer (:mod:`services.dispatcher.app`). The dispatcher service trains no model itself: it hands
 decisions to the reconstruction workers (:mod:`services.recon`) and publishes their renders.
 """

@@ -13,8 +13,8 @@ from aoi3d.rigfile import Rig, load_rig
 from services import ros
 from services.ingest.dds import DdsSource
 from services.ingest.outputs import OutputTopics, RosOutputs, dds_sender, zenoh_sender
+from services.ingest.runtime import IngestRuntime
 from services.ingest.settings import Settings
-from services.ingest.worker import IngestWorker
 from services.kit.app import get_worker, service_app
 from services.kit.bus import Bus, ZenohBus
 from services.kit.keys import Keys
@@ -33,7 +33,7 @@ rig's source (on by default for DDS): the render and its CameraInfo, the decisio
 camera's AoI, and Quality (`AOI3D_INGEST_ROS_*`).
 """
 
-WorkerDep = Annotated[IngestWorker, Depends(get_worker)]
+WorkerDep = Annotated[IngestRuntime, Depends(get_worker)]
 
 router = APIRouter(tags=["ingest"])
 
@@ -95,7 +95,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
             raise ValueError("the ingest service needs a rig file (AOI3D_RIG)")
         rig = load_rig(common.rig)
 
-    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> IngestWorker:
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry) -> IngestRuntime:
         dds = rig.source.format == "dds"
         own = source is None and (bool(rig.source.connect) or dds)
         src: Any
@@ -104,7 +104,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
         else:
             src = robot_bus(rig.source.connect) if own else source
         keys = Keys(common.run_id, common.sites[0])
-        return IngestWorker(bus=the_bus, registry=the_registry, rig=rig,
+        return IngestRuntime(bus=the_bus, registry=the_registry, rig=rig,
                             keys=keys, epoch_s=common.epoch_s,
                             time_scale=common.time_scale, stall_s=common.stall_s,
                             through_network=settings.through_network,

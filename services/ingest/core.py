@@ -1,7 +1,7 @@
 """The ingest core: a ROS 2 sample (key, CDR bytes, attachment) and its receipt time in, the
 pipeline's :class:`pb.Frame` out — or :class:`Rejected` with its reason.
 
-No bus, no threads, no metrics library: the runtime (:mod:`services.ingest.worker`) feeds it
+No bus, no threads, no metrics library: the runtime (:mod:`services.ingest.runtime`) feeds it
 from its one thread and publishes what it returns; tests drive it directly.
 
 What a camera of the rig file (:mod:`aoi3d.rigfile`) sends:

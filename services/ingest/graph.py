@@ -2,7 +2,7 @@
 publishes what), and what they say about the rig's topics — the live publishers of each, the
 types others publish on it, and why no frame may have come.
 
-Pure: the runtime watches the tokens (:mod:`services.ingest.worker`) and hands each to
+Pure: the runtime watches the tokens (:mod:`services.ingest.runtime`) and hands each to
 :meth:`RosGraph.on_token`."""
 
 from __future__ import annotations

@@ -14,8 +14,8 @@ from aoi3d.quality import LpipsFn
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.metrics.core import QualityRecord, mean_of_present, mean_or_none
+from services.metrics.runtime import MetricsRuntime
 from services.metrics.settings import Settings
-from services.metrics.worker import MetricsWorker
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +48,7 @@ of the site ends in exactly one state — scored, skipped by choice (superseded)
 reason — or is still open; one open longer than `ledger_open_s` is counted lost (expired).
 """
 
-Metrics = Annotated[MetricsWorker, Depends(get_worker)]
+Metrics = Annotated[MetricsRuntime, Depends(get_worker)]
 
 
 class QualityEntry(BaseModel):
@@ -290,10 +290,10 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
 
     lpips: list[LpipsFn | None] = []  # one network for every site, loaded once
 
-    def build_worker(the_bus: Bus, registry, site: str) -> MetricsWorker:
+    def build_worker(the_bus: Bus, registry, site: str) -> MetricsRuntime:
         if not lpips:
             lpips.append(resolve_lpips_fn(settings, lpips_fn))
-        return MetricsWorker(
+        return MetricsRuntime(
             the_bus, registry, run_id=common.run_id, site=site, clock=clock,
             truth_period_ms=settings.truth_period_ms, truth_frames=settings.truth_frames,
             history=settings.history, inbox_size=settings.inbox_size,

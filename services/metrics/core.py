@@ -1,6 +1,6 @@
 """The metrics service's core: truth frames and renders in, Quality out.
 
-No bus, no threads, no metrics library: the runtime (:mod:`services.metrics.worker`) feeds it
+No bus, no threads, no metrics library: the runtime (:mod:`services.metrics.runtime`) feeds it
 from its scoring thread and publishes what it returns; tests drive it directly.
 
 Pairing rule: a render at decision time t is compared with the ground-truth frame generated

@@ -14,8 +14,8 @@ from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.guard import OutsideRoots, confined_path
 from services.kit.keys import Keys
+from services.network.runtime import ChannelConfig, NetworkRuntime
 from services.network.settings import Settings
-from services.network.worker import ChannelConfig, NetworkWorker
 
 DESCRIPTION = """
 The cameras' uplinks: one D/G/1/0 link per training camera (single server, no waiting room).
@@ -31,7 +31,7 @@ lists when the channel changed (set here, or the next regime) and `measured_dela
 mean delay of the frames delivered over the last few seconds.
 """
 
-WorkerDep = Annotated[NetworkWorker, Depends(get_worker)]
+WorkerDep = Annotated[NetworkRuntime, Depends(get_worker)]
 _ALL_FORMS = (*ACCEPTED_FORMS, *CHANNEL_FORMS)
 _FORMS = ", ".join(_ALL_FORMS)
 
@@ -104,7 +104,7 @@ class ChannelUpdate(BaseModel):
                                                      "delivered.", examples=[1])
 
 
-def _view(worker: NetworkWorker, cfg: ChannelConfig) -> ChannelView:
+def _view(worker: NetworkRuntime, cfg: ChannelConfig) -> ChannelView:
     links = [LinkView(camera=s.camera_id, delay=s.delay.spec, mean_delay_ms=s.delay.mean_ms,
                       offered=s.offered, dropped=s.dropped, delivered=s.delivered,
                       in_flight=s.in_flight) for s in worker.link_stats()]
@@ -154,9 +154,9 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     common = settings.common
     clock = clock or SimClock(common.epoch_s, common.time_scale)
 
-    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> NetworkWorker:
+    def build_worker(the_bus: Bus, the_registry: CollectorRegistry, site: str) -> NetworkRuntime:
         # each site's links draw their own delays: the seed moves on by the site's index
-        return NetworkWorker(
+        return NetworkRuntime(
             bus=the_bus, registry=the_registry, clock=clock, keys=Keys(common.run_id, site),
             n_cameras=common.cameras, delay=settings.delay, per_camera=settings.per_camera,
             seed=settings.seed + common.sites.index(site), max_skew_ms=settings.common.skew_ms,

@@ -1,6 +1,6 @@
 """The network's core: offered frames and a time in, frames due for delivery out.
 
-No bus, no threads, no metrics library: the runtime (:mod:`services.network.worker`) feeds it
+No bus, no threads, no metrics library: the runtime (:mod:`services.network.runtime`) feeds it
 under its lock and publishes what it returns; tests drive it directly.
 
 Camera n's offered frame goes through its :class:`aoi3d.channel.link.Link` (a D/G/1/0

@@ -12,8 +12,8 @@ from services.kit.observe import setup_logging
 from services.kit.runtime import Loops
 from services.kit.settings import zenoh_config
 from services.recon.core import ReconCore
+from services.recon.runtime import ReconWorker, default_worker_id
 from services.recon.settings import Settings
-from services.recon.worker import ReconWorker, default_worker_id
 
 
 def main() -> None:

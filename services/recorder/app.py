@@ -13,8 +13,8 @@ from services.kit.app import service_app
 from services.kit.bus import Bus
 from services.kit.guard import OutsideRoots, confined_path
 from services.recorder.core import RecordingStatus
+from services.recorder.runtime import RecorderRuntime, RecordingError
 from services.recorder.settings import Settings
-from services.recorder.worker import RecorderWorker, RecordingError
 
 DESCRIPTION = """
 Every run on record: the deliveries (each frame as a Foxglove image with its calibration and
@@ -62,11 +62,11 @@ def _view(status: RecordingStatus | None) -> RecordingView:
                          bytes_written=status.bytes_written, max_bytes=status.max_bytes)
 
 
-def _worker(request: Request) -> RecorderWorker:
+def _worker(request: Request) -> RecorderRuntime:
     return request.app.state.worker
 
 
-WorkerDep = Annotated[RecorderWorker, Depends(_worker)]
+WorkerDep = Annotated[RecorderRuntime, Depends(_worker)]
 router = APIRouter(tags=["recording"])
 
 
@@ -135,8 +135,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                registry: CollectorRegistry | None = None) -> FastAPI:
     settings = settings or Settings()
 
-    def build(the_bus: Bus, reg: CollectorRegistry) -> RecorderWorker:
-        worker = RecorderWorker(the_bus, reg, run_id=settings.common.run_id,
+    def build(the_bus: Bus, reg: CollectorRegistry) -> RecorderRuntime:
+        worker = RecorderRuntime(the_bus, reg, run_id=settings.common.run_id,
                                 inbox_size=settings.inbox_size, metadata=run_metadata(settings),
                                 chunk_bytes=settings.chunk_bytes,
                                 compression=settings.compression)

@@ -1,7 +1,7 @@
 """The recorder's core: bus messages in (key, payload, receipt time), an MCAP file out.
 
 No bus, no threads, no server, no metrics library: the runtime
-(:mod:`services.recorder.worker`) feeds it from its writing thread. What goes where:
+(:mod:`services.recorder.runtime`) feeds it from its writing thread. What goes where:
 
 =================================  ===============================  ============================
 bus key (``aoi3d/<run>/<site>/…``)  MCAP topic                       schema

@@ -16,6 +16,7 @@ from aoi3d.policy import (
 from services.kit.app import get_worker, include_site_routers, service_app
 from services.kit.bus import Bus
 from services.kit.guard import OutsideRoots, confined_path, files_in_roots
+from services.scheduler.runtime import SchedulerRuntime
 from services.scheduler.schemas import (
     AoIResponse,
     CheckpointList,
@@ -25,7 +26,6 @@ from services.scheduler.schemas import (
     PolicyResponse,
 )
 from services.scheduler.settings import Settings
-from services.scheduler.worker import SchedulerWorker
 
 DESCRIPTION = """\
 Tracks the Age of Information (AoI) of every training camera from the frames the network
@@ -58,7 +58,7 @@ updates, when the policy is replaced and on shutdown. `GET /policy` shows the le
 state under `online`; Prometheus has the `aoi3d_ppo_*` series.
 """
 
-Scheduler = Annotated[SchedulerWorker, Depends(get_worker)]
+Scheduler = Annotated[SchedulerRuntime, Depends(get_worker)]
 
 
 def _none_if_nan(x: float) -> float | None:
@@ -85,7 +85,7 @@ _POLICY_EXAMPLES = {
 }
 
 
-def _policy_state(worker: SchedulerWorker) -> PolicyResponse:
+def _policy_state(worker: SchedulerRuntime) -> PolicyResponse:
     policy, learner = worker.policy_and_learner()
     return PolicyResponse.of(policy, None if learner is None else learner.status())
 
@@ -174,8 +174,8 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     policy = parse_policy(settings.policy).on_device(settings.device)
     policy.check_fits(common.cameras)  # fail at start-up, not at the first decision
 
-    def build_worker(the_bus: Bus, registry, site: str) -> SchedulerWorker:
-        return SchedulerWorker(the_bus, registry, run_id=common.run_id, site=site,
+    def build_worker(the_bus: Bus, registry, site: str) -> SchedulerRuntime:
+        return SchedulerRuntime(the_bus, registry, run_id=common.run_id, site=site,
                                n_cameras=common.cameras, clock=clock, policy=policy,
                                decision_period_ms=settings.decision_period_ms,
                                inbox_size=settings.inbox_size,

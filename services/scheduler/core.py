@@ -1,6 +1,6 @@
 """The scheduler's core: delivered frames and a time in, Decisions out.
 
-No bus, no threads, no metrics library: the runtime (:mod:`services.scheduler.worker`) feeds
+No bus, no threads, no metrics library: the runtime (:mod:`services.scheduler.runtime`) feeds
 it under its lock and publishes what it returns; tests drive it directly.
 
 A delivered frame counts for a decision at s iff it was delivered at or before s

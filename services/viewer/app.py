@@ -23,8 +23,8 @@ from aoi3d.scene import Camera, SceneDataset, open_dataset
 from services.kit.app import service_app
 from services.kit.bus import Bus
 from services.kit.guard import host_name
+from services.viewer.runtime import ViewerRuntime
 from services.viewer.settings import Settings
-from services.viewer.worker import ViewerWorker
 
 log = logging.getLogger(__name__)
 
@@ -56,7 +56,7 @@ def page() -> HTMLResponse:
 def scene(request: Request, site: Annotated[str | None, Query(
         description="A site of the run (default: the one shown).", max_length=32)] = None
           ) -> JSONResponse:
-    worker: ViewerWorker = request.app.state.worker
+    worker: ViewerRuntime = request.app.state.worker
     if site is not None and site not in worker.core.sites:
         raise HTTPException(404, f"no site {site!r} in this run")
     return JSONResponse(worker.scene_doc(site))
@@ -74,7 +74,7 @@ async def _relay(websocket: WebSocket) -> None:
             origin is not None and host_name(origin.split("://", 1)[-1]) not in allowed)):
         await websocket.close(code=1008)
         return
-    worker: ViewerWorker = websocket.app.state.worker
+    worker: ViewerRuntime = websocket.app.state.worker
     offered = websocket.scope.get("subprotocols") or []
     protocol = next((p for p in offered if p.startswith("viser-v")), None)
     url = f"ws://127.0.0.1:{worker.viser_port}/"
@@ -113,7 +113,7 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
     ``open_dataset(settings.common.dataset)``, read when the app starts."""
     settings = settings or Settings()
 
-    def build_worker(the_bus: Bus, registry) -> ViewerWorker:
+    def build_worker(the_bus: Bus, registry) -> ViewerRuntime:
         if settings.common.rig is not None and dataset is None:  # real cameras: the rig's
             from aoi3d.rigfile import load_rig, scaled_camera
 
@@ -127,12 +127,12 @@ def create_app(settings: Settings | None = None, *, bus: Bus | None = None,
                         or cy is None or w is None or h is None):
                     continue  # known only from its topics: not drawn from the file alone
                 cams[i] = scaled_camera(pose.static_c2w(), fx, fy, cx, cy, (w, h), size)
-            return ViewerWorker(settings, the_bus, registry, cameras=cams,
+            return ViewerRuntime(settings, the_bus, registry, cameras=cams,
                                 truth=rig.view_camera(), aabb=rig.scene_box)
         data = dataset if dataset is not None else open_dataset(settings.common.dataset)
         n = min(settings.common.cameras, len(data.cameras) - 1)
         cams = {c: data.cameras[c] for c in range(1, n + 1) if c != data.heldout_id}
-        return ViewerWorker(settings, the_bus, registry, cameras=cams,
+        return ViewerRuntime(settings, the_bus, registry, cameras=cams,
                             truth=data.cameras[data.heldout_id], aabb=np.asarray(data.aabb))
 
     app = service_app(title="aoi3d viewer", description=DESCRIPTION, settings=settings,

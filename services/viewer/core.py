@@ -1,5 +1,5 @@
 """The 3D viewer's core: what it draws, from the decisions and delivered frames (no bus, no
-server, no threads; :mod:`services.viewer.worker` feeds it and draws what it returns).
+server, no threads; :mod:`services.viewer.runtime` feeds it and draws what it returns).
 
 Per site it keeps the decision in force — each camera's AoI, the cameras it used, the policy
 and its Γ — and the newest delivered frame of each camera (still encoded: decoded only when

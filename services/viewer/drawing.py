@@ -1,6 +1,6 @@
 """What the viewer puts on viser's scene, and the free view a browser's camera asks for.
 
-The scene building of :class:`services.viewer.worker.ViewerWorker`, apart from its loops,
+The scene building of :class:`services.viewer.runtime.ViewerRuntime`, apart from its loops,
 locks and bus: the box and the truth camera (drawn once), a frustum per camera in the state
 :class:`services.viewer.core.ViewerCore` gives it, the status line, where a browser's camera
 starts or is sent back to, and the dispatcher's query for a free view from a browser's camera.

@@ -3,7 +3,7 @@
 The trace is an experiment episode's links (:func:`aoi3d.experiment.episode.episode_links`:
 every frame's generation and delivery slot). The experiment path is
 :func:`aoi3d.experiment.plan_episode` itself; the live path is the scheduler service
-(``create_app`` → :class:`services.scheduler.worker.SchedulerWorker`) on the in-memory bus,
+(``create_app`` → :class:`services.scheduler.runtime.SchedulerRuntime`) on the in-memory bus,
 fed every frame of the trace with its delivery stamp and driven by a manual clock to each
 decision's time. Both must give the same decisions: the same time (t, or t + ω for
 ``wait:<ω>``), cameras, generation times and AoIs.

@@ -28,8 +28,8 @@ from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.metrics.ledger import Outcome, decode_outcome
 from services.recon.core import ReconCore
+from services.recon.runtime import ReconWorker
 from services.recon.settings import Settings as ReconSettings
-from services.recon.worker import ReconWorker
 from tests.support.dispatcher import (
     CONFIGS,
     KEYS,

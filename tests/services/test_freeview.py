@@ -31,8 +31,8 @@ from services.kit.membus import MemoryBus
 from services.kit.pb import aoi3d_pb2 as pb
 from services.kit.settings import CommonSettings
 from services.recon.core import ReconCore
+from services.recon.runtime import ReconWorker
 from services.recon.settings import Settings as ReconSettings
-from services.recon.worker import ReconWorker
 from tests.support.timeouts import SCALE
 from tests.support.waits import wait_for
 

@@ -44,7 +44,7 @@ _MAX_WAITING = 64  # renders held for their truth frame at most
 _TIME_TOL_MS = 1e-6  # generation times this close to t count as "at t" (float round-off)
 
 
-class MetricsWorker:
+class MetricsRuntime:
     """Subscribes ``truth/frame`` and ``render``; publishes ``quality``; keeps a history."""
 
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,

@@ -36,7 +36,7 @@ class RecordingError(ValueError):
     """A start or stop that cannot be done (already recording, nothing to stop)."""
 
 
-class RecorderWorker:
+class RecorderRuntime:
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
                  inbox_size: int = 4096, metadata: dict[str, str] | None = None,
                  chunk_bytes: int = 1 << 20, compression: str = "zstd") -> None:

@@ -40,13 +40,13 @@ _POLL_S = 0.1
 #: Receipt − stamp of the published frames, wall seconds.
 AGE_BUCKETS_S = (0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0)
 
-__all__ = ["IngestWorker"]
+__all__ = ["IngestRuntime"]
 
 
 class _Collector:
     """The core's per-camera counts as Prometheus series, read at scrape time."""
 
-    def __init__(self, worker: IngestWorker) -> None:
+    def __init__(self, worker: IngestRuntime) -> None:
         self._worker = worker
 
     def describe(self):
@@ -93,7 +93,7 @@ class _Collector:
         yield from (samples, frames, rejected, lost, clamped, offset, in_force, publishers)
 
 
-class IngestWorker:
+class IngestRuntime:
     """See the module docstring. ``source``: the bus the ROS topics are read from (default
     ``bus``)."""
 

@@ -49,7 +49,7 @@ POLICIES = ("all", "mat", "freshest", "wait")
 """The policies the viewer's controls offer (ppo needs a checkpoint path: the console)."""
 
 
-class ViewerWorker:
+class ViewerRuntime:
     """See the module docstring."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,

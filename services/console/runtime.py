@@ -27,14 +27,14 @@ from services.kit.runtime import Loops
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TRUTH_FRAMES", "ConsoleWorker", "Pair"]
+__all__ = ["TRUTH_FRAMES", "ConsoleRuntime", "Pair"]
 
 POLLED = (("channel", "network", "/channel"), ("dispatcher", "dispatcher", "/status"),
           ("policy", "scheduler", "/policy"), ("ledger", "metrics", "/ledger"))
 """What each poll asks: (status key, service, path)."""
 
 
-class ConsoleWorker:
+class ConsoleRuntime:
     def __init__(self, bus: Bus, registry: CollectorRegistry, *, run_id: str,
                  upstream: dict[str, str], headers: dict[str, str], site: str = DEFAULT_SITE,
                  poll_prefix: str = "", period_ms: float = 30.0,

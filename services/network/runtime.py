@@ -45,10 +45,10 @@ _POLL_S = 0.1  # longest a thread blocks before checking for stop
 MEASURE_WINDOW_MS = 3000.0
 _CHANGES_KEPT = 200
 
-__all__ = ["ChannelConfig", "ChannelConfigError", "LinkStats", "NetworkWorker"]
+__all__ = ["ChannelConfig", "ChannelConfigError", "LinkStats", "NetworkRuntime"]
 
 
-class NetworkWorker:
+class NetworkRuntime:
     """N independent links; frames delivered on the shared clock."""
 
     def __init__(self, *, bus: Bus, registry: CollectorRegistry, clock: SimClock, keys: Keys,

@@ -52,7 +52,7 @@ _TICK_S = 0.1
 _STOP_JOIN_S = 2.0
 
 
-class DispatcherWorker:
+class DispatcherRuntime:
     """See the module docstring."""
 
     def __init__(self, settings: Settings, bus: Bus, registry: CollectorRegistry, *,
@@ -307,4 +307,4 @@ class DispatcherWorker:
                 job_s=c.job_times.summary(), time_scale=self.clock.time_scale)
 
 
-__all__ = ["CarryError", "DispatcherWorker"]
+__all__ = ["CarryError", "DispatcherRuntime"]

@@ -50,10 +50,10 @@ log = logging.getLogger(__name__)
 
 _POLL_S = 0.05  # longest wait before re-checking the clock and the stop flag
 
-__all__ = ["MAX_AHEAD_MS", "AoISnapshot", "NewestFrame", "SchedulerWorker"]
+__all__ = ["MAX_AHEAD_MS", "AoISnapshot", "NewestFrame", "SchedulerRuntime"]
 
 
-class SchedulerWorker:
+class SchedulerRuntime:
     """Subscribes ``edge/*/frame`` (and ``quality``), publishes ``decision`` every
     ``decision_period_ms``; learns online while a ``ppo`` policy with ``learn`` is in force.
 

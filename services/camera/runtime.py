@@ -32,12 +32,12 @@ from services.kit.runtime import Loops
 log = logging.getLogger(__name__)
 
 __all__ = ["MAX_PERIOD_MS", "MIN_PERIOD_MS", "CameraConfig", "CameraConfigError",
-           "CameraWorker"]
+           "CameraRuntime"]
 
 _ERROR_LOG_INTERVAL_S = 10.0
 
 
-class CameraWorker:
+class CameraRuntime:
     """Publishes the rig's frames every period on its own thread."""
 
     def __init__(self, *, bus: Bus, registry: CollectorRegistry, dataset: SceneDataset,
