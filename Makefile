@@ -88,7 +88,7 @@ bench-live: install  ## the live sweep on a pipeline of its own, with the virtua
 	    --sim-seeds 16 --out bench/results/live-sweep
 
 bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (2 workers) and the scaling bench (about 20 min, its parts timed alone)
-	$(VENV)/bin/aoi3d scene generate --width 192 --height 144 --workers 2 \
+	$(VENV)/bin/aoi3d scene generate --width 192 --height 144 --processes 2 \
 	    --out data/turbine-rotor-192x144
 	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --workers 2 \
 	    --dataset data/turbine-rotor-192x144 --port-offset 2000 --zenoh-port 9447 \

@@ -35,8 +35,8 @@ if TYPE_CHECKING:
 
 __all__ = [
     "LpipsOpt",
+    "ProcessesOpt",
     "ThreadsOpt",
-    "WorkersOpt",
     "episode_config",
     "fail",
     "fmt",
@@ -49,9 +49,11 @@ __all__ = [
     "with_shared_options",
 ]
 
-WorkersOpt = Annotated[int | None, typer.Option(
-    min=1, help="Local processes that run the episodes (default: all local cores); not the "
-                "pipeline's reconstruction workers (aoi3d up --workers).")]
+ProcessesOpt = Annotated[int | None, typer.Option(
+    "--processes", "-j", "--workers",
+    min=1, help="Local processes that run the episodes (default: all local cores). --workers "
+                "is its old name, kept for one release: the pipeline's reconstruction workers "
+                "are aoi3d up --workers.")]
 ThreadsOpt = Annotated[int, typer.Option(min=1, help="Torch threads per episode process.")]
 LpipsOpt = Annotated[bool, typer.Option(help="Score LPIPS too (when its weights are cached).")]
 
@@ -195,7 +197,7 @@ def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
     scene config; any other folder is read as it is, every frame file checked (a bad one:
     :class:`~aoi3d.scene.DatasetError`), and generated with the experiments' scene only if it
     does not exist."""
-    from aoi3d.experiment.sweep import default_workers
+    from aoi3d.experiment.sweep import default_processes
     from aoi3d.scene import ensure_dataset, open_dataset
     from aoi3d.scene.framings import FRAMING_DATASETS, FRAMING_SCENES
 
@@ -203,7 +205,7 @@ def open_experiment_dataset(path: Path, console: Console) -> SceneDataset:
     if path.exists() and not own:
         return open_dataset(path, verify=True)
     with console.status(f"scene dataset {path} (generated if missing or stale) …"):
-        return ensure_dataset(path, FRAMING_SCENES["rotor"], workers=default_workers())
+        return ensure_dataset(path, FRAMING_SCENES["rotor"], processes=default_processes())
 
 
 def short_label(spec: str) -> str:

@@ -20,8 +20,8 @@ import typer
 from aoi3d.scene.framings import FRAMING_DATASETS
 from aoi3d_cli.common import (
     LpipsOpt,
+    ProcessesOpt,
     ThreadsOpt,
-    WorkersOpt,
     episode_config,
     make_console,
     open_experiment_dataset,
@@ -81,7 +81,7 @@ def _shared_options(
     steps_per_epoch: StepsOpt = None,
     carry: CarryOpt = None,
     backend: BackendOpt = None,
-    workers: WorkersOpt = None,
+    processes: ProcessesOpt = None,
     threads: ThreadsOpt = 1,
     ray_address: RayOpt = None,
     lpips: LpipsOpt = True,
@@ -110,7 +110,7 @@ class Shared:
     steps_per_epoch: int | None
     carry: str | None
     backend: str | None
-    workers: int | None
+    processes: int | None
     threads: int
     ray_address: str | None
     lpips: bool
@@ -123,7 +123,7 @@ class Shared:
         """Validate the options, open (or generate) the dataset and make the output folder;
         ``seeds``: the command's own seed count when it has no ``--seeds`` (default: the
         ``--seeds`` given, else the preset's)."""
-        from aoi3d.experiment import ResultCache, default_workers, get_preset
+        from aoi3d.experiment import ResultCache, default_processes, get_preset
         from aoi3d.experiment.report import ExperimentRun
 
         try:
@@ -148,7 +148,7 @@ class Shared:
         return ExperimentRun(
             command=command, preset=chosen, cfg=cfg, dataset=ds, out=folder,
             cache=ResultCache(self.cache), seeds=count if count is not None else chosen.seeds,
-            workers=self.workers if self.workers is not None else default_workers(),
+            processes=self.processes if self.processes is not None else default_processes(),
             threads=self.threads, ray_address=self.ray_address, started=time.time(),
             seed_offset=self.seed_offset,
         )
@@ -161,7 +161,7 @@ def run(setup: ExperimentRun, jobs: list[Job], label: str) -> SweepOutcome:
     from aoi3d.experiment import run_jobs
 
     where = (f"Ray ({setup.ray_address})" if setup.ray_address
-             else f"{min(setup.workers, len(jobs))} process(es) × {setup.threads} thread(s)")
+             else f"{min(setup.processes, len(jobs))} process(es) × {setup.threads} thread(s)")
     console.print(f"[bold]{label}[/]: {len(jobs)} episodes on {where}; cache {setup.cache.root}")
     try:
         with Progress(*progress_columns(), console=console, transient=False) as bar:
@@ -170,8 +170,8 @@ def run(setup: ExperimentRun, jobs: list[Job], label: str) -> SweepOutcome:
             def report(done: int, total: int) -> None:
                 bar.update(task, completed=done, total=total)
 
-            outcome = run_jobs(setup.cfg, jobs, cache=setup.cache, workers=setup.workers,
-                               threads_per_worker=setup.threads,
+            outcome = run_jobs(setup.cfg, jobs, cache=setup.cache, processes=setup.processes,
+                               threads_per_process=setup.threads,
                                ray_address=setup.ray_address, progress=report,
                                dataset=setup.dataset)
     except KeyboardInterrupt:
@@ -190,7 +190,7 @@ def run_oracle(setup: ExperimentRun, oracle: OracleSpec, delay: str) -> OracleOu
     from aoi3d.experiment import run_oracle as search
 
     where = (f"Ray ({setup.ray_address})" if setup.ray_address
-             else f"{setup.workers} process(es) × {setup.threads} thread(s)")
+             else f"{setup.processes} process(es) × {setup.threads} thread(s)")
     console.print(f"[bold]{oracle.spec}[/] (a bound, searched with the truth): "
                   f"{setup.seeds} seed(s) on {where}; cache {setup.cache.root}")
     try:
@@ -204,8 +204,8 @@ def run_oracle(setup: ExperimentRun, oracle: OracleSpec, delay: str) -> OracleOu
                 bar.update(task, completed=done, total=total)
 
             outcome = search(setup.cfg.with_(delay=delay), oracle, setup.seed_list,
-                             cache=setup.cache, workers=setup.workers,
-                             threads_per_worker=setup.threads,
+                             cache=setup.cache, processes=setup.processes,
+                             threads_per_process=setup.threads,
                              ray_address=setup.ray_address, progress=report,
                              on_round=round_, dataset=setup.dataset)
     except KeyboardInterrupt:

@@ -13,8 +13,9 @@ from typing import Annotated
 
 import typer
 
-from aoi3d.ports import DEFAULT_SITE, LOCALHOST, rest_port
+from aoi3d.sites import DEFAULT_SITE
 from aoi3d_cli.common import control_headers, fail, make_console
+from services.kit.ports import LOCALHOST, rest_port
 
 
 def export(

@@ -40,8 +40,8 @@ from aoi3d.metric import (
     REWARD,
     SSIM,
 )
-from aoi3d.ports import REST_FIRST, REST_LAST, ZENOH_PORT
 from aoi3d_cli.common import fmt, make_console
+from services.kit.ports import REST_FIRST, REST_LAST, ZENOH_PORT
 
 if TYPE_CHECKING:
     from aoi3d.live.report import LiveSweep
@@ -302,7 +302,7 @@ def _virtual_clock(order: list[str], windows: SweepWindows, *, dataset: Path, se
                        steps_per_decision=steps_per_decision(
                            windows.status0, status1, windows.measurements),
                        render_steps=render_steps, cold_steps=_cold_steps(status1),
-                       seeds=seeds, seed_offset=seed_offset, cache=cache, workers=None,
+                       seeds=seeds, seed_offset=seed_offset, cache=cache, processes=None,
                        backend=backend, pool=twin)
     except SimRefused as err:
         console.print(f"no virtual clock: {escape(str(err))}")
@@ -346,7 +346,7 @@ def _checked(policies: str, delay: str | None, site: str | None
         raise typer.BadParameter("give at least two policies", param_hint="'--policies'")
     from aoi3d.channel import DelaySpecError, parse_channel
     from aoi3d.policy import parse_policy
-    from aoi3d.ports import check_site
+    from aoi3d.sites import check_site
 
     try:
         bodies = {s: parse_policy(s).to_json() for s in specs}

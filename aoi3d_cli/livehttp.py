@@ -25,8 +25,8 @@ from rich.console import Console
 from rich.markup import escape
 
 from aoi3d.live import Measurement, render_latency_s
-from aoi3d.ports import SERVICE_PORTS, rest_port
 from aoi3d_cli.common import control_headers
+from services.kit.ports import SERVICE_PORTS, rest_port
 
 
 class LiveError(RuntimeError):

@@ -1,7 +1,7 @@
 """``aoi3d ppo …``: train the single-step PPO frame-selection agent, evaluate it.
 
 ``train`` runs :func:`aoi3d.rl.train.train` (batches of one-step episodes of
-``aoi3d/FrameSelection-v0`` on a pool of env workers, one PPO update per batch, checkpoints,
+``aoi3d/FrameSelection-v0`` on a pool of env processes, one PPO update per batch, checkpoints,
 ``episodes.csv``, ``updates.csv``, ``reward.png``, ``config.json``); ``eval`` scores a
 checkpoint's deterministic policy — and, with ``--compare``, other policies on the same
 episodes — on held-out seeds, with 95% confidence intervals (what it writes:
@@ -24,8 +24,8 @@ from rich.table import Table
 from aoi3d.scene.framings import FRAMING_DATASETS
 from aoi3d_cli.common import (
     LpipsOpt,
+    ProcessesOpt,
     ThreadsOpt,
-    WorkersOpt,
     episode_config,
     fmt,
     make_console,
@@ -79,7 +79,7 @@ SetOpt = Annotated[list[str] | None, typer.Option(
 def _shared_options(
     dataset: DatasetOpt = None,
     steps_per_epoch: StepsOpt = None,
-    workers: WorkersOpt = None,
+    processes: ProcessesOpt = None,
     threads: ThreadsOpt = 1,
     cache: CacheOpt = None,
     no_cache: NoCacheOpt = False,
@@ -97,7 +97,7 @@ class _Shared:
 
     dataset: Path | None
     steps_per_epoch: int | None
-    workers: int | None
+    processes: int | None
     threads: int
     cache: Path | None
     no_cache: bool
@@ -124,10 +124,10 @@ class _Shared:
         return self.cache if self.cache is not None else Path("runs/ppo/cache")
 
     @property
-    def n_workers(self) -> int:
-        from aoi3d.experiment import default_workers
+    def n_processes(self) -> int:
+        from aoi3d.experiment import default_processes
 
-        return self.workers if self.workers is not None else default_workers()
+        return self.processes if self.processes is not None else default_processes()
 
 
 @app.command()
@@ -220,12 +220,12 @@ def train_cmd(
     except (TypeError, ValueError) as err:
         raise typer.BadParameter(str(err)) from None
     folder = out if out is not None else Path("runs/ppo") / chosen.name
-    n_workers, threads, cache_dir = shared.n_workers, shared.threads, shared.cache_dir
+    n_processes, threads, cache_dir = shared.n_processes, shared.threads, shared.cache_dir
     console.print(f"[bold]PPO training[/]: {cfg.episodes} episodes in batches of "
                   f"{cfg.batch_size}, {episode.steps_per_epoch} field steps each, on "
-                  f"{n_workers} worker(s) × {threads} thread(s); out {folder}; cache "
+                  f"{n_processes} process(es) × {threads} thread(s); out {folder}; cache "
                   f"{cache_dir or 'off'}")
-    summary = _train_with_progress(cfg, folder, ds, n_workers, threads, cache_dir, resume)
+    summary = _train_with_progress(cfg, folder, ds, n_processes, threads, cache_dir, resume)
     console.print(
         f"{summary.episodes} episodes, {summary.updates} updates in {summary.wall_s:.0f} s "
         f"({summary.computed} computed, {summary.cached} from the cache); mean reward "
@@ -258,7 +258,7 @@ def _camera_features(features: list[str], episode: EpisodeConfig, ds: SceneDatas
             "camera_features": camera_feature_values(names, ds, train_ids(episode, ds))}
 
 
-def _train_with_progress(cfg: TrainConfig, folder: Path, ds: SceneDataset, n_workers: int,
+def _train_with_progress(cfg: TrainConfig, folder: Path, ds: SceneDataset, n_processes: int,
                          threads: int, cache_dir: Path | None, resume: bool) -> TrainSummary:
     """:func:`aoi3d.rl.train.train` with a progress bar; its refusals as usage errors, and
     Ctrl-C says where the last checkpoint is (exit status 130)."""
@@ -276,7 +276,7 @@ def _train_with_progress(cfg: TrainConfig, folder: Path, ds: SceneDataset, n_wor
                     text += f", reward (moving avg) {p.moving_reward:.3f}"
                 bar.update(task, completed=p.done, description=text)
 
-            return train(cfg, folder, dataset=ds, workers=n_workers, threads=threads,
+            return train(cfg, folder, dataset=ds, processes=n_processes, threads=threads,
                          cache=cache_dir, resume=resume, progress=report)
     except FileExistsError as err:
         raise typer.BadParameter(f"{err}", param_hint="'--out' / '--resume'") from None
@@ -333,15 +333,15 @@ def eval_cmd(
     specs = [f"ppo:{checkpoint}", *(compare or [])]
     folder = out if out is not None else checkpoint.parent / "eval"
     folder.mkdir(parents=True, exist_ok=True)
-    n_workers = shared.n_workers
+    n_processes = shared.n_processes
     console.print(f"[bold]PPO evaluation[/]: {len(specs)} policies × {count} held-out seeds "
                   f"({seed_list[0]}…{seed_list[-1]}), {episode.steps_per_epoch} field steps "
-                  f"per episode, {n_workers} worker(s)")
+                  f"per episode, {n_processes} process(es)")
     try:
         with Progress(*progress_columns(), console=console, transient=False) as bar:
             task = bar.add_task("episodes", total=len(specs) * count)
             outcome = evaluate(
-                specs, episode, seed_list, dataset=ds, workers=n_workers,
+                specs, episode, seed_list, dataset=ds, processes=n_processes,
                 threads=shared.threads, cache=shared.cache_dir,
                 aoi_scale_ms=agent.config.aoi_scale_ms,
                 progress=lambda done, total: bar.update(task, completed=done, total=total))

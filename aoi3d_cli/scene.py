@@ -82,7 +82,9 @@ def generate(
     framing: Annotated[str, typer.Option(
         help="rotor: a close-up of the rotor from a 60° arc (the experiments' and the live "
              "pipeline's scene); site: the whole turbine from a 170° arc.")] = _D.framing,
-    workers: Annotated[int, typer.Option(help="Rendering processes.")] = 1,
+    processes: Annotated[int, typer.Option(
+        "--processes", "-j", "--workers",
+        help="Rendering processes (--workers: the old name, kept for one release).")] = 1,
     force: Annotated[
         bool, typer.Option(help="Regenerate even when a dataset of this config is there.")
     ] = False,
@@ -91,8 +93,8 @@ def generate(
     cfg = scene_config(framing, width=width, height=height, fps=fps, duration_s=duration_s,
                        n_train=n_train, rotor_rpm=rotor_rpm, spp=spp, seed=seed)
     out = out if out is not None else Path(FRAMING_DATASETS[framing])
-    if workers < 1:
-        raise typer.BadParameter(f"--workers must be ≥ 1, got {workers}")
+    if processes < 1:
+        raise typer.BadParameter(f"--processes must be ≥ 1, got {processes}")
     started = time.perf_counter()
     generated = False
     with Progress(
@@ -114,9 +116,9 @@ def generate(
 
         try:
             if force:
-                ds = generate_dataset(out, cfg, report, workers=workers)
+                ds = generate_dataset(out, cfg, report, processes=processes)
             else:
-                ds = ensure_dataset(out, cfg, report, workers=workers)
+                ds = ensure_dataset(out, cfg, report, processes=processes)
         except (FileExistsError, OSError) as exc:
             fail(exc)
     elapsed_s = time.perf_counter() - started

@@ -1,7 +1,7 @@
 """``aoi3d up``: the whole live pipeline on this machine.
 
 Before anything starts: every port of the run (each service's REST port and the Zenoh port,
-from :data:`aoi3d.ports.SERVICE_PORTS`) must be free — a taken one is one line naming it and
+from :data:`services.kit.ports.SERVICE_PORTS`) must be free — a taken one is one line naming it and
 the option that moves it — and the dataset must be readable, every frame file present and
 whole. The scene is generated only into the framing's own folder (``data/turbine-rotor``,
 ``data/turbine``) or with ``--generate``; any other folder must hold a dataset already.
@@ -15,11 +15,12 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from aoi3d.ports import REST_FIRST as _FIRST
-from aoi3d.ports import REST_LAST as _LAST
-from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT, site_names
 from aoi3d.scene.framings import DEFAULT_FRAMING, FRAMING_DATASETS, FRAMING_SCENES
+from aoi3d.sites import site_names
 from aoi3d_cli.common import fail, fail_lines
+from services.kit.ports import REST_FIRST as _FIRST
+from services.kit.ports import REST_LAST as _LAST
+from services.kit.ports import SERVICE_PORTS, ZENOH_PORT
 
 if TYPE_CHECKING:
     from rich.console import Console

@@ -105,7 +105,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--scored-ms", type=int, default=7200)
     ap.add_argument("--gammas", default=",".join(map(str, GAMMAS)))
     ap.add_argument("--adaptive", default=",".join(ADAPTIVE))
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/adaptive-cache")
     ap.add_argument("--out", type=Path, default=ROOT / "bench/results/adaptive")
     ap.add_argument("--dataset", default=None)
@@ -141,7 +141,7 @@ def run(args: argparse.Namespace, command: str = "python -m bench.adaptive") -> 
     counts = {"computed": 0, "cached": 0}
 
     def evaluate(plans: Any) -> Any:
-        out = run_plans(plans, cache=cache, workers=args.workers, dataset=ds)
+        out = run_plans(plans, cache=cache, processes=args.processes, dataset=ds)
         counts["computed"] += out.computed
         counts["cached"] += out.cached
         return out.results
@@ -171,7 +171,7 @@ def run(args: argparse.Namespace, command: str = "python -m bench.adaptive") -> 
                   flush=True)
         done[0] = k
 
-    out = run_plans(batch, cache=cache, workers=args.workers, dataset=ds, progress=progress)
+    out = run_plans(batch, cache=cache, processes=args.processes, dataset=ds, progress=progress)
     counts["computed"] += out.computed
     counts["cached"] += out.cached
 

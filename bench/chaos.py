@@ -70,14 +70,15 @@ from pathlib import Path
 
 import httpx
 
-from aoi3d.ports import BENCH_BLOCKS, SERVICE_PORTS
 from bench import common
+from bench.ports import BENCH_BLOCKS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import CommonSettings
 
 ROOT = common.ROOT
-PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (bench/ports.py)
 url = functools.partial(common.url, PORTS)  # url(service, path)
 ZENOH = PORTS.zenoh
 LEDGER_OPEN_S = 30.0

@@ -4,7 +4,7 @@ scale.py, soak.py, chaos.py, online_live.py, live_channel.py), a service's URL o
 own ports, starting ``aoi3d up`` there and stopping it, one wait loop, one ``/metrics``
 scrape and one Zenoh tap of a run.
 
-The ports come from :data:`aoi3d.ports.BENCH_BLOCKS` (a :class:`aoi3d.ports.PortBlock` per
+The ports come from :data:`bench.ports.BENCH_BLOCKS` (a :class:`services.kit.ports.PortBlock` per
 bench: its URLs and its ``aoi3d up`` options). A bench is run from the repository root as
 ``python -m bench.NAME`` and imports this module as ``bench.common``; benches import nothing
 from tests/.
@@ -25,7 +25,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
-from aoi3d.ports import PortBlock
+from services.kit.ports import PortBlock
 
 __all__ = ["RESULTS", "ROOT", "Tap", "add_json_option", "print_json", "progress_to_stderr",
            "scrape", "start_up", "stop_up", "url", "wait_until", "write_json"]

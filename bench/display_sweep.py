@@ -59,7 +59,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--delay", default="exp:60")
     ap.add_argument("--time-scale", type=float, default=0.1,
                     help="the live run's time scale the compute is charged at")
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=1)
     ap.add_argument("--out", type=Path,
                     default=ROOT / "bench" / "results" / "streaming" / "display-sweep")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "display-sweep-cache")
@@ -86,7 +86,7 @@ def run(args: argparse.Namespace, argv: list[str] | None = None) -> dict:
         cfg = base.with_(steps_per_epoch=steps)
         mats = [(MatPolicy(g), s) for g in args.gammas for s in seeds]
         jobs = [Job(mat.spec, args.delay, s) for mat, s in mats]
-        out = run_jobs(cfg, jobs, cache=ResultCache(args.cache), workers=args.workers)
+        out = run_jobs(cfg, jobs, cache=ResultCache(args.cache), processes=args.processes)
         for (mat, _), result in zip(mats, out.results, strict=True):
             cells.setdefault((int(mat.gamma_ms), steps), []).append(result)
         print(f"steps {steps}: {out.computed} computed, {out.cached} cached", flush=True)

@@ -218,7 +218,7 @@ def live_192(results: Path) -> tuple[list[str], set[str]]:
         "",
         *redo("make bench-192    # = the scene and the commands below",
               FRESH100,
-              "aoi3d scene generate --width 192 --height 144 --workers 2 "
+              "aoi3d scene generate --width 192 --height 144 --processes 2 "
               "--out data/turbine-rotor-192x144",
               "aoi3d live sweep --up --workers 2 --dataset data/turbine-rotor-192x144 "
               "--port-offset 2000 \\",

@@ -10,7 +10,7 @@ PY=${PY:-.venv/bin/python}
 D=${DATASET:-data/turbine-rotor}
 OUT=${OUT:-runs/ingest-rate}
 SECONDS_RUN=${SECONDS_RUN:-60}
-BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
+BLOCK=$($PY -c 'from bench.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
 OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
 $PY -m aoi3d_cli scene generate --out "$D"

@@ -22,14 +22,14 @@ import time
 
 import httpx
 
-from aoi3d.ports import BENCH_BLOCKS
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = common.RESULTS / "live-channel"
-PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (bench/ports.py)
 url = functools.partial(common.url, PORTS)  # url(service, path="/")
 WATCHED = ("camera", "network", "scheduler", "dispatcher", "metrics", "console")
 

@@ -41,11 +41,11 @@ from pathlib import Path
 import httpx
 
 from aoi3d.policy import parse_policy
-from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
-PORTS = BENCH_BLOCKS["live_default"]  # apart from make up and the other benches (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["live_default"]  # apart from make up and the other benches (bench/ports.py)
 OUT = common.RESULTS / "live-default" / "live-default.json"
 HTTP = httpx.Client(timeout=30)
 CARRY_ENV = ("AOI3D_DISPATCHER_CARRY", "AOI3D_DISPATCHER_RENDER_STEPS")

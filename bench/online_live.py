@@ -51,12 +51,12 @@ from typing import Any
 import httpx
 
 from aoi3d.metric import LPIPS, PSNR, PSNR_DYNAMIC, REWARD, SSIM, names_of
-from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95, welch_ci95
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
-PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (bench/ports.py)
 url = functools.partial(common.url, PORTS)  # url(service, path, site=site)
 SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"

@@ -18,12 +18,12 @@ import time
 
 import httpx
 
-from aoi3d.ports import BENCH_BLOCKS
 from aoi3d_cli.common import control_headers
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
-BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (aoi3d/ports.py)
+BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (bench/ports.py)
 SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")  # the ones measured
 
 

@@ -46,7 +46,7 @@ def run(n_seeds: int = 10) -> dict:
     means: dict[int, list[float]] = {}
     for steps in BUDGETS:
         started = time.perf_counter()
-        outcome = evaluate(POLICIES, base.with_(steps_per_epoch=steps), seeds, workers=2)
+        outcome = evaluate(POLICIES, base.with_(steps_per_epoch=steps), seeds, processes=2)
         walls = [r["wall_s"] for r in outcome.rows if not r["cached"]]
         means[steps] = [r["reward"] for r in outcome.summary]
         doc["budgets"][steps] = {  # type: ignore[index]

@@ -42,10 +42,10 @@ from pathlib import Path
 
 import httpx
 
-from aoi3d.ports import BENCH_BLOCKS
 from bench import common, live_default
+from bench.ports import BENCH_BLOCKS
 
-PORTS = BENCH_BLOCKS["realtime"]  # apart from make up and the other benches (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["realtime"]  # apart from make up and the other benches (bench/ports.py)
 OUT = common.RESULTS / "realtime" / "realtime.json"
 HTTP = httpx.Client(timeout=30)
 WORKER_PREFIX = "recon-"

@@ -9,8 +9,8 @@ cd "$(dirname "$0")/.."
 PY=${PY:-.venv/bin/python}
 D=${DATASET:-data/turbine-rotor}
 OUT=${OUT:-runs/ros2-sweep}
-# the bench's ports from the one table (aoi3d/ports.py, BENCH_BLOCKS["ros2_sweep"])
-BLOCK=$($PY -c 'from aoi3d.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
+# the bench's ports from the one table (bench/ports.py, BENCH_BLOCKS["ros2_sweep"])
+BLOCK=$($PY -c 'from bench.ports import BENCH_BLOCKS as B; b = B["ros2_sweep"]; print(b.offset, b.zenoh)')
 OFF=${PORT_OFFSET:-${BLOCK% *}}; ZP=${ZENOH_PORT:-${BLOCK#* }}
 mkdir -p "$OUT"
 $PY -m aoi3d_cli scene generate --out "$D"

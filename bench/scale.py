@@ -41,12 +41,12 @@ from pathlib import Path
 
 import httpx
 
-from aoi3d.ports import BENCH_BLOCKS
 from aoi3d.stats import mean_ci95
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
-PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (bench/ports.py)
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
 

@@ -134,7 +134,7 @@ def main() -> int:
     ap.add_argument("--doc", type=Path, default=ROOT / "docs/science.md")
     ap.add_argument("--figures", type=Path, default=ROOT / "docs/figures",
                     help="where the docs' figures are copied ('' to skip)")
-    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=None)
     ap.add_argument("--timefield-seeds", type=int, default=None,
                     help="seeds of issue 41's question, the time-aware field against the "
                          "static grid (bench/timefield.py; default: --seeds; 0 skips it)")
@@ -167,8 +167,8 @@ def main() -> int:
     out.mkdir(parents=True, exist_ok=True)
     common = ["--preset", "quick", "--cache", str(args.cache),
               "--seed-offset", str(args.seed_offset)]
-    if args.workers:
-        common += ["--workers", str(args.workers)]
+    if args.processes:
+        common += ["--processes", str(args.processes)]
     common += args.extra
     log: list[dict[str, Any]] = []
     started = time.perf_counter()
@@ -194,8 +194,8 @@ def main() -> int:
                "--out", str(out / "ppo")]
     for p in args.ppo_compare.split(","):
         ppo_cmd += ["--compare", p]
-    if args.workers:
-        ppo_cmd += ["--workers", str(args.workers)]
+    if args.processes:
+        ppo_cmd += ["--processes", str(args.processes)]
     run_command(ppo_cmd + args.extra, log)
     # issue 40 §3: the display-time claims at a viewer's budget (bench/science_display.py)
     science_display.run_all(exe, common, args.seeds, args.delay_seeds, out, run_command, log,
@@ -489,8 +489,8 @@ def display_only(args: argparse.Namespace) -> int:
     doc = json.loads((out / "claims.json").read_text())
     common = ["--preset", "quick", "--cache", str(args.cache),
               "--seed-offset", str(doc["seed_offset"])]
-    if args.workers:
-        common += ["--workers", str(args.workers)]
+    if args.processes:
+        common += ["--processes", str(args.processes)]
     common += args.extra
     log: list[dict[str, Any]] = []
     science_display.run_all(aoi3d(), common, doc["seeds"], doc["delay_seeds"], out,

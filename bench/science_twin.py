@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from aoi3d.ports import BENCH_BLOCKS
+from bench.ports import BENCH_BLOCKS
 
 TIME_SCALES = (0.3, 1.0)
 POLICIES = ("mat:40", "mat:70", "mat:100", "mat:160", "all")

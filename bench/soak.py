@@ -32,11 +32,11 @@ from typing import Any
 import httpx
 import numpy as np
 
-from aoi3d.ports import BENCH_BLOCKS
 from bench import common
+from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
-PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (aoi3d/ports.py)
+PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (bench/ports.py)
 url = functools.partial(common.url, PORTS)  # url(service, path)
 MAX_GROWTH = 0.10
 MAX_RATE_CHANGE = 0.05

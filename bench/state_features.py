@@ -83,7 +83,7 @@ def collect(args):
 
     def evaluate(plans):
         nonlocal computed
-        out = run_plans(plans, cache=cache, workers=args.workers, dataset=ds)
+        out = run_plans(plans, cache=cache, processes=args.processes, dataset=ds)
         computed += out.computed
         for plan, res in zip(plans, out.results, strict=True):
             mask = np.array([c == "1" for c in plan.policy.split(":", 1)[1]])
@@ -207,18 +207,18 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, nargs="+", default=[50000, 50001])
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "experiments" / "oracle-cache")
-    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=1)
     ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "state-features.json")
     common.add_json_option(ap)
     return ap
 
 
 def run(seeds: list[int], steps: int = 300, cache: Path = ROOT / "runs" / "experiments" /
-        "oracle-cache", workers: int = 1, out: Path | None = None,
+        "oracle-cache", processes: int = 1, out: Path | None = None,
         command: str = "python -m bench.state_features") -> dict[str, Any]:
     """The study; writes its document to ``out`` (when given) and returns it."""
     rows, _, cfg, ds, computed = collect(argparse.Namespace(seeds=seeds, steps=steps,
-                                                            cache=cache, workers=workers))
+                                                            cache=cache, processes=processes))
     samples, decisions = features(rows, cfg, ds)
     parts = {
         "every round": samples,
@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> None:
     command = "python -m bench.state_features " + " ".join(
         sys.argv[1:] if argv is None else argv)
     with common.progress_to_stderr(args.json):
-        doc = run(args.seeds, args.steps, args.cache, args.workers, args.out,
+        doc = run(args.seeds, args.steps, args.cache, args.processes, args.out,
                   command=command.strip())
         print_table(doc)
     if args.json:

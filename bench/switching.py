@@ -97,7 +97,7 @@ def seed_science(cfg, ds, cache: ResultCache) -> int:
     return n
 
 
-def compute(seeds: int, workers: int) -> None:
+def compute(seeds: int, processes: int) -> None:
     """``run``: the missing episodes into the experiments' cache."""
     preset = get_preset("quick")
     cfg = preset.episode
@@ -112,7 +112,7 @@ def compute(seeds: int, workers: int) -> None:
         print(f"{time.strftime('%H:%M:%S')} {done}/{total} episodes computed "
               f"({time.time() - started:.0f} s)", flush=True)
 
-    out = run_jobs(cfg, jobs, cache=cache, workers=workers, progress=progress, dataset=ds)
+    out = run_jobs(cfg, jobs, cache=cache, processes=processes, progress=progress, dataset=ds)
     print(f"done: {out.computed} computed, {out.cached} cached, {out.wall_s:.0f} s")
 
 
@@ -295,7 +295,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("what", choices=("run", "report"),
                     help="run: compute the missing episodes; report: the result document")
     ap.add_argument("--seeds", type=int, default=6)
-    ap.add_argument("--workers", type=int, default=2)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=2)
     common.add_json_option(ap, help="report: print the result document as JSON")
     return ap
 
@@ -304,7 +304,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser().parse_args(argv)
     with common.progress_to_stderr(args.json):
         if args.what == "run":
-            compute(args.seeds, args.workers)
+            compute(args.seeds, args.processes)
             return
         result = run(args.seeds)
         print_summary(result)

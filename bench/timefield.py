@@ -9,8 +9,8 @@ numbers, the verdicts, the CPU seconds), ``<out>/timefield.png`` (both tradeoff 
 every command's folder under ``<out>/<link>/<arm>/``. ``make science`` asks it on its unseen
 seeds (``bench/science.py``, ``--timefield-seeds``); alone:
 
-    python -m bench.timefield --seeds 2 --seed-offset 10 --workers 2    # development seeds
-    python -m bench.timefield --science --workers 2   # make science's seeds, its files only
+    python -m bench.timefield --seeds 2 --seed-offset 10 --processes 2    # development seeds
+    python -m bench.timefield --science --processes 2   # make science's seeds, its files only
 
 ``--science`` runs it as ``make science`` does (seeds 20000–20007, its cache, into
 ``bench/results/science/timefield``) and puts the verdicts, numbers and section into
@@ -18,7 +18,7 @@ seeds (``bench/science.py``, ``--timefield-seeds``); alone:
 rest as ``make science`` last wrote it), without re-running the other claims.
 
 Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 16–100 steps: with 8 seeds
-about 2,300 reconstructions, 12.0 minutes of wall time on the 2-core machine with 2 workers,
+about 2,300 reconstructions, 12.0 minutes of wall time on the 2-core machine with 2 processes,
 busy with other jobs for the first half (docs/experiments.md, "Does a time-aware field move
 the tradeoff?").
 """
@@ -227,7 +227,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--seed-offset", type=int, default=10,
                     help="first seed (default 10: development seeds)")
-    ap.add_argument("--workers", type=int, default=None)
+    ap.add_argument("--processes", "--workers", dest="processes", type=int, default=None)
     ap.add_argument("--out", type=Path, default=ROOT / "bench/results/timefield")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/experiments/timefield-cache")
     ap.add_argument("--dataset", type=Path, default=ROOT / "data/turbine-rotor")
@@ -252,8 +252,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         exe = "aoi3d"
     flags = ["--preset", "quick", "--cache", str(args.cache), "--seed-offset",
              str(args.seed_offset), "--dataset", str(args.dataset)]
-    if args.workers:
-        flags += ["--workers", str(args.workers)]
+    if args.processes:
+        flags += ["--processes", str(args.processes)]
     out_to = sys.stderr if args.json else None
     doc = run_question(lambda cmd: subprocess.run(cmd, check=True, stdout=out_to), exe, flags,
                        args.out, args.seeds, [], args.dataset, args.cost_repeats)

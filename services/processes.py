@@ -18,13 +18,13 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from aoi3d.atomic import atomic_path  # stdlib only, as this module
-from aoi3d.ports import SERVICE_PORTS, ZENOH_PORT  # the one table of ports
-from aoi3d.ports import site_names as site_names  # re-exported (the supervisor, tests)
+from aoi3d.sites import site_names as site_names  # re-exported (the supervisor, tests)
+from services.kit.ports import SERVICE_PORTS, ZENOH_PORT  # the one table of ports
 
 SERVICES = tuple(SERVICE_PORTS)
 """The services ``aoi3d up`` runs, in start order (``python -m services.<name>``)."""
 DEFAULT_PORTS = SERVICE_PORTS
-"""Each service's REST port before ``--port-offset`` (:data:`aoi3d.ports.SERVICE_PORTS`)."""
+"""Each service's REST port before ``--port-offset`` (:data:`services.kit.ports.SERVICE_PORTS`)."""
 WORKER = "recon"
 """The reconstruction workers (``python -m services.recon``): ``--workers`` of them, named
 ``recon-1`` … in the logs; no REST port each — a worker is ready when the dispatcher's ``GET

@@ -18,7 +18,7 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from aoi3d.ports import ZENOH_PORT
+from services.kit.ports import ZENOH_PORT
 from services.kit.settings import CommonSettings, Endpoints, _split_endpoints, insert_tls
 
 log = logging.getLogger("aoi3d.router")

@@ -1,6 +1,6 @@
 """Where a sweep's episodes run: :func:`work` runs one planned episode in any process (plain
 data in, plain data out); :func:`run_pool` spreads them over a local process pool (``spawn``),
-:func:`run_ray` over a Ray cluster. Each worker process keeps its datasets and LPIPS models
+:func:`run_ray` over a Ray cluster. Each episode process keeps its datasets and LPIPS models
 (:data:`DATASETS`)."""
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def _lpips_fn(device: str) -> Any:
     return _LPIPS[device]
 
 
-def _init_worker(threads: int) -> None:
+def _init_process(threads: int) -> None:
     set_torch_threads(threads)
 
 
@@ -52,10 +52,10 @@ def work(plan_doc: dict[str, Any], key: str, lpips: bool,
     return result.to_dict(), png
 
 
-def run_pool(items: list[tuple[dict[str, Any], str]], lpips: bool, workers: int, threads: int,
+def run_pool(items: list[tuple[dict[str, Any], str]], lpips: bool, processes: int, threads: int,
               done: Callable[[EpisodeResult, bytes], None]) -> None:
     ctx = multiprocessing.get_context("spawn")
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_init_worker,
+    pool = ProcessPoolExecutor(max_workers=processes, mp_context=ctx, initializer=_init_process,
                                initargs=(threads,))
     try:
         pending: set[Future[tuple[dict[str, Any], bytes]]] = {

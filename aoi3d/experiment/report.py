@@ -116,7 +116,7 @@ def episode_rows(results: Sequence[EpisodeResult]) -> list[dict[str, Any]]:
 @dataclass
 class ExperimentRun:
     """One run of an ``aoi3d experiment`` command: what it runs (preset, episode config,
-    dataset, seeds), where (workers, threads, Ray), and where it writes (``out``, the episode
+    dataset, seeds), where (processes, threads, Ray), and where it writes (``out``, the episode
     cache)."""
 
     command: str
@@ -126,7 +126,7 @@ class ExperimentRun:
     out: Path
     cache: ResultCache
     seeds: int
-    workers: int
+    processes: int
     threads: int
     ray_address: str | None
     started: float
@@ -156,7 +156,7 @@ class ExperimentRun:
             "seeds": self.seeds,
             "seed_offset": self.seed_offset,
             "seed_list": self.seed_list,
-            "workers": self.workers if self.ray_address is None else None,
+            "processes": self.processes if self.ray_address is None else None,
             "threads_per_worker": self.threads,
             "ray_address": self.ray_address,
             "code_version": code_version(),

@@ -6,8 +6,8 @@ computed, each once even when several jobs share it (two thresholds Γ that sele
 frames). Results are written to the cache as they complete, by this process alone, so an
 interrupted sweep resumes where it stopped and a re-run computes only what is missing.
 
-Execution: ``workers=1`` runs in this process; more run in a process pool (``spawn``, each
-worker with ``threads_per_worker`` torch threads, 1 by default: episodes are small and the
+Execution: ``processes=1`` runs in this process; more run in a process pool (``spawn``, each
+process with ``threads_per_process`` torch threads, 1 by default: episodes are small and the
 pool is the parallelism); ``ray_address`` runs every episode as a Ray task instead
 (``pip install .[cluster]``; the dataset must be readable at the same path on every node).
 """
@@ -52,7 +52,7 @@ __all__ = [
     "ResultCache",
     "SweepOutcome",
     "aggregate",
-    "default_workers",
+    "default_processes",
     "lpips_available",
     "run_jobs",
     "run_oracle",
@@ -150,7 +150,7 @@ class SweepOutcome:
     wall_s: float
 
 
-def default_workers() -> int:
+def default_processes() -> int:
     """All local cores (``os.process_cpu_count`` where known)."""
     count = getattr(os, "process_cpu_count", os.cpu_count)()
     return max(1, count or 1)
@@ -167,8 +167,8 @@ def run_jobs(
     jobs: Sequence[Job],
     *,
     cache: ResultCache | None = None,
-    workers: int | None = None,
-    threads_per_worker: int = 1,
+    processes: int | None = None,
+    threads_per_process: int = 1,
     ray_address: str | None = None,
     progress: Progress | None = None,
     dataset: SceneDataset | None = None,
@@ -176,7 +176,7 @@ def run_jobs(
     """Run ``jobs`` (each ``cfg`` with the job's delay, and its trainer option's field
     settings) and return their results in order.
 
-    ``workers``: processes (None: :func:`default_workers`; 1: this process).
+    ``processes``: processes (None: :func:`default_processes`; 1: this process).
     ``ray_address``: run on Ray (``auto``, ``ray://host:port``, or ``local`` to start a local
     instance) instead of the process pool. ``cache``: where results are kept between runs.
     """
@@ -185,7 +185,7 @@ def run_jobs(
     stepwise = [j for j in jobs if j.trainer is None and parse_policy(j.policy).wants_quality]
     if stepwise:
         return _run_jobs_stepwise(cfg, jobs, stepwise, ds, started, cache=cache,
-                                  workers=workers, threads_per_worker=threads_per_worker,
+                                  processes=processes, threads_per_process=threads_per_process,
                                   ray_address=ray_address, progress=progress)
     plans: list[EpisodePlan] = []
     labels: list[str] = []
@@ -198,8 +198,8 @@ def run_jobs(
         plan = plan_episode(job_cfg, ds, job.policy, job.seed)
         plans.append(plan)
         labels.append(plan.policy if option is None else baseline_label(option, plan.policy))
-    outcome = run_plans(plans, cache=cache, workers=workers,
-                        threads_per_worker=threads_per_worker, ray_address=ray_address,
+    outcome = run_plans(plans, cache=cache, processes=processes,
+                        threads_per_process=threads_per_process, ray_address=ray_address,
                         progress=progress, dataset=ds)
     results = [r.relabel(label, p.config.delay)
                for r, label, p in zip(outcome.results, labels, plans, strict=True)]
@@ -257,8 +257,8 @@ def run_plans(
     plans: Sequence[EpisodePlan],
     *,
     cache: ResultCache | None = None,
-    workers: int | None = None,
-    threads_per_worker: int = 1,
+    processes: int | None = None,
+    threads_per_process: int = 1,
     ray_address: str | None = None,
     progress: Progress | None = None,
     dataset: SceneDataset | None = None,
@@ -267,8 +267,8 @@ def run_plans(
     key once: from ``cache`` where it has them, else in this process, a process pool or on
     Ray (see :func:`run_jobs`). The results carry their plans' own policy names."""
     started = time.perf_counter()
-    if threads_per_worker < 1:
-        raise ValueError(f"threads_per_worker must be >= 1, got {threads_per_worker}")
+    if threads_per_process < 1:
+        raise ValueError(f"threads_per_process must be >= 1, got {threads_per_process}")
     if not plans:
         return PlansOutcome([], [], 0, 0, 0.0)
     root = plans[0].config.dataset
@@ -304,15 +304,15 @@ def run_plans(
 
     if progress is not None:
         progress(0, len(order))
-    n_workers = default_workers() if workers is None else workers
-    if n_workers < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    n_processes = default_processes() if processes is None else processes
+    if n_processes < 1:
+        raise ValueError(f"processes must be >= 1, got {processes}")
     items = [(todo[k].to_dict(), k) for k in order]
     if items and ray_address is not None:
-        run_ray(items, lpips, threads_per_worker, ray_address, done)
-    elif items and (n_workers == 1 or len(items) == 1):
+        run_ray(items, lpips, threads_per_process, ray_address, done)
+    elif items and (n_processes == 1 or len(items) == 1):
         previous = torch.get_num_threads()
-        set_torch_threads(threads_per_worker)
+        set_torch_threads(threads_per_process)
         DATASETS.setdefault(root, ds)
         try:
             for doc, key in items:
@@ -321,7 +321,7 @@ def run_plans(
         finally:
             set_torch_threads(previous)
     elif items:
-        run_pool(items, lpips, min(n_workers, len(items)), threads_per_worker, done)
+        run_pool(items, lpips, min(n_processes, len(items)), threads_per_process, done)
 
     results = [found[k].relabel(p.policy, p.config.delay)
                for k, p in zip(keys, plans, strict=True)]
@@ -380,8 +380,8 @@ def run_oracle(
     seeds: Sequence[int],
     *,
     cache: ResultCache | None = None,
-    workers: int | None = None,
-    threads_per_worker: int = 1,
+    processes: int | None = None,
+    threads_per_process: int = 1,
     ray_address: str | None = None,
     progress: Progress | None = None,
     on_round: Callable[[str], None] | None = None,
@@ -396,8 +396,8 @@ def run_oracle(
     counts = {"computed": 0, "cached": 0}
 
     def evaluate(plans: Sequence[EpisodePlan]) -> list[EpisodeResult]:
-        out = run_plans(plans, cache=cache, workers=workers,
-                        threads_per_worker=threads_per_worker, ray_address=ray_address,
+        out = run_plans(plans, cache=cache, processes=processes,
+                        threads_per_process=threads_per_process, ray_address=ray_address,
                         progress=progress, dataset=ds)
         counts["computed"] += out.computed
         counts["cached"] += out.cached

@@ -126,14 +126,14 @@ def budget(carry: str, *, steps_per_decision: int, render_steps: int,
 
 def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
              steps_per_decision: int, render_steps: int, seeds: int, seed_offset: int,
-             cache: Path, workers: int | None, cold_steps: int = 100, backend: str = "grid",
+             cache: Path, processes: int | None, cold_steps: int = 100, backend: str = "grid",
              pool: PoolTwin | None = None, lpips: bool = True) -> dict[str, dict[str, Any]]:
     """The experiments' engine on the same scene, channel, carry, budget (:func:`budget`;
     ``cold_steps``: the dispatcher's ``AOI3D_DISPATCHER_COLD_STEPS``, for ``stream``) and field
     backend, through the twin of the live pool when ``pool`` says it (else every fifth
     decision rendered, no queue): per policy, ``{metric: {"mean", "ci95", "n"}}`` over
     ``seeds`` seeds, ``rendered_fraction`` with a pool (and ``_config``: the episode config
-    run). :class:`SimRefused` when a policy's budget cannot run with that carry. ``workers``:
+    run). :class:`SimRefused` when a policy's budget cannot run with that carry. ``processes``:
     the sweep's processes."""
     base = get_preset("quick").episode
     changes: dict[str, Any] = {"dataset": str(dataset), "delay": delay, "carry": carry,
@@ -156,7 +156,7 @@ def simulate(policies: Sequence[str], *, dataset: Path, delay: str, carry: str,
             except ValueError as err:
                 raise SimRefused(f"{spec}: {err}") from None
     jobs = [Job(p, delay, seed_offset + s) for s in range(seeds) for p in policies]
-    outcome = run_jobs(cfg, jobs, cache=ResultCache(cache), workers=workers)
+    outcome = run_jobs(cfg, jobs, cache=ResultCache(cache), processes=processes)
     sim: dict[str, dict[str, Any]] = {}
     for spec in policies:
         rs = [r for r in outcome.results if r.policy == spec]

@@ -52,7 +52,7 @@ from aoi3d.pool.model import (
     Report,
     WorkerView,
 )
-from aoi3d.ports import DEFAULT_SITE
+from aoi3d.sites import DEFAULT_SITE
 
 __all__ = ["POOL_LOST", "Dispatcher"]
 

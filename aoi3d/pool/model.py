@@ -7,7 +7,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from enum import StrEnum
 
-from aoi3d.ports import DEFAULT_SITE
+from aoi3d.sites import DEFAULT_SITE
 
 __all__ = ["Assignment", "DecisionRef", "Ended", "PoolReason", "PoolStatus", "Report",
            "WorkerView"]

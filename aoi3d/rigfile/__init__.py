@@ -7,8 +7,8 @@ box and the working size). YAML or JSON; validated here with pydantic, and every
 its field (``cameras[2].pose.topic: …``). The format, with an example, is in
 docs/real-cameras.md.
 
-Not :mod:`aoi3d.scene.rig`, which is the emulated rig's layout (the cameras around the turbine):
-this package is the file that describes a real rig.
+Not :mod:`aoi3d.scene.placement`, which places the emulated cameras around the turbine: this
+package is the file that describes a real rig.
 
 Pure: pydantic, numpy and the domain's :class:`Camera`; no bus, no server. Its modules:
 :mod:`.poses` (pose conventions and quaternions), :mod:`.spec` (a camera's entries: image

@@ -8,7 +8,7 @@ this package trains it:
 - :mod:`~aoi3d.rl.env` — the gymnasium environment ``aoi3d/FrameSelection-v0`` over the
   experiment engine's virtual-clock episode (imported lazily: it pulls in the radiance
   field);
-- :mod:`~aoi3d.rl.train` — batched offline training, resume; :mod:`~aoi3d.rl.pool` (env
+- :mod:`~aoi3d.rl.train` — batched offline training, resume; :mod:`~aoi3d.rl.runner` (env
   workers), :mod:`~aoi3d.rl.presets` (budgets, seeds, the training config),
   :mod:`~aoi3d.rl.record` (episode CSV, reward plot);
 - :mod:`~aoi3d.rl.online` — :class:`~aoi3d.rl.online.OnlineLearner`: learning from the live

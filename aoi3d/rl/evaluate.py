@@ -14,7 +14,7 @@ from aoi3d.experiment import EpisodeConfig, mean_ci95
 from aoi3d.metric import LPIPS, PSNR, REWARD, SSIM
 from aoi3d.policy import Policy, parse_policy
 from aoi3d.rl.env import FrameSelectionEnv
-from aoi3d.rl.pool import EnvPool
+from aoi3d.rl.runner import EpisodeRunner
 from aoi3d.scene import SceneDataset, open_dataset
 
 __all__ = ["EVAL_METRICS", "EVAL_SCORES", "EvalOutcome", "evaluate"]
@@ -43,7 +43,7 @@ def evaluate(
     *,
     aoi_scale_ms: float = 300.0,
     dataset: SceneDataset | None = None,
-    workers: int | None = None,
+    processes: int | None = None,
     threads: int = 1,
     cache: str | Path | None = None,
     progress: Callable[[int, int], None] | None = None,
@@ -70,7 +70,7 @@ def evaluate(
             labels.append(p.spec)
     rows: list[dict[str, Any]] = [{} for _ in items]
     done = 0
-    with EnvPool(env.config, aoi_scale_ms=aoi_scale_ms, cache=cache, workers=workers,
+    with EpisodeRunner(env.config, aoi_scale_ms=aoi_scale_ms, cache=cache, processes=processes,
                  threads=threads) as pool:
         for i, outcome in pool.run(items):
             rows[i] = {"policy": labels[i], **outcome}

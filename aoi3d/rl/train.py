@@ -1,9 +1,9 @@
-"""PPO training on a pool of environment workers, resumable.
+"""PPO training on a pool of environment processes, resumable.
 
 Training (:func:`train`) runs batches of ``batch_size`` one-step episodes: the main process
 resets a local :class:`~aoi3d.rl.env.FrameSelectionEnv` for each episode's seed (cheap: the
 channel simulation), samples the agent's action, and hands ``(seed, action)`` to an
-:class:`~aoi3d.rl.pool.EnvPool`, which trains and scores the radiance field. When the batch
+:class:`~aoi3d.rl.runner.EpisodeRunner`, which trains and scores the radiance field. When the batch
 is back, the agent makes one PPO update
 (:meth:`~aoi3d.policy.ppo.learner.PPOLearner.update`, as online learning does). Every
 ``checkpoint_every`` updates it writes ``checkpoint.pt`` (agent, optimizer, generator,
@@ -29,9 +29,9 @@ from aoi3d.policy.ppo.batch import Batch, Episode
 from aoi3d.policy.ppo.learner import PPOLearner, Sample
 from aoi3d.policy.ppo.obs import pose_features
 from aoi3d.rl.env import FrameSelectionEnv
-from aoi3d.rl.pool import EnvPool
 from aoi3d.rl.presets import EVAL_SEED_BASE, TRAIN_SEED_BASE, TrainConfig, train_seed
 from aoi3d.rl.record import moving_average, plot_rewards, read_rows
+from aoi3d.rl.runner import EpisodeRunner
 from aoi3d.scene import SceneDataset, open_dataset
 
 __all__ = ["TrainProgress", "TrainSummary", "camera_feature_values", "train"]
@@ -85,7 +85,7 @@ def train(
     out: str | Path,
     *,
     dataset: SceneDataset | None = None,
-    workers: int | None = None,
+    processes: int | None = None,
     threads: int = 1,
     cache: str | Path | None = None,
     resume: bool = False,
@@ -104,7 +104,7 @@ def train(
     cfg = replace(cfg, episode=env.config)  # carry=fresh, dataset path as opened
     _check_rig(cfg, env, ds)
     agent, start, rows, update_rows = _resume_or_start(cfg, out, ckpt, resume)
-    meta = _meta(cfg, ds, env, workers=workers, threads=threads, cache=cache,
+    meta = _meta(cfg, ds, env, processes=processes, threads=threads, cache=cache,
                  resumed_at=start if resume else None)
     write_json(out / "config.json", meta)
     window = max(10, min(50, cfg.episodes // 12))
@@ -129,7 +129,7 @@ def train(
         progress(TrainProgress(len(rows), total, agent.updates, last_batch, moving))
 
     report()
-    with EnvPool(cfg.episode, cache=cache, workers=workers, threads=threads,
+    with EpisodeRunner(cfg.episode, cache=cache, processes=processes, threads=threads,
                  **_env_options(cfg)) as pool:
         for first in range(start, total, cfg.batch_size):
             batch = list(range(first, min(first + cfg.batch_size, total)))
@@ -163,7 +163,7 @@ def train(
 
 
 def _env_options(cfg: TrainConfig) -> dict[str, Any]:
-    """What the training env and its workers are built with besides the episode config."""
+    """What the training env and its processes are built with besides the episode config."""
     return {"aoi_scale_ms": cfg.ppo.aoi_scale_ms, "reward": cfg.reward, "budgets": cfg.budgets}
 
 
@@ -205,15 +205,15 @@ def _resume_or_start(cfg: TrainConfig, out: Path, ckpt: Path, resume: bool
     return agent, start, rows, update_rows
 
 
-def _meta(cfg: TrainConfig, ds: SceneDataset, env: FrameSelectionEnv, *, workers: int | None,
+def _meta(cfg: TrainConfig, ds: SceneDataset, env: FrameSelectionEnv, *, processes: int | None,
           threads: int, cache: str | Path | None, resumed_at: int | None) -> dict[str, Any]:
     """``config.json``: the run's config, seeds, dataset, code and machine."""
     return {
         "command": "aoi3d ppo train", "train_config": cfg.to_dict(),
         "seeds": {"train": f"{TRAIN_SEED_BASE + cfg.seed_offset} + episode",
                   "eval_base": EVAL_SEED_BASE},
-        "dataset": dataset_fingerprint(ds), "lpips": env.lpips, "workers": workers,
-        "threads_per_worker": threads, "cache": None if cache is None else str(cache),
+        "dataset": dataset_fingerprint(ds), "lpips": env.lpips, "processes": processes,
+        "threads_per_process": threads, "cache": None if cache is None else str(cache),
         "resumed_at_episode": resumed_at, "code_version": code_version(),
         "machine": machine(),
     }

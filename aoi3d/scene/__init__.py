@@ -2,7 +2,7 @@
 
 The scene is a wind turbine whose three blades turn at ``rotor_rpm`` on a textured field
 under a sky, rendered by exact analytic ray casting (:class:`TurbineScene`). Camera 0 of the
-rig (:func:`make_rig`) is the held-out novel view; 1..N train. :func:`ensure_dataset` writes
+rig (:func:`place_cameras`) is the held-out novel view; 1..N train. :func:`ensure_dataset` writes
 (or reuses) the frames and D-NeRF-style transforms; :func:`load_dataset` reads them back.
 Datasets researchers already have — DyNeRF videos (:mod:`aoi3d.scene.dynerf`), D-NeRF /
 nerfstudio transforms (:mod:`aoi3d.scene.dnerf`) — open with :func:`open_dataset`, which
@@ -29,7 +29,7 @@ from aoi3d.scene.layouts import (
     export_dataset,
     open_dataset,
 )
-from aoi3d.scene.rig import HELDOUT_ID, make_rig
+from aoi3d.scene.placement import HELDOUT_ID, place_cameras
 from aoi3d.scene.turbine import SCENE_VERSION, SceneConfig, TurbineScene, to_uint8
 from aoi3d.scene.write import ensure_dataset, generate_dataset, write_dataset
 
@@ -58,8 +58,8 @@ __all__ = [
     "load_dnerf",
     "load_dynerf",
     "look_at",
-    "make_rig",
     "open_dataset",
+    "place_cameras",
     "to_uint8",
     "write_dataset",
 ]

@@ -33,7 +33,7 @@ import numpy as np
 from PIL import Image
 
 from aoi3d.scene.camera import Camera
-from aoi3d.scene.rig import HELDOUT_ID
+from aoi3d.scene.placement import HELDOUT_ID
 from aoi3d.scene.turbine import SceneConfig
 
 __all__ = [

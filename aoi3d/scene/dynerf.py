@@ -178,13 +178,13 @@ class DyNeRFDataset(SceneDataset):
                 problems.append((path, "empty"))
         return problems
 
-    def preload(self, workers: int = 1, *, png: bool = False) -> DyNeRFDataset:
-        """Decode every camera now (``workers`` ffmpeg processes at once) and, with ``png``,
+    def preload(self, processes: int = 1, *, png: bool = False) -> DyNeRFDataset:
+        """Decode every camera now (``processes`` ffmpeg processes at once) and, with ``png``,
         encode every frame into :attr:`png_cache` (≈ 1 ms a frame at 96×72) so that a camera
         service's first loop costs no encoding; returns self."""
-        if workers < 1:
-            raise ValueError(f"workers must be ≥ 1, got {workers}")
-        with ThreadPoolExecutor(max_workers=workers) as pool:
+        if processes < 1:
+            raise ValueError(f"processes must be ≥ 1, got {processes}")
+        with ThreadPoolExecutor(max_workers=processes) as pool:
             list(pool.map(self.video, range(len(self.cameras))))
         if png:
             for camera_id in range(len(self.cameras)):

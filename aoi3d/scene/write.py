@@ -36,7 +36,7 @@ from aoi3d.scene.dataset import (
     load_dataset,
     png_problem,
 )
-from aoi3d.scene.rig import HELDOUT_ID, make_rig
+from aoi3d.scene.placement import HELDOUT_ID, place_cameras
 from aoi3d.scene.turbine import AABB, ROTOR_AABB, SCENE_VERSION, SceneConfig, TurbineScene
 
 __all__ = ["CHUNK_FRAMES", "ensure_dataset", "generate_dataset", "write_dataset"]
@@ -177,19 +177,19 @@ def generate_dataset(
     cfg: SceneConfig | None = None,
     progress: Progress | None = None,
     *,
-    workers: int = 1,
+    processes: int = 1,
 ) -> SceneDataset:
     """Render every frame of every camera of ``cfg`` to ``path`` (replacing a dataset there).
 
     ``progress(done, total)`` is called in this process as frames complete (``total`` =
-    cameras × frames). ``workers > 1`` renders cameras in that many processes (``spawn``
+    cameras × frames). ``processes > 1`` renders cameras in that many processes (``spawn``
     start method: a calling script needs the ``if __name__ == "__main__":`` guard); the
     output is byte-identical either way. Raises ``FileExistsError`` if ``path`` holds
     something other than a scene dataset.
     """
     cfg = cfg if cfg is not None else SceneConfig()
-    if workers < 1:
-        raise ValueError(f"workers must be ≥ 1, got {workers}")
+    if processes < 1:
+        raise ValueError(f"processes must be ≥ 1, got {processes}")
     path = Path(path).absolute()
     _check_replaceable(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -205,7 +205,7 @@ def generate_dataset(
             hi,
         )
 
-    cameras = make_rig(cfg)
+    cameras = place_cameras(cfg)
     total, done = len(cameras) * cfg.n_frames, 0
 
     def advance(n: int) -> None:
@@ -219,13 +219,13 @@ def generate_dataset(
             progress(0, total)
         for cam_id in range(len(cameras)):
             (tmp / f"frames/cam{cam_id:02d}").mkdir(parents=True)
-        if workers == 1:
+        if processes == 1:
             scene = TurbineScene(cfg, cache_size=1)
             for cam_id, camera in enumerate(cameras):
                 _write_camera(scene, camera, cam_id, tmp, advance)
         else:
             ctx = multiprocessing.get_context("spawn")
-            with ProcessPoolExecutor(max_workers=workers, mp_context=ctx) as pool:
+            with ProcessPoolExecutor(max_workers=processes, mp_context=ctx) as pool:
                 jobs = [
                     pool.submit(_render_camera_job, cfg.to_dict(), cam.to_dict(), i, str(tmp))
                     for i, cam in enumerate(cameras)
@@ -244,7 +244,7 @@ def ensure_dataset(
     cfg: SceneConfig | None = None,
     progress: Progress | None = None,
     *,
-    workers: int = 1,
+    processes: int = 1,
 ) -> SceneDataset:
     """The dataset at ``path``; generated first if missing, incomplete, or of another config."""
     cfg = cfg if cfg is not None else SceneConfig()
@@ -252,7 +252,7 @@ def ensure_dataset(
         ds = load_dataset(path)
         if ds.config_hash == cfg.config_hash and not ds.check_frames(decode=0):
             return ds
-    return generate_dataset(path, cfg, progress, workers=workers)
+    return generate_dataset(path, cfg, progress, processes=processes)
 
 
 def write_dataset(

@@ -8,7 +8,7 @@ from typing import Annotated
 from pydantic import Field, field_validator
 from pydantic_settings import NoDecode, SettingsConfigDict
 
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 CameraIds = Annotated[list[int], NoDecode]

@@ -21,7 +21,7 @@ from pydantic_settings import (
 
 from aoi3d.field import check_backend
 from aoi3d.field.carry import CarryMode
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 OLD_PREFIX = "AOI3D_TRAINER_"

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from aoi3d.ports import DEFAULT_SITE, SITE_PATTERN, check_site  # the sites' names: one home
-from aoi3d.ports import RESERVED_SITES as RESERVED
+from aoi3d.sites import DEFAULT_SITE, SITE_PATTERN, check_site  # the sites' names: one home
+from aoi3d.sites import RESERVED_SITES as RESERVED
 
 __all__ = ["DEFAULT_SITE", "RESERVED", "SITE_PATTERN", "Keys", "check_site"]
 

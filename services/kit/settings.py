@@ -13,7 +13,7 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
-from aoi3d.ports import ZENOH_PORT
+from services.kit.ports import ZENOH_PORT
 
 Endpoints = Annotated[list[str], NoDecode]
 

@@ -8,8 +8,8 @@ from typing import Literal
 from pydantic import Field
 from pydantic_settings import SettingsConfigDict
 
-from aoi3d.ports import SERVICE_PORTS
 from aoi3d.quality import RewardWeights
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 _DEFAULT_WEIGHTS = RewardWeights()

@@ -7,7 +7,7 @@ from pydantic_settings import SettingsConfigDict
 
 from aoi3d.channel import parse_channel
 from aoi3d.channel.varying import check_frame_encoding
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 

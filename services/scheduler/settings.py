@@ -8,8 +8,8 @@ from pydantic import Field, field_validator
 from pydantic_settings import SettingsConfigDict
 
 from aoi3d.policy import parse_policy
-from aoi3d.ports import SERVICE_PORTS
 from aoi3d.rl.online import LearnConfig
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 

@@ -7,7 +7,7 @@ import os
 from pydantic import AliasChoices, Field
 from pydantic_settings import SettingsConfigDict
 
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from services.kit.settings import ServiceSettings
 
 

@@ -19,7 +19,7 @@ from urllib.parse import urlsplit
 
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from tests.support.pipeline import HTTP, SCALE, stop_pipeline, wait_for
 from tests.support.ports import block
 

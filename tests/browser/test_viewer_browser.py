@@ -25,7 +25,7 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from tests.support.pipeline import HTTP, SCALE, wait_for
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"

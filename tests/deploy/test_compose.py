@@ -245,7 +245,7 @@ def test_checks_catch_a_broken_deployment(compose):
 
     ignore = ["*", "!aoi3d", "**/__pycache__"]
     assert dockerignore_excludes("services/kit/app.py", ignore)
-    assert not dockerignore_excludes("aoi3d/ports.py", ignore)
+    assert not dockerignore_excludes("aoi3d/sites.py", ignore)
     assert dockerignore_excludes("aoi3d/__pycache__", ignore)
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS
+from services.kit.ports import SERVICE_PORTS
 from tests.support.pipeline import HTTP, SCALE, Tap, stop_pipeline, wait_for
 from tests.support.ports import block
 

@@ -27,8 +27,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
+from services.kit.ports import SERVICE_PORTS
 from tests.support.deploy_modules import load
 from tests.support.pipeline import HTTP, Tap, stop_pipeline, wait_for
 from tests.support.ports import block

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS
 from aoi3d.scene import SceneConfig, generate_dataset
+from services.kit.ports import SERVICE_PORTS
 from tests.support.ports import block
 from tests.support.timeouts import timeout_scale
 

@@ -52,7 +52,7 @@ POLL_S = 0.1
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=32, height=24, fps=10, duration_s=1.0, n_train=N_TRAIN,
                       rotor_rpm=0.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, processes=1)
 
 
 def make_app(dataset: SceneDataset, bus: MemoryBus, **overrides):

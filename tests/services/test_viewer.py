@@ -33,7 +33,7 @@ KEYS = Keys("viewertest")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=24, height=18, fps=10, duration_s=0.4, n_train=N, rotor_rpm=0.0,
                       spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, processes=1)
 
 
 @pytest.fixture

@@ -40,7 +40,7 @@ def trainer_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     fixture of tests/services/conftest.py, and tests/unit/test_dispatcher_core.py's)."""
     cfg = SceneConfig(width=24, height=18, fps=10, duration_s=1.0, n_train=N_TRAIN,
                       rotor_rpm=20.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, processes=1)
 
 
 def make_settings(**overrides) -> Settings:

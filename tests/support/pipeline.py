@@ -14,9 +14,9 @@ from pathlib import Path
 import httpx
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.ports import SERVICE_PORTS
 from tests.support import waits
 from tests.support.metrics import total
 from tests.support.ports import block

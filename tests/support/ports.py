@@ -22,11 +22,11 @@ from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 
-from aoi3d.ports import REST_FIRST, REST_LAST, TEST_FIRST
+from services.kit.ports import REST_FIRST, REST_LAST
 
-FIRST = TEST_FIRST
+FIRST = 12_000
 """Lowest test port: above the fixed ports of ``make up`` (7447, 8101…), ``make bench``
-(:data:`aoi3d.ports.BENCH_BLOCKS`: pipeline, scale, online_live) and below the ephemeral range."""
+(bench/ports.py's blocks: pipeline, scale, online_live) and below the ephemeral range."""
 SIZE = 16
 NAMES = ("pipeline", "recovery", "pool", "sites", "browser", "prometheus", "supervisor",
          "cli-startup", "dataset-errors", "dataset-errors-service", "zenoh-auth", "zenoh-tls",

@@ -12,9 +12,9 @@ import threading
 import uuid
 from pathlib import Path
 
-from aoi3d.ports import SERVICE_PORTS
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
+from services.kit.ports import SERVICE_PORTS
 from tests.support.metrics import total
 from tests.support.pipeline import HTTP, wait_for
 from tests.support.ports import block

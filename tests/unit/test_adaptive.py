@@ -270,10 +270,10 @@ def test_stepwise_episodes_equal_the_planned_ones(cfg: EpisodeConfig,
     seeds = [0, 1]
     planned = run_jobs(cfg, [Job(p, cfg.delay, s) for s in seeds
                              for p in ("mat:70", "adaptive:plugin", "wait:40")],
-                       workers=1, dataset=dataset).results
+                       processes=1, dataset=dataset).results
 
     def evaluate(plans):
-        return run_plans(plans, workers=1, dataset=dataset).results
+        return run_plans(plans, processes=1, dataset=dataset).results
 
     for spec in ("mat:70", "adaptive:plugin", "wait:40"):
         step = run_stepwise(cfg, dataset, spec, seeds, evaluate)
@@ -298,7 +298,7 @@ def test_run_jobs_takes_a_bandit_beside_planned_policies(cfg: EpisodeConfig,
     """The sweep runs a policy rewarded by quality step by step, in job order, beside the
     planned ones (so `experiment compare --policy adaptive:bandit` works)."""
     jobs = [Job(p, cfg.delay, s) for s in (0, 1) for p in ("mat:70", "adaptive:bandit:3:40/70")]
-    out = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    out = run_jobs(cfg, jobs, processes=1, dataset=dataset)
     assert [(r.policy, r.seed) for r in out.results] == [
         ("mat:70", 0), ("adaptive:bandit:3:40/70:1:psnr_db", 0), ("mat:70", 1),
         ("adaptive:bandit:3:40/70:1:psnr_db", 1)]

@@ -24,7 +24,7 @@ def bench() -> ModuleType:
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=40, height=32, fps=10, duration_s=0.1, n_train=8, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, processes=1)
 
 
 @dataclass(frozen=True)

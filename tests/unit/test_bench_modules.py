@@ -11,6 +11,7 @@ ROOT = Path(__file__).resolve().parents[2]
 NOT_BENCHMARKS = {
     "__init__": "the package",
     "common": "what the benchmarks share (start and stop the pipeline, write JSON)",
+    "ports": "the benches' fixed ports (a table)",
     "docs": "renders bench/results into docs/measurements.md; it measures nothing",
     "science": "make science: its document is bench/results/science/claims.json, its page "
                "docs/science.md, its exit status the claims' verdict",

@@ -389,7 +389,7 @@ def test_compare_runs_budgeted_policies_side_by_side(dataset: SceneDataset, tmp_
     out = tmp_path / "c"
     args = ["compare", "--policy", "mat:70@50", "--policy", "mat:100@25", "--seeds", "2",
             "--delay", "const:20", "--carry", "fresh", "--dataset", str(dataset.root),
-            "--out", str(out), "--cache", str(tmp_path / "cache"), "--workers", "1",
+            "--out", str(out), "--cache", str(tmp_path / "cache"), "--processes", "1",
             "--steps-per-epoch", "10", "--no-lpips", "--set", f"field={json.dumps(TINY_FIELD)}",
             "--set", "warmup_ms=150", "--set", "scored_ms=60", "--set", "score_every=1"]
     res = CliRunner().invoke(app, args, catch_exceptions=False)
@@ -416,7 +416,7 @@ def test_compare_refuses_a_budget_under_the_warm_carry_before_running(
     res = CliRunner().invoke(app, [
         "compare", "--policy", spec, "--policy", "all", "--seeds", "1", "--carry", "warm",
         "--dataset", str(dataset.root), "--out", str(out), "--cache", str(tmp_path / "cache"),
-        "--workers", "1", "--no-lpips"])
+        "--workers", "1", "--no-lpips"])  # --workers: the old name still works
     assert res.exit_code == 2, res.output
     assert "warm carry" in " ".join(res.output.replace("│", "").split())
     assert not (out / "results.json").exists()  # nothing ran

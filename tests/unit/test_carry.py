@@ -36,7 +36,7 @@ TINY = GridConfig(batch_rays=64, samples_coarse=12, samples_fine=12, fine_from_s
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=24, height=18, fps=30, duration_s=0.5, n_train=N_TRAIN,
                       rotor_rpm=80.0, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, processes=1)
 
 
 def views(ds: SceneDataset, frame: int, cams=(1, 2, 3, 4)) -> list[TrainView]:

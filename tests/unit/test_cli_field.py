@@ -21,7 +21,7 @@ runner = CliRunner()
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     cfg = SceneConfig(width=40, height=32, fps=10, duration_s=0.2, n_train=4, spp=1)
-    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, workers=1)
+    return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, processes=1)
 
 
 @dataclass(frozen=True)

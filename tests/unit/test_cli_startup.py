@@ -221,7 +221,7 @@ def test_ppo_commands_take_their_own_options_then_the_shared_ones() -> None:
 
     from aoi3d_cli.ppo import app
 
-    shared = ["dataset", "steps_per_epoch", "workers", "threads", "cache", "no_cache", "device",
+    shared = ["dataset", "steps_per_epoch", "processes", "threads", "cache", "no_cache", "device",
               "lpips", "set_"]
     commands = typer.main.get_command(app).commands
     for name in ("train", "eval"):

@@ -302,7 +302,7 @@ def test_dynerf_decodes_lazily_once_per_camera(dynerf_dir: Path,
     png = ds.frame_png(1, 2)
     assert ds.frame_png(1, 2) is png and len(ds.png_cache) == 1
     assert not ds.frame(1, 2).flags.writeable
-    ds.preload(workers=2, png=True)
+    ds.preload(processes=2, png=True)
     assert sorted(calls) == ["cam00.mp4", "cam01.mp4", "cam03.mp4"]
     assert ds.decoded_bytes == 3 * 4 * 18 * 24 * 3 and len(ds.png_cache) == 3 * 4
 

@@ -188,14 +188,14 @@ def test_cache_resumes_an_interrupted_sweep(cfg: EpisodeConfig, dataset: SceneDa
             raise Stop
 
     with pytest.raises(Stop):
-        run_jobs(cfg, jobs, cache=cache, workers=1, progress=stop_after_two, dataset=dataset)
+        run_jobs(cfg, jobs, cache=cache, processes=1, progress=stop_after_two, dataset=dataset)
     assert len(list(cache.root.glob("*/*.json"))) == 2
-    resumed = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    resumed = run_jobs(cfg, jobs, cache=cache, processes=1, dataset=dataset)
     n_unique = len(set(resumed.keys))
     assert (resumed.cached, resumed.computed) == (2, n_unique - 2)
-    again = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    again = run_jobs(cfg, jobs, cache=cache, processes=1, dataset=dataset)
     assert (again.cached, again.computed) == (n_unique, 0)
-    fresh = run_jobs(cfg, jobs, cache=None, workers=1, dataset=dataset)
+    fresh = run_jobs(cfg, jobs, cache=None, processes=1, dataset=dataset)
     assert [r.psnr_db for r in resumed.results] == [r.psnr_db for r in fresh.results]
     assert [r.policy for r in resumed.results] == [j.policy for j in jobs]
     assert [r.seed for r in resumed.results] == [j.seed for j in jobs]
@@ -210,7 +210,7 @@ def test_cache_resumes_an_interrupted_sweep(cfg: EpisodeConfig, dataset: SceneDa
             del epoch[name]
     path.write_text(json.dumps(doc))
     assert cache.get(key) is None
-    healed = run_jobs(cfg, jobs, cache=cache, workers=1, dataset=dataset)
+    healed = run_jobs(cfg, jobs, cache=cache, processes=1, dataset=dataset)
     assert (healed.cached, healed.computed) == (n_unique - 1, 1)
     assert cache.get(key).psnr_dynamic_db == resumed.results[0].psnr_dynamic_db
 
@@ -218,8 +218,8 @@ def test_cache_resumes_an_interrupted_sweep(cfg: EpisodeConfig, dataset: SceneDa
 @pytest.mark.slow  # two spawned workers import torch: ~8 s on 2 cores
 def test_process_pool_matches_serial(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
     jobs = [Job("all", "exp:60", 0), Job("mat:70", "exp:30", 1)]
-    serial = run_jobs(cfg, jobs, workers=1, dataset=dataset)
-    pooled = run_jobs(cfg, jobs, workers=2, dataset=dataset)
+    serial = run_jobs(cfg, jobs, processes=1, dataset=dataset)
+    pooled = run_jobs(cfg, jobs, processes=2, dataset=dataset)
     assert [r.psnr_db for r in pooled.results] == [r.psnr_db for r in serial.results]
     assert [r.delay for r in pooled.results] == ["exp:60", "exp:30"]
 
@@ -229,7 +229,7 @@ def test_process_pool_matches_serial(cfg: EpisodeConfig, dataset: SceneDataset) 
 def test_ray_matches_serial(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
     pytest.importorskip("ray", reason="Ray is optional (pip install '.[cluster]')")
     jobs = [Job("all", "exp:60", 0), Job("mat:70", "exp:60", 1)]
-    serial = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    serial = run_jobs(cfg, jobs, processes=1, dataset=dataset)
     on_ray = run_jobs(cfg, jobs, ray_address="local", dataset=dataset)
     assert [r.psnr_db for r in on_ray.results] == [r.psnr_db for r in serial.results]
 
@@ -252,7 +252,7 @@ def _cli(args: list[str]):
 def _common(dataset: SceneDataset, tmp_path, out: str) -> list[str]:
     sets = [f"field={json.dumps(TINY_FIELD)}", "warmup_ms=150", "scored_ms=60", "score_every=1"]
     args = ["--dataset", str(dataset.root), "--out", str(tmp_path / out), "--cache",
-            str(tmp_path / "cache"), "--workers", "1", "--steps-per-epoch", "2", "--no-lpips"]
+            str(tmp_path / "cache"), "--processes", "1", "--steps-per-epoch", "2", "--no-lpips"]
     for s in sets:
         args += ["--set", s]
     return args
@@ -345,7 +345,7 @@ def test_cli_commands_take_their_own_options_then_the_shared_ones() -> None:
     from aoi3d_cli.experiment import app
 
     shared = ["dataset", "out", "cache", "seeds", "seed_offset", "steps_per_epoch", "carry",
-              "backend", "workers", "threads", "ray_address", "lpips", "device", "set_"]
+              "backend", "processes", "threads", "ray_address", "lpips", "device", "set_"]
     own = {"tradeoff": ["preset", "gammas", "delay"],
            "views": ["preset", "gammas", "rows", "delay"],
            "delay": ["preset", "delays", "gammas", "metric"],

@@ -90,7 +90,7 @@ def test_aoi_colours_go_green_yellow_red_with_gamma() -> None:
 def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[FieldTrainer, SceneDataset]:
     cfg = SceneConfig(width=32, height=24, fps=10, duration_s=0.4, n_train=6, rotor_rpm=0.0,
                       spp=1)
-    ds = generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, workers=1)
+    ds = generate_dataset(tmp_path_factory.mktemp("scene") / "s", cfg, processes=1)
     grid = GridConfig(batch_rays=256, samples_coarse=24, samples_fine=24, fine_from_step=0,
                       grid_sizes=(24,), upsample_steps=(), background_size=(4, 8),
                       tune_malloc=False)

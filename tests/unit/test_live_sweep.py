@@ -214,7 +214,7 @@ def test_the_virtual_clock_refuses_a_budget_under_the_warm_carry_before_running(
     with pytest.raises(SimRefused, match=r"mat:70@50: .*warm carry"):
         simulate(["all", "mat:70@50"], dataset=dataset.root, delay="exp:60", carry="warm",
                  steps_per_decision=1, render_steps=0, seeds=1, seed_offset=0,
-                 cache=tmp_path / "cache", workers=1)
+                 cache=tmp_path / "cache", processes=1)
     assert not (tmp_path / "cache").exists()  # nothing ran
 
 

@@ -51,7 +51,7 @@ def cfg(dataset: SceneDataset) -> EpisodeConfig:
 
 @pytest.fixture(scope="module")
 def policies(cfg: EpisodeConfig, dataset: SceneDataset):
-    return run_jobs(cfg, [Job(p, cfg.delay, s) for s in SEEDS for p in RULES], workers=1,
+    return run_jobs(cfg, [Job(p, cfg.delay, s) for s in SEEDS for p in RULES], processes=1,
                     dataset=dataset).results
 
 
@@ -98,7 +98,7 @@ def test_rule_candidates_are_every_mat_and_freshest_selection() -> None:
 def test_rules_oracle_is_never_below_what_it_searches(cfg: EpisodeConfig, dataset: SceneDataset,
                                                       policies, tmp_path) -> None:
     cache = ResultCache(tmp_path / "cache")
-    bound = run_oracle(cfg, "oracle", SEEDS, cache=cache, workers=1, dataset=dataset)
+    bound = run_oracle(cfg, "oracle", SEEDS, cache=cache, processes=1, dataset=dataset)
     assert [r.seed for r in bound.results] == SEEDS
     assert all(r.policy == "oracle:rules:reward" for r in bound.results)
     by_seed = {r.seed: r for r in bound.results}
@@ -120,13 +120,13 @@ def test_rules_oracle_is_never_below_what_it_searches(cfg: EpisodeConfig, datase
     assert 1 <= cost["reconstructions_per_decision"]["max"] <= N_TRAIN
     assert bound.computed + bound.cached == bound.reconstructions
     assert cost["compute_s"] > 0
-    again = run_oracle(cfg, "oracle", SEEDS, cache=cache, workers=1, dataset=dataset)
+    again = run_oracle(cfg, "oracle", SEEDS, cache=cache, processes=1, dataset=dataset)
     assert (again.computed, again.cached) == (0, bound.reconstructions)
     assert [r.reward for r in again.results] == [r.reward for r in bound.results]
 
 
 def test_the_bound_is_a_real_episode(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
-    bound = run_oracle(cfg, "oracle:rules:psnr_db", [1], workers=1, dataset=dataset)
+    bound = run_oracle(cfg, "oracle:rules:psnr_db", [1], processes=1, dataset=dataset)
     episode = bound.episodes[0]
     replay, _ = run_plan(episode.plan, dataset)  # the chosen selections, as one episode
     assert [e.psnr_db for e in replay.epochs] == pytest.approx(
@@ -138,7 +138,7 @@ def test_the_bound_is_a_real_episode(cfg: EpisodeConfig, dataset: SceneDataset) 
 
 
 def test_greedy_oracle(cfg: EpisodeConfig, dataset: SceneDataset, policies) -> None:
-    bound = run_oracle(cfg, "oracle:greedy", SEEDS, workers=1, dataset=dataset)
+    bound = run_oracle(cfg, "oracle:greedy", SEEDS, processes=1, dataset=dataset)
     by_seed = {r.seed: r for r in bound.results}
     for r in policies:  # its first round tries every single camera: never below freshest:1
         if r.policy == "freshest:1":
@@ -156,7 +156,7 @@ def test_greedy_oracle(cfg: EpisodeConfig, dataset: SceneDataset, policies) -> N
 
 def test_oracle_needs_the_fresh_carry(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
     with pytest.raises(ValueError, match="fresh"):
-        run_oracle(cfg.with_(carry="warm"), "oracle", [0], workers=1, dataset=dataset)
+        run_oracle(cfg.with_(carry="warm"), "oracle", [0], processes=1, dataset=dataset)
 
 
 # --- baselines in a sweep --------------------------------------------------------------------
@@ -165,7 +165,7 @@ def test_baseline_jobs_change_the_training_not_the_selection(cfg: EpisodeConfig,
     jobs = [Job("all", cfg.delay, 0), Job("all", cfg.delay, 0, trainer="wsum:30"),
             Job("all", cfg.delay, 0, trainer="tembed:2:300"),
             Job("mat:70", cfg.delay, 0, trainer="wsum:30")]
-    out = run_jobs(cfg, jobs, workers=1, dataset=dataset)
+    out = run_jobs(cfg, jobs, processes=1, dataset=dataset)
     assert [r.policy for r in out.results] == ["all", "wsum:30", "tembed:2:300",
                                                "wsum:30@mat:70"]
     assert len(set(out.keys)) == 4
@@ -182,7 +182,7 @@ def test_baseline_jobs_change_the_training_not_the_selection(cfg: EpisodeConfig,
 # --- the CLI ---------------------------------------------------------------------------------
 def _args(dataset: SceneDataset, tmp_path, out: str, *extra: str) -> list[str]:
     args = ["compare", "--seeds", "2", "--dataset", str(dataset.root), "--out",
-            str(tmp_path / out), "--cache", str(tmp_path / "cache"), "--workers", "1",
+            str(tmp_path / out), "--cache", str(tmp_path / "cache"), "--processes", "1",
             "--steps-per-epoch", "2", "--no-lpips", "--carry", "fresh",
             "--set", f"field={json.dumps(TINY_FIELD)}", "--set", "warmup_ms=150",
             "--set", "scored_ms=60", "--set", "score_every=1"]

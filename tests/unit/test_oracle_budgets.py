@@ -35,7 +35,7 @@ def grid(cfg: EpisodeConfig, dataset: SceneDataset, tmp_path_factory):
     """The cells run as the science grid runs them (compare's jobs), into a cache."""
     cache = ResultCache(tmp_path_factory.mktemp("cache"))
     out = run_jobs(cfg, [Job(c, cfg.delay, s) for s in SEEDS for c in budget_cells()],
-                   workers=1, dataset=dataset, cache=cache)
+                   processes=1, dataset=dataset, cache=cache)
     return cache, out.results
 
 
@@ -67,7 +67,7 @@ def test_a_bound_is_refused_where_a_policy_is_expected() -> None:
 def test_never_below_a_cell_and_reaches_the_best(cfg: EpisodeConfig, dataset: SceneDataset,
                                                  grid) -> None:
     cache, cells = grid
-    bound = run_oracle(cfg, SPEC, SEEDS, cache=cache, workers=1, dataset=dataset)
+    bound = run_oracle(cfg, SPEC, SEEDS, cache=cache, processes=1, dataset=dataset)
     # every cell was in the cache: the grid's episodes are the candidates, free (cells whose
     # plans coincide, mat:160@s and all@s on this tiny rig, share one key)
     assert bound.computed == 0 and 0 < bound.cached <= len(budget_cells()) * len(SEEDS)
@@ -93,7 +93,7 @@ def test_the_budget_bound_is_a_real_episode(cfg: EpisodeConfig, dataset: SceneDa
     """Replayed as one plan (the chosen selection and budget at each decision), the oracle's
     episode scores what its search found: the decisions are independent under 'fresh'."""
     cache, _ = grid
-    bound = run_oracle(cfg, SPEC, [1], cache=cache, workers=1, dataset=dataset)
+    bound = run_oracle(cfg, SPEC, [1], cache=cache, processes=1, dataset=dataset)
     episode = bound.episodes[0]
     scored = [d for d in episode.plan.decisions if d.scored]
     assert [d.budget_steps for d in scored] == [
@@ -107,4 +107,5 @@ def test_the_budget_bound_is_a_real_episode(cfg: EpisodeConfig, dataset: SceneDa
 def test_the_budget_bound_needs_the_fresh_carry(cfg: EpisodeConfig,
                                                 dataset: SceneDataset) -> None:
     with pytest.raises(ValueError, match="fresh"):
-        run_oracle(cfg.with_(carry="stream", render_steps=2), SPEC, [0], workers=1, dataset=dataset)
+        run_oracle(cfg.with_(carry="stream", render_steps=2), SPEC, [0], processes=1,
+                   dataset=dataset)

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from aoi3d.ports import SERVICE_PORTS as DEFAULT_PORTS
+from services.kit.ports import SERVICE_PORTS as DEFAULT_PORTS
 from tests.support import ports
 
 
@@ -46,13 +46,14 @@ def test_a_slot_with_a_port_in_use_is_stepped_over() -> None:
 
 
 def test_every_port_comes_from_the_one_table() -> None:
-    """aoi3d/ports.py is the one home: the services' settings, the supervisor, the console's
-    upstreams and the Zenoh defaults read it; the benches' blocks are apart from ``make up``
-    and from each other."""
+    """services/kit/ports.py is the one home: the services' settings, the supervisor, the
+    console's upstreams and the Zenoh defaults read it; the benches' blocks (bench/ports.py)
+    are apart from ``make up`` and from each other."""
     import importlib
 
-    from aoi3d import ports as table
+    from bench.ports import BENCH_BLOCKS
     from services.console.settings import UPSTREAMS
+    from services.kit import ports as table
     from services.kit.settings import CommonSettings
     from services.router import RouterSettings
     from services.supervisor import DEFAULT_PORTS as SUPERVISED
@@ -68,21 +69,21 @@ def test_every_port_comes_from_the_one_table() -> None:
     assert CommonSettings().zenoh_connect == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]
     assert RouterSettings().listen == [f"tcp/127.0.0.1:{table.ZENOH_PORT}"]
     taken: dict[int, str] = {p: "up" for p in table.UP.ports()}
-    for name, block in table.BENCH_BLOCKS.items():
+    for name, block in BENCH_BLOCKS.items():
         for p in block.ports():
             assert p not in taken, f"bench {name}'s port {p} is also {taken[p]}'s"
             taken[p] = name
     assert table.UP.url("dispatcher", "/status") == "http://127.0.0.1:8104/status"
-    assert table.BENCH_BLOCKS["pipeline"].up_args() == ["--port-offset", "1000",
-                                                        "--zenoh-port", "7547"]
+    assert BENCH_BLOCKS["pipeline"].up_args() == ["--port-offset", "1000",
+                                                  "--zenoh-port", "7547"]
 
 
 def test_the_bench_blocks_comments_say_their_rest_ports() -> None:
-    """Each ``# REST first…last`` beside a bench's block in aoi3d/ports.py is its REST ports
+    """Each ``# REST first…last`` beside a bench's block in bench/ports.py is its REST ports
     (a service added to the table moves ``last``: 8108 since the viewer)."""
     import re
 
-    from aoi3d import ports as table
+    from bench import ports as table
 
     said = re.findall(r'"(\w+)": PortBlock\([^)]*\),\s*# REST (\d+)…(\d+)',
                       Path(table.__file__).read_text())

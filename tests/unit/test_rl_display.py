@@ -109,7 +109,7 @@ def test_a_display_agent_trains_and_acts_on_the_lag(cfg: EpisodeConfig, dataset:
                                                     arch="shared"),
                          episodes=6, batch_size=3, preset="test", reward="reward_display",
                          budgets=BUDGETS)
-        train(tc, tmp_path / out, dataset=dataset, workers=1)
+        train(tc, tmp_path / out, dataset=dataset, processes=1)
         return PPOLearner.load(tmp_path / out / "final.pt")
 
     a, b = run("a"), run("b")
@@ -143,11 +143,11 @@ def test_cli_trains_for_the_display(dataset: SceneDataset, tmp_path) -> None:
             "--reward", "reward_display", "--budgets", "2,4", "--observe-lag",
             "--dataset", str(dataset.root), "--steps-per-epoch", "2", "--no-lpips",
             "--set", f"field={json.dumps(TINY_FIELD)}", "--set", "warmup_ms=150",
-            "--set", "scored_ms=90", "--set", "score_every=1", "--workers", "1"]
+            "--set", "scored_ms=90", "--set", "score_every=1", "--processes", "1"]
     res = CliRunner().invoke(app, args, env={"COLUMNS": "400"})
     assert res.exit_code == 0, res.output
     assert PPOLearner.load(out / "final.pt").config.lag
     res = CliRunner().invoke(app, [*args[:-2], "--reward", "bogus", "--out",
-                                   str(tmp_path / "x"), "--workers", "1"],
+                                   str(tmp_path / "x"), "--processes", "1"],
                              env={"COLUMNS": "400"})
     assert res.exit_code == 2 and "reward must be one of" in res.output

@@ -138,7 +138,7 @@ def _train_cfg(cfg: EpisodeConfig, episodes: int = 8) -> TrainConfig:
 
 def test_train_writes_files_and_resumes_identically(cfg: EpisodeConfig, dataset: SceneDataset,
                                                     tmp_path) -> None:
-    full = train(_train_cfg(cfg, 8), tmp_path / "full", dataset=dataset, workers=1,
+    full = train(_train_cfg(cfg, 8), tmp_path / "full", dataset=dataset, processes=1,
                  cache=tmp_path / "cache")
     assert full.episodes == 8 and full.updates == 2 and full.computed + full.cached == 8
     for name in ("checkpoint.pt", "final.pt", "episodes.csv", "updates.csv", "reward.png",
@@ -152,12 +152,12 @@ def test_train_writes_files_and_resumes_identically(cfg: EpisodeConfig, dataset:
     meta = json.loads((tmp_path / "full" / "config.json").read_text())
     assert meta["train_config"]["episodes"] == 8 and meta["code_version"]
     # Stop after 4 episodes, then resume to 8: the same agent as the uninterrupted run.
-    half = train(_train_cfg(cfg, 4), tmp_path / "split", dataset=dataset, workers=1,
+    half = train(_train_cfg(cfg, 4), tmp_path / "split", dataset=dataset, processes=1,
                  cache=tmp_path / "cache")
     assert half.episodes == 4
     with pytest.raises(FileExistsError):
-        train(_train_cfg(cfg, 8), tmp_path / "split", dataset=dataset, workers=1)
-    resumed = train(_train_cfg(cfg, 8), tmp_path / "split", dataset=dataset, workers=1,
+        train(_train_cfg(cfg, 8), tmp_path / "split", dataset=dataset, processes=1)
+    resumed = train(_train_cfg(cfg, 8), tmp_path / "split", dataset=dataset, processes=1,
                     cache=tmp_path / "cache", resume=True)
     assert resumed.episodes == 8 and resumed.cached == 4  # same actions → cache hits
     a = PPOLearner.load(tmp_path / "full" / "final.pt")
@@ -167,7 +167,7 @@ def test_train_writes_files_and_resumes_identically(cfg: EpisodeConfig, dataset:
     with pytest.raises(ValueError, match="another config"):
         other = _train_cfg(cfg, 12)
         train(TrainConfig(**{**vars(other), "batch_size": 2}), tmp_path / "split",
-              dataset=dataset, workers=1, resume=True)
+              dataset=dataset, processes=1, resume=True)
 
 
 def test_evaluate_on_held_out_seeds(cfg: EpisodeConfig, dataset: SceneDataset,
@@ -176,18 +176,18 @@ def test_evaluate_on_held_out_seeds(cfg: EpisodeConfig, dataset: SceneDataset,
     agent.save(tmp_path / "a.pt")
     seeds = eval_seeds(3)
     outcome = evaluate([f"ppo:{tmp_path / 'a.pt'}", "all", "mat:0"], cfg, seeds,
-                       dataset=dataset, workers=1)
+                       dataset=dataset, processes=1)
     assert len(outcome.rows) == 9 and {r["seed"] for r in outcome.rows} == set(seeds)
     summary = {r["policy"]: r for r in outcome.summary}
     assert summary["mat:0"]["n_selected"] == 0
     assert summary["all"]["n"] == 3 and np.isfinite(summary["all"]["reward_ci95"])
     assert "first_minus_this_reward" in summary["all"]
     with pytest.raises(ValueError, match="waiting"):
-        evaluate(["wait:40"], cfg, seeds, dataset=dataset, workers=1)
+        evaluate(["wait:40"], cfg, seeds, dataset=dataset, processes=1)
     big = PPOLearner(PPOConfig(n_cameras=N_TRAIN + 1))
     big.save(tmp_path / "big.pt")
     with pytest.raises(ValueError, match="trained for 5 cameras"):
-        evaluate([f"ppo:{tmp_path / 'big.pt'}"], cfg, seeds, dataset=dataset, workers=1)
+        evaluate([f"ppo:{tmp_path / 'big.pt'}"], cfg, seeds, dataset=dataset, processes=1)
 
 
 # --- CLI -------------------------------------------------------------------------------------
@@ -200,7 +200,7 @@ def _cli(args: list[str]):
 def _tiny_sets(dataset: SceneDataset) -> list[str]:
     return ["--dataset", str(dataset.root), "--steps-per-epoch", "2", "--no-lpips",
             "--set", f"field={json.dumps(TINY_FIELD)}", "--set", "warmup_ms=150",
-            "--set", "scored_ms=90", "--set", "score_every=1", "--workers", "1"]
+            "--set", "scored_ms=90", "--set", "score_every=1", "--processes", "1"]
 
 
 def test_cli_train_and_eval_end_to_end(dataset: SceneDataset, tmp_path) -> None:
@@ -213,7 +213,7 @@ def test_cli_train_and_eval_end_to_end(dataset: SceneDataset, tmp_path) -> None:
     rows = list(csv.DictReader((out / "episodes.csv").open()))
     assert len(rows) == 6
     res = _cli(["ppo", "eval", "--checkpoint", str(out / "final.pt"), "--seeds", "2",
-                "--compare", "all", "--cache", str(tmp_path / "cache"), "--workers", "1",
+                "--compare", "all", "--cache", str(tmp_path / "cache"), "--processes", "1",
                 "--no-lpips"])
     assert res.exit_code == 0, res.output
     doc = json.loads((out / "eval" / "eval.json").read_text())
@@ -240,7 +240,7 @@ def test_cli_bad_input(dataset: SceneDataset, tmp_path) -> None:
     agent = PPOLearner(PPOConfig(n_cameras=N_TRAIN))
     agent.save(tmp_path / "a.pt")
     res = _cli(["ppo", "eval", "--checkpoint", str(tmp_path / "a.pt"), "--seeds", "1",
-                "--compare", "bogus:1", *_tiny_sets(dataset)[:-2], "--workers", "1"])
+                "--compare", "bogus:1", *_tiny_sets(dataset)[:-2], "--processes", "1"])
     assert res.exit_code == 2 and "Accepted forms" in res.output
 
 
@@ -250,7 +250,7 @@ def test_experiment_compare_accepts_a_ppo_checkpoint(dataset: SceneDataset, tmp_
     agent = PPOLearner(PPOConfig(n_cameras=N_TRAIN, init_select_p=0.9))  # selects all
     agent.save(tmp_path / "a.pt")
     common = ["--dataset", str(dataset.root), "--cache", str(tmp_path / "cache"),
-              "--workers", "1", "--steps-per-epoch", "2", "--no-lpips", "--seeds", "2",
+              "--processes", "1", "--steps-per-epoch", "2", "--no-lpips", "--seeds", "2",
               "--set", f"field={json.dumps(TINY_FIELD)}", "--set", "warmup_ms=150",
               "--set", "scored_ms=60", "--set", "score_every=1"]
     spec = f"ppo:{tmp_path / 'a.pt'}"
@@ -270,12 +270,12 @@ def test_experiment_compare_accepts_a_ppo_checkpoint(dataset: SceneDataset, tmp_
 
 
 def test_worker_pool_matches_in_process(cfg: EpisodeConfig, dataset: SceneDataset) -> None:
-    from aoi3d.rl.pool import EnvPool
+    from aoi3d.rl.runner import EpisodeRunner
 
     items = [(7, np.array([1, 0, 1, 1], np.int8)), (8, np.array([0, 1, 1, 0], np.int8))]
-    with EnvPool(cfg, aoi_scale_ms=300.0, cache=None, workers=1) as pool:
+    with EpisodeRunner(cfg, aoi_scale_ms=300.0, cache=None, processes=1) as pool:
         serial = dict(pool.run(items))
-    with EnvPool(cfg, aoi_scale_ms=300.0, cache=None, workers=2) as pool:
+    with EpisodeRunner(cfg, aoi_scale_ms=300.0, cache=None, processes=2) as pool:
         parallel = dict(pool.run(items))
     for i in range(2):
         assert parallel[i]["reward"] == serial[i]["reward"]
@@ -303,7 +303,7 @@ def test_an_agent_with_pose_features_trains_and_acts(dataset: SceneDataset, cfg:
     rows = list(csv.DictReader((out / "episodes.csv").open()))
     assert len(rows) == 4
     res = _cli(["ppo", "eval", "--checkpoint", str(out / "final.pt"), "--seeds", "1",
-                "--workers", "1", "--no-lpips"])
+                "--processes", "1", "--no-lpips"])
     assert res.exit_code == 0, res.output
     res = _cli(["ppo", "train", "--features", "colour", "--out", str(tmp_path / "x"),
                 *_tiny_sets(dataset)])
@@ -311,4 +311,4 @@ def test_an_agent_with_pose_features_trains_and_acts(dataset: SceneDataset, cfg:
     wrong = PPOConfig(n_cameras=N_TRAIN, features=("pose",), camera_features=(0.5,) * 8)
     with pytest.raises(ValueError, match="not those of this rig"):
         train(TrainConfig(episode=cfg, ppo=wrong, episodes=2, batch_size=2, preset="test"),
-              tmp_path / "wrong", dataset=dataset, workers=1)
+              tmp_path / "wrong", dataset=dataset, processes=1)

@@ -18,7 +18,7 @@ from aoi3d.scene import (
     generate_dataset,
     load_dataset,
     look_at,
-    make_rig,
+    place_cameras,
     to_uint8,
 )
 from aoi3d.scene import turbine as T
@@ -142,7 +142,7 @@ def test_scene_config_defaults_and_validation():
 @pytest.mark.parametrize("n_train", [18, 5, 1])
 def test_rig_poses_are_rigid_and_look_at_the_turbine(n_train):
     cfg = SceneConfig(width=24, height=18, n_train=n_train)
-    rig = make_rig(cfg)
+    rig = place_cameras(cfg)
     assert len(rig) == n_train + 1
     turbine = np.array(
         [
@@ -174,7 +174,7 @@ def test_rig_poses_are_rigid_and_look_at_the_turbine(n_train):
 
 
 def test_rig_training_cameras_span_an_arc_of_about_180_degrees():
-    rig = make_rig(SceneConfig(width=24, height=18))
+    rig = place_cameras(SceneConfig(width=24, height=18))
     az = np.degrees([math.atan2(c.position[1], c.position[0]) for c in rig[1:]])
     assert 150 < az.max() - az.min() <= 180
     assert len({tuple(np.round(c.position, 6)) for c in rig}) == len(rig)
@@ -182,7 +182,7 @@ def test_rig_training_cameras_span_an_arc_of_about_180_degrees():
 
 # --- rendering -------------------------------------------------------------------------------
 def test_render_is_deterministic_and_seeded():
-    cam = make_rig(TINY)[0]
+    cam = place_cameras(TINY)[0]
     a = TurbineScene(TINY).render(cam, 0.13)
     b = TurbineScene(TINY).render(cam, 0.13)
     assert a.dtype == np.float32 and a.shape == (18, 24, 3)
@@ -195,7 +195,7 @@ def test_render_is_deterministic_and_seeded():
 def test_blades_move_while_the_static_ground_does_not():
     cfg = SceneConfig(width=48, height=36, spp=2)
     scene = TurbineScene(cfg)
-    cam = make_rig(cfg)[0]
+    cam = place_cameras(cfg)[0]
     a, b = scene.render(cam, 0.0), scene.render(cam, 0.5)
     changed = np.any(a != b, axis=-1)
     assert changed.sum() > 20, "the blades must move between frames"
@@ -220,7 +220,7 @@ def test_culled_render_equals_brute_force():
     sample ray with every blade."""
     cfg = SceneConfig(width=32, height=24, spp=2)
     fast, brute = TurbineScene(cfg), TurbineScene(cfg, _cull=False)
-    rig = make_rig(cfg)
+    rig = place_cameras(cfg)
     times = [0.0, 0.37, 1.21, 2.9]
     for cam in (rig[0], rig[1], rig[len(rig) // 3]):
         np.testing.assert_array_equal(fast.render_times(cam, times), brute.render_times(cam, times))
@@ -228,7 +228,7 @@ def test_culled_render_equals_brute_force():
 
 def test_loop_is_seamless_with_three_identical_blades():
     scene = TurbineScene(TINY)
-    cam = make_rig(TINY)[0]
+    cam = place_cameras(TINY)[0]
     start, end = scene.render(cam, 0.0), scene.render(cam, TINY.duration_s)  # one blade pass
     assert np.mean(np.abs(start - end)) < 1e-4
     assert not np.array_equal(start, scene.render(cam, TINY.duration_s / 2))
@@ -268,7 +268,7 @@ def test_anti_aliasing_averages_stratified_samples():
     edges get intermediate colours."""
     lo_cfg = SceneConfig(width=24, height=18, spp=3)
     hi_cfg = SceneConfig(width=72, height=54, spp=1)
-    cam = make_rig(lo_cfg)[0]
+    cam = place_cameras(lo_cfg)[0]
     cam_hi = Camera(
         c2w=cam.c2w, fx=3 * cam.fx, fy=3 * cam.fy, cx=3 * cam.cx, cy=3 * cam.cy, width=72, height=54
     )
@@ -294,7 +294,7 @@ def test_anti_aliasing_averages_stratified_samples():
 
 def test_render_rejects_bad_input():
     scene = TurbineScene(TINY)
-    cam = make_rig(TINY)[0]
+    cam = place_cameras(TINY)[0]
     with pytest.raises(ValueError):
         scene.render(cam, float("nan"))
     bad = np.array(cam.c2w)
@@ -311,7 +311,7 @@ def tiny_dataset(tmp_path_factory):
 
 def test_dataset_round_trip(tiny_dataset):
     ds = tiny_dataset
-    rig = make_rig(TINY)
+    rig = place_cameras(TINY)
     assert ds.cameras == rig and ds.heldout_id == 0 and ds.train_ids == [1, 2, 3, 4]
     assert (ds.fps, ds.n_frames, ds.width, ds.height) == (10, 5, 24, 18)
     np.testing.assert_array_equal(ds.aabb, TurbineScene(TINY).aabb)
@@ -435,7 +435,7 @@ def test_generation_is_atomic_and_deterministic(tmp_path):
 def test_parallel_generation_matches_serial(tmp_path, tiny_dataset):
     cfg = SceneConfig(**{**TINY.to_dict(), "n_train": 2})
     serial = generate_dataset(tmp_path / "serial", cfg)
-    parallel = generate_dataset(tmp_path / "parallel", cfg, workers=2)
+    parallel = generate_dataset(tmp_path / "parallel", cfg, processes=2)
     for cam_id in range(3):
         for k in range(5):
             assert serial.frame_png(cam_id, k) == parallel.frame_png(cam_id, k)
@@ -503,7 +503,7 @@ def test_cli_generate_and_info(tmp_path):
 # --- framing ---------------------------------------------------------------------------------
 def test_rotor_framing_is_a_forward_facing_close_up_of_the_rotor():
     cfg = SceneConfig(width=48, height=36, spp=1, framing="rotor", rotor_rpm=6.0)
-    rig = make_rig(cfg)
+    rig = place_cameras(cfg)
     az = np.degrees([math.atan2(c.position[1], c.position[0]) for c in rig[1:]])
     assert 55 < az.max() - az.min() <= 65  # a 60° arc, as a DyNeRF-like rig
     for cam in rig:
@@ -521,7 +521,7 @@ def test_rotor_framing_is_a_forward_facing_close_up_of_the_rotor():
     site = SceneConfig(width=48, height=36, spp=1, rotor_rpm=6.0)
 
     def moved(c: SceneConfig) -> float:
-        scene, cam = TurbineScene(c), make_rig(c)[0]
+        scene, cam = TurbineScene(c), place_cameras(c)[0]
         return float(np.any(scene.render(cam, 1.0) != scene.render(cam, 1.0 + 1 / 3), -1).mean())
 
     assert moved(cfg) > 0.1

@@ -21,7 +21,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
     ds = tiny_dataset(tmp_path / "tiny", n_train=6)
     aoi3d = str(Path(sys.executable).with_name("aoi3d"))
     subprocess.run([aoi3d, "ppo", "train", "--dataset", str(ds.root), "--episodes", "2",
-                    "--batch-size", "2", "--steps-per-epoch", "2", "--no-lpips", "--workers",
+                    "--batch-size", "2", "--steps-per-epoch", "2", "--no-lpips", "--processes",
                     "1", "--no-cache", "--out", str(tmp_path / "ppo")], check=True)
     extra = [f"--extra=--dataset={ds.root}", "--extra=--steps-per-epoch=2",
              "--extra=--no-lpips", f"--extra=--set=field={TINY_FIELD}",
@@ -36,7 +36,7 @@ def test_science_runs_every_claim_on_the_seeds_it_names(tmp_path: Path) -> None:
          "--compare-checkpoint", str(tmp_path / "ppo/final.pt"), "--out", str(tmp_path / "out"),
          "--display-checkpoint", str(tmp_path / "ppo/final.pt"),
          "--cache", str(tmp_path / "cache"), "--doc", str(tmp_path / "science.md"),
-         "--figures", str(tmp_path / "figs"), "--workers", "1",
+         "--figures", str(tmp_path / "figs"), "--processes", "1",
          # the live-against-twin part runs two live pipelines (minutes): its verdicts are
          # tested on their own (test_science_twin.py), and 0 skips it here
          "--twin-seeds", "0", *extra],

@@ -50,7 +50,7 @@ class SceneConfig:
     seed: int = 0
     """Seed of the texture noise (not of the geometry or the rig)."""
     framing: str = "site"
-    """How the rig frames the turbine (see :mod:`aoi3d.scene.rig`): ``site`` — the whole
+    """How the rig frames the turbine (see :mod:`aoi3d.scene.placement`): ``site`` — the whole
     turbine, its ground and the hut from a 170° arc, the blades a few per cent of the pixels;
     ``rotor`` — a close-up of the rotor from a 60° forward-facing arc (the DyNeRF-like capture
     the experiments use), the blades a large share of the pixels."""

@@ -1,6 +1,6 @@
-"""Env workers: ``(seed, action)`` one-step episodes of one env config, run in this process
+"""Env processes: ``(seed, action)`` one-step episodes of one env config, run in this process
 or on a ``spawn`` process pool (one torch thread each, as the experiment sweeps do), each
-worker building its :class:`~aoi3d.rl.env.FrameSelectionEnv` (dataset, LPIPS net) once."""
+process building its :class:`~aoi3d.rl.env.FrameSelectionEnv` (dataset, LPIPS net) once."""
 
 from __future__ import annotations
 
@@ -16,15 +16,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from aoi3d.experiment import EpisodeConfig, default_workers
+from aoi3d.experiment import EpisodeConfig, default_processes
 from aoi3d.experiment.episode import set_torch_threads
 from aoi3d.rl.env import FrameSelectionEnv
 
-__all__ = ["EnvPool", "run_episode"]
+__all__ = ["EpisodeRunner", "run_episode"]
 
 
 EnvArgs = tuple[str, float, str | None, str, tuple[int, ...]]
-"""What builds a worker's environment: the episode config (JSON), the AoI scale, the cache,
+"""What builds a process's environment: the episode config (JSON), the AoI scale, the cache,
 the reward and the budgets (:class:`~aoi3d.rl.env.FrameSelectionEnv`)."""
 
 
@@ -59,34 +59,34 @@ def run_episode(env: FrameSelectionEnv, seed: int, bits: list[int]) -> dict[str,
 
 
 def _work(env_args: EnvArgs, seed: int, bits: list[int]) -> dict[str, Any]:
-    """One episode in a worker process."""
+    """One episode in an episode process."""
     return run_episode(_env(*env_args), seed, bits)
 
 
-class EnvPool:
-    """Runs ``(seed, action)`` episodes of one env config: in this process (``workers=1``)
-    or on a ``spawn`` process pool, one environment (dataset, LPIPS net) per worker, started
+class EpisodeRunner:
+    """Runs ``(seed, action)`` episodes of one env config: in this process (``processes=1``)
+    or on a ``spawn`` process pool, one environment (dataset, LPIPS net) per process, started
     once and reused. Use as a context manager."""
 
     def __init__(self, cfg: EpisodeConfig, *, aoi_scale_ms: float, cache: str | Path | None,
-                 workers: int | None = None, threads: int = 1, reward: str = "reward",
+                 processes: int | None = None, threads: int = 1, reward: str = "reward",
                  budgets: tuple[int, ...] = ()) -> None:
-        self.workers = default_workers() if workers is None else workers
-        if self.workers < 1 or threads < 1:
-            raise ValueError(f"workers and threads must be >= 1, got {workers}, {threads}")
+        self.processes = default_processes() if processes is None else processes
+        if self.processes < 1 or threads < 1:
+            raise ValueError(f"processes and threads must be >= 1, got {processes}, {threads}")
         self.threads = threads
         self._env_args: EnvArgs = (json.dumps(cfg.to_dict(), sort_keys=True),
                                    float(aoi_scale_ms), None if cache is None else str(cache),
                                    reward, tuple(budgets))
         self._local: FrameSelectionEnv | None = None
         self._pool: ProcessPoolExecutor | None = None
-        if self.workers == 1:
+        if self.processes == 1:
             self._local = FrameSelectionEnv(cfg, aoi_scale_ms=aoi_scale_ms,
                                             cache=self._env_args[2], reward=reward,
                                             budgets=tuple(budgets))
         else:
             self._pool = ProcessPoolExecutor(
-                max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                max_workers=self.processes, mp_context=multiprocessing.get_context("spawn"),
                 initializer=set_torch_threads, initargs=(threads,))
 
     def run(self, items: Sequence[tuple[int, np.ndarray]]) -> Iterator[tuple[int, dict[str, Any]]]:
@@ -131,7 +131,7 @@ class EnvPool:
             self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
 
-    def __enter__(self) -> EnvPool:
+    def __enter__(self) -> EpisodeRunner:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -29,7 +29,7 @@ __all__ = [
     "FRAMING",
     "HELDOUT_ID",
     "Framing",
-    "make_rig",
+    "place_cameras",
 ]
 
 HELDOUT_ID = 0
@@ -89,7 +89,7 @@ def _camera(cfg: SceneConfig, frame: Framing, azimuth_deg: float, radius: float,
     return cam
 
 
-def make_rig(cfg: SceneConfig | None = None) -> list[Camera]:
+def place_cameras(cfg: SceneConfig | None = None) -> list[Camera]:
     """``cfg.n_train + 1`` cameras; list index = camera id, id 0 is the held-out view."""
     cfg = cfg if cfg is not None else SceneConfig()
     frame = FRAMING[cfg.framing]
