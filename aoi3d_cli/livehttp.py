@@ -1,8 +1,8 @@
-"""``aoi3d live``'s side of the wire: the REST client of a running pipeline
-(:class:`Pipeline`), one policy's measurement window (:func:`measure_policy`), and a
-sweep's hold on the pipeline (:class:`LiveSession`: the whole sweep's windows, the channel put
-back, a pipeline of its own started and stopped with ``--up``). What the windows mean is
-:mod:`aoi3d.live`'s.
+"""``aoi3d live``'s side of the wire, on the one pipeline handle
+(:class:`aoi3d_cli.pipeline.Pipeline`): one policy's measurement window
+(:func:`measure_policy`), and a sweep's hold on the pipeline (:class:`LiveSession`: the whole
+sweep's windows, the channel put back, a pipeline of its own started and stopped with
+``--up``). What the windows mean is :mod:`aoi3d.live`'s.
 
 :mod:`aoi3d_cli.live` imports this module inside its command (httpx stays out of
 ``aoi3d --help``).
@@ -10,98 +10,22 @@ back, a pipeline of its own started and stopped with ``--up``). What the windows
 
 from __future__ import annotations
 
-import os
-import signal
 import subprocess
-import sys
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
-import httpx
 import typer
 from rich.console import Console
 from rich.markup import escape
 
 from aoi3d.live import Measurement, render_latency_s
-from aoi3d_cli.common import control_headers
-from services.kit.ports import SERVICE_PORTS, rest_port
+from aoi3d_cli.pipeline import Pipeline, PipelineError, wait_until
 
-
-class LiveError(RuntimeError):
-    """The pipeline did not answer as expected; the message says what and where."""
-
-
-@dataclass
-class Pipeline:
-    """The REST endpoints of a running pipeline."""
-
-    url_base: str = "http://127.0.0.1"
-    port_offset: int = 0
-    timeout_s: float = 30.0
-    site: str | None = None
-    """The site measured (``/sites/<site>/…``); None: the run's first site (today's paths)."""
-    client: Any = field(default=None, repr=False)
-
-    RUN_LEVEL = frozenset({("dispatcher", "/reset"), ("dispatcher", "/backend"),
-                           ("dispatcher", "/carry"), ("dispatcher", "/workers")})
-    """Paths that are the run's, not a site's (the pool and its settings)."""
-
-    def __post_init__(self) -> None:
-        self.client = httpx.Client(timeout=self.timeout_s, headers=control_headers())
-
-    def url(self, service: str, path: str) -> str:
-        if self.site and (service, path) not in self.RUN_LEVEL and not path.startswith("/ready"):
-            path = f"/sites/{self.site}{path}"
-        return f"{self.url_base.rstrip('/')}:{rest_port(service, self.port_offset)}{path}"
-
-    def call(self, method: str, service: str, path: str, **kw: Any) -> Any:
-        url = self.url(service, path)
-        try:
-            resp = self.client.request(method, url, **kw)
-        except httpx.HTTPError as err:
-            raise LiveError(f"{method} {url}: {err!r} (is the pipeline up? `aoi3d up`, or "
-                            f"pass --up)") from None
-        if resp.status_code >= 400:
-            raise LiveError(f"{method} {url} answered {resp.status_code}: {resp.text[:300]}")
-        return resp.json()
-
-    def ready(self) -> bool:
-        try:
-            return all(self.client.get(self.url(s, "/readyz")).status_code == 200
-                       for s in SERVICE_PORTS)
-        except httpx.HTTPError:
-            return False
-
-    def latest_render(self) -> tuple[bytes, int | None]:
-        """The dispatcher's latest render (PNG) and the decision it represents."""
-        try:
-            resp = self.client.get(self.url("dispatcher", "/render.png"))
-        except httpx.HTTPError:
-            return b"", None
-        if resp.status_code != 200:
-            return b"", None
-        return resp.content, int(resp.headers.get("x-decision-id", "0"))
-
-    def close(self) -> None:
-        self.client.close()
-
-
-def wait(what: str, check: Callable[[], Any], timeout_s: float, every_s: float = 0.25) -> Any:
-    """``check()``'s first true answer (a :class:`LiveError` counts as not yet), polled every
-    ``every_s``; :class:`LiveError` after ``timeout_s``."""
-    deadline = time.monotonic() + timeout_s
-    last: Any = None
-    while time.monotonic() < deadline:
-        try:
-            last = check()
-        except LiveError as err:
-            last = err
-        if last and not isinstance(last, Exception):
-            return last
-        time.sleep(every_s)
-    raise LiveError(f"timed out after {timeout_s:g} s waiting for {what} (last: {last!r})")
+LiveError = PipelineError
+"""The pipeline did not answer as expected (:class:`aoi3d_cli.pipeline.PipelineError`)."""
+wait = wait_until
 
 
 def measure_policy(pipe: Pipeline, policy: dict[str, Any], spec: str, *, settle_s: float,
@@ -172,22 +96,18 @@ class LiveSession:
             except LiveError as err:
                 self.console.print(f"[yellow]could not put the channel back:[/] "
                                    f"{escape(str(err))}")
+        self.pipe.stop()  # the pipeline it started, if any
         self.pipe.close()
-        if self.proc is not None:
-            stop_pipeline(self.proc)
 
-    def start_pipeline(self, zenoh_port: int, time_scale: float, run_id: str,
-                       extra: Sequence[str]) -> None:
+    def start_pipeline(self, time_scale: float, run_id: str, extra: Sequence[str]) -> None:
         """``aoi3d up`` in a session of its own, quiet, on the client's ports; wait until every
         service is ready."""
-        cmd = [sys.executable, "-c", "from aoi3d_cli import main; main()", "up", "--quiet",
-               "--port-offset", str(self.pipe.port_offset), "--zenoh-port", str(zenoh_port),
-               "--time-scale", str(time_scale), "--run-id", run_id, *extra]
-        self.console.print(f"starting the pipeline: aoi3d {escape(' '.join(cmd[3:]))}")
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     start_new_session=True)
-        wait("every service to be ready", self.pipe.ready, 10 * self.pipe.timeout_s,
-             every_s=1.0)
+        args = ["--time-scale", str(time_scale), *extra]
+        self.console.print(f"starting the pipeline: aoi3d up "
+                           f"{escape(' '.join([*self.pipe.block.up_args(), *args]))}")
+        self.pipe.start(args, run_id=run_id)
+        self.proc = self.pipe.proc
+        self.pipe.wait_ready(10 * self.pipe.timeout_s)
 
     def measure(self, specs: Sequence[str], bodies: dict[str, dict[str, Any]],
                 canon: dict[str, str], *, delay: str | None, settle_s: float, measure_s: float,
@@ -225,15 +145,3 @@ class LiveSession:
         channel_end = pipe.call("GET", "network", "/channel")
         channel["changes"] = channel_end.get("changes", [])
         return SweepWindows(measurements, status0, status1, channel)
-
-
-def stop_pipeline(proc: subprocess.Popen) -> None:
-    """SIGTERM, then after a minute SIGKILL to the whole session."""
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=60)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()

@@ -54,7 +54,6 @@ Exit status 1 when ``unaccounted`` or ``stalls_over_15s`` is not 0 or a process 
 from __future__ import annotations
 
 import argparse
-import functools
 import itertools
 import json
 import os
@@ -70,6 +69,7 @@ from pathlib import Path
 
 import httpx
 
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 from services.kit.keys import Keys
@@ -79,7 +79,8 @@ from services.kit.settings import CommonSettings
 
 ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["chaos"]  # apart from make up, soak and the tests (bench/ports.py)
-url = functools.partial(common.url, PORTS)  # url(service, path)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): its URLs."""
 ZENOH = PORTS.zenoh
 LEDGER_OPEN_S = 30.0
 JOB_TIMEOUT_S = 20.0
@@ -136,7 +137,7 @@ def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
     up = {}
     for service in SERVICE_PORTS:
         try:
-            up[service] = http.get(url(service, "/healthz")).status_code == 200
+            up[service] = http.get(PIPE.url(service, "/healthz")).status_code == 200
         except httpx.HTTPError:
             up[service] = False
     try:
@@ -145,7 +146,7 @@ def all_up(http: httpx.Client, log_dir: Path, workers: int) -> dict[str, bool]:
     except OSError:
         up["router"] = False
     try:
-        pool = http.get(url("dispatcher", "/workers")).json()["workers"]
+        pool = http.get(PIPE.url("dispatcher", "/workers")).json()["workers"]
         up["workers"] = len(pool) == workers
     except (httpx.HTTPError, ValueError, KeyError):
         up["workers"] = False
@@ -201,15 +202,16 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     log_dir = ROOT / "runs" / "bench-chaos"
     env = {**os.environ, "AOI3D_METRICS_LEDGER_OPEN_S": str(LEDGER_OPEN_S),
            "AOI3D_DISPATCHER_JOB_TIMEOUT_S": str(JOB_TIMEOUT_S)}
-    up = common.start_up(PORTS, run_id, log_dir, [
+    up = PIPE.start([
         "--sites", str(args.sites), "--workers", str(args.workers),
-        "--time-scale", str(args.time_scale)], env=env)
+        "--time-scale", str(args.time_scale)], run_id=run_id, log_dir=log_dir, env=env,
+        cwd=ROOT)
     http = httpx.Client(timeout=30.0)
     tap = None
     try:
-        wait("the metrics service", lambda: http.get(url("metrics", "/healthz")).is_success,
+        wait("the metrics service", lambda: http.get(PIPE.url("metrics", "/healthz")).is_success,
              300)
-        sites = http.get(url("metrics", "/sites")).json()["sites"]
+        sites = http.get(PIPE.url("metrics", "/sites")).json()["sites"]
         tap = Tap(run_id)
         wait("a Quality of every site", lambda: all(tap.quality_times(s) for s in sites), 300)
 
@@ -237,7 +239,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
         os.kill(sched, signal.SIGSTOP)
         try:
             time.sleep(3.0)
-            ledgers = read_ledgers(http, lambda s, path: url("metrics", path), sites)
+            ledgers = read_ledgers(http, lambda s, path: PIPE.url("metrics", path), sites)
             with tap.lock:
                 made = dict(tap.made)
         finally:
@@ -247,7 +249,7 @@ def run_up(args: argparse.Namespace, rng: random.Random) -> dict:
     finally:
         if tap is not None:
             tap.close()
-        common.stop_up(up)
+        up.stop(90)
     return outcome(args, faults, made, ledgers, stalls, max_gap, up_state)
 
 

@@ -1,8 +1,9 @@
 """What the benches share: where the results go and how a result document is written or
 printed (``--json``); and, for the benches that start a live pipeline (bench/pipeline.py,
-scale.py, soak.py, chaos.py, online_live.py, live_channel.py), a service's URL on a bench's
-own ports, starting ``aoi3d up`` there and stopping it, one wait loop, one ``/metrics``
-scrape and one Zenoh tap of a run.
+scale.py, soak.py, chaos.py, online_live.py, live_channel.py, realtime.py, live_default.py),
+``aoi3d up`` started from the repository root on a bench's own ports as the one pipeline
+handle (:class:`aoi3d_cli.pipeline.Pipeline`: URLs, REST, ``/metrics``, waits, the stop) and
+one Zenoh tap of a run.
 
 The ports come from :data:`bench.ports.BENCH_BLOCKS` (a :class:`services.kit.ports.PortBlock` per
 bench: its URLs and its ``aoi3d up`` options). A bench is run from the repository root as
@@ -15,20 +16,17 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
-import signal
-import subprocess
 import sys
 import threading
-import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
+from aoi3d_cli.pipeline import wait_until
 from services.kit.ports import PortBlock
 
 __all__ = ["RESULTS", "ROOT", "Tap", "add_json_option", "print_json", "progress_to_stderr",
-           "scrape", "start_up", "stop_up", "url", "wait_until", "write_json"]
+           "wait_until", "write_json"]
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the benches read data/, models/ and write runs/ under it)."""
@@ -65,64 +63,6 @@ def progress_to_stderr(enabled: bool = True) -> Iterator[None]:
         yield
 
 
-def url(block: PortBlock, service: str, path: str = "/", *, site: str | None = None) -> str:
-    """``service``'s URL for ``path`` on ``block``'s ports (under ``/sites/<site>`` when
-    ``site`` is given)."""
-    return block.url(service, path if site is None else f"/sites/{site}{path}")
-
-
-def start_up(block: PortBlock, run_id: str, log_dir: Path, args: Sequence[str] = (),
-             *, env: Mapping[str, str] | None = None,
-             stdout: int = subprocess.DEVNULL) -> subprocess.Popen:
-    """``python -m aoi3d_cli up --quiet`` on ``block``'s ports with ``args``, in its own process
-    group (stop it with :func:`stop_up`)."""
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--run-id", run_id, *block.up_args(),
-           "--log-dir", str(log_dir), "--quiet", *args]
-    return subprocess.Popen(cmd, cwd=ROOT, env=None if env is None else dict(env),
-                            stdout=stdout, stderr=subprocess.STDOUT, start_new_session=True)
-
-
-def stop_up(proc: subprocess.Popen, timeout_s: float = 90.0) -> None:
-    """SIGTERM to ``aoi3d up`` (it stops its children), SIGKILL to the group after
-    ``timeout_s``."""
-    if proc.poll() is not None:
-        return
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=timeout_s)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
-        proc.wait()
-
-
-def wait_until(what: str, cond: Callable[[], Any], timeout_s: float, *,
-               every_s: float = 0.5, proc: subprocess.Popen | None = None) -> None:
-    """Poll ``cond`` until it is true; ``SystemExit`` naming ``what`` when ``timeout_s``
-    passes or ``proc`` (the pipeline) exits. A poll that raises (the service is not up yet:
-    an HTTP error, a missing key, a half-written file) counts as not yet."""
-    import httpx
-
-    deadline = time.monotonic() + timeout_s
-    while True:
-        try:
-            if cond():
-                return
-        except (OSError, ValueError, KeyError, httpx.HTTPError):
-            pass
-        if proc is not None and proc.poll() is not None:
-            raise SystemExit(f"{what}: the pipeline exited (exit status {proc.returncode})")
-        if time.monotonic() > deadline:
-            raise SystemExit(f"{what}: not within {timeout_s:.0f} s")
-        time.sleep(every_s)
-
-
-def get_json(client: Any, block: PortBlock, service: str, path: str, **params: int) -> Any:
-    """``GET`` a service of ``block``'s pipeline as JSON (an HTTP error raises)."""
-    response = client.get(block.url(service, path), params=params or None)
-    response.raise_for_status()
-    return response.json()
-
-
 def bench_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], Any],
                argv: list[str] | None = None) -> None:
     """A bench's ``main``: ``run`` on the parsed options (progress to stderr with ``--json``,
@@ -134,21 +74,6 @@ def bench_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespac
         print_json(doc)
     else:
         print(f"written: {args.out}")
-
-
-def scrape(client: Any, url: str) -> dict[str, float]:
-    """A service's ``/metrics`` as ``{series: value}``: each labelled sample under its full
-    name, plus its metric's sum over labels under the bare name."""
-    out: dict[str, float] = {}
-    for line in client.get(url).text.splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        name, value = line.rsplit(" ", 1)
-        out[name] = float(value)
-        base = name.split("{")[0]
-        if base != name:
-            out[base] = out.get(base, 0.0) + float(value)
-    return out
 
 
 class Tap:

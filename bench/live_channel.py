@@ -14,7 +14,6 @@ Playwright; skipped with a message otherwise). Traces come from ``../shared/data
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import shutil
@@ -22,6 +21,7 @@ import time
 
 import httpx
 
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
@@ -30,7 +30,8 @@ ROOT = common.ROOT
 TRACES = ROOT.parent / "shared" / "data" / "traces"
 OUT = common.RESULTS / "live-channel"
 PORTS = BENCH_BLOCKS["live_channel"]  # apart from make up and the other benches (bench/ports.py)
-url = functools.partial(common.url, PORTS)  # url(service, path="/")
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): its URLs."""
 WATCHED = ("camera", "network", "scheduler", "dispatcher", "metrics", "console")
 
 
@@ -59,20 +60,20 @@ def run(args: argparse.Namespace) -> dict:
         f"# aoi3d up {' '.join([*PORTS.up_args(), *up_args])} with "
         f"AOI3D_NETWORK_DELAY={args.regimes} AOI3D_SCHEDULER_POLICY={args.policy}; "
         f"then PUT /channel trace:{args.trace}\n")
-    up = common.start_up(PORTS, "livechannel", ROOT / "runs" / "bench-live-channel", up_args,
-                         env=env)
+    up = PIPE.start(up_args, run_id="livechannel", log_dir=ROOT / "runs" / "bench-live-channel",
+                    env=env, cwd=ROOT)
     client = httpx.Client(timeout=10.0)
     try:
-        common.wait_until("the pipeline", lambda: all(
-            client.get(url(s, "/healthz")).status_code == 200 for s in WATCHED), 300, proc=up)
+        up.wait("the pipeline", lambda: all(
+            client.get(PIPE.url(s, "/healthz")).status_code == 200 for s in WATCHED), 300)
         print("up; playing", args.regimes, "under", args.policy, flush=True)
         time.sleep(args.seconds)
-        r = client.put(url("network", "/channel"), json={"delay": f"trace:{args.trace}"})
+        r = client.put(PIPE.url("network", "/channel"), json={"delay": f"trace:{args.trace}"})
         print("PUT trace:", r.status_code, r.json().get("delay", r.text)[:200], flush=True)
         time.sleep(args.seconds)
-        channel = client.get(url("network", "/channel")).json()
+        channel = client.get(PIPE.url("network", "/channel")).json()
         (OUT / "channel.json").write_text(json.dumps(channel, indent=1))
-        state = client.get(url("console", "/state")).json() if _has(client, "/state") else {}
+        state = client.get(PIPE.url("console", "/state")).json() if _has(client, "/state") else {}
         (OUT / "series.json").write_text(json.dumps(
             {k: state.get(k) for k in ("channel_series", "markers", "channel_summary")},
             indent=1))
@@ -80,7 +81,7 @@ def run(args: argparse.Namespace) -> dict:
         print("measured delay (ms):", channel["measured_delay_ms"])
         _screenshot()
     finally:
-        common.stop_up(up)
+        up.stop(90)
     return channel
 
 
@@ -94,7 +95,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _has(client: httpx.Client, path: str) -> bool:
     try:
-        return client.get(url("console", path)).status_code == 200
+        return client.get(PIPE.url("console", path)).status_code == 200
     except httpx.HTTPError:
         return False
 
@@ -112,7 +113,7 @@ def _screenshot() -> None:
         browser = pw.chromium.launch(executable_path=chromium, headless=True,
                                      args=["--no-sandbox", "--disable-gpu"])
         page = browser.new_page(viewport={"width": 1280, "height": 1100})
-        page.goto(url("console"))
+        page.goto(PIPE.url("console"))
         page.wait_for_timeout(4000)
         out = ROOT / "docs" / "figures" / "console_channel.png"
         page.screenshot(path=str(out), full_page=True)

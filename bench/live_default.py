@@ -42,10 +42,13 @@ import httpx
 
 from aoi3d.policy import parse_policy
 from aoi3d.stats import mean_ci95
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
 PORTS = BENCH_BLOCKS["live_default"]  # apart from make up and the other benches (bench/ports.py)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): URLs, REST, /metrics."""
 OUT = common.RESULTS / "live-default" / "live-default.json"
 HTTP = httpx.Client(timeout=30)
 CARRY_ENV = ("AOI3D_DISPATCHER_CARRY", "AOI3D_DISPATCHER_RENDER_STEPS")
@@ -104,7 +107,7 @@ def window_stats(history: list[dict], first_id: int, last_id: int) -> dict:
 
 
 def _get(service: str, path: str, **params: int) -> dict:
-    return common.get_json(HTTP, PORTS, service, path, **params)
+    return PIPE.get(service, path, **params)
 
 
 def _ledger() -> dict:
@@ -119,15 +122,15 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
     load_before = os.getloadavg()
     env = {k: v for k, v in os.environ.items() if k not in (*CARRY_ENV, POLICY_ENV)}
     env.update(env_extra)
-    up = common.start_up(PORTS, "livedefault", log_dir, ["--time-scale", str(args.time_scale)],
-                         env=env)
+    up = PIPE.start(["--time-scale", str(args.time_scale)], run_id="livedefault",
+                    log_dir=log_dir, env=env, cwd=common.ROOT)
     try:
-        common.wait_until(
+        up.wait(
             f"the pipeline up (see {log_dir}/latest/)",
             lambda: _get("dispatcher", "/workers")["workers"]
             and _get("metrics", "/healthz") is not None
             and _get("scheduler", "/decision")["decision_id"] >= 0,
-            args.ready_timeout_s, proc=up)
+            args.ready_timeout_s)
         time.sleep(args.settle_s)
         first_id = _get("scheduler", "/decision")["decision_id"]
         ledger0 = _ledger()
@@ -141,7 +144,7 @@ def run_one(label: str, env_extra: dict[str, str], args: argparse.Namespace) -> 
         status = _get("dispatcher", "/status")
         pool = _get("dispatcher", "/workers")
     finally:
-        common.stop_up(up)
+        up.stop(90)
     return {
         "config": label, "env": env_extra, "time_scale": args.time_scale,
         "carry": status["carry"], "render_steps": status["render_steps"],

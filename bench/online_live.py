@@ -38,11 +38,9 @@ from __future__ import annotations
 
 import argparse
 import csv
-import functools
 import json
 import os
 import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -52,12 +50,14 @@ import httpx
 
 from aoi3d.metric import LPIPS, PSNR, PSNR_DYNAMIC, REWARD, SSIM, names_of
 from aoi3d.stats import mean_ci95, welch_ci95
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["online_live"]  # apart from `make up` and bench/scale.py (bench/ports.py)
-url = functools.partial(common.url, PORTS)  # url(service, path, site=site)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): its URLs."""
 SHIPPED = ROOT / "models" / "ppo" / "quick" / "final.pt"
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 SITES = ("site1", "site2", "site3")
@@ -78,17 +78,17 @@ def scratch_checkpoint(path: Path, seed: int) -> None:
     PPOLearner(PPOConfig.from_dict({**shipped.config, "seed": seed})).save(path)
 
 
-def wait_up(up: subprocess.Popen, workers: int, timeout_s: float) -> None:
-    common.wait_until(
+def wait_up(up: Pipeline, workers: int, timeout_s: float) -> None:
+    up.wait(
         "the pipeline ready (see runs/bench-online/latest/)",
         lambda: len(HTTP.get(PORTS.url("dispatcher", "/workers")).json()["workers"]) == workers
         and all(HTTP.get(PORTS.url(s, "/readyz")).status_code == 200
                 for s in ("scheduler", "metrics", "dispatcher")),
-        timeout_s, every_s=1.0, proc=up)
+        timeout_s, every_s=1.0)
 
 
 def put_policy(site: str, body: dict[str, Any]) -> dict[str, Any]:
-    resp = HTTP.put(url("scheduler", "/policy", site=site), json=body)
+    resp = HTTP.put(PIPE.url("scheduler", "/policy", site=site), json=body)
     if resp.status_code >= 400:
         raise SystemExit(f"PUT {site} policy {body}: {resp.status_code} {resp.text[:300]}")
     return resp.json()
@@ -187,9 +187,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     log_dir = ROOT / "runs" / "bench-online"
     load_before = os.getloadavg()
-    up = common.start_up(PORTS, "online", log_dir, [
+    up = PIPE.start([
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
-        "--workers", str(args.workers), "--sites", str(len(SITES))])
+        "--workers", str(args.workers), "--sites", str(len(SITES))], run_id="online",
+        log_dir=log_dir, cwd=ROOT)
     seen: dict[str, dict[int, dict[str, Any]]] = {s: {} for s in SITES}
     learners: list[dict[str, Any]] = []
     try:
@@ -199,21 +200,21 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             put_policy(site, body)
         t0 = time.monotonic()
         for site in SITES:  # renders of decisions taken before the PUT are not counted
-            d = HTTP.get(url("scheduler", "/decision", site=site)).json()
+            d = HTTP.get(PIPE.url("scheduler", "/decision", site=site)).json()
             first_id[site], first_ms[site] = d["decision_id"], d["time_ms"]
         print(f"policies put; measuring {args.minutes:g} min -> {out}", flush=True)
         while (now := time.monotonic() - t0) < args.minutes * 60:
             time.sleep(min(args.poll_s, max(0.1, args.minutes * 60 - now)))
             wall = time.monotonic() - t0
             for site in SITES:
-                hist = HTTP.get(url("metrics", "/quality", site=site),
+                hist = HTTP.get(PIPE.url("metrics", "/quality", site=site),
                                 params={"limit": 1000}).json()["history"]
                 for q in hist:
                     if q["decision_id"] > first_id[site] and q["decision_id"] not in seen[site]:
                         # the decision's epoch on the wall clock (sim ms / time scale)
                         at = (q["time_ms"] - first_ms[site]) / 1000 / args.time_scale
                         seen[site][q["decision_id"]] = {**q, "wall_s": round(at, 2)}
-                pol = HTTP.get(url("scheduler", "/policy", site=site)).json()
+                pol = HTTP.get(PIPE.url("scheduler", "/policy", site=site)).json()
                 online = pol.get("online") or {}
                 learners.append({"site": site, "wall_s": round(wall, 1),
                                  "scored": len(seen[site]),
@@ -224,7 +225,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
                 f"{s} {len(seen[s])} renders" for s in SITES), flush=True)
         pool = HTTP.get(PORTS.url("dispatcher", "/workers")).json()
     finally:
-        common.stop_up(up, timeout_s=120)
+        up.stop(120)
 
     rows_by_site = {s: sorted(seen[s].values(), key=lambda q: q["decision_id"]) for s in SITES}
     with open(out / "qualities.csv", "w", newline="") as fh:

@@ -19,16 +19,19 @@ import time
 import httpx
 
 from aoi3d_cli.common import control_headers
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
 BLOCK = BENCH_BLOCKS["pipeline"]  # apart from a running `make up` (bench/ports.py)
+PIPE = Pipeline(BLOCK, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): URLs, REST, /metrics."""
 SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")  # the ones measured
 
 
 def scrape(service: str) -> dict[str, float]:
-    return common.scrape(httpx.Client(timeout=5), BLOCK.url(service, "/metrics"))
+    return PIPE.metrics(service)
 
 
 def policy_body(spec: str) -> dict:
@@ -53,13 +56,13 @@ def run(args: argparse.Namespace) -> dict:
     """One measurement (``parser()``'s options); writes and returns the result document."""
 
     log_dir = ROOT / "runs" / "bench-pipeline"
-    up = common.start_up(BLOCK, "bench", log_dir, ["--dataset", args.dataset,
-                                                   "--time-scale", str(args.time_scale)])
+    up = PIPE.start(["--dataset", args.dataset, "--time-scale", str(args.time_scale)],
+                    run_id="bench", log_dir=log_dir, cwd=ROOT)
     try:
-        common.wait_until(
+        up.wait(
             "the pipeline up (see runs/bench-pipeline/)",
             lambda: all(httpx.get(BLOCK.url(s, "/healthz"), timeout=1).status_code == 200
-                        for s in SERVICES), 120, proc=up)
+                        for s in SERVICES), 120)
         t_ready = time.monotonic()
         r = httpx.put(BLOCK.url("scheduler", "/policy"),
                       json=policy_body(args.policy), headers=control_headers(), timeout=60)
@@ -80,7 +83,7 @@ def run(args: argparse.Namespace) -> dict:
         history = httpx.get(BLOCK.url("metrics", "/quality"),
                             params={"limit": 100000}).json()["history"]
     finally:
-        common.stop_up(up, timeout_s=60)
+        up.stop(60)
 
     def rate(service: str, name: str) -> float:
         return (last[service].get(name, 0.0) - first[service].get(name, 0.0)) / dt

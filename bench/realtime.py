@@ -42,10 +42,13 @@ from pathlib import Path
 
 import httpx
 
+from aoi3d_cli.pipeline import Pipeline
 from bench import common, live_default
 from bench.ports import BENCH_BLOCKS
 
 PORTS = BENCH_BLOCKS["realtime"]  # apart from make up and the other benches (bench/ports.py)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): URLs, REST, /metrics."""
 OUT = common.RESULTS / "realtime" / "realtime.json"
 HTTP = httpx.Client(timeout=30)
 WORKER_PREFIX = "recon-"
@@ -118,13 +121,13 @@ def window_stats(history: list[dict], first_id: int, last_id: int, window_s: flo
 
 
 def _get(service: str, path: str, **params: int) -> dict:
-    return common.get_json(HTTP, PORTS, service, path, **params)
+    return PIPE.get(service, path, **params)
 
 
 def _pool() -> dict[str, float]:
     """The pool's counters so far (the dispatcher's /metrics): decisions superseded (every site),
     and the sums and counts of the hand-out wait and the render age (wall seconds)."""
-    series = common.scrape(HTTP, PORTS.url("dispatcher", "/metrics"))
+    series = PIPE.metrics("dispatcher")
     out = {"superseded": sum(v for k, v in series.items()
                              if k.startswith("aoi3d_pool_decisions_total{")
                              and 'outcome="superseded"' in k)}
@@ -165,14 +168,14 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
     """One worker count: ``aoi3d up`` started, measured and stopped; its row."""
     log_dir = common.ROOT / "runs" / "bench-realtime"
     load_before = os.getloadavg()
-    up = common.start_up(PORTS, "realtime", log_dir,
-                         ["--time-scale", str(args.time_scale), "--workers", str(workers)])
+    up = PIPE.start(["--time-scale", str(args.time_scale), "--workers", str(workers)],
+                    run_id="realtime", log_dir=log_dir, cwd=common.ROOT)
     try:
-        common.wait_until(
+        up.wait(
             f"the pipeline up (see {log_dir}/latest/)",
             lambda: len(_get("dispatcher", "/workers")["workers"]) >= workers
             and _get("scheduler", "/decision")["decision_id"] >= 0,
-            args.ready_timeout_s, proc=up)
+            args.ready_timeout_s)
         time.sleep(args.settle_s)
         procs = {**_children(log_dir), "up": up.pid}
         first_id = _get("scheduler", "/decision")["decision_id"]
@@ -189,7 +192,7 @@ def run_one(workers: int, args: argparse.Namespace) -> dict:
         _collect(scored)
         status = _get("dispatcher", "/status")
     finally:
-        common.stop_up(up)
+        up.stop(90)
     return {
         "workers": workers, "time_scale": args.time_scale, "carry": status["carry"],
         "render_steps": status["render_steps"], "policy": last["policy"],

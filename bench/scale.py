@@ -42,18 +42,21 @@ from pathlib import Path
 import httpx
 
 from aoi3d.stats import mean_ci95
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["scale"]  # apart from a running `make up` (bench/ports.py)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): URLs, REST, /metrics."""
 DEFAULT_DATASET = ROOT / "data" / "turbine-rotor"
 HTTP = httpx.Client(timeout=30)
 
 
 def scrape(service: str) -> dict[str, float]:
     """Series of a service's /metrics, summed over labels, plus each labelled sample."""
-    return common.scrape(HTTP, PORTS.url(service, "/metrics"))
+    return PIPE.metrics(service)
 
 
 class ByteTap(common.Tap):
@@ -136,16 +139,17 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
         env["AOI3D_DISPATCHER_CARRY"] = carry
     if render_steps is not None:
         env["AOI3D_DISPATCHER_RENDER_STEPS"] = str(render_steps)
-    up = common.start_up(PORTS, run_id, log_dir, [
+    up = PIPE.start([
         "--dataset", str(args.dataset), "--time-scale", str(args.time_scale),
-        "--workers", str(workers), "--sites", str(sites)], env=env)
+        "--workers", str(workers), "--sites", str(sites)], run_id=run_id, log_dir=log_dir,
+        env=env, cwd=ROOT)
     tap = None
     try:
-        common.wait_until(
+        up.wait(
             f"the pipeline with {workers} workers up (see {log_dir}/latest/)",
             lambda: len(HTTP.get(PORTS.url("dispatcher", "/workers")).json()["workers"]) == workers
             and HTTP.get(PORTS.url("metrics", "/healthz")).status_code == 200,
-            args.ready_timeout_s, proc=up)
+            args.ready_timeout_s)
         time.sleep(args.settle_s)
         first = {s: scrape(s) for s in ("dispatcher", "scheduler", "metrics")}
         cpu0 = tree_cpu_s(up.pid)
@@ -180,7 +184,7 @@ def run_one(workers: int, sites: int, args: argparse.Namespace, carry: str | Non
     finally:
         if tap is not None:
             tap.close()
-        common.stop_up(up)
+        up.stop(90)
 
     def delta(service: str, name: str) -> float:
         return last[service].get(name, 0.0) - first[service].get(name, 0.0)

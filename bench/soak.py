@@ -20,7 +20,6 @@ rate is within 5 % of the first's (exit status 1 otherwise).
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import os
 import sys
@@ -32,12 +31,14 @@ from typing import Any
 import httpx
 import numpy as np
 
+from aoi3d_cli.pipeline import Pipeline
 from bench import common
 from bench.ports import BENCH_BLOCKS
 
 ROOT = common.ROOT
 PORTS = BENCH_BLOCKS["soak"]  # apart from make up, chaos and the tests (bench/ports.py)
-url = functools.partial(common.url, PORTS)  # url(service, path)
+PIPE = Pipeline(PORTS, timeout_s=60.0)
+"""This bench's pipeline (:class:`aoi3d_cli.pipeline.Pipeline`): its URLs."""
 MAX_GROWTH = 0.10
 MAX_RATE_CHANGE = 0.05
 
@@ -86,17 +87,17 @@ def run(args: argparse.Namespace) -> dict:
     (its verdict: ``memory_ok`` and ``rate_ok``)."""
     log_dir = ROOT / "runs" / "bench-soak"
     run_id = f"soak{uuid.uuid4().hex[:6]}"
-    up = common.start_up(PORTS, run_id, log_dir, ["--sites", str(args.sites),
-                                                  "--workers", str(args.workers)])
+    up = PIPE.start(["--sites", str(args.sites), "--workers", str(args.workers)],
+                    run_id=run_id, log_dir=log_dir, cwd=ROOT)
     http = httpx.Client(timeout=60.0)
     samples: dict[str, list[tuple[float, float]]] = {}
     renders: list[tuple[float, int]] = []
     loads: list[float] = []
     try:
-        common.wait_until(
+        up.wait(
             "soak: the pipeline rendering",
-            lambda: http.get(url("dispatcher", "/status")).json()["pool"]["rendered"] > 0,
-            600, every_s=2.0, proc=up)
+            lambda: http.get(PIPE.url("dispatcher", "/status")).json()["pool"]["rendered"] > 0,
+            600, every_s=2.0)
         time.sleep(args.warmup_s)
         t0 = time.monotonic()
         end = t0 + args.minutes * 60.0
@@ -107,16 +108,17 @@ def run(args: argparse.Namespace) -> dict:
                 mib = rss_mib(child["pid"]) if child["pid"] else None
                 if mib is not None:
                     samples.setdefault(name, []).append((now, mib))
-            renders.append((now, http.get(url("dispatcher", "/status")).json()["pool"]["rendered"]))
+            status = http.get(PIPE.url("dispatcher", "/status")).json()
+            renders.append((now, status["pool"]["rendered"]))
             loads.append(os.getloadavg()[0])
             if time.monotonic() >= end:
                 break
             time.sleep(min(args.every_s, max(0.0, end - time.monotonic())))
         restarts = {n: c["restarts"] for n, c in state["children"].items()}
-        sites = http.get(url("metrics", "/sites")).json()["sites"]
-        ledgers = {s: http.get(url("metrics", f"/sites/{s}/ledger")).json() for s in sites}
+        sites = http.get(PIPE.url("metrics", "/sites")).json()["sites"]
+        ledgers = {s: http.get(PIPE.url("metrics", f"/sites/{s}/ledger")).json() for s in sites}
     finally:
-        common.stop_up(up)
+        up.stop(90)
     span = renders[-1][0]
     window = min(args.window_min * 60.0, span / 2)
     processes: dict[str, dict[str, Any]] = {}

@@ -12,7 +12,6 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import sys
 import uuid
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -20,7 +19,7 @@ from urllib.parse import urlsplit
 import pytest
 
 from services.kit.ports import SERVICE_PORTS
-from tests.support.pipeline import HTTP, SCALE, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, SCALE, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -31,6 +30,7 @@ pytestmark = [
 ]
 sync_api = pytest.importorskip("playwright.sync_api", reason="playwright not installed")
 
+PIPE = handle("browser")
 _PORTS = block("browser")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
@@ -39,27 +39,21 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
         "--disable-component-update", "--disable-sync", "--no-first-run", "--disable-quic"]
 
 
-def url(service: str, path: str = "/") -> str:
-    return f"http://127.0.0.1:{PORTS[service] + PORT_OFFSET}{path}"
-
 
 def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"web{uuid.uuid4().hex[:8]}"
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",
-         run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1"],
-        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
-                 AOI3D_DISPATCHER_RENDER_STEPS="20",
-                 AOI3D_SCHEDULER_POLICY="mat:70"),
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    up = PIPE.start(
+        ["--dataset", str(small_dataset), "--time-scale", "0.1"], run_id=run_id,
+        log_dir=tmp_path / "logs", output=subprocess.PIPE,
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="20",
+                 AOI3D_SCHEDULER_POLICY="mat:70"))
     failed: list[str] = []
     outside: list[str] = []
     timeout_ms = 30_000 * SCALE
     try:
         for name in PORTS:
             wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200,
+                     lambda n=name: HTTP.get(PIPE.url(n, "/healthz")).status_code == 200,
                      timeout_s=120)
         with sync_api.sync_playwright() as pw:
             browser = pw.chromium.launch(executable_path=CHROMIUM, args=ARGS, headless=True)
@@ -69,7 +63,7 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
             page.on("request", lambda r: outside.append(r.url)
                     if urlsplit(r.url).hostname not in ("127.0.0.1", None)
                     and not r.url.startswith("data:") else None)
-            page.goto(url("console"))
+            page.goto(PIPE.url("console"))
 
             # the two images load, and update
             page.wait_for_function("document.getElementById('render').naturalWidth > 0 && "
@@ -82,14 +76,14 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
             page.wait_for_function(
                 r"/decisions\s+[1-9][\s\S]*scored\s+[1-9]/"
                 r".test(document.getElementById('ledger').innerText)")
-            ledger = HTTP.get(url("metrics", "/ledger")).json()
+            ledger = HTTP.get(PIPE.url("metrics", "/ledger")).json()
             assert ledger["decisions"] >= ledger["scored"] > 0, ledger
 
             # the controls know the dispatcher's backends and the scheduler's checkpoints
             page.wait_for_function("document.getElementById('backend').options.length > 0")
             backends = page.eval_on_selector_all("#backend option", "os => os.map(o => o.value)")
             assert "grid" in backends and page.input_value("#backend") == "grid", backends
-            found = HTTP.get(url("scheduler", "/policy/checkpoints")).json()["checkpoints"]
+            found = HTTP.get(PIPE.url("scheduler", "/policy/checkpoints")).json()["checkpoints"]
             offered = page.eval_on_selector_all("#checkpoint option",
                                                 "os => os.map(o => o.value)")
             assert offered == (found or [""]), (offered, found)
@@ -98,12 +92,12 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
             # nothing; the dispatcher's render_steps is the budget in force until one is put
             page.wait_for_function("document.getElementById('display').innerText"
                                    ".includes(\"20 steps (the dispatcher's render_steps)\")")
-            before = HTTP.get(url("scheduler", "/policy")).json()
+            before = HTTP.get(PIPE.url("scheduler", "/policy")).json()
             page.fill("#budget", "0")
             page.click("#apply-policy")
             page.wait_for_function("document.getElementById('policy-msg').textContent"
                                    ".includes('greater than or equal to 1')")
-            assert HTTP.get(url("scheduler", "/policy")).json() == before
+            assert HTTP.get(PIPE.url("scheduler", "/policy")).json() == before
 
             # the MAT slider changes the scheduler's policy, with the budget beside it; the
             # used marks follow, the decisions carry the budget, the page shows it in force
@@ -114,7 +108,7 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
                                       "e.dispatchEvent(new Event('input')); "
                                       "e.dispatchEvent(new Event('change')); }")
                 wait_for(f"GET /policy says mat {mat} at 30 steps", lambda m=mat: (
-                    (p := HTTP.get(url("scheduler", "/policy")).json()).get("mat_ms") == m
+                    (p := HTTP.get(PIPE.url("scheduler", "/policy")).json()).get("mat_ms") == m
                     and p.get("budget_steps") == 30), timeout_s=30)
                 page.wait_for_function(
                     "m => { const bars = [...document.querySelectorAll('#aoi rect[data-aoi]')];"
@@ -133,27 +127,27 @@ def test_the_console_in_a_browser(small_dataset: Path, tmp_path: Path) -> None:
                     assert page.locator("#charts polyline[data-key=psnr_display_db]").count()
                     page.wait_for_function("document.getElementById('aoi').textContent"
                                            ".includes('Γ = 200 ms')")  # the policy polled
-                    assert HTTP.get(url("scheduler", "/decision")).json()["budget_steps"] == 30
+                    assert HTTP.get(PIPE.url("scheduler", "/decision")).json()["budget_steps"] == 30
                     page.screenshot(path=str(tmp_path / "console.png"), full_page=True)
             page.screenshot(path=str(tmp_path / "console-mat0.png"), full_page=True)
             page.fill("#budget", "")  # no budget: the dispatcher's render_steps again
             page.click("#apply-policy")
             wait_for("GET /policy without a budget", lambda: "budget_steps" not in HTTP.get(
-                url("scheduler", "/policy")).json(), timeout_s=30)
+                PIPE.url("scheduler", "/policy")).json(), timeout_s=30)
 
             # a bad delay spec: the API's message, inline; nothing changes
             page.fill("#delay-spec", "weird:1")
             page.click("#apply-delay")
             page.wait_for_function("document.getElementById('delay-msg').textContent"
                                    ".includes('Accepted forms')")
-            assert HTTP.get(url("network", "/channel")).json()["delay"] == "exp:60"
+            assert HTTP.get(PIPE.url("network", "/channel")).json()["delay"] == "exp:60"
 
             # leaving the page aborts its event stream: failures count until here
             on_console = list(failed)
 
             # /docs of every service renders (Swagger UI from the service itself)
             for name in PORTS:
-                page.goto(url(name, "/docs"))
+                page.goto(PIPE.url(name, "/docs"))
                 page.wait_for_selector(".opblock")
                 assert page.locator(".opblock").count() >= 3, name
             browser.close()

@@ -14,10 +14,8 @@ import io
 import os
 import random
 import shutil
-import signal
 import socket
 import subprocess
-import sys
 import uuid
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -25,7 +23,8 @@ from urllib.parse import urlsplit
 import numpy as np
 import pytest
 
-from services.kit.ports import SERVICE_PORTS
+from aoi3d_cli.pipeline import Pipeline
+from services.kit.ports import SERVICE_PORTS, PortBlock
 from tests.support.pipeline import HTTP, SCALE, wait_for
 
 CHROMIUM = shutil.which("chromium") or "/usr/bin/chromium"
@@ -81,17 +80,12 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
     offset, zenoh = free_block()
-
-    def url(service: str, path: str = "/") -> str:
-        return f"http://127.0.0.1:{SERVICE_PORTS[service] + offset}{path}"
-
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(scene), "--run-id",
-         f"view{uuid.uuid4().hex[:8]}", "--zenoh-port", str(zenoh), "--port-offset",
-         str(offset), "--log-dir", str(tmp_path / "logs"), "--quiet", "--time-scale", "0.1",
-         "--workers", "1"],
-        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30", AOI3D_SCHEDULER_POLICY="mat:70"),
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    pipe = Pipeline(PortBlock(offset, zenoh), timeout_s=30 * SCALE)
+    url = pipe.url
+    up = pipe.start(
+        ["--dataset", str(scene), "--time-scale", "0.1", "--workers", "1"],
+        run_id=f"view{uuid.uuid4().hex[:8]}", log_dir=tmp_path / "logs", output=subprocess.PIPE,
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30", AOI3D_SCHEDULER_POLICY="mat:70"))
     outside: list[str] = []
     try:
         for name in SERVICE_PORTS:
@@ -175,10 +169,5 @@ def test_the_viewer_in_a_browser(scene: Path, tmp_path: Path) -> None:
         assert 'aoi3d_dispatcher_views_total{kind="view",outcome="served"}' in trainer_metrics
         assert not outside, outside
     finally:
-        if up.poll() is None:
-            os.killpg(up.pid, signal.SIGINT)
-            try:
-                up.wait(timeout=60)
-            except subprocess.TimeoutExpired:
-                os.killpg(up.pid, signal.SIGKILL)
-                up.wait()
+        up.stop(60 * SCALE)
+        up.close()

@@ -25,6 +25,7 @@ from typing import Any
 
 import pytest
 
+from aoi3d_cli.pipeline import Pipeline
 from tests.support.compose_stack import COMPOSE_MARKS, HTTP, ROOT, SCALE, Stack, wait_for
 from tests.support.ports import block
 
@@ -47,8 +48,9 @@ time.sleep(float(sys.argv[2]))
 """A responder for the hop measurement, run inside a container (its own Zenoh settings)."""
 
 
-def url(service: str, path: str) -> str:
-    return f"http://127.0.0.1:{PORTS[service.upper()]}{path}"
+url = Pipeline(ports={name.lower(): port for name, port in PORTS.items()},
+               timeout_s=30 * SCALE).url
+"""A service's URL on this stack's published ports (the one pipeline handle's)."""
 
 
 class Hosts(Stack):

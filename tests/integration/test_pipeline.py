@@ -22,15 +22,14 @@ from aoi3d.lpips import weights_path
 from services.kit.keys import Keys
 from tests.support.pipeline import (
     HTTP,
+    PIPE,
     PORT_OFFSET,
     SCALE,
     SERVICES,
-    ZENOH_PORT,
     Tap,
     assert_clean_exit,
     metric,
     stop_pipeline,
-    url,
     wait_for,
 )
 
@@ -72,31 +71,28 @@ DOCUMENTED_SERIES = {
 def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"it{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
-           str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1"]
-    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="1.0",
-               AOI3D_DISPATCHER_RENDER_STEPS="30")
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    cmd = ["--dataset", str(small_dataset),
+           "--run-id", run_id, "--log-dir", str(log_dir), "--time-scale", "0.1"]
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     tap = None
     try:
         for name in SERVICES:
             wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200)
+                     lambda n=name: HTTP.get(PIPE.url(n, "/healthz")).status_code == 200)
         tap = Tap(run_id)
 
         # frames flow end to end: offered → delivered → decisions → training → quality
         wait_for("frames delivered", lambda: metric("network", "aoi3d_frames_delivered_total") > 20)
         wait_for("decisions", lambda: metric("scheduler", "aoi3d_decisions_total") > 5)
         wait_for("training steps",
-                 lambda: HTTP.get(url("dispatcher", "/status")).json()["steps"] > 0)
+                 lambda: HTTP.get(PIPE.url("dispatcher", "/status")).json()["steps"] > 0)
         entries = wait_for("quality history",
-                           lambda: HTTP.get(url("metrics", "/quality")).json()["history"],
+                           lambda: HTTP.get(PIPE.url("metrics", "/quality")).json()["history"],
                            timeout_s=90)
         assert all(math.isfinite(q["psnr_db"]) for q in entries)
         # LPIPS is on exactly when its weights are cached (`make install` fetches them)
-        lpips_on = HTTP.get(url("metrics", "/quality")).json()["summary"]["lpips_available"]
+        lpips_on = HTTP.get(PIPE.url("metrics", "/quality")).json()["summary"]["lpips_available"]
         assert lpips_on == weights_path("alex").is_file()
         assert all((q["lpips"] is not None) == lpips_on
                    and ("lpips" in q["reward_terms"]) == lpips_on for q in entries)
@@ -104,13 +100,13 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         assert all(math.isfinite(q.psnr_db) for q in tap.qualities)
 
         # MAT 0 selects no camera; a large MAT selects most of them
-        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0})
+        r = HTTP.put(PIPE.url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 0})
         assert r.status_code == 200, r.text
         spec0 = r.json()["spec"]
         zero = wait_for("decisions under MAT 0", lambda: [
             d for d in tap.decisions_after(0) if d.policy == spec0][:5])
         assert all(len(d.selected) == 0 for d in zero)
-        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000})
+        r = HTTP.put(PIPE.url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": 10_000})
         assert r.status_code == 200, r.text
         spec1 = r.json()["spec"]
         big = wait_for("decisions under MAT 10 s", lambda: [
@@ -119,9 +115,9 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
         assert all(len(d.selected) >= n_cams // 2 for d in big), [len(d.selected) for d in big]
 
         # REST errors say what is wrong
-        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": -5})
+        r = HTTP.put(PIPE.url("scheduler", "/policy"), json={"kind": "mat", "mat_ms": -5})
         assert r.status_code == 422 and "mat_ms" in r.text
-        r = HTTP.put(url("network", "/channel"), json={"delay": "weird:1"})
+        r = HTTP.put(PIPE.url("network", "/channel"), json={"delay": "weird:1"})
         assert r.status_code in (400, 422) and "exp:" in r.text
 
         # malformed frames are dropped and counted, and nothing stops
@@ -154,7 +150,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
 
         # every service exposes its documented series
         for name, series in DOCUMENTED_SERIES.items():
-            text = HTTP.get(url(name, "/metrics")).text
+            text = HTTP.get(PIPE.url(name, "/metrics")).text
             missing = [s for s in series if s not in text]
             assert not missing, f"{name} /metrics lacks {missing}"
 
@@ -165,7 +161,7 @@ def test_pipeline_end_to_end(small_dataset: Path, tmp_path: Path) -> None:
             (log_dir / "latest" / "up.json").read_text())["children"]["metrics"]["restarts"] == 1,
                  timeout_s=30)
         wait_for("metrics healthy again",
-                 lambda: HTTP.get(url("metrics", "/healthz")).status_code == 200)
+                 lambda: HTTP.get(PIPE.url("metrics", "/healthz")).status_code == 200)
     finally:
         if tap is not None:
             tap.close()

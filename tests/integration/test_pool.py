@@ -9,7 +9,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import threading
 import uuid
 from pathlib import Path
@@ -18,20 +17,16 @@ import pytest
 
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.ports import SERVICE_PORTS
-from tests.support.pipeline import HTTP, Tap, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, Tap, assert_clean_exit, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+PIPE = handle("pool")
 _PORTS = block("pool")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
 
-
-def url(service: str, path: str) -> str:
-    port = SERVICE_PORTS[service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
 
 
 class RenderTap(Tap):
@@ -53,18 +48,16 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
                                                  tmp_path: Path) -> None:
     run_id = f"pool{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
-           str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
+    cmd = ["--dataset", str(small_dataset),
+           "--run-id", run_id, "--log-dir", str(log_dir), "--time-scale", "0.1",
            "--workers", "2"]
     # enough steps that a reconstruction lasts long enough to be caught mid-way
     env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="150")
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     tap = None
     try:
         pool = wait_for("two workers in the pool", lambda: len(
-            (p := HTTP.get(url("dispatcher", "/workers")).json())["workers"]) == 2 and p,
+            (p := HTTP.get(PIPE.url("dispatcher", "/workers")).json())["workers"]) == 2 and p,
             timeout_s=120)
         tap = RenderTap(run_id)
         wait_for("renders from both workers", lambda: len(
@@ -73,12 +66,13 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
 
         # a worker in the middle of a reconstruction is killed
         busy = wait_for("a worker holding a decision", lambda: next(
-            (w for w in HTTP.get(url("dispatcher", "/workers")).json()["workers"]
+            (w for w in HTTP.get(PIPE.url("dispatcher", "/workers")).json()["workers"]
              if w["holding"] is not None), None), every_s=0.02)
-        before = HTTP.get(url("dispatcher", "/workers")).json()
+        before = HTTP.get(PIPE.url("dispatcher", "/workers")).json()
         os.kill(busy["pid"], signal.SIGKILL)
         after = wait_for("the loss counted", lambda: (p := HTTP.get(
-            url("dispatcher", "/workers")).json())["lost"].get("worker_died") and p, timeout_s=30)
+            PIPE.url("dispatcher", "/workers")).json())["lost"].get("worker_died") and p,
+            timeout_s=30)
         assert after["lost"]["worker_died"] == before["lost"].get("worker_died", 0) + 1
         assert set(after["lost"]) == {"worker_died"}, after["lost"]
         # the held decision is the one lost: never rendered by anyone
@@ -90,13 +84,13 @@ def test_a_killed_worker_costs_only_its_decision(small_dataset: Path,
                  timeout_s=60)
         # the supervisor restarts the worker; it rejoins the pool with a new id
         wait_for("the pool back to two workers", lambda: len(
-            ws := HTTP.get(url("dispatcher", "/workers")).json()["workers"]) == 2
+            ws := HTTP.get(PIPE.url("dispatcher", "/workers")).json()["workers"]) == 2
             and killed not in {w["worker_id"] for w in ws}, timeout_s=60)
         state = json.loads((log_dir / "latest" / "up.json").read_text())
         assert sum(c["restarts"] for n, c in state["children"].items()
                    if n.startswith("recon-")) == 1
 
-        final = HTTP.get(url("dispatcher", "/workers")).json()
+        final = HTTP.get(PIPE.url("dispatcher", "/workers")).json()
         with tap._rlock:
             done = [(i, d) for i, d, _ in tap.renders]
         assert len(done) == len(set(done)), "a decision was rendered twice"

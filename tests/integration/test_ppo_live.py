@@ -15,7 +15,6 @@ from __future__ import annotations
 import math
 import os
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -25,14 +24,12 @@ import pytest
 from aoi3d.policy.ppo.learner import PPOLearner
 from tests.support.pipeline import (
     HTTP,
-    PORT_OFFSET,
+    PIPE,
     SERVICES,
-    ZENOH_PORT,
     Tap,
     assert_clean_exit,
     metric,
     stop_pipeline,
-    url,
     wait_for,
 )
 from tests.support.ppo import make_subset_checkpoint
@@ -51,24 +48,21 @@ def test_live_scheduler_switches_to_ppo_and_learns_online(small_dataset: Path,
     ckpt = make_subset_checkpoint(tmp_path / "odd.pt", n_cameras=N_CAMERAS, subset=ODD)
     online = tmp_path / "odd.online.pt"
     run_id = f"ppo{uuid.uuid4().hex[:8]}"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
-           str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
-           "--time-scale", "0.1"]
+    cmd = ["--dataset", str(small_dataset),
+           "--run-id", run_id, "--log-dir", str(tmp_path / "logs"), "--time-scale", "0.1"]
     # control locked with a token, checkpoints in the test's folder (docs/operations.md,
     # "Reliability and security")
     env = dict(os.environ, AOI3D_SCHEDULER_POLICY="all", AOI3D_SCHEDULER_LEARN_BATCH_SIZE="2",
-               AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5", AOI3D_DISPATCHER_RENDER_STEPS="20",
+               AOI3D_DISPATCHER_RENDER_STEPS="20",
                AOI3D_CONTROL_TOKEN=TOKEN, AOI3D_FILES_ROOTS=str(tmp_path))
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     tap = None
     try:
         for name in SERVICES:
             wait_for(f"{name} /healthz",
-                     lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200)
+                     lambda n=name: HTTP.get(PIPE.url(n, "/healthz")).status_code == 200)
         tap = Tap(run_id)
-        sched = url("scheduler", "/policy")
+        sched = PIPE.url("scheduler", "/policy")
         assert HTTP.get(sched).json()["spec"] == "all"
 
         # under `all`, decisions use every camera with a known AoI, even ones included

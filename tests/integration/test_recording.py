@@ -18,18 +18,14 @@ import pytest
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
-from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+PIPE = handle("recording")
 _PORTS = block("recording")
 
-
-def url(service: str, path: str) -> str:
-    from services.supervisor import DEFAULT_PORTS
-
-    return f"http://127.0.0.1:{DEFAULT_PORTS[service] + _PORTS.rest_offset}{path}"
 
 
 @pytest.fixture(scope="module")
@@ -55,36 +51,33 @@ def topics_and_schemas(path: Path) -> dict[str, str]:
 def test_record_a_live_run_and_replay_it(small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"rec{uuid.uuid4().hex[:8]}"
     first, second = tmp_path / "run.mcap", tmp_path / "later.mcap"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(_PORTS.zenoh), "--port-offset",
-           str(_PORTS.rest_offset), "--log-dir", str(tmp_path / "logs"), "--quiet",
-           "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
+    cmd = ["--dataset", str(small_dataset), "--run-id", run_id, "--log-dir",
+           str(tmp_path / "logs"), "--time-scale", "0.1", "--workers", "1", "--record", str(first)]
     # the live default carry (stream): the replay rebuilds the worker's chain of jobs
     env = {k: v for k, v in os.environ.items()
            if k not in ("AOI3D_DISPATCHER_CARRY", "AOI3D_DISPATCHER_RENDER_STEPS")}
-    env.update(AOI3D_DISPATCHER_RENDER_PERIOD_S="1.0", AOI3D_FILES_ROOTS=str(tmp_path),
+    env.update(AOI3D_FILES_ROOTS=str(tmp_path),
                AOI3D_SCHEDULER_POLICY="mat:70")
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     try:
-        wait_for("the recorder", lambda: HTTP.get(url("recorder", "/recording")).json()
+        wait_for("the recorder", lambda: HTTP.get(PIPE.url("recorder", "/recording")).json()
                  ["recording"], timeout_s=120)
         # ten renders scored while the recording runs (the metrics service may have scored
         # some before the recorder started), so ten decisions or more are on record
         def scored() -> int:
-            return HTTP.get(url("metrics", "/quality")).json()["summary"]["scored_total"]
+            return HTTP.get(PIPE.url("metrics", "/quality")).json()["summary"]["scored_total"]
 
         # the recorder can be up before the metrics service on a busy machine
         before = wait_for("the metrics service", lambda: scored() + 1, timeout_s=120) - 1
         wait_for("ten scored renders", lambda: scored() >= before + 10, timeout_s=180)
-        wait_for("a hundred recorded messages", lambda: HTTP.get(url("recorder", "/recording"))
+        wait_for("a hundred recorded messages", lambda: HTTP.get(PIPE.url("recorder", "/recording"))
                  .json()["messages"] > 100, timeout_s=120)
-        r = HTTP.post(url("recorder", "/recording/stop"))
+        r = HTTP.post(PIPE.url("recorder", "/recording/stop"))
         assert r.status_code == 200 and r.json()["state"] == "stopped", r.text
         assert r.json()["messages"] > 100
-        r = HTTP.post(url("recorder", "/recording/start"), json={"path": str(second)})
+        r = HTTP.post(PIPE.url("recorder", "/recording/start"), json={"path": str(second)})
         assert r.status_code == 200, r.text
-        wait_for("the second recording", lambda: HTTP.get(url("recorder", "/recording"))
+        wait_for("the second recording", lambda: HTTP.get(PIPE.url("recorder", "/recording"))
                  .json()["messages"] > 20)
     finally:
         out = stop_pipeline(up)

@@ -12,7 +12,6 @@ import json
 import os
 import signal
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -20,11 +19,12 @@ from pathlib import Path
 import pytest
 
 from services.kit.ports import SERVICE_PORTS
-from tests.support.pipeline import HTTP, SCALE, Tap, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, SCALE, Tap, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+PIPE = handle("recovery")
 _PORTS = block("recovery")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
@@ -45,14 +45,10 @@ def test_each_process_killed_gives_new_quality_within_the_bound(
         small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"rec{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
-           str(PORT_OFFSET), "--log-dir", str(log_dir), "--quiet",
-           "--time-scale", str(TIME_SCALE)]
-    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
-               AOI3D_DISPATCHER_RENDER_STEPS="30")
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    cmd = ["--dataset", str(small_dataset),
+           "--run-id", run_id, "--log-dir", str(log_dir), "--time-scale", str(TIME_SCALE)]
+    env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     tap = None
     results: dict[str, float] = {}
     try:

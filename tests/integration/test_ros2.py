@@ -23,7 +23,7 @@ from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
 from tests.support.deploy_modules import load
 from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
-from tests.support.rigpipe import PORTS, ZENOH_PORT, QualityTap, metric, up_rig, url, wait_healthy
+from tests.support.rigpipe import PIPE, PORTS, ZENOH_PORT, QualityTap, metric, up_rig, wait_healthy
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
@@ -63,7 +63,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
             start_new_session=True)
         wait_for("frames from the robot", lambda: metric("ingest", "aoi3d_ingest_frames_total")
                  >= 20, 60)
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         assert status["source"]["format"] == robot_args[1]
         assert status["truth"] == "cam00"
         graph = status["source"]["graph"]  # the robot's liveliness tokens, on real Zenoh
@@ -85,7 +85,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
             assert all(math.isfinite(q.psnr_db) for q in tap.quality)
             best = max(q.psnr_db for q in tap.quality)
         assert best > 10.0, best
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         for cam in status["cameras"]:
             assert cam["published"] > 0, cam
             assert cam["rejected"] == {}, cam
@@ -98,7 +98,7 @@ def test_ros2_robot_drives_the_pipeline_to_quality(variant: str, small_dataset: 
         assert metric("ingest", "aoi3d_messages_rejected_total", default=0.0) == 0
         # every ingest series the dashboard and the alerts name is one this ingest exports
         # (a sample's name, or a family's TYPE line: no refusal yet has no sample)
-        exported = set(re.findall(r"^(?:# TYPE )?(aoi3d_ingest_\w+)", HTTP.get(url(
+        exported = set(re.findall(r"^(?:# TYPE )?(aoi3d_ingest_\w+)", HTTP.get(PIPE.url(
             "ingest", "/metrics")).text, re.M))
         named = set(re.findall(r"(?<![\w:])aoi3d_ingest_\w+", json.dumps(
             [q.expr for p in MONITORING.PANELS if isinstance(p, MONITORING.Panel)
@@ -147,7 +147,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
     try:
         wait_healthy()
         tap = QualityTap(run_id)
-        r = HTTP.put(url("scheduler", "/policy"), json={"kind": "all"})
+        r = HTTP.put(PIPE.url("scheduler", "/policy"), json={"kind": "all"})
         assert r.status_code == 200, r.text
         children.append(subprocess.Popen(
             [sys.executable, "-m", "aoi3d_cli", "ros2", "publish", str(small_dataset), *robot_args],
@@ -161,13 +161,13 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
                 start_new_session=True))
 
         def rtsp_frames() -> bool:
-            cams = {c["name"]: c for c in HTTP.get(url("ingest", "/status")).json()["cameras"]}
+            cams = {c["name"]: c for c in HTTP.get(PIPE.url("ingest", "/status")).json()["cameras"]}
             return all(cams[f"cam{n:02d}"]["published"] >= 10 for n in urls)
 
         wait_for("frames from the RTSP cameras", rtsp_frames, 90)
 
         def with_rtsp() -> int:
-            d = HTTP.get(url("scheduler", "/decision")).json()
+            d = HTTP.get(PIPE.url("scheduler", "/decision")).json()
             chosen = {f["camera_id"] for f in d.get("selected", [])}
             return d["decision_id"] if {2, 3} <= chosen else 0
 
@@ -176,7 +176,7 @@ def test_rtsp_cameras_give_quality(small_dataset: Path, tmp_path: Path) -> None:
                  lambda: [q for q in tap.quality if q.decision_id >= first], 120)
         with tap.lock:
             assert all(math.isfinite(q.psnr_db) for q in tap.quality)
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         for cam in status["cameras"]:
             if cam["name"] in ("cam02", "cam03"):
                 assert cam["image_type"] == "rtsp" and cam["image"] == urls[int(cam["name"][3:])]
@@ -235,7 +235,7 @@ def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
     try:
         wait_healthy()
         tap = QualityTap(run_id)
-        epoch = HTTP.get(url("ingest", "/status")).json()["time"]["epoch_s"]
+        epoch = HTTP.get(PIPE.url("ingest", "/status")).json()["time"]["epoch_s"]
         player = subprocess.Popen([*play, "--epoch-s", str(epoch)], stdout=subprocess.PIPE,
                                   stderr=subprocess.STDOUT, text=True, start_new_session=True)
         wait_for("Quality of renders of the played frames", lambda: tap.quality, 120)
@@ -245,11 +245,11 @@ def test_a_recording_plays_into_the_pipeline_as_its_cameras(small_dataset: Path,
         assert f"played {played} frames" in out, out
         with tap.lock:
             assert all(math.isfinite(q.psnr_db) for q in tap.quality)
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         cams = {c["name"]: c for c in status["cameras"]}
         assert sorted(cams) == ["cam00", "cam01", "cam02", "cam03", "cam04"]
         # its tokens went with it: the player has left the ROS graph
-        wait_for("the player to leave the ROS graph", lambda: HTTP.get(url(
+        wait_for("the player to leave the ROS graph", lambda: HTTP.get(PIPE.url(
             "ingest", "/status")).json()["source"]["graph"]["publishers"] == 0, 30)
         for name, cam in cams.items():
             recorded = periods - (len(lost) if name == "cam02" else 0)

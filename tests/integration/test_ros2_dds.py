@@ -25,7 +25,7 @@ import pytest
 
 from tests.support.metrics import samples
 from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
-from tests.support.rigpipe import QualityTap, metric, up_rig, url, wait_healthy
+from tests.support.rigpipe import PIPE, QualityTap, metric, up_rig, wait_healthy
 from tests.support.ros2_dds import free_domain, loopback_env, need_rclpy
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
@@ -118,7 +118,7 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
         print("UDP sockets of the robot and the pipeline:", sorted(socks))
         assert socks, "no UDP socket of the robot or the ingest"
         assert all(addr.startswith("127.0.0.1:") for addr, _ in socks), socks
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         src = status["source"]
         assert src["format"] == "dds" and src["domain_id"] == domain
         # The ROS graph trails the data: the ingest polls DDS discovery every 0.5 s, and rclpy
@@ -128,7 +128,7 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
         graph: dict = {}
 
         def robot_in_graph() -> bool:
-            graph["topics"] = {t["topic"]: t for t in HTTP.get(url(
+            graph["topics"] = {t["topic"]: t for t in HTTP.get(PIPE.url(
                 "ingest", "/status")).json()["source"]["graph"]["topics"]}
             return all(t["publishers"] == 1 and t["nodes"] == ["/dds_robot"]
                        for t in graph["topics"].values())
@@ -152,7 +152,7 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
         assert size and (got.width, got.height) == tuple(status["working_size"]), (
             got.width, got.height, status["working_size"])
         assert got.encoding == "rgb8" and len(got.data) == got.width * got.height * 3
-        status = HTTP.get(url("ingest", "/status")).json()
+        status = HTTP.get(PIPE.url("ingest", "/status")).json()
         print("refused:", {c["name"]: c["rejected"] for c in status["cameras"]},
               "published:", {c["name"]: c["published"] for c in status["cameras"]})
         for cam in status["cameras"]:
@@ -167,7 +167,7 @@ def test_a_real_rclpy_robot_on_dds_drives_the_pipeline_to_quality(
             assert set(cam["rejected"]) <= LINK_REFUSALS, cam
             assert sum(cam["rejected"].values()) <= max(2, cam["published"] // 10), cam
             assert cam["clock_offset_s"] is not None and abs(cam["clock_offset_s"]) < 1.0, cam
-        text = HTTP.get(url("ingest", "/metrics")).text
+        text = HTTP.get(PIPE.url("ingest", "/metrics")).text
         reasons = {labels.get("reason") for name, labels, n in samples(text)
                    if name == "aoi3d_messages_rejected_total" and n > 0}
         assert reasons <= LINK_REFUSALS, reasons

@@ -16,21 +16,17 @@ import pytest
 
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.ports import SERVICE_PORTS
-from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, SCALE, assert_clean_exit, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 pytestmark = [pytest.mark.integration, pytest.mark.slow]
 
+PIPE = handle("sites")
 _PORTS = block("sites")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
 SITES = ("site1", "site2")
 
-
-def url(service: str, path: str) -> str:
-    port = SERVICE_PORTS[service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
 
 
 class SiteTap:
@@ -69,30 +65,28 @@ class SiteTap:
 def test_two_sites_share_the_pool_and_change_policy_on_their_own(
         small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"sites{uuid.uuid4().hex[:8]}"
-    cmd = [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset),
-           "--run-id", run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset",
-           str(PORT_OFFSET), "--log-dir", str(tmp_path / "logs"), "--quiet",
-           "--time-scale", "0.1", "--sites", "2", "--workers", "2"]
+    cmd = ["--dataset", str(small_dataset), "--run-id", run_id, "--log-dir",
+           str(tmp_path / "logs"), "--time-scale", "0.1", "--sites", "2", "--workers", "2"]
     env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
-    up = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, start_new_session=True)
+    up = PIPE.start(cmd, env=env, output=subprocess.PIPE)
     tap = None
     try:
         wait_for("two workers", lambda: len(
-            HTTP.get(url("dispatcher", "/workers")).json()["workers"]) == 2, timeout_s=120)
+            HTTP.get(PIPE.url("dispatcher", "/workers")).json()["workers"]) == 2, timeout_s=120)
         tap = SiteTap(run_id)
         for site in SITES:
             wait_for(f"Quality of {site}", lambda s=site: len(tap.quality[s]) >= 2,
                      timeout_s=120)
         with tap.lock:
             assert all(q.site == site for site in SITES for q in tap.quality[site])
-        assert HTTP.get(url("scheduler", "/sites")).json() == {"sites": list(SITES)}
+        assert HTTP.get(PIPE.url("scheduler", "/sites")).json() == {"sites": list(SITES)}
 
         # site2 selects nothing from now on; site1 keeps its policy
-        r = HTTP.put(url("scheduler", "/sites/site2/policy"), json={"kind": "mat", "mat_ms": 0})
+        r = HTTP.put(PIPE.url("scheduler", "/sites/site2/policy"),
+                     json={"kind": "mat", "mat_ms": 0})
         assert r.status_code == 200, r.text
         spec2 = r.json()["spec"]
-        spec1 = HTTP.get(url("scheduler", "/policy")).json()["spec"]
+        spec1 = HTTP.get(PIPE.url("scheduler", "/policy")).json()["spec"]
         assert spec1 != spec2
         with tap.lock:
             n1, n2 = len(tap.decisions["site1"]), len(tap.decisions["site2"])
@@ -102,23 +96,23 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
             after1, after2 = tap.decisions["site1"][n1 + 1:], tap.decisions["site2"][n2 + 1:]
         assert {d.policy for d in after2} == {spec2} and all(not d.selected for d in after2)
         assert {d.policy for d in after1} == {spec1} and any(d.selected for d in after1)
-        assert HTTP.get(url("scheduler", "/sites/site1/policy")).json()["spec"] == spec1
-        assert HTTP.get(url("scheduler", "/sites/nowhere/policy")).status_code == 404
+        assert HTTP.get(PIPE.url("scheduler", "/sites/site1/policy")).json()["spec"] == spec1
+        assert HTTP.get(PIPE.url("scheduler", "/sites/nowhere/policy")).status_code == 404
 
         # per-site REST and series, one pool
         for site in SITES:
-            assert HTTP.get(url("metrics", f"/sites/{site}/quality")).json()["history"]
-            assert HTTP.get(url("dispatcher", f"/sites/{site}/status")).json()["site"] == site
-        by_site = HTTP.get(url("dispatcher", "/workers")).json()["by_site"]
+            assert HTTP.get(PIPE.url("metrics", f"/sites/{site}/quality")).json()["history"]
+            assert HTTP.get(PIPE.url("dispatcher", f"/sites/{site}/status")).json()["site"] == site
+        by_site = HTTP.get(PIPE.url("dispatcher", "/workers")).json()["by_site"]
         assert all(by_site[s].get("rendered", 0) >= 1 for s in SITES), by_site
-        text = HTTP.get(url("metrics", "/metrics")).text
+        text = HTTP.get(PIPE.url("metrics", "/metrics")).text
         assert all(f'site="{s}"' in text for s in SITES)
 
         # the console shows both sites: the list, and each site's own state
-        assert HTTP.get(url("console", "/config")).json()["sites"] == list(SITES)
+        assert HTTP.get(PIPE.url("console", "/config")).json()["sites"] == list(SITES)
         for site in SITES:
             state = wait_for(f"the console's {site}", lambda s=site: (st := HTTP.get(
-                url("console", f"/sites/{s}/state")).json())["quality"] and st, timeout_s=60)
+                PIPE.url("console", f"/sites/{s}/state")).json())["quality"] and st, timeout_s=60)
             assert state["policy"]["spec"] == (spec1 if site == "site1" else spec2)
 
         # `aoi3d live sweep --site site2` measures site2 while site1 goes on
@@ -134,7 +128,7 @@ def test_two_sites_share_the_pool_and_change_policy_on_their_own(
         assert doc["settings"]["site"] == "site2"
         assert [r["policy"] for r in doc["results"]] == ["mat:70", "all"]
         assert all(r["n"] >= 1 for r in doc["results"]), doc["results"]
-        assert HTTP.get(url("scheduler", "/policy")).json()["spec"] == spec1  # untouched
+        assert HTTP.get(PIPE.url("scheduler", "/policy")).json()["spec"] == spec1  # untouched
     finally:
         if tap is not None:
             tap.close()

@@ -19,7 +19,6 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import time
 import uuid
 from pathlib import Path
@@ -30,7 +29,7 @@ import yaml
 from services.kit.keys import Keys
 from services.kit.ports import SERVICE_PORTS
 from tests.support.deploy_modules import load
-from tests.support.pipeline import HTTP, Tap, stop_pipeline, wait_for
+from tests.support.pipeline import HTTP, Tap, handle, stop_pipeline, wait_for
 from tests.support.ports import block
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,6 +40,7 @@ pytestmark = [
                                                   "prometheus; .ci/setup/30-prometheus.sh)"),
 ]
 
+PIPE = handle("prometheus")
 _PORTS = block("prometheus")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
@@ -166,14 +166,10 @@ def test_prometheus_evaluates_the_dashboard_and_fires_service_down(
         small_dataset: Path, tmp_path: Path) -> None:
     run_id = f"prom{uuid.uuid4().hex[:8]}"
     log_dir = tmp_path / "logs"
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d_cli", "up", "--dataset", str(small_dataset), "--run-id",
-         run_id, "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET),
-         "--log-dir", str(log_dir), "--quiet", "--time-scale", "0.1",
-         "--workers", str(WORKERS)],
-        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_PERIOD_S="0.5",
-                 AOI3D_DISPATCHER_RENDER_STEPS="20"),
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True)
+    up = PIPE.start(
+        ["--dataset", str(small_dataset), "--time-scale", "0.1", "--workers", str(WORKERS)],
+        run_id=run_id, log_dir=log_dir, output=subprocess.PIPE,
+        env=dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="20"))
     prometheus = None
     stopped_pid = None
     try:

@@ -15,6 +15,7 @@ from typing import Any
 import httpx
 import pytest
 
+from aoi3d_cli.pipeline import Pipeline
 from tests.support import waits
 from tests.support.ports import block
 from tests.support.timeouts import timeout_scale
@@ -41,8 +42,10 @@ SERVICES = ["router", "dataset", "camera", "network", "scheduler", "dispatcher",
 """What `up` starts: everything but Grafana; the console once it exists in the code."""
 
 
-def url(service: str, path: str) -> str:
-    return f"http://127.0.0.1:{PORTS[service.upper()]}{path}"
+STACK = Pipeline(ports={name.lower(): port for name, port in PORTS.items()},
+                 timeout_s=30 * SCALE)
+"""The stack's services on their published ports, as the one pipeline handle sees them."""
+url = STACK.url
 
 
 def wait_for(what: str, check: Callable[[], Any], timeout_s: float = 60.0,

@@ -1,12 +1,11 @@
 """A real pipeline (`aoi3d up`) as the live tests drive it (tests/integration/, tests/browser/,
-tests/monitoring/): the REST client, the pipeline's ports (its block of tests/support/ports.py),
+tests/monitoring/), on the one pipeline handle (:class:`aoi3d_cli.pipeline.Pipeline`): a handle
+on a test file's block of ports (:func:`handle`, tests/support/ports.py), the REST client,
 /metrics, a Zenoh tap of the decisions and Quality, and a clean stop."""
 
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import threading
 import time
 from pathlib import Path
@@ -14,9 +13,10 @@ from pathlib import Path
 import httpx
 import pytest
 
+from aoi3d_cli.pipeline import Pipeline
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.ports import SERVICE_PORTS
+from services.kit.ports import PortBlock
 from tests.support import waits
 from tests.support.metrics import total
 from tests.support.ports import block
@@ -27,15 +27,20 @@ SCALE = timeout_scale()
 set AOI3D_TEST_TIMEOUT_SCALE=3)."""
 HTTP = httpx.Client(timeout=30 * SCALE)
 """The tests' REST client: never httpx's default 5 s timeout."""
-_PORTS = block("pipeline")
-PORT_OFFSET = _PORTS.rest_offset
-ZENOH_PORT = _PORTS.zenoh
+
+
+def handle(name: str) -> Pipeline:
+    """A handle on the pipeline of the test block ``name`` (tests/support/ports.py), its
+    timeout scaled: its URLs, REST, /metrics; :meth:`~Pipeline.start` runs ``aoi3d up`` there."""
+    b = block(name)
+    return Pipeline(PortBlock(b.rest_offset, b.zenoh), timeout_s=30 * SCALE)
+
+
+PIPE = handle("pipeline")
+"""tests/integration/test_pipeline.py's and test_ppo_live.py's pipeline."""
+PORT_OFFSET = PIPE.block.offset
+ZENOH_PORT = PIPE.block.zenoh
 SERVICES = ("camera", "network", "scheduler", "dispatcher", "metrics")
-
-
-def url(service: str, path: str) -> str:
-    port = SERVICE_PORTS[service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
 
 
 def wait_for(what: str, check, timeout_s: float = 60.0, every_s: float = 0.25):
@@ -50,24 +55,19 @@ def metric(service: str, name: str, default: float | None = None) -> float:
     """Sum of a metric's samples (all label sets) from a service's /metrics on the pipeline's
     ports; ``default`` when it has none, else :class:`tests.support.metrics.MissingSeries`
     (a KeyError: a live wait keeps waiting)."""
-    return total(HTTP.get(url(service, "/metrics")).text, name, default)
+    return total(HTTP.get(PIPE.url(service, "/metrics")).text, name, default)
 
 
-def stop_pipeline(up: subprocess.Popen) -> str:
-    """SIGTERM ``aoi3d up`` (SIGKILL its group after 40 s); returns its output. Safe in a
-    ``finally``: it asserts nothing, so a failure of the test body is not masked."""
-    up.send_signal(signal.SIGTERM)
-    try:
-        out, _ = up.communicate(timeout=40 * SCALE)
-    except subprocess.TimeoutExpired:
-        os.killpg(up.pid, signal.SIGKILL)
-        out, _ = up.communicate()
-    return out
+def stop_pipeline(up: Pipeline) -> str:
+    """Stop the ``aoi3d up`` that ``up`` started (SIGTERM, SIGKILL to its session after 40 s,
+    scaled); its output. Safe in a ``finally``: it asserts nothing, so a failure of the test
+    body is not masked."""
+    return up.stop(40 * SCALE)
 
 
-def assert_clean_exit(up: subprocess.Popen, out: str, run_id: str) -> None:
+def assert_clean_exit(up: Pipeline, out: str, run_id: str) -> None:
     """``aoi3d up`` exited 0 and left no process of the run behind."""
-    assert up.returncode == 0, out[-3000:]
+    assert up.proc is not None and up.proc.returncode == 0, out[-3000:]
     wait_for("no process of the run left", lambda: not processes_of_run(run_id), timeout_s=10)
 
 

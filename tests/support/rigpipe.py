@@ -7,57 +7,48 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import threading
 import uuid
 from pathlib import Path
 
+from aoi3d_cli.pipeline import Pipeline
 from services.kit.keys import Keys
 from services.kit.pb import aoi3d_pb2 as pb
-from services.kit.ports import SERVICE_PORTS
 from tests.support.metrics import total
-from tests.support.pipeline import HTTP, wait_for
+from tests.support.pipeline import HTTP, handle, wait_for
 from tests.support.ports import block
 
-__all__ = ["PORTS", "PORT_OFFSET", "ZENOH_PORT", "QualityTap", "metric", "up_rig", "url",
+__all__ = ["PIPE", "PORTS", "PORT_OFFSET", "ZENOH_PORT", "QualityTap", "metric", "up_rig",
            "wait_healthy"]
 
+PIPE = handle("ros2")
+"""The rig pipeline's handle (``PIPE.url("ingest", …)``: the camera emulator's port)."""
 PORTS = block("ros2")
 PORT_OFFSET = PORTS.rest_offset
 ZENOH_PORT = PORTS.zenoh
 RIG_SERVICES = ("ingest", "network", "scheduler", "dispatcher", "metrics")
 
 
-def url(service: str, path: str) -> str:
-    """A service's URL on the rig pipeline's ports (``ingest``: the camera emulator's)."""
-    port = SERVICE_PORTS["camera" if service == "ingest" else service] + PORT_OFFSET
-    return f"http://127.0.0.1:{port}{path}"
-
-
 def metric(service: str, name: str, default: float | None = None) -> float:
     """Sum of a metric's samples (all label sets) from a service's /metrics; ``default`` when
     it has none, else :class:`tests.support.metrics.MissingSeries` (a live wait keeps
     waiting)."""
-    return total(HTTP.get(url(service, "/metrics")).text, name, default)
+    return total(HTTP.get(PIPE.url(service, "/metrics")).text, name, default)
 
 
-def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[subprocess.Popen, str]:
+def up_rig(rig: Path, tmp_path: Path, prefix: str, *up_args: str) -> tuple[Pipeline, str]:
     """``aoi3d up --rig`` on these ports (30 steps per render), and its run id."""
     run_id = f"{prefix}{uuid.uuid4().hex[:8]}"
     env = dict(os.environ, AOI3D_DISPATCHER_RENDER_STEPS="30")
-    up = subprocess.Popen(
-        [sys.executable, "-m", "aoi3d_cli", "up", "--rig", str(rig), "--run-id", run_id,
-         "--zenoh-port", str(ZENOH_PORT), "--port-offset", str(PORT_OFFSET), "--log-dir",
-         str(tmp_path / "logs"), "--quiet", *up_args],
-        env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-        start_new_session=True)
+    up = PIPE.start(["--rig", str(rig), *up_args], run_id=run_id, log_dir=tmp_path / "logs",
+                    env=env, output=subprocess.PIPE)
     return up, run_id
 
 
 def wait_healthy() -> None:
     for name in RIG_SERVICES:
         wait_for(f"{name} /healthz",
-                 lambda n=name: HTTP.get(url(n, "/healthz")).status_code == 200, 120)
+                 lambda n=name: HTTP.get(PIPE.url(n, "/healthz")).status_code == 200, 120)
 
 
 class QualityTap:
