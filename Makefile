@@ -37,7 +37,7 @@ test: install  ## the whole test suite (unit, services, integration)
 test-fast: install  ## everything but the integration tests
 	$(PY) -m pytest -m "not integration" $(PYTEST_ARGS)
 
-FUZZ_TESTS := tests/unit/test_file_fuzz.py tests/unit/test_ingest_fuzz.py \
+FUZZ_TESTS := tests/unit/domain/test_file_fuzz.py tests/unit/cores/test_ingest_fuzz.py \
               tests/services/test_mcap_fuzz.py tests/services/test_codec_props.py \
               tests/services/test_api_fuzz.py
 
@@ -77,7 +77,7 @@ bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 
 
 bench-ray: install  ## the sweeps' Ray path on a local Ray instance (installs the cluster extra)
 	$(PY) -m pip install -q -e '.[dev,cluster]'
-	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/test_experiment.py -k ray
+	AOI3D_RAY_TESTS=1 $(PY) -m pytest -q -p no:cacheprovider tests/unit/domain/test_experiment.py -k ray
 
 # the carry the recorded live sweeps were measured with (the live default: stream, 25 steps)
 FRESH100 := AOI3D_DISPATCHER_CARRY=fresh AOI3D_DISPATCHER_RENDER_STEPS=100

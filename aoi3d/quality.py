@@ -255,7 +255,8 @@ class RewardWeights:
     :data:`DYNAMIC_REWARD` weights what moves instead: the dynamic region's PSNR and SSIM in
     place of the full image's (see :func:`score` for a render with nothing moving)."""
 
-    # The fields are :data:`aoi3d.metric.REWARD_TERMS`, in their order (tests/unit/test_metric.py).
+    # The fields are :data:`aoi3d.metric.REWARD_TERMS`, in their order
+    # (tests/unit/domain/test_metric.py).
     psnr: float = 0.02
     ssim: float = 0.5
     lpips: float = -1.0
@@ -346,7 +347,7 @@ def score_many(
 ) -> list[QualityScore]:
     """:func:`score` of one render against each of ``truths`` (a render at its decision time
     and at its display time), the same numbers as one :func:`score` call each, bit for bit
-    (tests/unit/test_quality_many.py), for less work: the render is converted once, SSIM's
+    (tests/unit/domain/test_quality_many.py), for less work: the render is converted once, SSIM's
     local moments of every image are filtered in one batch (:func:`_ssim_maps`), and LPIPS
     (when ``lpips_fn`` has ``many``, as :func:`aoi3d.lpips.load_lpips_fn`'s has) runs the
     render and every truth through its network in one batch."""

@@ -4,7 +4,7 @@
 oracle searches run with a progress bar (:func:`run`, :func:`run_oracle`).
 
 The experiment engine (torch) is imported inside the functions that run it, so that
-``aoi3d --help`` and the other commands start without it (tests/unit/test_cli_startup.py).
+``aoi3d --help`` and the other commands start without it (tests/unit/cli/test_cli_startup.py).
 """
 
 from __future__ import annotations

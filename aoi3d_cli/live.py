@@ -13,7 +13,7 @@ difference per policy.
 The REST client and the pipeline's process are :mod:`aoi3d_cli.livehttp`'s; the statistics,
 the virtual clock, the figures and the files are the domain's (:mod:`aoi3d.live`). Those
 modules load httpx, scipy, torch and matplotlib, so the command imports them in its body:
-``aoi3d --help`` stays fast (tests/unit/test_cli_startup.py).
+``aoi3d --help`` stays fast (tests/unit/cli/test_cli_startup.py).
 """
 
 from __future__ import annotations

@@ -234,7 +234,7 @@ class LPIPS(nn.Module):
         the same values as :meth:`distance` of each pair, bit for bit, with ``pred`` and
         every truth through the network in one batch (``pred``'s features once). A batch of
         one image takes another convolution path than a batch of two or more, whose per-image
-        results agree (tests/unit/test_quality_many.py holds it), hence never one image
+        results agree (tests/unit/domain/test_quality_many.py holds it), hence never one image
         alone."""
         x = _image_tensor(pred, "pred", self.device)
         ys = [_image_tensor(t, "truth", self.device) for t in truths]

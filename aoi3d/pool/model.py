@@ -17,7 +17,7 @@ class PoolReason(StrEnum):
     """Why a decision ended in the pool without a render: the pool's share of the wire's
     ``EndReason`` (proto/aoi3d.proto; a member's value is its label there, so
     ``services.kit.reasons.EndReason(reason)`` is the wire's member, and
-    tests/unit/test_pool.py checks that every one is a reason the dispatcher tells)."""
+    tests/unit/domain/test_pool.py checks that every one is a reason the dispatcher tells)."""
 
     SUPERSEDED = "superseded"
     WORKER_DIED = "worker_died"

@@ -40,7 +40,7 @@ class _Reason(StrEnum):
 
 if TYPE_CHECKING:
     # What the type checker sees: the members the proto has today, spelled out for it alone
-    # (tests/unit/test_ledger.py checks this list against the built enum, so it cannot drift).
+    # (tests/unit/cores/test_ledger.py checks this list against the built enum, so it cannot drift).
     # At run time the enum is built from the generated module, below.
     class EndReason(_Reason):
         SUPERSEDED = "superseded"

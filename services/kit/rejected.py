@@ -5,7 +5,7 @@ Its own module so that the cores, which raise it, import nothing that does I/O; 
 (Prometheus) is :class:`services.kit.observe.Rejections`. Every reason is a member of
 :class:`RejectReason`, the one list of the values of ``aoi3d_messages_rejected_total{reason}``
 (and of the ingest's ``aoi3d_ingest_rejected_total{camera,reason}``); docs/operations.md's
-table, "Why a message was dropped", lists them, and tests/unit/test_reject_reasons.py keeps
+table, "Why a message was dropped", lists them, and tests/unit/rules/test_reject_reasons.py keeps
 the two equal and finds any ``Rejected`` raised with a bare string.
 """
 

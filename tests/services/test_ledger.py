@@ -2,7 +2,7 @@
 state and lost reason reaches GET /ledger and /metrics, an open decision expires, nonsense is
 refused and counted, and the ledger survives a restart of the service (its state folder).
 The dispatcher's side — an Outcome for each decision that ends without a render — is in
-tests/services/test_dispatcher.py and tests/unit/test_pool.py."""
+tests/services/test_dispatcher.py and tests/unit/domain/test_pool.py."""
 
 from __future__ import annotations
 

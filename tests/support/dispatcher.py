@@ -37,7 +37,7 @@ CONFIGS = {"grid": SMALL_GRID, "ngp": TINY_NGP, "flow": SMALL_FLOW}
 
 def trainer_scene(tmp_path_factory: pytest.TempPathFactory) -> SceneDataset:
     """The dispatcher tests' scene, generated in a fresh temporary folder (the ``dataset``
-    fixture of tests/services/conftest.py, and tests/unit/test_dispatcher_core.py's)."""
+    fixture of tests/services/conftest.py, and tests/unit/cores/test_dispatcher_core.py's)."""
     cfg = SceneConfig(width=24, height=18, fps=10, duration_s=1.0, n_train=N_TRAIN,
                       rotor_rpm=20.0, spp=1)
     return generate_dataset(tmp_path_factory.mktemp("scene") / "tiny", cfg, processes=1)

@@ -1,4 +1,4 @@
-"""A ROS camera rig as the ingest's tests describe it (tests/unit/test_ingest_core.py, the
+"""A ROS camera rig as the ingest's tests describe it (tests/unit/cores/test_ingest_core.py, the
 ingest fuzz, the rig file and the ingest service): a truth camera, a camera posed by a topic and
 one by a fixed pose, and the robot's clock."""
 

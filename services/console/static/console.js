@@ -5,7 +5,7 @@
 const $ = (id) => document.getElementById(id);
 const SVG = "http://www.w3.org/2000/svg";
 // timelines: [key, label, colour]; the keys and labels are aoi3d/metric.py's LIVE, in its
-// order, each labelled "label (unit)" (tests/unit/test_metric.py holds them to it)
+// order, each labelled "label (unit)" (tests/unit/domain/test_metric.py holds them to it)
 const SERIES = [
   ["psnr_db", "PSNR (dB)", "#4fc3f7"], ["psnr_dynamic_db", "dynamic-region PSNR (dB)", "#81c784"],
   ["ssim", "SSIM", "#fff176"], ["lpips", "LPIPS", "#ff8a65"], ["reward", "reward", "#ce93d8"],

@@ -12,7 +12,7 @@ from pathlib import Path
 from tests.support import tiny
 from tests.support.tiny import tiny_dataset
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 TINY_FIELD = json.dumps(tiny.TINY_FIELD)
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 NOT_BENCHMARKS = {
     "__init__": "the package",
     "common": "what the benchmarks share (start and stop the pipeline, write JSON)",

@@ -12,7 +12,7 @@ import subprocess
 import tomllib
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 # Typing stubs for protobuf's generated module: read by mypy in the checkout, never at run time.
 NOT_SHIPPED = {"services/kit/pb/aoi3d_pb2.pyi"}
 

@@ -12,7 +12,7 @@ from scipy import stats as sp
 
 from aoi3d.stats import MeanCI, interior_maximum, mean_ci95, paired_difference, welch_ci95
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_mean_ci95_is_student_t_over_the_finite_values() -> None:

@@ -9,7 +9,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 PACKAGES = ("aoi3d", "aoi3d_cli", "services")
 GENERATED = ROOT / "services" / "kit" / "pb"
 LIMIT = 80

@@ -142,7 +142,7 @@ def test_the_compose_rig_override_runs_the_ingest_in_the_cameras_slot() -> None:
     from services.ingest.settings import Settings as IngestSettings
     from services.metrics.settings import Settings as MetricsSettings
 
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     base = yaml.safe_load((root / "compose.yaml").read_text())["services"]
     rig = yaml.safe_load((root / "compose.rig.yaml").read_text())["services"]
     assert set(rig) <= set(base)

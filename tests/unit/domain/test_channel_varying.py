@@ -23,7 +23,7 @@ from aoi3d.channel import (
     transmission_summary,
 )
 
-TRACES = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "traces"
+TRACES = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "traces"
 needs_traces = pytest.mark.skipif(
     not TRACES.is_dir(),
     reason=f"the cellular traces are not at {TRACES} (../shared/data/traces beside the "
@@ -267,7 +267,7 @@ def test_an_episode_on_a_trace_sizes_frames_by_their_stored_png(tiny_trace: Path
     from aoi3d.experiment.episode import episode_links, frame_sizes
     from aoi3d.scene import open_dataset
 
-    root = Path(__file__).resolve().parents[2] / "data" / "turbine-rotor"
+    root = Path(__file__).resolve().parents[3] / "data" / "turbine-rotor"
     if not root.is_dir():
         pytest.skip(f"no scene at {root} (aoi3d scene generate)")
     ds = open_dataset(root)

@@ -10,7 +10,7 @@ import numpy as np
 from aoi3d.experiment.config import EXPERIMENT_SCENE
 from aoi3d.policy import parse_policy
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 SHIPPED = ROOT / "models" / "ppo" / "quick"
 
 

@@ -26,7 +26,7 @@ from aoi3d.lpips import __main__ as lpips_cli
 from aoi3d.lpips import weights as lw
 from aoi3d.quality import score
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "lpips"
+DATA = Path(__file__).resolve().parents[2] / "data" / "lpips"
 REFERENCE = {  # tests/data/lpips/README.md: LPIPS v0.1 of ex_ref ↔ ex_p0, ex_ref ↔ ex_p1
     "alex": (0.7219, 0.1376),
     "vgg": (0.5686, 0.4217),

@@ -18,7 +18,7 @@ import yaml
 from bench import chaos
 from services.metrics.settings import Settings as MetricsSettings
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 MULTIHOST = yaml.safe_load((ROOT / "compose.multihost.yaml").read_text())
 
 

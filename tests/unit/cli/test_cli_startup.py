@@ -26,7 +26,7 @@ SCALE = timeout_scale()
 _PORTS = block("cli-startup")
 PORT_OFFSET = _PORTS.rest_offset
 ZENOH_PORT = _PORTS.zenoh
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 HELP_CPU_LIMIT_S = 1.5
 """CPU seconds `aoi3d --help` may take (the goal is under 1 s; measured ≈ 0.4 s)."""
 

@@ -23,7 +23,7 @@ from aoi3d.policy import (
 )
 from aoi3d.policy import base as registry
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_every_label_has_a_kind_and_a_family() -> None:

@@ -25,7 +25,7 @@ from aoi3d.field.carry import (
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 from tests.support.tiny import TINY_FIELD
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 N_TRAIN = 4
 TINY = GridConfig(batch_rays=64, samples_coarse=12, samples_fine=12, fine_from_step=0,
                   grid_sizes=(10,), upsample_steps=(), background_size=(4, 8),

@@ -13,7 +13,7 @@ import pytest
 from aoi3d.field import BACKENDS, FieldConfig, GridConfig
 from aoi3d.scene import SceneConfig, SceneDataset, generate_dataset
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 @pytest.fixture(scope="module")

@@ -26,7 +26,7 @@ from aoi3d.rl.record import EPISODE_COLUMNS
 from services.kit.pb import aoi3d_pb2 as pb
 from services.recorder.scoring import SCORES
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 
 
 def test_the_lists_written_to_files_keep_their_columns() -> None:

@@ -1,0 +1,3 @@
+"""House rules: tests of the code base itself (file sizes, function length, import contracts,
+the suite's layout, the reject reasons' one list, package data, the test ports and timeouts, the
+generated measurements page)."""
