@@ -972,9 +972,14 @@ SECTIONS: tuple[Callable[[Path], tuple[list[str], set[str]]], ...] = (
 )
 
 
+#: The folder's index (which command made each entry), not a result.
+INDEX = "README.md"
+
+
 def result_files(results: Path) -> set[str]:
-    """Every file under ``results``, as a path relative to it."""
-    return {p.relative_to(results).as_posix() for p in results.rglob("*") if p.is_file()}
+    """Every file under ``results``, as a path relative to it, the index aside."""
+    return {p.relative_to(results).as_posix() for p in results.rglob("*")
+            if p.is_file() and p != results / INDEX}
 
 
 def accounted(name: str, used: set[str]) -> bool:
