@@ -52,7 +52,7 @@ lint: install  ## ruff, the import contracts (lint-imports; make test runs them 
 	$(VENV)/bin/lint-imports
 	$(VENV)/bin/mypy
 
-bench: install bench-ray  ## benchmarks (results under bench/results/; about 115 minutes)
+bench: install bench-ray  ## benchmarks (they write under results/; about 115 minutes)
 	$(PY) -m bench.channel
 	$(PY) -m bench.fields
 	$(PY) -m bench.recon
@@ -68,7 +68,7 @@ bench: install bench-ray  ## benchmarks (results under bench/results/; about 115
 	$(PY) -m bench.chaos --minutes 10
 	$(PY) -m bench.soak --minutes 60
 
-bench-realtime: install  ## does `aoi3d up` keep real time on this machine? time scale 1, 1 then 2 workers, 90 s each: renders/s, display lag, CPU per service (bench/results/realtime/; about 5 min; run it idle: another busy process halves the figures)
+bench-realtime: install  ## does `aoi3d up` keep real time on this machine? time scale 1, 1 then 2 workers, 90 s each: renders/s, display lag, CPU per service (results/realtime/; about 5 min; run it idle: another busy process halves the figures)
 	$(PY) -m bench.realtime
 
 bench-multihost: install  ## bench/chaos.py on the three-host compose stack for 10 min (builds the images; starts a private dockerd if none runs)
@@ -85,7 +85,7 @@ FRESH100 := AOI3D_DISPATCHER_CARRY=fresh AOI3D_DISPATCHER_RENDER_STEPS=100
 bench-live: install  ## the live sweep on a pipeline of its own, with the virtual clock beside it (about 26 min)
 	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all --settle-s 10 --measure-s 75 --repeats 3 \
-	    --sim-seeds 16 --out bench/results/live-sweep
+	    --sim-seeds 16 --out results/live-sweep
 
 bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (2 workers) and the scaling bench (about 20 min, its parts timed alone)
 	$(VENV)/bin/aoi3d scene generate --width 192 --height 144 --processes 2 \
@@ -93,14 +93,14 @@ bench-192: install  ## the live pipeline at 192x144: the scene, the live sweep (
 	$(FRESH100) $(VENV)/bin/aoi3d live sweep --up --workers 2 \
 	    --dataset data/turbine-rotor-192x144 --port-offset 2000 --zenoh-port 9447 \
 	    --policies mat:40,mat:70,mat:130,all \
-	    --settle-s 10 --measure-s 75 --repeats 2 --no-sim --out bench/results/live-sweep-192x144
+	    --settle-s 10 --measure-s 75 --repeats 2 --no-sim --out results/live-sweep-192x144
 	$(FRESH100) $(PY) -m bench.scale --configs 1x1,2x1 --measure-s 90 \
-	    --dataset data/turbine-rotor-192x144 --out bench/results/scale-192x144.json
+	    --dataset data/turbine-rotor-192x144 --out results/scale-192x144.json
 
 science: install  ## re-check the experiments' claims (docs/research.md) on seeds never used in development: paired statistics, a verdict per claim, docs/science.md (about 22 min on 2 cores from an empty cache: 11 for the claims, 11 for the open question's oracle bound; about 12 more for the time-aware field's question, issue 41; SCIENCE_ARGS="--seed-offset 30000" for another block)
 	$(PY) -m bench.science $(SCIENCE_ARGS)
 
-docs: install  ## regenerate the generated pages: docs/measurements.md from bench/results (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)
+docs: install  ## regenerate the generated pages: docs/measurements.md from results/ (bench/docs.py) and docs/configuration.md's table from the settings classes (tests fail when either is stale)
 	$(PY) -m bench.docs
 	$(PY) -m services.configdoc --update
 

@@ -37,7 +37,7 @@ holds a moving object where it is now and where it was at t − C, …, t − K�
 rim. K = 2 because the scene's frames and the generation slots need not share a period
 (30 fps scene, C = 30 ms): truth_{t−C} may show the same scene frame as truth_t,
 truth_{t−2C} never does. τ: measured on data/turbine-rotor's held-out view over one loop
-(``python bench/dynamic_mask.py``, bench/results/dynamic_mask.json), 8/255 is the lowest
+(``python bench/dynamic_mask.py``, results/dynamic_mask.json), 8/255 is the lowest
 threshold that puts no mask pixel off the rotor (2/255 and 4/255 put 2.0 % and 1.5 % of the
 mask more than a pixel away from it: faint shading changes) while it still covers 88 % of
 the rotor's pixels (16/255: 77 %, 24/255: 63 %); the faint fringe of partly covered edge

@@ -107,7 +107,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--adaptive", default=",".join(ADAPTIVE))
     ap.add_argument("--processes", "--workers", dest="processes", type=int, default=2)
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/adaptive-cache")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench/results/adaptive")
+    ap.add_argument("--out", type=Path, default=ROOT / "results/adaptive")
     ap.add_argument("--dataset", default=None)
     common.add_json_option(ap)
     return ap

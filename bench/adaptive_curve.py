@@ -1,5 +1,5 @@
 """Write the plug-in policy's Γ*(E[Y]) curve (aoi3d/policy/gamma_curve.json) from the delay
-sweep of ``bench/adaptive_curve.sh`` (``bench/results/adaptive-gamma-curve/results.json``).
+sweep of ``bench/adaptive_curve.sh`` (``results/adaptive-gamma-curve/results.json``).
 
 Per mean delay, the best Γ is the one with the highest mean PSNR over the sweep's seeds. With
 few seeds the best Γ is noisy, so the curve is made nondecreasing in E[Y] (the claim
@@ -39,7 +39,7 @@ def parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("sweep", nargs="?", type=Path, default=SWEEP, metavar="RESULTS_JSON",
                     help="the delay sweep's results.json (default: "
-                         "bench/results/adaptive-gamma-curve/results.json)")
+                         "results/adaptive-gamma-curve/results.json)")
     common.add_json_option(ap, help="print the curve as JSON")
     return ap
 

@@ -7,4 +7,4 @@ cd "$(dirname "$0")/.."
 PYTHONPATH=. .venv/bin/python -m aoi3d_cli experiment delay --preset quick --steps-per-epoch 100 --no-lpips \
   --delays exp:10,exp:20,exp:40,exp:70,exp:100,exp:150,exp:200 --gammas 40,70,100,130,190,280 \
   --seeds 2 --seed-offset 100 --processes 2 --cache runs/adaptive-cache \
-  --out bench/results/adaptive-gamma-curve "$@"
+  --out results/adaptive-gamma-curve "$@"

@@ -3,7 +3,7 @@ judge on others). No reconstruction: for each half-life, the plug-in runs over t
 design trace (every camera on its own subchannel at one phase, frames of the rotor scene's
 PNG sizes, a decision every 30 ms) and its Γ is compared with the Γ it would take if it knew
 the mean transmission time of the frames generated in the last second, Γ*(ȳ[t−1 s, t]) — the
-tracking error, mean |Γ̂ − Γ*(ȳ)| in ms. Writes bench/results/adaptive-halflife/results.json.
+tracking error, mean |Γ̂ − Γ*(ȳ)| in ms. Writes results/adaptive-halflife/results.json.
 
 Design traces: TMobile-LTE-short.up and ATT-LTE-driving-2016.up (the held-out ones of
 bench/adaptive.py are never read here).
@@ -36,7 +36,7 @@ def parser() -> argparse.ArgumentParser:
 
 def run() -> dict | None:
     """Every half-life on the design traces; writes
-    bench/results/adaptive-halflife/results.json and returns its document (None, and a
+    results/adaptive-halflife/results.json and returns its document (None, and a
     message, where the traces are absent)."""
     traces = ROOT.parent / "shared/data/traces"
     if not traces.is_dir():

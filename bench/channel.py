@@ -8,7 +8,7 @@ C = 30 ms), five times, in two ways:
 - ``trace``: ``simulate`` + ``ChannelRun.aoi_trace`` (the AoI vector materialised at every
   slot, what a per-slot consumer such as a scheduler replay needs).
 
-Reports best and median throughput and writes ``bench/results/channel.json``; exits 1 when
+Reports best and median throughput and writes ``results/channel.json``; exits 1 when
 the median of either way is below :data:`TARGET` camera-slots/s (the experiments issue's bar).
 Run: ``make bench`` (or ``python -m bench.channel``).
 """
@@ -44,7 +44,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def run() -> dict:
-    """The measurement; writes ``bench/results/channel.json`` and returns its document."""
+    """The measurement; writes ``results/channel.json`` and returns its document."""
     delay = parse_delay("exp:60")
     slots = N_CAMERAS * DURATION_MS
     stats = channel_statistics(simulate(delay, PERIOD_MS, N_CAMERAS, DURATION_MS, 0))

@@ -476,13 +476,13 @@ def parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=0)
     common.add_json_option(parser, help="print one JSON object")
     parser.add_argument("--out", type=Path, default=None,
-                        help="default bench/results/chaos.json (multihost: chaos-multihost.json)")
+                        help="default results/chaos.json (multihost: chaos-multihost.json)")
     return parser
 
 
 def run(args: argparse.Namespace) -> dict:
     """The faults on ``args.target`` (``parser()``'s options); writes ``args.out`` (or the
-    target's default under bench/results) and returns the result document."""
+    target's default under results/) and returns the result document."""
     out = args.out or common.RESULTS / (
         "chaos.json" if args.target == "up" else "chaos-multihost.json")
     rng = random.Random(args.seed)

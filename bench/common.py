@@ -30,7 +30,7 @@ __all__ = ["RESULTS", "ROOT", "Tap", "add_json_option", "print_json", "progress_
 
 ROOT = Path(__file__).resolve().parents[1]
 """The repository root (the benches read data/, models/ and write runs/ under it)."""
-RESULTS = ROOT / "bench" / "results"
+RESULTS = ROOT / "results"
 """Where the benches write their result documents (docs/measurements.md is rendered from it)."""
 
 

@@ -12,7 +12,7 @@ the display-time optimum and the best Γ at decision time, both read at display 
     python -m bench.display_sweep                                  # the default grid
     python -m bench.display_sweep --gammas 40,70,130 --steps 25,100 --seeds 2
 
-Results: ``bench/results/streaming/display-sweep/`` (``cells.csv``, ``results.json``,
+Results: ``results/streaming/display-sweep/`` (``cells.csv``, ``results.json``,
 ``display_sweep.png``); episodes are cached under ``runs/display-sweep-cache``.
 """
 
@@ -61,7 +61,7 @@ def parser() -> argparse.ArgumentParser:
                     help="the live run's time scale the compute is charged at")
     ap.add_argument("--processes", "--workers", dest="processes", type=int, default=1)
     ap.add_argument("--out", type=Path,
-                    default=ROOT / "bench" / "results" / "streaming" / "display-sweep")
+                    default=ROOT / "results" / "streaming" / "display-sweep")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "display-sweep-cache")
     common.add_json_option(ap, help="print the whole result document (cells too) as JSON")
     return ap

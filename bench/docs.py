@@ -1,6 +1,6 @@
-"""`make docs`: the measurement pages of docs/, generated from ``bench/results``.
+"""`make docs`: the measurement pages of docs/, generated from ``results/``.
 
-Every number on docs/measurements.md is read here from a file under ``bench/results`` (the
+Every number on docs/measurements.md is read here from a file under ``results/`` (the
 JSON, CSV or text a bench wrote), printed beside the command that redoes it and the file it
 came from. Nobody edits the page by hand: a bench writes its result file, ``make docs``
 rewrites the page, and ``tests/unit/rules/test_measurements_doc.py`` regenerates it into a
@@ -34,10 +34,10 @@ from typing import Any
 from aoi3d.metric import BY_NAME
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = ROOT / "bench" / "results"
+RESULTS = ROOT / "results"
 PAGE = "measurements.md"
 
-#: Result files (paths relative to bench/results) that no section below renders, with the
+#: Result files (paths relative to results/) that no section below renders, with the
 #: page that reports them.
 ELSEWHERE: dict[str, str] = {
     "adaptive": "[experiments.md](experiments.md), \"Does an adaptive Γ beat the best fixed "
@@ -123,12 +123,18 @@ FRESH100 = ("export AOI3D_DISPATCHER_CARRY=fresh AOI3D_DISPATCHER_RENDER_STEPS=1
             "these were measured with (the live default: stream, 25)")
 
 
+def today(command: str) -> str:
+    """A command a result file recorded, with its output where the file now lies: the results
+    moved from bench/results/ to results/, and the files keep the command as it was run."""
+    return command.replace("--out bench/results/", "--out results/")
+
+
 def redo(*commands: str) -> list[str]:
-    return ["```bash", *commands, "```"]
+    return ["```bash", *(today(c) for c in commands), "```"]
 
 
 def source(*paths: str) -> str:
-    return "Source: " + ", ".join(f"`bench/results/{p}`" for p in paths) + "."
+    return "Source: " + ", ".join(f"`results/{p}`" for p in paths) + "."
 
 
 def load(results: Path, name: str) -> dict[str, Any]:
@@ -171,7 +177,7 @@ def live_sweep(results: Path) -> tuple[list[str], set[str]]:
               "aoi3d live sweep --up --port-offset 2000 --zenoh-port 9447 "
               "--policies mat:40,mat:70,mat:130,all \\",
               "    --settle-s 10 --measure-s 75 --repeats 3 --sim-seeds 16 "
-              "--out bench/results/live-sweep"),
+              "--out results/live-sweep"),
         "",
         f"Settings: time scale 0.1, delay `{s['channel']['delay']}`, carry `{s['carry']}`, "
         f"{s['render_steps']} steps per render, {s['measure_s']:.0f} s windows × "
@@ -224,7 +230,7 @@ def live_192(results: Path) -> tuple[list[str], set[str]]:
               "--port-offset 2000 \\",
               "    --zenoh-port 9447 --policies mat:40,mat:70,mat:130,all --settle-s 10 "
               "--measure-s 75 \\",
-              "    --repeats 2 --no-sim --out bench/results/live-sweep-192x144",
+              "    --repeats 2 --no-sim --out results/live-sweep-192x144",
               sc["command"]),
         "",
         f"Live sweep: 2 workers, time scale 0.1, {r['wall_s']['live'] / 60:.1f} min; code "
@@ -288,7 +294,7 @@ def scaling(results: Path) -> tuple[list[str], set[str]]:
     for name, label in SCALE_RUNS:
         d = load(results, name)
         used.add(name)
-        lines.append(f"- {label} (`{name}`, {d['cpus']} cores): `{d['command']}`")
+        lines.append(f"- {label} (`{name}`, {d['cpus']} cores): `{today(d['command'])}`")
         for row in d["rows"]:
             tag = f"{label}, pass {row['pass']}" if "pass" in row and name == "scale.json" \
                 else label
@@ -428,7 +434,7 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         "compare settings by the paired runs below, not this table against the next.",
         "",
         *_realtime_run(d),
-        "**The fresh wait, paired** (`bench/results/realtime/fresh-wait/`, its README has "
+        "**The fresh wait, paired** (`results/realtime/fresh-wait/`, its README has "
         "the commands; 40 s windows, alternated so that the VM's drift hits both alike). A "
         "free worker used to take the pending decision, on average half a decision period "
         "old; it now waits for the next one when the pending one is older than half a period "
@@ -445,7 +451,7 @@ def realtime(results: Path) -> tuple[list[str], set[str]]:
         "services' half of one.",
         "",
         f"Measured {d_before['date']} UTC, before the fresh wait "
-        f"(`bench/results/{before}`):",
+        f"(`results/{before}`):",
         "",
         *_realtime_run(d_before),
     ]
@@ -542,9 +548,9 @@ def gpu(results: Path) -> tuple[list[str], set[str]]:
         "set by `AOI3D_RECON_DEVICE` (the files record the command without it):",
         "",
         *redo("AOI3D_RECON_DEVICE=cuda python bench/scale.py --configs 2x1 --time-scale 1 "
-              "--settle-s 15 --measure-s 45 --out bench/results/scale-h200-cuda.json",
+              "--settle-s 15 --measure-s 45 --out results/scale-h200-cuda.json",
               "AOI3D_RECON_DEVICE=cpu  python bench/scale.py --configs 2x1 --time-scale 1 "
-              "--settle-s 15 --measure-s 45 --out bench/results/scale-h200-cpu.json"),
+              "--settle-s 15 --measure-s 45 --out results/scale-h200-cpu.json"),
         "",
         *table(["workers on", "renders/s", "decisions rendered", "render age", "PSNR (dB)",
                 "decisions/s"], live),
@@ -966,9 +972,14 @@ SECTIONS: tuple[Callable[[Path], tuple[list[str], set[str]]], ...] = (
 )
 
 
+#: The folder's index (which command made each entry), not a result.
+INDEX = "README.md"
+
+
 def result_files(results: Path) -> set[str]:
-    """Every file under ``results``, as a path relative to it."""
-    return {p.relative_to(results).as_posix() for p in results.rglob("*") if p.is_file()}
+    """Every file under ``results``, as a path relative to it, the index aside."""
+    return {p.relative_to(results).as_posix() for p in results.rglob("*")
+            if p.is_file() and p != results / INDEX}
 
 
 def accounted(name: str, used: set[str]) -> bool:
@@ -989,11 +1000,11 @@ def render(results: Path = RESULTS) -> str:
     head = [
         "# Measurements",
         "",
-        "<!-- Generated by `python bench/docs.py` (`make docs`) from bench/results; do not "
+        "<!-- Generated by `python bench/docs.py` (`make docs`) from results/; do not "
         "edit by hand: tests/unit/rules/test_measurements_doc.py fails when this page and the "
         "results disagree. -->",
         "",
-        "Every number on this page is read from a file under `bench/results`, named under "
+        "Every number on this page is read from a file under `results/`, named under "
         "its table, and every table comes with the command that redoes it. What the numbers "
         "mean is in [performance.md](performance.md) and [operations.md](operations.md); the "
         "experiments' claims, re-checked on unseen seeds, are in [science.md](science.md).",
@@ -1009,7 +1020,7 @@ def render(results: Path = RESULTS) -> str:
             "Result files this page does not render, and where they are reported:", ""]
     keys = sorted({next(k for k in ELSEWHERE if n == k or n.startswith(k + "/"))
                    for n in others if accounted(n, used)})
-    tail += [f"- `bench/results/{k}`: {ELSEWHERE[k]}" for k in keys]
+    tail += [f"- `results/{k}`: {ELSEWHERE[k]}" for k in keys]
     return "\n".join(head + body + tail) + "\n"
 
 
@@ -1041,7 +1052,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     missing = unaccounted(args.results)
     if missing:
-        print("bench/results files no page reports (render them in bench/docs.py or list "
+        print("results/ files no page reports (render them in bench/docs.py or list "
               "them in ELSEWHERE): " + ", ".join(missing), file=sys.stderr)
         return 1
     stale = []

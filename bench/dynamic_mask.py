@@ -16,7 +16,7 @@ service build it, for several thresholds τ. Reported per τ: the mask's pixel f
     python -m bench.dynamic_mask                               # data/turbine-rotor
     python -m bench.dynamic_mask --png runs/dynamic_mask.png   # and an overlay figure
 
-Writes ``bench/results/dynamic_mask.json``. Reads only the held-out camera's frames (≈ 10 s
+Writes ``results/dynamic_mask.json``. Reads only the held-out camera's frames (≈ 10 s
 on one core for the default 300-frame scene).
 """
 
@@ -45,7 +45,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--period-ms", type=float, default=30.0, help="C, the frame period (ms).")
     ap.add_argument("--frames", type=int, default=DYNAMIC_FRAMES, help="K, earlier frames.")
     ap.add_argument("--png", type=Path, default=None, help="Also write an overlay figure.")
-    ap.add_argument("--out", type=Path, default=Path("bench/results/dynamic_mask.json"))
+    ap.add_argument("--out", type=Path, default=Path("results/dynamic_mask.json"))
     common.add_json_option(ap)
     return ap
 

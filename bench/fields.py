@@ -24,7 +24,7 @@ and the allocator start clean, and one backend's threads or caches cannot slow t
     python -m bench.fields                        # everything (≈ 15 min on 2 cores)
     python -m bench.fields --quick --backends grid  # smoke run (< 1 min)
 
-Writes ``bench/results/fields.json`` (``fields-quick.json`` with ``--quick``).
+Writes ``results/fields.json`` (``fields-quick.json`` with ``--quick``).
 """
 
 from __future__ import annotations
@@ -509,7 +509,7 @@ def parse_args(argv: Sequence[str] | None) -> argparse.Namespace:
     ap.add_argument("--no-lpips", action="store_true", help="skip LPIPS")
     ap.add_argument("--no-isolate", action="store_true",
                     help="run every backend in this process (no fresh process per run)")
-    ap.add_argument("--out", default=None, help="JSON file (default bench/results/fields.json, "
+    ap.add_argument("--out", default=None, help="JSON file (default results/fields.json, "
                                                 "fields-quick.json with --quick)")
     ap.add_argument("--run-spec", help=argparse.SUPPRESS)
     common.add_json_option(ap)
@@ -536,7 +536,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     """Every case and backend (``parse_args``'s options); writes ``args.out`` (or the default
-    under bench/results) and returns the result document."""
+    under results/) and returns the result document."""
     from aoi3d.field import BACKENDS, UnknownBackendError, check_backend
     from aoi3d.scene import SceneConfig, ensure_dataset, load_dataset
 

@@ -5,7 +5,7 @@ mean and the policy's Γ over time.
 
     python -m bench.live_channel [--seconds 90] [--time-scale 0.1] [--policy adaptive:plugin]
 
-Writes ``bench/results/live-channel/channel.json`` (the network's GET /channel at the end:
+Writes ``results/live-channel/channel.json`` (the network's GET /channel at the end:
 the changes and the measured delay), ``series.json`` (the console's channel series) and a
 screenshot of the console, ``docs/figures/console_channel.png`` (needs Chromium and
 Playwright; skipped with a message otherwise). Traces come from ``../shared/data/traces``.
@@ -48,7 +48,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> dict:
-    """The live run (``parser()``'s options); writes under bench/results/live-channel and
+    """The live run (``parser()``'s options); writes under results/live-channel and
     returns the result document: the network's ``GET /channel`` at the end."""
     OUT.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ, AOI3D_NETWORK_DELAY=args.regimes, AOI3D_SCHEDULER_POLICY=args.policy,

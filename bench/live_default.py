@@ -21,11 +21,11 @@ waits until the pipeline is up, lets it run ``--settle-s`` wall seconds and read
 It records what the run had in force (the dispatcher's ``GET /status``: carry and render steps;
 the policy of the last decision; the pool's workers) and the machine's load average before
 and after each configuration. The document goes to ``--out`` (default
-``bench/results/live-default/live-default.json``); ``--json`` prints it.
+``results/live-default/live-default.json``); ``--json`` prints it.
 
     python -m bench.live_default                                # the defaults as they are
     python -m bench.live_default --configs default,stream@25 --out \\
-        bench/results/live-default/before.json                  # defaults beside stream@25
+        results/live-default/before.json                  # defaults beside stream@25
     python -m bench.live_default --configs fresh@100 --time-scale 0.3 --json
 """
 

@@ -18,7 +18,7 @@ Then, for ``--minutes`` wall minutes, every ``--poll-s`` it reads each site's sc
 ``/sites/<site>/policy``). Every render's reward closes one online episode of its site's
 learner, so the rewards it reads are what the learners learn from.
 
-Writes into ``--out`` (default ``bench/results/online-live``): ``qualities.csv`` (every scored
+Writes into ``--out`` (default ``results/online-live``): ``qualities.csv`` (every scored
 render: site, the wall seconds of its decision since the policies were put — sim time over
 the time scale —, decision, reward, PSNR, SSIM, LPIPS, dynamic-region PSNR, views),
 ``learners.csv`` (each poll: episodes learned, updates, entropy, the latest batch's mean

@@ -5,7 +5,7 @@ Starts ``aoi3d up`` on its own ports with the default scene, sets the policy, an
 per second through camera → network, decisions per second, the dispatcher's steps per second,
 the quality of the renders of the window's decisions (mean ± 95% CI), and how late they come:
 the render lag (sim ms from the time a render represents to its scoring) and the same in wall
-seconds. Writes ``bench/results/pipeline-<policy>-x<time scale>.json``.
+seconds. Writes ``results/pipeline-<policy>-x<time scale>.json``.
 
     python -m bench.pipeline --policy mat:70 --window-s 60 --time-scale 1
 """

@@ -9,7 +9,7 @@ adds). The best policy is the MAT rule Γ = 100 ms (0.92 on average); `all` scor
 Trains :class:`aoi3d.policy.ppo.learner.PPOLearner` with each actor (``mlp``, ``shared``)
 for 38 updates of 16 episodes (= ``aoi3d ppo train --preset quick``) on three seeds and
 reports the mean reward of the first and last three batches and of the trained deterministic
-policy on 300 fresh episodes. Writes ``bench/results/ppo_arch.json``. Run:
+policy on 300 fresh episodes. Writes ``results/ppo_arch.json``. Run:
 ``python -m bench.ppo_arch`` (~1 min).
 """
 
@@ -76,7 +76,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def run() -> dict:
-    """Both actors on every seed; writes ``bench/results/ppo_arch.json`` and returns its
+    """Both actors on every seed; writes ``results/ppo_arch.json`` and returns its
     document."""
     torch.set_num_threads(1)
     started = time.perf_counter()

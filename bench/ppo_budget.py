@@ -6,7 +6,7 @@ experiment quick preset's episode config, ``steps_per_epoch`` 100 and 300) with
 :func:`aoi3d.rl.evaluate.evaluate` on seeds 2,000,000+ (neither training nor held-out seeds), and
 reports per budget the mean reward/PSNR/SSIM/LPIPS of each policy, their ranking, the
 Spearman correlation of the two rankings, and the wall time of a computed episode.
-Writes ``bench/results/ppo_budget.json``. Run: ``python -m bench.ppo_budget [SEEDS]``
+Writes ``results/ppo_budget.json``. Run: ``python -m bench.ppo_budget [SEEDS]``
 (10 seeds: about 5 minutes on 2 cores).
 """
 
@@ -37,7 +37,7 @@ def parser() -> argparse.ArgumentParser:
 
 
 def run(n_seeds: int = 10) -> dict:
-    """Both budgets on ``n_seeds`` seeds; writes ``bench/results/ppo_budget.json`` and returns
+    """Both budgets on ``n_seeds`` seeds; writes ``results/ppo_budget.json`` and returns
     its document."""
     seeds = [SEED_BASE + s for s in range(n_seeds)]
     base = get_preset("quick").episode

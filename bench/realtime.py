@@ -22,7 +22,7 @@ run ``--settle-s`` wall seconds and reads a window of ``--measure-s`` (90 by def
 
 It records the machine's load average before and after each run: a figure taken beside other
 work is not a figure of this machine (two cores: another busy process halves it). The
-document goes to ``--out`` (default ``bench/results/realtime/realtime.json``); ``--json``
+document goes to ``--out`` (default ``results/realtime/realtime.json``); ``--json``
 prints it.
 
     python -m bench.realtime                        # 1 and 2 workers, 90 s each (about 5 min)

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The live sweep (mat:40, mat:70, all) on the emulated cameras, then on the ROS 2 path (the
 # pure-Python robot on rmw_zenoh keys into `aoi3d up --rig`, exp:60 on top), same scene; the
-# results are docs/real-cameras.md's table (bench/results/ros2_sweep_*.json). About 30 minutes.
+# results are docs/real-cameras.md's table (results/ros2_sweep_*.json). About 30 minutes.
 #   bash bench/ros2_sweep.sh [--epoch]    (--epoch: the robot phase-locked to the pipeline)
 #   ROS_ONLY=1 OUT=runs/ros2-free bash bench/ros2_sweep.sh    (the ROS 2 half alone)
 set -euo pipefail

@@ -13,7 +13,7 @@ subscriber costs CPU), and the cores each process of the pipeline used in the wi
 ends with the arithmetic for a larger farm from the measured per-worker throughput and
 per-site bytes.
 
-    python -m bench.scale --json                  # bench/results/scale.json, and one JSON object
+    python -m bench.scale --json                  # results/scale.json, and one JSON object
     python -m bench.scale --configs 1x1,2x1 --measure-s 90 --repeats 2
     python -m bench.scale --configs 2x1:fresh@100,2x1:stream@25 --time-scale 0.3
 

@@ -9,7 +9,7 @@ rewarded (in the live pipeline only rendered ones are), so an update runs every
 Reports the decisions' lateness (wall time of publishing minus the wall time of the decision
 epoch), epochs skipped, the updates' wall time and the mean reward of the first and last
 updates (it should rise: the toy bandit's best action is the odd cameras). Writes
-``bench/results/scheduler-learning.json``.
+``results/scheduler-learning.json``.
 
 Run: ``python -m bench.scheduler_learning [--seconds 20] [--period-ms 30] [--batch 8] [--json]``.
 """
@@ -60,7 +60,7 @@ def parser() -> argparse.ArgumentParser:
 
 def run(seconds: float = 20.0, period_ms: float = 30.0, batch: int = 8,
         threads: int = 1) -> dict[str, Any]:
-    """The measurement; writes ``bench/results/scheduler-learning.json`` and returns it."""
+    """The measurement; writes ``results/scheduler-learning.json`` and returns it."""
     torch.set_num_threads(threads)
 
     tmp = Path(tempfile.mkdtemp(prefix="aoi3d-bench-"))

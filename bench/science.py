@@ -129,7 +129,7 @@ def main() -> int:
                     default=ROOT / "models/ppo/quick300/final.pt",
                     help="the learned policy of the compare run and its open question, "
                          "trained at the compare run's budget (300 field steps)")
-    ap.add_argument("--out", type=Path, default=ROOT / "bench/results/science")
+    ap.add_argument("--out", type=Path, default=ROOT / "results/science")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/experiments/science-cache")
     ap.add_argument("--doc", type=Path, default=ROOT / "docs/science.md")
     ap.add_argument("--figures", type=Path, default=ROOT / "docs/figures",

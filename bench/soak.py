@@ -13,7 +13,7 @@ last ``--window-min`` minutes and their ratio; the restarts ``aoi3d up`` made; t
 ledger per site. The verdict: every process grew less than 10 % and the last window's render
 rate is within 5 % of the first's (exit status 1 otherwise).
 
-    python -m bench.soak --minutes 60        # docs/measurements.md (bench/results/soak.json)
+    python -m bench.soak --minutes 60        # docs/measurements.md (results/soak.json)
     python -m bench.soak --minutes 3 --window-min 1 --out /tmp/soak.json   # a quick look
 """
 

@@ -13,7 +13,7 @@ tradeoff (views against staleness) that the MAT threshold trades.
 
 The datasets are made by ``aoi3d scene generate`` (``--framing rotor --rotor-rpm 6
 --out data/turbine-rotor`` for the experiments' scene, which the experiment commands also
-generate). Writes ``bench/results/staleness-<dataset name>.json``.
+generate). Writes ``results/staleness-<dataset name>.json``.
 """
 
 from __future__ import annotations
@@ -59,7 +59,7 @@ def parser() -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> dict:
     """Every case (``parser()``'s options); writes
-    ``bench/results/staleness-<dataset name>.json`` and returns its document."""
+    ``results/staleness-<dataset name>.json`` and returns its document."""
     configure_process(args.threads)
     ds = open_dataset(args.dataset)
     lpips_fn = load_lpips_fn() if weights_path("alex").exists() else None

@@ -29,7 +29,7 @@ candidate) and the AoI rule's pick (the youngest frame). All of it three times: 
 round, over the first (which single camera), and over the later rounds (which camera to add
 to a selection: the regime of a policy that picks 5–9 cameras).
 
-    python -m bench.state_features          # bench/results/state-features.json, a table
+    python -m bench.state_features          # results/state-features.json, a table
     python -m bench.state_features --json   # the document on stdout
 """
 
@@ -208,7 +208,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--steps", type=int, default=300)
     ap.add_argument("--cache", type=Path, default=ROOT / "runs" / "experiments" / "oracle-cache")
     ap.add_argument("--processes", "--workers", dest="processes", type=int, default=1)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "state-features.json")
+    ap.add_argument("--out", type=Path, default=ROOT / "results" / "state-features.json")
     common.add_json_option(ap)
     return ap
 

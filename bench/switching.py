@@ -16,9 +16,9 @@ decision). Every paired difference is a 95% Student-t interval over the seeds.
 ``python -m bench.switching run`` computes the missing episodes (the experiments' cache,
 seed-major, so an interrupted run has covered every point with its first seeds);
 ``python -m bench.switching report [--json]`` reads whatever the cache holds, uses the seeds
-complete for every point, and writes ``bench/results/switching/switching.json``.
+complete for every point, and writes ``results/switching/switching.json``.
 
-Episodes already computed by ``make science`` (``bench/results/science/``: the delay sweep at
+Episodes already computed by ``make science`` (``results/science/``: the delay sweep at
 exp:20/60/100, Γ 40–160, seeds 20000–20005) are reused: each is re-planned here and its plan
 checked to be the very one the science run keyed (same selections, same seed, dataset root
 aside) before it enters this run's cache.
@@ -47,7 +47,7 @@ from bench import common
 from bench.common import ROOT
 
 TRACES = ROOT.parent / "shared" / "data" / "traces"
-OUT = ROOT / "bench" / "results" / "switching"
+OUT = ROOT / "results" / "switching"
 CACHE = ROOT / "runs" / "experiments" / "cache"
 SEED0 = 20000
 MEANS_MS = (10, 20, 40, 60, 100, 150, 200)
@@ -82,7 +82,7 @@ def seed_science(cfg, ds, cache: ResultCache) -> int:
     lp = lpips_available(cfg)
     main = dataclasses.replace(ds, root=Path(SCIENCE_MAIN_ROOT))
     n = 0
-    for path in glob.glob(str(ROOT / "bench/results/science/*/results.json")):
+    for path in glob.glob(str(ROOT / "results/science/*/results.json")):
         doc = json.loads(Path(path).read_text())
         for ep in doc.get("episodes", []):
             if family_kind(ep.get("policy", "")) != "mat":
@@ -266,7 +266,7 @@ def markdown(result: dict[str, Any]) -> str:
 
 def run(seeds: int = 6) -> dict[str, Any]:
     """``report``: the result document from what the cache holds; writes
-    ``bench/results/switching/{switching.json,report.md}`` and returns the document."""
+    ``results/switching/{switching.json,report.md}`` and returns the document."""
     result = report(seeds)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "switching.json").write_text(json.dumps(result, indent=1, default=str))

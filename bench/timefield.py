@@ -13,8 +13,8 @@ seeds (``bench/science.py``, ``--timefield-seeds``); alone:
     python -m bench.timefield --science --processes 2   # make science's seeds, its files only
 
 ``--science`` runs it as ``make science`` does (seeds 20000–20007, its cache, into
-``bench/results/science/timefield``) and puts the verdicts, numbers and section into
-``bench/results/science/claims.json`` and ``docs/science.md`` (replacing its own part, the
+``results/science/timefield``) and puts the verdicts, numbers and section into
+``results/science/claims.json`` and ``docs/science.md`` (replacing its own part, the
 rest as ``make science`` last wrote it), without re-running the other claims.
 
 Cost: 6 arms × 6 Γ × 2 links × S seeds × 4 scored decisions of 16–100 steps: with 8 seeds
@@ -228,7 +228,7 @@ def parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed-offset", type=int, default=10,
                     help="first seed (default 10: development seeds)")
     ap.add_argument("--processes", "--workers", dest="processes", type=int, default=None)
-    ap.add_argument("--out", type=Path, default=ROOT / "bench/results/timefield")
+    ap.add_argument("--out", type=Path, default=ROOT / "results/timefield")
     ap.add_argument("--cache", type=Path, default=ROOT / "runs/experiments/timefield-cache")
     ap.add_argument("--dataset", type=Path, default=ROOT / "data/turbine-rotor")
     ap.add_argument("--cost-repeats", type=int, default=6,
@@ -245,7 +245,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     ``--json``); with ``--science`` into make science's outputs. Returns its document."""
     if args.science:
         args.seeds, args.seed_offset = 8, 20000
-        args.out = ROOT / "bench/results/science/timefield"
+        args.out = ROOT / "results/science/timefield"
         args.cache = ROOT / "runs/experiments/science-cache"
     exe = str(Path(sys.executable).with_name("aoi3d"))
     if not Path(exe).exists():

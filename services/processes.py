@@ -89,7 +89,7 @@ def auto_workers(cores: int | None = None) -> int:
     process's, ``os.sched_getaffinity``): every core up to 2, one core left to the rest of the
     pipeline beyond. A worker runs one torch thread and keeps its core busy while it has a
     job; the router, the five services and the console took 0.2 cores together at time scale
-    0.1 (bench/results/scale.json, ``cores_by_process``), about 3× that at 0.3. On 2 cores
+    0.1 (results/scale.json, ``cores_by_process``), about 3× that at 0.3. On 2 cores
     two workers beside them rendered 3.29 of 3.33 decisions/s where one rendered 2.01, so
     both cores go to workers there; from 3 cores on, a core is kept for the services, whose
     share grows with the renders they score and dispatch (docs/performance.md, "Streaming

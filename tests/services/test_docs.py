@@ -20,8 +20,8 @@ PAGES = {"README.md": README, **{f"docs/{k}": v for k, v in DOCS.items()}}
 PORTS = {8101: "camera", 8102: "network", 8103: "scheduler", 8104: "dispatcher", 8105: "metrics"}
 CURL = re.compile(r"curl(?: -X (\w+))?[^\n]*?localhost:(\d+)(/[\w./]*)")
 #: Pages whose numbers come from result files: measurements.md (bench/docs.py, from
-#: bench/results) and science.md (bench/science.py, `make science`); and the hand-written
-#: pages that report the runs kept outside bench/results (development seeds, the oracle, the
+#: results/) and science.md (bench/science.py, `make science`); and the hand-written
+#: pages that report the runs kept outside results/ (development seeds, the oracle, the
 #: replay of a 39 MB recording).
 NUMBER_SOURCES = ("measurements.md", "science.md", "ppo.md", "experiments.md", "recording.md")
 #: Overview pages, which quote numbers and must quote them as their source pages have them.

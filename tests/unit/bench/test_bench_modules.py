@@ -12,8 +12,8 @@ NOT_BENCHMARKS = {
     "__init__": "the package",
     "common": "what the benchmarks share (start and stop the pipeline, write JSON)",
     "ports": "the benches' fixed ports (a table)",
-    "docs": "renders bench/results into docs/measurements.md; it measures nothing",
-    "science": "make science: its document is bench/results/science/claims.json, its page "
+    "docs": "renders results/ into docs/measurements.md; it measures nothing",
+    "science": "make science: its document is results/science/claims.json, its page "
                "docs/science.md, its exit status the claims' verdict",
     "science_display": "a part of make science (python -m bench.science --only display)",
     "science_twin": "a part of make science (python -m bench.science --only twin)",

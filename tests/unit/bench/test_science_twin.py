@@ -52,7 +52,7 @@ def test_the_verdict_holds_only_for_the_same_best_gamma_within_the_goal(tmp_path
     row = slow["rows"][0]
     assert row["live_side"] == {"rendered_fraction": 0.5, "display_lag_ms": 40}
     assert row["twin_rendered_fraction"] == 0.5 and slow["twin_seeds"] == 4
-    text = "\n".join(science_twin.render_lines(section, "bench/results/science"))
+    text = "\n".join(science_twin.render_lines(section, "results/science"))
     assert "### Time scale 0.3" in text and "### Time scale 1" in text
     assert "25 steps 110–140 ms (1–18 frames), 100 steps 400 ms" in text
     assert "| mat:70 | 24.50 ± 0.10 (n 5) | 24.50 ± 0.10 | +0.00 | 50% / 50% | 40 / 38 |" in text

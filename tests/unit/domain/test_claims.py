@@ -222,7 +222,7 @@ def test_the_adaptive_question_reports_g_and_the_oracle_either_way() -> None:
     assert not claims.adaptive_beats_best_rule(doc).holds
 
 
-SCIENCE = Path(__file__).resolve().parents[3] / "bench/results/science"
+SCIENCE = Path(__file__).resolve().parents[3] / "results/science"
 
 
 @pytest.mark.parametrize("name, ordered", [("tradeoff", True), ("delay", True),

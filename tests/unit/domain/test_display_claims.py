@@ -67,7 +67,7 @@ def test_the_science_section_tables_the_question_with_its_header_first() -> None
                "grid": v, "runs": [{"command": "aoi3d experiment compare --out "
                                     "/x/science/display/grid --policy all@25", "wall_s": 1.0,
                                     "load_at_start": 2.0, "load_at_end": 2.5}]}
-    lines = render_lines(section, "bench/results/science")
+    lines = render_lines(section, "results/science")
     at = next(i for i, line in enumerate(lines) if line.startswith(f"| {v['statement']}?"))
     assert lines[at - 2] == "| question | answer | evidence |" and "**no**" in lines[at]
     assert any("| fresh50: fifty (`--steps-per-epoch 50`) | a claim | **holds** |" in line

@@ -1,4 +1,4 @@
-"""docs/measurements.md is generated from bench/results by bench/docs.py (`make docs`), never
+"""docs/measurements.md is generated from results/ by bench/docs.py (`make docs`), never
 edited by hand: the committed page equals its regeneration, every result file is reported
 somewhere, a changed result changes the page, and every command it prints names a bench
 script or make target that exists."""
@@ -26,7 +26,7 @@ def test_committed_pages_equal_their_regeneration(docs, tmp_path: Path) -> None:
     for name in docs.pages():
         committed = (ROOT / "docs" / name).read_text()
         assert (tmp_path / name).read_text() == committed, (
-            f"docs/{name} differs from what bench/results gives: run `make docs` "
+            f"docs/{name} differs from what results/ gives: run `make docs` "
             "(and do not edit the page by hand)")
     assert docs.main(["--check"]) == 0
 
@@ -65,5 +65,6 @@ def test_every_command_names_what_exists(docs) -> None:
         assert (ROOT / script).exists(), script
     for target in set(re.findall(r"make ([a-z][\w-]*)", page)):
         assert re.search(rf"^{target}:", makefile, re.M), f"make {target}"
-    for results in re.findall(r"--out (bench/results/[\w./-]+)", page):
+    assert "--out bench/results/" not in page, "the results moved to results/"
+    for results in re.findall(r"--out (results/[\w./-]+)", page):
         assert (ROOT / results).exists(), results
