@@ -136,17 +136,13 @@ def sweep(
     specs, bodies, canon, delay = _checked(policies, delay, site)
     fields = _checked_backends(backends)
     from aoi3d_cli.livehttp import LiveSession
-    from aoi3d_cli.pipeline import Pipeline
-    from services.kit.ports import PortBlock
 
     started = time.monotonic()
     docs: dict[str, dict[str, Any]] = {}
     settings = {"settle_s": settle_s, "measure_s": measure_s, "repeats": repeats,
                 "reset_each": reset_each, "port_offset": port_offset, "site": site,
                 "sim_pool": sim_pool}
-    pipe = Pipeline(PortBlock(port_offset, zenoh_port), host=url_base, site=site,
-                    timeout_s=timeout_s)
-    with LiveSession(pipe, console) as session:
+    with LiveSession.on(console, url_base, port_offset, zenoh_port, site, timeout_s) as session:
         if up:
             session.start_pipeline(time_scale, f"live-sweep-{os.getpid()}",
                                    ["--dataset", str(dataset), "--workers", str(workers)])

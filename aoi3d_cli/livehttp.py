@@ -22,6 +22,7 @@ from rich.markup import escape
 
 from aoi3d.live import Measurement, render_latency_s
 from aoi3d_cli.pipeline import Pipeline, PipelineError, wait_until
+from services.kit.ports import PortBlock
 
 LiveError = PipelineError
 """The pipeline did not answer as expected (:class:`aoi3d_cli.pipeline.PipelineError`)."""
@@ -85,6 +86,13 @@ class LiveSession:
         self.console = console
         self.proc: subprocess.Popen | None = None
         self.previous_delay: str | None = None
+
+    @classmethod
+    def on(cls, console: Console, host: str, port_offset: int, zenoh_port: int,
+           site: str | None, timeout_s: float) -> LiveSession:
+        """A session on the pipeline at ``host`` on these ports (``site``: the one measured)."""
+        return cls(Pipeline(PortBlock(port_offset, zenoh_port), host=host, site=site,
+                            timeout_s=timeout_s), console)
 
     def __enter__(self) -> LiveSession:
         return self
