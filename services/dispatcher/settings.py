@@ -8,9 +8,6 @@ that maps a backend name to its config; ``PUT /backend`` switches it at run time
 
 from __future__ import annotations
 
-import os
-from collections.abc import Mapping
-
 from pydantic import Field, field_validator
 from pydantic_settings import (
     BaseSettings,
@@ -26,11 +23,6 @@ from services.kit.settings import ServiceSettings
 
 OLD_PREFIX = "AOI3D_TRAINER_"
 """The settings' prefix before the service was renamed (read as an alias for one release)."""
-
-
-def deprecated_names(environ: Mapping[str, str] = os.environ) -> list[str]:
-    """The old-prefix variables set in ``environ``: each is read, and named in a warning."""
-    return sorted(k for k in environ if k.upper().startswith(OLD_PREFIX))
 
 
 class Settings(ServiceSettings):

@@ -480,7 +480,8 @@ def test_the_old_trainer_names_are_read_for_one_release_and_named_in_a_warning(
     start logs one deprecation line naming each old variable it read."""
     import importlib
 
-    from services.dispatcher.settings import deprecated_names
+    from services.dispatcher.settings import OLD_PREFIX
+    from services.kit.renamed import renamed_variables
 
     monkeypatch.setenv("AOI3D_TRAINER_RENDER_STEPS", "7")
     monkeypatch.setenv("AOI3D_TRAINER_COLD_STEPS", "40")
@@ -491,11 +492,12 @@ def test_the_old_trainer_names_are_read_for_one_release_and_named_in_a_warning(
     with pytest.raises(ValidationError, match="seed"):
         Settings()
     monkeypatch.delenv("AOI3D_TRAINER_SEED")
-    assert deprecated_names() == ["AOI3D_TRAINER_COLD_STEPS", "AOI3D_TRAINER_RENDER_STEPS"]
+    assert list(renamed_variables(OLD_PREFIX, "AOI3D_DISPATCHER_")) == [
+        "AOI3D_TRAINER_COLD_STEPS", "AOI3D_TRAINER_RENDER_STEPS"]
     main = importlib.import_module("services.dispatcher.__main__")
     with caplog.at_level("WARNING"):
         main._warn_old_names(Settings())
     assert [r.getMessage() for r in caplog.records] == [
         "deprecated: AOI3D_TRAINER_COLD_STEPS, AOI3D_TRAINER_RENDER_STEPS read as "
-        "AOI3D_DISPATCHER_COLD_STEPS, AOI3D_DISPATCHER_RENDER_STEPS; the AOI3D_TRAINER_ names "
-        "go in the next release"]
+        "AOI3D_DISPATCHER_COLD_STEPS, AOI3D_DISPATCHER_RENDER_STEPS; the old names go in the "
+        "next release"]

@@ -156,3 +156,24 @@ def test_delivered_frames_are_kept_only_while_a_browser_is_connected(viewer) -> 
     worker._on_client_gone(second)
     bus.publish(KEYS.edge_frame(1), frame(1, 400.0))
     assert site.frame_ms[1] == 300.0
+
+
+def test_the_old_dispatcher_url_name_is_read_and_named_in_one_deprecation_line(
+        monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture) -> None:
+    import importlib
+
+    monkeypatch.delenv("AOI3D_VIEWER_DISPATCHER_URL", raising=False)
+    monkeypatch.setenv("AOI3D_VIEWER_TRAINER_URL", "http://edge:9104")
+    assert Settings().dispatcher_url == "http://edge:9104"
+    main = importlib.import_module("services.viewer.__main__")
+    with caplog.at_level("WARNING"):
+        main._warn_old_names(Settings())
+    assert [r.getMessage() for r in caplog.records] == [
+        "deprecated: AOI3D_VIEWER_TRAINER_URL read as AOI3D_VIEWER_DISPATCHER_URL; the old "
+        "names go in the next release"]
+    monkeypatch.setenv("AOI3D_VIEWER_DISPATCHER_URL", "http://new:8104")  # the new name wins
+    assert Settings().dispatcher_url == "http://new:8104"
+    caplog.clear()
+    monkeypatch.delenv("AOI3D_VIEWER_TRAINER_URL")
+    main._warn_old_names(Settings())
+    assert not caplog.records
