@@ -157,7 +157,7 @@ class ExperimentRun:
             "seed_offset": self.seed_offset,
             "seed_list": self.seed_list,
             "processes": self.processes if self.ray_address is None else None,
-            "threads_per_worker": self.threads,
+            "threads_per_process": self.threads,
             "ray_address": self.ray_address,
             "code_version": code_version(),
             "machine": machine(),
